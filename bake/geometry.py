@@ -1,0 +1,41 @@
+"""Directions in the local shading frame: z is the normal, wi points away from the surface."""
+import numpy as np
+
+# Rec. 709 / sRGB luminance weights (what Mitsuba's luminance() uses for RGB).
+LUMINANCE = np.array([0.212671, 0.715160, 0.072169])
+
+
+def luminance(rgb):
+    return np.asarray(rgb) @ LUMINANCE
+
+
+def spherical_dir(theta, phi):
+    theta, phi = np.broadcast_arrays(np.asarray(theta, float), np.asarray(phi, float))
+    s = np.sin(theta)
+    return np.stack([s * np.cos(phi), s * np.sin(phi), np.cos(theta)], axis=-1)
+
+
+def theta_phi(w):
+    """Elevation in [0, pi] and azimuth in (-pi, pi]; atan2 keeps precision near the pole."""
+    w = np.asarray(w, float)
+    return np.arctan2(np.hypot(w[..., 0], w[..., 1]), w[..., 2]), np.arctan2(w[..., 1], w[..., 0])
+
+
+def rotate_z(w, angle):
+    """Rotate directions about the normal by `angle` (broadcast per row)."""
+    w = np.asarray(w, float)
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([c * w[..., 0] - s * w[..., 1], s * w[..., 0] + c * w[..., 1], w[..., 2]], axis=-1)
+
+
+def reflect(wi, m):
+    return 2.0 * np.sum(wi * m, axis=-1, keepdims=True) * m - wi
+
+
+def normalize(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def incident(theta_i_deg, phi_i=0.0):
+    """The incident direction for an elevation in degrees (the usual way tests name wi)."""
+    return spherical_dir(np.radians(theta_i_deg), phi_i)
