@@ -1,0 +1,209 @@
+"""The ideal sampler: f·cos tabulated finely per incident direction and sampled exactly.
+
+It is the "tabulation limit" every learned sampler is compared against, and a fast
+exact source of training samples. For each distinct wi it tabulates the target
+density max(lum f, 0)·cos(theta_o) over the half vector m, on a grid in the unit square
+u = (sqrt(2 theta_m / pi), (phi_m + pi) / 2 pi) (the RGL parameterization: the sqrt map
+puts resolution near the normal, where every microfacet lobe lives, at any theta_i).
+The density is piecewise constant in u, so sample() is a piecewise-linear bijection of
+[0,1)² and pdf() is its exact density:
+
+    pdf_omega(wo) = p_u(u) / |d omega_o / d u|,  |d omega_o / d u| = 4 (wi·m) sin(theta_m) pi u1 2 pi
+
+Mass of a cell whose half vectors partly reflect below the horizon is spread over the
+whole cell, so a small fraction of samples can land below the surface: those come back
+with pdf 0 (lost, never re-weighted), and pdf() integrates to 1 minus that fraction.
+"""
+import numpy as np
+
+from .geometry import luminance, normalize, reflect, rotate_z, theta_phi
+from .materials.base import as_dirs
+
+HALF_PI, TWO_PI = 0.5 * np.pi, 2.0 * np.pi
+
+
+def _half_vector(u):
+    theta = HALF_PI * u[..., 0] ** 2
+    phi = TWO_PI * u[..., 1] - np.pi
+    s = np.sin(theta)
+    return np.stack([s * np.cos(phi), s * np.sin(phi), np.cos(theta)], axis=-1)
+
+
+def _u_of_half_vector(m):
+    theta, phi = theta_phi(m)
+    u1 = np.sqrt(np.clip(theta / HALF_PI, 0.0, 1.0))
+    u2 = (phi + np.pi) / TWO_PI
+    return np.stack([u1, u2 - np.floor(u2)], axis=-1)
+
+
+def _dwo_du(wi, m, u1):
+    """Solid angle of wo per unit area of u (zero where the reflection is invalid)."""
+    cos_im = np.sum(wi * m, axis=-1)
+    theta_m = HALF_PI * u1 * u1
+    return 4.0 * np.maximum(cos_im, 0.0) * np.sin(theta_m) * np.pi * u1 * TWO_PI
+
+
+class Table:
+    """One wi's tabulated density: cell masses over the u grid, with their CDFs."""
+
+    def __init__(self, material, wi, resolution, supersample):
+        n1, n2 = resolution, 2 * resolution
+        s = supersample
+        # Stratified points inside each cell: (n1*s) x (n2*s) sub-cell centres.
+        g1 = (np.arange(n1 * s) + 0.5) / (n1 * s)
+        g2 = (np.arange(n2 * s) + 0.5) / (n2 * s)
+        self.wi = wi
+        mass = np.zeros((n1, n2))
+        rgb = np.zeros((n1, n2, 3))
+        rows_per_chunk = max(1, (1 << 19) // (n2 * s * s))
+        for r0 in range(0, n1, rows_per_chunk):
+            r1 = min(n1, r0 + rows_per_chunk)
+            u = np.stack(np.meshgrid(g1[r0 * s:r1 * s], g2, indexing="ij"), axis=-1).reshape(-1, 2)
+            m = _half_vector(u)
+            wo = reflect(wi[None, :], m)
+            value = material.eval(wi, wo)
+            jac = _dwo_du(wi[None, :], m, u[:, 0]) * (wo[:, 2] > 0)
+            cos_o = np.maximum(wo[:, 2], 0.0)
+            dens = np.maximum(luminance(value), 0.0) * cos_o * jac
+            rows = r1 - r0
+            mass[r0:r1] = dens.reshape(rows, s, n2, s).mean(axis=(1, 3))
+            rgb[r0:r1] = (value * (cos_o * jac)[:, None]).reshape(rows, s, n2, s, 3).mean(axis=(1, 3))
+        cell_area = 1.0 / (n1 * n2)
+        self.albedo_rgb = rgb.sum(axis=(0, 1)) * cell_area
+        self.total = mass.sum() * cell_area
+        self.shape = (n1, n2)
+        if not self.total > 0.0:
+            # Black for this wi: nothing to sample; pdf() is 0 everywhere.
+            self.density = np.zeros((n1, n2))
+            return
+        self.density = mass / (mass.sum() * cell_area)       # p_u per cell, integrates to 1
+        row_mass = mass.sum(axis=1)
+        self.row_cdf = np.concatenate([[0.0], np.cumsum(row_mass)]) / row_mass.sum()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cond = np.cumsum(mass, axis=1) / row_mass[:, None]
+        cond = np.where(row_mass[:, None] > 0, cond, (np.arange(1, n2 + 1) / n2)[None, :])
+        cond = np.concatenate([np.zeros((n1, 1)), cond], axis=1)
+        cond[:, -1] = 1.0
+        # Row index + conditional CDF is one globally increasing array: one searchsorted for all rows.
+        self.flat_cdf = (np.arange(n1)[:, None] + cond).ravel()
+
+    def sample_u(self, u):
+        """Map uniform u to the tabulated density in the unit square (piecewise linear, bijective)."""
+        n1, n2 = self.shape
+        row = np.clip(np.searchsorted(self.row_cdf, u[:, 0], side="right") - 1, 0, n1 - 1)
+        lo, hi = self.row_cdf[row], self.row_cdf[row + 1]
+        t1 = np.clip((u[:, 0] - lo) / np.where(hi > lo, hi - lo, 1.0), 0.0, 1.0)
+        key = row + u[:, 1]
+        k = np.clip(np.searchsorted(self.flat_cdf, key, side="right") - 1, 0, self.flat_cdf.size - 2)
+        col = np.clip(k - row * (n2 + 1), 0, n2 - 1)
+        c_lo = self.flat_cdf[row * (n2 + 1) + col] - row
+        c_hi = self.flat_cdf[row * (n2 + 1) + col + 1] - row
+        t2 = np.clip((u[:, 1] - c_lo) / np.where(c_hi > c_lo, c_hi - c_lo, 1.0), 0.0, 1.0)
+        return np.stack([(row + t1) / n1, (col + t2) / n2], axis=-1)
+
+    def density_u(self, v):
+        n1, n2 = self.shape
+        i = np.clip((v[:, 0] * n1).astype(np.int64), 0, n1 - 1)
+        j = np.clip((v[:, 1] * n2).astype(np.int64), 0, n2 - 1)
+        return self.density[i, j]
+
+
+class IdealSampler:
+    """Exact sampling of the tabulated target, one table per distinct (canonical) wi."""
+
+    name = "ideal"
+
+    def __init__(self, material, resolution=256, supersample=2, max_tables=512):
+        self.material, self.resolution, self.supersample = material, resolution, supersample
+        self.max_tables = max_tables
+        self._tables = {}
+
+    def _canonical(self, wi):
+        """Isotropic materials: rotate wi to phi_i = 0 (the returned angle undoes it)."""
+        if not self.material.isotropic:
+            return wi, np.zeros(len(wi))
+        theta_i, phi_i = theta_phi(wi)
+        return np.stack([np.sin(theta_i), np.zeros_like(theta_i), np.cos(theta_i)], axis=-1), phi_i
+
+    def table(self, wi):
+        key = tuple(np.round(wi, 12))
+        tab = self._tables.get(key)
+        if tab is None:
+            if len(self._tables) >= self.max_tables:
+                self._tables.pop(next(iter(self._tables)))
+            tab = self._tables[key] = Table(self.material, np.asarray(key, float), self.resolution,
+                                            self.supersample)
+        return tab
+
+    def _groups(self, wi):
+        wi = np.round(wi, 12)
+        if np.all(wi == wi[0]):        # the common case: one incident direction
+            yield self.table(wi[0]), slice(None)
+            return
+        keys, inverse = np.unique(wi, axis=0, return_inverse=True)
+        for k, key in enumerate(keys):
+            yield self.table(key), np.flatnonzero(inverse.ravel() == k)
+
+    def sample(self, wi, u):
+        u = np.atleast_2d(np.asarray(u, float))
+        wi, _ = as_dirs(wi, np.zeros((len(u), 3)))
+        cwi, phi_i = self._canonical(wi)
+        wo = np.zeros((len(u), 3))
+        pdf = np.zeros(len(u))
+        for tab, idx in self._groups(cwi):
+            if tab.total <= 0.0:
+                wo[idx, 2] = -1.0      # nothing to sample: an invalid direction with pdf 0
+                continue
+            v = tab.sample_u(u[idx])
+            m = _half_vector(v)
+            w = reflect(tab.wi[None, :], m)
+            jac = _dwo_du(tab.wi[None, :], m, v[:, 0])
+            ok = (w[:, 2] > 0) & (jac > 0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                pdf[idx] = np.where(ok, tab.density_u(v) / jac, 0.0)
+            wo[idx] = w
+        return rotate_z(wo, phi_i), pdf
+
+    def pdf(self, wi, wo):
+        wi, wo = as_dirs(wi, wo)
+        cwi, phi_i = self._canonical(wi)
+        cwo = rotate_z(wo, -phi_i)
+        out = np.zeros(len(wo))
+        for tab, idx in self._groups(cwi):
+            if tab.total <= 0.0:
+                continue
+            w = cwo[idx]
+            m = normalize(tab.wi[None, :] + w)
+            v = _u_of_half_vector(m)
+            jac = _dwo_du(tab.wi[None, :], m, v[:, 0])
+            ok = (w[:, 2] > 0) & (jac > 0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                out[idx] = np.where(ok, tab.density_u(v) / jac, 0.0)
+        return out
+
+    def albedo(self, wi):
+        """Directional albedo (RGB) by quadrature over the table: integral of f·cos over wo."""
+        wi, _ = as_dirs(wi, np.zeros((1, 3)))
+        cwi, _ = self._canonical(wi[:1])
+        return self.table(cwi[0]).albedo_rgb
+
+
+def training_pairs(material, domain, n, rng, theta_i, sampler=None):
+    """n pairs (wi, x1): wi drawn from the given elevations (radians, isotropic: phi_i = 0),
+    x1 = domain coordinates of wo drawn exactly from the ideal sampler for that wi.
+    Samples lost below the horizon are redrawn, so x1 follows the normalized target."""
+    sampler = sampler or IdealSampler(material)
+    theta_i = np.asarray(theta_i, float)
+    wi_out, x_out, have = [], [], 0
+    while have < n:
+        m = n - have
+        t = theta_i[rng.integers(0, len(theta_i), m)]
+        phi = np.zeros(m) if material.isotropic else rng.uniform(-np.pi, np.pi, m)
+        s = np.sin(t)
+        wi = np.stack([s * np.cos(phi), s * np.sin(phi), np.cos(t)], axis=-1)
+        wo, pdf = sampler.sample(wi, rng.random((m, 2)))
+        ok = pdf > 0
+        wi_out.append(wi[ok])
+        x_out.append(domain.from_dir(wo[ok]))
+        have += int(ok.sum())
+    return np.concatenate(wi_out)[:n], np.concatenate(x_out)[:n]

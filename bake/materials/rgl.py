@@ -1,0 +1,505 @@
+"""RGL measured BSDFs (Dupuy & Jakob 2018) read from `.bsdf` tensor files, with numpy only.
+
+`read_tensor_file(path)` parses the file strictly (see DESIGN.md section 4 for the layout)
+and, by default, checks that it holds a complete RGB RGL material.
+`RGLMaterial(path).eval(wi, wo)` reproduces Mitsuba 3's `measured` plugin (RGB variant)
+divided by cos(theta_o); see the class docstring for the algorithm.
+"""
+import hashlib
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FlowBSDFError
+from .base import Material, as_dirs
+
+MAGIC = b"tensor_file\0"
+VERSION = (1, 0)
+# dtype code -> numpy dtype (little-endian)
+DTYPES = {1: "u1", 2: "i1", 3: "<u2", 4: "<i2", 5: "<u4", 6: "<i4", 7: "<u8", 8: "<i8",
+          9: "<f2", 10: "<f4", 11: "<f8"}
+MAX_NDIM = 8
+MAX_ELEMENTS = 2 ** 31
+# Fields an RGB RGL material must hold (what Mitsuba's `measured` plugin reads, less the
+# free-text description, which eval does not need).
+RGL_FIELDS = ("theta_i", "phi_i", "ndf", "sigma", "vndf", "luminance", "rgb", "jacobian")
+CHUNK = 1 << 14  # eval works in chunks of this many pairs (keeps temporaries in cache)
+
+
+def read_tensor_file(path, rgl=True):
+    """Parse an RGL tensor file into {field name: read-only numpy array}.
+
+    Every malformed input raises FlowBSDFError(problem, path). With `rgl=True` (the
+    default) the fields must also form a valid RGB RGL material (names, dtypes, shapes
+    consistent with each other, increasing angle tables, normalizable distributions).
+    """
+    path = Path(path)
+    try:
+        buf = path.read_bytes()
+    except OSError as e:
+        raise FlowBSDFError(f"cannot read file: {e.strerror or e}", path) from None
+    size = len(buf)
+    if size == 0:
+        raise FlowBSDFError("empty file (0 bytes); expected an RGL tensor file", path)
+    if buf[:len(MAGIC)] != MAGIC[:min(size, len(MAGIC))]:
+        raise FlowBSDFError(
+            f"not an RGL tensor file: bad magic {buf[:len(MAGIC)]!r} (expected {MAGIC!r})", path)
+    if size < 18:
+        raise FlowBSDFError(f"truncated header: the file has only {size} bytes", path)
+    version = (buf[12], buf[13])
+    if version != VERSION:
+        raise FlowBSDFError(
+            f"unsupported tensor file version {version[0]}.{version[1]} (this reader knows 1.0)", path)
+    (n_fields,) = struct.unpack_from("<I", buf, 14)
+    pos = 18
+    # Each field entry needs at least 2 + 2 + 1 + 8 = 13 bytes (plus its name and shape).
+    if n_fields * 13 > size - pos:
+        raise FlowBSDFError(
+            f"truncated field table: the header announces {n_fields} fields, more than "
+            f"{size - pos} remaining bytes can describe", path)
+
+    def take(fmt, what):
+        nonlocal pos
+        need = struct.calcsize(fmt)
+        if pos + need > size:
+            raise FlowBSDFError(f"truncated field table (file ends inside {what})", path)
+        values = struct.unpack_from(fmt, buf, pos)
+        pos += need
+        return values
+
+    entries = []
+    for k in range(n_fields):
+        (name_len,) = take("<H", f"the name length of field #{k}")
+        if name_len == 0:
+            raise FlowBSDFError(f"field #{k} has an empty name", path)
+        if pos + name_len > size:
+            raise FlowBSDFError(f"truncated field table (file ends inside the name of field #{k})", path)
+        try:
+            name = buf[pos:pos + name_len].decode("utf-8")
+        except UnicodeDecodeError:
+            raise FlowBSDFError(f"field #{k} has a name that is not valid UTF-8", path) from None
+        pos += name_len
+        ndim, code, offset = take("<HBQ", f"the entry of field {name!r}")
+        if ndim > MAX_NDIM:
+            raise FlowBSDFError(f"field {name!r} has an absurd ndim {ndim} (at most {MAX_NDIM})", path)
+        if code not in DTYPES:
+            raise FlowBSDFError(f"field {name!r} has an unknown dtype code {code} (known: 1-11)", path)
+        shape = take(f"<{ndim}Q", f"the shape of field {name!r}") if ndim else ()
+        if any(name == e[0] for e in entries):
+            raise FlowBSDFError(f"field {name!r} appears twice", path)
+        entries.append((name, code, offset, shape))
+    header_end = pos
+
+    fields = {}
+    for name, code, offset, shape in entries:
+        count = 1
+        for s in shape:
+            count *= s  # python ints: no overflow
+        if count > MAX_ELEMENTS:
+            raise FlowBSDFError(
+                f"field {name!r} has an absurd shape {tuple(shape)} ({count} elements, "
+                f"more than 2**31)", path)
+        dtype = np.dtype(DTYPES[code])
+        nbytes = count * dtype.itemsize
+        if offset < header_end:
+            raise FlowBSDFError(
+                f"field {name!r} has its data at offset {offset}, inside the header "
+                f"(which ends at {header_end})", path)
+        if offset + nbytes > size:
+            raise FlowBSDFError(
+                f"truncated data: field {name!r} {tuple(shape)} needs bytes {offset}..{offset + nbytes} "
+                f"but the file ends at {size} (data past end of file)", path)
+        array = np.frombuffer(buf, dtype=dtype, count=count, offset=offset).reshape(shape)
+        if dtype.kind == "f" and count and not np.isfinite(array).all():
+            bad = int(np.count_nonzero(~np.isfinite(array)))
+            raise FlowBSDFError(f"field {name!r} holds {bad} NaN or infinite values", path)
+        fields[name] = array
+    if rgl:
+        _check_rgl(fields, path)
+    return fields
+
+
+def _check_rgl(f, path):
+    """Raise FlowBSDFError unless the fields form an RGB RGL material Mitsuba would load."""
+    missing = [k for k in RGL_FIELDS if k not in f]
+    if "rgb" in missing and "spectra" in f:
+        raise FlowBSDFError(
+            "spectral RGL file (field 'spectra', no 'rgb'): FlowBSDF reads the RGB version of "
+            "the material (the *_rgb.bsdf download)", path)
+    if missing:
+        raise FlowBSDFError(f"missing required field(s) {', '.join(missing)} (not an RGL material?)", path)
+
+    def expect(name, ndim, dtype="float32"):
+        a = f[name]
+        if a.dtype.name != dtype:
+            raise FlowBSDFError(f"field {name!r} has dtype {a.dtype.name}, expected {dtype}", path)
+        if a.ndim != ndim:
+            raise FlowBSDFError(
+                f"inconsistent shape: field {name!r} has shape {a.shape}, expected {ndim} dimensions", path)
+        return a.shape
+
+    (n_theta,) = expect("theta_i", 1)
+    (n_phi,) = expect("phi_i", 1)
+    if n_theta < 1 or n_phi < 1:
+        raise FlowBSDFError("inconsistent shape: theta_i and phi_i must not be empty", path)
+    for name in ("theta_i", "phi_i"):
+        if np.any(np.diff(f[name]) <= 0):
+            raise FlowBSDFError(f"field {name!r} must be strictly increasing, got {f[name].tolist()}", path)
+    for name in ("ndf", "sigma"):
+        shape = expect(name, 2)
+        if min(shape) < 2:
+            raise FlowBSDFError(f"inconsistent shape: field {name!r} {shape} needs at least 2 x 2 entries", path)
+    shape = expect("vndf", 4)
+    if shape[:2] != (n_phi, n_theta) or min(shape[2:]) < 2:
+        raise FlowBSDFError(
+            f"inconsistent shape: vndf {shape} should be ({n_phi}, {n_theta}, >=2, >=2) "
+            f"to match phi_i and theta_i", path)
+    lum = expect("luminance", 4)
+    if lum[:2] != (n_phi, n_theta) or lum[2] != lum[3] or lum[2] < 2:
+        raise FlowBSDFError(
+            f"inconsistent shape: luminance {lum} should be ({n_phi}, {n_theta}, n, n) with n >= 2", path)
+    rgb = expect("rgb", 5)
+    if rgb != (n_phi, n_theta, 3, lum[2], lum[3]):
+        raise FlowBSDFError(
+            f"inconsistent shape: rgb {rgb} should be ({n_phi}, {n_theta}, 3, {lum[2]}, {lum[3]}) "
+            f"to match luminance {lum}", path)
+    if f["jacobian"].dtype != np.uint8 or f["jacobian"].shape != (1,):
+        raise FlowBSDFError(
+            f"field 'jacobian' should be one uint8, got {f['jacobian'].dtype.name} {f['jacobian'].shape}", path)
+    if np.any(f["sigma"] <= 0):
+        raise FlowBSDFError("field 'sigma' (projected area) holds zero or negative values", path)
+    for name in ("vndf", "luminance"):
+        a = f[name].astype(np.float64)
+        # Integral of the bilinear interpolant of every (phi_i, theta_i) slice.
+        total = (a[..., :-1, :-1] + a[..., 1:, :-1] + a[..., :-1, 1:] + a[..., 1:, 1:]).sum((-1, -2))
+        if np.any(total <= 0):
+            bad = np.argwhere(total <= 0)[0]
+            raise FlowBSDFError(
+                f"field {name!r} slice (phi_i #{bad[0]}, theta_i #{bad[1]}) integrates to zero or "
+                f"less: it cannot be normalized", path)
+
+
+def _continuous_warp_table(data):
+    """Per-patch table of a continuous Marginal2D warp, slice by slice.
+
+    data: (S, ny, nx) float32. Returns (S * (ny-1) * (nx-1), 9) float64 rows
+    [v00, v10, v01, v11, cdf(y, x), cdf(y+1, x), cdf_row(y), cdf_row(y+1), marginal(y)]
+    for the patch at (y, x): corner densities, conditional CDF at the patch's left edge on
+    its two rows, the two rows' totals, and the marginal CDF at its lower row. Everything
+    is normalized so that the bilinear interpolant integrates to 1 over the index square,
+    rounding to float32 where Mitsuba stores float32.
+    """
+    data = np.asarray(data, dtype=np.float32)
+    s, ny, nx = data.shape
+    d64 = data.astype(np.float64)
+    cond = np.zeros((s, ny, nx), np.float64)
+    cond[:, :, 1:] = np.cumsum(0.5 * (d64[:, :, :-1] + d64[:, :, 1:]), axis=2)
+    cond = cond.astype(np.float32)
+    rows = cond[:, :, -1].astype(np.float64)
+    marg = np.zeros((s, ny), np.float64)
+    marg[:, 1:] = np.cumsum(0.5 * (rows[:, :-1] + rows[:, 1:]), axis=1)
+    marg = marg.astype(np.float32)
+    norm = (np.float32(1) / marg[:, -1])[:, None]
+    cond = (cond * norm[:, :, None]).astype(np.float64)
+    marg = (marg * norm).astype(np.float64)
+    dn = (data * norm[:, :, None]).astype(np.float64)
+    t = np.empty((s, ny - 1, nx - 1, 9))
+    t[..., 0] = dn[:, :-1, :-1]
+    t[..., 1] = dn[:, :-1, 1:]
+    t[..., 2] = dn[:, 1:, :-1]
+    t[..., 3] = dn[:, 1:, 1:]
+    t[..., 4] = cond[:, :-1, :-1]
+    t[..., 5] = cond[:, 1:, :-1]
+    t[..., 6] = cond[:, :-1, -1][:, :, None]
+    t[..., 7] = cond[:, 1:, -1][:, :, None]
+    t[..., 8] = marg[:, :-1][:, :, None]
+    return t.reshape(-1, 9)
+
+
+def _corner_table(data):
+    """(S, ny, nx, C) -> (S * (ny-1) * (nx-1), 4 * C): corners v00, v10, v01, v11 of every patch."""
+    d = np.asarray(data, dtype=np.float64)
+    s, ny, nx, c = d.shape
+    t = np.stack([d[:, :-1, :-1], d[:, :-1, 1:], d[:, 1:, :-1], d[:, 1:, 1:]], axis=3)
+    return np.ascontiguousarray(t.reshape(-1, 4 * c))
+
+
+def _patch(u, n):
+    """Clamp u to [0,1], find its patch among n-1 and the position in it (Mitsuba's rule)."""
+    x = np.minimum(np.maximum(u, 0.0), 1.0) * (n - 1)
+    i = np.minimum(x.astype(np.intp), n - 2)
+    return i, x - i
+
+
+def _bilinear_weights(fx, fy):
+    """(N, 4) weights of the corners v00, v10, v01, v11."""
+    gx, gy = 1.0 - fx, 1.0 - fy
+    return np.stack([gx * gy, fx * gy, gx * fy, fx * fy], axis=1)
+
+
+def _interval(values, x):
+    """Mitsuba's find_interval: the largest i in [0, n-2] with values[i] < x."""
+    if len(values) > 16:
+        return np.clip(np.searchsorted(values, x, side="left") - 1, 0, len(values) - 2)
+    i = np.zeros(np.shape(x), np.intp)
+    for v in values[1:-1]:
+        i += x > v
+    return i
+
+
+def _param_weights(values, x):
+    """Linear interpolation in a parameter table: [(index, weight), ...] (Mitsuba's rule)."""
+    if len(values) == 1:
+        return [(0, 1.0)]
+    i = _interval(values, x)
+    p0, p1 = np.take(values, i), np.take(values, i + 1)
+    w1 = np.minimum(np.maximum((x - p0) / (p1 - p0), 0.0), 1.0)
+    return [(i, 1.0 - w1), (i + 1, w1)]
+
+
+def _elevation(x, y, z):
+    """Polar angle of unit vectors, accurate near the pole (as Mitsuba computes it)."""
+    dist = np.sqrt(x * x + y * y + (z - 1.0) ** 2)
+    return 2.0 * np.arcsin(np.minimum(0.5 * dist, 1.0))
+
+
+def _theta2u(theta):
+    return np.sqrt(theta * (2.0 / np.pi))
+
+
+def _phi2u(phi):
+    return (phi + np.pi) * (0.5 / np.pi)
+
+
+def _grid_lookup(grid, ux, uy):
+    """Bilinear, unnormalized lookup of a 2D table at unit-square coordinates
+    (what Mitsuba's Marginal2D<0> eval returns with normalize=false)."""
+    ny, nx = grid.shape
+    px, fx = _patch(ux, nx)
+    py, fy = _patch(uy, ny)
+    flat = grid.ravel()
+    i = py * nx + px
+    gx = 1.0 - fx
+    return ((1.0 - fy) * (gx * np.take(flat, i) + fx * np.take(flat, i + 1))
+            + fy * (gx * np.take(flat, i + nx) + fx * np.take(flat, i + nx + 1)))
+
+
+class RGLMaterial(Material):
+    """An RGL measured BSDF; `eval` matches Mitsuba 3's `measured` plugin (RGB) / cos(theta_o).
+
+    eval(wi, wo), for unit vectors in the local frame:
+      1. zero unless wi.z > 0 and wo.z > 0;
+      2. anisotropic files whose phi_i table covers 1/2 or 1/4 of the circle: mirror wi
+         and wo so that wi lands in the measured range (Mitsuba's "reduction");
+      3. half vector m = normalize(wi + wo); polar angles by the stable 2 asin(|d - z|/2);
+         unit-square coordinates u = (sqrt(2 theta / pi), (phi + pi) / 2 pi), where the
+         azimuth of m is taken relative to phi_i for isotropic files, and wrapped to [0, 1);
+      4. s = vndf.invert(u_m): the inverse of the continuous Marginal2D warp (bilinear
+         density, CDFs integrated exactly), its tables linearly interpolated across
+         (phi_i, theta_i); the per-slice normalizations and CDFs are precomputed;
+      5. rgb = bilinear lookup of the `rgb` table at s, interpolated across (phi_i, theta_i);
+      6. if the file's jacobian flag is set: rgb *= ndf(u_m) / (4 sigma(u_wi)) (bilinear,
+         unnormalized lookups);
+      7. f = rgb / cos(theta_o) (Mitsuba's eval includes the cosine, ours does not).
+    A single incident direction (wi of shape (3,)) takes a faster path that interpolates
+    the tables for that wi once.
+
+    Negative values: the `rgb` tables of 7 of the 10 shared files hold negative entries
+    (down to -0.62 on chm_mint, 21 % of its entries; `luminance` of ilm_solo_m_68 dips to
+    -4e-10). They are not just noise: chm_mint's red channel is negative across its whole
+    specular peak (f about -120 at 30 deg; a saturated mint outside the RGB gamut), while
+    its luminance stays positive. Like Mitsuba, eval returns them as the data says
+    (samplers clamp through `Material.target`).
+
+    Zero rows: at theta_i = 90 deg the `vndf` tables of the shared files are zero for the
+    half-vector azimuths facing away from wi (rows 0-31 and 96-127 of 128). Where the
+    interpolated row of the warp is zero everywhere, the inverse CDF is 0/0 and Mitsuba
+    returns NaN; eval returns 0 there (no microfacets, no reflection). With the shared
+    files this does not arise for wi.z > 0: below 90 deg the neighbouring slice keeps the
+    rows positive, and for wi within 1e-7 rad of grazing (weight 1 on the 90 deg slice)
+    the reachable half vectors (relative azimuth within +-90 deg) avoid the zero rows.
+
+    Isotropic files (one phi_i entry): `sigma` is looked up at the absolute azimuth of wi,
+    as in Mitsuba (the shared files hold two equal rows, so this does not matter). Mitsuba
+    3.9.1 leaves its `m_reduction` member uninitialized for isotropic files: some runs rotate
+    wi and wo by 180 deg when wi.y > 0, which changes only that sigma lookup. We never
+    rotate. Files with two phi_i entries are treated like Mitsuba does (relative azimuth of
+    m, tables interpolated across phi_i) and are not `isotropic`.
+
+    Directions are assumed to be unit vectors (as in Mitsuba); they are not renormalized.
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+        f = read_tensor_file(self.path)
+        self.name = self.path.stem
+        self.description = bytes(f["description"]).decode("utf-8", "replace") \
+            if "description" in f and f["description"].dtype == np.uint8 else ""
+        self.theta_i = f["theta_i"].astype(np.float64)
+        self.phi_i = f["phi_i"].astype(np.float64)
+        n_phi, n_theta = len(self.phi_i), len(self.theta_i)
+        self.isotropic = n_phi == 1
+        # Mitsuba treats up to two phi_i entries as isotropic (azimuth of m relative to wi).
+        self._relative_phi = n_phi <= 2
+        self._reduction = 1
+        if not self._relative_phi:
+            self._reduction = int(np.rint(2 * np.pi / (f["phi_i"][-1] - f["phi_i"][0])))
+        self._jacobian = bool(f["jacobian"][0])
+        self._slices = n_phi * n_theta
+
+        vndf = f["vndf"]
+        self._vndf_shape = vndf.shape[2:]  # (n phi_m, n theta_m)
+        self._vndf = _continuous_warp_table(vndf.reshape(self._slices, *self._vndf_shape))
+        rgb = f["rgb"]
+        self._rgb_shape = rgb.shape[3:]
+        self._rgb = _corner_table(np.moveaxis(rgb.reshape(self._slices, 3, *self._rgb_shape), 1, -1))
+        self._ndf = f["ndf"].astype(np.float64)
+        self._sigma = f["sigma"].astype(np.float64)
+        with open(self.path, "rb") as fh:
+            self._sha256 = hashlib.sha256(fh.read()).hexdigest()
+
+    def fingerprint(self):
+        return self._sha256
+
+    def eval(self, wi, wo):
+        single = np.ndim(wi) == 1
+        wi, wo = as_dirs(wi, wo)
+        n = len(wo)
+        out = np.zeros((n, 3))
+        incident = None
+        if single and n >= 1024:
+            if wi[0, 2] <= 0:
+                return out
+            incident = self._incident(wi[0])
+        for start in range(0, n, CHUNK):
+            sl = slice(start, min(start + CHUNK, n))
+            out[sl] = self._eval_chunk(wi[sl], wo[sl], incident)
+        return out
+
+    def _mirror(self, wix, wiy):
+        """Signs for the x and y components (Mitsuba's symmetry reduction), or None."""
+        if self._reduction < 2:
+            return None
+        sy = np.where(np.signbit(wiy), 1.0, -1.0)
+        sx = np.where(np.signbit(wix), 1.0, -1.0) if self._reduction == 4 else sy
+        return sx, sy
+
+    def _combos(self, phi_i, theta_i):
+        """[(slice index, weight)] over the (phi_i, theta_i) grid (scalars or arrays)."""
+        n_theta = len(self.theta_i)
+        return [(ip * n_theta + it, wp * wt)
+                for ip, wp in _param_weights(self.phi_i, phi_i)
+                for it, wt in _param_weights(self.theta_i, theta_i)]
+
+    def _incident(self, w):
+        """Everything that depends on wi alone, for one wi: interpolated tables."""
+        w = np.array(w, dtype=np.float64)
+        signs = self._mirror(w[0], w[1])
+        if signs is not None:
+            w[0] *= signs[0]
+            w[1] *= signs[1]
+        theta_i = float(_elevation(w[0], w[1], w[2]))
+        phi_i = float(np.arctan2(w[1], w[0]))
+        vndf = self._vndf.reshape(self._slices, -1, 9)
+        rgb = self._rgb.reshape(self._slices, -1, 12)
+        vt = rt = None
+        for s, wt in self._combos(phi_i, theta_i):
+            vt = vndf[s] * wt if vt is None else vt + vndf[s] * wt
+            rt = rgb[s] * wt if rt is None else rt + rgb[s] * wt
+        sigma = float(_grid_lookup(self._sigma, _theta2u(theta_i), _phi2u(phi_i)))
+        return dict(wi=w, signs=signs, theta_i=theta_i, phi_i=phi_i, vndf=vt, rgb=rt, sigma=sigma)
+
+    def _eval_chunk(self, wi, wo, incident):
+        out = np.zeros((len(wo), 3))
+        active = wo[:, 2] > 0
+        if incident is None:
+            active &= wi[:, 2] > 0
+        if not active.all():
+            if not active.any():
+                return out
+            wo = wo[active]
+            if incident is None:
+                wi = wi[active]
+        wox, woy, woz = wo[:, 0], wo[:, 1], wo[:, 2]
+        if incident is None:
+            wix, wiy, wiz = wi[:, 0], wi[:, 1], wi[:, 2]
+            signs = self._mirror(wix, wiy)
+            if signs is not None:
+                wix, wiy = wix * signs[0], wiy * signs[1]
+        else:
+            wix, wiy, wiz = incident["wi"]
+            signs = incident["signs"]
+        if signs is not None:
+            wox, woy = wox * signs[0], woy * signs[1]
+
+        # 3. Half vector and unit-square coordinates.
+        mx, my, mz = wix + wox, wiy + woy, wiz + woz
+        inv = 1.0 / np.sqrt(mx * mx + my * my + mz * mz)
+        mx, my, mz = mx * inv, my * inv, mz * inv
+        if incident is None:
+            theta_i = _elevation(wix, wiy, wiz)
+            phi_i = np.arctan2(wiy, wix)
+        else:
+            theta_i, phi_i = incident["theta_i"], incident["phi_i"]
+        um_x = _theta2u(_elevation(mx, my, mz))
+        phi_m = np.arctan2(my, mx)
+        um_y = _phi2u(phi_m - phi_i if self._relative_phi else phi_m)
+        um_y -= np.floor(um_y)
+
+        # 4. Invert the VNDF warp at u_m.
+        ny, nx = self._vndf_shape
+        px, fx = _patch(um_x, nx)
+        py, fy = _patch(um_y, ny)
+        patch = py * (nx - 1) + px
+        if incident is None:
+            combos = self._combos(phi_i, theta_i)
+            t = self._gather(self._vndf, combos, patch, (nx - 1) * (ny - 1))
+        else:
+            t = np.take(incident["vndf"], patch, axis=0)
+        v00, v10, v01, v11, cc0, cc1, r0, r1, m0 = t.T
+        gy = 1.0 - fy
+        row_total = gy * r0 + fy * r1
+        zero = row_total == 0  # a zero row: 0/0 (see the class docstring)
+        if zero.any():
+            row_total[zero] = 1.0
+        c0 = gy * v00 + fy * v01
+        c1 = gy * v10 + fy * v11
+        sx = (fx * (c0 + 0.5 * fx * (c1 - c0)) + gy * cc0 + fy * cc1) / row_total
+        sy = fy * (r0 + 0.5 * fy * (r1 - r0)) + m0
+
+        # 5. RGB at the warped position.
+        ry, rx = self._rgb_shape
+        qx, hx = _patch(sx, rx)
+        qy, hy = _patch(sy, ry)
+        patch = qy * (rx - 1) + qx
+        if incident is None:
+            g = self._gather(self._rgb, combos, patch, (rx - 1) * (ry - 1))
+        else:
+            g = np.take(incident["rgb"], patch, axis=0)
+        rgb = np.einsum("nk,nkc->nc", _bilinear_weights(hx, hy), g.reshape(-1, 4, 3))
+
+        # 6. NDF / (4 sigma), 7. no cosine.
+        scale = 1.0 / woz
+        if self._jacobian:
+            if incident is None:
+                sigma = _grid_lookup(self._sigma, _theta2u(theta_i), _phi2u(phi_i))
+            else:
+                sigma = incident["sigma"]
+            scale *= _grid_lookup(self._ndf, um_x, um_y) / (4.0 * sigma)
+        if zero.any():
+            scale[zero] = 0.0
+        rgb *= scale[:, None]
+        out[active] = rgb
+        return out
+
+    @staticmethod
+    def _gather(table, combos, patch, npatch):
+        """Rows of a per-slice table at `patch`, interpolated across slices."""
+        acc = None
+        for s, w in combos:
+            rows = np.take(table, s * npatch + patch, axis=0)
+            if not (np.isscalar(w) and w == 1.0):
+                rows *= np.asarray(w)[..., None]
+            acc = rows if acc is None else acc.__iadd__(rows)
+        return acc

@@ -1,0 +1,129 @@
+import math
+
+import numpy as np
+import pytest
+
+from bake.baselines import CosineSampler, GGXSampler, UniformSampler, fit_ggx
+from bake.geometry import incident
+from bake.ideal import IdealSampler
+from bake.materials import open_material
+from bake.metrics import chi2_sf, chi2_test, integrate_bins, relative_variance, sidak_alpha
+
+# One Šidák family for every chi-square test in this file.
+N_TESTS = 16
+
+
+def chi2(sampler, wi, **kw):
+    return chi2_test(sampler, wi, n=200_000, n_tests=N_TESTS, **kw)
+
+
+def test_chi2_sf_known_values():
+    assert chi2_sf(3.841458820694124, 1) == pytest.approx(0.05, rel=1e-9)
+    assert chi2_sf(10.0, 10) == pytest.approx(0.4404932850652124, rel=1e-12)
+    for x in (0.1, 3.0, 40.0, 700.0):       # dof 2 is exponential: sf = exp(-x/2)
+        assert chi2_sf(x, 2) == pytest.approx(math.exp(-x / 2), rel=1e-12)
+    # Large dof, far tail: the Wilson-Hilferty normal approximation is good to ~1%.
+    k, x = 1000, 1200.0
+    z = ((x / k) ** (1 / 3) - (1 - 2 / (9 * k))) / math.sqrt(2 / (9 * k))
+    assert chi2_sf(x, k) == pytest.approx(0.5 * math.erfc(z / math.sqrt(2)), rel=0.02)
+    assert chi2_sf(0.0, 5) == 1.0
+    assert sidak_alpha(0.01, 1) == pytest.approx(0.01)
+    assert sidak_alpha(0.01, 10) == pytest.approx(1 - 0.99 ** 0.1)
+
+
+def test_adaptive_integration_finds_a_narrow_peak():
+    """A normalized Gaussian of width 1e-3 inside one of 8x8 bins: the coarse rule alone
+    misses it; the quadtree must recover its mass to 1e-6."""
+    c, s = np.array([0.3141, 0.7771]), 1e-3
+
+    def density(a, b):
+        return np.exp(-((a - c[0]) ** 2 + (b - c[1]) ** 2) / (2 * s * s)) / (2 * np.pi * s * s)
+
+    bins = integrate_bins(density, (8, 8), tol=1e-9)
+    assert bins.sum() == pytest.approx(1.0, abs=1e-6)
+    assert bins[2, 6] == pytest.approx(1.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("theta", [0, 45, 89])
+def test_correct_samplers_pass(theta):
+    wi = incident(theta, 0.7)
+    for sampler in [UniformSampler(), CosineSampler(), GGXSampler(0.01), GGXSampler(0.005, 0.25),
+                    GGXSampler(0.3, diffuse=0.4)]:
+        r = chi2(sampler, wi)
+        assert r.passed, (sampler, theta, r)
+
+
+class WrongPdf:
+    """Samples one sampler, claims another's pdf."""
+
+    def __init__(self, sampling, claimed):
+        self.sampling, self.claimed = sampling, claimed
+
+    def sample(self, wi, u):
+        wo, _ = self.sampling.sample(wi, u)
+        return wo, self.claimed.pdf(wi, wo)
+
+    def pdf(self, wi, wo):
+        return self.claimed.pdf(wi, wo)
+
+
+@pytest.mark.parametrize("sampling,claimed", [
+    (CosineSampler(), UniformSampler()),
+    (GGXSampler(0.1), GGXSampler(0.11)),                        # a 10% roughness error
+    (GGXSampler(0.01, 0.2), GGXSampler(0.2, 0.01)),               # axes swapped
+    (GGXSampler(0.2, diffuse=0.3), GGXSampler(0.2, diffuse=0.35)),  # lobe weights off by 5 points
+])
+def test_wrong_samplers_are_rejected(sampling, claimed):
+    r = chi2(WrongPdf(sampling, claimed), incident(40, 0.3))
+    assert not r.passed, r
+
+
+def test_lost_samples_must_be_accounted_for():
+    """A sampler that silently drops 2% of its samples (pdf 0) while its pdf() still
+    integrates to 1 is rejected; honest about the loss (pdf scaled by 0.98), it passes."""
+    class Dropping:
+        def __init__(self, honest):
+            self.honest, self.inner = honest, CosineSampler()
+
+        def sample(self, wi, u):
+            wo, pdf = self.inner.sample(wi, u)
+            return wo, np.where(u[:, 0] < 0.02, 0.0, self.pdf(wi, wo))
+
+        def pdf(self, wi, wo):
+            return self.inner.pdf(wi, wo) * (0.98 if self.honest else 1.0)
+
+    # Dropping by u[0] < 0.02 removes the directions nearest the normal: a real distortion,
+    # so use uniform random dropping instead to isolate the accounting.
+    class RandomDrop(Dropping):
+        def sample(self, wi, u):
+            wo, pdf = self.inner.sample(wi, u)
+            drop = (np.floor(u[:, 1] * 1e6) % 50) == 0
+            return wo, np.where(drop, 0.0, self.pdf(wi, wo))
+
+    assert not chi2(RandomDrop(False), incident(20)).passed
+    assert chi2(RandomDrop(True), incident(20)).passed
+
+
+def test_ideal_sampler_passes_on_a_sharp_lobe():
+    mat = open_material({"kind": "analytic", "model": "ggx", "alpha": 0.005})
+    ideal = IdealSampler(mat)
+    for theta in (0, 75, 89):
+        r = chi2(ideal, incident(theta))
+        assert r.passed and r.dof > 50, (theta, r)
+
+
+def test_relative_variance_of_exact_sampling_is_zero():
+    mat = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})
+    rv, albedo = relative_variance(mat, CosineSampler(), incident(30), n=10000)
+    assert rv == pytest.approx(0.0, abs=1e-20) and albedo == pytest.approx(0.5)
+    rv_uniform, _ = relative_variance(mat, UniformSampler(), incident(30), n=200_000)
+    assert rv_uniform == pytest.approx(1 / 3, rel=0.02)     # Var[2 cos] / E[2 cos]² = 4/3 - 1
+
+
+def test_ggx_fit_recovers_a_ggx_material():
+    mat = open_material({"kind": "analytic", "model": "ggx", "alpha": 0.08})
+    fit = fit_ggx(mat, IdealSampler(mat, resolution=128))
+    assert fit.diffuse == 0.0
+    assert fit.alpha_x == pytest.approx(0.08, rel=0.3)
+    mat = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})
+    assert fit_ggx(mat, IdealSampler(mat, resolution=32)).diffuse == 1.0
