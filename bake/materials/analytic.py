@@ -10,8 +10,8 @@ Models
   f = D(h) G2(wi, wo) F(wi.h) / (4 cos_i cos_o), h = normalize(wi + wo).
   D is GGX (Trowbridge-Reitz) or Beckmann, anisotropic with roughness alpha_x along the
   lobe's x axis and alpha_y along its y axis; the lobe's axes are rotated by `angle`
-  (degrees, counter-clockwise about the normal), i.e. f(wi, wo) = f0(R(-angle) wi,
-  R(-angle) wo). G2 is Smith's *height-correlated* masking-shadowing,
+  (degrees, counter-clockwise about the normal), i.e. f(wi, wo) = f_unrotated(R(-angle) wi,
+  R(-angle) wo). Beckmann's Lambda uses a rational erfc (relative error < 1.2e-7). G2 is Smith's *height-correlated* masking-shadowing,
   G2 = 1 / (1 + Lambda(wi) + Lambda(wo)) (what Cycles uses; it is reciprocal and more
   accurate than the separable G1(wi) G1(wo)). Fresnel: "none" (F = 1), "schlick"
   (F = f0 + (1 - f0)(1 - cos)^5) or "conductor" (the exact unpolarized Fresnel
@@ -51,7 +51,7 @@ RGB values are a number or a list of 3 numbers.
                         f0 (rgb in [0, 1], schlick, default 1);
                         eta (rgb > 0), k (rgb >= 0) (conductor, both required)
   model = "plastic":    albedo (rgb in [0, 1], required), alpha (in [0.001, 1], required),
-                        ior (> 1, default 1.5)
+                        ior (in (1, 10], default 1.5)
   model = "sheen":      color (rgb in [0, 1], required), roughness (in [0.1, 1], default 0.5)
   model = "retro":      color (rgb in [0, 1], default 1), alpha (in [0.001, 1], required)
   model = "mix":        components = [{weight = w > 0, model = ..., ...}, ...] (non-empty;
