@@ -1,5 +1,9 @@
-"""The yardstick table: rv of every sampler per material and incident angle (Markdown + CSV)."""
+"""The yardstick table: rv of every sampler per material and incident angle (Markdown + CSV),
+and the speed-vs-error report: rv, lost samples, throughput and memory per sampler, with
+Pareto plots (error vs time) and pdf slices over the hemisphere (matplotlib, imported only
+by the plotting functions, so bake/ stays importable in Blender without it)."""
 import csv
+import math
 import time
 
 import numpy as np
@@ -41,8 +45,11 @@ def markdown_table(rows, thetas=THETAS_DEG):
     rv = {(r["material"], r["sampler"], r["theta_i"]): r["rv"] for r in rows}
     head = "| material | sampler | " + " | ".join(f"{t}°" for t in thetas) + " |"
     lines = [head, "|" + "---|" * (len(thetas) + 2)]
+    present = {(r["material"], r["sampler"]) for r in rows}
     for m in materials:
         for s in samplers:
+            if (m, s) not in present:      # a sampler run on some materials only
+                continue
             cells = " | ".join(_fmt(rv.get((m, s, t), float("nan"))) for t in thetas)
             lines.append(f"| {m} | {s} | {cells} |")
     lines.append("")
@@ -61,3 +68,296 @@ def write_csv(rows, path):
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
+
+
+# ------------------------------------------------------------------ speed vs error
+
+SPEED_ERROR_FIELDS = ("material", "sampler", "theta_i", "rv", "albedo_mc", "albedo_quadrature", "lost",
+                      "sample_per_s", "pdf_per_s", "both_per_s", "ns_per_sample", "nbytes")
+
+
+def _weights(material, sampler, wi, n, seed):
+    """One-sample albedo weights (as metrics.sample_weights computes them) and the lost mask."""
+    rng = np.random.default_rng(seed)
+    wo, pdf = sampler.sample(wi, rng.random((n, 2)))
+    ok = (pdf > 0) & (wo[:, 2] > 0) & np.isfinite(pdf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(ok, luminance(material.eval(wi, wo)) * np.maximum(wo[:, 2], 0) / pdf, 0.0)
+    return w, ~ok
+
+
+def speed_error_rows(name, material, samplers, thetas=THETAS_DEG, n=1 << 17, seed=0,
+                     speed_n=1 << 15, speed_repeat=3, speed=True, quadrature=True, log=print):
+    """One row per (sampler label, theta_i) with the fields of SPEED_ERROR_FIELDS:
+
+    rv and albedo estimate of the one-sample estimator (as metrics.relative_variance: same
+    samples for the same seed), the quadrature albedo (from the ideal sampler's table: an
+    IdealSampler among `samplers` is reused), `lost` = fraction of samples with pdf 0,
+    non-finite pdf or below the horizon, throughput of sample() and pdf() (bench, one
+    thread; NaN with speed=False), and `nbytes` when the sampler has that attribute.
+    """
+    from .bench import samples_per_second
+    t0 = time.perf_counter()
+    samplers = dict(samplers)
+    ideal = None
+    if quadrature:
+        ideal = next((s for s in samplers.values() if isinstance(s, IdealSampler)), None) or IdealSampler(material)
+    rows = []
+    for theta in thetas:
+        wi = incident(theta)
+        albedo = float(luminance(ideal.albedo(wi))) if ideal is not None else math.nan
+        for label, sampler in samplers.items():
+            w, lost = _weights(material, sampler, wi, n, seed)
+            mean = w.mean()
+            rv = float(w.var() / mean ** 2) if mean != 0 else math.inf
+            sp = samples_per_second(sampler, wi, n=speed_n, repeat=speed_repeat, seed=seed + 1) if speed else {}
+            nbytes = getattr(sampler, "nbytes", None)
+            rows.append({
+                "material": name, "sampler": label, "theta_i": theta, "rv": rv,
+                "albedo_mc": float(mean), "albedo_quadrature": albedo, "lost": float(lost.mean()),
+                "sample_per_s": sp.get("sample_per_s", math.nan), "pdf_per_s": sp.get("pdf_per_s", math.nan),
+                "both_per_s": sp.get("both_per_s", math.nan), "ns_per_sample": sp.get("ns_per_sample", math.nan),
+                "nbytes": None if nbytes is None else int(nbytes),
+            })
+    log(f"[speed-error] {name}: {len(samplers)} samplers x {len(thetas)} angles, {time.perf_counter() - t0:.1f}s")
+    return rows
+
+
+def summary_rows(rows):
+    """Per (material, sampler): median and max rv over theta_i, max lost fraction, median speed, memory."""
+    out = []
+    keys = list(dict.fromkeys((r["material"], r["sampler"]) for r in rows))
+    for m, s in keys:
+        sel = [r for r in rows if r["material"] == m and r["sampler"] == s]
+        rv = np.array([r["rv"] for r in sel], float)
+        nbytes = [r.get("nbytes") for r in sel if r.get("nbytes") is not None]
+        out.append({
+            "material": m, "sampler": s, "median_rv": float(np.median(rv)), "max_rv": float(np.max(rv)),
+            "max_lost": max(r.get("lost", math.nan) for r in sel),
+            "both_per_s": _nanmedian([r.get("both_per_s", math.nan) for r in sel]),
+            "ns_per_sample": _nanmedian([r.get("ns_per_sample", math.nan) for r in sel]),
+            "sample_per_s": _nanmedian([r.get("sample_per_s", math.nan) for r in sel]),
+            "pdf_per_s": _nanmedian([r.get("pdf_per_s", math.nan) for r in sel]),
+            "nbytes": max(nbytes) if nbytes else None,
+        })
+    return out
+
+
+def _nanmedian(values):
+    v = np.array([math.nan if x is None else x for x in values], float)
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if len(v) else math.nan
+
+
+def _fmt_rate(x):
+    if x is None or not np.isfinite(x):
+        return "-"
+    for unit, scale in (("G", 1e9), ("M", 1e6), ("k", 1e3)):
+        if x >= scale:
+            return f"{x / scale:.3g}{unit}"
+    return f"{x:.3g}"
+
+
+def _fmt_bytes(x):
+    if x is None:
+        return "-"
+    for unit, scale in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if x >= scale:
+            return f"{x / scale:.3g} {unit}"
+    return f"{int(x)} B"
+
+
+def summary_markdown(rows):
+    """Per material x sampler: median / max rv, lost fraction, speed (1 thread), memory;
+    then the median rv of each sampler over every cell."""
+    lines = ["| material | sampler | median rv | max rv | max lost | sample+pdf /s | ns/sample | sample /s "
+             "| pdf /s | memory |", "|" + "---|" * 10]
+    for s in summary_rows(rows):
+        ns = s["ns_per_sample"]
+        lines.append(f"| {s['material']} | {s['sampler']} | {_fmt(s['median_rv'])} | {_fmt(s['max_rv'])} | "
+                     f"{s['max_lost']:.3g} | {_fmt_rate(s['both_per_s'])} | "
+                     f"{'-' if not np.isfinite(ns) else f'{ns:.3g}'} | {_fmt_rate(s['sample_per_s'])} | "
+                     f"{_fmt_rate(s['pdf_per_s'])} | {_fmt_bytes(s['nbytes'])} |")
+    return "\n".join(lines)
+
+
+def write_report(rows, out_dir, slices=(), plots=True, title="Speed vs error"):
+    """Write the speed-vs-error report into out_dir; returns {what: path}.
+
+    - speed_error.md: rv per material x sampler x theta_i, median rv per sampler, speed and
+      memory per material x sampler;
+    - speed_error.csv (every row, SPEED_ERROR_FIELDS) and speed_error_summary.csv;
+    - with plots (needs matplotlib): pareto_<material>.png, error (median rv) vs time per
+      sample, one point per sampler; and for each (name, material, samplers, theta_i) in
+      `slices`, pdf_<name>_<theta>.png (see plot_pdf_slices).
+    """
+    from pathlib import Path
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    thetas = sorted(dict.fromkeys(r["theta_i"] for r in rows))
+    written = {}
+    md = [f"# {title}", "", "## rv of the one-sample albedo estimator (0 is perfect)", "",
+          markdown_table(rows, thetas), "", "## Per sampler: error, lost samples, speed (one thread), memory", "",
+          summary_markdown(rows), "",
+          "rv = Var[lum(f·cos)/pdf] / E[...]²; lost = fraction of samples with pdf 0 or below the horizon; "
+          "speed: best-of-k wall clock of sample() and pdf() on one thread (bake.bench).", ""]
+    path = out / "speed_error.md"
+    written["markdown"] = path
+    write_csv([{k: r.get(k) for k in SPEED_ERROR_FIELDS} for r in rows], out / "speed_error.csv")
+    written["csv"] = out / "speed_error.csv"
+    write_csv(summary_rows(rows), out / "speed_error_summary.csv")
+    written["summary_csv"] = out / "speed_error_summary.csv"
+    if plots:
+        for m in dict.fromkeys(r["material"] for r in rows):
+            p = plot_pareto(rows, m, out / f"pareto_{_slug(m)}.png")
+            if p is not None:
+                written[f"pareto:{m}"] = p
+                md.append(f"![{m}: error vs time]({p.name})")
+        for name, material, samplers, theta in slices:
+            p = plot_pdf_slices(material, samplers, theta, out / f"pdf_{_slug(name)}_{int(round(theta))}.png",
+                                title=f"{name}, θi = {theta}°")
+            written[f"pdf:{name}:{theta}"] = p
+            md.append(f"![{name} pdf at {theta}°]({p.name})")
+    path.write_text("\n".join(md) + "\n")
+    return written
+
+
+def _slug(s):
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in str(s))
+
+
+def _pyplot():
+    """matplotlib's pyplot on the Agg back end (imported here only: bake/ runs in Blender without it)."""
+    try:
+        import matplotlib
+    except ImportError:
+        from .errors import FlowBSDFError
+        raise FlowBSDFError("the report's plots need matplotlib (`pip install matplotlib`)") from None
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+    return plt
+
+
+RV_FLOOR, RV_CEIL = 1e-6, 1e6
+
+
+def plot_pareto(rows, material, path):
+    """Error vs time for one material: x = ns per sample (sample + pdf, log), y = median rv over
+    theta_i (log), one labelled point per sampler, the Pareto front as a step line. rv 0 is
+    drawn at 1e-6 and inf at 1e6. Returns the path, or None when no row has a speed."""
+    sel = [s for s in summary_rows(rows) if s["material"] == material and np.isfinite(s["ns_per_sample"])]
+    if not sel:
+        return None
+    plt = _pyplot()
+    x = np.array([s["ns_per_sample"] for s in sel])
+    y = np.clip(np.nan_to_num(np.array([s["median_rv"] for s in sel]), nan=RV_CEIL, posinf=RV_CEIL), RV_FLOOR, RV_CEIL)
+    fig, ax = plt.subplots(figsize=(6, 4.5), dpi=100)
+    ax.scatter(x, y, s=40, zorder=3)
+    for xi, yi, s in zip(x, y, sel):
+        ax.annotate(s["sampler"], (xi, yi), textcoords="offset points", xytext=(5, 4), fontsize=9)
+    order = np.argsort(x)
+    front, best = [], math.inf
+    for k in order:
+        if y[k] < best:
+            front.append(k)
+            best = y[k]
+    if len(front) > 1:
+        ax.step(x[front], y[front], where="post", color="0.6", lw=1, zorder=2, label="Pareto front")
+        ax.legend(loc="upper right", fontsize=8)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    lo, hi = x.min(), x.max()
+    ax.set_xlim(lo / 2, hi * 3)
+    ylo, yhi = y.min(), y.max()
+    ax.set_ylim(ylo / 3, yhi * 3)
+    ax.set_xlabel("ns per sample (sample() + pdf(), one thread)")
+    ax.set_ylabel("median rv over θi")
+    ax.set_title(f"{material}: error vs time")
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def disk_directions(res):
+    """The (res x res) grid over [-1, 1]² of the disk projection (x = wo.x, y = wo.y):
+    directions (M, 3) of the pixels inside the unit disk, their mask, and d omega per pixel."""
+    c = (np.arange(res) + 0.5) / res * 2.0 - 1.0
+    X, Y = np.meshgrid(c, -c)            # image row 0 at the top: y = +1
+    r2 = X * X + Y * Y
+    inside = r2 < 1.0
+    z = np.sqrt(np.maximum(1.0 - r2[inside], 0.0))
+    wo = np.stack([X[inside], Y[inside], z], axis=-1)
+    d_omega = (2.0 / res) ** 2 / np.maximum(z, 1e-12)
+    return wo, inside, d_omega
+
+
+def target_density(material, wi, res=256):
+    """The normalized target max(lum f, 0)·cos / integral on the disk grid (an image with NaN
+    outside the disk), i.e. the pdf a perfect sampler would have."""
+    wo, inside, d_omega = disk_directions(res)
+    t = material.target(wi, wo)
+    total = np.sum(t * d_omega)
+    img = np.full(inside.shape, np.nan)
+    img[inside] = t / total if total > 0 else 0.0
+    return img
+
+
+def pdf_image(sampler, wi, res=256):
+    wo, inside, _ = disk_directions(res)
+    img = np.full(inside.shape, np.nan)
+    img[inside] = sampler.pdf(wi, wo)
+    return img
+
+
+def _show_panels(panels, wi, path, title=None, decades=4):
+    """Images side by side on one log colour scale (pdf 0 in black, outside the disk white)."""
+    plt = _pyplot()
+    from matplotlib.colors import LogNorm
+    finite = [p[np.isfinite(p) & (p > 0)] for _, p in panels]
+    peak = max((np.percentile(f, 99.9) for f in finite if len(f)), default=1.0)
+    norm = LogNorm(vmin=peak * 10.0 ** -decades, vmax=peak)
+    cmap = plt.get_cmap("inferno").with_extremes(under="black", bad="white")
+    k = len(panels)
+    fig, axes = plt.subplots(1, k, figsize=(2.6 * k + 1.0, 3.0), dpi=100, squeeze=False, layout="constrained")
+    for ax, (label, img) in zip(axes[0], panels):
+        shown = np.where(np.isfinite(img) & (img <= 0), peak * 10.0 ** -(decades + 3), img)
+        im = ax.imshow(shown, extent=(-1, 1, -1, 1), norm=norm, cmap=cmap, interpolation="nearest")
+        ax.plot([-wi[0]], [-wi[1]], "+", color="cyan", ms=8, mew=1)   # the mirror direction
+        ax.set_title(label, fontsize=10)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.colorbar(im, ax=list(axes[0]), shrink=0.9, label="pdf (1/sr)", extend="both")
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def plot_pdf_slices(material, samplers, theta_i, path, res=200, target=True, title=None, decades=4):
+    """The pdf over the hemisphere at theta_i (disk projection x = wo.x, y = wo.y; per
+    steradian) of the ideal sampler and every other sampler given, side by side on a shared
+    log colour scale, like the paper's Figures 19-29. `samplers` is {label: sampler}; an
+    IdealSampler is added first when none is given. With target, the first panel is the
+    true normalized f·cos. The cyan cross marks the mirror direction."""
+    from pathlib import Path
+    samplers = dict(samplers)
+    if not any(isinstance(s, IdealSampler) for s in samplers.values()):
+        samplers = {"ideal": IdealSampler(material), **samplers}
+    else:   # the ideal sampler first
+        samplers = dict(sorted(samplers.items(), key=lambda kv: not isinstance(kv[1], IdealSampler)))
+    wi = incident(theta_i)
+    panels = [("target f·cos (normalized)", target_density(material, wi, res))] if target else []
+    panels += [(label, pdf_image(s, wi, res)) for label, s in samplers.items()]
+    return _show_panels(panels, wi, Path(path), title, decades)
+
+
+def plot_target(material, theta_i, path, res=256, title=None, decades=4):
+    """The material's true f·cos (luminance, normalized to a pdf) at theta_i on the same
+    disk projection and log scale as plot_pdf_slices."""
+    from pathlib import Path
+    wi = incident(theta_i)
+    return _show_panels([("target f·cos (normalized)", target_density(material, wi, res))], wi, Path(path),
+                        title or f"θi = {theta_i}°", decades)

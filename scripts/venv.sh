@@ -20,6 +20,14 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   .venv/bin/python -m pip install --quiet --upgrade pip
   # torch first and pinned: an unpinned torch would pull a multi-GB CUDA build.
   .venv/bin/python -m pip install --quiet "torch==2.13.0"
-  .venv/bin/python -m pip install --quiet -e ".[train,test]"
+  .venv/bin/python -m pip install --quiet -e ".[train,report,test]"
   echo "$want" > "$stamp"
+fi
+# Mitsuba's vectorized (LLVM) variant, the benchmark peer, needs libLLVM 19; best effort:
+# without it the peer falls back to the slow scalar variant and its heavy tests skip.
+if [ "${FLOWBSDF_NO_APT:-}" = "" ] && ! ldconfig -p 2>/dev/null | grep -q 'libLLVM.so.19' \
+   && command -v apt-get >/dev/null && [ "$(id -u)" = 0 ]; then
+  echo "[setup] installing libllvm19 for Mitsuba's LLVM variant (best effort)"
+  (apt-get install -y -qq libllvm19 >/dev/null 2>&1 || { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq libllvm19 >/dev/null 2>&1; }) \
+    || echo "[setup] libllvm19 not installed: Mitsuba peer uses scalar_rgb"
 fi
