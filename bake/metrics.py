@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from .geometry import luminance, normalize, reflect
-from .materials.base import as_dirs
+
 
 
 def sample_weights(material, sampler, wi, n, seed=0):

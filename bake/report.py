@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from .baselines import CosineSampler, UniformSampler, fit_ggx
+from .baselines import CosineSampler, fit_ggx
 from .geometry import incident, luminance
 from .ideal import IdealSampler
 from .metrics import relative_variance

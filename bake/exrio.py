@@ -1,0 +1,62 @@
+"""Float32 OpenEXR files of named 2D arrays plus JSON metadata, written atomically."""
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .errors import FlowBSDFError
+
+META_KEY = "flowbsdf"
+
+
+def write_exr(path, arrays, meta):
+    """One part per array (2D float32, ZIP: lossless), metadata as JSON in the first header.
+    Written to a temporary file in the same folder and renamed, so a crash leaves no broken file."""
+    path = Path(path)
+    import OpenEXR
+    parts = []
+    for i, (name, array) in enumerate(arrays.items()):
+        array = np.ascontiguousarray(array, dtype=np.float32)
+        if array.ndim != 2 or array.size == 0:
+            raise ValueError(f"{name}: EXR parts hold non-empty 2D arrays, got shape {array.shape}")
+        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+                  "displayWindow": ((0, 0), (0, 0))}
+        if i == 0:
+            header[META_KEY] = json.dumps(meta, sort_keys=True)
+        parts.append(OpenEXR.Part(header, {"Y": array}, name=name))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        OpenEXR.File(parts).write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def read_exr(path):
+    """(arrays by part name, metadata dict); FlowBSDFError naming the file on any problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise FlowBSDFError("table file not found", path)
+    import OpenEXR
+    try:
+        f = OpenEXR.File(str(path))
+        parts = f.parts
+        arrays = {p.name(): p.channels["Y"].pixels for p in parts}
+        raw = parts[0].header.get(META_KEY)
+    except Exception as e:     # OpenEXR raises RuntimeError/KeyError/... on foreign or broken files
+        raise FlowBSDFError(f"not a readable FlowBSDF table file ({e})", path) from None
+    if raw is None:
+        raise FlowBSDFError("an OpenEXR file, but not a FlowBSDF table (no metadata)", path)
+    try:
+        meta = json.loads(raw)
+    except (TypeError, ValueError):
+        raise FlowBSDFError("table metadata is not valid JSON", path) from None
+    for name, a in arrays.items():
+        if a.dtype != np.float32:
+            raise FlowBSDFError(f"part {name!r} is {a.dtype}, tables are float32", path)
+    return arrays, meta

@@ -1,0 +1,250 @@
+"""Baked conditional tables: an exact, table-speed sampler per material.
+
+Per incident bin, the table is an adaptive piecewise-constant density on the
+hemisphere: R rows in a = 1 - cos(theta_o) and, in each row, C columns in
+b = phi_o - phi_mirror + pi (the azimuth relative to the mirror plane of wi, so the
+specular lobe sits at b = pi and never straddles the seam); da db = d omega. Cell (i, j)
+holds mass m_ij, spread over it with a separable linear density: in local coordinates
+x, y in [0, 1], q(x, y) = (1 + alpha (x - 1/2)) (1 + beta (y - 1/2)), |alpha|, |beta| <= 2
+(the slopes capture the gradient of f·cos across the cell), so
+
+    sample:  u1 -> row by the row CDF, u2 -> column by the row's CDF, the two remainders
+             -> x, y by the inverse linear CDFs (a stable quadratic root),
+    pdf:     m_ij q(x, y) / ((a_{i+1} - a_i)(b_{i,j+1} - b_{i,j})),
+    invert:  find the cell (binary search), evaluate the CDFs,
+
+are exact and mutually consistent to float precision. The cells tile the whole
+hemisphere and every mass has a small floor, so no direction has pdf 0 and no sample is
+lost below the horizon.
+
+Edges are weighted quantiles of a stratified set of directions drawn from a source
+sampler (the trained flow, or the ideal tabulation): quantiles of the target mixed with
+a share of uniform density, so cells are small where f·cos is large and never huge in
+the tails. Masses are the target's exact share per cell, estimated with the weights
+target / source pdf: the correction toward the true f·cos, whatever the source's quality.
+
+Between incident bins edges and masses are interpolated linearly. Interpolated edges
+stay increasing (a convex combination of increasing lists), interpolated masses stay a
+distribution, so every wi gets an exact table, and a lobe moves with theta_i instead of
+fading between two positions (a displacement interpolation).
+
+Per cell the table also keeps the RGB estimator weight W = integral of f·cos over the
+cell / its share of the target; `eval` returns W·pdf/cos, the baked BSDF the Cycles OSL
+back end renders.
+"""
+import numpy as np
+
+from .errors import FlowBSDFError
+from .exrio import read_exr, write_exr
+from .geometry import theta_phi
+from .materials.base import as_dirs
+
+FORMAT_VERSION = 1
+TWO_PI = 2.0 * np.pi
+
+
+def to_ab(wo, phi_ref):
+    """Table coordinates of wo: a = 1 - cos(theta) (stable near the pole), b in [0, 2 pi)."""
+    z = wo[:, 2]
+    a = (wo[:, 0] ** 2 + wo[:, 1] ** 2) / (1.0 + np.maximum(z, 0.0))
+    a = np.where(z > 0, np.minimum(a, 1.0), 1.0)
+    b = np.mod(np.arctan2(wo[:, 1], wo[:, 0]) - phi_ref + np.pi, TWO_PI)
+    return a, b
+
+
+def from_ab(a, b, phi_ref):
+    s = np.sqrt(np.maximum(a * (2.0 - a), 0.0))
+    phi = b - np.pi + phi_ref
+    return np.stack([s * np.cos(phi), s * np.sin(phi), 1.0 - a], axis=-1)
+
+
+# Within a cell, each axis has the exponential density k e^(k x) / (e^k - 1) on [0, 1]
+# (uniform at k = 0): its CDF, inverse and density. An exponential follows the steep
+# flank of a lobe across a cell where a linear slope cannot.
+K_MAX = 30.0     # the largest exponential rate across a cell (e^30: steeper than any data)
+_SMALL = 1e-4
+
+
+def exp_cdf(x, k):
+    ks = np.where(np.abs(k) < _SMALL, 1.0, k)
+    return np.where(np.abs(k) < _SMALL, x + 0.5 * k * (x * x - x), np.expm1(ks * x) / np.expm1(ks))
+
+
+def exp_inverse_cdf(u, k):
+    ks = np.where(np.abs(k) < _SMALL, 1.0, k)
+    exact = np.log1p(u * np.expm1(ks)) / ks
+    return np.clip(np.where(np.abs(k) < _SMALL, u - 0.5 * k * (u * u - u), exact), 0.0, 1.0)
+
+
+def exp_density(x, k):
+    ks = np.where(np.abs(k) < _SMALL, 1.0, k)
+    return np.where(np.abs(k) < _SMALL, 1.0 + k * (x - 0.5), ks * np.exp(ks * x) / np.expm1(ks))
+
+
+def _search(value, n, edge_at):
+    """Per sample, the i in [0, n) with edge_at(i) <= value < edge_at(i + 1) (edges increasing)."""
+    lo = np.zeros(len(value), np.int64)
+    hi = np.full(len(value), n, np.int64)
+    for _ in range(int(np.ceil(np.log2(max(n, 2))))):
+        mid = (lo + hi) // 2
+        right = edge_at(mid) <= value
+        lo = np.where(right, mid, lo)
+        hi = np.where(right, hi, mid)
+    return lo
+
+
+
+# ------------------------------------------------------------------------------ sampling
+
+class Tables:
+    """The baked sampler of one material. Isotropic: bins over theta_i only."""
+
+    name = "tables"
+    ARRAYS = ("mass", "alpha", "beta")
+
+    def __init__(self, theta_bins, a_edges, b_edges, mass, alpha, beta, weights, meta=None):
+        self.theta_bins = np.asarray(theta_bins, np.float64)
+        self.a_edges = np.asarray(a_edges, np.float32)     # (K, R+1)
+        self.b_edges = np.asarray(b_edges, np.float32)     # (K, R, C+1)
+        self.mass = np.asarray(mass, np.float32)           # (K, R, C)
+        self.alpha = np.asarray(alpha, np.float32)         # (K, R, C) slope along a
+        self.beta = np.asarray(beta, np.float32)           # (K, R, C) slope along b
+        self.weights = np.asarray(weights, np.float32)     # (K, R, C, 3)
+        self.meta = dict(meta or {})
+        self.rows = self.a_edges.shape[1] - 1
+        self.cols = self.b_edges.shape[2] - 1
+        # float64 working copies; the stored float32 values define the sampler exactly.
+        self._a = self.a_edges.astype(np.float64)
+        self._b = self.b_edges.astype(np.float64)
+        # The outer edges are the hemisphere's: exactly 0 and 1 in a, 0 and 2 pi in b
+        # (float32(2 pi) exceeds 2 pi, which would wrap the last column's end onto the first).
+        self._a[:, 0], self._a[:, -1] = 0.0, 1.0
+        self._b[..., 0], self._b[..., -1] = 0.0, TWO_PI
+        self._alpha = self.alpha.astype(np.float64)
+        self._beta = self.beta.astype(np.float64)
+        m = self.mass.astype(np.float64)
+        m /= m.sum(axis=(1, 2), keepdims=True)
+        self._m = m
+        self._col_cum = np.concatenate([np.zeros(m.shape[:2] + (1,)), np.cumsum(m, axis=2)], axis=2)
+        row_mass = self._col_cum[:, :, -1]
+        self._row_cdf = np.concatenate([np.zeros((len(m), 1)), np.cumsum(row_mass, axis=1)], axis=1)
+
+    @property
+    def nbytes(self):
+        return sum(x.nbytes for x in (self.a_edges, self.b_edges, self.mass, self.alpha, self.beta, self.weights))
+
+    def _bins(self, wi):
+        """Per sample: lower bin k0, upper bin k1, the upper one's weight t, and phi_ref."""
+        theta, phi = theta_phi(wi)
+        K = len(self.theta_bins)
+        if K == 1:
+            z = np.zeros(len(theta), np.int64)
+            return z, z, np.zeros(len(theta)), phi + np.pi
+        k = np.clip(np.searchsorted(self.theta_bins, theta, side="right") - 1, 0, K - 2)
+        # Weights linear in cos(theta_i): the mirror direction's a = 1 - cos(theta_i), the
+        # edges' main anchor, then moves exactly as the interpolated edges do.
+        c = np.cos(self.theta_bins)
+        t = np.clip((c[k] - np.cos(theta)) / (c[k] - c[k + 1]), 0.0, 1.0)
+        return k, k + 1, t, phi + np.pi
+
+    @staticmethod
+    def _lerp(table, k0, k1, t, *idx):
+        return (1.0 - t) * table[(k0, *idx)] + t * table[(k1, *idx)]
+
+    def _cell(self, k0, k1, t, i, j):
+        """Edges, probability and slopes of cell (i, j) of the interpolated table."""
+        L = self._lerp
+        a0, a1 = L(self._a, k0, k1, t, i), L(self._a, k0, k1, t, i + 1)
+        b0, b1 = L(self._b, k0, k1, t, i, j), L(self._b, k0, k1, t, i, j + 1)
+        return a0, a1, b0, b1, L(self._m, k0, k1, t, i, j), L(self._alpha, k0, k1, t, i, j), \
+            L(self._beta, k0, k1, t, i, j)
+
+    def sample(self, wi, u):
+        u = np.atleast_2d(np.asarray(u, np.float64))
+        wi, _ = as_dirs(wi, np.empty((len(u), 3)))
+        k0, k1, t, phi_ref = self._bins(wi)
+        L = self._lerp
+        i = _search(u[:, 0], self.rows, lambda m: L(self._row_cdf, k0, k1, t, m))
+        c0, c1 = L(self._row_cdf, k0, k1, t, i), L(self._row_cdf, k0, k1, t, i + 1)
+        v = u[:, 1] * (c1 - c0)
+        j = _search(v, self.cols, lambda m: L(self._col_cum, k0, k1, t, i, m))
+        d0 = L(self._col_cum, k0, k1, t, i, j)
+        a0, a1, b0, b1, m, ka, kb = self._cell(k0, k1, t, i, j)
+        x = exp_inverse_cdf(np.clip((u[:, 0] - c0) / (c1 - c0), 0.0, 1.0), ka)
+        y = exp_inverse_cdf(np.clip((v - d0) / m, 0.0, 1.0), kb)
+        wo = from_ab(a0 + x * (a1 - a0), b0 + y * (b1 - b0), phi_ref)
+        pdf = m * exp_density(x, ka) * exp_density(y, kb) / ((a1 - a0) * (b1 - b0))
+        return wo, pdf
+
+    def _locate(self, wi, wo):
+        k0, k1, t, phi_ref = self._bins(wi)
+        a, b = to_ab(wo, phi_ref)
+        L = self._lerp
+        i = _search(a, self.rows, lambda m: L(self._a, k0, k1, t, m))
+        j = _search(b, self.cols, lambda m: L(self._b, k0, k1, t, i, m))
+        a0, a1, b0, b1, m, ka, kb = self._cell(k0, k1, t, i, j)
+        x = np.clip((a - a0) / (a1 - a0), 0.0, 1.0)
+        y = np.clip((b - b0) / (b1 - b0), 0.0, 1.0)
+        pdf = m * exp_density(x, ka) * exp_density(y, kb) / ((a1 - a0) * (b1 - b0))
+        return (k0, k1, t), i, j, x, y, ka, kb, pdf
+
+    def pdf(self, wi, wo):
+        wi, wo = as_dirs(wi, wo)
+        pdf = self._locate(wi, wo)[-1]
+        return np.where(wo[:, 2] > 0, pdf, 0.0)
+
+    def invert(self, wi, wo):
+        wi, wo = as_dirs(wi, wo)
+        (k0, k1, t), i, j, x, y, ka, kb, _ = self._locate(wi, wo)
+        L = self._lerp
+        c0, c1 = L(self._row_cdf, k0, k1, t, i), L(self._row_cdf, k0, k1, t, i + 1)
+        d0, d1 = L(self._col_cum, k0, k1, t, i, j), L(self._col_cum, k0, k1, t, i, j + 1)
+        u1 = c0 + exp_cdf(x, ka) * (c1 - c0)
+        u2 = (d0 + exp_cdf(y, kb) * (d1 - d0)) / (c1 - c0)
+        return np.stack([u1, u2], axis=-1)
+
+    def eval(self, wi, wo):
+        """The baked BSDF f (RGB): the cell's estimator weight W x pdf / cos(theta_o)."""
+        wi, wo = as_dirs(wi, wo)
+        (k0, k1, t), i, j, _, _, _, _, pdf = self._locate(wi, wo)
+        w = (1.0 - t)[:, None] * self.weights[k0, i, j] + t[:, None] * self.weights[k1, i, j]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f = w * (pdf / wo[:, 2])[:, None]
+        return np.where(((wo[:, 2] > 0) & (wi[:, 2] > 0))[:, None], f, 0.0)
+
+    # -- files -----------------------------------------------------------------------
+
+    def save(self, path):
+        K, R, C = len(self.theta_bins), self.rows, self.cols
+        meta = {**self.meta, "format": "flowbsdf-tables", "format_version": FORMAT_VERSION,
+                "theta_bins": [float(x) for x in self.theta_bins], "rows": R, "cols": C}
+        write_exr(path, {"a_edges": self.a_edges, "b_edges": self.b_edges.reshape(K * R, C + 1),
+                         **{n: getattr(self, n).reshape(K * R, C) for n in self.ARRAYS},
+                         "weights": self.weights.reshape(K * R, C * 3)}, meta)
+
+
+def open_tables(path):
+    arrays, meta = read_exr(path)
+    if meta.get("format") != "flowbsdf-tables":
+        raise FlowBSDFError("not a FlowBSDF table file", path)
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise FlowBSDFError(f"table format version {meta.get('format_version')} "
+                            f"(this FlowBSDF reads version {FORMAT_VERSION}); re-bake it", path)
+    try:
+        K, R, C = len(meta["theta_bins"]), int(meta["rows"]), int(meta["cols"])
+        a, b, w = arrays["a_edges"], arrays["b_edges"], arrays["weights"]
+        cells = [arrays[n] for n in Tables.ARRAYS]
+    except (KeyError, TypeError, ValueError) as e:
+        raise FlowBSDFError(f"table file is missing {e}", path) from None
+    shapes = [a.shape, b.shape, w.shape] + [c.shape for c in cells]
+    if shapes != [(K, R + 1), (K * R, C + 1), (K * R, C * 3)] + [(K * R, C)] * len(cells):
+        raise FlowBSDFError(f"table shapes {shapes} do not match {K} bins of {R}x{C}", path)
+    if not all(np.all(np.isfinite(x)) for x in (a, b, w, *cells)):
+        raise FlowBSDFError("table holds NaN or inf", path)
+    mass, alpha, beta = cells
+    if (np.any(np.diff(a, axis=1) <= 0) or np.any(np.diff(b, axis=1) <= 0) or np.any(mass <= 0)
+            or np.any(np.abs(alpha) > K_MAX) or np.any(np.abs(beta) > K_MAX)):
+        raise FlowBSDFError("table edges not increasing, masses not positive or slopes out of "
+                            "range: corrupt file", path)
+    return Tables(meta["theta_bins"], a, b.reshape(K, R, C + 1), *(c.reshape(K, R, C) for c in cells),
+                  w.reshape(K, R, C, 3), meta)

@@ -1,0 +1,369 @@
+"""Building baked tables (see tables.py for what they are) from a material and a source sampler.
+
+Edges are quantiles of a stratified set of the source's directions, anchored to the
+specular direction and pooled over neighbouring incident bins; masses, exponential rates
+and RGB weights are integrated from the true f·cos per cell (refined until the cell's
+quadrature settles and agrees with the source points that fall in it).
+"""
+import numpy as np
+
+from .errors import FlowBSDFError
+from .geometry import luminance
+from .tables import _SMALL, K_MAX, TWO_PI, Tables, _search, from_ab, to_ab
+
+A_MIN = 1e-4     # the least gap between row knots (keeps every segment of rows non-empty)
+B_MIN = 1e-4     # the same for column knots
+
+
+def exp_rate_for_mean(mean):
+    """The k whose exponential density on [0, 1] has the given mean (bisection, vectorized)."""
+    mean = np.clip(np.asarray(mean, np.float64), 1e-9, 1 - 1e-9)
+    lo, hi = np.full(mean.shape, -K_MAX), np.full(mean.shape, K_MAX)
+    for _ in range(60):
+        k = 0.5 * (lo + hi)
+        ks = np.where(np.abs(k) < _SMALL, 1.0, k)
+        m = np.where(np.abs(k) < _SMALL, 0.5 + k / 12.0, 1.0 / (-np.expm1(-ks)) - 1.0 / ks)
+        lo, hi = np.where(m < mean, k, lo), np.where(m < mean, hi, k)
+    return 0.5 * (lo + hi)
+
+
+def _strictly_increasing(edges, lo, hi):
+    """Float32 edges strictly increasing from lo to hi (last axis), each gap >= 1 ulp.
+    Works on the integer bit patterns, which are ordered like non-negative floats."""
+    e = np.clip(edges, lo, hi).astype(np.float32)
+    e[..., 0], e[..., -1] = lo, hi
+    k = e.view(np.int32).astype(np.int64)
+    idx = np.arange(k.shape[-1])
+    k = np.maximum.accumulate(k - idx, axis=-1) + idx
+    k_hi = np.int64(np.float32(hi).view(np.int32))
+    k = np.minimum(k, k_hi - (idx[-1] - idx))
+    return k.astype(np.int32).view(np.float32)
+
+
+def _mixture_edges(x, w, n, lo, hi, share):
+    """n+1 edges at the quantiles of (1 - share) * (weighted points) + share * uniform on [lo, hi].
+    x sorted. The uniform part is exact: its CDF is added, not sampled."""
+    total = w.sum()
+    xs = np.concatenate([[lo], x, [hi]])
+    uniform = (xs - lo) / (hi - lo)
+    if total <= 0:
+        cdf = uniform
+    else:
+        cdf = (1.0 - share) * np.concatenate([[0.0], np.cumsum(w) / total, [1.0]]) + share * uniform
+    return np.interp(np.arange(n + 1) / n, cdf, xs)
+
+
+def _normalized(w):
+    total = w.sum()
+    return w / total if total > 0 else w
+
+
+def _segment_counts(n, segments):
+    return [n // segments + (1 if s < n % segments else 0) for s in range(segments)]
+
+
+def _normalize(x, knots):
+    """(segment index, position in [0, 1] within it) of x, for increasing knots."""
+    seg = np.clip(np.searchsorted(knots, x, side="right") - 1, 0, len(knots) - 2)
+    lo, hi = knots[seg], knots[seg + 1]
+    return seg, np.clip((x - lo) / (hi - lo), 0.0, 1.0)
+
+
+def _shared_edges(seg, r, w, counts, share):
+    """Normalized edges per segment: quantiles of the pooled (r, w) points of each segment,
+    mixed with uniform density. Returns a list of arrays in [0, 1], one per segment."""
+    out = []
+    for s_, count in enumerate(counts):
+        sel = seg == s_
+        order = np.argsort(r[sel], kind="stable")
+        out.append(_mixture_edges(r[sel][order], w[sel][order], count, 0.0, 1.0, share))
+    return out
+
+
+def _denormalize(shared, knots):
+    """Edges from normalized per-segment edges and this bin's knots."""
+    parts = [knots[0:1]]
+    for s_, e in enumerate(shared):
+        parts.append(knots[s_] + e[1:] * (knots[s_ + 1] - knots[s_]))
+    return np.concatenate(parts)
+
+
+def _knots(values, lo, hi, gap):
+    """Increasing knots from lo to hi, consecutive ones at least `gap` apart."""
+    k = np.clip(np.asarray(values, np.float64), lo, hi)
+    idx = np.arange(len(k))
+    k = np.maximum.accumulate(k - idx * gap) + idx * gap
+    return np.minimum(k, hi - (idx[-1] - idx) * gap)
+
+
+def lobe_knots(theta_i, lobe_width):
+    """Row knots in a: the pole, the lobe zone's lower end, the mirror direction, the lobe
+    zone's upper end, the horizon. Without a lobe width (broad materials): no knots."""
+    a_of = lambda t: 1.0 - np.cos(np.clip(t, 0.0, 0.5 * np.pi))
+    if lobe_width is None:
+        return np.array([0.0, 1.0])
+    return _knots([0.0, a_of(theta_i - lobe_width), a_of(theta_i), a_of(theta_i + lobe_width), 1.0],
+                  0.0, 1.0, A_MIN)
+
+
+def lobe_col_knots(a_mid, lobe_width):
+    """Column knots in b for a row at a = a_mid: the lobe zone spans the azimuths within
+    lobe_width of the mirror plane (b = pi)."""
+    if lobe_width is None:
+        return _knots([0.0, np.pi, TWO_PI], 0.0, TWO_PI, B_MIN)
+    sin_o = np.sqrt(max(a_mid * (2.0 - a_mid), 0.0))
+    half = np.pi if sin_o <= np.sin(lobe_width) else np.arcsin(np.sin(lobe_width) / sin_o)
+    return _knots([0.0, np.pi - half, np.pi, np.pi + half, TWO_PI], 0.0, TWO_PI, B_MIN)
+
+
+def _moments(material, wi, phi_ref, a0, a1, b0, b1, q, chunk=1 << 18):
+    """Per cell [a0,a1]x[b0,b1], a q x q midpoint rule: target mass, its mean local x and y,
+    and the RGB integral of f·cos (da db = d omega)."""
+    s = (np.arange(q) + 0.5) / q
+    X = np.repeat(s, q)
+    Y = np.tile(s, q)
+    n = len(a0)
+    mass, mx, my = np.zeros(n), np.zeros(n), np.zeros(n)
+    rgb = np.zeros((n, 3))
+    step = max(1, chunk // (q * q))
+    for c0 in range(0, n, step):
+        sl = slice(c0, min(n, c0 + step))
+        A = (a0[sl, None] + X[None, :] * (a1 - a0)[sl, None]).ravel()
+        B = (b0[sl, None] + Y[None, :] * (b1 - b0)[sl, None]).ravel()
+        wo = from_ab(A, B, phi_ref)
+        value = (material.eval(wi, wo) * wo[:, 2:3]).reshape(-1, q * q, 3)
+        area = ((a1 - a0) * (b1 - b0))[sl] / (q * q)
+        g = np.maximum(luminance(value), 0.0) * area[:, None]
+        mass[sl] = g.sum(axis=1)
+        mx[sl], my[sl] = g @ X, g @ Y
+        rgb[sl] = value.sum(axis=1) * area[:, None]
+    return mass, mx, my, rgb
+
+
+def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, rtol=0.02, q_max=64):
+    """Cell moments by a midpoint rule refined (q, 2q, 4q, ...) per cell until two levels
+    agree within rtol and the rule does not fall short of `point_mass` (the importance-
+    sampled mass of the source points in the cell): a lobe flank that the coarse nodes
+    straddle is found by the points."""
+    rows, cols = b_edges.shape[0], b_edges.shape[1] - 1
+    a_e, b_e = a_edges.astype(np.float64), b_edges.astype(np.float64)
+    a0 = np.repeat(a_e[:-1], cols)
+    a1 = np.repeat(a_e[1:], cols)
+    b0, b1 = b_e[:, :-1].ravel(), b_e[:, 1:].ravel()
+    point_mass = point_mass.ravel()
+    out = list(_moments(material, wi, phi_ref, a0, a1, b0, b1, q))
+    tiny = 1e-7 * max(out[0].sum(), point_mass.sum())
+    active = np.arange(len(a0))
+    while q < q_max and len(active):
+        q *= 2
+        new = _moments(material, wi, phi_ref, a0[active], a1[active], b0[active], b1[active], q)
+        old_mass = out[0][active]
+        for o, v in zip(out, new):
+            o[active] = v
+        settled = (np.abs(new[0] - old_mass) <= rtol * new[0] + tiny) & \
+            (point_mass[active] <= 1.5 * new[0] + tiny)
+        active = active[~settled]
+    mass, mx, my, rgb = out
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mx = np.where(mass > 0, mx / mass, 0.5)
+        my = np.where(mass > 0, my / mass, 0.5)
+    shape = (rows, cols)
+    return mass.reshape(shape), mx.reshape(shape), my.reshape(shape), rgb.reshape(shape + (3,))
+
+
+def _points(material, source, wi, grid, phi_ref, gamma):
+    """A stratified grid of the source's directions for wi: their table coordinates (a, b),
+    the weight of each for placing edges (normalized), and its importance-sampled target
+    mass (target / source pdf / grid²)."""
+    g = (np.arange(grid) + 0.5) / grid
+    u = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+    wo, pdf = source.sample(wi, u)
+    ok = (pdf > 0) & (wo[:, 2] > 0) & np.isfinite(pdf)
+    wo, pdf = wo[ok], pdf[ok]
+    target = np.maximum(luminance(material.eval(wi, wo)), 0.0) * wo[:, 2]
+    # Edges follow half the target itself (cells where the mass is) and half target^gamma
+    # (cells on flanks and tails, where a cellwise model errs most).
+    weight = 0.5 * _normalized(target / pdf) + 0.5 * _normalized(target ** gamma / pdf)
+    a, b = to_ab(wo, phi_ref)
+    return a, b, weight, target / pdf / (grid * grid)
+
+
+def _finish_bin(material, wi, phi_ref, a_edges, b_edges, a, b, point_mass, quadrature, floor):
+    """Per cell mass, exponential rates and RGB weight for one incident direction."""
+    rows, cols = b_edges.shape[0], b_edges.shape[1] - 1
+    row = np.clip(np.searchsorted(a_edges, a, side="right") - 1, 0, rows - 1)
+    col = _find_cols(b_edges, row, b)
+    point_mass = np.bincount(row * cols + col, weights=point_mass, minlength=rows * cols)
+    mass, mx, my, rgb = _cell_moments(material, wi, a_edges, b_edges, phi_ref, quadrature, point_mass)
+    # Exponential rates matching each cell's first moments along a and b.
+    alpha, beta = exp_rate_for_mean(mx), exp_rate_for_mean(my)
+    # A floor of uniform density keeps pdf > 0 everywhere, so the table never loses a
+    # direction where f·cos > 0 (unbiased whatever the quadrature missed).
+    area = np.diff(a_edges.astype(np.float64))[:, None] * np.diff(b_edges.astype(np.float64), axis=1)
+    total = mass.sum()
+    share = mass / total if total > 0 else np.zeros_like(mass)
+    prob = (1.0 - floor) * share + floor * area / TWO_PI
+    # Estimator weight per cell: its integral of f·cos over its probability (sum P W = albedo).
+    w_rgb = rgb / prob[..., None]
+    f32 = lambda x: x.astype(np.float32)
+    return f32(prob), f32(alpha), f32(beta), f32(w_rgb)
+
+
+def _find_cols(b_edges, row, b):
+    """Column of each point within its row."""
+    return _search(b, b_edges.shape[1] - 1, lambda m: b_edges[row, m])
+
+
+def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_width=None, gamma=0.5,
+                 row_share=0.02, col_share=0.05, quadrature=4, floor=1e-4, lobe_rows=True, window=1,
+                 progress=None):
+    """Tables of an isotropic material at the given incident elevations (radians).
+
+    Edges are anchored to the specular direction: row knots at the mirror direction and,
+    given a lobe width, at the lobe zone's ends; column knots at the mirror plane and the
+    lobe zone's azimuths. Between knots, a bin's edges sit at the quantiles of the pooled
+    points of its neighbours within `window` bins, in positions normalized to each bin's
+    knots: neighbouring bins then place a cell on the same part of the lobe, so
+    interpolating them moves the lobe instead of smearing it.
+    """
+    if not material.isotropic:
+        raise FlowBSDFError("baking anisotropic materials is not supported yet (bins over phi_i)")
+    theta_bins = np.sort(np.asarray(theta_bins, np.float64))
+    K = len(theta_bins)
+    wis = [np.array([np.sin(t), 0.0, np.cos(t)]) for t in theta_bins]
+    phi_ref = np.pi
+    points = [_points(material, source, wi, grid, phi_ref, gamma) for wi in wis]
+    near = [range(max(0, k - window), min(K, k + window + 1)) for k in range(K)]
+
+    row_knots = [lobe_knots(t, lobe_width if lobe_rows else None) for t in theta_bins]
+    row_counts = _segment_counts(rows, len(row_knots[0]) - 1)
+    normed = [_normalize(p[0], k) + (p[2],) for p, k in zip(points, row_knots)]
+    a_edges = []
+    for k in range(K):
+        seg, r, w = (np.concatenate(x) for x in zip(*(normed[j] for j in near[k])))
+        a_edges.append(_strictly_increasing(_denormalize(_shared_edges(seg, r, w, row_counts, row_share),
+                                                         row_knots[k]), 0.0, 1.0))
+
+    # Per bin: each point's row, and its normalized position within that row's column knots.
+    by_row = []
+    for k in range(K):
+        a, b, w, _ = points[k]
+        row = np.clip(np.searchsorted(a_edges[k], a, side="right") - 1, 0, rows - 1)
+        a_mid = 0.5 * (a_edges[k][:-1].astype(np.float64) + a_edges[k][1:])
+        knots = np.stack([lobe_col_knots(m, lobe_width) for m in a_mid])
+        seg, r = _normalize_rows(b, knots, row)
+        order = np.argsort(row, kind="stable")
+        bounds = np.searchsorted(row[order], np.arange(rows + 1))
+        by_row.append((knots, seg[order], r[order], w[order], bounds))
+    col_counts = _segment_counts(cols, by_row[0][0].shape[1] - 1)
+    b_edges = np.empty((K, rows, cols + 1), np.float32)
+    for k in range(K):
+        for i in range(rows):
+            pooled = [(seg[lo:hi], r[lo:hi], w[lo:hi])
+                      for _, seg, r, w, bounds in (by_row[j] for j in near[k])
+                      for lo, hi in [(bounds[i], bounds[i + 1])]]
+            seg, r, w = (np.concatenate(x) for x in zip(*pooled))
+            b_edges[k, i] = _denormalize(_shared_edges(seg, r, w, col_counts, col_share), by_row[k][0][i])
+        b_edges[k] = _strictly_increasing(b_edges[k], 0.0, TWO_PI)
+
+    parts = []
+    for k in range(K):
+        a, b, _, pm = points[k]
+        parts.append(_finish_bin(material, wis[k], phi_ref, a_edges[k], b_edges[k], a, b, pm, quadrature, floor))
+        if progress:
+            progress(k + 1, K)
+    mass, alpha, beta, weights = (np.stack(x) for x in zip(*parts))
+    return Tables(theta_bins, np.stack(a_edges), b_edges, mass, alpha, beta, weights)
+
+
+def _normalize_rows(x, knots, row):
+    """Like _normalize, with each point's own knots row (knots: (rows, n_knots))."""
+    k = knots[row]
+    seg = np.clip(np.sum(x[:, None] >= k[:, 1:-1], axis=1), 0, knots.shape[1] - 2)
+    lo, hi = np.take_along_axis(k, seg[:, None], 1)[:, 0], np.take_along_axis(k, seg[:, None] + 1, 1)[:, 0]
+    return seg, np.clip((x - lo) / (hi - lo), 0.0, 1.0)
+
+
+# ------------------------------------------------------------------------------ planning
+
+RESOLUTIONS = (16, 24, 32, 48, 64)
+FLOATS_PER_CELL = 7      # mass, two rates, RGB weight, and (about) one column edge
+
+
+BROAD = 0.3     # lobes wider than this (radians) get no lobe zones: cells follow the mass alone
+
+
+def lobe_width_of(material, ideal):
+    """The angular half-width of the lobe zones: 4 alpha of the material's fitted GGX lobe,
+    or None for a broad material."""
+    from .baselines import fit_ggx
+    fit = fit_ggx(material, ideal)
+    width = max(4.0 * fit.alpha_x, 0.03)
+    return None if width > BROAD or fit.diffuse >= 0.9 else float(width)
+
+
+def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution=None, first_bins=6,
+                theta_max_deg=89.5, min_gap_deg=0.2, samples=1 << 14, lobe_width="auto", log=None,
+                **options):
+    """Tables with only the resolution and incident bins this material needs.
+
+    Resolution: the smallest of RESOLUTIONS whose single-bin tables reach rv <= tol / 2 at a
+    few elevations. Bins: start from `first_bins` evenly spaced elevations; while the memory
+    budget allows another bin, split the interval whose interpolated midpoint loses most
+    against a bin built at that midpoint, until no interval loses more than tol / 2.
+    """
+    from .ideal import IdealSampler
+    from .metrics import relative_variance
+    log = log or (lambda *_: None)
+    ideal = source if isinstance(source, IdealSampler) else IdealSampler(material)
+    if lobe_width == "auto":
+        lobe_width = lobe_width_of(material, ideal)
+    opts = dict(lobe_width=lobe_width, **options)
+
+    def rv_at(tab, theta):
+        wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
+        return relative_variance(material, tab, wi, n=samples)[0]
+
+    if resolution is None:
+        probe = np.radians([10.0, 45.0, 75.0, 86.0])
+        for resolution in RESOLUTIONS:
+            worst = max(rv_at(build_tables(material, source, [t], resolution, resolution, **opts), t)
+                        for t in probe)
+            log(f"resolution {resolution}: single-bin rv {worst:.4f}")
+            if worst <= 0.5 * tol:
+                break
+    per_bin = FLOATS_PER_CELL * 4 * resolution * resolution
+    max_bins = max(2, int(memory_budget // per_bin))
+
+    bins = list(np.radians(np.linspace(0.0, theta_max_deg, first_bins)))
+    gap = np.radians(min_gap_deg)
+
+    def midpoint(lo, hi):     # interpolation is linear in cos(theta): test where it errs most
+        return float(np.arccos(0.5 * (np.cos(lo) + np.cos(hi))))
+
+    scores, own = {}, {}
+
+    def own_rv(theta):        # what a bin built exactly at theta reaches: the floor of its interval
+        if theta not in own:
+            own[theta] = rv_at(build_tables(material, source, [theta], resolution, resolution, **opts), theta)
+        return own[theta]
+
+    while len(bins) < max_bins:
+        for lo, hi in zip(bins[:-1], bins[1:]):
+            if (lo, hi) not in scores:
+                if hi - lo <= gap:
+                    scores[(lo, hi)] = 0.0
+                    continue
+                mid = midpoint(lo, hi)
+                pair = build_tables(material, source, [lo, hi], resolution, resolution, **opts)
+                # The interpolation's own error: what the midpoint loses against a bin built there.
+                scores[(lo, hi)] = max(rv_at(pair, mid) - max(own_rv(mid), 0.5 * tol), 0.0)
+        (lo, hi), worst = max(scores.items(), key=lambda kv: kv[1])
+        if worst <= 0.5 * tol:
+            break
+        bins = sorted(bins + [midpoint(lo, hi)])
+        del scores[(lo, hi)]
+        log(f"bins {len(bins)}: split {np.degrees(lo):.2f}-{np.degrees(hi):.2f} deg (midpoint rv {worst:.4f})")
+    tables = build_tables(material, source, bins, resolution, resolution, **opts)
+    tables.meta.update(resolution=resolution, lobe_width=lobe_width, tol=tol)
+    return tables

@@ -1,0 +1,129 @@
+import numpy as np
+import pytest
+
+from bake.errors import FlowBSDFError
+from bake.geometry import incident, luminance
+from bake.ideal import IdealSampler
+from bake.materials import open_material
+from bake.metrics import chi2_test, relative_variance
+from bake.tables import exp_cdf, exp_density, exp_inverse_cdf, open_tables
+from bake.tabulate import build_tables, exp_rate_for_mean, plan_tables
+
+HARD = {
+    "mirror-ish": {"kind": "analytic", "model": "ggx", "alpha": 0.005},
+    "anisotropic-looking plastic": {"kind": "analytic", "model": "plastic", "albedo": [0.6, 0.2, 0.1], "alpha": 0.02},
+    "sheen": {"kind": "analytic", "model": "sheen", "color": 0.8, "roughness": 0.3},
+    "retro": {"kind": "analytic", "model": "retro", "alpha": 0.1},
+}
+BINS = np.radians([0.0, 20.0, 45.0, 70.0, 80.0, 86.0, 89.5])
+
+
+@pytest.fixture(scope="module")
+def tables():
+    out = {}
+    for name, spec in HARD.items():
+        mat = open_material(spec)
+        out[name] = (mat, build_tables(mat, IdealSampler(mat, resolution=128), BINS, rows=24, cols=24, grid=256,
+                                       lobe_width=0.1))
+    return out
+
+
+def test_exponential_cell_density_is_consistent():
+    rng = np.random.default_rng(0)
+    for k in [-30.0, -3.0, -1e-6, 0.0, 1e-7, 0.5, 12.0, 30.0]:
+        u = rng.random(10000)
+        x = exp_inverse_cdf(u, np.full_like(u, k))
+        np.testing.assert_allclose(exp_cdf(x, np.full_like(x, k)), u, atol=1e-9)
+        grid = (np.arange(20000) + 0.5) / 20000
+        assert np.mean(exp_density(grid, np.full_like(grid, k))) == pytest.approx(1.0, rel=1e-6)
+    # Rates are capped at +-30 (mean 1/30 from either end): beyond, the steepest fit stands.
+    assert exp_rate_for_mean(np.array([0.001, 0.999])) == pytest.approx([-30.0, 30.0], abs=1e-6)
+    for mean in [0.04, 0.3, 0.5, 0.77, 0.96]:
+        k = exp_rate_for_mean(np.array([mean]))
+        grid = (np.arange(200000) + 0.5) / 200000
+        d = exp_density(grid, np.full_like(grid, k))
+        assert np.mean(d * grid) == pytest.approx(mean, abs=1e-4)
+
+
+@pytest.mark.parametrize("name", sorted(HARD))
+def test_sample_pdf_invert_agree_everywhere(tables, name):
+    """Between bins too: sample, pdf and invert are one exact bijection; nothing below the
+    horizon; pdf > 0 wherever the material reflects."""
+    mat, tab = tables[name]
+    rng = np.random.default_rng(1)
+    for theta in [0.0, 11.3, 45.0, 77.7, 85.0, 88.8, 89.9]:
+        wi = incident(theta, rng.uniform(-np.pi, np.pi))
+        u = rng.random((50000, 2))
+        wo, pdf = tab.sample(wi, u)
+        assert np.all(np.isfinite(pdf)) and np.all(pdf > 0)
+        assert np.all(wo[:, 2] > 0), "a sample below the horizon"
+        np.testing.assert_allclose(tab.pdf(wi, wo), pdf, rtol=1e-9)
+        np.testing.assert_allclose(tab.invert(wi, wo), u, atol=1e-7)
+        uniform = rng.random((20000, 2))
+        z = np.sqrt(uniform[:, 0])
+        probe = np.stack([np.sqrt(1 - z * z) * np.cos(6.283 * uniform[:, 1]),
+                          np.sqrt(1 - z * z) * np.sin(6.283 * uniform[:, 1]), z], axis=1)
+        assert np.all(tab.pdf(wi, probe) > 0), "a direction the table can never sample"
+
+
+@pytest.mark.parametrize("name", sorted(HARD))
+def test_chi2_between_and_on_bins(tables, name):
+    mat, tab = tables[name]
+    for theta in (0.0, 33.0, 84.0, 89.0):
+        r = chi2_test(tab, incident(theta, 0.4), n=200_000, n_tests=len(HARD) * 4)
+        assert r.passed, (name, theta, r)
+
+
+def test_eval_is_the_baked_bsdf(tables):
+    """Tables.eval is W pdf / cos: its estimator weight is the cell's W, and it integrates to
+    the material's albedo (the Cycles OSL back end renders exactly this)."""
+    mat, tab = tables["anisotropic-looking plastic"]
+    wi = incident(45)
+    wo, pdf = tab.sample(wi, np.random.default_rng(2).random((200000, 2)))
+    albedo_baked = np.mean(tab.eval(wi, wo) * wo[:, 2:3] / pdf[:, None], axis=0)
+    albedo_true = IdealSampler(mat).albedo(wi)
+    np.testing.assert_allclose(albedo_baked, albedo_true, rtol=0.01)
+    assert np.all(tab.eval(wi, -wo) == 0)
+
+
+def test_quality_on_a_sharp_lobe():
+    """GGX alpha 0.005: on a bin and between two bins 4 degrees apart."""
+    mat = open_material(HARD["mirror-ish"])
+    ideal = IdealSampler(mat)
+    tab = build_tables(mat, ideal, np.radians([28.0, 32.0]), rows=32, cols=32, grid=256, lobe_width=0.03)
+    for theta in (28.0, 30.0, 31.3):
+        rv, _ = relative_variance(mat, tab, incident(theta), n=100_000)
+        assert rv < 0.01, (theta, rv)
+        assert rv < relative_variance(mat, ideal, incident(theta), n=100_000)[0] * 10
+
+
+def test_file_round_trip_and_corruption(tables, tmp_path):
+    mat, tab = tables["sheen"]
+    path = tmp_path / "sheen.exr"
+    tab.meta["material"] = "sheen"
+    tab.save(path)
+    back = open_tables(path)
+    assert back.meta["material"] == "sheen" and back.nbytes == tab.nbytes
+    wi = incident(52)
+    u = np.random.default_rng(3).random((1000, 2))
+    np.testing.assert_array_equal(back.sample(wi, u)[0], tab.sample(wi, u)[0])
+    assert not list(tmp_path.glob(".*.tmp")), "a temporary file left behind"
+
+    truncated = tmp_path / "truncated.exr"
+    truncated.write_bytes(path.read_bytes()[:500])
+    foreign = tmp_path / "foreign.exr"
+    foreign.write_bytes(b"not an exr at all" * 10)
+    empty = tmp_path / "empty.exr"
+    empty.write_bytes(b"")
+    for bad, message in [(truncated, "not a readable"), (foreign, "not a readable"), (empty, "not a readable"),
+                         (tmp_path / "missing.exr", "not found")]:
+        with pytest.raises(FlowBSDFError, match=message) as err:
+            open_tables(bad)
+        assert bad.name in str(err.value)
+
+
+def test_plan_picks_small_tables_for_a_diffuse_material():
+    lambert = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})
+    small = plan_tables(lambert, IdealSampler(lambert, resolution=64), grid=128, samples=1 << 12)
+    assert small.rows <= 24 and len(small.theta_bins) <= 8
+    assert small.nbytes < 100_000
