@@ -36,10 +36,36 @@ def cmd_yardsticks(args):
         print(f"[wrote] {out / 'yardsticks.md'}, {out / 'yardsticks.csv'}")
 
 
+def cmd_bake(args):
+    from .manifest import load_manifest
+    from .pipeline import bake_manifest
+    bake_manifest(load_manifest(args.manifest), args.out, name=args.material, force=args.force)
+
+
+def cmd_report(args):
+    from .manifest import load_manifest
+    from .report import report_manifest
+    written = report_manifest(load_manifest(args.manifest), args.out, name=args.material, n=args.samples)
+    print(Path(written["markdown"]).read_text())
+    print(f"[wrote] {written['markdown']}")
+
+
 def cmd_run(args):
-    """The main job on a manifest. For now: the yardstick table of the existing samplers."""
-    args.thetas = "0,30,60,75,85"
-    cmd_yardsticks(args)
+    """The main job: train what is missing, bake what changed, then the report."""
+    from .manifest import load_manifest
+    from .pipeline import bake_manifest, model_path
+    manifest = load_manifest(args.manifest)
+    entries = manifest.select(args.material)
+    todo = [e.name for e in entries if e.open().isotropic and not model_path(args.out, e.name).is_file()]
+    if todo and not args.no_train:
+        train_args = [args.manifest, "--out", str(Path(args.out) / "models"), "--preset", args.preset]
+        for name in todo:
+            train_args += ["--material", name]
+        if cmd_train(None, train_args) != 0:
+            raise FlowBSDFError("training failed (see above); rerun to resume from the checkpoints")
+    bake_manifest(manifest, args.out, name=args.material)
+    args.samples = args.samples or 1 << 16
+    cmd_report(args)
 
 
 def cmd_train(args, rest):
@@ -57,16 +83,36 @@ def build_parser():
     c.add_argument("--material")
     c.set_defaults(func=cmd_check)
 
-    for name, func, help_ in [("yardsticks", cmd_yardsticks, "rv of the baseline and ideal samplers"),
-                              ("run", cmd_run, "the main job on a manifest")]:
-        y = sub.add_parser(name, help=help_)
-        y.add_argument("manifest")
-        y.add_argument("--material")
-        y.add_argument("--samples", type=int, default=1 << 17, help="samples per rv cell")
-        y.add_argument("--out", default="out", help="folder for the tables")
-        if name == "yardsticks":
-            y.add_argument("--thetas", default="0,30,60,75,85", help="incident elevations, degrees")
-        y.set_defaults(func=func)
+    y = sub.add_parser("yardsticks", help="rv of the baseline and ideal samplers")
+    y.add_argument("manifest")
+    y.add_argument("--material")
+    y.add_argument("--samples", type=int, default=1 << 17, help="samples per rv cell")
+    y.add_argument("--out", default="out", help="folder for the tables")
+    y.add_argument("--thetas", default="0,30,60,75,85", help="incident elevations, degrees")
+    y.set_defaults(func=cmd_yardsticks)
+
+    b = sub.add_parser("bake", help="bake tables for a manifest's materials (skips current ones)")
+    b.add_argument("manifest")
+    b.add_argument("--material")
+    b.add_argument("--out", default="out", help="output folder (tables in OUT/tables, models from OUT/models)")
+    b.add_argument("--force", action="store_true", help="rebuild even when the inputs did not change")
+    b.set_defaults(func=cmd_bake)
+
+    r = sub.add_parser("report", help="speed vs error of every sampler (OUT/report)")
+    r.add_argument("manifest")
+    r.add_argument("--material")
+    r.add_argument("--out", default="out")
+    r.add_argument("--samples", type=int, default=1 << 17, help="samples per rv cell")
+    r.set_defaults(func=cmd_report)
+
+    m = sub.add_parser("run", help="the main job: train -> bake -> report")
+    m.add_argument("manifest")
+    m.add_argument("--material")
+    m.add_argument("--out", default="out")
+    m.add_argument("--preset", default="fast", choices=["fast", "balanced", "paper"])
+    m.add_argument("--no-train", action="store_true", help="bake from the ideal tabulation only")
+    m.add_argument("--samples", type=int, default=None)
+    m.set_defaults(func=cmd_run)
 
     sub.add_parser("train", help="train flow models (python -m trainer train --help)", add_help=False)
     return p
@@ -75,7 +121,11 @@ def build_parser():
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["train"]:
-        return cmd_train(None, argv[1:])
+        rest = argv[1:]
+        if "--out" not in rest and not any(a.startswith("--out=") for a in rest) and "-h" not in rest \
+                and "--help" not in rest:
+            rest += ["--out", str(Path("out") / "models")]
+        return cmd_train(None, rest)
     args = build_parser().parse_args(argv)
     t0 = time.perf_counter()
     try:

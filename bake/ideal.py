@@ -207,3 +207,35 @@ def training_pairs(material, domain, n, rng, theta_i, sampler=None):
         x_out.append(domain.from_dir(wo[ok]))
         have += int(ok.sum())
     return np.concatenate(wi_out)[:n], np.concatenate(x_out)[:n]
+
+
+class BinnedIdeal:
+    """Plain tabulation: the ideal sampler's tables at fixed incident bins, each wi served by
+    its nearest bin (no interpolation). The baseline the baked tables must beat at equal memory."""
+
+    name = "plain"
+
+    def __init__(self, material, theta_bins, resolution):
+        self.theta_bins = np.sort(np.asarray(theta_bins, float))
+        self.ideal = IdealSampler(material, resolution=resolution, max_tables=len(self.theta_bins) + 1)
+        self.nbytes = len(self.theta_bins) * resolution * 2 * resolution * 4   # float32 cell masses
+
+    @classmethod
+    def with_memory(cls, material, theta_bins, nbytes):
+        resolution = int(np.sqrt(nbytes / (len(theta_bins) * 8)))
+        return cls(material, theta_bins, max(resolution, 2))
+
+    def _snap(self, wi):
+        theta, phi = theta_phi(wi)
+        k = np.abs(theta[:, None] - self.theta_bins[None, :]).argmin(axis=1)
+        t = self.theta_bins[k]
+        return np.stack([np.sin(t) * np.cos(phi), np.sin(t) * np.sin(phi), np.cos(t)], axis=-1)
+
+    def sample(self, wi, u):
+        u = np.atleast_2d(np.asarray(u, float))
+        wi, _ = as_dirs(wi, np.zeros((len(u), 3)))
+        return self.ideal.sample(self._snap(wi), u)
+
+    def pdf(self, wi, wo):
+        wi, wo = as_dirs(wi, wo)
+        return self.ideal.pdf(self._snap(wi), wo)

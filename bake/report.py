@@ -3,6 +3,7 @@ and the speed-vs-error report: rv, lost samples, throughput and memory per sampl
 Pareto plots (error vs time) and pdf slices over the hemisphere (matplotlib, imported only
 by the plotting functions, so bake/ stays importable in Blender without it)."""
 import csv
+from pathlib import Path
 import math
 import time
 
@@ -361,3 +362,51 @@ def plot_target(material, theta_i, path, res=256, title=None, decades=4):
     wi = incident(theta_i)
     return _show_panels([("target f·cos (normalized)", target_density(material, wi, res))], wi, Path(path),
                         title or f"θi = {theta_i}°", decades)
+
+
+def manifest_samplers(entry, material, out_dir, manifest_path, steps=(2, 4, 8), log=print):
+    """Every sampler the report compares for one material: baselines, the ideal tabulation,
+    the flow at several step counts, the baked tables (and a half-resolution rebuild on the
+    same bins), plain tabulation at the tables' memory, and Mitsuba's sampler for RGL files."""
+    from .baselines import UniformSampler
+    from .ideal import BinnedIdeal
+    from .pipeline import model_path, open_current_tables
+    ideal = IdealSampler(material)
+    samplers = {"uniform": UniformSampler(), "cosine": CosineSampler(), "ggx-fit": fit_ggx(material, ideal),
+                "ideal": ideal}
+    model_file = model_path(out_dir, entry.name)
+    if model_file.is_file():
+        from .flow import load_model
+        model = load_model(model_file)
+        for n in steps:
+            samplers[f"flow N={n}"] = model.with_steps(n)
+    tables = open_current_tables(entry, out_dir, manifest_path)
+    if tables is not None:
+        from .tabulate import build_tables
+        samplers["tables"] = tables
+        half = max(tables.rows // 2, 4)
+        samplers[f"tables {half}x{half}"] = build_tables(
+            material, ideal, tables.theta_bins, half, half, lobe_width=tables.meta.get("lobe_width"))
+        samplers["plain (equal memory)"] = BinnedIdeal.with_memory(material, tables.theta_bins, tables.nbytes)
+    elif (Path(out_dir) / "tables" / f"{entry.name}.exr").is_file():
+        log(f"[report] {entry.name}: tables are stale (material, model or settings changed): re-bake")
+    path = entry.source_path()
+    if path is not None and path.suffix.lower() == ".bsdf":
+        try:
+            from .mitsuba_peer import MitsubaMeasuredSampler
+            samplers["mitsuba"] = MitsubaMeasuredSampler(path)
+        except Exception as e:      # an optional peer: any failure only drops it from the report
+            log(f"[report] {entry.name}: no Mitsuba peer ({e})")
+    return samplers
+
+
+def report_manifest(manifest, out_dir, name=None, thetas=THETAS_DEG, n=1 << 17, log=print):
+    """The speed-vs-error report of every selected material, written to <out_dir>/report."""
+    rows, slices = [], []
+    for entry in manifest.select(name, log=log):
+        material = entry.open()
+        samplers = manifest_samplers(entry, material, out_dir, manifest.path, log=log)
+        rows += speed_error_rows(entry.name, material, samplers, thetas=thetas, n=n, log=log)
+        shown = {k: samplers[k] for k in ("ideal", "flow N=4", "tables") if k in samplers}
+        slices.append((entry.name, material, shown, 60.0))
+    return write_report(rows, Path(out_dir) / "report", slices=slices)

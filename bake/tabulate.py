@@ -216,7 +216,7 @@ def _find_cols(b_edges, row, b):
 
 def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_width=None, gamma=0.5,
                  row_share=0.02, col_share=0.05, quadrature=4, floor=1e-4, lobe_rows=True, window=1,
-                 progress=None):
+                 progress=None, cache=None):
     """Tables of an isotropic material at the given incident elevations (radians).
 
     Edges are anchored to the specular direction: row knots at the mirror direction and,
@@ -232,7 +232,13 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
     K = len(theta_bins)
     wis = [np.array([np.sin(t), 0.0, np.cos(t)]) for t in theta_bins]
     phi_ref = np.pi
-    points = [_points(material, source, wi, grid, phi_ref, gamma) for wi in wis]
+    cache = {} if cache is None else cache      # the source's points per bin, reusable across builds
+    points = []
+    for t, wi in zip(theta_bins, wis):
+        key = (float(t), grid, gamma)
+        if key not in cache:
+            cache[key] = _points(material, source, wi, grid, phi_ref, gamma)
+        points.append(cache[key])
     near = [range(max(0, k - window), min(K, k + window + 1)) for k in range(K)]
 
     row_knots = [lobe_knots(t, lobe_width if lobe_rows else None) for t in theta_bins]
@@ -318,7 +324,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
     ideal = source if isinstance(source, IdealSampler) else IdealSampler(material)
     if lobe_width == "auto":
         lobe_width = lobe_width_of(material, ideal)
-    opts = dict(lobe_width=lobe_width, **options)
+    opts = dict(lobe_width=lobe_width, cache={}, **options)
 
     def rv_at(tab, theta):
         wi = np.array([np.sin(theta), 0.0, np.cos(theta)])

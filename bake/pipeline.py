@@ -1,0 +1,135 @@
+"""`flowbsdf bake`: tables for the materials a manifest lists, rebuilt only when their inputs change.
+
+Layout of an output folder:
+    <out>/models/<name>.flow.npz     trained flows (flowbsdf train)
+    <out>/tables/<name>.exr          baked tables (flowbsdf bake)
+A table file records the hash of its inputs (material content, model file, bake settings,
+table format); a bake whose inputs hash matches the file on disk is skipped, any change
+rebuilds it, and a stale file is never used (`open_current_tables`).
+"""
+import hashlib
+import json
+import time
+from pathlib import Path
+
+from .errors import FlowBSDFError
+from .tables import FORMAT_VERSION, open_tables
+
+# Bumped when the construction changes in a way that should rebuild existing tables.
+BUILDER_VERSION = 1
+BAKE_KEYS = {"source", "tol", "memory_budget", "resolution", "grid", "lobe_width", "samples", "first_bins"}
+SOURCES = ("auto", "flow", "ideal")
+
+
+def model_path(out_dir, name):
+    return Path(out_dir) / "models" / f"{name}.flow.npz"
+
+
+def table_path(out_dir, name):
+    return Path(out_dir) / "tables" / f"{name}.exr"
+
+
+def _file_hash(path):
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def bake_settings(entry, manifest_path):
+    settings = dict(entry.bake)
+    unknown = sorted(set(settings) - BAKE_KEYS)
+    if unknown:
+        raise FlowBSDFError(f"material {entry.name!r}: unknown bake setting(s) {', '.join(unknown)} "
+                            f"(allowed: {', '.join(sorted(BAKE_KEYS))})", manifest_path)
+    source = settings.setdefault("source", "auto")
+    if source not in SOURCES:
+        raise FlowBSDFError(f"material {entry.name!r}: bake source must be one of {SOURCES}", manifest_path)
+    return settings
+
+
+def inputs_of(material, settings, model_file):
+    """What a table depends on, and its hash."""
+    inputs = {"material": material.fingerprint(), "settings": settings,
+              "model": _file_hash(model_file) if model_file else None,
+              "format": FORMAT_VERSION, "builder": BUILDER_VERSION}
+    return inputs, hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()
+
+
+def _choose_source(material, settings, model_file):
+    from .ideal import IdealSampler
+    if model_file is not None:
+        from .flow import load_model
+        return load_model(model_file), "flow"
+    return IdealSampler(material), "ideal"
+
+
+def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
+    """Bake one manifest entry; returns (path, 'baked' | 'current')."""
+    from .tabulate import plan_tables
+    settings = bake_settings(entry, manifest_path)
+    material = entry.open()
+    if not material.isotropic:
+        log(f"[skip] {entry.name}: anisotropic; tables over phi_i are not supported yet "
+            "(the flow and the ideal sampler serve it)")
+        return None, "unsupported"
+    model_file = model_path(out_dir, entry.name)
+    source_kind = settings["source"]
+    if source_kind == "flow" and not model_file.is_file():
+        raise FlowBSDFError(f"material {entry.name!r}: bake source 'flow' but no model at {model_file} "
+                            "(run flowbsdf train first)")
+    if source_kind == "ideal" or not model_file.is_file():
+        model_file = None
+    inputs, digest = inputs_of(material, settings, model_file)
+    path = table_path(out_dir, entry.name)
+    if not force and path.is_file():
+        try:
+            if open_tables(path).meta.get("inputs_hash") == digest:
+                return path, "current"
+        except FlowBSDFError:
+            pass       # unreadable or foreign: rebuild it
+    source, used = _choose_source(material, settings, model_file)
+    t0 = time.perf_counter()
+    options = {k: v for k, v in settings.items() if k != "source"}
+    tables = plan_tables(material, source, log=lambda s: log(f"[bake] {entry.name}: {s}"), **options)
+    tables.meta.update(material=entry.name, source=used, inputs=inputs, inputs_hash=digest,
+                       seconds=round(time.perf_counter() - t0, 1), nbytes=tables.nbytes)
+    tables.save(path)
+    return path, "baked"
+
+
+def bake_manifest(manifest, out_dir, name=None, force=False, log=print):
+    """Bake every selected entry; returns the paths written. Failures are reported per
+    material and raised together at the end, so one bad material does not stop the rest."""
+    written, failures = [], []
+    for entry in manifest.select(name, log=log):
+        try:
+            path, status = bake_entry(entry, out_dir, manifest.path, force=force, log=log)
+        except FlowBSDFError as e:
+            failures.append(f"{entry.name}: {e}")
+            log(f"[fail] {entry.name}: {e}")
+            continue
+        if status == "current":
+            log(f"[skip] {entry.name}: {path} is up to date")
+        elif status == "baked":
+            log(f"[wrote] {path}")
+            written.append(path)
+    if failures:
+        raise FlowBSDFError(f"{len(failures)} material(s) failed to bake: " + "; ".join(failures),
+                            manifest.path)
+    return written
+
+
+def open_current_tables(entry, out_dir, manifest_path):
+    """The entry's tables if they exist and match its current inputs; None otherwise."""
+    path = table_path(out_dir, entry.name)
+    if not path.is_file():
+        return None
+    settings = bake_settings(entry, manifest_path)
+    model_file = model_path(out_dir, entry.name)
+    if settings["source"] == "ideal" or not model_file.is_file():
+        model_file = None
+    _, digest = inputs_of(entry.open(), settings, model_file)
+    tables = open_tables(path)
+    return tables if tables.meta.get("inputs_hash") == digest else None
