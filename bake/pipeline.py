@@ -17,7 +17,8 @@ from .tables import FORMAT_VERSION, open_tables
 
 # Bumped when the construction changes in a way that should rebuild existing tables.
 BUILDER_VERSION = 1
-BAKE_KEYS = {"source", "tol", "memory_budget", "resolution", "grid", "lobe_width", "samples", "first_bins"}
+BAKE_KEYS = {"source", "tol", "memory_budget", "resolution", "grid", "lobe_width", "samples", "first_bins",
+             "ideal_resolution"}
 SOURCES = ("auto", "flow", "ideal")
 
 
@@ -62,7 +63,7 @@ def _choose_source(material, settings, model_file):
     if model_file is not None:
         from .flow import load_model
         return load_model(model_file), "flow"
-    return IdealSampler(material), "ideal"
+    return IdealSampler(material, resolution=settings.get("ideal_resolution", 256)), "ideal"
 
 
 def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
@@ -91,8 +92,9 @@ def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
             pass       # unreadable or foreign: rebuild it
     source, used = _choose_source(material, settings, model_file)
     t0 = time.perf_counter()
-    options = {k: v for k, v in settings.items() if k != "source"}
-    tables = plan_tables(material, source, log=lambda s: log(f"[bake] {entry.name}: {s}"), **options)
+    options = {k: v for k, v in settings.items() if k not in ("source", "ideal_resolution")}
+    tables = plan_tables(material, source, ideal_resolution=settings.get("ideal_resolution", 256),
+                         log=lambda s: log(f"[bake] {entry.name}: {s}"), **options)
     tables.meta.update(material=entry.name, source=used, inputs=inputs, inputs_hash=digest,
                        seconds=round(time.perf_counter() - t0, 1), nbytes=tables.nbytes)
     tables.save(path)

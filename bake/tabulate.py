@@ -309,7 +309,7 @@ def lobe_width_of(material, ideal):
 
 
 def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution=None, first_bins=6,
-                theta_max_deg=89.5, min_gap_deg=0.2, samples=1 << 14, lobe_width="auto", log=None,
+                theta_max_deg=89.5, min_gap_deg=0.2, samples=1 << 14, lobe_width="auto", ideal_resolution=256, log=None,
                 **options):
     """Tables with only the resolution and incident bins this material needs.
 
@@ -321,7 +321,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
     from .ideal import IdealSampler
     from .metrics import relative_variance
     log = log or (lambda *_: None)
-    ideal = source if isinstance(source, IdealSampler) else IdealSampler(material)
+    ideal = source if isinstance(source, IdealSampler) else IdealSampler(material, resolution=ideal_resolution)
     if lobe_width == "auto":
         lobe_width = lobe_width_of(material, ideal)
     opts = dict(lobe_width=lobe_width, cache={}, **options)

@@ -1,0 +1,84 @@
+"""flowbsdf bake: only what changed is rebuilt, files are atomic, stale tables are never used."""
+import textwrap
+
+import numpy as np
+import pytest
+
+from bake.cli import main
+from bake.errors import FlowBSDFError
+from bake.manifest import load_manifest
+from bake.pipeline import bake_manifest, open_current_tables, table_path
+
+FAST = "bake = { resolution = 16, tol = 0.5, grid = 96, samples = 2048, first_bins = 3, ideal_resolution = 48 }"
+
+
+def manifest(tmp_path, albedo=0.5, extra="", bake=FAST):
+    path = tmp_path / "m.toml"
+    path.write_text(textwrap.dedent(f"""
+        [[material]]
+        name = "matte"
+        source = {{ kind = "analytic", model = "lambert", albedo = {albedo} }}
+        {bake}
+        {extra}
+    """))
+    return load_manifest(path)
+
+
+def test_bake_skips_current_and_rebuilds_changed(tmp_path):
+    out = tmp_path / "out"
+    log = []
+    m = manifest(tmp_path)
+    assert bake_manifest(m, out, log=log.append) == [table_path(out, "matte")]
+    first = table_path(out, "matte").stat().st_mtime_ns
+    assert bake_manifest(m, out, log=log.append) == []
+    assert any("up to date" in line for line in log)
+    assert table_path(out, "matte").stat().st_mtime_ns == first
+    entry = m.materials[0]
+    assert open_current_tables(entry, out, m.path) is not None
+
+    changed = manifest(tmp_path, albedo=0.6)                 # the material changed
+    assert open_current_tables(changed.materials[0], out, changed.path) is None, "stale tables used"
+    assert bake_manifest(changed, out, log=log.append) == [table_path(out, "matte")]
+    assert open_current_tables(changed.materials[0], out, changed.path) is not None
+
+    resettled = manifest(tmp_path, albedo=0.6, bake=FAST.replace("tol = 0.5", "tol = 0.4"))
+    assert open_current_tables(resettled.materials[0], out, resettled.path) is None
+    assert bake_manifest(resettled, out, log=log.append) == [table_path(out, "matte")]
+    assert not list((out / "tables").glob(".*")), "temporary files left behind"
+
+
+def test_broken_table_file_is_rebuilt(tmp_path):
+    out = tmp_path / "out"
+    m = manifest(tmp_path)
+    bake_manifest(m, out, log=lambda *_: None)
+    path = table_path(out, "matte")
+    path.write_bytes(path.read_bytes()[:300])
+    assert bake_manifest(m, out, log=lambda *_: None) == [path]
+    tables = open_current_tables(m.materials[0], out, m.path)
+    wo, pdf = tables.sample(np.array([0.0, 0.0, 1.0]), np.random.default_rng(0).random((100, 2)))
+    assert np.all(pdf > 0)
+
+
+def test_one_failure_does_not_stop_the_others(tmp_path, capsys):
+    out = tmp_path / "out"
+    m = manifest(tmp_path, extra=textwrap.dedent("""
+        [[material]]
+        name = "gone"
+        source = "missing.bsdf"
+        [[material]]
+        name = "brushed"
+        source = { kind = "analytic", model = "ggx", alpha_x = 0.3, alpha_y = 0.05 }
+    """))
+    log = []
+    with pytest.raises(FlowBSDFError, match="1 material\\(s\\) failed.*gone.*not found"):
+        bake_manifest(m, out, log=log.append)
+    assert table_path(out, "matte").is_file()
+    assert any("brushed" in line and "anisotropic" in line for line in log)
+    assert main(["bake", str(m.path), "--out", str(out)]) == 2
+    assert "gone" in capsys.readouterr().err
+
+
+def test_unknown_bake_setting(tmp_path):
+    m = manifest(tmp_path, bake="bake = { resolutoin = 16 }")
+    with pytest.raises(FlowBSDFError, match="unknown bake setting.*resolutoin"):
+        bake_manifest(m, tmp_path / "out", log=lambda *_: None)
