@@ -1,0 +1,192 @@
+"""The C fast path of Tables (bake/_tables_c.c via bake/fasttables.py) against the numpy
+reference: same samples, pdfs, inverses and BSDF values to 1e-10, and a silent numpy
+fallback when the library is disabled or missing."""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bake import fasttables
+from bake.errors import FlowBSDFError
+from bake.geometry import incident, spherical_dir
+from bake.ideal import IdealSampler
+from bake.materials import open_material
+from bake.tables import Tables
+from bake.tabulate import build_tables
+
+ROOT = Path(__file__).resolve().parents[1]
+needs_c = pytest.mark.skipif(not fasttables.AVAILABLE, reason=f"C tables library unavailable: {fasttables.REASON}")
+
+MATERIALS = {
+    "ggx": {"kind": "analytic", "model": "ggx", "alpha": 0.05},
+    "plastic": {"kind": "analytic", "model": "plastic", "albedo": [0.6, 0.2, 0.1], "alpha": 0.2},
+}
+# name -> (material, bins in degrees, rows, cols): odd sizes exercise the bisection; one bin
+# exercises K == 1.
+CASES = {
+    "ggx-5bins": ("ggx", [0.0, 30.0, 60.0, 80.0, 89.0], 16, 16),
+    "ggx-odd": ("ggx", [0.0, 45.0, 85.0], 13, 21),
+    "plastic-1bin": ("plastic", [40.0], 12, 9),
+}
+
+
+@pytest.fixture(scope="module")
+def tables():
+    out = {}
+    for name, (mat_name, bins, rows, cols) in CASES.items():
+        mat = open_material(MATERIALS[mat_name])
+        out[name] = build_tables(mat, IdealSampler(mat, resolution=64), np.radians(bins), rows=rows, cols=cols,
+                                 grid=96)
+    return out
+
+
+def reference(tab):
+    """The same tables on the numpy path only."""
+    return Tables(tab.theta_bins, tab.a_edges, tab.b_edges, tab.mass, tab.alpha, tab.beta, tab.weights,
+                  backend="numpy")
+
+
+def fast(name, tab, *args):
+    out = getattr(fasttables, name)(tab, *args)
+    assert out is not None, f"the C path declined {name}"
+    return out
+
+
+def sphere(rng, n):
+    """Uniform directions on the whole sphere: half of them below the horizon."""
+    z = rng.uniform(-1.0, 1.0, n)
+    phi = rng.uniform(-np.pi, np.pi, n)
+    s = np.sqrt(1.0 - z * z)
+    return np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=1)
+
+
+SPECIAL_WO = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0],
+                       [-0.6, 0.0, 0.8], [0.6, 0.0, 0.8], [0.0, 0.6, 0.8], [1e-9, -1e-9, 1.0]])
+
+
+def single_wis(rng, tab):
+    """Incident directions (3,): on the pole, on and between the bins, near grazing, random azimuths."""
+    bins = np.degrees(tab.theta_bins)
+    thetas = [0.0, 89.9, 90.0, *bins, *((bins[:-1] + bins[1:]) / 2), *rng.uniform(0.0, 90.0, 3)]
+    return [np.array([0.0, 0.0, 1.0])] + [incident(t, rng.uniform(-np.pi, np.pi)) for t in thetas]
+
+
+def check_all(tab, ref, wi, u, wos):
+    wo_c, pdf_c = fast("sample", tab, wi, u)
+    wo_r, pdf_r = ref.sample(wi, u)
+    np.testing.assert_allclose(wo_c, wo_r, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(pdf_c, pdf_r, rtol=1e-10, atol=0)
+    for wo in (wo_r, *wos):
+        np.testing.assert_allclose(fast("pdf", tab, wi, wo), ref.pdf(wi, wo), rtol=1e-10, atol=0)
+        np.testing.assert_allclose(fast("invert", tab, wi, wo), ref.invert(wi, wo), rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(fast("eval", tab, wi, wo), ref.eval(wi, wo), rtol=1e-10, atol=0)
+
+
+@needs_c
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_c_matches_numpy_at_one_wi(tables, name):
+    tab = tables[name]
+    ref = reference(tab)
+    rng = np.random.default_rng(7)
+    for wi in single_wis(rng, tab):
+        n = 4000        # > rows * cols: the C code precomputes this wi's table ("flat" mode)
+        check_all(tab, ref, wi, rng.random((n, 2)), [sphere(rng, n), SPECIAL_WO])
+
+
+@needs_c
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_c_matches_numpy_per_sample_wi(tables, name):
+    tab = tables[name]
+    ref = reference(tab)
+    rng = np.random.default_rng(8)
+    n = 20000
+    theta = np.radians(rng.uniform(0.0, 90.0, n))
+    theta[:8] = np.radians([0.0, 89.9, 90.0, 95.0, *np.degrees(tab.theta_bins[:1]), 0.0, 60.0, 30.0])
+    wi = spherical_dir(theta, rng.uniform(-np.pi, np.pi, n))   # a few below the horizon
+    wo_special = SPECIAL_WO[np.arange(n) % len(SPECIAL_WO)]
+    check_all(tab, ref, wi, rng.random((n, 2)), [sphere(rng, n), wo_special])
+
+
+@needs_c
+def test_flat_and_interpolated_modes_agree_bit_for_bit(tables):
+    """One wi with many samples (table precomputed once) or few (interpolated per sample):
+    the same arithmetic, so the same bits."""
+    tab = tables["ggx-5bins"]
+    rng = np.random.default_rng(9)
+    wi = incident(51.0, 0.7)
+    u = rng.random((3000, 2))
+    wo = sphere(rng, 3000)
+    small = 100     # < rows * cols
+    for name, x in (("sample", u), ("pdf", wo), ("invert", wo), ("eval", wo)):
+        whole = fast(name, tab, wi, x)
+        parts = [fast(name, tab, wi, x[i:i + small]) for i in range(0, len(x), small)]
+        if name == "sample":
+            assert np.array_equal(whole[0], np.concatenate([p[0] for p in parts]))
+            assert np.array_equal(whole[1], np.concatenate([p[1] for p in parts]))
+        else:
+            assert np.array_equal(whole, np.concatenate(parts), equal_nan=True)
+
+
+@needs_c
+def test_tables_methods_dispatch_to_c(tables):
+    tab = tables["ggx-odd"]
+    rng = np.random.default_rng(10)
+    wi, u = incident(33.0), rng.random((500, 2))
+    wo, pdf = tab.sample(wi, u)
+    c_wo, c_pdf = fast("sample", tab, wi, u)
+    assert np.array_equal(wo, c_wo) and np.array_equal(pdf, c_pdf)
+    # shapes as numpy returns them, for one direction too
+    assert tab.sample(wi, [0.3, 0.6])[0].shape == (1, 3)
+    assert tab.pdf(wi, wo[0]).shape == (1,) and tab.invert(wi, wo[0]).shape == (1, 2)
+    assert tab.eval(wi, wo[:5]).shape == (5, 3)
+    # inputs the C path cannot take (wi rows that do not match) go to numpy, which raises as before
+    with pytest.raises(ValueError):
+        tab.pdf(np.tile(wi, (3, 1)), wo[:5])
+
+
+def test_numpy_fallback_when_the_library_is_disabled(tables, monkeypatch):
+    tab = tables["ggx-5bins"]
+    ref = reference(tab)
+    rng = np.random.default_rng(11)
+    wi, u = incident(41.0, 0.2), rng.random((300, 2))
+    monkeypatch.setattr(fasttables, "AVAILABLE", False)
+    monkeypatch.setattr(fasttables, "_lib", None)
+    wo, pdf = tab.sample(wi, u)
+    wo_r, pdf_r = ref.sample(wi, u)
+    assert np.array_equal(wo, wo_r) and np.array_equal(pdf, pdf_r)
+    assert np.array_equal(tab.pdf(wi, wo), ref.pdf(wi, wo))
+    assert np.array_equal(tab.eval(wi, wo), ref.eval(wi, wo))
+    assert fasttables.sample(tab, wi, u) is None
+    with pytest.raises(FlowBSDFError, match="not available"):
+        Tables(tab.theta_bins, tab.a_edges, tab.b_edges, tab.mass, tab.alpha, tab.beta, tab.weights,
+               backend="c").sample(wi, u)
+
+
+def test_env_var_disables_the_library():
+    """FLOWBSDF_NO_C=1: bake imports, says why in one line, and the tables sample with numpy."""
+    code = ("import numpy as np; from bake import fasttables as f; from bake.tables import Tables; "
+            "t = Tables([0.0], [[0, 0.5, 1]], [[[0, 3, 6.3], [0, 3, 6.3]]], np.ones((1, 2, 2)), "
+            "np.zeros((1, 2, 2)), np.zeros((1, 2, 2)), np.ones((1, 2, 2, 3))); "
+            "wo, p = t.sample([0, 0, 1], np.random.default_rng(0).random((10, 2))); "
+            "print(f.AVAILABLE, '|', f.REASON, '|', bool(np.all(p > 0)))")
+    env = {**os.environ, "FLOWBSDF_NO_C": "1"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0, out.stderr
+    available, reason, ok = (s.strip() for s in out.stdout.split("|"))
+    assert available == "False" and "FLOWBSDF_NO_C" in reason and ok == "True"
+
+
+@needs_c
+def test_stale_library_is_rejected_and_a_fresh_one_compiles(tmp_path):
+    import shutil
+    if not (shutil.which("cc") or shutil.which("gcc")):
+        pytest.skip("no C compiler")
+    sha = fasttables.source_sha()
+    path = fasttables.compile_library(sha, tmp_path)
+    assert fasttables._open(path, sha) is not None
+    with pytest.raises(OSError, match="stale"):
+        fasttables._open(path, "0" * 64)
