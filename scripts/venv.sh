@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Create or refresh .venv at the repo root with everything the project needs.
-# Idempotent: reinstalls only when pyproject.toml changed since the last run.
+# Idempotent: reinstalls only when pyproject.toml, setup.py or the C source changed.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 cd "$root"
@@ -14,7 +14,7 @@ if [ ! -x .venv/bin/python ]; then
   "$py" -m venv .venv
 fi
 stamp=.venv/.flowbsdf-installed
-want=$(sha256sum pyproject.toml | cut -d' ' -f1)
+want=$(cat pyproject.toml setup.py bake/_tables_c.c | sha256sum | cut -d' ' -f1)
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "[setup] installing flowbsdf and its dependencies into .venv"
   .venv/bin/python -m pip install --quiet --upgrade pip
