@@ -1,0 +1,801 @@
+"""Learned flow samplers, numpy only: exact sampling, densities and inverses of a trained model.
+
+A model maps u in [0,1)² to an outgoing direction wo, conditioned on the incident
+direction wi, in three bijective pieces:
+
+    u --(inverse CDF of the base)--> y0 --(N Euler steps of the velocity MLP)--> y1
+      --(fixed coordinate map)--> wo
+
+Flow coordinates y live on an unbounded space, so no sample is ever lost:
+  - disk:      y in R², y = x * rho / r with x = (wo.x, wo.y), r = |x| = sin(theta_o),
+               rho² = -2 log(1 - r²) = -4 log(cos theta_o).
+  - spherical: y = (s, phi) in R x S¹, sin²(theta_o) = Phi(s), cos²(theta_o) = Phi(-s),
+               Phi the standard normal CDF.
+Both maps send the cosine-weighted hemisphere to the standard Gaussian (times a uniform
+phi), so for a Lambertian material the ideal flow is the identity with a standard
+base, and the target density in y is always f(wi, wo) times a Gaussian weight:
+  disk:       d omega / dy          = cos(theta_o) / 2
+  spherical:  d omega / (ds dphi)   = N(s) / (2 cos(theta_o))     (N the normal density)
+The horizon is at infinity (grazing directions get resolution, like an adaptive
+parameterization); in the spherical map the pole is at s = -inf.
+
+Base (conditioned on wi through a small MLP): disk, a diagonal Gaussian in y; spherical,
+a Gaussian in s times a von Mises in phi. u maps to it through the inverse CDFs
+(ndtri for the Gaussian, numerical inversion of the von Mises CDF).
+
+Each Euler step y_{k+1} = y_k + D(y_k, t_k, c) / N, t_k = k / N, multiplies the density by
+1 / det(I + J_k / N), J_k = dD/dy (2x2, analytic forward-mode derivatives of the MLP), so
+
+    log p_y(y1) = log p0(y0) - sum_k log det(I + J_k / N).
+
+The inverse solves every Euler step exactly backwards by Newton's method. Isotropic
+materials are conditioned on theta_i only: wi is rotated to phi_i = 0 and wo rotated back.
+
+File format: one `.npz` (no pickles) holding float32 weight arrays `base.W0`, `base.b0`,
+..., `vel.W0`, ... (torch's Linear layout, (out, in)) and `meta`, a JSON string with
+`format` = "flowbsdf-flow", `version`, `domain`, `isotropic`, `steps`, the architecture
+and whatever training facts the trainer records (material fingerprint, preset, metrics).
+All arithmetic here is float64.
+"""
+import copy
+import json
+import math
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from .domains import get_domain
+from .errors import FlowBSDFError
+
+FORMAT = "flowbsdf-flow"
+VERSION = 1
+LOG_2PI = math.log(2.0 * math.pi)
+LOG2 = math.log(2.0)
+SQRT1_2 = math.sqrt(0.5)
+# u is clipped into [U_MIN, 1 - 2^-53] so that u = 0 (probability 2^-53) maps to a finite point.
+U_MIN = 1e-17
+
+# --------------------------------------------------------------------------- special functions
+
+_erfc = np.frompyfunc(math.erfc, 1, 1)
+
+
+def erfc(x):
+    """The complementary error function (libm's, vectorized)."""
+    x = np.asarray(x, dtype=np.float64)
+    return np.asarray(_erfc(x), dtype=np.float64).reshape(x.shape)
+
+
+def ndtr(z):
+    """Standard normal CDF, accurate in both tails."""
+    return 0.5 * erfc(-np.asarray(z, dtype=np.float64) * SQRT1_2)
+
+
+def log_normal_pdf(z):
+    return -0.5 * np.asarray(z) ** 2 - 0.5 * LOG_2PI
+
+
+# Acklam's rational approximation of the normal quantile (relative error 1.2e-9), refined below.
+_A = (-3.969683028665376e+01, 2.209460984245205e+02, -2.759285104469687e+02,
+      1.383577518672690e+02, -3.066479806614716e+01, 2.506628277459239e+00)
+_B = (-5.447609879822406e+01, 1.615858368580409e+02, -1.556989798598866e+02,
+      6.680131188771972e+01, -1.328068155288572e+01)
+_C = (-7.784894002430293e-03, -3.223964580411365e-01, -2.400758277161838e+00,
+      -2.549732539343734e+00, 4.374664141464968e+00, 2.938163982698783e+00)
+_D = (7.784695709041462e-03, 3.224671290700398e-01, 2.445134137142996e+00, 3.754408661907416e+00)
+
+
+def _poly(c, x):
+    r = np.zeros_like(x) + c[0]
+    for a in c[1:]:
+        r = r * x + a
+    return r
+
+
+def _ndtri_lower(p):
+    """Normal quantile for p in (0, 0.5] (the lower half, where p has full relative precision)."""
+    p = np.asarray(p, dtype=np.float64)
+    z = np.empty_like(p)
+    tail = p < 0.02425
+    q = np.sqrt(-2.0 * np.log(p[tail]))
+    z[tail] = _poly(_C, q) / (_poly(_D, q) * q + 1.0)
+    q = p[~tail] - 0.5
+    r = q * q
+    z[~tail] = _poly(_A, r) * q / (_poly(_B, r) * r + 1.0)
+    # Two Halley steps on ndtr(z) = p make it the inverse of *this* module's ndtr to rounding.
+    for _ in range(2):
+        e = ndtr(z) - p
+        d = e * np.exp(0.5 * z * z + 0.5 * LOG_2PI)
+        z = z - d / (1.0 + 0.5 * z * d)
+    return z
+
+
+def ndtri(p):
+    """Standard normal quantile, accurate in both tails (p = 0 -> -inf, p = 1 -> +inf)."""
+    p = np.asarray(p, dtype=np.float64)
+    out = np.full(p.shape, np.nan)
+    lo = (p > 0.0) & (p <= 0.5)
+    hi = (p > 0.5) & (p < 1.0)
+    out[lo] = _ndtri_lower(p[lo])
+    out[hi] = -_ndtri_lower(1.0 - p[hi])
+    out[p == 0.0] = -np.inf
+    out[p == 1.0] = np.inf
+    return out
+
+
+def wrap_angle(a):
+    """The representative of an angle in [-pi, pi)."""
+    return np.mod(np.asarray(a, dtype=np.float64) + np.pi, 2.0 * np.pi) - np.pi
+
+
+def log_i0(kappa):
+    """log I0(kappa), kappa >= 0 (np.i0 is exact enough below ~700; the base keeps kappa small)."""
+    kappa = np.asarray(kappa, dtype=np.float64)
+    big = kappa > 600.0
+    k = np.where(big, 600.0, kappa)
+    out = np.log(np.i0(k))
+    # Asymptotic series for large kappa (never reached with the trainer's kappa_max).
+    kb = np.where(big, kappa, 1.0)
+    asym = kb - 0.5 * np.log(2.0 * np.pi * kb) + np.log1p(1.0 / (8.0 * kb) + 9.0 / (128.0 * kb * kb))
+    return np.where(big, asym, out)
+
+
+def vm_terms(kappa_max):
+    """How many Fourier terms the von Mises CDF needs for kappa <= kappa_max (I_n/I_0 < 1e-18)."""
+    return int(math.ceil(math.sqrt(90.0 * max(kappa_max, 1.0)))) + 20
+
+
+def _bessel_ratios(kappa, m):
+    """rho_n = I_n(kappa) / I_0(kappa), n = 1..m, shape (len(kappa), m), by Miller's backward recurrence."""
+    kappa = np.asarray(kappa, dtype=np.float64)
+    extra = 40
+    r = np.zeros_like(kappa)
+    ratios = np.empty((m, kappa.size))
+    for n in range(m + extra, 0, -1):
+        r = kappa / (2.0 * n + kappa * r)          # r_n = I_n / I_{n-1}
+        if n <= m:
+            ratios[n - 1] = r
+    return np.cumprod(ratios, axis=0).T
+
+
+def vm_cdf(psi, kappa, m):
+    """CDF of a zero-mean von Mises at psi in [-pi, pi] (Fourier series, Clenshaw summation)."""
+    psi = np.asarray(psi, dtype=np.float64)
+    rho = _bessel_ratios(kappa, m)
+    return _vm_cdf_rho(psi, rho)
+
+
+def _vm_cdf_rho(psi, rho):
+    m = rho.shape[1]
+    c = rho / np.arange(1, m + 1)
+    x2 = 2.0 * np.cos(psi)
+    b1 = np.zeros_like(psi)
+    b2 = np.zeros_like(psi)
+    for n in range(m - 1, -1, -1):
+        b1, b2 = c[:, n] + x2 * b1 - b2, b1
+    return (psi + np.pi) / (2.0 * np.pi) + b1 * np.sin(psi) / np.pi
+
+
+def vm_log_pdf(psi, kappa):
+    kappa = np.asarray(kappa, dtype=np.float64)
+    return kappa * np.cos(psi) - LOG_2PI - log_i0(kappa)
+
+
+def vm_icdf(u, kappa, m, max_iter=100):
+    """psi in [-pi, pi) with vm_cdf(psi) = u: safeguarded Newton (bisection fallback)."""
+    u = np.asarray(u, dtype=np.float64)
+    kappa = np.asarray(kappa, dtype=np.float64)
+    rho = _bessel_ratios(kappa, m)
+    lo = np.full(u.shape, -np.pi)
+    hi = np.full(u.shape, np.pi)
+    # Initial guess: uniform for small kappa, the Gaussian limit for large kappa.
+    g_uniform = 2.0 * np.pi * u - np.pi
+    g_normal = np.clip(ndtri(np.clip(u, 1e-300, 1.0 - 1e-16)) / np.sqrt(np.maximum(kappa, 1e-12)),
+                       -np.pi, np.pi)
+    psi = np.where(kappa < 2.0, g_uniform, g_normal)
+    active = np.arange(u.size)
+    log_norm = LOG_2PI + log_i0(kappa)
+    for _ in range(max_iter):
+        if active.size == 0:
+            break
+        p = psi[active]
+        f = _vm_cdf_rho(p, rho[active]) - u[active]
+        below = f < 0
+        lo[active] = np.where(below, p, lo[active])
+        hi[active] = np.where(below, hi[active], p)
+        dens = np.exp(kappa[active] * np.cos(p) - log_norm[active])
+        step = f / dens
+        new = p - step
+        l, h = lo[active], hi[active]
+        bad = ~((new > l) & (new < h)) | ~np.isfinite(new)
+        new = np.where(bad, 0.5 * (l + h), new)
+        psi[active] = new
+        done = (np.abs(new - p) <= 4e-16 * (1.0 + np.abs(p))) | (h - l <= 4e-16 * (1.0 + np.abs(l)))
+        active = active[~done]
+    return psi
+
+
+# --------------------------------------------------------------------------- coordinate maps
+
+class DiskMap:
+    """y in R² <-> wo in the upper hemisphere: y = x rho / r, rho² = -4 log cos(theta_o)."""
+
+    domain = "disk"
+    periodic = (False, False)
+
+    @staticmethod
+    def to_dir(y):
+        y = np.asarray(y, dtype=np.float64)
+        q = np.sum(y * y, axis=-1)                      # rho²
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(q > 1e-300, np.sqrt(-np.expm1(-0.5 * q) / np.where(q > 1e-300, q, 1.0)),
+                             SQRT1_2)                   # r / rho
+        z = np.exp(-0.25 * q)
+        return np.concatenate([y * ratio[..., None], z[..., None]], axis=-1)
+
+    @staticmethod
+    def from_dir(wo):
+        """Flow coordinates of directions (cos theta_o from wo.z keeps precision near the rim)."""
+        wo = np.asarray(wo, dtype=np.float64)
+        n2 = np.sum(wo * wo, axis=-1)
+        r2 = (wo[..., 0] ** 2 + wo[..., 1] ** 2) / n2
+        c2 = wo[..., 2] ** 2 / n2
+        small = r2 < 0.5
+        with np.errstate(divide="ignore", invalid="ignore"):
+            q = -2.0 * np.where(small, np.log1p(-np.where(small, r2, 0.0)), np.log(c2))   # rho²
+            ratio = np.where(r2 > 1e-300, np.sqrt(q / np.where(r2 > 1e-300, r2, 1.0)), math.sqrt(2.0))
+        return wo[..., :2] / np.sqrt(n2)[..., None] * ratio[..., None]
+
+    @staticmethod
+    def from_domain(x):
+        """Flow coordinates of disk domain points (|x| < 1)."""
+        x = np.asarray(x, dtype=np.float64)
+        r2 = np.sum(x * x, axis=-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(r2 > 1e-300, np.sqrt(-2.0 * np.log1p(-r2) / np.where(r2 > 1e-300, r2, 1.0)),
+                             math.sqrt(2.0))
+        return x * ratio[..., None]
+
+    @staticmethod
+    def to_domain(y):
+        return DiskMap.to_dir(y)[..., :2]
+
+    @staticmethod
+    def log_dw_dy(y):
+        """log of d omega / dy (solid angle per unit flow area) = log(cos theta_o / 2)."""
+        return -0.25 * np.sum(np.asarray(y) ** 2, axis=-1) - LOG2
+
+    @staticmethod
+    def valid(wo):
+        return np.asarray(wo)[..., 2] > 0.0
+
+
+class SphericalMap:
+    """(s, phi) in R x S¹ <-> wo: sin²(theta_o) = Phi(s), cos²(theta_o) = Phi(-s)."""
+
+    domain = "spherical"
+    periodic = (False, True)
+
+    @staticmethod
+    def to_dir(y):
+        y = np.asarray(y, dtype=np.float64)
+        s, phi = y[..., 0], y[..., 1]
+        st = np.sqrt(ndtr(s))
+        ct = np.sqrt(ndtr(-s))
+        return np.stack([st * np.cos(phi), st * np.sin(phi), ct], axis=-1)
+
+    @staticmethod
+    def from_dir(wo):
+        wo = np.asarray(wo, dtype=np.float64)
+        n2 = np.sum(wo * wo, axis=-1)
+        s2 = (wo[..., 0] ** 2 + wo[..., 1] ** 2) / n2
+        c2 = wo[..., 2] ** 2 / n2
+        s = np.where(s2 <= 0.5, ndtri(s2), -ndtri(c2))
+        return np.stack([s, np.arctan2(wo[..., 1], wo[..., 0])], axis=-1)
+
+    @staticmethod
+    def from_domain(x):
+        x = np.asarray(x, dtype=np.float64)
+        theta = x[..., 0]
+        s2, c2 = np.sin(theta) ** 2, np.cos(theta) ** 2
+        s = np.where(s2 <= 0.5, ndtri(s2), -ndtri(c2))
+        return np.stack([s, wrap_angle(x[..., 1])], axis=-1)
+
+    @staticmethod
+    def to_domain(y):
+        y = np.asarray(y, dtype=np.float64)
+        theta = np.arctan2(np.sqrt(ndtr(y[..., 0])), np.sqrt(ndtr(-y[..., 0])))
+        return np.stack([theta, wrap_angle(y[..., 1])], axis=-1)
+
+    @staticmethod
+    def log_dw_dy(y):
+        """log of d omega / (ds dphi) = log(N(s) / (2 cos theta_o))."""
+        s = np.asarray(y, dtype=np.float64)[..., 0]
+        with np.errstate(divide="ignore"):
+            return log_normal_pdf(s) - LOG2 - 0.5 * np.log(ndtr(-s))
+
+    @staticmethod
+    def valid(wo):
+        return np.asarray(wo)[..., 2] > 0.0
+
+
+MAPS = {"disk": DiskMap, "spherical": SphericalMap}
+
+
+# --------------------------------------------------------------------------- features
+
+def cond_features(wi, isotropic):
+    """Conditioning features of (unit) incident directions: isotropic (sin, cos theta_i), else wi."""
+    wi = np.asarray(wi, dtype=np.float64)
+    if isotropic:
+        return np.stack([np.hypot(wi[..., 0], wi[..., 1]), wi[..., 2]], axis=-1)
+    return wi.copy()
+
+
+def cond_dim(isotropic):
+    return 2 if isotropic else 3
+
+
+def time_features(t, n_freq):
+    """[t, sin(pi k t), cos(pi k t) for k = 1..n_freq]."""
+    t = np.asarray(t, dtype=np.float64)
+    feats = [t]
+    for k in range(1, n_freq + 1):
+        feats += [np.sin(np.pi * k * t), np.cos(np.pi * k * t)]
+    return np.stack(feats, axis=-1)
+
+
+def space_dim(domain):
+    return 2 if domain == "disk" else 3
+
+
+# --------------------------------------------------------------------------- MLPs
+
+def _silu_and_grad(a):
+    sig = 0.5 * (1.0 + np.tanh(0.5 * a))
+    return a * sig, sig * (1.0 + a * (1.0 - sig))
+
+
+class MLP:
+    """Linear layers with SiLU between them (none after the last), float64."""
+
+    def __init__(self, weights, biases):
+        self.W = [np.asarray(w, dtype=np.float64) for w in weights]
+        self.b = [np.asarray(b, dtype=np.float64) for b in biases]
+
+    @property
+    def n_in(self):
+        return self.W[0].shape[1]
+
+    @property
+    def n_out(self):
+        return self.W[-1].shape[0]
+
+    def __call__(self, h):
+        last = len(self.W) - 1
+        for i, (W, b) in enumerate(zip(self.W, self.b)):
+            h = h @ W.T + b
+            if i < last:
+                h = h * (0.5 * (1.0 + np.tanh(0.5 * h)))
+        return h
+
+    def with_jacobian(self, h, dh):
+        """Outputs and their derivatives: dh (k, n, n_in) are k input tangents; returns (out, dout (k, n, n_out))."""
+        return self.continue_jacobian(h @ self.W[0].T + self.b[0], dh @ self.W[0].T)
+
+    def continue_jacobian(self, a, da):
+        """Like with_jacobian, from the first layer's pre-activation a (n, w) and its tangents
+        da (k, n or 1, w) (broadcast: a tangent that is the same for every row costs nothing)."""
+        last = len(self.W) - 1
+        if last == 0:
+            return a, np.broadcast_to(da, (da.shape[0], a.shape[0], a.shape[1]))
+        for i in range(1, last + 1):
+            a, g = _silu_and_grad(a)
+            da = da * g
+            a = a @ self.W[i].T + self.b[i]
+            da = da @ self.W[i].T
+        return a, da
+
+
+# --------------------------------------------------------------------------- the model
+
+class FlowModel:
+    """A trained conditional flow: sample(wi, u) -> (wo, pdf), pdf(wi, wo), invert(wi, wo) -> u.
+
+    Attributes: `domain` (the bake.domains object), `domain_name`, `isotropic`, `steps`
+    (Euler steps N; `with_steps(n)` gives a copy with another N), `meta` (the file's
+    metadata dict), `path`. After each call `last_stats` holds diagnostics: the fraction of
+    samples whose Euler map folds (det(I + J/N) <= 0 at some step) and, for pdf/invert,
+    how many Newton solves did not converge.
+    """
+
+    name = "flow"
+
+    def __init__(self, meta, arrays, path=None):
+        self.meta = meta
+        self.path = None if path is None else str(path)
+        self.domain_name = meta["domain"]
+        self.domain = get_domain(self.domain_name)
+        self.map = MAPS[self.domain_name]
+        self.isotropic = bool(meta["isotropic"])
+        self.steps = int(meta["steps"])
+        base, vel = meta["base"], meta["velocity"]
+        self.time_freq = int(vel.get("time_freq", 0))
+        self.log_sigma_range = tuple(float(v) for v in base["log_sigma_range"])
+        self.kappa_max = float(base.get("kappa_max", 0.0))
+        self.vm_m = vm_terms(self.kappa_max)
+        self.base_net = MLP(*_layers(arrays, "base", meta, self.path))
+        self.vel_net = MLP(*_layers(arrays, "vel", meta, self.path))
+        self.last_stats = {}
+        self._check_dims()
+
+    def _check_dims(self):
+        cd = cond_dim(self.isotropic)
+        n_base_out = 4 if self.domain_name == "disk" else 5
+        if self.base_net.n_in != cd or self.base_net.n_out != n_base_out:
+            raise FlowBSDFError(f"base network has shape {self.base_net.n_in}->{self.base_net.n_out}, "
+                                f"expected {cd}->{n_base_out} for this domain/conditioning", self.path)
+        n_in = space_dim(self.domain_name) + 1 + 2 * self.time_freq + cd
+        if self.vel_net.n_in != n_in or self.vel_net.n_out != 2:
+            raise FlowBSDFError(f"velocity network has shape {self.vel_net.n_in}->{self.vel_net.n_out}, "
+                                f"expected {n_in}->2", self.path)
+
+    def with_steps(self, n):
+        if int(n) < 1:
+            raise FlowBSDFError(f"steps must be >= 1, not {n}")
+        other = copy.copy(self)
+        other.steps = int(n)
+        other.last_stats = {}
+        return other
+
+    def __repr__(self):
+        name = self.meta.get("material", {}).get("name", "?")
+        return f"<FlowModel {name} {self.domain_name} N={self.steps}>"
+
+    # ----------------------------------------------------------------- conditioning
+
+    def _canonical(self, wi, n):
+        wi = np.asarray(wi, dtype=np.float64)
+        wi = np.broadcast_to(np.atleast_2d(wi), (n, 3)) if wi.ndim == 1 or len(wi) == 1 else wi
+        if len(wi) != n:
+            raise FlowBSDFError(f"wi has {len(wi)} rows but there are {n} samples")
+        wi = wi / np.linalg.norm(wi, axis=-1, keepdims=True)
+        ok = wi[:, 2] > 0.0
+        if self.isotropic:
+            phi_i = np.arctan2(wi[:, 1], wi[:, 0])
+        else:
+            phi_i = np.zeros(n)
+        c = cond_features(wi, self.isotropic)
+        return c, phi_i, ok
+
+    def base_params(self, c):
+        """The base's parameters per row: disk (mu (n,2), log_sigma (n,2)); spherical
+        (mu_s, log_sigma_s, mu_phi, kappa), each (n,)."""
+        out = self.base_net(c)
+        lo, hi = self.log_sigma_range
+        if self.domain_name == "disk":
+            ls = lo + (hi - lo) * _sigmoid(out[:, 2:4])
+            return out[:, 0:2], ls
+        ls = lo + (hi - lo) * _sigmoid(out[:, 1])
+        mu_phi = np.arctan2(out[:, 3], out[:, 2])
+        kappa = self.kappa_max * _sigmoid(out[:, 4])
+        return out[:, 0], ls, mu_phi, kappa
+
+    # ----------------------------------------------------------------- base distribution
+
+    def base_from_u(self, c, u):
+        """u in [0,1)² -> y0 and log p0(y0)."""
+        u = np.clip(np.asarray(u, dtype=np.float64), U_MIN, 1.0 - 2.0 ** -53)
+        if self.domain_name == "disk":
+            mu, ls = self.base_params(c)
+            z = ndtri(u)
+            y0 = mu + np.exp(ls) * z
+            return y0, np.sum(log_normal_pdf(z) - ls, axis=-1)
+        mu_s, ls, mu_phi, kappa = self.base_params(c)
+        z = ndtri(u[:, 0])
+        psi = vm_icdf(u[:, 1], kappa, self.vm_m)
+        y0 = np.stack([mu_s + np.exp(ls) * z, wrap_angle(mu_phi + psi)], axis=-1)
+        return y0, log_normal_pdf(z) - ls + vm_log_pdf(psi, kappa)
+
+    def base_to_u(self, c, y0):
+        """y0 -> u and log p0(y0)."""
+        if self.domain_name == "disk":
+            mu, ls = self.base_params(c)
+            z = (y0 - mu) * np.exp(-ls)
+            return ndtr(z), np.sum(log_normal_pdf(z) - ls, axis=-1)
+        mu_s, ls, mu_phi, kappa = self.base_params(c)
+        z = (y0[:, 0] - mu_s) * np.exp(-ls)
+        psi = wrap_angle(y0[:, 1] - mu_phi)
+        u1 = vm_cdf(psi, kappa, self.vm_m)
+        u1 = np.where(u1 >= 1.0, u1 - 1.0, u1)
+        u = np.stack([ndtr(z), np.clip(u1, 0.0, None)], axis=-1)
+        return u, log_normal_pdf(z) - ls + vm_log_pdf(psi, kappa)
+
+    def base_log_prob(self, c, y0):
+        return self.base_to_u(c, y0)[1]
+
+    # ----------------------------------------------------------------- velocity
+
+    def _vel_input(self, y, t, c):
+        n = len(y)
+        tf = time_features(np.full(n, t), self.time_freq)
+        if self.domain_name == "disk":
+            sp = y
+        else:
+            sp = np.stack([y[:, 0], np.cos(y[:, 1]), np.sin(y[:, 1])], axis=-1)
+        return np.concatenate([sp, tf, c], axis=-1)
+
+    def velocity(self, y, t, c):
+        return self.vel_net(self._vel_input(y, t, c))
+
+    def velocity_jac(self, y, t, c):
+        """D(y, t, c) (n,2) and J = dD/dy (n,2,2), J[:, i, j] = dD_i / dy_j."""
+        h = self._vel_input(y, t, c)
+        W0 = self.vel_net.W[0]
+        a = h @ W0.T + self.vel_net.b[0]
+        if self.domain_name == "disk":
+            da = W0.T[:2, None, :]                       # d a / d y_j: the same for every row
+        else:
+            da = np.stack([np.broadcast_to(W0[:, 0], a.shape),
+                           -np.sin(y[:, 1])[:, None] * W0[:, 1] + np.cos(y[:, 1])[:, None] * W0[:, 2]])
+        v, dv = self.vel_net.continue_jacobian(a, da)
+        return v, np.transpose(dv, (1, 2, 0))
+
+    def _step_det(self, J, n_steps):
+        a = 1.0 / n_steps
+        return (1.0 + a * J[:, 0, 0]) * (1.0 + a * J[:, 1, 1]) - a * a * J[:, 0, 1] * J[:, 1, 0]
+
+    # ----------------------------------------------------------------- flow in y
+
+    def flow_forward(self, c, y0, steps=None):
+        """N Euler steps from y0: returns y1, sum_k log det(I + J_k/N), min_k det."""
+        n_steps = self.steps if steps is None else int(steps)
+        y = np.array(y0, dtype=np.float64)
+        logdet = np.zeros(len(y))
+        min_det = np.full(len(y), np.inf)
+        for k in range(n_steps):
+            v, J = self.velocity_jac(y, k / n_steps, c)
+            det = self._step_det(J, n_steps)
+            min_det = np.minimum(min_det, det)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                logdet += np.log(np.abs(det))
+            y = y + v / n_steps
+        if self.domain_name == "spherical":
+            y[:, 1] = wrap_angle(y[:, 1])
+        return y, logdet, min_det
+
+    def flow_inverse(self, c, y1, steps=None, tol=1e-13, max_iter=60):
+        """Solve the Euler steps backwards: returns y0, sum_k log det, min det, converged mask."""
+        n_steps = self.steps if steps is None else int(steps)
+        y = np.array(y1, dtype=np.float64)
+        logdet = np.zeros(len(y))
+        min_det = np.full(len(y), np.inf)
+        converged = np.ones(len(y), bool)
+        for k in range(n_steps - 1, -1, -1):
+            x, det, ok = self._solve_step(c, y, k / n_steps, n_steps, tol, max_iter)
+            converged &= ok
+            min_det = np.minimum(min_det, det)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                logdet += np.log(np.abs(det))
+            y = x
+        if self.domain_name == "spherical":
+            y[:, 1] = wrap_angle(y[:, 1])
+        return y, logdet, min_det, converged
+
+    def _solve_step(self, c, target, t, n_steps, tol, max_iter):
+        """x with x + D(x, t)/N = target: damped Newton from x = target - D(target, t)/N.
+
+        One Jacobian evaluation per iteration (a step whose residual grows is halved).
+        Returns x, det(I + J(x)/N) (J from the last linearization, |dx| <= tol there) and
+        the converged mask."""
+        a = 1.0 / n_steps
+        n = len(target)
+        x = target - a * self.velocity(target, t, c)
+        det_out = np.ones(n)
+        done = np.zeros(n, bool)
+        scale = 1.0 + np.abs(target).max(axis=1)
+        idx = np.arange(n)
+        prev_x = x.copy()
+        prev_gn = np.full(n, np.inf)
+        dx = np.zeros_like(x)
+        lam = np.ones(n)
+        for _ in range(max_iter):
+            if idx.size == 0:
+                break
+            xa = x[idx]
+            v, J = self.velocity_jac(xa, t, c[idx])
+            g = xa + a * v - target[idx]
+            gn = np.max(np.abs(g), axis=1)
+            worse = ~(gn <= prev_gn[idx] * (1.0 - 1e-4 * lam[idx])) & (gn > 1e-3 * tol * scale[idx])
+            worse &= lam[idx] > 1e-4
+            # Rows that got worse: halve the last step and try again.
+            wi = idx[worse]
+            lam[wi] *= 0.5
+            x[wi] = prev_x[wi] - lam[wi, None] * dx[wi]
+            # Rows that improved: a full Newton step from here.
+            keep = ~worse
+            bi = idx[keep]
+            g, gn, J = g[keep], gn[keep], J[keep]
+            m00, m01 = 1.0 + a * J[:, 0, 0], a * J[:, 0, 1]
+            m10, m11 = a * J[:, 1, 0], 1.0 + a * J[:, 1, 1]
+            det = m00 * m11 - m01 * m10
+            with np.errstate(invalid="ignore", divide="ignore"):
+                step = np.stack([(m11 * g[:, 0] - m01 * g[:, 1]) / det,
+                                 (-m10 * g[:, 0] + m00 * g[:, 1]) / det], axis=-1)
+            step = np.where(np.isfinite(step), step, g)
+            prev_x[bi] = x[bi]
+            prev_gn[bi] = gn
+            dx[bi] = step
+            lam[bi] = 1.0
+            x[bi] = x[bi] - step
+            det_out[bi] = det
+            fin = np.max(np.abs(step), axis=1) <= tol * scale[bi]
+            done[bi[fin]] = True
+            active = np.ones(n, bool)
+            active[bi[fin]] = False
+            idx = idx[active[idx]]
+        if idx.size:
+            # Accept the stragglers whose residual is at rounding level.
+            v, J = self.velocity_jac(x[idx], t, c[idx])
+            gn = np.max(np.abs(x[idx] + a * v - target[idx]), axis=1)
+            det_out[idx] = self._step_det(J, n_steps)
+            done[idx[gn <= 1e-11 * scale[idx]]] = True
+        return x, det_out, done
+
+    # ----------------------------------------------------------------- public API
+
+    CHUNK = 8192   # rows per batch: keeps the (2, n, width) tangents in cache
+
+    def _chunked(self, fn, wi, rows):
+        """Run fn(wi_chunk, rows_chunk) -> (tuple of arrays, stats) over row chunks."""
+        n = len(rows)
+        wi = np.asarray(wi, dtype=np.float64)
+        per_row = wi.ndim == 2 and len(wi) == n and n > 1
+        outs, stats = [], []
+        for i in range(0, max(n, 1), self.CHUNK):
+            j = min(n, i + self.CHUNK)
+            o, st = fn(wi[i:j] if per_row else wi, rows[i:j])
+            outs.append(o)
+            stats.append(st)
+        self.last_stats = {"n": n, "fold_fraction": float(sum(st["folds"] for st in stats) / max(n, 1))}
+        if "min_det" in stats[0]:
+            self.last_stats["min_det"] = float(min(st["min_det"] for st in stats))
+        if "not_converged" in stats[0]:
+            self.last_stats["not_converged"] = int(sum(st["not_converged"] for st in stats))
+        return tuple(np.concatenate(parts) for parts in zip(*outs))
+
+    def sample(self, wi, u):
+        """wo (n,3) and pdf (n,) (per steradian) for u (n,2) in [0,1)² and wi (3,) or (n,3)."""
+        u = np.atleast_2d(np.asarray(u, dtype=np.float64))
+        return self._chunked(self._sample, wi, u)
+
+    def _sample(self, wi, u):
+        n = len(u)
+        c, phi_i, ok = self._canonical(wi, n)
+        y0, logp0 = self.base_from_u(c, u)
+        y1, logdet, min_det = self.flow_forward(c, y0)
+        wo = self.map.to_dir(y1)
+        log_pdf = logp0 - logdet - self.map.log_dw_dy(y1)
+        with np.errstate(over="ignore"):
+            pdf = np.where(ok & self.map.valid(wo), np.exp(log_pdf), 0.0)
+        if self.isotropic:
+            wo = _rotate_z(wo, phi_i)
+        return (wo, pdf), {"folds": int(np.sum(min_det <= 0.0)),
+                           "min_det": float(np.min(min_det)) if n else np.inf}
+
+    def _inverse(self, wi, wo):
+        wo = np.atleast_2d(np.asarray(wo, dtype=np.float64))
+        return self._chunked(self._inverse_chunk, wi, wo)
+
+    def _inverse_chunk(self, wi, wo):
+        n = len(wo)
+        c, phi_i, ok = self._canonical(wi, n)
+        if self.isotropic:
+            wo = _rotate_z(wo, -phi_i)
+        valid = ok & self.map.valid(wo)
+        wo_safe = np.where(valid[:, None], wo, np.array([0.0, 0.0, 1.0]))
+        y1 = self.map.from_dir(wo_safe)
+        y0, logdet, min_det, conv = self.flow_inverse(c, y1)
+        u, logp0 = self.base_to_u(c, y0)
+        log_pdf = logp0 - logdet - self.map.log_dw_dy(y1)
+        return (u, log_pdf, valid), {"folds": int(np.sum(min_det <= 0.0)),
+                                     "not_converged": int(np.sum(~conv & valid))}
+
+    def pdf(self, wi, wo):
+        """Density (per steradian) of sample() at wo; 0 below the horizon."""
+        _, log_pdf, valid = self._inverse(wi, wo)
+        with np.errstate(over="ignore"):
+            return np.where(valid, np.exp(log_pdf), 0.0)
+
+    def invert(self, wi, wo):
+        """u with sample(wi, u) = wo (NaN where wo is below the horizon)."""
+        u, _, valid = self._inverse(wi, wo)
+        return np.where(valid[:, None], u, np.nan)
+
+
+def _sigmoid(a):
+    return 0.5 * (1.0 + np.tanh(0.5 * np.asarray(a, dtype=np.float64)))
+
+
+def _rotate_z(w, angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([c * w[:, 0] - s * w[:, 1], s * w[:, 0] + c * w[:, 1], w[:, 2]], axis=-1)
+
+
+# --------------------------------------------------------------------------- files
+
+def _layers(arrays, prefix, meta, path):
+    weights, biases = [], []
+    i = 0
+    while f"{prefix}.W{i}" in arrays:
+        if f"{prefix}.b{i}" not in arrays:
+            raise FlowBSDFError(f"model file lacks {prefix}.b{i}", path)
+        W, b = arrays[f"{prefix}.W{i}"], arrays[f"{prefix}.b{i}"]
+        if W.ndim != 2 or b.shape != (W.shape[0],):
+            raise FlowBSDFError(f"{prefix} layer {i} has bad shapes {W.shape}, {b.shape}", path)
+        if weights and W.shape[1] != weights[-1].shape[0]:
+            raise FlowBSDFError(f"{prefix} layer {i} takes {W.shape[1]} inputs but layer {i - 1} "
+                                f"gives {weights[-1].shape[0]}", path)
+        if not (np.all(np.isfinite(W)) and np.all(np.isfinite(b))):
+            raise FlowBSDFError(f"{prefix} layer {i} holds non-finite weights", path)
+        weights.append(W)
+        biases.append(b)
+        i += 1
+    if not weights:
+        raise FlowBSDFError(f"model file has no {prefix} network", path)
+    return weights, biases
+
+
+def save_model(path, meta, arrays):
+    """Write a model file atomically (temp file + rename). arrays: name -> ndarray."""
+    path = Path(path)
+    meta = dict(meta)
+    meta.setdefault("format", FORMAT)
+    meta.setdefault("version", VERSION)
+    payload = {k: np.asarray(v, dtype=np.float32) for k, v in arrays.items()}
+    payload["meta"] = np.array(json.dumps(meta, sort_keys=True))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, **payload)
+    tmp.replace(path)
+    return path
+
+
+def load_model(path):
+    """Load a model file written by the trainer; FlowBSDFError names the file and the problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise FlowBSDFError("model file not found", path)
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as e:
+        raise FlowBSDFError(f"not a FlowBSDF model file (cannot read it as .npz: {e})", path) from None
+    if "meta" not in arrays:
+        raise FlowBSDFError("not a FlowBSDF model file (no metadata)", path)
+    try:
+        meta = json.loads(str(arrays.pop("meta")[()]))
+    except (ValueError, TypeError) as e:
+        raise FlowBSDFError(f"model metadata is not valid JSON: {e}", path) from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        got = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+        raise FlowBSDFError(f"not a FlowBSDF model file (format {got!r}, expected {FORMAT!r})", path)
+    if meta.get("version") != VERSION:
+        raise FlowBSDFError(f"model file version {meta.get('version')!r} is not supported "
+                            f"(this build reads version {VERSION}); retrain or update FlowBSDF", path)
+    for key in ("domain", "isotropic", "steps", "base", "velocity"):
+        if key not in meta:
+            raise FlowBSDFError(f"model metadata lacks {key!r}", path)
+    if meta["domain"] not in MAPS:
+        raise FlowBSDFError(f"model domain {meta['domain']!r} is unknown (expected disk or spherical)", path)
+    if not isinstance(meta["steps"], int) or meta["steps"] < 1:
+        raise FlowBSDFError(f"model steps {meta['steps']!r} must be a positive integer", path)
+    for k, v in arrays.items():
+        if v.dtype.kind != "f":
+            raise FlowBSDFError(f"array {k!r} has dtype {v.dtype}, expected floats", path)
+    try:
+        return FlowModel(meta, arrays, path)
+    except (KeyError, TypeError, ValueError) as e:
+        raise FlowBSDFError(f"malformed model metadata: {e!r}", path) from None

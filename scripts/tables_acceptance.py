@@ -1,0 +1,78 @@
+"""Issue-4 acceptance numbers for the baked tables on the shared RGL materials.
+
+    .venv/bin/python scripts/tables_acceptance.py [--out DIR] [--materials a,b] [--reuse]
+
+Per material: plan and bake the tables (from the ideal tabulation), then at theta_i in
+{0, 30, 60, 75, 85}: rv (2^18 samples), lost fraction, chi-square (Šidák over all 50
+cells), invert(sample(u)) error, pdf(sample) error; memory; bake time. With --reuse, tables
+already in DIR are loaded instead of baked. Prints a Markdown table and a summary.
+"""
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+from conftest import RGL_FILES, rgl_dir  # noqa: E402
+
+from bake.geometry import incident  # noqa: E402
+from bake.ideal import IdealSampler  # noqa: E402
+from bake.materials import open_material  # noqa: E402
+from bake.metrics import chi2_test, sample_weights  # noqa: E402
+from bake.tables import open_tables  # noqa: E402
+from bake.tabulate import plan_tables  # noqa: E402
+
+THETAS = (0, 30, 60, 75, 85)
+
+
+def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("--out", default="/tmp/acc_tables")
+    p.add_argument("--materials", default=",".join(RGL_FILES))
+    p.add_argument("--reuse", action="store_true")
+    args = p.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    names = args.materials.split(",")
+    n_tests = len(names) * len(THETAS)
+    rows = []
+    for name in names:
+        mat = open_material(rgl_dir() / f"{name}.bsdf")
+        path = out / f"{name}.exr"
+        t0 = time.perf_counter()
+        if args.reuse and path.is_file():
+            tab = open_tables(path)
+        else:
+            tab = plan_tables(mat, IdealSampler(mat))
+            tab.meta["seconds"] = round(time.perf_counter() - t0, 1)
+            tab.save(path)
+            tab = open_tables(path)
+        line = [name, f"{tab.rows}", f"{len(tab.theta_bins)}", f"{tab.nbytes / 2**20:.2f}", f"{tab.meta.get('seconds', 0):.0f}"]
+        for theta in THETAS:
+            wi = incident(theta)
+            w = sample_weights(mat, tab, wi, 1 << 18, seed=7)
+            rv = w.var() / w.mean() ** 2
+            u = np.random.default_rng(11).random((1 << 16, 2))
+            wo, pdf = tab.sample(wi, u)
+            inv = np.max(np.abs(tab.invert(wi, wo) - u))
+            pdf_err = np.max(np.abs(tab.pdf(wi, wo) / pdf - 1))
+            lost = np.mean((pdf <= 0) | (wo[:, 2] <= 0))
+            chi = chi2_test(tab, wi, n=1_000_000, n_tests=n_tests)
+            rows.append(dict(material=name, theta=theta, rv=rv, lost=lost, inv=inv, pdf_err=pdf_err,
+                             chi2_p=chi.p_value, chi2_pass=chi.passed, nbytes=tab.nbytes))
+            line.append(f"{rv:.4f}{'' if chi.passed else ' (chi2 FAIL)'}")
+            print(f"  {name} {theta}: rv {rv:.5f} lost {lost:.1e} inv {inv:.1e} pdf {pdf_err:.1e} {chi}", flush=True)
+        print("| " + " | ".join(line) + " |", flush=True)
+    rv = np.array([r["rv"] for r in rows])
+    print(f"\nmedian rv {np.median(rv):.5f}, max {rv.max():.5f}; per theta median: " +
+          ", ".join(f"{t}: {np.median([r['rv'] for r in rows if r['theta'] == t]):.5f}" for t in THETAS))
+    print(f"chi2 passed {sum(r['chi2_pass'] for r in rows)}/{len(rows)}; max invert err "
+          f"{max(r['inv'] for r in rows):.2e}; max pdf err {max(r['pdf_err'] for r in rows):.2e}; "
+          f"max lost {max(r['lost'] for r in rows):.1e}; max memory {max(r['nbytes'] for r in rows) / 2**20:.2f} MiB")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,430 @@
+"""Flow sampler: numerics of bake.flow, agreement with the torch trainer, model files, training.
+
+Everything here is fast (tiny networks, a few hundred steps); the full presets are in
+the slow-marked tests at the end.
+"""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from bake import flow as F
+from bake.errors import FlowBSDFError
+
+trainer = pytest.importorskip("trainer")   # sets OMP_WAIT_POLICY before torch loads
+torch = pytest.importorskip("torch")
+
+from trainer.model import FlowNet, step_det  # noqa: E402
+from trainer.synthetic import GGXReflection  # noqa: E402
+from trainer.train import Trainer, TrainingInterrupted, make_settings  # noqa: E402
+
+TINY = dict(teacher=dict(vel_width=32, vel_depth=2), batch=1024, base_steps=150, flow_steps=800,
+            flow_lr=3e-3, flow_eval_every=400, flow_eval_steps=8, reflow_pairs=8192, reflow_ode_steps=16,
+            reflow_steps=400, reflow_eval_every=200, holdout=512, ckpt_every=100, warmup=20)
+
+
+def random_net(domain, isotropic=True, seed=1, scale=0.3, width=32, depth=2, time_freq=1):
+    torch.manual_seed(seed)
+    net = FlowNet(domain, isotropic, vel_width=width, vel_depth=depth, time_freq=time_freq)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(scale * torch.randn_like(p))
+    return net
+
+
+def unit(v):
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+# --------------------------------------------------------------------------- special functions
+
+def test_ndtri_inverts_ndtr_in_both_tails():
+    p = np.concatenate([np.logspace(-300, -1, 200), np.linspace(0.01, 0.99, 99), 1 - np.logspace(-16, -1, 50)])
+    z = F.ndtri(p)
+    assert np.all(np.isfinite(z))
+    lower = p <= 0.5
+    np.testing.assert_allclose(F.ndtr(z[lower]), p[lower], rtol=1e-12)   # condition number ~ z²
+    np.testing.assert_allclose(1 - F.ndtr(z[~lower]), 1 - p[~lower], rtol=1e-9)
+    np.testing.assert_allclose(F.ndtri(np.array([0.975, 1e-10])), [1.959963984540054, -6.361340902404056],
+                               rtol=1e-14)
+    assert F.ndtri(np.array([0.0]))[0] == -np.inf
+
+
+def test_von_mises_cdf_inverse_and_density():
+    rng = np.random.default_rng(0)
+    kappa = np.concatenate([[0.0, 1e-8, 32.0], rng.uniform(0, 32, 500)])
+    u = rng.random(len(kappa))
+    m = F.vm_terms(32.0)
+    psi = F.vm_icdf(u, kappa, m)
+    np.testing.assert_allclose(F.vm_cdf(psi, kappa, m), u, atol=2e-15)
+    h = 1e-5
+    num = (F.vm_cdf(psi + h, kappa, m) - F.vm_cdf(psi - h, kappa, m)) / (2 * h)
+    np.testing.assert_allclose(num, np.exp(F.vm_log_pdf(psi, kappa)), rtol=1e-7, atol=1e-9)
+    ends = F.vm_cdf(np.array([-np.pi, np.pi]), np.array([5.0, 5.0]), m)
+    np.testing.assert_allclose(ends, [0.0, 1.0], atol=1e-15)
+
+
+@pytest.mark.parametrize("cmap", [F.DiskMap, F.SphericalMap])
+def test_coordinate_maps_round_trip_and_jacobian(cmap):
+    rng = np.random.default_rng(1)
+    y = rng.normal(size=(2000, 2)) * 1.5
+    if cmap is F.SphericalMap:
+        y[:, 1] = F.wrap_angle(y[:, 1])
+    w = cmap.to_dir(y)
+    np.testing.assert_allclose(np.linalg.norm(w, axis=1), 1.0, atol=1e-15)
+    assert np.all(w[:, 2] > 0)
+    np.testing.assert_allclose(cmap.from_dir(w), y, atol=1e-12)
+    e = 1e-6
+    y = y[:300]
+    w0, wa, wb = cmap.to_dir(y), cmap.to_dir(y + [e, 0]), cmap.to_dir(y + [0, e])
+    area = np.linalg.norm(np.cross(wa - w0, wb - w0), axis=1) / e ** 2
+    np.testing.assert_allclose(np.log(area), cmap.log_dw_dy(y), atol=1e-5)
+
+
+def test_maps_send_the_cosine_lobe_to_the_standard_gaussian():
+    # Lambertian target in flow coordinates is exactly N(0, I) (disk) / N(0,1) x U(phi) (spherical).
+    rng = np.random.default_rng(2)
+    y = rng.normal(size=(5, 2))
+    for cmap in (F.DiskMap, F.SphericalMap):
+        w = cmap.to_dir(y)
+        log_p_omega = np.log(w[:, 2] / np.pi)
+        log_p_y = log_p_omega + cmap.log_dw_dy(y)
+        if cmap is F.DiskMap:
+            expect = np.sum(F.log_normal_pdf(y), axis=1)
+        else:
+            expect = F.log_normal_pdf(y[:, 0]) - math.log(2 * math.pi)
+        np.testing.assert_allclose(log_p_y, expect, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- torch <-> numpy
+
+@pytest.mark.parametrize("domain", ["disk", "spherical"])
+@pytest.mark.parametrize("isotropic", [True, False])
+def test_numpy_matches_torch(domain, isotropic):
+    net = random_net(domain, isotropic)
+    model = net.to_numpy(4)
+    rng = np.random.default_rng(3)
+    n = 256
+    wi = unit(rng.normal(size=(n, 3)) * [1, 1, 0.3] + [0, 0, 1])
+    wi[:, 2] = np.abs(wi[:, 2])
+    c = F.cond_features(wi, isotropic)
+    y0 = rng.normal(size=(n, 2))
+    ct, yt = torch.tensor(c, dtype=torch.float64), torch.tensor(y0, dtype=torch.float64)
+    net64 = net.double()
+    t = torch.tensor(0.3, dtype=torch.float64)
+    v_t, J_t = net64.vel.forward_jac(yt, t, ct)
+    v_n, J_n = model.velocity_jac(y0, 0.3, c)
+    # The file stores float32: compare with the float64 torch net of the same float32 weights.
+    np.testing.assert_allclose(v_n, v_t.detach().numpy(), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(J_n, J_t.detach().numpy(), rtol=1e-5, atol=1e-5)
+    y1_t, ld_t, _ = net64.euler(ct, yt, 4)
+    y1_n, ld_n, _ = model.flow_forward(c, y0)
+    if domain == "spherical":
+        y1_t = y1_t.detach().numpy().copy()
+        y1_t[:, 1] = F.wrap_angle(y1_t[:, 1])
+    else:
+        y1_t = y1_t.detach().numpy()
+    np.testing.assert_allclose(y1_n, y1_t, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(ld_n, ld_t.detach().numpy(), rtol=1e-5, atol=1e-5)
+    lp_t = net64.base.log_prob(ct, yt).detach().numpy()
+    np.testing.assert_allclose(model.base_log_prob(c, y0), lp_t, rtol=1e-5, atol=1e-5)
+    # float32 torch (as trained) agrees to 1e-5 as well.
+    net32 = net.float()
+    v32 = net32.vel(yt.float(), t.float(), ct.float()).detach().numpy()
+    np.testing.assert_allclose(v_n, v32, rtol=1e-5, atol=1e-5)
+
+
+def test_log_det_formula_matches_autograd():
+    net = random_net("disk", scale=0.8).double()
+    rng = np.random.default_rng(4)
+    c = torch.tensor(F.cond_features(unit([[0.3, 0, 1]] * 16), True))
+    y = torch.tensor(rng.normal(size=(16, 2)))
+    n_steps, t = 3, torch.tensor(0.25, dtype=torch.float64)
+    with torch.no_grad():
+        _, J = net.vel.forward_jac(y, t, c)
+    det_formula = step_det(J, n_steps)
+    tr = J[:, 0, 0] + J[:, 1, 1]
+    detJ = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+    np.testing.assert_allclose(det_formula.numpy(), (1 + tr / n_steps + detJ / n_steps ** 2).numpy(), rtol=1e-12)
+    for i in range(16):
+        def step(x, i=i):
+            return x + net.vel(x[None], t, c[i:i + 1])[0] / n_steps
+        A = torch.autograd.functional.jacobian(step, y[i])
+        assert abs(torch.det(A).item() - det_formula[i].item()) < 1e-10
+    # and the supplementary's 1 + det(J)/N is not it
+    assert np.max(np.abs((1 + detJ / n_steps - det_formula).numpy())) > 1e-2
+
+
+# --------------------------------------------------------------------------- bijection / exactness
+
+@pytest.mark.parametrize("domain", ["disk", "spherical"])
+@pytest.mark.parametrize("isotropic", [True, False])
+def test_invert_sample_and_pdf_agree(domain, isotropic):
+    model = random_net(domain, isotropic, scale=0.3).to_numpy(4)
+    rng = np.random.default_rng(5)
+    u = rng.random((1500, 2))
+    u[:4] = [[0.0, 0.0], [1 - 2 ** -53, 0.5], [0.5, 1 - 2 ** -53], [1e-12, 1 - 1e-12]]
+    for wi in (unit([0.4, -0.3, 0.8]), unit([0.0, 0.0, 1.0]), unit([0.99, 0.1, 0.05])):
+        wo, pdf = model.sample(wi, u)
+        assert model.last_stats["fold_fraction"] == 0.0
+        assert np.all(np.isfinite(wo)) and np.all(pdf > 0) and np.all(wo[:, 2] > 0)
+        np.testing.assert_allclose(np.linalg.norm(wo, axis=1), 1.0, atol=1e-14)
+        u2 = model.invert(wi, wo)
+        assert model.last_stats["not_converged"] == 0
+        d = np.abs(u2 - u)
+        if domain == "spherical":
+            d[:, 1] = np.minimum(d[:, 1], 1 - d[:, 1])   # u_phi is periodic
+        assert d[4:].max() < 1e-12, d.max()
+        np.testing.assert_allclose(model.pdf(wi, wo), pdf, rtol=1e-11)
+
+
+def test_pdf_below_horizon_is_zero_and_invert_is_nan():
+    model = random_net("disk").to_numpy(4)
+    wi = unit([0.2, 0, 1])
+    wo = np.array([[0.6, 0.0, -0.8], [0.0, 0.0, 1.0]])
+    pdf = model.pdf(wi, wo)
+    assert pdf[0] == 0 and pdf[1] > 0
+    u = model.invert(wi, wo)
+    assert np.all(np.isnan(u[0])) and np.all(np.isfinite(u[1]))
+
+
+def test_with_steps_changes_only_n():
+    model = random_net("disk").to_numpy(4)
+    m8 = model.with_steps(8)
+    assert m8.steps == 8 and model.steps == 4 and m8.vel_net is model.vel_net
+    with pytest.raises(FlowBSDFError):
+        model.with_steps(0)
+
+
+# --------------------------------------------------------------------------- model files
+
+def test_model_file_round_trip(tmp_path):
+    net = random_net("spherical")
+    path = F.save_model(tmp_path / "m.flow.npz", net.meta(8, material={"name": "x", "fingerprint": "abc"}),
+                        net.arrays())
+    model = F.load_model(path)
+    assert model.domain_name == "spherical" and model.steps == 8 and model.isotropic
+    assert model.meta["material"]["fingerprint"] == "abc"
+    ref = net.to_numpy(8)
+    u = np.random.default_rng(6).random((100, 2))
+    wi = unit([0.3, 0.1, 0.9])
+    np.testing.assert_array_equal(model.sample(wi, u)[0], ref.sample(wi, u)[0])
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def _write_npz(path, meta, arrays):
+    payload = dict(arrays)
+    if meta is not None:
+        payload["meta"] = np.array(meta if isinstance(meta, str) else json.dumps(meta))
+    with open(path, "wb") as f:
+        np.savez(f, **payload)
+    return path
+
+
+def test_bad_model_files_raise_flowbsdf_error(tmp_path):
+    net = random_net("disk")
+    good_meta, arrays = net.meta(4), net.arrays()
+    cases = {}
+    cases["missing"] = tmp_path / "nope.npz"
+    (tmp_path / "garbage.npz").write_bytes(b"definitely not a zip file")
+    cases["garbage"] = tmp_path / "garbage.npz"
+    cases["nometa"] = _write_npz(tmp_path / "nometa.npz", None, arrays)
+    cases["badjson"] = _write_npz(tmp_path / "badjson.npz", "{not json", arrays)
+    cases["foreign"] = _write_npz(tmp_path / "foreign.npz", dict(good_meta, format="something-else"), arrays)
+    cases["version"] = _write_npz(tmp_path / "version.npz", dict(good_meta, version=99), arrays)
+    cases["domain"] = _write_npz(tmp_path / "domain.npz", dict(good_meta, domain="cube"), arrays)
+    cases["steps"] = _write_npz(tmp_path / "steps.npz", dict(good_meta, steps=0), arrays)
+    no_vel = {k: v for k, v in arrays.items() if not k.startswith("vel.")}
+    cases["novel"] = _write_npz(tmp_path / "novel.npz", good_meta, no_vel)
+    bad_shape = dict(arrays)
+    bad_shape["vel.W1"] = np.zeros((3, 3), np.float32)
+    cases["shape"] = _write_npz(tmp_path / "shape.npz", good_meta, bad_shape)
+    wrong_in = dict(good_meta, isotropic=False)   # velocity input width no longer matches
+    cases["arch"] = _write_npz(tmp_path / "arch.npz", wrong_in, arrays)
+    for name, path in cases.items():
+        with pytest.raises(FlowBSDFError) as info:
+            F.load_model(path)
+        assert str(path) in str(info.value), name
+    torch.save({"x": 1}, tmp_path / "torch.pt")
+    with pytest.raises(FlowBSDFError):
+        F.load_model(tmp_path / "torch.pt")
+
+
+def test_bake_flow_does_not_import_torch():
+    import subprocess
+    import sys
+    code = ("import sys, bake.flow, bake; assert 'torch' not in sys.modules, 'torch imported'; "
+            "print(bake.load_model is bake.flow.load_model)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+
+
+# --------------------------------------------------------------------------- training (tiny)
+
+def _train_tiny(tmp_path, domain, source, stop_at=None, **over):
+    s = make_settings("fast", domain, **{**TINY, **over})
+    tr = Trainer(source, tmp_path, s, domain=domain, name=f"tiny-{domain}", progress=False, stop_at=stop_at)
+    return tr, tr.run()
+
+
+@pytest.fixture(scope="module")
+def trained_disk(tmp_path_factory):
+    src = GGXReflection("disk", alpha=0.3, theta_max_deg=75)
+    tr, path = _train_tiny(tmp_path_factory.mktemp("disk"), "disk", src)
+    return src, tr, F.load_model(path)
+
+
+@pytest.fixture(scope="module")
+def trained_spherical(tmp_path_factory):
+    src = GGXReflection("spherical", alpha=0.3, theta_max_deg=75)
+    tr, path = _train_tiny(tmp_path_factory.mktemp("sph"), "spherical", src)
+    return src, tr, F.load_model(path)
+
+
+def _hemisphere_integral(model, wi, n_z=100, n_phi=100):
+    """Midpoint quadrature in (cos theta, phi), refined near the horizon by cos = v²."""
+    v = (np.arange(n_z) + 0.5) / n_z
+    cz = v ** 2                    # d(cos) = 2 v dv
+    phi = (np.arange(n_phi) + 0.5) / n_phi * 2 * np.pi - np.pi
+    V, P = np.meshgrid(v, phi, indexing="ij")
+    CZ = V ** 2
+    S = np.sqrt(1 - CZ * CZ)
+    wo = np.stack([S * np.cos(P), S * np.sin(P), CZ], axis=-1).reshape(-1, 3)
+    pdf = model.pdf(wi, wo).reshape(n_z, n_phi)
+    assert cz.shape == (n_z,)
+    return np.sum(pdf * 2 * V) / n_z * 2 * np.pi / n_phi
+
+
+@pytest.mark.parametrize("which", ["trained_disk", "trained_spherical"])
+def test_trained_pdf_integrates_to_one(which, request):
+    src, tr, model = request.getfixturevalue(which)
+    for deg in (10, 60, 85):
+        total = _hemisphere_integral(model, unit([np.sin(np.radians(deg)), 0, np.cos(np.radians(deg))]))
+        assert abs(total - 1) < 0.005, (deg, total)
+
+
+@pytest.mark.parametrize("which", ["trained_disk", "trained_spherical"])
+def test_trained_model_does_not_fold_and_is_exact(which, request):
+    src, tr, model = request.getfixturevalue(which)
+    u = np.random.default_rng(7).random((8000, 2))
+    for deg in (0, 30, 60, 75, 85):
+        wi = unit([np.sin(np.radians(deg)), 0, np.cos(np.radians(deg))])
+        wo, pdf = model.sample(wi, u)
+        assert model.last_stats["fold_fraction"] == 0.0, deg
+        np.testing.assert_allclose(model.pdf(wi, wo[:2000]), pdf[:2000], rtol=1e-10)
+        # A useful sampler of the synthetic target: relative variance well below the base's.
+        if deg <= 60:
+            w = src.density(wi, wo) / pdf
+            assert w.var() / w.mean() ** 2 < 1.5, deg
+    assert model.meta["metrics"]["fold_fraction"] == 0.0
+
+
+def test_spherical_lobe_across_phi_pi(trained_spherical):
+    src, tr, model = trained_spherical
+    wi = unit([np.sin(np.radians(45)), 0, np.cos(np.radians(45))])
+    u = np.random.default_rng(8).random((20000, 2))
+    wo, pdf = model.sample(wi, u)
+    phi = np.arctan2(wo[:, 1], wo[:, 0])
+    ref = src.sample_wo(np.broadcast_to(wi, (20000, 3)), np.random.default_rng(9))
+    phi_ref = np.arctan2(ref[:, 1], ref[:, 0])
+    # The lobe sits at phi = ±pi: as many samples on either side of the cut, as in the target.
+    assert np.mean(np.abs(phi) > np.pi / 2) > 0.8
+    assert abs(np.mean(phi > 0) - 0.5) < 0.03
+    for lo, hi in ((np.pi - 0.3, np.pi), (-np.pi, -np.pi + 0.3), (2.5, 2.8)):
+        a, b = np.mean((phi >= lo) & (phi < hi)), np.mean((phi_ref >= lo) & (phi_ref < hi))
+        assert abs(a - b) < 0.2 * b + 0.01, (lo, hi, a, b)
+    # The density is continuous across the cut.
+    th = np.radians(45)
+    pair = np.array([[np.sin(th) * np.cos(np.pi - 1e-6), np.sin(th) * np.sin(np.pi - 1e-6), np.cos(th)],
+                     [np.sin(th) * np.cos(-np.pi + 1e-6), np.sin(th) * np.sin(-np.pi + 1e-6), np.cos(th)]])
+    p = model.pdf(wi, pair)
+    assert abs(p[0] / p[1] - 1) < 1e-4
+
+
+def test_reflow_beats_the_teacher_at_few_steps(trained_disk):
+    src, tr, model = trained_disk
+    student = tr.metrics["reflow"]["best"]
+    teacher = tr.new_net(tr.settings["teacher"])
+    teacher.load_state_dict(torch.load(tr.ckpt_path("flow"), weights_only=False)["best"]["net"])
+    assert student["nll"] < tr.evaluate(teacher, 4)["nll"]
+
+
+def test_checkpoint_resume_after_interruption(tmp_path):
+    src = GGXReflection("disk", alpha=0.4, theta_max_deg=60)
+    over = dict(base_steps=60, flow_steps=120, flow_eval_every=60, reflow_pairs=1024, reflow_steps=90,
+                reflow_eval_every=45, ckpt_every=30, holdout=256)
+    _, ref_path = _train_tiny(tmp_path / "ref", "disk", src, **over)
+    for stop in (("base", 30), ("flow", 90), ("reflow", 60)):
+        with pytest.raises(TrainingInterrupted):
+            _train_tiny(tmp_path / "int", "disk", src, stop_at=stop, **over)
+    _, path = _train_tiny(tmp_path / "int", "disk", src, **over)
+    ref, got = np.load(ref_path), np.load(path)
+    for k in ref.files:
+        if k != "meta":
+            np.testing.assert_array_equal(ref[k], got[k], err_msg=k)
+    assert not list((tmp_path / "int" / "ckpt").glob("*.tmp"))
+
+
+def test_cli_trains_a_manifest_material(tmp_path, capsys):
+    from trainer.cli import main
+    manifest = tmp_path / "manifest.toml"
+    manifest.write_text("""
+[[material]]
+name = "rough"
+source = { kind = "analytic", model = "ggx", alpha = 0.4 }
+[material.train]
+preset = "fast"
+theta_i = [10, 45, 70]
+resolution = 32
+pool = 20000
+batch = 256
+base_steps = 20
+flow_steps = 40
+flow_eval_every = 20
+reflow_pairs = 1024
+reflow_steps = 20
+reflow_eval_every = 10
+holdout = 128
+warmup = 5
+teacher = { vel_width = 16, vel_depth = 1 }
+student = { vel_width = 8, vel_depth = 2 }
+
+[[material]]
+name = "absent"
+source = "nowhere/missing.bsdf"
+optional = true
+""")
+    assert main(["train", str(manifest), "--no-progress", "--out", str(tmp_path / "models")]) == 0
+    path = tmp_path / "models" / "rough.flow.npz"
+    assert capsys.readouterr().out.strip() == str(path)
+    model = F.load_model(path)
+    from bake.materials import open_material
+    mat = open_material({"kind": "analytic", "model": "ggx", "alpha": 0.4})
+    assert model.meta["material"]["fingerprint"] == mat.fingerprint()
+    assert model.meta["training"]["settings"]["preset"] == "fast" and model.steps == 4
+    assert model.meta["velocity"]["width"] == 8 and model.meta["velocity"]["depth"] == 2   # the student
+    wo, pdf = model.sample(unit([0.5, 0, 0.8]), np.random.default_rng(0).random((100, 2)))
+    assert np.all(pdf > 0)
+    assert main(["train", str(manifest), "--material", "nope", "--no-progress"]) == 2
+    assert "nope" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- slow: real presets
+
+@pytest.mark.slow
+@pytest.mark.parametrize("domain,max_rv", [("disk", 0.15), ("spherical", 0.15)])
+def test_balanced_preset_on_a_ggx_lobe(tmp_path, domain, max_rv):
+    """The balanced preset (<= 10 min on 2 cores): reflowed N-step sampler of a GGX lobe."""
+    from trainer.train import train
+    src = GGXReflection(domain, alpha=0.2, alpha_slope=0.5, theta_max_deg=80)
+    path = train(src, tmp_path, preset="balanced", domain=domain, progress=False, log=None)
+    model = F.load_model(path)
+    u = np.random.default_rng(1).random((1 << 15, 2))
+    for deg in (0, 30, 60, 75):
+        wi = unit([np.sin(np.radians(deg)), 0, np.cos(np.radians(deg))])
+        wo, pdf = model.sample(wi, u)
+        assert model.last_stats["fold_fraction"] == 0.0
+        w = src.density(wi, wo) / pdf
+        assert w.var() / w.mean() ** 2 < max_rv, deg

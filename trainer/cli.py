@@ -1,0 +1,101 @@
+"""python -m trainer train MANIFEST [--material NAME] [--preset fast|balanced|paper] [--device cpu|cuda] [--out DIR]
+
+Trains one flow per material of the manifest (or only --material NAME) and writes
+<out>/<name>.flow.npz (torch-free; load with bake.flow.load_model). Checkpoints go to
+<out>/<name>.train/ckpt/: rerunning the same command resumes an interrupted run.
+
+A material's `train` table in the manifest may set: preset, steps (Euler steps N),
+seed, theta_i (list of incident elevations in degrees to train on), resolution (of
+the ideal sampler's tables), pool (training samples pre-drawn), and any trainer
+setting (see trainer.train.PRESETS / COMMON).
+"""
+import argparse
+import sys
+from pathlib import Path
+
+from bake.errors import FlowBSDFError
+
+SOURCE_KEYS = {"theta_i", "resolution", "pool", "supersample", "phi_i_count"}
+
+
+def build_parser():
+    p = argparse.ArgumentParser(prog="python -m trainer", description="FlowBSDF trainer (torch)")
+    sub = p.add_subparsers(dest="command", required=True)
+    t = sub.add_parser("train", help="train flow samplers for a manifest's materials")
+    t.add_argument("manifest", help="manifest.toml")
+    t.add_argument("--material", action="append", help="only this material (repeatable)")
+    t.add_argument("--preset", choices=["fast", "balanced", "paper"], default=None,
+                   help="training preset (default: the manifest's, else balanced)")
+    t.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    t.add_argument("--out", default=None, help="output folder (default: <manifest folder>/models)")
+    t.add_argument("--no-progress", action="store_true", help="no progress bars")
+    t.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's choice)")
+    return p
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "train":
+            return cmd_train(args)
+    except FlowBSDFError as e:
+        print(f"flowbsdf train: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("flowbsdf train: interrupted (checkpoints kept; rerun to resume)", file=sys.stderr)
+        return 130
+    return 0
+
+
+def cmd_train(args):
+    import numpy as np
+    import torch
+
+    from bake.manifest import load_manifest
+
+    from .sources import MaterialSource
+    from .train import train
+
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise FlowBSDFError("--device cuda: torch sees no CUDA device")
+    manifest_path = Path(args.manifest)
+    manifest = load_manifest(manifest_path)
+    if args.material:
+        names = {m.name for m in manifest.materials}
+        missing = [n for n in args.material if n not in names]
+        if missing:
+            raise FlowBSDFError(f"no material named {', '.join(map(repr, missing))} "
+                                f"(have: {', '.join(sorted(names))})", manifest_path)
+    log = lambda m: print(m, file=sys.stderr)  # noqa: E731
+    materials = [m for m in manifest.select(None, log=log) if not args.material or m.name in args.material]
+    out = Path(args.out) if args.out else manifest_path.resolve().parent / "models"
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    written = []
+    for entry in materials:
+        settings = dict(getattr(entry, "train", None) or {})
+        preset = args.preset or settings.pop("preset", None) or "balanced"
+        settings.pop("preset", None)
+        source_kw = {k: settings.pop(k) for k in list(settings) if k in SOURCE_KEYS}
+        if "theta_i" in source_kw:
+            source_kw["theta_i"] = np.radians(np.asarray(source_kw["theta_i"], float))
+        domain = getattr(entry, "domain", None) or "disk"
+        material = entry.open()
+        seed = settings.get("seed", 0)
+        source = MaterialSource(material, domain, seed=seed, **source_kw)
+        fingerprint = material.fingerprint()
+        print(f"[{entry.name}] training ({domain}, preset {preset}) -> {out}", file=sys.stderr)
+        path = train(source, out / f"{entry.name}.train", preset=preset, domain=domain,
+                     isotropic=material.isotropic, name=entry.name, device=args.device,
+                     progress=not args.no_progress, log=log,
+                     meta={"material": {"fingerprint": fingerprint, "kind": type(material).__name__},
+                           "source": source.describe()},
+                     **settings)
+        final = out / path.name
+        out.mkdir(parents=True, exist_ok=True)
+        path.replace(final)
+        written.append(final)
+        print(f"[{entry.name}] model: {final}", file=sys.stderr)
+    for p in written:
+        print(p)
+    return 0
