@@ -45,7 +45,9 @@ def cmd_bake(args):
 def cmd_report(args):
     from .manifest import load_manifest
     from .report import report_manifest
-    written = report_manifest(load_manifest(args.manifest), args.out, name=args.material, n=args.samples)
+    steps = tuple(int(x) for x in getattr(args, "steps", "2,4,8").split(","))
+    written = report_manifest(load_manifest(args.manifest), args.out, name=args.material, n=args.samples,
+                              steps=steps)
     print(Path(written["markdown"]).read_text())
     print(f"[wrote] {written['markdown']}")
 
@@ -64,7 +66,8 @@ def cmd_run(args):
         if cmd_train(None, train_args) != 0:
             raise FlowBSDFError("training failed (see above); rerun to resume from the checkpoints")
     bake_manifest(manifest, args.out, name=args.material)
-    args.samples = args.samples or 1 << 16
+    args.samples = args.samples or 1 << 15
+    args.steps = "4"        # the flow at the step count it was trained for (the report command shows more)
     cmd_report(args)
 
 
@@ -103,6 +106,7 @@ def build_parser():
     r.add_argument("--material")
     r.add_argument("--out", default="out")
     r.add_argument("--samples", type=int, default=1 << 17, help="samples per rv cell")
+    r.add_argument("--steps", default="2,4,8", help="Euler step counts of the flow to compare")
     r.set_defaults(func=cmd_report)
 
     m = sub.add_parser("run", help="the main job: train -> bake -> report")

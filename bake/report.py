@@ -400,12 +400,12 @@ def manifest_samplers(entry, material, out_dir, manifest_path, steps=(2, 4, 8), 
     return samplers
 
 
-def report_manifest(manifest, out_dir, name=None, thetas=THETAS_DEG, n=1 << 17, log=print):
+def report_manifest(manifest, out_dir, name=None, thetas=THETAS_DEG, n=1 << 17, steps=(2, 4, 8), log=print):
     """The speed-vs-error report of every selected material, written to <out_dir>/report."""
     rows, slices = [], []
     for entry in manifest.select(name, log=log):
         material = entry.open()
-        samplers = manifest_samplers(entry, material, out_dir, manifest.path, log=log)
+        samplers = manifest_samplers(entry, material, out_dir, manifest.path, steps=steps, log=log)
         rows += speed_error_rows(entry.name, material, samplers, thetas=thetas, n=n, log=log)
         shown = {k: samplers[k] for k in ("ideal", "flow N=4", "tables") if k in samplers}
         slices.append((entry.name, material, shown, 60.0))
