@@ -81,42 +81,28 @@ def build_parser():
     p = argparse.ArgumentParser(prog="flowbsdf", description="Learned BSDF importance sampling.")
     sub = p.add_subparsers(dest="command", required=True)
 
-    c = sub.add_parser("check", help="validate a manifest and open its materials")
-    c.add_argument("manifest")
-    c.add_argument("--material")
-    c.set_defaults(func=cmd_check)
+    def command(name, func, help_, out=True):
+        c = sub.add_parser(name, help=help_)
+        c.add_argument("manifest")
+        c.add_argument("--material", help="only this material of the manifest")
+        if out:
+            c.add_argument("--out", default="out", help="output folder (models, tables, report)")
+        c.set_defaults(func=func)
+        return c
 
-    y = sub.add_parser("yardsticks", help="rv of the baseline and ideal samplers")
-    y.add_argument("manifest")
-    y.add_argument("--material")
+    command("check", cmd_check, "validate a manifest and open its materials", out=False)
+    y = command("yardsticks", cmd_yardsticks, "rv of the baseline and ideal samplers")
     y.add_argument("--samples", type=int, default=1 << 17, help="samples per rv cell")
-    y.add_argument("--out", default="out", help="folder for the tables")
     y.add_argument("--thetas", default="0,30,60,75,85", help="incident elevations, degrees")
-    y.set_defaults(func=cmd_yardsticks)
-
-    b = sub.add_parser("bake", help="bake tables for a manifest's materials (skips current ones)")
-    b.add_argument("manifest")
-    b.add_argument("--material")
-    b.add_argument("--out", default="out", help="output folder (tables in OUT/tables, models from OUT/models)")
+    b = command("bake", cmd_bake, "bake tables into OUT/tables (skips the current ones)")
     b.add_argument("--force", action="store_true", help="rebuild even when the inputs did not change")
-    b.set_defaults(func=cmd_bake)
-
-    r = sub.add_parser("report", help="speed vs error of every sampler (OUT/report)")
-    r.add_argument("manifest")
-    r.add_argument("--material")
-    r.add_argument("--out", default="out")
+    r = command("report", cmd_report, "speed vs error of every sampler (OUT/report)")
     r.add_argument("--samples", type=int, default=1 << 17, help="samples per rv cell")
     r.add_argument("--steps", default="2,4,8", help="Euler step counts of the flow to compare")
-    r.set_defaults(func=cmd_report)
-
-    m = sub.add_parser("run", help="the main job: train -> bake -> report")
-    m.add_argument("manifest")
-    m.add_argument("--material")
-    m.add_argument("--out", default="out")
+    m = command("run", cmd_run, "the main job: train -> bake -> report")
     m.add_argument("--preset", default="fast", choices=["fast", "balanced", "paper"])
     m.add_argument("--no-train", action="store_true", help="bake from the ideal tabulation only")
     m.add_argument("--samples", type=int, default=None)
-    m.set_defaults(func=cmd_run)
 
     sub.add_parser("train", help="train flow models (python -m trainer train --help)", add_help=False)
     return p
