@@ -31,6 +31,14 @@ Each Euler step y_{k+1} = y_k + D(y_k, t_k, c) / N, t_k = k / N, multiplies the 
 The inverse solves every Euler step exactly backwards by Newton's method. Isotropic
 materials are conditioned on theta_i only: wi is rotated to phi_i = 0 and wo rotated back.
 
+Precision: sample/pdf/invert agree to float precision (invert(sample(u)) == u, pdf(sample)
+== returned pdf, ~1e-12). u is a double in [0,1): u = 0 is clipped to 1e-17 (z = -8.5) and
+the upper tail resolves only down to 1 - u ~ 1e-16 (z ~ 8.2), so for directions whose base
+point lies beyond that (probability < 1e-15) invert() saturates and sample(invert(wo)) is
+only approximately wo; pdf(wo) stays exact there.
+If det(I + J/N) <= 0 somewhere the Euler map folds (not a bijection there, pdf wrong):
+`last_stats["fold_fraction"]` reports it; trained models are checked for it.
+
 File format: one `.npz` (no pickles) holding float32 weight arrays `base.W0`, `base.b0`,
 ..., `vel.W0`, ... (torch's Linear layout, (out, in)) and `meta`, a JSON string with
 `format` = "flowbsdf-flow", `version`, `domain`, `isotropic`, `steps`, the architecture
@@ -210,8 +218,9 @@ def vm_icdf(u, kappa, m, max_iter=100):
         l, h = lo[active], hi[active]
         bad = ~((new > l) & (new < h)) | ~np.isfinite(new)
         new = np.where(bad, 0.5 * (l + h), new)
-        psi[active] = new
-        done = (np.abs(new - p) <= 4e-16 * (1.0 + np.abs(p))) | (h - l <= 4e-16 * (1.0 + np.abs(l)))
+        hit = np.abs(f) <= 2.5e-16                      # u resolved to its last bit: keep p
+        psi[active] = np.where(hit, p, new)
+        done = hit | (np.abs(new - p) <= 4e-16 * (1.0 + np.abs(p))) | (h - l <= 4e-16 * (1.0 + np.abs(l)))
         active = active[~done]
     return psi
 
@@ -424,7 +433,6 @@ class FlowModel:
         self.time_freq = int(vel.get("time_freq", 0))
         self.log_sigma_range = tuple(float(v) for v in base["log_sigma_range"])
         self.kappa_max = float(base.get("kappa_max", 0.0))
-        self.vm_m = vm_terms(self.kappa_max)
         self.base_net = MLP(*_layers(arrays, "base", meta, self.path))
         self.vel_net = MLP(*_layers(arrays, "vel", meta, self.path))
         self.last_stats = {}
@@ -494,7 +502,7 @@ class FlowModel:
             return y0, np.sum(log_normal_pdf(z) - ls, axis=-1)
         mu_s, ls, mu_phi, kappa = self.base_params(c)
         z = ndtri(u[:, 0])
-        psi = vm_icdf(u[:, 1], kappa, self.vm_m)
+        psi = vm_icdf(u[:, 1], kappa, vm_terms(float(np.max(kappa, initial=0.0))))
         y0 = np.stack([mu_s + np.exp(ls) * z, wrap_angle(mu_phi + psi)], axis=-1)
         return y0, log_normal_pdf(z) - ls + vm_log_pdf(psi, kappa)
 
@@ -507,7 +515,7 @@ class FlowModel:
         mu_s, ls, mu_phi, kappa = self.base_params(c)
         z = (y0[:, 0] - mu_s) * np.exp(-ls)
         psi = wrap_angle(y0[:, 1] - mu_phi)
-        u1 = vm_cdf(psi, kappa, self.vm_m)
+        u1 = vm_cdf(psi, kappa, vm_terms(float(np.max(kappa, initial=0.0))))
         u1 = np.where(u1 >= 1.0, u1 - 1.0, u1)
         u = np.stack([ndtr(z), np.clip(u1, 0.0, None)], axis=-1)
         return u, log_normal_pdf(z) - ls + vm_log_pdf(psi, kappa)

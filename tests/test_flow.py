@@ -390,6 +390,8 @@ holdout = 128
 warmup = 5
 teacher = { vel_width = 16, vel_depth = 1 }
 student = { vel_width = 8, vel_depth = 2 }
+fold_penalty = 0.5
+ema = 0.9
 
 [[material]]
 name = "absent"
