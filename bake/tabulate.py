@@ -215,7 +215,7 @@ def _find_cols(b_edges, row, b):
 
 
 def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_width=None, gamma=0.5,
-                 row_share=0.02, col_share=0.05, quadrature=4, floor=1e-4, lobe_rows=True, window=1,
+                 row_share=0.02, col_share=0.05, quadrature=4, floor=1e-4, window=1,
                  progress=None, cache=None):
     """Tables of an isotropic material at the given incident elevations (radians).
 
@@ -241,7 +241,7 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
         points.append(cache[key])
     near = [range(max(0, k - window), min(K, k + window + 1)) for k in range(K)]
 
-    row_knots = [lobe_knots(t, lobe_width if lobe_rows else None) for t in theta_bins]
+    row_knots = [lobe_knots(t, lobe_width) for t in theta_bins]
     row_counts = _segment_counts(rows, len(row_knots[0]) - 1)
     normed = [_normalize(p[0], k) + (p[2],) for p, k in zip(points, row_knots)]
     a_edges = []
