@@ -175,7 +175,7 @@ class VelocityNet(nn.Module):
         """D (n,2) and J = dD/dy (n,2,2), J[:, i, j] = dD_i/dy_j (differentiable)."""
         h = self._input(y, t, c)
         n = len(y)
-        dh = torch.zeros(2, n, h.shape[1], dtype=h.dtype)
+        dh = torch.zeros(2, n, h.shape[1], dtype=h.dtype, device=h.device)
         if self.domain == "disk":
             dh[0, :, 0] = 1.0
             dh[1, :, 1] = 1.0
@@ -225,7 +225,7 @@ class FlowNet(nn.Module):
         logdet = torch.zeros(len(y), dtype=y.dtype)
         min_det = torch.full((len(y),), float("inf"), dtype=y.dtype)
         for k in range(n_steps):
-            t = torch.tensor(k / n_steps, dtype=y.dtype)
+            t = torch.tensor(k / n_steps, dtype=y.dtype, device=y.device)
             if with_logdet:
                 v, J = self.vel.forward_jac(y, t, c)
                 det = step_det(J, n_steps)
@@ -243,10 +243,10 @@ class FlowNet(nn.Module):
         h = 1.0 / n_steps
         for k in range(n_steps):
             t = k * h
-            k1 = self.vel(y, torch.tensor(t, dtype=y.dtype), c)
-            k2 = self.vel(y + 0.5 * h * k1, torch.tensor(t + 0.5 * h, dtype=y.dtype), c)
-            k3 = self.vel(y + 0.5 * h * k2, torch.tensor(t + 0.5 * h, dtype=y.dtype), c)
-            k4 = self.vel(y + h * k3, torch.tensor(t + h, dtype=y.dtype), c)
+            k1 = self.vel(y, torch.tensor(t, dtype=y.dtype, device=y.device), c)
+            k2 = self.vel(y + 0.5 * h * k1, torch.tensor(t + 0.5 * h, dtype=y.dtype, device=y.device), c)
+            k3 = self.vel(y + 0.5 * h * k2, torch.tensor(t + 0.5 * h, dtype=y.dtype, device=y.device), c)
+            k4 = self.vel(y + h * k3, torch.tensor(t + h, dtype=y.dtype, device=y.device), c)
             y = y + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
         return y
 
@@ -288,7 +288,7 @@ def euler_inverse(net, c, y1, n_steps, tol=1e-10, max_iter=40):
     min_det = torch.full((n,), float("inf"), dtype=y.dtype)
     converged = torch.ones(n, dtype=torch.bool)
     for k in range(n_steps - 1, -1, -1):
-        t = torch.tensor(k / n_steps, dtype=y.dtype)
+        t = torch.tensor(k / n_steps, dtype=y.dtype, device=y.device)
         target = y
         x = target - a * net.vel(target, t, c)
         scale = 1.0 + target.abs().amax(dim=1)
