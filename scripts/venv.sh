@@ -31,3 +31,11 @@ if [ "${FLOWBSDF_NO_APT:-}" = "" ] && ! ldconfig -p 2>/dev/null | grep -q 'libLL
   (apt-get install -y -qq libllvm19 >/dev/null 2>&1 || { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq libllvm19 >/dev/null 2>&1; }) \
     || echo "[setup] libllvm19 not installed: Mitsuba peer uses scalar_rgb"
 fi
+# Debian's Blender 3.4 gives the add-on's batch test a real `blender --background`; best
+# effort (apt install measured at ~45 s here): without it tests/test_blender_batch.py skips.
+if [ "${FLOWBSDF_NO_APT:-}" = "" ] && ! command -v blender >/dev/null && command -v apt-get >/dev/null \
+   && [ "$(id -u)" = 0 ]; then
+  echo "[setup] installing Debian's blender for the add-on's batch test (best effort, ~1 min)"
+  (apt-get install -y -qq blender >/dev/null 2>&1 || { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq blender >/dev/null 2>&1; }) \
+    || echo "[setup] blender not installed: tests/test_blender_batch.py skips"
+fi

@@ -1,0 +1,237 @@
+"""Cycles closures fitted to baked tables: the Learned BSDF node's fit back end.
+
+Per view angle (knots in x = 1 - cos theta_i, what Cycles' Layer Weight "Facing" gives),
+the baked BSDF f (Tables.eval) is approximated by what Cycles renders everywhere:
+
+    f_fit = kd / pi  +  ks * f_ggx(alpha)
+
+kd, ks RGB, f_ggx Cycles' Glossy BSDF with the GGX distribution and colour 1 (Smith
+height-correlated G2, no Fresnel; Cycles' roughness input r gives alpha = r^2). Between
+knots the node interpolates kd, ks and r linearly in x.
+
+At each knot the fit keeps the baked albedo exactly per channel (kd + ks A(alpha) =
+albedo(theta_i), A the GGX lobe's albedo) and, over a grid of alpha, minimizes the L2
+error of f cos over the hemisphere (Monte Carlo with a mixture of the tables', the
+cosine and the GGX lobe's samplers, fixed seed). Recorded per knot: the relative L2
+error of f cos (`rel_error`) and the albedo the closures really reach (`fit_albedo`,
+equal to `albedo` unless ks or kd hit a bound).
+
+`principled_params(fit)` maps a fit to one view-independent Principled BSDF (the
+baseline the acceptance script compares against).
+"""
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .errors import FlowBSDFError
+from .geometry import luminance
+from .materials.analytic import ggx_ndf, ggx_lambda, ggx_reflection_pdf, ggx_sample_reflection
+from .tables import open_tables
+
+FIT_VERSION = 1
+KNOTS_DEG = (0.0, 15.0, 30.0, 40.0, 50.0, 58.0, 65.0, 70.0, 74.0, 78.0, 81.0, 84.0, 86.0, 88.0, 89.5)
+ALPHAS = np.geomspace(0.002, 1.0, 24)
+
+
+def ggx_fcos(wi, wo, alpha):
+    """Cycles' Glossy BSDF (GGX, colour 1) times cos theta_o; wi (3,), wo (N, 3)."""
+    wi = np.broadcast_to(np.asarray(wi, float), wo.shape)
+    ok = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    h = wi + wo
+    h = h / np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-300)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g2 = 1.0 / (1.0 + ggx_lambda(wi, alpha, alpha) + ggx_lambda(wo, alpha, alpha))
+        v = ggx_ndf(h, alpha, alpha) * g2 / (4.0 * wi[:, 2])
+    return np.where(ok, v, 0.0)
+
+
+def _stratified(n, rng):
+    side = int(np.sqrt(n))
+    g = (np.stack(np.meshgrid(np.arange(side), np.arange(side), indexing="ij"), -1).reshape(-1, 2)
+         + rng.random((side * side, 2))) / side
+    return g
+
+
+def _cosine(u):
+    r = np.sqrt(u[:, 0])
+    phi = 2 * np.pi * u[:, 1]
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(0.0, 1 - r * r))], axis=1)
+
+
+def baked_albedo(tables, cos_i):
+    """Exact albedo (RGB) of the baked BSDF for a view at cos theta_i: E[W] = sum m W over the
+    interpolated table (what a furnace render of the OSL back end converges to)."""
+    theta = float(np.arccos(np.clip(cos_i, -1.0, 1.0)))
+    wi = np.array([[np.sin(theta), 0.0, np.cos(theta)]])
+    k0, k1, t, _ = tables._bins(wi)
+    k0, k1, t = int(k0[0]), int(k1[0]), float(t[0])
+    m = (1 - t) * tables._m[k0] + t * tables._m[k1]
+    w = (1 - t) * tables.weights[k0].astype(np.float64) + t * tables.weights[k1].astype(np.float64)
+    return np.einsum("rc,rck->k", m, w)
+
+
+def ggx_albedo(wi, alpha, n=1024, seed=0):
+    rng = np.random.default_rng(seed)
+    u = _stratified(n, rng)
+    wo = ggx_sample_reflection(wi, alpha, alpha, u)
+    p = ggx_reflection_pdf(wi, wo, alpha, alpha)
+    v = np.where(p > 0, ggx_fcos(wi, wo, alpha) / np.where(p > 0, p, 1.0), 0.0)
+    return float(np.mean(v))
+
+
+def fit_knot(tables, theta, n=2048, seed=0, alphas=ALPHAS):
+    """The best (kd, ks, alpha, rel_error, fit albedo) at one view angle."""
+    rng = np.random.default_rng(seed)
+    wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
+    albedo = baked_albedo(tables, np.cos(theta))
+    fixed = np.concatenate([tables.sample(wi, _stratified(n, rng))[0], _cosine(_stratified(n, rng))])
+    fixed = fixed[fixed[:, 2] > 0]
+    fixed_pdf = tables.pdf(wi, fixed) + fixed[:, 2] / np.pi
+    fixed_g = tables.eval(wi, fixed) * fixed[:, 2:3]
+    best = None
+    for alpha in alphas:
+        wo_g = ggx_sample_reflection(wi, alpha, alpha, _stratified(n, rng))
+        wo_g = wo_g[wo_g[:, 2] > 0]
+        wo = np.concatenate([fixed, wo_g])
+        q = (np.concatenate([fixed_pdf, tables.pdf(wi, wo_g) + wo_g[:, 2] / np.pi])
+             + ggx_reflection_pdf(wi, wo, alpha, alpha)) / 3.0
+        w = 1.0 / (q * 3 * n)                  # MC weights of integrals over the hemisphere
+        g = np.concatenate([fixed_g, tables.eval(wi, wo_g) * wo_g[:, 2:3]])     # (N, 3) baked f cos
+        ed = wo[:, 2] / np.pi
+        es = ggx_fcos(wi, wo, alpha)
+        a_ggx = ggx_albedo(wi, alpha, seed=seed)
+        z = es - a_ggx * ed
+        r0 = g - albedo[None, :] * ed[:, None]
+        zz = np.sum(w * z * z)
+        rz = np.sum(w[:, None] * r0 * z[:, None], axis=0)
+        ks = np.clip(rz / max(zz, 1e-300), 0.0, albedo / max(a_ggx, 1e-12))
+        kd = np.maximum(albedo - ks * a_ggx, 0.0)
+        resid = g - kd[None, :] * ed[:, None] - ks[None, :] * es[:, None]
+        err = float(np.sum(w[:, None] * resid ** 2))
+        norm = float(np.sum(w[:, None] * g ** 2))
+        if best is None or err < best[0]:
+            best = (err, kd, ks, alpha, np.sqrt(err / max(norm, 1e-300)), kd + ks * a_ggx)
+    _, kd, ks, alpha, rel, fit_albedo = best
+    return kd, ks, float(alpha), float(rel), fit_albedo, albedo
+
+
+def fit_closures(tables, knots_deg=KNOTS_DEG, n=2048, seed=0):
+    """The fit as a JSON-able dict: per knot x = 1 - cos theta_i, kd, ks (RGB), Cycles roughness
+    r = sqrt(alpha), the relative L2 error of f cos and the albedos."""
+    out = {"format": "flowbsdf-closure-fit", "version": FIT_VERSION, "model": "diffuse+ggx",
+           "x": [], "theta_deg": [], "diffuse": [], "specular": [], "roughness": [], "alpha": [],
+           "rel_error": [], "albedo": [], "fit_albedo": []}
+    # Knots ascending in x = 1 - cos theta (Facing), i.e. ascending theta.
+    for deg in sorted(knots_deg):
+        theta = np.radians(deg)
+        kd, ks, alpha, rel, fit_albedo, albedo = fit_knot(tables, theta, n=n, seed=seed)
+        out["x"].append(float(1.0 - np.cos(theta)))
+        out["theta_deg"].append(float(deg))
+        out["diffuse"].append([float(v) for v in kd])
+        out["specular"].append([float(v) for v in ks])
+        out["alpha"].append(alpha)
+        out["roughness"].append(float(np.sqrt(alpha)))
+        out["rel_error"].append(rel)
+        out["albedo"].append([float(v) for v in albedo])
+        out["fit_albedo"].append([float(v) for v in fit_albedo])
+    # The node clamps Facing to the knots' range: extend to x = 1 (grazing) with the last knot.
+    if out["x"][-1] < 1.0:
+        for key in ("diffuse", "specular", "roughness", "alpha", "rel_error", "albedo", "fit_albedo"):
+            out[key].append(out[key][-1])
+        out["x"].append(1.0)
+        out["theta_deg"].append(90.0)
+    return out
+
+
+def params_at(fit, cos_i):
+    """(kd, ks, alpha) the node uses at a view angle (linear in x = 1 - cos, roughness lerped)."""
+    x = np.clip(1.0 - np.asarray(cos_i, float), 0.0, 1.0)
+    xs = np.asarray(fit["x"])
+    kd = np.stack([np.interp(x, xs, np.asarray(fit["diffuse"])[:, c]) for c in range(3)], -1)
+    ks = np.stack([np.interp(x, xs, np.asarray(fit["specular"])[:, c]) for c in range(3)], -1)
+    r = np.interp(x, xs, fit["roughness"])
+    return kd, ks, r * r
+
+
+def eval_fit(fit, wi, wo):
+    """f of the fit (RGB, no cosine) for one wi (3,) and wo (N, 3): what the node renders."""
+    wo = np.atleast_2d(wo)
+    kd, ks, alpha = params_at(fit, wi[2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        spec = np.where(wo[:, 2] > 0, ggx_fcos(wi, wo, float(alpha)) / wo[:, 2], 0.0)
+    return np.where((wo[:, 2] > 0)[:, None], kd / np.pi + ks * spec[:, None], 0.0)
+
+
+def principled_params(fit):
+    """One view-independent Principled BSDF for a fit (a baseline, not a fit of its own):
+    roughness and specular colour from normal incidence, base colour the diffuse there;
+    metallic when the diffuse part is under 5 % of the albedo."""
+    kd = np.asarray(fit["diffuse"][0])
+    ks = np.asarray(fit["specular"][0])
+    rough = float(fit["roughness"][0])
+    if luminance(kd) < 0.05 * luminance(kd + ks * 0.9):
+        return {"Base Color": [float(v) for v in np.clip(ks, 0, 1)], "Metallic": 1.0, "Roughness": rough,
+                "IOR": 1.5, "Specular IOR Level": 0.5}
+    f0 = float(np.clip(luminance(ks), 0.0, 0.9))
+    ior = float((1 + np.sqrt(f0)) / max(1 - np.sqrt(f0), 1e-3)) if f0 > 0 else 1.0
+    return {"Base Color": [float(v) for v in np.clip(kd, 0, 1)], "Metallic": 0.0, "Roughness": rough,
+            "IOR": float(np.clip(ior, 1.0, 3.0)), "Specular IOR Level": 0.5}
+
+
+# ------------------------------------------------------------------------------ files
+
+def fit_path(tables_path):
+    tables_path = Path(tables_path)
+    return tables_path.with_name(tables_path.stem + ".fit.json")
+
+
+def _digest(path):
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def load_fit(path):
+    path = Path(path)
+    try:
+        fit = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise FlowBSDFError("closure fit not found", path) from None
+    except (OSError, ValueError) as e:
+        raise FlowBSDFError(f"closure fit unreadable ({e})", path) from None
+    if fit.get("format") != "flowbsdf-closure-fit" or fit.get("version") != FIT_VERSION:
+        raise FlowBSDFError("not a current FlowBSDF closure fit; re-bake", path)
+    return fit
+
+
+def ensure_fit(tables_path, log=None):
+    """The fit file of a table file (<stem>.fit.json beside it), rebuilt when missing or made
+    from other table contents; written atomically. Returns its path."""
+    tables_path = Path(tables_path)
+    digest = _digest(tables_path)
+    path = fit_path(tables_path)
+    try:
+        if load_fit(path).get("tables_hash") == digest:
+            return path
+    except FlowBSDFError:
+        pass
+    fit = fit_closures(open_tables(tables_path))
+    fit["tables_hash"] = digest
+    fit["tables"] = tables_path.name
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(fit, f, indent=1)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    if log:
+        log(f"[fit] wrote {path} (max relative error {max(fit['rel_error']):.3f})")
+    return path

@@ -1,0 +1,187 @@
+"""Batch baking for farms: scan the open .blend, train what is missing, bake, bind, save.
+
+    blender -b scene.blend -c flowbsdf bake [options]                                   (4.2+)
+    blender -b scene.blend --python-expr "import flowbsdf.batch as b; b.main()" -- bake [options]
+        (3.4+, legacy add-on installed as `flowbsdf`; from a checkout, put its folder on
+         sys.path and import blender_addon.batch instead)
+
+Commands: `scan` (write the manifest, print what each material needs and whether its
+tables are current), `bake` (the whole job) and `validate` (reference tracer vs Cycles:
+MSE, SSIM and a side-by-side image in <out>/validate/). Options:
+    --python PY        the Python that bakes/trains (else FLOWBSDF_PYTHON, the preference,
+                       Blender's own)
+    --train MODE       auto (default: train when that Python has torch), always, never
+    --out DIR          output folder (default: the scene's, //flowbsdf)
+    --material NAME    only this Blender material (repeatable)
+    --save-as PATH     save there instead of over the opened file;  --no-save: do not save
+    --no-bind          bake only (a farm Blender that cannot build the node); nothing saved
+    --spp N, --size W  validate: Cycles' samples per pixel (the reference takes 4x), image width
+Every line printed ends with a newline; progress lines start with `[progress K/N]`, the
+add-on's own with `[flowbsdf]`. Exit code 0 on success, 1 on any failure (with an
+`[flowbsdf] error:` line saying what failed).
+"""
+import argparse
+import os
+import sys
+
+import bpy
+
+from . import deps, jobs, scan, worker
+
+
+def log(message):
+    print(f"[flowbsdf] {message}", flush=True)
+
+
+def _parser():
+    p = argparse.ArgumentParser(prog="blender -b FILE -c flowbsdf", add_help=True,
+                                description="Scan, train, bake and bind FlowBSDF materials.")
+    p.add_argument("command", choices=["scan", "bake", "validate"])
+    p.add_argument("--python", default=None)
+    p.add_argument("--train", choices=["auto", "always", "never"], default=None)
+    p.add_argument("--out", default=None)
+    p.add_argument("--material", action="append", default=None)
+    p.add_argument("--save-as", default=None)
+    p.add_argument("--no-save", action="store_true")
+    p.add_argument("--spp", type=int, default=None, help="validate: Cycles' samples (reference: 4x)")
+    p.add_argument("--size", type=int, default=None, help="validate: image width in pixels")
+    p.add_argument("--no-bind", action="store_true",
+                   help="bake only (e.g. on a farm Blender that cannot build the node); not saved")
+    return p
+
+
+class BatchError(RuntimeError):
+    pass
+
+
+def _filter(rows, names):
+    if not names:
+        return rows
+    missing = set(names) - {r["material"].name for r in rows}
+    if missing:
+        raise BatchError(f"not learned materials used by rendered objects: {', '.join(sorted(missing))}")
+    return [r for r in rows if r["material"].name in names]
+
+
+def _run_job(python, args, extra_paths):
+    job = worker.Job(python, args, extra_paths)
+    job.run(echo=True)
+    return job.lines
+
+
+def run(argv):
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as e:            # argparse: usage error or --help
+        return 0 if e.code in (0, None) else 1
+    saved_python = os.environ.get(deps.ENV_PYTHON)
+    if args.python:
+        os.environ[deps.ENV_PYTHON] = args.python
+    try:
+        return _run(args)
+    finally:
+        if saved_python is None:
+            os.environ.pop(deps.ENV_PYTHON, None)
+        else:
+            os.environ[deps.ENV_PYTHON] = saved_python
+
+
+def _run(args):
+    scene = bpy.context.scene
+    if args.command == "validate":
+        return _validate(scene, args)
+    try:
+        if args.out:
+            scene.flowbsdf.out_dir = os.path.abspath(args.out)
+        train = args.train or scene.flowbsdf.train.lower()
+        source = bpy.data.filepath or "(unsaved file)"
+        log(f"{args.command} {source}")
+        rows, manifest, out = jobs.prepare(scene)
+        rows = _filter(rows, args.material)
+        log(f"{len(rows)} learned material(s) in use; manifest {manifest}")
+        from . import prefs
+        p = prefs.get()
+        python = worker.python_for(p, need_train=(train == "always"))
+        log(f"worker Python: {python}")
+        names = sorted({r["name"] for r in rows}) if args.material else ()
+        if args.command == "scan":
+            lines = _run_job(python, jobs.status_args(manifest, out), worker.extra_paths(p))
+        else:
+            lines = _run_job(python, jobs.bake_args(manifest, out, train, names), worker.extra_paths(p))
+        statuses = jobs.after_status(scene, rows, manifest, lines)
+        for row in rows:
+            info = statuses.get(row["name"], {})
+            log(f"{row['material'].name} -> {row['name']}: {scan.state_of(info) if info else 'unknown'}; "
+                f"needs {scan.needs_text(info) if info else '?'}")
+        if args.command == "scan":
+            return 0
+        if args.no_bind:
+            log("tables baked; nodes not bound (--no-bind), file not saved")
+            log("done")
+            return 0
+        bound = jobs.bind(rows, statuses)
+        log(f"bound {len(bound)} material(s): {', '.join(bound)}")
+        if args.no_save:
+            log("not saved (--no-save)")
+        elif args.save_as:
+            bpy.ops.wm.save_as_mainfile(filepath=os.path.abspath(args.save_as))
+            log(f"saved {bpy.data.filepath}")
+        elif bpy.data.filepath:
+            bpy.ops.wm.save_mainfile()
+            log(f"saved {bpy.data.filepath}")
+        else:
+            raise BatchError("nothing to save: open a .blend or pass --save-as PATH")
+    except (BatchError, worker.JobError, scan.ScanError, jobs.BindError, OSError, RuntimeError) as e:
+        print(f"[flowbsdf] error: {e}", flush=True)
+        print(f"[flowbsdf] error: {e}", file=sys.stderr, flush=True)
+        return 1
+    log("done")
+    return 0
+
+
+def _validate(scene, args):
+    from . import validate
+    try:
+        if args.out:
+            scene.flowbsdf.out_dir = os.path.abspath(args.out)
+        log(f"validate {bpy.data.filepath or '(unsaved file)'}")
+        job, folder, notes = validate.prepare(scene, spp=args.spp, size=args.size)
+        for note in notes:
+            log(f"note: {note}")
+        job.run(echo=True)
+        result = validate.parse_result(job.lines)
+    except (worker.JobError, scan.ScanError, validate.ExportError, OSError, RuntimeError) as e:
+        print(f"[flowbsdf] error: {e}", flush=True)
+        print(f"[flowbsdf] error: {e}", file=sys.stderr, flush=True)
+        return 1
+    log(f"validate: MSE {result['mse']:.4g}, SSIM {result['ssim']:.4f}; side by side: {result['image']}")
+    return 0
+
+
+def cli_command(argv):
+    """`blender -c flowbsdf ...` (registered by the add-on on Blender 4.2+)."""
+    return run(list(argv))
+
+
+def _ensure_registered():
+    if not hasattr(bpy.types.Scene, "flowbsdf"):
+        import importlib
+        importlib.import_module(__package__).register()
+
+
+def main(argv=None):
+    """Entry point for `--python-expr`: the arguments after `--`; exits Blender with the code."""
+    if argv is None:
+        argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else []
+    try:
+        _ensure_registered()
+        code = run(argv)
+    except Exception as e:      # noqa: BLE001 - Blender would exit 0 after a traceback
+        import traceback
+        traceback.print_exc()
+        print(f"[flowbsdf] error: {type(e).__name__}: {e}", flush=True)
+        code = 1
+    sys.stdout.flush()
+    if bpy.app.background:
+        sys.exit(code)
+    return code

@@ -1,0 +1,109 @@
+"""The steps the panel and the batch command share: scan -> manifest -> worker -> bind nodes."""
+import os
+
+import bpy
+
+from . import prefs, scan, worker
+
+MANIFEST_NAME = "manifest.toml"
+
+
+class BindError(RuntimeError):
+    """Tables are baked but a node could not be bound; the message names the material."""
+
+
+def prepare(scene, only=None):
+    """Scan the scene and write its manifest. Returns (rows, manifest path, output folder);
+    `only`: a Blender material name to restrict the job to (its manifest row)."""
+    rows = scan.scan(scene)
+    if only is not None:
+        rows = [r for r in rows if r["material"].name == only]
+        if not rows:
+            raise scan.ScanError(f"material {only!r} is not a learned material used by a rendered object "
+                                 "(enable Learned BSDF on it and assign it to an object that renders)")
+    if not rows:
+        raise scan.ScanError("no learned materials in use: enable Learned BSDF on a material that a "
+                             "rendered object uses")
+    out = scan.out_dir(scene)
+    # The manifest always lists everything the scene needs; `only` restricts the job, not the file.
+    path = scan.write_manifest(scan.scan(scene), os.path.join(out, MANIFEST_NAME),
+                               source=bpy.path.basename(bpy.data.filepath) or "an unsaved file")
+    return rows, path, out
+
+
+def status_args(manifest, out):
+    return ["status", manifest, "--out", out]
+
+
+def bake_args(manifest, out, train="auto", names=()):
+    args = ["bake", manifest, "--out", out, "--train", train.lower()]
+    for name in names:
+        args += ["--material", name]
+    return args
+
+
+def start_status(scene, context=None):
+    rows, manifest, out = prepare(scene)
+    python = worker.python_for(prefs.get(context))
+    return rows, manifest, out, worker.Job(python, status_args(manifest, out),
+                                           worker.extra_paths(prefs.get(context)), label="Scan")
+
+
+def start_bake(scene, context=None, only=None, train=None):
+    train = (train or scene.flowbsdf.train).lower()
+    rows, manifest, out = prepare(scene, only)
+    p = prefs.get(context)
+    python = worker.python_for(p, need_train=(train == "always"))
+    names = sorted({r["name"] for r in rows}) if only else ()
+    return rows, manifest, out, worker.Job(python, bake_args(manifest, out, train, names),
+                                           worker.extra_paths(p), label="Bake")
+
+
+def after_status(scene, rows, manifest, lines):
+    """Record a finished status/bake job: scan rows in the panel, notes in the manifest."""
+    statuses = scan.parse_status(lines)
+    scan.fill_scan_items(scene, rows, statuses)
+    all_rows = scan.scan(scene)
+    scan.write_manifest(all_rows, manifest, notes=scan.notes_of(all_rows, statuses),
+                        source=bpy.path.basename(bpy.data.filepath) or "an unsaved file")
+    scene.flowbsdf.last_manifest = manifest
+    return statuses
+
+
+def _blend_path(path):
+    """Relative to the .blend (//...) when it is saved, so the file can move with its folder."""
+    if bpy.data.filepath:
+        try:
+            return bpy.path.relpath(path)
+        except ValueError:          # another drive (Windows)
+            pass
+    return path
+
+
+def bind(rows, statuses):
+    """Bind every row with current tables to a Learned BSDF node. Returns the bound material
+    names; raises BindError listing the ones that could not be bound."""
+    try:
+        from . import node
+    except ImportError as e:
+        raise BindError(f"the Learned BSDF node cannot be built in this Blender ({e}); the tables "
+                        "are baked: bind them in a Blender 4.2+ (or run with --no-bind)") from None
+    bound, problems = [], []
+    for row in rows:
+        info = statuses.get(row["name"])
+        if info is None or scan.state_of(info) != "current":
+            state = "not scanned" if info is None else scan.state_of(info)
+            problems.append(f"{row['material'].name}: tables {state}"
+                            + (f" ({info['error']})" if info and info.get("error") else ""))
+            continue
+        fit = info.get("fit_path")
+        try:
+            node.assign_learned_bsdf(row["material"], row["name"], _blend_path(info["tables_path"]),
+                                     fit_path=_blend_path(fit) if fit else None)
+        except Exception as e:      # noqa: BLE001 - the node's own error, reported per material
+            problems.append(f"{row['material'].name}: {e}")
+            continue
+        bound.append(row["material"].name)
+    if problems:
+        raise BindError("not bound: " + "; ".join(problems))
+    return bound

@@ -1,0 +1,430 @@
+"""The "Learned BSDF" node: a shader node group bound to one baked material.
+
+A plain group node (ShaderNodeGroup), so a .blend renders the same with or without the
+add-on installed, and materials append and link like any other. Its node tree,
+"Learned BSDF: <material>", holds both back ends:
+
+- OSL: a Script node running blender_addon/osl/learned_bsdf.osl (stored in the .blend as
+  a text block and as compiled bytecode) that samples the baked tables exactly and
+  continues the path with ray_portal_bsdf (Cycles CPU with Open Shading Language on).
+  Its input "Fallback" is the fit: when the OSL texture is missing or unreadable at
+  render time, the shader returns the fit instead of black.
+- fit: Cycles closures (Diffuse BSDF + GGX Glossy BSDF) whose colours and roughness are
+  piecewise-linear functions of the view angle (Layer Weight "Facing" = 1 - cos theta_i),
+  fitted at bake time (bake/closure_fit.py). Its parameters live in the node tree, so it
+  renders everywhere (SVM, GPU, viewport) even when the table files are gone.
+
+A Mix Shader whose factor is the Value node "FlowBSDF backend" (1 = OSL, 0 = fit) picks
+one; with a constant factor Cycles compiles only the chosen branch. The factor is set
+from the scene's back end ("osl", "fit" or "auto") by `set_backend`, before every render
+(render_pre handler) and after loading a file (load_post), and only to OSL when the OSL
+texture exists. Binding data sits in the tree's custom property "flowbsdf".
+
+API (used by the add-on's UI and operators): register, unregister, assign_learned_bsdf,
+set_backend, backend_of, node_status, sync.
+"""
+import os
+import sys
+from pathlib import Path
+
+import bpy
+from bpy.app.handlers import persistent
+
+from .deps import bake as _bake  # noqa: F401  (makes the vendored bake importable)
+
+BACKENDS = ("osl", "fit", "auto")
+ENUM_ORDER = ("auto", "osl", "fit")     # the scene enum's items, as stored in files
+SCENE_PROP = "flowbsdf_backend"
+TREE_PREFIX = "Learned BSDF: "
+TREE_KEY = "flowbsdf"
+NODE_LABEL = "Learned BSDF"
+TEXT_NAME = "flowbsdf_learned_bsdf.osl"
+SWITCH = "FlowBSDF backend"
+SCRIPT = "FlowBSDF OSL"
+OSL_SOURCE = Path(__file__).resolve().parent / "osl" / "learned_bsdf.osl"
+# The grey diffuse used when a material has neither a fit nor tables.
+NEUTRAL = (0.5, 0.5, 0.5)
+
+
+def _bake_mod(name):
+    import importlib
+    pkg = _bake.__name__
+    return importlib.import_module(f"{pkg}.{name}")
+
+
+# ------------------------------------------------------------------------------ OSL script
+
+def ensure_oslquery():
+    """Make Cycles' `oslquery` importable (bpy as a Python module does not put Blender's own
+    site-packages on sys.path; without it a Script node silently gets no sockets)."""
+    try:
+        import oslquery  # noqa: F401
+        return
+    except ImportError:
+        pass
+    root = Path(bpy.utils.resource_path("LOCAL"))
+    for site in sorted(root.glob("python/lib/python3*/site-packages")):
+        if str(site) not in sys.path:
+            sys.path.append(str(site))
+    import oslquery  # noqa: F401
+
+
+def shader_source(probe=False):
+    src = OSL_SOURCE.read_text()
+    return ("#define FLOWBSDF_PROBE\n" + src) if probe else src
+
+
+def _report(kind, message):
+    if "ERROR" in kind:
+        raise RuntimeError(f"FlowBSDF OSL shader: {message}")
+
+
+def script_text(probe=False):
+    """The text block holding the shader source (refreshed when the add-on's source changed)."""
+    name = TEXT_NAME if not probe else "flowbsdf_learned_bsdf_probe.osl"
+    src = shader_source(probe)
+    text = bpy.data.texts.get(name)
+    if text is None:
+        text = bpy.data.texts.new(name)
+    if text.as_string().rstrip("\n") != src.rstrip("\n"):
+        text.from_string(src)
+    return text
+
+
+def make_script_node(tree, probe=False):
+    """A Script node running the shader, compiled (bytecode stored in the node)."""
+    import cycles.osl
+    ensure_oslquery()
+    node = tree.nodes.new("ShaderNodeScript")
+    node.mode = 'INTERNAL'
+    node.script = script_text(probe)
+    if not cycles.osl.update_script_node(node, _report) or "BSDF" not in node.outputs:
+        raise RuntimeError("FlowBSDF OSL shader: compilation gave no sockets")
+    return node
+
+
+def _refresh_script(node):
+    """Recompile when the shipped source changed (an older add-on version wrote the file)."""
+    text = script_text()
+    if node.script is None or node.script.name != text.name:
+        node.script = text
+    import hashlib
+    src_hash = hashlib.sha256(text.as_string().encode()).hexdigest()
+    if node.get("flowbsdf_src") != src_hash or not node.bytecode:
+        import cycles.osl
+        ensure_oslquery()
+        cycles.osl.update_script_node(node, _report)
+        node["flowbsdf_src"] = src_hash
+
+
+# ------------------------------------------------------------------------------ the group
+
+def _trees():
+    for tree in bpy.data.node_groups:
+        if tree.bl_idname == "ShaderNodeTree" and TREE_KEY in tree.keys():
+            yield tree
+
+
+def _info(tree):
+    return dict(tree[TREE_KEY].to_dict()) if hasattr(tree[TREE_KEY], "to_dict") else dict(tree[TREE_KEY])
+
+
+def _tree_for(name):
+    for tree in _trees():
+        if _info(tree).get("material") == name and tree.library is None:
+            return tree
+    return bpy.data.node_groups.new(TREE_PREFIX + name, "ShaderNodeTree")
+
+
+def _ensure_interface(tree):
+    items = [i for i in tree.interface.items_tree if getattr(i, "item_type", "") == "SOCKET"]
+    if not any(i.name == "BSDF" and i.in_out == "OUTPUT" for i in items):
+        tree.interface.new_socket("BSDF", in_out="OUTPUT", socket_type="NodeSocketShader")
+
+
+def _piecewise(tree, x_socket, xs, values, loc):
+    """A vector socket whose value is the piecewise-linear interpolant of `values` (3-vectors)
+    at knots `xs`, evaluated at x: v0 + sum_k (v_{k+1} - v_k) clamp((x - x_k)/(x_{k+1} - x_k)).
+    Built from Map Range and Vector Math nodes: exact, no curve tables."""
+    nodes, links = tree.nodes, tree.links
+    acc = nodes.new("ShaderNodeCombineXYZ")
+    acc.location = loc
+    for c in range(3):
+        acc.inputs[c].default_value = float(values[0][c])
+    out = acc.outputs[0]
+    for k in range(len(xs) - 1):
+        diff = [float(values[k + 1][c] - values[k][c]) for c in range(3)]
+        if max(abs(d) for d in diff) == 0.0:
+            continue
+        ramp = nodes.new("ShaderNodeMapRange")
+        ramp.clamp = True
+        ramp.inputs["From Min"].default_value = float(xs[k])
+        ramp.inputs["From Max"].default_value = float(xs[k + 1])
+        ramp.location = (loc[0] + 180 * (k + 1), loc[1] + 200)
+        links.new(x_socket, ramp.inputs["Value"])
+        mad = nodes.new("ShaderNodeVectorMath")
+        mad.operation = 'MULTIPLY_ADD'
+        mad.location = (loc[0] + 180 * (k + 1), loc[1])
+        links.new(ramp.outputs["Result"], mad.inputs[0])        # scalar -> (t, t, t)
+        mad.inputs[1].default_value = diff
+        links.new(out, mad.inputs[2])
+        out = mad.outputs[0]
+    return out
+
+
+def _build_fit(tree, fit, loc=(-1400, -400)):
+    """The fit back end's closures; returns its shader output socket."""
+    nodes, links = tree.nodes, tree.links
+    diffuse = nodes.new("ShaderNodeBsdfDiffuse")
+    diffuse.location = (loc[0] + 3400, loc[1])
+    if fit is None:
+        diffuse.inputs["Color"].default_value = (*NEUTRAL, 1.0)
+        return diffuse.outputs[0]
+    facing = nodes.new("ShaderNodeLayerWeight")
+    facing.inputs["Blend"].default_value = 0.5          # Facing = 1 - |cos theta_i|
+    facing.location = loc
+    x = facing.outputs["Facing"]
+    xs = fit["x"]
+    kd = _piecewise(tree, x, xs, fit["diffuse"], (loc[0] + 200, loc[1]))
+    ks = _piecewise(tree, x, xs, fit["specular"], (loc[0] + 200, loc[1] - 500))
+    kr = _piecewise(tree, x, xs, [[r, r, r] for r in fit["roughness"]], (loc[0] + 200, loc[1] - 1000))
+    glossy = nodes.new("ShaderNodeBsdfAnisotropic")     # "Glossy BSDF" in Blender >= 4.0
+    glossy.distribution = 'GGX'
+    glossy.location = (loc[0] + 3400, loc[1] - 500)
+    sep = nodes.new("ShaderNodeSeparateXYZ")
+    sep.location = (loc[0] + 3200, loc[1] - 1000)
+    links.new(kr, sep.inputs[0])
+    links.new(sep.outputs[0], glossy.inputs["Roughness"])
+    if "Anisotropy" in glossy.inputs:
+        glossy.inputs["Anisotropy"].default_value = 0.0
+    links.new(kd, diffuse.inputs["Color"])
+    links.new(ks, glossy.inputs["Color"])
+    add = nodes.new("ShaderNodeAddShader")
+    add.location = (loc[0] + 3600, loc[1] - 200)
+    links.new(diffuse.outputs[0], add.inputs[0])
+    links.new(glossy.outputs[0], add.inputs[1])
+    return add.outputs[0]
+
+
+def _build_tree(tree, name, tables_path, fit_path):
+    """(Re)build the group's nodes for a material; records the binding in tree["flowbsdf"]."""
+    closure_fit = _bake_mod("closure_fit")
+    osl_export = _bake_mod("osl_export")
+    problems = []
+    fit = None
+    osl_texture = ""
+    if tables_path.is_file():
+        try:
+            osl_texture = str(osl_export.ensure_osl_export(tables_path))
+        except Exception as e:      # noqa: BLE001  (a broken table file must not break the material)
+            problems.append(f"tables unreadable: {e}")
+    else:
+        problems.append(f"tables missing: {tables_path}")
+    try:
+        if fit_path is None and tables_path.is_file():
+            fit_path = closure_fit.ensure_fit(tables_path)
+        if fit_path is not None:
+            fit = closure_fit.load_fit(fit_path)
+    except Exception as e:          # noqa: BLE001
+        problems.append(f"fit unavailable: {e}")
+
+    tree.nodes.clear()
+    _ensure_interface(tree)
+    nodes, links = tree.nodes, tree.links
+    out = nodes.new("NodeGroupOutput")
+    out.location = (2600, 0)
+    fit_out = _build_fit(tree, fit)
+    script = make_script_node(tree)
+    script.name = script.label = SCRIPT
+    script.location = (2200, 300)
+    script.inputs["Tables"].default_value = osl_texture
+    links.new(fit_out, script.inputs["Fallback"])
+    switch = nodes.new("ShaderNodeValue")
+    switch.name = switch.label = SWITCH
+    switch.outputs[0].default_value = 0.0
+    switch.location = (2200, 500)
+    mix = nodes.new("ShaderNodeMixShader")
+    mix.location = (2400, 0)
+    links.new(switch.outputs[0], mix.inputs["Fac"])
+    links.new(fit_out, mix.inputs[1])
+    links.new(script.outputs["BSDF"], mix.inputs[2])
+    links.new(mix.outputs[0], out.inputs[0])
+    script["flowbsdf_src"] = __import__("hashlib").sha256(script.script.as_string().encode()).hexdigest()
+    tree[TREE_KEY] = {"material": name, "tables": str(tables_path), "fit": str(fit_path or ""),
+                      "osl_texture": osl_texture, "has_fit": fit is not None,
+                      "fit_error": float(max(fit["rel_error"])) if fit else -1.0,
+                      "problems": "; ".join(problems)}
+
+
+def assign_learned_bsdf(material, name, tables_path, fit_path=None):
+    """Bind `material` (a bpy Material) to the baked material `name`.
+
+    Creates or rebuilds the node group "Learned BSDF: <name>" from `tables_path` (the
+    baked .exr; its OSL texture and closure fit are made next to it when missing or stale,
+    unless `fit_path` names a fit file), puts one "Learned BSDF" group node in the
+    material's tree (reusing one bound to the same group) and connects it to the material
+    output's Surface. Missing tables are not an error: the node then renders the fit (or a
+    neutral grey when there is no fit either) and `node_status` says why. Returns the node.
+    """
+    tables_path = Path(bpy.path.abspath(str(tables_path)))
+    fit_path = None if fit_path is None else Path(bpy.path.abspath(str(fit_path)))
+    tree = _tree_for(name)
+    _build_tree(tree, name, tables_path, fit_path)
+    if material.node_tree is None:
+        material.use_nodes = True
+    mtree = material.node_tree
+    node = None
+    for n in mtree.nodes:
+        if n.bl_idname == "ShaderNodeGroup" and n.node_tree is not None and TREE_KEY in n.node_tree.keys():
+            node = n
+            break
+    if node is None:
+        node = mtree.nodes.new("ShaderNodeGroup")
+        node.location = (-200, 300)
+    node.node_tree = tree
+    node.label = NODE_LABEL
+    node.name = NODE_LABEL
+    node.width = 220
+    output = next((n for n in mtree.nodes if n.bl_idname == "ShaderNodeOutputMaterial" and n.is_active_output),
+                  None) or next((n for n in mtree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"), None)
+    if output is None:
+        output = mtree.nodes.new("ShaderNodeOutputMaterial")
+        output.location = (200, 300)
+    mtree.links.new(node.outputs["BSDF"], output.inputs["Surface"])
+    for scene in bpy.data.scenes:
+        sync(scene)
+    return node
+
+
+# ------------------------------------------------------------------------------ back ends
+
+def backend_of(scene):
+    """The scene's back end setting: "osl", "fit" or "auto" (default)."""
+    if hasattr(bpy.types.Scene, SCENE_PROP):
+        value = getattr(scene, SCENE_PROP)
+    else:
+        value = scene.get(SCENE_PROP)
+        if isinstance(value, int):        # the enum as stored by a session with the add-on
+            value = ENUM_ORDER[value] if 0 <= value < len(ENUM_ORDER) else "auto"
+    return value if value in BACKENDS else "auto"
+
+
+def set_backend(scene, backend):
+    """Choose the back end for `scene`: "osl", "fit" or "auto" (OSL when the scene renders
+    with Cycles on the CPU with Open Shading Language on, else the fit); applies it now."""
+    if backend not in BACKENDS:
+        raise ValueError(f"FlowBSDF back end must be one of {BACKENDS}, not {backend!r}")
+    if hasattr(bpy.types.Scene, SCENE_PROP):
+        setattr(scene, SCENE_PROP, backend)
+    else:
+        scene[SCENE_PROP] = backend
+    sync(scene)
+
+
+def osl_available(scene):
+    """(bool, why not): OSL renders in this scene's settings."""
+    if scene.render.engine != 'CYCLES':
+        return False, f"render engine is {scene.render.engine}, not Cycles"
+    if scene.cycles.device != 'CPU':
+        return False, "Cycles renders on the GPU (OSL sampling needs the CPU)"
+    if not scene.cycles.shading_system:
+        return False, "Open Shading Language is off in the render settings"
+    return True, ""
+
+
+def _resolve(scene, tree):
+    """(use OSL?, status text) for one group in one scene."""
+    info = _info(tree)
+    backend = backend_of(scene)
+    texture = info.get("osl_texture", "")
+    fit = "fit" if info.get("has_fit") else "neutral grey (no fit)"
+    if backend == "fit":
+        return False, f"{fit} (scene back end: fit)"
+    ok, why = osl_available(scene)
+    if not ok:
+        return False, f"{fit} ({why})"
+    tables = info.get("tables", "")
+    if not tables or not os.path.isfile(tables):
+        return False, f"{fit} (tables missing: {tables})"
+    if not texture or not os.path.isfile(texture):
+        return False, f"{fit} (OSL texture missing: {texture or 'not exported'})"
+    return True, "OSL"
+
+
+def _refresh_export(tree):
+    """Re-export the OSL texture when the tables exist but their texture is missing or stale."""
+    info = _info(tree)
+    tables = Path(info.get("tables", ""))
+    if not tables.is_file():
+        return
+    try:
+        texture = str(_bake_mod("osl_export").ensure_osl_export(tables))
+    except Exception as e:      # noqa: BLE001
+        info["problems"] = f"tables unreadable: {e}"
+        tree[TREE_KEY] = info
+        return
+    script = tree.nodes.get(SCRIPT)
+    if script is not None and texture != info.get("osl_texture"):
+        script.inputs["Tables"].default_value = texture
+        info["osl_texture"] = texture
+        tree[TREE_KEY] = info
+
+
+def sync(scene, refresh=False):
+    """Set every Learned BSDF group's switch for `scene`; with refresh, re-export stale textures."""
+    for tree in _trees():
+        if refresh and tree.library is None:
+            _refresh_export(tree)
+        use_osl, _ = _resolve(scene, tree)
+        switch = tree.nodes.get(SWITCH)
+        if switch is not None and tree.library is None:
+            value = 1.0 if use_osl else 0.0
+            if switch.outputs[0].default_value != value:
+                switch.outputs[0].default_value = value
+
+
+def node_status(node, scene=None):
+    """What the node renders and why, e.g. "OSL", "fit (tables missing: /x/y.exr)"."""
+    tree = getattr(node, "node_tree", None)
+    if tree is None or TREE_KEY not in tree.keys():
+        return "not a Learned BSDF node"
+    scene = scene or bpy.context.scene
+    status = _resolve(scene, tree)[1]
+    problems = _info(tree).get("problems")
+    return f"{status} [{problems}]" if problems and status == "OSL" else status
+
+
+# ------------------------------------------------------------------------------ handlers
+
+@persistent
+def _on_render_pre(scene, *_):
+    sync(scene, refresh=True)
+
+
+@persistent
+def _on_load_post(*_):
+    for scene in bpy.data.scenes:
+        sync(scene, refresh=True)
+
+
+def register():
+    bpy.types.Scene.flowbsdf_backend = bpy.props.EnumProperty(
+        name="FlowBSDF back end",
+        description="How Learned BSDF nodes render",
+        items=[("auto", "Auto", "OSL on Cycles CPU with Open Shading Language, else the closure fit"),
+               ("osl", "OSL", "Sample the baked tables exactly (Cycles CPU, Open Shading Language)"),
+               ("fit", "Closure fit", "Cycles closures fitted at bake time (GPU, viewport)")],
+        default="auto", update=lambda self, _ctx: sync(self))
+    for handlers, fn in ((bpy.app.handlers.render_pre, _on_render_pre),
+                         (bpy.app.handlers.load_post, _on_load_post)):
+        if fn not in handlers:
+            handlers.append(fn)
+
+
+def unregister():
+    for handlers, fn in ((bpy.app.handlers.render_pre, _on_render_pre),
+                         (bpy.app.handlers.load_post, _on_load_post)):
+        if fn in handlers:
+            handlers.remove(fn)
+    if hasattr(bpy.types.Scene, SCENE_PROP):
+        del bpy.types.Scene.flowbsdf_backend

@@ -1,0 +1,241 @@
+"""The panel's operators. Long work runs in a worker subprocess: interactively a modal
+operator polls it from a timer (Blender stays responsive, Cancel ends the job); in
+background mode (batch, tests) `execute` follows it to its end. Errors are reported with
+self.report, never raised as tracebacks."""
+import os
+import shutil
+
+import bpy
+
+from . import deps, jobs, prefs, scan, worker
+
+USER_ERRORS = (worker.JobError, scan.ScanError, jobs.BindError, OSError, ValueError)
+
+
+def _redraw(context):
+    for window in context.window_manager.windows:
+        for area in window.screen.areas:
+            area.tag_redraw()
+
+
+class _JobOperator:
+    """Start a worker job, follow it (modal timer, or to the end in background), then finish()."""
+
+    def start(self, context):          # -> worker.Job (may raise a USER_ERRORS)
+        raise NotImplementedError
+
+    def finish(self, context, job):    # -> message for the info report
+        return "done"
+
+    def _start(self, context):
+        try:
+            self._job = self.start(context)
+        except USER_ERRORS as e:
+            self.report({"ERROR"}, str(e))
+            return False
+        return True
+
+    def _end(self, context):
+        job = self._job
+        state = context.window_manager.flowbsdf_job
+        state.running = False
+        if job.error:
+            state.message = job.error
+            self.report({"WARNING"} if job.cancelled else {"ERROR"}, f"FlowBSDF {job.label.lower()}: {job.error}")
+            return {"CANCELLED"}
+        try:
+            message = self.finish(context, job)
+        except USER_ERRORS as e:
+            state.message = str(e)
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        state.progress, state.message = 100.0, message
+        self.report({"INFO"}, message)
+        return {"FINISHED"}
+
+    def execute(self, context):
+        if not self._start(context):
+            return {"CANCELLED"}
+        try:
+            self._job.run(echo=bpy.app.background)
+        except worker.JobError:
+            pass                        # job.error holds it: reported by _end
+        return self._end(context)
+
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        if worker.current is not None and not worker.current.done:
+            self.report({"ERROR"}, f"FlowBSDF: {worker.current.label} is still running (cancel it first)")
+            return {"CANCELLED"}
+        if not self._start(context):
+            return {"CANCELLED"}
+        worker.current = self._job
+        state = context.window_manager.flowbsdf_job
+        state.running, state.progress, state.message, state.label = True, 0.0, "starting", self._job.label
+        self._timer = context.window_manager.event_timer_add(0.25, window=context.window)
+        context.window_manager.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        job = self._job
+        job.poll()
+        state = context.window_manager.flowbsdf_job
+        state.progress, state.message = 100.0 * job.fraction, job.message
+        _redraw(context)
+        if not job.done:
+            return {"PASS_THROUGH"}
+        context.window_manager.event_timer_remove(self._timer)
+        result = self._end(context)
+        _redraw(context)
+        return result
+
+
+class FLOWBSDF_OT_scan(_JobOperator, bpy.types.Operator):
+    """List the learned materials that rendered objects use, what they need and what is baked;
+    write them as the scene's manifest"""
+    bl_idname = "flowbsdf.scan"
+    bl_label = "Scan Scene"
+
+    def start(self, context):
+        self._rows, self._manifest, _, job = jobs.start_status(context.scene, context)
+        return job
+
+    def finish(self, context, job):
+        statuses = jobs.after_status(context.scene, self._rows, self._manifest, job.lines)
+        current = sum(scan.state_of(s) == "current" for s in statuses.values())
+        return f"FlowBSDF: {len(statuses)} learned material(s), {current} baked and current; wrote {self._manifest}"
+
+
+class FLOWBSDF_OT_bake(_JobOperator, bpy.types.Operator):
+    """Train what is missing (when a FlowBSDF Python is set), bake the tables and bind the nodes"""
+    bl_idname = "flowbsdf.bake"
+    bl_label = "Bake"
+
+    only_active: bpy.props.BoolProperty(name="Active material only", default=False)
+    train: bpy.props.EnumProperty(name="Train", items=[
+        ("SCENE", "Scene setting", ""), ("ALWAYS", "Always", ""), ("NEVER", "Never", "")], default="SCENE")
+
+    def start(self, context):
+        only = None
+        if self.only_active:
+            mat = getattr(context, "material", None) or _active_material(context)
+            if mat is None:
+                raise scan.ScanError("no active material")
+            only = mat.name
+        train = None if self.train == "SCENE" else self.train
+        self._rows, self._manifest, _, job = jobs.start_bake(context.scene, context, only=only, train=train)
+        return job
+
+    def finish(self, context, job):
+        statuses = jobs.after_status(context.scene, self._rows, self._manifest, job.lines)
+        bound = jobs.bind(self._rows, statuses)
+        wrote = sum(line.startswith("[wrote] ") for line in job.lines)
+        return f"FlowBSDF: baked {wrote} table(s), {len(bound)} material(s) bound"
+
+
+class FLOWBSDF_OT_cancel(bpy.types.Operator):
+    """Stop the running FlowBSDF job (training resumes from its checkpoint next time)"""
+    bl_idname = "flowbsdf.cancel"
+    bl_label = "Cancel"
+
+    def execute(self, context):
+        job = worker.current
+        if job is None or job.done:
+            self.report({"INFO"}, "FlowBSDF: nothing is running")
+            return {"CANCELLED"}
+        job.cancel()
+        context.window_manager.flowbsdf_job.message = "cancelling"
+        return {"FINISHED"}
+
+
+def _active_material(context):
+    obj = context.active_object
+    return obj.active_material if obj is not None else None
+
+
+class FLOWBSDF_OT_enable(bpy.types.Operator):
+    """Make the active material a learned material (pick its source below)"""
+    bl_idname = "flowbsdf.enable"
+    bl_label = "Use Learned BSDF"
+
+    def execute(self, context):
+        mat = getattr(context, "material", None) or _active_material(context)
+        if mat is None:
+            self.report({"ERROR"}, "FlowBSDF: select an object with a material")
+            return {"CANCELLED"}
+        mat.flowbsdf.enabled = True
+        return {"FINISHED"}
+
+
+class FLOWBSDF_OT_load_model(bpy.types.Operator):
+    """Use an already trained model (.flow.npz) for the active material"""
+    bl_idname = "flowbsdf.load_model"
+    bl_label = "Load Model"
+
+    filepath: bpy.props.StringProperty(subtype="FILE_PATH")
+    filter_glob: bpy.props.StringProperty(default="*.npz", options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        from .props import manifest_name
+        mat = getattr(context, "material", None) or _active_material(context)
+        src = bpy.path.abspath(self.filepath)
+        if mat is None or not os.path.isfile(src) or not src.endswith(".npz"):
+            self.report({"ERROR"}, f"FlowBSDF: {src or 'no file'}: pick a trained model (.flow.npz) "
+                        "with a material selected")
+            return {"CANCELLED"}
+        dst = os.path.join(scan.out_dir(context.scene), "models", manifest_name(mat) + ".flow.npz")
+        try:
+            os.makedirs(os.path.dirname(dst), exist_ok=True)
+            shutil.copyfile(src, dst + ".tmp")
+            os.replace(dst + ".tmp", dst)
+        except OSError as e:
+            self.report({"ERROR"}, f"FlowBSDF: cannot copy the model to {dst}: {e}")
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"FlowBSDF: model for {mat.name} -> {dst} (bake to use it)")
+        return {"FINISHED"}
+
+
+class FLOWBSDF_OT_check_python(bpy.types.Operator):
+    """Check what the FlowBSDF Python can do (bake: numpy + OpenEXR; train: torch + trainer)"""
+    bl_idname = "flowbsdf.check_python"
+    bl_label = "Check Python"
+
+    def execute(self, context):
+        deps.clear_probes()
+        try:
+            python = worker.python_for(prefs.get(context))
+        except worker.JobError as e:
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        info = deps.probe(python, worker.extra_paths(prefs.get(context)))
+        can = "bake and train" if info["torch"] and info["trainer"] else "bake (no torch/trainer: no training)"
+        self.report({"INFO"}, f"FlowBSDF: {python} can {can}")
+        return {"FINISHED"}
+
+
+class FLOWBSDF_OT_set_backend(bpy.types.Operator):
+    """Choose how Learned BSDF nodes render: OSL (exact sampling, CPU) or the closure fit (everywhere)"""
+    bl_idname = "flowbsdf.set_backend"
+    bl_label = "Set Back End"
+
+    backend: bpy.props.EnumProperty(items=[("osl", "OSL", ""), ("fit", "Closure fit", ""), ("auto", "Auto", "")])
+
+    def execute(self, context):
+        try:
+            from . import node
+            node.set_backend(context.scene, self.backend)
+        except (ImportError, ValueError, RuntimeError) as e:
+            self.report({"ERROR"}, f"FlowBSDF: {e}")
+            return {"CANCELLED"}
+        return {"FINISHED"}
+
+
+classes = (FLOWBSDF_OT_scan, FLOWBSDF_OT_bake, FLOWBSDF_OT_cancel, FLOWBSDF_OT_enable,
+           FLOWBSDF_OT_load_model, FLOWBSDF_OT_check_python, FLOWBSDF_OT_set_backend)

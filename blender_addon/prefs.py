@@ -1,0 +1,50 @@
+"""Add-on preferences: the Python that trains (torch lives there, never in Blender)."""
+import bpy
+
+ADDON_ID = __package__        # "blender_addon", "flowbsdf" (legacy) or "bl_ext.<repo>.flowbsdf"
+
+
+class FlowBSDFPreferences(bpy.types.AddonPreferences):
+    bl_idname = ADDON_ID
+
+    python_path: bpy.props.StringProperty(
+        name="Python", subtype="FILE_PATH",
+        description="A Python 3.11 with FlowBSDF's trainer (pip install '<FlowBSDF checkout>[train]'): it trains "
+                    "models and bakes tables in the background. Empty: Blender's own Python bakes, "
+                    "nothing is trained")
+    module_path: bpy.props.StringProperty(
+        name="Module folders", subtype="DIR_PATH",
+        description="Folders added to the worker's PYTHONPATH (for materials given as a Python callable)")
+
+    def draw(self, context):
+        col = self.layout.column()
+        col.prop(self, "python_path")
+        col.prop(self, "module_path")
+        python = self.python_path.strip()
+        if not python:
+            col.label(text="No Python set: training is off; tables are baked from the ideal tabulation.",
+                      icon="INFO")
+        col.operator("flowbsdf.check_python", icon="CHECKMARK")
+
+
+def get(context=None):
+    """The preferences, or None where the add-on is not registered as such (e.g. tests)."""
+    context = context or bpy.context
+    addon = context.preferences.addons.get(ADDON_ID)
+    return addon.preferences if addon is not None else None
+
+
+def user_dir(*parts):
+    """A writable folder for the add-on's own files: the extension's user folder (4.2+),
+    else Blender's user data folder."""
+    import os
+    try:
+        base = bpy.utils.extension_path_user(ADDON_ID, create=True)
+    except (AttributeError, ValueError, KeyError, RuntimeError):
+        base = bpy.utils.user_resource("DATAFILES", path="flowbsdf", create=True)
+    path = os.path.join(base, *parts)
+    os.makedirs(path, exist_ok=True)
+    return path
+
+
+classes = (FlowBSDFPreferences,)

@@ -1,0 +1,266 @@
+"""Validate: the scene rendered by the reference tracer (bake/tracer) and by Cycles, compared.
+
+Export (here, pure bpy): the scene camera (perspective), every rendered mesh object as
+world-space OBJ files (one per material slot), learned materials as manifest materials
+(sampled from their baked tables), other materials as a Lambertian of their base colour
+(said in the report), the world as a constant colour or its environment image. Point,
+spot, sun and area lights are left out: the OSL back end cannot sample lights, so the
+comparison is made under the environment with BSDF sampling only, in both renderers.
+Then Cycles renders the same view here (small, OSL back end), and the worker renders the
+reference and writes MSE / SSIM and a side-by-side image (validate/compare.png).
+"""
+import json
+import math
+import os
+
+import bpy
+
+from . import jobs, scan, worker
+from .operators import _JobOperator
+
+VALIDATE_DIR = "validate"
+
+
+class ExportError(ValueError):
+    """The scene cannot be exported to the tracer's format; the message says why."""
+
+
+def _vec(v):
+    return [round(float(x), 6) for x in v]
+
+
+def _camera(scene, width, height):
+    cam = scene.camera
+    if cam is None or cam.type != "CAMERA":
+        raise ExportError("the scene has no camera")
+    if cam.data.type != "PERSP":
+        raise ExportError(f"camera {cam.name!r} is {cam.data.type.lower()}: the reference tracer "
+                          "renders perspective cameras only")
+    m = cam.matrix_world
+    pos = m.translation
+    forward = (m.to_3x3() @ _axis(0, 0, -1)).normalized()
+    up = (m.to_3x3() @ _axis(0, 1, 0)).normalized()
+    return {"position": _vec(pos), "look_at": _vec(pos + forward), "up": _vec(up),
+            "fov": round(math.degrees(cam.data.angle), 6), "width": width, "height": height}
+
+
+def _axis(x, y, z):
+    from mathutils import Vector
+    return Vector((x, y, z))
+
+
+def _base_colour(mat):
+    """(rgb, note) for a non-learned material: its Principled/Diffuse colour if unlinked."""
+    if mat is not None and mat.node_tree is not None:
+        for n in mat.node_tree.nodes:
+            sock = n.inputs.get("Base Color") or (n.inputs.get("Color") if n.bl_idname == "ShaderNodeBsdfDiffuse"
+                                                  else None)
+            if sock is not None and not sock.is_linked:
+                return [round(float(c), 4) for c in sock.default_value[:3]], "base colour"
+    if mat is not None:
+        return [round(float(c), 4) for c in mat.diffuse_color[:3]], "viewport colour"
+    return [0.8, 0.8, 0.8], "no material"
+
+
+def _world(scene):
+    world = scene.world
+    if world is None or world.node_tree is None:
+        raise ExportError("the scene has no world with nodes (the environment lights the comparison)")
+    bg = next((n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeBackground"), None)
+    if bg is None:
+        raise ExportError("the world has no Background node")
+    strength = float(bg.inputs["Strength"].default_value)
+    col = bg.inputs["Color"]
+    if not col.is_linked:
+        return {"type": "environment", "constant": _vec(c * strength for c in col.default_value[:3])}
+    src = col.links[0].from_node
+    if src.bl_idname == "ShaderNodeTexEnvironment" and src.image is not None:
+        path = bpy.path.abspath(src.image.filepath, library=src.image.library)
+        if not os.path.isfile(path):
+            raise ExportError(f"the world image {path} is not a file (packed images are not exported)")
+        return {"type": "environment", "file": path, "strength": strength}
+    raise ExportError(f"the world colour comes from a {src.bl_idname} node: only a constant colour or an "
+                      "Environment Texture can be exported")
+
+
+def _write_obj(path, verts, normals, tris):
+    with open(path, "w", encoding="utf-8") as f:
+        for v in verts:
+            f.write(f"v {v[0]:.7g} {v[1]:.7g} {v[2]:.7g}\n")
+        for n in normals:
+            f.write(f"vn {n[0]:.7g} {n[1]:.7g} {n[2]:.7g}\n")
+        for a, b, c in tris:
+            f.write(f"f {a + 1}//{a + 1} {b + 1}//{b + 1} {c + 1}//{c + 1}\n")
+
+
+def _mesh_parts(obj_eval):
+    """{material index: (verts, normals, tris)} in world space, one vertex per triangle corner
+    (so split normals survive)."""
+    mesh = obj_eval.to_mesh()
+    try:
+        if hasattr(mesh, "calc_normals_split"):        # Blender < 4.1
+            mesh.calc_normals_split()
+        corner_normals = (mesh.corner_normals if hasattr(mesh, "corner_normals") else None)
+        mesh.calc_loop_triangles()
+        mw = obj_eval.matrix_world
+        nw = mw.to_3x3().inverted_safe().transposed()
+        parts = {}
+        for tri in mesh.loop_triangles:
+            verts, normals, tris = parts.setdefault(tri.material_index, ([], [], []))
+            base = len(verts)
+            for k in range(3):
+                verts.append(tuple(mw @ mesh.vertices[tri.vertices[k]].co))
+                loop = tri.loops[k]
+                n = corner_normals[loop].vector if corner_normals is not None else mesh.loops[loop].normal
+                normals.append(tuple((nw @ n).normalized()))
+            tris.append((base, base + 1, base + 2))
+        return parts
+    finally:
+        obj_eval.to_mesh_clear()
+
+
+def export_scene(scene, folder, rows, width, height, manifest_path):
+    """Write folder/scene.toml (+ OBJ files) for the tracer; returns (path, notes)."""
+    os.makedirs(folder, exist_ok=True)
+    learned = {r["material"].name_full: r["name"] for r in rows}
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    objects = scan.rendered_objects(scene)
+    materials, shapes, notes = {}, [], []
+    for name, obj in sorted(objects.items()):
+        if obj.type not in ("MESH", "CURVE", "SURFACE", "META", "FONT"):
+            if obj.type in ("LIGHT",):
+                notes.append(f"light {obj.name} left out (BSDF-only comparison under the environment)")
+            continue
+        parts = _mesh_parts(obj.evaluated_get(depsgraph))
+        for index, (verts, normals, tris) in sorted(parts.items()):
+            if not tris:
+                continue
+            slot = obj.material_slots[index] if index < len(obj.material_slots) else None
+            mat = slot.material if slot is not None else None
+            if mat is not None and mat.name_full in learned:
+                key = "learned_" + learned[mat.name_full]
+                materials[key] = {"manifest": learned[mat.name_full]}
+            else:
+                colour, how = _base_colour(mat)
+                key = "plain_" + bpy.path.clean_name(mat.name if mat else "none")
+                if key not in materials:
+                    notes.append(f"{mat.name if mat else 'no material'}: not learned, exported as a "
+                                 f"Lambertian of its {how}")
+                materials[key] = {"model": "lambert", "albedo": colour, "sampler": "cosine"}
+            fname = f"{bpy.path.clean_name(obj.name)}_{index}.obj"
+            _write_obj(os.path.join(folder, fname), verts, normals, tris)
+            shapes.append({"type": "mesh", "file": fname, "material": key})
+    if not shapes:
+        raise ExportError("no rendered mesh objects to compare")
+    lines = ["# Exported by the FlowBSDF add-on for validation (reference tracer scene format).", "",
+             "[camera]"]
+    lines += [f"{k} = {scan._toml_value(v)}" for k, v in _camera(scene, width, height).items()]
+    for key, spec in materials.items():
+        lines += ["", f"[materials.{key}]"] + [f"{k} = {scan._toml_value(v)}" for k, v in spec.items()]
+    for shape in shapes:
+        lines += ["", "[[shape]]"] + [f"{k} = {scan._toml_value(v)}" for k, v in shape.items()]
+    lines += ["", "[[light]]"] + [f"{k} = {scan._toml_value(v)}" for k, v in _world(scene).items()]
+    lines += ["", "[render]", "max_depth = 12", ""]
+    path = os.path.join(folder, "scene.toml")
+    with open(path, "w", encoding="utf-8") as f:
+        f.write("\n".join(lines))
+    return path, notes
+
+
+def render_cycles(scene, path, width, height, spp):
+    """Render the scene with Cycles (CPU, OSL back end, BSDF sampling of the world) into a
+    32-bit EXR; every setting touched is restored afterwards."""
+    from . import node
+    saved = []
+
+    def setv(owner, attr, value):
+        if hasattr(owner, attr):
+            saved.append((owner, attr, getattr(owner, attr)))
+            setattr(owner, attr, value)
+
+    r, c, img = scene.render, scene.cycles, scene.render.image_settings
+    for owner, attr, value in ((r, "engine", "CYCLES"), (c, "device", "CPU"), (c, "shading_system", True),
+                               (c, "samples", spp), (c, "use_adaptive_sampling", False),
+                               (c, "use_denoising", False), (c, "seed", 0), (c, "pixel_filter_type", "BOX"),
+                               (c, "filter_width", 1.0), (r, "resolution_x", width), (r, "resolution_y", height),
+                               (r, "resolution_percentage", 100), (r, "filepath", path),
+                               (r, "film_transparent", False),
+                               (img, "file_format", "OPEN_EXR"), (img, "color_depth", "32")):
+        setv(owner, attr, value)
+    if scene.world is not None and hasattr(scene.world, "cycles"):
+        setv(scene.world.cycles, "sampling_method", "NONE")
+    try:
+        node.sync(scene, refresh=True)
+        bpy.ops.render.render(write_still=True, scene=scene.name)
+    finally:
+        for owner, attr, value in reversed(saved):
+            setattr(owner, attr, value)
+        node.sync(scene)
+    if not os.path.isfile(path):
+        raise ExportError(f"Cycles did not write {path}")
+
+
+def validate_args(folder, manifest, out, spp):
+    return ["validate", os.path.join(folder, "scene.toml"), "--manifest", manifest, "--out", out,
+            "--cycles", os.path.join(folder, "cycles.exr"), "--spp", str(spp)]
+
+
+def prepare(scene, context=None, spp=None, size=None):
+    """Export + Cycles render; returns (job, folder, notes). The reference runs in the job."""
+    from . import prefs
+    spp = spp or scene.flowbsdf.validate_spp
+    size = size or scene.flowbsdf.validate_size
+    rows, manifest, out = jobs.prepare(scene)
+    missing = sorted({r["name"] for r in rows if not os.path.isfile(os.path.join(out, "tables", r["name"] + ".exr"))})
+    if missing:
+        raise ExportError(f"bake first: no tables for {', '.join(missing)} in {os.path.join(out, 'tables')}")
+    aspect = scene.render.resolution_y / max(scene.render.resolution_x, 1)
+    width, height = size, max(1, round(size * aspect))
+    folder = os.path.join(out, VALIDATE_DIR)
+    _, notes = export_scene(scene, folder, rows, width, height, manifest)
+    python = worker.python_for(prefs.get(context))
+    render_cycles(scene, os.path.join(folder, "cycles.exr"), width, height, spp)
+    job = worker.Job(python, validate_args(folder, manifest, out, spp), worker.extra_paths(prefs.get(context)),
+                     label="Validate")
+    return job, folder, notes
+
+
+def parse_result(lines):
+    for line in lines:
+        if line.startswith("[validate] "):
+            return json.loads(line[len("[validate] "):])
+    raise worker.JobError("the validation job printed no result")
+
+
+def show_image(path, name="FlowBSDF validate"):
+    image = bpy.data.images.get(name)
+    if image is not None:
+        bpy.data.images.remove(image)
+    image = bpy.data.images.load(path)
+    image.name = name
+    for window in getattr(bpy.context.window_manager, "windows", []):
+        for area in window.screen.areas:
+            if area.type == "IMAGE_EDITOR":
+                area.spaces.active.image = image
+    return image
+
+
+class FLOWBSDF_OT_validate(_JobOperator, bpy.types.Operator):
+    """Render the scene with the reference tracer and with Cycles (OSL back end) and compare
+    (MSE, SSIM, side-by-side image)"""
+    bl_idname = "flowbsdf.validate"
+    bl_label = "Validate Against Reference"
+
+    def start(self, context):
+        job, self._folder, self._notes = prepare(context.scene, context)
+        return job
+
+    def finish(self, context, job):
+        result = parse_result(job.lines)
+        show_image(result["image"])
+        notes = f" ({'; '.join(self._notes)})" if self._notes else ""
+        return (f"FlowBSDF validate: MSE {result['mse']:.4g}, SSIM {result['ssim']:.4f} "
+                f"(reference noise {result['reference_noise']:.3g}); image {result['image']}{notes}")
+
+
+classes = (FLOWBSDF_OT_validate,)

@@ -1,0 +1,169 @@
+"""Small Cycles scenes for the Learned BSDF tests and scripts/cycles_acceptance.py (bpy module).
+
+render() returns the linear float32 image (H, W, 3), top row first, read back from a
+32-bit OpenEXR, so pixel values are exactly what Cycles accumulated.
+"""
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+
+def bpy_or_skip():
+    import pytest
+    try:
+        import bpy  # noqa: F401
+    except Exception as e:  # noqa: BLE001
+        pytest.skip(f"bpy (Blender as a Python module) is not importable: {e}")
+    import _cycles
+    if not _cycles.with_osl:
+        pytest.skip("this bpy build has no OSL")
+    return bpy
+
+
+def reset(width=64, height=64, spp=16, osl=True, seed=0, threads=2):
+    import bpy
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    sc = bpy.context.scene
+    sc.render.engine = 'CYCLES'
+    sc.cycles.device = 'CPU'
+    sc.cycles.shading_system = osl
+    sc.cycles.samples = spp
+    sc.cycles.use_adaptive_sampling = False
+    sc.cycles.use_denoising = False
+    sc.cycles.seed = seed
+    sc.cycles.max_bounces = 64
+    sc.cycles.transparent_max_bounces = 64
+    sc.cycles.diffuse_bounces = sc.cycles.glossy_bounces = 64
+    sc.cycles.sample_clamp_direct = 0.0
+    sc.cycles.sample_clamp_indirect = 0.0
+    sc.cycles.blur_glossy = 0.0
+    sc.cycles.caustics_reflective = True
+    sc.render.resolution_x, sc.render.resolution_y = width, height
+    sc.render.resolution_percentage = 100
+    sc.render.threads_mode = 'FIXED'
+    sc.render.threads = threads
+    sc.view_settings.view_transform = 'Standard'
+    sc.view_settings.look = 'None'
+    sc.view_settings.exposure = 0.0
+    sc.view_settings.gamma = 1.0
+    sc.render.film_transparent = False
+    sc.render.image_settings.file_format = 'OPEN_EXR'
+    sc.render.image_settings.color_depth = '32'
+    sc.render.image_settings.exr_codec = 'ZIP'
+    return sc
+
+
+def set_world(scene, color=(1.0, 1.0, 1.0), image=None, strength=1.0):
+    """A constant world colour, or an equirectangular environment image (closest lookups)."""
+    import bpy
+    world = bpy.data.worlds.new("flowbsdf world")
+    scene.world = world
+    if world.node_tree is None:
+        world.use_nodes = True
+    nt = world.node_tree
+    bg = next(n for n in nt.nodes if n.type == 'BACKGROUND')
+    bg.inputs["Color"].default_value = (*color, 1.0)
+    bg.inputs["Strength"].default_value = strength
+    if image is not None:
+        tex = nt.nodes.new("ShaderNodeTexEnvironment")
+        tex.image = bpy.data.images.load(str(image))
+        tex.image.colorspace_settings.name = 'Non-Color'
+        tex.interpolation = 'Closest'
+        nt.links.new(tex.outputs["Color"], bg.inputs["Color"])
+    # Environment importance sampling is light sampling, which the OSL portal cannot use;
+    # the reference is BSDF-only sampling, so keep the world out of light sampling too.
+    world.cycles.sampling_method = 'NONE'
+    return world
+
+
+def add_sphere(scene, material=None, radius=1.0, segments=128, rings=64):
+    import bpy
+    import bmesh
+    mesh = bpy.data.meshes.new("sphere")
+    bm = bmesh.new()
+    bmesh.ops.create_uvsphere(bm, u_segments=segments, v_segments=rings, radius=radius)
+    bm.to_mesh(mesh)
+    bm.free()
+    for p in mesh.polygons:
+        p.use_smooth = True
+    ob = bpy.data.objects.new("sphere", mesh)
+    scene.collection.objects.link(ob)
+    if material is not None:
+        ob.data.materials.append(material)
+    return ob
+
+
+def add_plane(scene, material=None, size=2.0):
+    import bpy
+    mesh = bpy.data.meshes.new("plane")
+    h = size / 2
+    mesh.from_pydata([(-h, -h, 0), (h, -h, 0), (h, h, 0), (-h, h, 0)], [], [(0, 1, 2, 3)])
+    ob = bpy.data.objects.new("plane", mesh)
+    scene.collection.objects.link(ob)
+    if material is not None:
+        ob.data.materials.append(material)
+    return ob
+
+
+def ortho_camera(scene, distance=5.0, scale=2.0):
+    """Looking down -z at the origin, image covering [-scale/2, scale/2]^2."""
+    import bpy
+    cam = bpy.data.cameras.new("camera")
+    cam.type = 'ORTHO'
+    cam.ortho_scale = scale
+    cam.clip_end = 100.0
+    ob = bpy.data.objects.new("camera", cam)
+    scene.collection.objects.link(ob)
+    ob.location = (0.0, 0.0, distance)
+    scene.camera = ob
+    return ob
+
+
+def material_with(nodes_fn, name="m"):
+    """A material whose surface is what nodes_fn(tree) returns (a shader output socket)."""
+    import bpy
+    mat = bpy.data.materials.new(name)
+    if mat.node_tree is None:
+        mat.use_nodes = True
+    tree = mat.node_tree
+    for n in list(tree.nodes):
+        if n.bl_idname != "ShaderNodeOutputMaterial":
+            tree.nodes.remove(n)
+    out = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial")
+    tree.links.new(nodes_fn(tree), out.inputs["Surface"])
+    return mat
+
+
+def render(scene):
+    """Render the scene; (H, W, 3) float32, top row first."""
+    import bpy
+    import OpenEXR
+    fd, path = tempfile.mkstemp(suffix=".exr", prefix="flowbsdf_render_")
+    os.close(fd)
+    try:
+        scene.render.filepath = path
+        bpy.ops.render.render(write_still=True, scene=scene.name)
+        ch = OpenEXR.File(path).channels()
+        if "RGBA" in ch:
+            img = ch["RGBA"].pixels[..., :3]
+        elif "RGB" in ch:
+            img = ch["RGB"].pixels
+        else:
+            img = np.stack([ch[c].pixels for c in "RGB"], -1)
+        return np.array(img, np.float32)
+    finally:
+        Path(path).unlink(missing_ok=True)
+
+
+def sphere_view(width, height, scale=2.0, radius=1.0):
+    """Per pixel of ortho_camera's image: the sphere's normal (H, W, 3) (camera along -z, image
+    x = world x, image rows top to bottom = world y descending) and the hit mask."""
+    x = (np.arange(width) + 0.5) / width * scale - scale / 2
+    y = scale / 2 - (np.arange(height) + 0.5) / height * scale * height / width
+    X, Y = np.meshgrid(x, y)
+    r2 = (X * X + Y * Y) / radius ** 2
+    hit = r2 < 1
+    n = np.stack([X / radius, Y / radius, np.sqrt(np.maximum(1 - r2, 0))], -1)
+    return n, hit

@@ -1,0 +1,461 @@
+"""The Blender add-on with the bpy module: registration, scan, operators, batch command, zip."""
+import os
+import subprocess
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+bpy = pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed")
+import cycles_scenes as cs  # noqa: E402  (tests/ helper of the node tests)
+
+from bake.manifest import load_manifest  # noqa: E402
+
+
+def _addon():
+    import blender_addon
+    return blender_addon
+
+
+def test_register_unregister_twice():
+    addon = _addon()
+    for _ in range(2):
+        addon.register()
+        assert hasattr(bpy.types.Material, "flowbsdf") and hasattr(bpy.types.Scene, "flowbsdf")
+        assert bpy.ops.flowbsdf.scan.get_rna_type().identifier == "FLOWBSDF_OT_scan"
+        assert "FLOWBSDF_PT_node_editor" in dir(bpy.types)
+        addon.unregister()
+        assert not hasattr(bpy.types.Material, "flowbsdf") and not hasattr(bpy.types.Scene, "flowbsdf")
+        assert "FLOWBSDF_PT_node_editor" not in dir(bpy.types)
+        with pytest.raises((AttributeError, KeyError, RuntimeError)):
+            bpy.ops.flowbsdf.scan.get_rna_type()
+
+
+@pytest.fixture(scope="module")
+def addon():
+    a = _addon()
+    a.register()
+    yield a
+    a.unregister()
+
+
+def learned(mat_name, analytic, quality="DRAFT", **kw):
+    mat = bpy.data.materials.new(mat_name)
+    s = mat.flowbsdf
+    s.enabled, s.source_kind, s.analytic_preset, s.bake_quality = True, "ANALYTIC", analytic, quality
+    for k, v in kw.items():
+        setattr(s, k, v)
+    return mat
+
+
+def mesh_object(name, mat, coll=None):
+    scene = bpy.context.scene
+    ob = bpy.data.objects.new(name, bpy.data.meshes.new(name))
+    (coll or scene.collection).objects.link(ob)
+    if mat is not None:
+        ob.data.materials.append(mat)
+    return ob
+
+
+def test_scan_lists_only_what_renders(addon, tmp_path):
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.flowbsdf.out_dir = str(tmp_path / "out")
+    mesh_object("visible", learned("shown", "MATTE"))
+    mesh_object("hidden", learned("hidden_obj", "MATTE")).hide_render = True
+    hidden_coll = bpy.data.collections.new("hidden_coll")
+    scene.collection.children.link(hidden_coll)
+    hidden_coll.hide_render = True
+    mesh_object("in_hidden", learned("hidden_coll_mat", "MATTE"), hidden_coll)
+    excluded = bpy.data.collections.new("excluded")
+    scene.collection.children.link(excluded)
+    bpy.context.view_layer.layer_collection.children["excluded"].exclude = True
+    mesh_object("in_excluded", learned("excluded_mat", "MATTE"), excluded)
+    # a collection instanced by a visible empty, itself not in the scene
+    lib = bpy.data.collections.new("instanced")
+    mesh_object("instanced_obj", learned("via_instance", "PLASTIC", name="plastic_x"), lib)
+    empty = bpy.data.objects.new("instancer", None)
+    empty.instance_type, empty.instance_collection = "COLLECTION", lib
+    scene.collection.objects.link(empty)
+    mesh_object("plain", bpy.data.materials.new("not_learned"))
+    learned("unused", "GOLD")
+
+    bpy.ops.flowbsdf.scan()
+    items = {i.material: i for i in scene.flowbsdf.scan_items}
+    assert set(items) == {"shown", "via_instance"}
+    assert items["via_instance"].learned == "plastic_x"
+    assert items["shown"].state == "missing" and "theta_i only" in items["shown"].needs
+    manifest = load_manifest(tmp_path / "out" / "manifest.toml")
+    by_name = {e.name: e for e in manifest.materials}
+    assert set(by_name) == {"shown", "plastic_x"}
+    assert by_name["plastic_x"].source == {"kind": "analytic", "model": "plastic",
+                                           "albedo": [0.7, 0.1, 0.08], "alpha": 0.12}
+    assert by_name["shown"].bake["resolution"] == 16
+    text = (tmp_path / "out" / "manifest.toml").read_text()
+    assert "used by 1 object(s): instanced_obj" in text and "state: missing" in text
+
+
+def test_operator_errors_are_messages(addon, tmp_path, monkeypatch):
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.context.scene.flowbsdf.out_dir = str(tmp_path)
+    with pytest.raises(RuntimeError, match="no learned materials in use"):
+        bpy.ops.flowbsdf.bake()
+    mat = learned("broken", "MATTE")
+    mat.flowbsdf.source_kind = "FILE"
+    mesh_object("o", mat)
+    with pytest.raises(RuntimeError, match="'broken': pick an RGL .bsdf or MERL .binary file"):
+        bpy.ops.flowbsdf.scan()
+    mat.flowbsdf.source_kind, mat.flowbsdf.analytic_params = "ANALYTIC", "{alpha: 2"
+    with pytest.raises(RuntimeError, match="'broken': parameters are not JSON"):
+        bpy.ops.flowbsdf.scan()
+    mat.flowbsdf.analytic_params = '{"albedo": 7}'          # the worker reports the bad value
+    with pytest.raises(RuntimeError, match="(?i)albedo"):
+        bpy.ops.flowbsdf.bake()
+    mat.flowbsdf.analytic_params = ""
+    monkeypatch.setenv("FLOWBSDF_PYTHON", str(tmp_path / "no_python"))
+    with pytest.raises(RuntimeError, match="does not exist.*Preferences > Add-ons > FlowBSDF > Python"):
+        bpy.ops.flowbsdf.bake()
+
+
+def test_training_without_torch_says_where_to_set_python(addon, monkeypatch):
+    from blender_addon import deps
+    fake = {"ok": True, "numpy": True, "openexr": True, "torch": False, "trainer": False,
+            "bake": "/x/bake", "error": None}
+    monkeypatch.setattr(deps, "probe", lambda python, extra_paths=(): fake)
+    monkeypatch.delenv("FLOWBSDF_PYTHON", raising=False)
+    assert deps.choose_python("", need_train=False) == sys.executable
+    with pytest.raises(deps.PythonNotFound, match="lacks torch, trainer.*Preferences > Add-ons > FlowBSDF"):
+        deps.choose_python("", need_train=True)
+
+
+def test_job_progress_and_cancel(tmp_path):
+    """A worker job reports progress lines and a cancel ends it and its process group."""
+    from blender_addon import worker
+    manifest = tmp_path / "m.toml"
+    manifest.write_text('[[material]]\nname = "slow"\nsource = { kind = "analytic", model = "ggx", '
+                        'alpha = 0.05 }\nbake = { tol = 0.0001, resolution = 256 }\n')
+    job = worker.Job(sys.executable, ["bake", str(manifest), "--out", str(tmp_path / "out"), "--train", "never"])
+    deadline = time.monotonic() + 120
+    while not any(line.startswith("[progress 1/1]") for line in job.lines) and time.monotonic() < deadline:
+        job.poll()
+        time.sleep(0.05)
+    assert job.message == "bake slow" and job.fraction == 0.0
+    job.cancel()
+    while not job.done and time.monotonic() < deadline:
+        job.poll()
+        time.sleep(0.05)
+    assert job.done and job.error == "cancelled"
+    with pytest.raises(ProcessLookupError):
+        os.killpg(job.proc.pid, 0)          # the whole group is gone
+    assert not (tmp_path / "out" / "tables" / "slow.exr").exists()
+
+
+THREE = (("matte", "MATTE"), ("red_plastic", "PLASTIC"), ("gold", "GOLD"))
+
+
+@pytest.fixture(scope="module")
+def baked_scene(addon, tmp_path_factory):
+    """Three learned materials on three spheres, scanned and baked (ideal tabulation, draft tables)."""
+    cs.bpy_or_skip()
+    out = tmp_path_factory.mktemp("addon") / "flowbsdf"
+    scene = cs.reset(width=48, height=16, spp=8, osl=True)
+    cs.set_world(scene, (1.0, 1.0, 1.0))
+    cam = cs.ortho_camera(scene, scale=6.0)
+    cam.location.z = 6.0
+    scene.flowbsdf.out_dir = str(out)
+    for i, (name, preset) in enumerate(THREE):
+        # rough gold: a sharp lobe would need more incident bins and a longer bake
+        extra = {"analytic_params": '{"alpha": 0.25}'} if name == "gold" else {}
+        ob = cs.add_sphere(scene, learned(name, preset, **extra), radius=0.9, segments=32, rings=16)
+        ob.location.x = 2.0 * (i - 1)
+    assert bpy.ops.flowbsdf.scan() == {"FINISHED"}
+    before = {i.material: i.state for i in scene.flowbsdf.scan_items}
+    assert bpy.ops.flowbsdf.bake(train="NEVER") == {"FINISHED"}
+    return scene, out, before
+
+
+def test_three_materials_scanned_baked_rendered(baked_scene):
+    scene, out, before = baked_scene
+    assert before == {name: "missing" for name, _ in THREE}
+    items = {i.material: i for i in scene.flowbsdf.scan_items}
+    assert {k: v.state for k, v in items.items()} == {name: "current" for name, _ in THREE}
+    bins = {k: int(v.needs.split(": ")[1].split()[0]) for k, v in items.items()}
+    assert all(v.needs.startswith("theta_i only: ") for v in items.values())
+    assert bins["matte"] == 3 and min(bins.values()) >= 3, bins
+    for name, _ in THREE:
+        assert (out / "tables" / f"{name}.exr").is_file()
+    from blender_addon import node
+    for name, _ in THREE:
+        group = next(n for n in bpy.data.materials[name].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
+        assert node.node_status(group, scene) == "OSL", node.node_status(group, scene)
+    mtime = (out / "tables" / "gold.exr").stat().st_mtime_ns
+    assert bpy.ops.flowbsdf.bake(train="NEVER") == {"FINISHED"}       # current tables are kept
+    assert (out / "tables" / "gold.exr").stat().st_mtime_ns == mtime
+
+    img = cs.render(scene)
+    assert img.shape == (16, 48, 3) and np.all(np.isfinite(img))
+    matte, red, gold = (img[5:11, c - 3:c + 3].reshape(-1, 3).mean(0) for c in (8, 24, 40))
+    # White world, convex sphere: a Lambertian of albedo 0.8 reflects 0.8 in expectation.
+    assert abs(matte.mean() - 0.8) < 0.08 and np.ptp(matte) < 0.05, matte
+    assert red[0] > 2 * red[1] and red[0] > 2 * red[2], red
+    assert gold[0] > 1.5 * gold[2] and gold.mean() > 0.3, gold
+
+
+def test_cli_command_bakes_binds_and_saves(baked_scene, tmp_path, capsys):
+    from blender_addon import batch
+    scene, out, _ = baked_scene
+    assert batch.cli_command(["scan"]) == 0
+    text = capsys.readouterr().out
+    assert "[flowbsdf] matte -> matte: current; needs theta_i only: 3 bins" in text
+    blend = tmp_path / "baked.blend"
+    assert batch.cli_command(["bake", "--train", "never", "--save-as", str(blend)]) == 0
+    text = capsys.readouterr().out
+    assert "[progress 3/3] done" in text and f"[flowbsdf] saved {blend}" in text
+    assert all(line == line.strip("\r") for line in text.splitlines())
+    assert batch.cli_command(["bake", "--python", str(tmp_path / "nope")]) == 1
+    assert "[flowbsdf] error: the FlowBSDF Python" in capsys.readouterr().out
+    assert batch.cli_command(["bake", "--material", "not_there"]) == 1
+    assert "not_there" in capsys.readouterr().out
+    assert "FLOWBSDF_PYTHON" not in os.environ
+
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    for name, _ in THREE:
+        groups = [n for n in bpy.data.materials[name].node_tree.nodes if n.bl_idname == "ShaderNodeGroup"]
+        assert len(groups) == 1 and groups[0].node_tree.get("flowbsdf")["material"] == name
+
+
+def test_extension_zip_builds_validates_installs(tmp_path):
+    """One command builds the zip; Blender's tool validates it; bpy 5.0 installs and enables it."""
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "build_extension.py"), "--out",
+                           str(tmp_path / "dist"), "--build-dir", str(tmp_path / "build"), "--no-wheels"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    zip_path = tmp_path / "dist" / "flowbsdf-0.1.0.zip"
+    assert "validated" in proc.stdout and zip_path.is_file()
+    import zipfile
+    names = zipfile.ZipFile(zip_path).namelist()
+    assert "blender_manifest.toml" in names and "vendor/bake/pipeline.py" in names
+    assert "worker_main.py" in names and "osl/learned_bsdf.osl" in names
+    assert not [n for n in names if n.endswith((".so", ".pyc")) or "trainer/" in n]
+    manifest = tomllib.loads(zipfile.ZipFile(zip_path).read("blender_manifest.toml").decode())
+    assert manifest["id"] == "flowbsdf" and manifest["blender_version_min"] == "4.2.0"
+
+    script = tmp_path / "install.py"
+    script.write_text(INSTALL_SCRIPT)
+    env = {**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / "user")}
+    env.pop("PYTHONPATH", None)
+    proc = subprocess.run([sys.executable, str(script), str(zip_path)], capture_output=True, text=True,
+                          env=env, cwd=tmp_path, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "ENABLED bl_ext.user_default.flowbsdf" in proc.stdout
+    assert f"VENDORED {tmp_path / 'user'}" in proc.stdout, proc.stdout
+    assert "SCAN ok" in proc.stdout, proc.stdout
+
+
+INSTALL_SCRIPT = """
+import sys, bpy
+zip_path = sys.argv[-1]
+assert bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default",
+                                                enable_on_install=True) == {"FINISHED"}
+assert "bl_ext.user_default.flowbsdf" in bpy.context.preferences.addons.keys()
+print("ENABLED bl_ext.user_default.flowbsdf")
+from bl_ext.user_default.flowbsdf import deps, prefs
+print("VENDORED", deps.bake_root())
+from bl_ext.user_default.flowbsdf import node
+assert deps.bake.__name__ == "bl_ext.user_default.flowbsdf.vendor.bake", deps.bake.__name__
+assert hasattr(bpy.types.Scene, "flowbsdf_backend")
+assert prefs.get() is not None
+mat = bpy.data.materials.new("m")
+mat.flowbsdf.enabled = True
+mat.flowbsdf.source_kind = "ANALYTIC"
+bpy.context.scene.collection.objects.link(bpy.data.objects.new("o", bpy.data.meshes.new("o")))
+bpy.data.objects["o"].data.materials.append(mat)
+bpy.context.scene.flowbsdf.out_dir = "scan_out"
+assert bpy.ops.flowbsdf.scan() == {"FINISHED"}
+assert [i.state for i in bpy.context.scene.flowbsdf.scan_items] == ["missing"]
+print("SCAN ok")
+"""
+
+
+def test_validate_reference_vs_cycles(addon, tmp_path):
+    """The validate operator exports the scene, renders it with the reference tracer and Cycles
+    (OSL back end) and reports MSE/SSIM with a side-by-side image."""
+    import math
+    cs.bpy_or_skip()
+    scene = cs.reset(width=32, height=32, spp=8)
+    cs.set_world(scene, (1.0, 1.0, 1.0))
+    cs.add_sphere(scene, learned("red", "PLASTIC"), radius=1.0, segments=32, rings=16)
+    floor = cs.material_with(lambda t: t.nodes.new("ShaderNodeBsdfDiffuse").outputs[0], "floor")
+    cs.add_plane(scene, floor, size=6).location.z = -1
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    scene.collection.objects.link(cam)
+    cam.location, cam.rotation_euler = (0, -5, 1.5), (math.radians(75), 0, 0)
+    scene.camera = cam
+    scene.flowbsdf.out_dir = str(tmp_path / "out")
+    scene.flowbsdf.validate_spp, scene.flowbsdf.validate_size = 8, 32
+    with pytest.raises(RuntimeError, match="bake first: no tables for red"):
+        bpy.ops.flowbsdf.validate()                  # nothing baked yet: a message, no traceback
+    assert bpy.ops.flowbsdf.bake(train="NEVER") == {"FINISHED"}
+    assert bpy.ops.flowbsdf.validate() == {"FINISHED"}
+    import json
+    result = json.loads((tmp_path / "out" / "validate" / "metrics.json").read_text())
+    assert result["reference_spp"] == 32 and result["cycles_spp"] == 8
+    # Same scene, same material, both unbiased: the means agree, the images look alike.
+    assert abs(result["mean_cycles"] - result["mean_reference"]) < 0.03 * result["mean_reference"], result
+    assert result["ssim"] > 0.7 and result["mse"] < 0.01, result
+    assert Path(result["image"]).is_file() and "FlowBSDF validate" in bpy.data.images
+    assert scene.render.resolution_x == 32 and scene.cycles.samples == 8       # settings restored
+    text = (tmp_path / "out" / "validate" / "scene.toml").read_text()
+    assert 'manifest = "red"' in text and 'albedo = [0.8, 0.8, 0.8]' in text
+
+
+class _Recorder:
+    """A stand-in for UILayout that checks every property and operator the panel names."""
+
+    def __init__(self, log):
+        self.log = log
+
+    def __getattr__(self, name):
+        if name in ("column", "row", "box", "split"):
+            return lambda *a, **k: _Recorder(self.log)
+        raise AttributeError(name)
+
+    def prop(self, data, attr, **kw):
+        assert attr in data.bl_rna.properties.keys(), f"{type(data).__name__} has no property {attr!r}"
+        self.log.append(("prop", attr))
+
+    def operator(self, idname, **kw):
+        mod, name = idname.split(".")
+        rna = getattr(getattr(bpy.ops, mod), name).get_rna_type()
+        self.log.append(("operator", idname))
+        props = rna.properties.keys()
+
+        class Props:
+            def __setattr__(self, key, value):
+                assert key in props, f"{idname} has no property {key!r}"
+        return Props()
+
+    def label(self, text="", **kw):
+        self.log.append(("label", text))
+
+    def progress(self, factor=0.0, type="BAR", text=""):
+        assert 0.0 <= factor <= 1.0
+        self.log.append(("progress", text))
+
+
+def test_panel_draws_every_state(addon, tmp_path):
+    from types import SimpleNamespace
+    from blender_addon import panels, worker
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.flowbsdf.out_dir = str(tmp_path)
+    mat = bpy.data.materials.new("m")
+    mesh_object("o", mat)
+    item = scene.flowbsdf.scan_items.add()
+    item.material, item.state, item.needs = "m", "current", "theta_i only: 3 bins"
+    ctx = SimpleNamespace(material=mat, scene=scene, active_object=None,
+                          window_manager=bpy.context.window_manager)
+    seen = []
+    for kind in ("off", "FILE", "ANALYTIC", "PYTHON"):
+        mat.flowbsdf.enabled = kind != "off"
+        if kind != "off":
+            mat.flowbsdf.source_kind = kind
+        layout = _Recorder(seen)
+        panel = SimpleNamespace(layout=layout)
+        panels.FLOWBSDF_PT_material.draw(panel, ctx)
+    job = worker.Job(sys.executable, ["probe"])
+    worker.current = job
+    try:
+        panels.draw_job(_Recorder(seen), ctx)
+        assert ("operator", "flowbsdf.cancel") in seen
+    finally:
+        job.run(echo=False)
+        worker.current = None
+    ops = {name for kind, name in seen if kind == "operator"}
+    assert {"flowbsdf.enable", "flowbsdf.bake", "flowbsdf.scan", "flowbsdf.load_model",
+            "flowbsdf.validate", "flowbsdf.set_backend"} <= ops
+    assert {"filepath", "analytic_preset", "python_callable", "out_dir"} <= {n for k, n in seen if k == "prop"}
+
+
+def test_modal_progress_and_cancel(addon, tmp_path):
+    """The interactive path: the modal timer polls the job, shows progress, and Cancel stops it."""
+    from types import SimpleNamespace
+    from blender_addon import operators, worker
+
+    manifest = tmp_path / "m.toml"
+    manifest.write_text('[[material]]\nname = "slow"\nsource = { kind = "analytic", model = "ggx", '
+                        'alpha = 0.05 }\nbake = { tol = 0.0001, resolution = 256 }\n')
+
+    class Op(operators._JobOperator):
+        def __init__(self):
+            self.reports = []
+
+        def report(self, kind, message):
+            self.reports.append((kind, message))
+
+        def start(self, context):
+            return worker.Job(sys.executable, ["bake", str(manifest), "--out", str(tmp_path), "--train", "never"],
+                              label="Bake")
+
+    state = SimpleNamespace(running=True, progress=0.0, message="", label="")
+    wm = SimpleNamespace(flowbsdf_job=state, windows=[], event_timer_remove=lambda timer: None)
+    ctx = SimpleNamespace(window_manager=wm)
+    op = Op()
+    assert op._start(ctx)
+    worker.current, op._timer = op._job, None
+    timer = SimpleNamespace(type="TIMER")
+    assert op.modal(ctx, SimpleNamespace(type="MOUSEMOVE")) == {"PASS_THROUGH"}
+    deadline = time.monotonic() + 120
+    while state.message != "bake slow" and time.monotonic() < deadline:
+        assert op.modal(ctx, timer) == {"PASS_THROUGH"}
+        time.sleep(0.05)
+    assert state.message == "bake slow" and state.progress == 0.0
+    assert bpy.ops.flowbsdf.cancel() == {"FINISHED"}
+    result = None
+    while result in (None, {"PASS_THROUGH"}) and time.monotonic() < deadline:
+        result = op.modal(ctx, timer)
+        time.sleep(0.05)
+    assert result == {"CANCELLED"} and not state.running
+    assert op.reports == [({"WARNING"}, "FlowBSDF bake: cancelled")]
+    worker.current = None
+
+
+@pytest.mark.slow
+def test_train_then_bake_from_the_panel(addon, tmp_path):
+    """Train + Bake: the trainer runs as a subprocess of the worker (torch never in Blender);
+    the tables are then baked from the trained flow."""
+    pytest.importorskip("torch")
+    from blender_addon import scan, worker
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.flowbsdf.out_dir = str(tmp_path)
+    mat = learned("trained", "MATTE", preset="FAST")
+    mesh_object("o", mat)
+    with bpy.context.temp_override(material=mat):
+        assert bpy.ops.flowbsdf.bake(only_active=True, train="ALWAYS") == {"FINISHED"}
+    assert (tmp_path / "models" / "trained.flow.npz").is_file()
+    job = worker.Job(sys.executable, ["status", str(tmp_path / "manifest.toml"), "--out", str(tmp_path)])
+    info = scan.parse_status(job.run(echo=False))["trained"]
+    assert info["tables"] == "current" and info["tables_source"] == "flow", info
+
+
+def test_scan_measured_file_material(addon, tmp_path, rgl):
+    path = rgl("paper_white_rgb")
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.flowbsdf.out_dir = str(tmp_path)
+    mat = learned("paper", "MATTE")
+    mat.flowbsdf.source_kind, mat.flowbsdf.filepath = "FILE", str(path)
+    mesh_object("o", mat)
+    assert bpy.ops.flowbsdf.scan() == {"FINISHED"}
+    item = scene.flowbsdf.scan_items[0]
+    assert (item.learned, item.state) == ("paper", "missing") and item.needs.startswith("theta_i only")
+    entry = load_manifest(tmp_path / "manifest.toml").materials[0]
+    assert entry.source == str(path) and entry.open().isotropic

@@ -1,0 +1,104 @@
+"""The closure fit (the Learned BSDF node's fit back end) and the OSL texture export, numpy only."""
+import numpy as np
+import pytest
+
+from bake import closure_fit
+from bake.errors import FlowBSDFError
+from bake.ideal import IdealSampler
+from bake.materials import open_material
+from bake.osl_export import LAYOUT, bake_derived, ensure_osl_export, read_export
+from bake.tabulate import build_tables
+
+BINS = np.radians([0.0, 30.0, 60.0, 80.0, 89.5])
+KNOTS = (0.0, 45.0, 75.0, 88.0)
+
+
+def small_tables(spec):
+    mat = open_material(spec)
+    return build_tables(mat, IdealSampler(mat, resolution=64), BINS, rows=16, cols=16, grid=96)
+
+
+@pytest.fixture(scope="module")
+def lambert():
+    return small_tables({"kind": "analytic", "model": "lambert", "albedo": [0.8, 0.5, 0.2]})
+
+
+@pytest.fixture(scope="module")
+def glossy():
+    return small_tables({"kind": "analytic", "model": "ggx", "alpha": 0.15, "f0": [0.9, 0.6, 0.3]})
+
+
+def test_ggx_closure_matches_the_analytic_ggx():
+    """ggx_fcos is Cycles' Glossy GGX: the repository's GGX conductor with F = 1."""
+    mat = open_material({"kind": "analytic", "model": "ggx", "alpha": 0.3})
+    rng = np.random.default_rng(0)
+    wi = np.array([np.sin(0.7), 0.0, np.cos(0.7)])
+    wo = rng.normal(size=(1000, 3))
+    wo[:, 2] = np.abs(wo[:, 2])
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    np.testing.assert_allclose(closure_fit.ggx_fcos(wi, wo, 0.3), mat.eval(wi, wo)[:, 0] * wo[:, 2], rtol=1e-9)
+
+
+def test_lambert_fits_to_pure_diffuse(lambert):
+    fit = closure_fit.fit_closures(lambert, knots_deg=KNOTS)
+    for kd, ks, albedo, err in zip(fit["diffuse"], fit["specular"], fit["albedo"], fit["rel_error"]):
+        np.testing.assert_allclose(kd, albedo, atol=0.01)
+        assert max(ks) < 0.01
+        assert err < 0.05
+    np.testing.assert_allclose(fit["albedo"][0], [0.8, 0.5, 0.2], rtol=0.01)
+    assert fit["x"][-1] == 1.0 and fit["x"] == sorted(fit["x"])
+
+
+def test_glossy_fit_finds_the_lobe_and_keeps_the_albedo(glossy):
+    fit = closure_fit.fit_closures(glossy, knots_deg=KNOTS)
+    a0 = fit["alpha"][0]
+    assert 0.1 < a0 < 0.22, a0
+    ks, kd = np.array(fit["specular"][0]), np.array(fit["diffuse"][0])
+    assert np.all(ks > 5 * kd), (ks, kd)
+    np.testing.assert_allclose(fit["fit_albedo"], fit["albedo"], rtol=1e-6)
+    # eval_fit is what the node renders: its albedo (MC over the cosine) is the fitted one.
+    rng = np.random.default_rng(1)
+    for deg, albedo in zip(fit["theta_deg"][:2], fit["albedo"][:2]):
+        wi = np.array([np.sin(np.radians(deg)), 0.0, np.cos(np.radians(deg))])
+        from bake.materials.analytic import ggx_reflection_pdf, ggx_sample_reflection
+        _, _, alpha = closure_fit.params_at(fit, wi[2])
+        wo = ggx_sample_reflection(wi, alpha, alpha, rng.random((200000, 2)))
+        wo = np.concatenate([wo, closure_fit._cosine(rng.random((200000, 2)))])
+        q = 0.5 * ggx_reflection_pdf(wi, wo, alpha, alpha) + 0.5 * np.maximum(wo[:, 2], 0) / np.pi
+        ok = q > 0
+        est = np.sum(closure_fit.eval_fit(fit, wi, wo[ok]) * wo[ok, 2:3] / q[ok, None], axis=0) / len(wo)
+        np.testing.assert_allclose(est, albedo, rtol=0.02)
+
+
+def test_baked_albedo_is_the_tables_expectation(glossy):
+    rng = np.random.default_rng(2)
+    for theta in (0.2, 1.1, 1.5):
+        wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
+        wo, pdf = glossy.sample(wi, rng.random((400000, 2)))
+        est = np.mean(glossy.eval(wi, wo) * wo[:, 2:3] / pdf[:, None], axis=0)
+        np.testing.assert_allclose(closure_fit.baked_albedo(glossy, np.cos(theta)), est, rtol=2e-3)
+
+
+def test_derived_files_are_cached_rebuilt_and_atomic(tmp_path, lambert, glossy):
+    path = tmp_path / "m.exr"
+    lambert.save(path)
+    tex, fit = bake_derived(path)
+    img, meta = read_export(tex)
+    assert meta["layout"] == LAYOUT and img.dtype == np.float32
+    K, R, C = len(lambert.theta_bins), lambert.rows, lambert.cols
+    assert tuple(img[0, 0]) == (LAYOUT, K, R) and tuple(img[0, 1]) == (C, img.shape[1], img.shape[0])
+    np.testing.assert_array_equal(img[2:2 + R, :C], lambert.weights[0])
+    stamp = (tex.stat().st_mtime_ns, fit.stat().st_mtime_ns)
+    assert bake_derived(path) == (tex, fit)
+    assert (tex.stat().st_mtime_ns, fit.stat().st_mtime_ns) == stamp, "current files were rebuilt"
+    glossy.save(path)                                  # new table contents: new export and fit
+    tex2, fit2 = bake_derived(path)
+    assert tex2 != tex and not tex.exists(), "the stale export was kept"
+    assert closure_fit.load_fit(fit2)["alpha"][0] < 0.3
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "temporary files left"
+    fit2.write_text("{broken")
+    with pytest.raises(FlowBSDFError, match="unreadable"):
+        closure_fit.load_fit(fit2)
+    assert closure_fit.load_fit(closure_fit.ensure_fit(path))["version"] == closure_fit.FIT_VERSION
+    with pytest.raises(FlowBSDFError, match="not found"):
+        ensure_osl_export(tmp_path / "gone.exr")

@@ -1,0 +1,224 @@
+"""The Learned BSDF node in Cycles (bpy module): the OSL sampler is Tables.sample, the OSL
+back end renders the baked BSDF without bias (white furnace), the fit renders its fit, and
+the node survives save/reload and missing tables."""
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import cycles_scenes as cs
+from bake.closure_fit import baked_albedo, load_fit, params_at
+from bake.ideal import IdealSampler
+from bake.materials import open_material
+from bake.osl_export import ensure_osl_export
+from bake.tabulate import build_tables
+
+bpy = cs.bpy_or_skip()
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
+from blender_addon import node as lb  # noqa: E402
+
+BINS = np.radians([0.0, 30.0, 60.0, 80.0, 89.5])
+SPECS = {
+    "plastic": {"kind": "analytic", "model": "plastic", "albedo": [0.7, 0.1, 0.08], "alpha": 0.12},
+    "gold": {"kind": "analytic", "model": "ggx", "alpha": 0.15, "f0": [0.9, 0.6, 0.3]},
+}
+
+
+@pytest.fixture(scope="module")
+def baked(tmp_path_factory):
+    """Small baked tables (16 x 16 cells, 5 bins) per material, written as the pipeline does."""
+    root = tmp_path_factory.mktemp("tables")
+    out = {}
+    for name, spec in SPECS.items():
+        mat = open_material(spec)
+        tab = build_tables(mat, IdealSampler(mat, resolution=64), BINS, rows=16, cols=16, grid=96)
+        tab.meta["material"] = name
+        tab.save(root / f"{name}.exr")
+        out[name] = root / f"{name}.exr"
+    return out
+
+
+@pytest.fixture(autouse=True)
+def registered():
+    lb.register()
+    yield
+    lb.unregister()
+
+
+def _probe(tex, n, theta, mode):
+    sc = cs.reset(n, n, spp=1)
+    sc.cycles.filter_width = 0.01             # every pixel's one sample at its centre
+    cs.ortho_camera(sc)
+    names = {}
+
+    def nodes(tree):
+        s = lb.make_script_node(tree, probe=True)
+        s.inputs["Tables"].default_value = str(tex)
+        s.inputs["ProbeN"].default_value = n
+        s.inputs["ProbeTheta"].default_value = theta
+        s.inputs["ProbeMode"].default_value = mode
+        names["s"] = s.name
+        return s.outputs["BSDF"]
+    cs.add_plane(sc, cs.material_with(nodes))
+    return cs.render(sc).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("name", sorted(SPECS))
+def test_osl_sampler_is_tables_sample(baked, name):
+    """Same u -> same wo and the same weight (= baked f cos / pdf) as the numpy reference."""
+    from bake.tables import open_tables
+    tab = open_tables(baked[name])
+    tab.backend = "numpy"
+    tex = ensure_osl_export(baked[name])
+    n = 40
+    iy, ix = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    u = np.stack([(ix.ravel() + 0.5) / n, (iy.ravel() + 0.5) / n], 1)
+    for deg in (0.0, 17.0, 45.0, 71.3, 85.0, 89.9):
+        theta = np.radians(deg)
+        wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
+        wo, pdf = tab.sample(wi, u)
+        weight = tab.eval(wi, wo) * wo[:, 2:3] / pdf[:, None]
+        wo_osl = 2.0 * _probe(tex, n, theta, 0) - 1.0
+        w_osl = _probe(tex, n, theta, 1)
+        # float32 in OSL vs float64 in numpy: ~1e-5 typically, up to ~1e-4 in wide tail cells
+        # (cancellation in the in-cell remainder near u = 1).
+        err = np.abs(wo_osl - wo).max(axis=1)
+        assert err.max() < 3e-4, (deg, err.max())
+        assert np.median(err) < 2e-5, (deg, np.median(err))
+        np.testing.assert_allclose(w_osl, weight, rtol=2e-5, atol=1e-7)
+
+
+def _furnace(path, spp, backend, n=40):
+    sc = cs.reset(n, n, spp=spp)
+    sc.cycles.filter_width = 0.01
+    cs.ortho_camera(sc, scale=2.2)
+    cs.set_world(sc, (1.0, 1.0, 1.0))
+    mat = bpy.data.materials.new("furnace")
+    node = lb.assign_learned_bsdf(mat, path.stem, path)
+    lb.set_backend(sc, backend)
+    cs.add_sphere(sc, mat)
+    img = cs.render(sc)
+    normal, hit = cs.sphere_view(n, n, scale=2.2)
+    return img, normal, hit & (normal[..., 2] > 0.3), node, sc
+
+
+@pytest.mark.parametrize("name", sorted(SPECS))
+def test_osl_furnace_gives_the_baked_albedo(baked, name):
+    """Sphere under a constant white sky: each pixel is the baked albedo E[W] at its view angle,
+    within Monte Carlo error (per-pixel variance Var[W] / spp from the tables)."""
+    from bake.tables import open_tables
+    tab = open_tables(baked[name])
+    spp = 256
+    img, normal, inner, node, sc = _furnace(baked[name], spp, "osl")
+    assert lb.node_status(node, sc) == "OSL"
+    ref = np.zeros((inner.sum(), 3))
+    var = np.zeros((inner.sum(), 3))
+    for q, c in enumerate(normal[inner][:, 2]):
+        theta = np.arccos(c)
+        k0, k1, t, _ = tab._bins(np.array([[np.sin(theta), 0.0, c]]))
+        k0, k1, t = int(k0[0]), int(k1[0]), float(t[0])
+        m = (1 - t) * tab._m[k0] + t * tab._m[k1]
+        w = (1 - t) * tab.weights[k0].astype(float) + t * tab.weights[k1].astype(float)
+        ref[q] = np.einsum("rc,rck->k", m, w)
+        var[q] = np.maximum(np.einsum("rc,rck->k", m, w * w) - ref[q] ** 2, 0.0)
+        np.testing.assert_allclose(ref[q], baked_albedo(tab, c), rtol=1e-9)
+    got = img[inner]
+    # A smooth-shaded mesh loses the samples that go below its geometric normal (~5e-4 here,
+    # as Cycles' own closures do): allow that, plus the per-pixel MC error.
+    sigma = np.sqrt(var / spp + (1e-3 * ref) ** 2)
+    z = (got - ref) / sigma
+    assert np.sqrt(np.mean(z ** 2)) < 1.5, np.sqrt(np.mean(z ** 2, axis=0))
+    rel = (got.mean(0) - ref.mean(0)) / ref.mean(0)
+    sigma_mean = np.sqrt(np.sum(var / spp, axis=0)) / len(ref) / ref.mean(0)
+    assert np.all(np.abs(rel) < 4 * sigma_mean + 1.5e-3), (rel, sigma_mean)
+
+
+def test_fit_furnace_gives_the_fitted_albedo(baked):
+    """The fit back end in Cycles (SVM closures) reflects what the fit file says it does."""
+    path = baked["gold"]
+    img, normal, inner, node, sc = _furnace(path, 128, "fit")
+    assert lb.node_status(node, sc).startswith("fit")
+    fit = load_fit(path.with_name(path.stem + ".fit.json"))
+    assert np.allclose(fit["fit_albedo"], fit["albedo"], rtol=1e-6)
+    c = normal[inner][:, 2]
+    ref = np.array([baked_albedo_fit(fit, ci) for ci in c])
+    rel = (img[inner].mean(0) - ref.mean(0)) / ref.mean(0)
+    assert np.all(np.abs(rel) < 0.01), rel
+
+
+def baked_albedo_fit(fit, cos_i):
+    """The fit's albedo at a view angle: kd + ks A_ggx(alpha), evaluated from the knots."""
+    from bake.closure_fit import ggx_albedo
+    kd, ks, alpha = params_at(fit, cos_i)
+    wi = np.array([np.sqrt(max(1 - cos_i ** 2, 0.0)), 0.0, cos_i])
+    return kd + ks * ggx_albedo(wi, float(alpha), n=4096)
+
+
+def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):
+    path = tmp_path / "gold.exr"
+    path.write_bytes(baked["gold"].read_bytes())
+    sc = cs.reset(16, 16, spp=4)
+    cs.ortho_camera(sc, scale=2.2)
+    cs.set_world(sc, (1.0, 1.0, 1.0))
+    mat = bpy.data.materials.new("gold")
+    node = lb.assign_learned_bsdf(mat, "gold", path)
+    cs.add_sphere(sc, mat, segments=32, rings=16)
+    assert lb.backend_of(sc) == "auto" and lb.node_status(node, sc) == "OSL"
+    sc.cycles.shading_system = False
+    assert lb.node_status(node, sc).startswith("fit (Open Shading Language is off")
+    sc.cycles.shading_system = True
+    lb.set_backend(sc, "fit")
+    assert lb.backend_of(sc) == "fit" and lb.node_status(node, sc).startswith("fit")
+    with pytest.raises(ValueError, match="back end"):
+        lb.set_backend(sc, "gpu")
+    lb.set_backend(sc, "osl")
+    switch = node.node_tree.nodes[lb.SWITCH].outputs[0]
+    assert switch.default_value == 1.0
+    osl_img = cs.render(sc)
+
+    blend = tmp_path / "scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    sc = bpy.context.scene
+    mat = bpy.data.materials["gold"]
+    node = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
+    assert node.label == "Learned BSDF" and lb.backend_of(sc) == "osl"
+    assert lb.node_status(node, sc) == "OSL"
+    np.testing.assert_allclose(cs.render(sc), osl_img, rtol=1e-6)   # same seed, same image
+
+    # Tables (and their OSL texture) gone: a clear status and the fit, not black or pink.
+    for p in tmp_path.glob("gold*.exr"):
+        p.unlink()
+    status = lb.node_status(node, sc)
+    assert status.startswith("fit (tables missing: ") and str(path) in status, status
+    img = cs.render(sc)                 # render_pre switches the group to the fit
+    assert switch_of(node) == 0.0
+    normal, hit = cs.sphere_view(16, 16, scale=2.2)
+    inner = hit & (normal[..., 2] > 0.5)
+    sphere = img[inner].mean(0)
+    assert np.all(sphere > 0.2) and np.all(np.abs(sphere - osl_img[inner].mean(0)) < 0.15), sphere
+    # Even with the switch forced to OSL, the shader itself falls back to the fit.
+    node.node_tree.nodes[lb.SWITCH].outputs[0].default_value = 1.0
+    bpy.app.handlers.render_pre.clear()
+    forced = cs.render(sc)
+    assert np.all(forced[inner].mean(0) > 0.2), forced[inner].mean(0)
+
+
+def switch_of(node):
+    return node.node_tree.nodes[lb.SWITCH].outputs[0].default_value
+
+
+def test_assign_twice_reuses_the_group(baked):
+    cs.reset(8, 8, spp=1)
+    mat = bpy.data.materials.new("m")
+    a = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
+    b = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
+    assert a.name == b.name and a.node_tree.name == b.node_tree.name
+    assert sum(n.bl_idname == "ShaderNodeGroup" for n in mat.node_tree.nodes) == 1
+    assert len([g for g in bpy.data.node_groups if g.name.startswith(lb.TREE_PREFIX)]) == 1
+    out = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial")
+    assert out.inputs["Surface"].links[0].from_node.name == a.name
+    assert os.path.isfile(a.node_tree[lb.TREE_KEY]["osl_texture"])
