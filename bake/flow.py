@@ -63,6 +63,15 @@ LOG2 = math.log(2.0)
 SQRT1_2 = math.sqrt(0.5)
 # u is clipped into [U_MIN, 1 - 2^-53] so that u = 0 (probability 2^-53) maps to a finite point.
 U_MIN = 1e-17
+# Disk base mixtures: component k's log scale relative to the broadest, lam_k, lies in (-LAM_MIN_ABS, 0].
+LAM_MIN_ABS = 8.0
+
+
+def base_outputs(domain, components=1):
+    """Outputs of the base MLP: disk mu(2), log sigma(2) [, K weight logits, K-1 lam logits]; spherical 5."""
+    if domain != "disk":
+        return 5
+    return 4 if components == 1 else 4 + 2 * components - 1
 
 # --------------------------------------------------------------------------- special functions
 
@@ -223,6 +232,46 @@ def vm_icdf(u, kappa, m, max_iter=100):
         done = hit | (np.abs(new - p) <= 4e-16 * (1.0 + np.abs(p))) | (h - l <= 4e-16 * (1.0 + np.abs(l)))
         active = active[~done]
     return psi
+
+
+# --------------------------------------------------------------------------- radial scale mixtures
+
+def _logsumexp(a, axis=-1):
+    m = np.max(a, axis=axis, keepdims=True)
+    m = np.where(np.isfinite(m), m, 0.0)
+    return np.log(np.sum(np.exp(a - m), axis=axis)) + m[..., 0]
+
+
+def mix_log_tail(q, logw, lam):
+    """log P(|z|² > q) for z ~ sum_k w_k N(0, exp(2 lam_k) I) in 2-D: logsumexp(log w_k - q / (2 v_k))."""
+    return _logsumexp(logw - 0.5 * q[:, None] * np.exp(-2.0 * lam))
+
+
+def mix_radial_cdf(q, logw, lam):
+    """P(|z|² <= q) = sum_k w_k (1 - exp(-q / (2 v_k))), accurate for small q."""
+    return np.sum(np.exp(logw) * -np.expm1(-0.5 * q[:, None] * np.exp(-2.0 * lam)), axis=-1)
+
+
+def mix_radial_icdf(u1, logw, lam, max_iter=200):
+    """q = |z|² with mix_radial_cdf(q) = u1: Newton on the convex, decreasing log tail from q = 0
+    (its iterates approach the root from below, never past it)."""
+    target = np.log1p(-u1)
+    inv_v = np.exp(-2.0 * lam)
+    q = np.zeros(len(u1))
+    active = np.ones(len(u1), bool)
+    for _ in range(max_iter):
+        g = mix_log_tail(q[active], logw[active], lam[active])
+        # d/dq log tail = -sum_k w_k e^{-q/2v_k} / (2 v_k) / tail
+        comp = logw[active] - 0.5 * q[active, None] * inv_v[active]
+        slope = -0.5 * np.sum(np.exp(comp - g[:, None]) * inv_v[active], axis=-1)
+        step = (target[active] - g) / slope
+        q[active] += step
+        done = np.abs(step) <= 1e-15 * np.maximum(q[active], 1e-300) + 1e-300
+        idx = np.flatnonzero(active)
+        active[idx[done]] = False
+        if not active.any():
+            break
+    return q
 
 
 # --------------------------------------------------------------------------- coordinate maps
@@ -433,6 +482,15 @@ class FlowModel:
         self.time_freq = int(vel.get("time_freq", 0))
         self.log_sigma_range = tuple(float(v) for v in base["log_sigma_range"])
         self.kappa_max = float(base.get("kappa_max", 0.0))
+        lo_hi = self.log_sigma_range
+        if len(lo_hi) != 2 or not all(math.isfinite(v) for v in lo_hi) or not lo_hi[0] < lo_hi[1]:
+            raise FlowBSDFError(f"base log_sigma_range {list(lo_hi)} must be two finite numbers, low < high",
+                                self.path)
+        if not (math.isfinite(self.kappa_max) and self.kappa_max >= 0):
+            raise FlowBSDFError(f"base kappa_max {self.kappa_max} must be finite and >= 0", self.path)
+        if self.time_freq < 0:
+            raise FlowBSDFError(f"velocity time_freq {self.time_freq} must be >= 0", self.path)
+        self.components = int(base.get("components", 1)) if self.domain_name == "disk" else 1
         self.base_net = MLP(*_layers(arrays, "base", meta, self.path))
         self.vel_net = MLP(*_layers(arrays, "vel", meta, self.path))
         self.last_stats = {}
@@ -440,7 +498,7 @@ class FlowModel:
 
     def _check_dims(self):
         cd = cond_dim(self.isotropic)
-        n_base_out = 4 if self.domain_name == "disk" else 5
+        n_base_out = base_outputs(self.domain_name, self.components)
         if self.base_net.n_in != cd or self.base_net.n_out != n_base_out:
             raise FlowBSDFError(f"base network has shape {self.base_net.n_in}->{self.base_net.n_out}, "
                                 f"expected {cd}->{n_base_out} for this domain/conditioning", self.path)
@@ -478,28 +536,46 @@ class FlowModel:
         return c, phi_i, ok
 
     def base_params(self, c):
-        """The base's parameters per row: disk (mu (n,2), log_sigma (n,2)); spherical
-        (mu_s, log_sigma_s, mu_phi, kappa), each (n,)."""
+        """The base's parameters per row: disk (mu (n,2), log_sigma (n,2), log weights (n,K),
+        lam (n,K)); spherical (mu_s, log_sigma_s, mu_phi, kappa), each (n,)."""
         out = self.base_net(c)
         lo, hi = self.log_sigma_range
         if self.domain_name == "disk":
+            K = self.components
             ls = lo + (hi - lo) * _sigmoid(out[:, 2:4])
-            return out[:, 0:2], ls
+            if K == 1:
+                zero = np.zeros((len(c), 1))
+                return out[:, 0:2], ls, zero, zero
+            logits = out[:, 4:4 + K]
+            logw = logits - _logsumexp(logits)[:, None]
+            lam = np.concatenate([np.zeros((len(c), 1)), -LAM_MIN_ABS * _sigmoid(out[:, 4 + K:])], axis=1)
+            return out[:, 0:2], ls, logw, lam
         ls = lo + (hi - lo) * _sigmoid(out[:, 1])
         mu_phi = np.arctan2(out[:, 3], out[:, 2])
         kappa = self.kappa_max * _sigmoid(out[:, 4])
         return out[:, 0], ls, mu_phi, kappa
 
+    @staticmethod
+    def _mix_log_density(z, logw, lam):
+        q = np.sum(z * z, axis=-1)
+        return _logsumexp(logw - LOG_2PI - 2.0 * lam - 0.5 * q[:, None] * np.exp(-2.0 * lam))
+
     # ----------------------------------------------------------------- base distribution
+    # Disk, one component: u -> z per axis through the normal inverse CDF. Several components:
+    # polar, |z|² from the mixture's radial inverse CDF (u1) and the angle 2 pi u2 - pi.
 
     def base_from_u(self, c, u):
         """u in [0,1)² -> y0 and log p0(y0)."""
         u = np.clip(np.asarray(u, dtype=np.float64), U_MIN, 1.0 - 2.0 ** -53)
         if self.domain_name == "disk":
-            mu, ls = self.base_params(c)
-            z = ndtri(u)
-            y0 = mu + np.exp(ls) * z
-            return y0, np.sum(log_normal_pdf(z) - ls, axis=-1)
+            mu, ls, logw, lam = self.base_params(c)
+            if self.components == 1:
+                z = ndtri(u)
+                return mu + np.exp(ls) * z, np.sum(log_normal_pdf(z) - ls, axis=-1)
+            r = np.sqrt(mix_radial_icdf(u[:, 0], logw, lam))
+            ang = 2.0 * np.pi * u[:, 1] - np.pi
+            z = np.stack([r * np.cos(ang), r * np.sin(ang)], axis=-1)
+            return mu + np.exp(ls) * z, self._mix_log_density(z, logw, lam) - np.sum(ls, axis=-1)
         mu_s, ls, mu_phi, kappa = self.base_params(c)
         z = ndtri(u[:, 0])
         psi = vm_icdf(u[:, 1], kappa, vm_terms(float(np.max(kappa, initial=0.0))))
@@ -509,9 +585,14 @@ class FlowModel:
     def base_to_u(self, c, y0):
         """y0 -> u and log p0(y0)."""
         if self.domain_name == "disk":
-            mu, ls = self.base_params(c)
+            mu, ls, logw, lam = self.base_params(c)
             z = (y0 - mu) * np.exp(-ls)
-            return ndtr(z), np.sum(log_normal_pdf(z) - ls, axis=-1)
+            if self.components == 1:
+                return ndtr(z), np.sum(log_normal_pdf(z) - ls, axis=-1)
+            u1 = mix_radial_cdf(np.sum(z * z, axis=-1), logw, lam)
+            u2 = (np.arctan2(z[:, 1], z[:, 0]) + np.pi) / (2.0 * np.pi)
+            u = np.stack([u1, np.where(u2 >= 1.0, 0.0, u2)], axis=-1)
+            return u, self._mix_log_density(z, logw, lam) - np.sum(ls, axis=-1)
         mu_s, ls, mu_phi, kappa = self.base_params(c)
         z = (y0[:, 0] - mu_s) * np.exp(-ls)
         psi = wrap_angle(y0[:, 1] - mu_phi)
@@ -771,16 +852,41 @@ def save_model(path, meta, arrays):
     return path
 
 
+MAX_STEPS = 4096                 # Euler steps a model may ask for (trained ones use 4-64)
+MAX_ARRAY_ELEMENTS = 1 << 24     # per weight array (the largest preset's are ~1e5)
+
+
+def _check_npz_sizes(path):
+    """Read every member's .npy header and refuse arrays larger than the member's bytes or
+    than any model needs, before numpy allocates them (a forged header would otherwise
+    ask for terabytes: MemoryError)."""
+    with zipfile.ZipFile(path) as z:
+        for info in z.infolist():
+            with z.open(info) as fh:
+                version = np.lib.format.read_magic(fh)
+                read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                        else np.lib.format.read_array_header_2_0)
+                shape, _, dtype = read(fh)
+            count = math.prod(shape)
+            if count > MAX_ARRAY_ELEMENTS or count * dtype.itemsize > info.file_size:
+                raise ValueError(f"array {info.filename.removesuffix('.npy')!r} announces shape {shape} "
+                                 f"({count * dtype.itemsize} bytes) but its member holds {info.file_size} "
+                                 f"bytes (limit {MAX_ARRAY_ELEMENTS} elements)")
+
+
 def load_model(path):
     """Load a model file written by the trainer; FlowBSDFError names the file and the problem."""
     path = Path(path)
     if not path.is_file():
         raise FlowBSDFError("model file not found", path)
     try:
+        _check_npz_sizes(path)
         with np.load(path, allow_pickle=False) as npz:
             arrays = {k: npz[k] for k in npz.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as e:
         raise FlowBSDFError(f"not a FlowBSDF model file (cannot read it as .npz: {e})", path) from None
+    except MemoryError:
+        raise FlowBSDFError("not a FlowBSDF model file (an array too large to load)", path) from None
     if "meta" not in arrays:
         raise FlowBSDFError("not a FlowBSDF model file (no metadata)", path)
     try:
@@ -798,8 +904,8 @@ def load_model(path):
             raise FlowBSDFError(f"model metadata lacks {key!r}", path)
     if meta["domain"] not in MAPS:
         raise FlowBSDFError(f"model domain {meta['domain']!r} is unknown (expected disk or spherical)", path)
-    if not isinstance(meta["steps"], int) or meta["steps"] < 1:
-        raise FlowBSDFError(f"model steps {meta['steps']!r} must be a positive integer", path)
+    if not isinstance(meta["steps"], int) or not 1 <= meta["steps"] <= MAX_STEPS:
+        raise FlowBSDFError(f"model steps {meta['steps']!r} must be an integer in [1, {MAX_STEPS}]", path)
     for k, v in arrays.items():
         if v.dtype.kind != "f":
             raise FlowBSDFError(f"array {k!r} has dtype {v.dtype}, expected floats", path)

@@ -63,30 +63,51 @@ class MLP(nn.Module):
 
 
 class BaseNet(nn.Module):
-    def __init__(self, domain, cond_dim, width=32, depth=2, log_sigma_range=(-4.0, 1.5), kappa_max=32.0):
+    """The conditional base. Disk: a scale mixture of `components` Gaussians sharing the mean
+    mu and the axis scales exp(ls) (component k's extra log scale lam_k <= 0, lam_0 = 0), so
+    that one base holds a sharp spike and a broad glow; bake.flow samples it through its
+    radial inverse CDF (a bijection of the unit square). Spherical: Gaussian(s) x von Mises(phi)."""
+
+    def __init__(self, domain, cond_dim, width=32, depth=2, log_sigma_range=(-4.0, 1.5), kappa_max=32.0,
+                 components=1):
         super().__init__()
         self.domain = domain
-        self.n_out = 4 if domain == "disk" else 5
+        self.components = int(components) if domain == "disk" else 1
+        self.n_out = npflow.base_outputs(domain, self.components)
         self.net = MLP(cond_dim, width, depth, self.n_out, zero_last=True)
         self.log_sigma_range = tuple(float(v) for v in log_sigma_range)
         self.kappa_max = float(kappa_max)
         lo, hi = self.log_sigma_range
-        # Start as the standard base (sigma = 1, uniform phi): the ideal base of a Lambertian.
+        # Start as the standard base (sigma = 1, uniform phi): the ideal base of a Lambertian;
+        # extra components start narrower (lam = -1.5 k) with equal weights.
         with torch.no_grad():
             b = self.net.layers[-1].bias
             raw_ls0 = math.log((0.0 - lo) / (hi - 0.0))
             if domain == "disk":
                 b[2:4] = raw_ls0
+                K = self.components
+                for k in range(1, K):
+                    frac = 1.5 * k / npflow.LAM_MIN_ABS
+                    b[4 + K + k - 1] = math.log(frac / (1.0 - frac))
             else:
                 b[1] = raw_ls0
                 b[2] = 1.0
                 b[4] = -6.0
 
     def params(self, c):
+        """Disk: mu (n,2), ls (n,2), log weights (n,K), lam (n,K). Spherical: mu_s, ls, mu_phi, kappa."""
         out = self.net(c)
         lo, hi = self.log_sigma_range
         if self.domain == "disk":
-            return out[:, 0:2], lo + (hi - lo) * torch.sigmoid(out[:, 2:4])
+            K = self.components
+            mu, ls = out[:, 0:2], lo + (hi - lo) * torch.sigmoid(out[:, 2:4])
+            if K == 1:
+                zero = torch.zeros(len(c), 1, dtype=c.dtype, device=c.device)
+                return mu, ls, zero, zero
+            logw = torch.log_softmax(out[:, 4:4 + K], dim=-1)
+            lam = -npflow.LAM_MIN_ABS * torch.sigmoid(out[:, 4 + K:4 + 2 * K - 1])
+            lam = torch.cat([torch.zeros_like(lam[:, :1]), lam], dim=-1)
+            return mu, ls, logw, lam
         ls = lo + (hi - lo) * torch.sigmoid(out[:, 1])
         mu_phi = torch.atan2(out[:, 3], out[:, 2])
         kappa = self.kappa_max * torch.sigmoid(out[:, 4])
@@ -94,9 +115,11 @@ class BaseNet(nn.Module):
 
     def log_prob(self, c, y):
         if self.domain == "disk":
-            mu, ls = self.params(c)
+            mu, ls, logw, lam = self.params(c)
             z = (y - mu) * torch.exp(-ls)
-            return torch.sum(-0.5 * z * z - 0.5 * LOG_2PI - ls, dim=-1)
+            q = (z * z).sum(-1, keepdim=True)
+            comp = logw - LOG_2PI - 2.0 * lam - 0.5 * q * torch.exp(-2.0 * lam)
+            return torch.logsumexp(comp, dim=-1) - ls.sum(-1)
         mu_s, ls, mu_phi, kappa = self.params(c)
         z = (y[:, 0] - mu_s) * torch.exp(-ls)
         psi = y[:, 1] - mu_phi
@@ -105,10 +128,14 @@ class BaseNet(nn.Module):
 
     @torch.no_grad()
     def sample(self, c, generator=None):
+        """Ancestral sampling (the same distribution bake.flow draws through its inverse CDF)."""
         n = len(c)
         if self.domain == "disk":
-            mu, ls = self.params(c)
+            mu, ls, logw, lam = self.params(c)
             z = torch.randn(n, 2, generator=generator, dtype=c.dtype).to(c.device)
+            if self.components > 1:
+                k = torch.multinomial(torch.exp(logw).cpu().float(), 1, generator=generator).to(c.device)
+                z = z * torch.exp(torch.gather(lam, 1, k))
             return mu + torch.exp(ls) * z
         mu_s, ls, mu_phi, kappa = self.params(c)
         z = torch.randn(n, generator=generator, dtype=c.dtype).to(c.device)
@@ -197,16 +224,16 @@ class FlowNet(nn.Module):
     """Base + velocity, with the settings bake.flow needs to rebuild them."""
 
     def __init__(self, domain, isotropic, vel_width=128, vel_depth=4, time_freq=0, base_width=32,
-                 base_depth=2, log_sigma_range=(-4.0, 1.5), kappa_max=32.0):
+                 base_depth=2, log_sigma_range=(-4.0, 1.5), kappa_max=32.0, base_components=1):
         super().__init__()
         self.domain, self.isotropic = domain, bool(isotropic)
         cd = npflow.cond_dim(isotropic)
-        self.base = BaseNet(domain, cd, base_width, base_depth, log_sigma_range, kappa_max)
+        self.base = BaseNet(domain, cd, base_width, base_depth, log_sigma_range, kappa_max, base_components)
         self.vel = VelocityNet(domain, cd, vel_width, vel_depth, time_freq)
         self.config = dict(domain=domain, isotropic=bool(isotropic), vel_width=vel_width,
                            vel_depth=vel_depth, time_freq=int(time_freq), base_width=base_width,
                            base_depth=base_depth, log_sigma_range=list(log_sigma_range),
-                           kappa_max=float(kappa_max))
+                           kappa_max=float(kappa_max), base_components=self.base.components)
 
     @classmethod
     def from_config(cls, config):
@@ -261,7 +288,8 @@ class FlowNet(nn.Module):
             "format": npflow.FORMAT, "version": npflow.VERSION,
             "domain": self.domain, "isotropic": self.isotropic, "steps": int(steps),
             "base": {"width": cfg["base_width"], "depth": cfg["base_depth"],
-                     "log_sigma_range": cfg["log_sigma_range"], "kappa_max": cfg["kappa_max"]},
+                     "log_sigma_range": cfg["log_sigma_range"], "kappa_max": cfg["kappa_max"],
+                     "components": cfg["base_components"]},
             "velocity": {"width": cfg["vel_width"], "depth": cfg["vel_depth"],
                          "time_freq": cfg["time_freq"], "activation": "silu"},
         }

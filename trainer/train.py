@@ -68,14 +68,14 @@ PRESETS = {
 
 COMMON = dict(
     seed=0, steps=None, time_freq=0, base_width=32, base_depth=2, log_sigma_range=(-4.0, 1.5),
-    kappa_max=32.0, warmup=100, min_lr_frac=0.05, ckpt_every=250, fold_penalty=0.0,
+    kappa_max=32.0, base_components=1, warmup=100, min_lr_frac=0.05, ckpt_every=250, fold_penalty=0.0,
     fold_margin=0.05, grad_clip=1.0,
 )
 DEFAULT_STEPS = {"disk": 4, "spherical": 8}
 STAGES = ("base", "flow", "reflow")
 # The settings each stage's result depends on (beyond those of the stages before it).
 STAGE_KEYS = {
-    "base": ("seed", "teacher", "time_freq", "base_width", "base_depth", "log_sigma_range", "kappa_max",
+    "base": ("seed", "teacher", "time_freq", "base_width", "base_depth", "log_sigma_range", "kappa_max", "base_components",
              "batch", "base_steps", "base_lr", "warmup", "min_lr_frac", "grad_clip"),
     "flow": ("flow_steps", "flow_lr", "flow_eval_every", "flow_eval_steps", "patience", "ema", "holdout"),
     "reflow": ("student", "steps", "reflow_pairs", "reflow_ode_steps", "reflow_steps", "reflow_lr",
@@ -187,7 +187,8 @@ class Trainer:
         s = self.settings
         return FlowNet(self.domain, self.isotropic, vel_width=arch["vel_width"], vel_depth=arch["vel_depth"],
                        time_freq=s["time_freq"], base_width=s["base_width"], base_depth=s["base_depth"],
-                       log_sigma_range=s["log_sigma_range"], kappa_max=s["kappa_max"]).to(self.device)
+                       log_sigma_range=s["log_sigma_range"], kappa_max=s["kappa_max"],
+                       base_components=s["base_components"]).to(self.device)
 
     def lr_at(self, step, total, lr):
         s = self.settings
@@ -425,8 +426,8 @@ class Trainer:
         cp = c[: max(256, len(c) // 4)]
         with torch.no_grad():
             if self.domain == "disk":
-                mu, ls = net.base.params(cp)
-                y = mu + 1.5 * torch.exp(ls) * torch.randn(len(cp), 2, generator=gen).to(cp.device)
+                mu = net.base.params(cp)[0]
+                y = mu + 1.5 * (net.base.sample(cp, gen) - mu)
             else:
                 mu_s, ls, _, _ = net.base.params(cp)
                 z = torch.rand(len(cp), 2, generator=gen).to(cp.device)
