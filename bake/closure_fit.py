@@ -19,7 +19,6 @@ equal to `albedo` unless ks or kd hit a bound).
 `principled_params(fit)` maps a fit to one view-independent Principled BSDF (the
 baseline the acceptance script compares against).
 """
-import hashlib
 import json
 import os
 import tempfile
@@ -28,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import FlowBSDFError
+from .hashing import file_hash
 from .geometry import luminance
 from .materials.analytic import ggx_ndf, ggx_lambda, ggx_reflection_pdf, ggx_sample_reflection
 from .tables import open_tables
@@ -189,14 +189,6 @@ def fit_path(tables_path):
     return tables_path.with_name(tables_path.stem + ".fit.json")
 
 
-def _digest(path):
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def load_fit(path):
     path = Path(path)
     try:
@@ -214,7 +206,7 @@ def ensure_fit(tables_path, log=None):
     """The fit file of a table file (<stem>.fit.json beside it), rebuilt when missing or made
     from other table contents; written atomically. Returns its path."""
     tables_path = Path(tables_path)
-    digest = _digest(tables_path)
+    digest = file_hash(tables_path)
     path = fit_path(tables_path)
     try:
         if load_fit(path).get("tables_hash") == digest:

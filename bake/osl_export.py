@@ -26,7 +26,6 @@ the tables) and carries the full hash in its metadata: a changed table gets a ne
 file (OpenImageIO caches textures by name, so a rewritten file of the same name could be
 served stale inside a running Blender), and older exports of the same tables are removed.
 """
-import hashlib
 import json
 import os
 import tempfile
@@ -35,18 +34,11 @@ from pathlib import Path
 import numpy as np
 
 from .errors import FlowBSDFError
+from .hashing import file_hash
 from .tables import open_tables
 
 LAYOUT = 1
 META_KEY = "flowbsdf_osl"
-
-
-def file_hash(path):
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def export_path(tables_path, digest):

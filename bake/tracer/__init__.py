@@ -1,0 +1,16 @@
+"""The reference path tracer (numpy only): renders scenes with any BSDF sampler -- baked
+tables, the flow, the ideal tabulation, a fitted GGX lobe, cosine -- and compares them.
+
+    scene.py       scene files (TOML/JSON; format in its docstring), OBJ/PLY, built-in scenes
+    accel.py       ray intersection: triangle BVH, analytic spheres, planes, quads, lathe pieces
+    lights.py      environment (image, procedural sky, constant; importance sampled), point, quad
+    samplers.py    a sampler by name for a scene material (tables | flow | ideal | ggx | cosine)
+    integrator.py  wavefront path tracer: MIS (power heuristic) or BSDF-only, Russian roulette
+    compare.py     reference vs samplers at equal spp and equal time: EXR, PNG, MSE/MAE/SSIM
+    images.py      EXR/PNG files, tone mapping, false colour, metrics
+    commands.py    `flowbsdf render` and `flowbsdf compare`
+"""
+from .integrator import render
+from .scene import builtin_scene, load_scene
+
+__all__ = ["render", "builtin_scene", "load_scene"]

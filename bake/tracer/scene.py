@@ -1,0 +1,806 @@
+"""Scenes for the reference tracer: the file format, mesh loaders and the built-in scenes.
+
+A scene file is TOML (`.toml`) or JSON (`.json`) with the same structure. World space is
+z-up, lengths in any unit, relative paths resolve against the scene file's folder:
+
+    [camera]
+    position = [0, -4.5, 1.6]
+    look_at  = [0, 0, 0.8]
+    up       = [0, 0, 1]          # default [0, 0, 1]
+    fov      = 30                 # degrees across the larger image side (Blender's "auto" fit)
+    width    = 256
+    height   = 256
+
+    [materials.ball]              # a material of the manifest: sampled with --sampler
+    manifest = "paper_white"
+
+    [materials.floor]             # inline analytic model, keys as in bake/materials/analytic.py
+    model = "lambert"
+    albedo = 0.5
+    sampler = "cosine"            # inline only: cosine | ggx | ideal | render (= follow --sampler);
+                                  # default cosine for lambert, ggx (a fitted lobe) otherwise
+
+    [[shape]]                     # type: mesh | shaderball | sphere | plane
+    type = "mesh"
+    file = "object.obj"           # .obj (v, vn, f; polygons are fanned) or .ply (ascii or
+    material = "ball"             # binary_little_endian; vertex x y z [nx ny nz], face lists)
+    translate = [0, 0, 0]         # mesh: scale (number or 3), then rotate_z (deg), then
+    scale = 1.0                   # translate; shaderball (analytic, height 1.75, on z = 0):
+    rotate_z = 0.0                # scale (a number) and translate only
+    tangent = [1, 0, 0]           # any shape: reference direction of the tangent (x) axis for
+                                  # anisotropic materials, projected onto the tangent plane
+
+    [[shape]]
+    type = "sphere"
+    center = [0, 0, 1]
+    radius = 1
+    material = "ball"
+
+    [[shape]]
+    type = "plane"                # infinite, or a square of edge `size` centred at `point`
+    point = [0, 0, 0]
+    normal = [0, 0, 1]
+    size = 20
+    material = "floor"
+
+    [[light]]
+    type = "environment"          # exactly one of: file (.exr/.hdr, equirectangular, Blender's
+    file = "studio.exr"           # mapping), sky = {sun_elevation, sun_azimuth, sun_size,
+    strength = 1.0                # sun_strength, zenith, horizon, ground} (procedural, all
+    rotate_z = 0.0                # optional) or constant = [r, g, b]
+
+    [[light]]
+    type = "point"
+    position = [2, -2, 4]
+    intensity = [40, 40, 40]      # radiant intensity, W/sr (radiance at distance r: I / r^2)
+
+    [[light]]
+    type = "quad"                 # one-sided parallelogram, emits towards edge1 x edge2
+    corner = [-0.5, -0.5, 3]
+    edge1 = [0, 1, 0]
+    edge2 = [1, 0, 0]
+    radiance = [10, 10, 10]
+
+    [render]                      # optional
+    max_depth = 12                # path length limit (Russian roulette from depth 3)
+
+Surfaces are two-sided (the shading normal is flipped towards the viewer); at most one
+environment. Shading normals: sphere and plane exact, meshes interpolate vertex normals
+(face normals when the file has none); directions on the wrong side of the geometric
+surface contribute nothing.
+
+Built-in scenes (`builtin:NAME`, no files needed): `shaderball-env` (a shader-ball-like
+procedural mesh under a soft procedural sky) and `shaderball-point` (the same ball on a
+grey floor lit by one point light, black environment). `builtin_scene(name, material=...)`
+puts a manifest material (or a Material object) on the ball.
+"""
+import json
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FlowBSDFError
+from .accel import TriangleBVH, intersect_lathe, intersect_planes, intersect_quads, intersect_spheres
+from .lights import Environment, PointLight, QuadLight, read_image, sky_image
+
+SAMPLER_NAMES = ("tables", "flow", "ideal", "ggx", "cosine")
+INLINE_SAMPLERS = ("cosine", "ggx", "ideal", "render")
+BUILTINS = ("shaderball-env", "shaderball-point")
+
+
+# --------------------------------------------------------------------------- data
+
+@dataclass
+class Camera:
+    position: np.ndarray
+    look_at: np.ndarray
+    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    fov: float = 30.0
+    width: int = 128
+    height: int = 128
+
+    def rays(self, px, py, jitter):
+        """Rays through pixel (px, py) (row 0 at the top) offset by jitter in [0, 1)²."""
+        f = self.look_at - self.position
+        f = f / np.linalg.norm(f)
+        r = np.cross(f, self.up)
+        r = r / np.linalg.norm(r)
+        u = np.cross(r, f)
+        half = np.tan(np.radians(self.fov) / 2) / max(self.width, self.height)
+        x = (px + jitter[:, 0]) * 2 - self.width
+        y = self.height - (py + jitter[:, 1]) * 2
+        d = f[None, :] + half * (x[:, None] * r[None, :] + y[:, None] * u[None, :])
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return np.broadcast_to(self.position, d.shape).copy(), d
+
+
+@dataclass
+class SceneMaterial:
+    name: str
+    material: object                 # a bake Material: the true BSDF, always what is evaluated
+    learned: bool                    # True: sampled with the render's sampler
+    sampler: str = "render"          # inline materials: their own sampler unless "render"
+    entry: object = None             # the manifest entry (manifest materials)
+
+
+@dataclass
+class Mesh:
+    vertices: np.ndarray             # (V, 3)
+    faces: np.ndarray                # (F, 3) int
+    normals: np.ndarray = None       # (V, 3) or None
+
+
+class Hit:
+    """Surface data of the nearest hits of a batch of rays (valid where `kind` > 0)."""
+    NONE, TRIANGLE, SPHERE, PLANE, LIGHT, LATHE = 0, 1, 2, 3, 4, 5
+
+
+class Scene:
+    def __init__(self, camera, materials, lights, path="<scene>", max_depth=12):
+        self.camera, self.materials, self.lights = camera, materials, lights
+        self.path, self.max_depth = str(path), int(max_depth)
+        self.env = next((l for l in lights if isinstance(l, Environment)), None)
+        self.quads = [l for l in lights if isinstance(l, QuadLight)]
+        self._tris = []          # (v0, v1, v2, n0, n1, n2, mat, tangent) lists per mesh
+        self.spheres, self.planes, self.lathes = [], [], []
+        self.bvh = None
+
+    # ---- building
+    def add_mesh(self, mesh, material, tangent=(1, 0, 0)):
+        v, f = mesh.vertices, mesh.faces
+        n = mesh.normals
+        fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        fn = fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+        if n is None:
+            ns = [fn, fn, fn]
+        else:
+            ns = [n[f[:, k]] for k in range(3)]
+        self._tris.append((v[f[:, 0]], v[f[:, 1]], v[f[:, 2]], *ns, np.full(len(f), material),
+                           np.broadcast_to(np.asarray(tangent, float), (len(f), 3))))
+        self.bvh = None
+
+    def add_lathe(self, pieces, material, translate=(0, 0, 0), scale=1.0, tangent=(1, 0, 0)):
+        """An analytic surface of revolution about z (see accel.intersect_lathe), uniformly
+        scaled then translated."""
+        self.lathes.append((pieces, np.asarray(translate, float), float(scale), material,
+                            np.asarray(tangent, float)))
+
+    def add_sphere(self, center, radius, material, tangent=(1, 0, 0)):
+        self.spheres.append((np.asarray(center, float), float(radius), material, np.asarray(tangent, float)))
+
+    def add_plane(self, point, normal, material, size=np.inf, tangent=(1, 0, 0)):
+        n = np.asarray(normal, float)
+        n = n / np.linalg.norm(n)
+        a = _any_perp(n)
+        self.planes.append((np.asarray(point, float), n, (a, np.cross(n, a)), float(size) / 2, material,
+                            np.asarray(tangent, float)))
+
+    def finish(self):
+        if self._tris:
+            cols = [np.concatenate([t[k] for t in self._tris]) for k in range(8)]
+            self.tv0, self.tv1, self.tv2, self.tn0, self.tn1, self.tn2, self.tmat, self.ttan = cols
+            self.bvh = TriangleBVH(self.tv0, self.tv1, self.tv2)
+        return self
+
+    @property
+    def n_triangles(self):
+        return 0 if self.bvh is None else len(self.tv0)
+
+    # ---- queries
+    def _nearest(self, o, d, t_best, any_hit=False):
+        tri = sph = pl = qd = None
+        if self.bvh is not None:
+            tri, b1, b2 = self.bvh.intersect(o, d, t_best, any_hit=any_hit)
+        else:
+            b1 = b2 = None
+        lat = lat_n = None
+        if self.lathes:
+            lat, lat_n = np.full(len(o), -1), np.zeros((len(o), 3))
+            for k, (pieces, T, s, _, _) in enumerate(self.lathes):
+                tb = t_best / s
+                pid, nm = intersect_lathe((o - T) / s, d, pieces, tb)
+                h = pid >= 0
+                t_best[h] = tb[h] * s
+                lat[h], lat_n[h] = k, nm[h]
+        if self.spheres:
+            sph = intersect_spheres(o, d, [s[0] for s in self.spheres], [s[1] for s in self.spheres], t_best)
+        if self.planes:
+            pl = intersect_planes(o, d, [p[0] for p in self.planes], [p[1] for p in self.planes],
+                                  [p[2] for p in self.planes], [p[3] for p in self.planes], t_best)
+        if self.quads:
+            qd = intersect_quads(o, d, [q.corner for q in self.quads], [q.edge1 for q in self.quads],
+                                 [q.edge2 for q in self.quads], t_best)
+        return tri, b1, b2, (lat, lat_n), sph, pl, qd
+
+    def occluded(self, o, d, tmax):
+        """True where something lies along o + t d for 0 < t < tmax (area lights included)."""
+        t_best = np.array(tmax, float, copy=True)
+        t0 = t_best.copy()
+        self._nearest(o, d, t_best, any_hit=True)
+        return t_best < t0
+
+    def intersect(self, o, d):
+        """Nearest hit: dict with t, kind, p, ng, ns, tangent, mat, light (arrays over rays)."""
+        n = len(o)
+        t = np.full(n, np.inf)
+        tri, b1, b2, (lat, lat_n), sph, pl, qd = self._nearest(o, d, t)
+        # later kinds overwrite t only where nearer, so the last index set wins: resolve in order
+        kind = np.zeros(n, np.int64)
+        idx = np.full(n, -1)
+        for k, ids in ((Hit.TRIANGLE, tri), (Hit.LATHE, lat), (Hit.SPHERE, sph), (Hit.PLANE, pl), (Hit.LIGHT, qd)):
+            if ids is not None:
+                sel = ids >= 0
+                kind[sel], idx[sel] = k, ids[sel]
+        p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+        ng = np.zeros((n, 3))
+        ns = np.zeros((n, 3))
+        tan = np.zeros((n, 3))
+        mat = np.full(n, -1)
+        m = kind == Hit.TRIANGLE
+        if m.any():
+            i = idx[m]
+            ng[m] = np.cross(self.tv1[i] - self.tv0[i], self.tv2[i] - self.tv0[i])
+            w1, w2 = b1[m][:, None], b2[m][:, None]
+            ns[m] = (1 - w1 - w2) * self.tn0[i] + w1 * self.tn1[i] + w2 * self.tn2[i]
+            tan[m], mat[m] = self.ttan[i], self.tmat[i]
+        for k, (_, _, _, mt, tg) in enumerate(self.lathes):
+            m = (kind == Hit.LATHE) & (idx == k)
+            ng[m] = ns[m] = lat_n[m]
+            tan[m], mat[m] = tg, mt
+        for k, (c, r, mt, tg) in enumerate(self.spheres):
+            m = (kind == Hit.SPHERE) & (idx == k)
+            ng[m] = ns[m] = p[m] - c
+            tan[m], mat[m] = tg, mt
+        for k, (pt, nrm, _, _, mt, tg) in enumerate(self.planes):
+            m = (kind == Hit.PLANE) & (idx == k)
+            ng[m] = ns[m] = nrm
+            tan[m], mat[m] = tg, mt
+        for k, q in enumerate(self.quads):
+            m = (kind == Hit.LIGHT) & (idx == k)
+            ng[m] = ns[m] = q.normal
+        ng = _unit(ng)
+        ns = _unit(ns)
+        return {"t": t, "kind": kind, "index": idx, "p": p, "ng": ng, "ns": ns, "tangent": tan, "mat": mat}
+
+
+def _unit(v):
+    n = np.linalg.norm(v, axis=1, keepdims=True)
+    return np.where(n > 0, v / np.where(n > 0, n, 1.0), 0.0)
+
+
+def _any_perp(n):
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    a = a - n * (a @ n)
+    return a / np.linalg.norm(a)
+
+
+# --------------------------------------------------------------------------- meshes
+
+_R, _C, _RG, _ZG0, _ZG1 = 0.7, 1.05, 0.62, 0.98, 1.12
+_Z_NECK = _C - np.sqrt(_R * _R - 0.2 * 0.2)
+
+
+def _rz(z):
+    return float(np.sqrt(_R * _R - (z - _C) ** 2))
+
+
+# The shader ball as analytic pieces (accel.intersect_lathe): exact and fast to intersect.
+SHADERBALL = (
+    ("disk", 0.0, 0.0, 0.55),                 # bottom
+    ("cylinder", 0.55, 0.0, 0.12),            # base side
+    ("disk", 0.12, 0.2, 0.55),                # base top
+    ("cylinder", 0.2, 0.12, _Z_NECK),         # stem
+    ("sphere", _C, _R, _Z_NECK, _ZG0),        # lower ball
+    ("disk", _ZG0, _RG, _rz(_ZG0)),           # groove floor
+    ("cylinder", _RG, _ZG0, _ZG1),            # groove wall
+    ("disk", _ZG1, _RG, _rz(_ZG1)),           # groove ceiling
+    ("sphere", _C, _R, _ZG1, _C + _R),        # upper ball
+)
+
+
+def shaderball_mesh(n_phi=64, rings=14):
+    """A shader-ball-like surface of revolution about z: a round base, a stem and a ball
+    (radius 0.7, centre z = 1.05) with a shallow groove around it. Analytic normals per
+    smooth piece (creases stay sharp)."""
+    R, C = _R, _C
+
+    def arc(z0, z1, k):
+        a0, a1 = np.arcsin((z0 - C) / R), np.arcsin((z1 - C) / R)
+        a = np.linspace(a0, a1, k)
+        return np.stack([R * np.cos(a), C + R * np.sin(a)], axis=1), np.stack([np.cos(a), np.sin(a)], axis=1)
+
+    def line(p0, p1, k=2):
+        t = np.linspace(0, 1, k)[:, None]
+        pts = (1 - t) * np.asarray(p0, float) + t * np.asarray(p1, float)
+        dr, dz = p1[0] - p0[0], p1[1] - p0[1]
+        nrm = np.array([dz, -dr]) / np.hypot(dr, dz)
+        return pts, np.repeat(nrm[None, :], k, axis=0)
+
+    z_neck, zg0, zg1, rg = _Z_NECK, _ZG0, _ZG1, _RG
+    rz = lambda z: np.sqrt(R * R - (z - C) ** 2)    # noqa: E731
+    pieces = [
+        line((0.0, 0.0), (0.55, 0.0)),            # bottom (faces down)
+        line((0.55, 0.0), (0.55, 0.12)),          # base side
+        line((0.55, 0.12), (0.2, 0.12), 3),       # base top
+        line((0.2, 0.12), (0.2, z_neck), 3),      # stem
+        arc(z_neck, zg0, rings),                  # lower ball
+        line((rz(zg0), zg0), (rg, zg0)),          # groove floor (faces down)
+        line((rg, zg0), (rg, zg1), 3),            # groove wall
+        line((rg, zg1), (rz(zg1), zg1)),          # groove ceiling (faces up)
+        arc(zg1, C + R - 1e-9, rings),            # upper ball
+    ]
+    phi = np.linspace(0, 2 * np.pi, n_phi, endpoint=False)
+    cp, sp = np.cos(phi), np.sin(phi)
+    verts, norms, faces = [], [], []
+    base = 0
+    for pts, nr in pieces:
+        k = len(pts)
+        v = np.stack([pts[:, :1] * cp, pts[:, :1] * sp, np.repeat(pts[:, 1:2], n_phi, 1)], axis=-1)
+        nv = np.stack([nr[:, :1] * cp, nr[:, :1] * sp, np.repeat(nr[:, 1:2], n_phi, 1)], axis=-1)
+        verts.append(v.reshape(-1, 3))
+        norms.append(nv.reshape(-1, 3))
+        i = np.arange(k - 1)[:, None]
+        j = np.arange(n_phi)[None, :]
+        a = base + i * n_phi + j
+        b = base + i * n_phi + (j + 1) % n_phi
+        c, d = a + n_phi, b + n_phi
+        quads = np.stack([a, b, d, c], axis=-1).reshape(-1, 4)
+        faces.append(np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]))
+        base += k * n_phi
+    v, n, f = np.concatenate(verts), np.concatenate(norms), np.concatenate(faces)
+    # drop degenerate triangles (at the axis)
+    area = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    return Mesh(v, f[area > 1e-12], n)
+
+
+def load_obj(path):
+    path = Path(path)
+    if not path.is_file():
+        raise FlowBSDFError("mesh file not found", path)
+    v, vn, faces, fnorm = [], [], [], []
+    try:
+        for lineno, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+            parts = line.split()
+            if not parts or parts[0].startswith("#"):
+                continue
+            if parts[0] == "v":
+                v.append([float(x) for x in parts[1:4]])
+            elif parts[0] == "vn":
+                vn.append([float(x) for x in parts[1:4]])
+            elif parts[0] == "f":
+                if len(parts) < 4:
+                    raise ValueError("a face needs at least 3 vertices")
+                refs = [p.split("/") for p in parts[1:]]
+                vi = [_obj_index(r[0], len(v)) for r in refs]
+                ni = [_obj_index(r[2], len(vn)) if len(r) > 2 and r[2] else -1 for r in refs]
+                for k in range(1, len(vi) - 1):
+                    faces.append([vi[0], vi[k], vi[k + 1]])
+                    fnorm.append([ni[0], ni[k], ni[k + 1]])
+    except (ValueError, IndexError) as e:
+        raise FlowBSDFError(f"line {lineno}: {e}", path) from None
+    if not faces:
+        raise FlowBSDFError("OBJ file has no faces", path)
+    v, faces, fnorm = np.array(v, float), np.array(faces), np.array(fnorm)
+    if faces.max() >= len(v) or faces.min() < 0:
+        raise FlowBSDFError("a face refers to a vertex that does not exist", path)
+    if vn and np.all(fnorm >= 0):
+        if fnorm.max() >= len(vn):
+            raise FlowBSDFError("a face refers to a normal that does not exist", path)
+        # unroll: each face corner gets its own vertex so per-corner normals survive
+        vn = np.array(vn, float)
+        return Mesh(v[faces.ravel()], np.arange(faces.size).reshape(-1, 3), _unit(vn[fnorm.ravel()]))
+    return Mesh(v, faces, None)
+
+
+def _obj_index(s, n):
+    i = int(s)
+    return i - 1 if i > 0 else n + i
+
+
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def load_ply(path):
+    path = Path(path)
+    if not path.is_file():
+        raise FlowBSDFError("mesh file not found", path)
+    data = path.read_bytes()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise FlowBSDFError("not a PLY file (no ply / end_header)", path)
+    body = data[data.index(b"\n", end) + 1:]
+    fmt, elements = None, []
+    for line in data[:end].decode("ascii", errors="replace").splitlines():
+        p = line.split()
+        if not p:
+            continue
+        if p[0] == "format":
+            fmt = p[1]
+        elif p[0] == "element":
+            elements.append((p[1], int(p[2]), []))
+        elif p[0] == "property" and elements:
+            elements[-1][2].append(p[1:])
+    if fmt not in ("ascii", "binary_little_endian"):
+        raise FlowBSDFError(f"PLY format {fmt!r} not supported (ascii or binary_little_endian)", path)
+    try:
+        verts, faces = _ply_body(body, fmt, elements)
+    except (ValueError, IndexError, KeyError) as e:
+        raise FlowBSDFError(f"broken PLY data ({e})", path) from None
+    if verts is None or faces is None or len(faces) == 0:
+        raise FlowBSDFError("PLY file needs vertex x, y, z and a face element", path)
+    v = np.stack([verts[k] for k in "xyz"], axis=1).astype(float)
+    n = np.stack([verts[k] for k in ("nx", "ny", "nz")], axis=1).astype(float) \
+        if all(k in verts for k in ("nx", "ny", "nz")) else None
+    f = np.array(faces)
+    if f.max() >= len(v) or f.min() < 0:
+        raise FlowBSDFError("a face refers to a vertex that does not exist", path)
+    return Mesh(v, f, None if n is None else _unit(n))
+
+
+def _ply_body(body, fmt, elements):
+    verts = faces = None
+    if fmt == "ascii":
+        tokens = body.decode("ascii").split()
+        pos = 0
+        for name, count, props in elements:
+            rows = []
+            for _ in range(count):
+                row = {}
+                for prop in props:
+                    if prop[0] == "list":
+                        k = int(tokens[pos])
+                        row[prop[3]] = [int(x) for x in tokens[pos + 1:pos + 1 + k]]
+                        pos += 1 + k
+                    else:
+                        row[prop[1]] = float(tokens[pos])
+                        pos += 1
+                rows.append(row)
+            if name == "vertex":
+                verts = {p[1]: np.array([r[p[1]] for r in rows]) for p in props if p[0] != "list"}
+            elif name == "face":
+                faces = _fan([r[props[0][3]] for r in rows])
+        return verts, faces
+    pos = 0
+    for name, count, props in elements:
+        if all(p[0] != "list" for p in props):
+            dt = np.dtype([(p[1], "<" + _PLY_TYPES[p[0]]) for p in props])
+            arr = np.frombuffer(body, dt, count, pos)
+            pos += count * dt.itemsize
+            if name == "vertex":
+                verts = {k: arr[k] for k in arr.dtype.names}
+        else:
+            polys = []
+            for _ in range(count):
+                row = None
+                for p in props:
+                    if p[0] == "list":
+                        ct, it = np.dtype("<" + _PLY_TYPES[p[1]]), np.dtype("<" + _PLY_TYPES[p[2]])
+                        k = int(np.frombuffer(body, ct, 1, pos)[0])
+                        pos += ct.itemsize
+                        vals = np.frombuffer(body, it, k, pos)
+                        pos += k * it.itemsize
+                        if row is None:
+                            row = vals.tolist()
+                    else:
+                        pos += np.dtype(_PLY_TYPES[p[0]]).itemsize
+                polys.append(row)
+            if name == "face":
+                faces = _fan(polys)
+    return verts, faces
+
+
+def _fan(polys):
+    out = []
+    for p in polys:
+        if len(p) < 3:
+            raise ValueError("a face needs at least 3 vertices")
+        out += [[p[0], p[k], p[k + 1]] for k in range(1, len(p) - 1)]
+    return out
+
+
+def transform_mesh(mesh, scale=1.0, rotate_z=0.0, translate=(0, 0, 0)):
+    s = np.broadcast_to(np.asarray(scale, float), (3,))
+    a = np.radians(rotate_z)
+    R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    v = (mesh.vertices * s) @ R.T + np.asarray(translate, float)
+    n = None if mesh.normals is None else _unit((mesh.normals / s) @ R.T)
+    return Mesh(v, mesh.faces, n)
+
+
+# --------------------------------------------------------------------------- parsing
+
+def _bad(path, problem):
+    raise FlowBSDFError(problem, path)
+
+
+def _vec(path, where, value, n=3, positive=False):
+    try:
+        arr = np.broadcast_to(np.asarray(value, float), (n,)).copy() if np.ndim(value) == 0 \
+            else np.asarray(value, float)
+    except (TypeError, ValueError):
+        _bad(path, f"{where}: expected {n} numbers, got {value!r}")
+    if arr.shape != (n,) or not np.all(np.isfinite(arr)):
+        _bad(path, f"{where}: expected {n} finite numbers, got {value!r}")
+    if positive and np.any(arr < 0):
+        _bad(path, f"{where}: values must be >= 0, got {value!r}")
+    return arr
+
+
+def _num(path, where, value, lo=None):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+        _bad(path, f"{where}: expected a number, got {value!r}")
+    if lo is not None and value <= lo:
+        _bad(path, f"{where}: must be > {lo}, got {value!r}")
+    return float(value)
+
+
+def _keys(path, where, table, allowed, required=()):
+    if not isinstance(table, dict):
+        _bad(path, f"{where} must be a table")
+    unknown = sorted(set(table) - set(allowed))
+    if unknown:
+        _bad(path, f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join(sorted(allowed))})")
+    for k in required:
+        if k not in table:
+            _bad(path, f"{where}: missing key {k!r}")
+
+
+def load_scene(spec, manifest=None, material=None):
+    """A Scene from a file path or `builtin:NAME`. manifest: a bake Manifest (or its path),
+    needed when the scene names manifest materials. material: for built-ins, the manifest
+    name or Material put on the ball."""
+    if isinstance(spec, str) and spec.startswith("builtin:"):
+        return builtin_scene(spec[len("builtin:"):], material=material, manifest=manifest)
+    path = Path(spec)
+    if not path.is_file():
+        raise FlowBSDFError("scene file not found", path)
+    text = path.read_bytes()
+    try:
+        if path.suffix.lower() == ".json":
+            data = json.loads(text.decode("utf-8"))
+        elif path.suffix.lower() == ".toml":
+            data = tomllib.loads(text.decode("utf-8"))
+        else:
+            raise FlowBSDFError("scene files end in .toml or .json", path)
+    except UnicodeDecodeError:
+        raise FlowBSDFError("scene file is not UTF-8 text", path) from None
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as e:
+        raise FlowBSDFError(f"not valid {path.suffix[1:].upper()}: {e}", path) from None
+    return scene_from_dict(data, path, manifest=manifest)
+
+
+def _manifest(manifest, path):
+    if manifest is None:
+        manifest = Path("manifest.toml")
+    if isinstance(manifest, (str, Path)):
+        from ..manifest import load_manifest
+        manifest = load_manifest(manifest)
+    return manifest
+
+
+def _material(path, name, spec, manifest_holder):
+    where = f"materials.{name}"
+    if not isinstance(spec, dict):
+        _bad(path, f"{where} must be a table")
+    if "manifest" in spec:
+        _keys(path, where, spec, {"manifest"})
+        mname = spec["manifest"]
+        manifest = manifest_holder()
+        chosen = [e for e in manifest.materials if e.name == mname]
+        if not chosen:
+            _bad(path, f"{where}: no material {mname!r} in the manifest {manifest.path} "
+                       f"(have: {', '.join(e.name for e in manifest.materials)})")
+        entry = chosen[0]
+        if entry.missing():
+            _bad(path, f"{where}: the source file of manifest material {mname!r} is absent "
+                       f"({entry.source_path()})")
+        return SceneMaterial(name, entry.open(), learned=True, entry=entry)
+    spec = dict(spec)
+    sampler = spec.pop("sampler", None)
+    if sampler is not None and sampler not in INLINE_SAMPLERS:
+        _bad(path, f"{where}: sampler must be one of {', '.join(INLINE_SAMPLERS)}, not {sampler!r}")
+    if "model" not in spec:
+        _bad(path, f"{where}: needs 'manifest = NAME' or an analytic 'model'")
+    from ..materials.analytic import from_spec
+    try:
+        mat = from_spec({**spec, "kind": "analytic"}, _where=where)
+    except FlowBSDFError as e:
+        _bad(path, e.problem)
+    if sampler is None:
+        sampler = "cosine" if spec["model"] == "lambert" else "ggx"
+    return SceneMaterial(name, mat, learned=sampler == "render", sampler=sampler)
+
+
+def scene_from_dict(data, path="<scene>", manifest=None):
+    path = Path(path)
+    _keys(path, "top level", data, {"camera", "materials", "shape", "light", "render"},
+          ("camera", "materials", "shape"))
+    cam = data["camera"]
+    _keys(path, "camera", cam, {"position", "look_at", "up", "fov", "width", "height"},
+          ("position", "look_at"))
+    width, height = cam.get("width", 128), cam.get("height", 128)
+    for k, v in (("width", width), ("height", height)):
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 16384:
+            _bad(path, f"camera.{k}: expected a whole number of pixels in 1..16384, got {v!r}")
+    fov = _num(path, "camera.fov", cam.get("fov", 30.0), lo=0)
+    if fov >= 179:
+        _bad(path, f"camera.fov: must be below 179 degrees, got {fov}")
+    camera = Camera(_vec(path, "camera.position", cam["position"]), _vec(path, "camera.look_at", cam["look_at"]),
+                    _vec(path, "camera.up", cam.get("up", [0, 0, 1])), fov, width, height)
+    f = camera.look_at - camera.position
+    if np.linalg.norm(f) == 0 or np.linalg.norm(np.cross(f, camera.up)) < 1e-9 * np.linalg.norm(f):
+        _bad(path, "camera: look_at must differ from position and not be parallel to up")
+
+    mats = data["materials"]
+    if not isinstance(mats, dict) or not mats:
+        _bad(path, "materials: needs at least one [materials.NAME] table")
+    holder = {}
+
+    def manifest_holder():
+        if "m" not in holder:
+            holder["m"] = _manifest(manifest, path)
+        return holder["m"]
+
+    materials = [_material(path, name, spec, manifest_holder) for name, spec in mats.items()]
+    index = {m.name: i for i, m in enumerate(materials)}
+
+    lights = []
+    light_list = data.get("light", [])
+    if not isinstance(light_list, list):
+        _bad(path, "light: use [[light]] entries")
+    for i, ls in enumerate(light_list, 1):
+        lights.append(_light(path, f"light #{i}", ls))
+    if sum(isinstance(l, Environment) for l in lights) > 1:
+        _bad(path, "at most one environment light")
+    render = data.get("render", {})
+    _keys(path, "render", render, {"max_depth"})
+    max_depth = render.get("max_depth", 12)
+    if isinstance(max_depth, bool) or not isinstance(max_depth, int) or max_depth < 1:
+        _bad(path, f"render.max_depth: expected a whole number >= 1, got {max_depth!r}")
+    scene = Scene(camera, materials, lights, path=path, max_depth=max_depth)
+
+    shapes = data["shape"]
+    if not isinstance(shapes, list) or not shapes:
+        _bad(path, "shape: needs at least one [[shape]] entry")
+    for i, sh in enumerate(shapes, 1):
+        _shape(path, f"shape #{i}", sh, scene, index)
+    return scene.finish()
+
+
+def _shape(path, where, sh, scene, index):
+    if not isinstance(sh, dict):
+        _bad(path, f"{where} must be a table")
+    kind = sh.get("type")
+    common = {"type", "material", "tangent"}
+    allowed = {"mesh": {"file", "translate", "scale", "rotate_z"}, "shaderball": {"translate", "scale"},
+               "sphere": {"center", "radius"}, "plane": {"point", "normal", "size"}}
+    if kind not in allowed:
+        _bad(path, f"{where}: type must be one of {', '.join(allowed)}, not {kind!r}")
+    required = {"mesh": ("file",), "shaderball": (), "sphere": ("center", "radius"), "plane": ("point", "normal")}
+    _keys(path, f"{where} ({kind})", sh, common | allowed[kind], ("material",) + required[kind])
+    mname = sh["material"]
+    if mname not in index:
+        _bad(path, f"{where}: material {mname!r} is not defined under [materials] "
+                   f"(have: {', '.join(index)})")
+    mat = index[mname]
+    tangent = _vec(path, f"{where}.tangent", sh.get("tangent", [1, 0, 0]))
+    if kind == "shaderball":
+        scale = _num(path, f"{where}.scale", sh.get("scale", 1.0), lo=0)
+        scene.add_lathe(SHADERBALL, mat, _vec(path, f"{where}.translate", sh.get("translate", [0, 0, 0])),
+                        scale, tangent)
+    elif kind == "mesh":
+        if True:
+            file = Path(sh["file"]) if Path(sh["file"]).is_absolute() else path.parent / sh["file"]
+            suffix = file.suffix.lower()
+            if suffix == ".obj":
+                mesh = load_obj(file)
+            elif suffix == ".ply":
+                mesh = load_ply(file)
+            else:
+                _bad(path, f"{where}: mesh files must be .obj or .ply, not {file.name!r}")
+        scale = sh.get("scale", 1.0)
+        scale = _vec(path, f"{where}.scale", scale)
+        if np.any(scale <= 0):
+            _bad(path, f"{where}.scale: must be > 0")
+        mesh = transform_mesh(mesh, scale, _num(path, f"{where}.rotate_z", sh.get("rotate_z", 0.0)),
+                              _vec(path, f"{where}.translate", sh.get("translate", [0, 0, 0])))
+        scene.add_mesh(mesh, mat, tangent)
+    elif kind == "sphere":
+        scene.add_sphere(_vec(path, f"{where}.center", sh["center"]), _num(path, f"{where}.radius", sh["radius"], lo=0),
+                         mat, tangent)
+    else:
+        n = _vec(path, f"{where}.normal", sh["normal"])
+        if np.linalg.norm(n) == 0:
+            _bad(path, f"{where}.normal: must not be zero")
+        size = _num(path, f"{where}.size", sh["size"], lo=0) if "size" in sh else np.inf
+        scene.add_plane(_vec(path, f"{where}.point", sh["point"]), n, mat, size, tangent)
+
+
+def _light(path, where, ls):
+    if not isinstance(ls, dict):
+        _bad(path, f"{where} must be a table")
+    kind = ls.get("type")
+    if kind == "environment":
+        _keys(path, where, ls, {"type", "file", "sky", "constant", "strength", "rotate_z"})
+        given = [k for k in ("file", "sky", "constant") if k in ls]
+        if len(given) != 1:
+            _bad(path, f"{where}: an environment needs exactly one of file, sky, constant")
+        strength = _num(path, f"{where}.strength", ls.get("strength", 1.0))
+        if strength < 0:
+            _bad(path, f"{where}.strength: must be >= 0")
+        if "file" in ls:
+            file = Path(ls["file"]) if Path(ls["file"]).is_absolute() else path.parent / ls["file"]
+            image = read_image(file)
+        elif "sky" in ls:
+            sky = ls["sky"]
+            keys = {"sun_elevation", "sun_azimuth", "sun_size", "sun_strength", "zenith", "horizon", "ground"}
+            _keys(path, f"{where}.sky", sky, keys)
+            args = {}
+            for k, v in sky.items():
+                args[k] = _vec(path, f"{where}.sky.{k}", v, positive=True) if k in ("zenith", "horizon", "ground") \
+                    else _num(path, f"{where}.sky.{k}", v)
+            if args.get("sun_size", 1) <= 0 or args.get("sun_strength", 0) < 0:
+                _bad(path, f"{where}.sky: sun_size must be > 0 and sun_strength >= 0")
+            image = sky_image(**args)
+        else:
+            image = _vec(path, f"{where}.constant", ls["constant"], positive=True)[None, None, :]
+        return Environment(image, strength, _num(path, f"{where}.rotate_z", ls.get("rotate_z", 0.0)))
+    if kind == "point":
+        _keys(path, where, ls, {"type", "position", "intensity"}, ("position", "intensity"))
+        return PointLight(_vec(path, f"{where}.position", ls["position"]),
+                          _vec(path, f"{where}.intensity", ls["intensity"], positive=True))
+    if kind == "quad":
+        _keys(path, where, ls, {"type", "corner", "edge1", "edge2", "radiance"},
+              ("corner", "edge1", "edge2", "radiance"))
+        e1, e2 = _vec(path, f"{where}.edge1", ls["edge1"]), _vec(path, f"{where}.edge2", ls["edge2"])
+        if np.linalg.norm(np.cross(e1, e2)) == 0:
+            _bad(path, f"{where}: edge1 and edge2 span no area")
+        return QuadLight(_vec(path, f"{where}.corner", ls["corner"]), e1, e2,
+                         _vec(path, f"{where}.radiance", ls["radiance"], positive=True))
+    _bad(path, f"{where}: type must be environment, point or quad, not {kind!r}")
+
+
+# --------------------------------------------------------------------------- built-ins
+
+def builtin_scene(name, material=None, manifest=None, width=128, height=128):
+    """The paper-like setups. material: a manifest name, a Material, or None (the
+    manifest's 'red_plastic' if there, else an inline plastic)."""
+    if name not in BUILTINS:
+        raise FlowBSDFError(f"unknown built-in scene {name!r} (have: {', '.join(BUILTINS)})")
+    camera = Camera(np.array([0.0, -4.2, 1.9]), np.array([0.0, 0.0, 0.72]), fov=30.0, width=width, height=height)
+    ball = _builtin_material(material, manifest)
+    if name == "shaderball-env":
+        lights = [Environment(sky_image())]
+        mats = [ball]
+    else:
+        lights = [PointLight([2.0, -2.5, 4.0], [30.0, 30.0, 30.0])]
+        from ..materials.analytic import from_spec
+        mats = [ball, SceneMaterial("floor", from_spec({"model": "lambert", "albedo": 0.5}),
+                                    learned=False, sampler="cosine")]
+    scene = Scene(camera, mats, lights, path=f"builtin:{name}")
+    scene.add_lathe(SHADERBALL, 0)
+    if name == "shaderball-point":
+        scene.add_plane([0, 0, 0], [0, 0, 1], 1, size=12.0)
+    return scene.finish()
+
+
+def _builtin_material(material, manifest):
+    from ..materials.base import Material
+    if isinstance(material, Material):
+        return SceneMaterial(getattr(material, "name", "ball"), material, learned=True)
+    if isinstance(material, SceneMaterial):
+        return material
+    m = _manifest(manifest, None)
+    name = material or "red_plastic"
+    chosen = [e for e in m.materials if e.name == name]
+    if not chosen:
+        raise FlowBSDFError(f"no material {name!r} in the manifest (have: "
+                            f"{', '.join(e.name for e in m.materials)})", m.path)
+    entry = chosen[0]
+    if entry.missing():
+        raise FlowBSDFError(f"the source of material {name!r} is absent ({entry.source_path()})", m.path)
+    return SceneMaterial(name, entry.open(), learned=True, entry=entry)
