@@ -105,6 +105,10 @@ def build_parser():
     m.add_argument("--samples", type=int, default=None)
 
     sub.add_parser("train", help="train flow models (python -m trainer train --help)", add_help=False)
+    from .stress import add_parser as add_stress
+    add_stress(sub)
+    from .tracer.commands import add_commands as add_tracer_commands   # render, compare
+    add_tracer_commands(sub)
     return p
 
 

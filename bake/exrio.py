@@ -26,12 +26,19 @@ def write_exr(path, arrays, meta):
         if i == 0:
             header[META_KEY] = json.dumps(meta, sort_keys=True)
         parts.append(OpenEXR.Part(header, {"Y": array}, name=name))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as e:
+        raise FlowBSDFError(f"cannot write the table file: {e.strerror or e} ({e.filename or path.parent})",
+                            path) from None
     os.close(fd)
     try:
         OpenEXR.File(parts).write(tmp)
         os.replace(tmp, path)
+    except OSError as e:
+        Path(tmp).unlink(missing_ok=True)
+        raise FlowBSDFError(f"cannot write the table file: {e.strerror or e}", path) from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -56,6 +63,8 @@ def read_exr(path):
         meta = json.loads(raw)
     except (TypeError, ValueError):
         raise FlowBSDFError("table metadata is not valid JSON", path) from None
+    if not isinstance(meta, dict):
+        raise FlowBSDFError(f"table metadata is not a JSON object (got {type(meta).__name__})", path)
     for name, a in arrays.items():
         if a.dtype != np.float32:
             raise FlowBSDFError(f"part {name!r} is {a.dtype}, tables are float32", path)

@@ -298,10 +298,11 @@ class DiskMap:
         wo = np.asarray(wo, dtype=np.float64)
         n2 = np.sum(wo * wo, axis=-1)
         r2 = (wo[..., 0] ** 2 + wo[..., 1] ** 2) / n2
-        c2 = wo[..., 2] ** 2 / n2
         small = r2 < 0.5
         with np.errstate(divide="ignore", invalid="ignore"):
-            q = -2.0 * np.where(small, np.log1p(-np.where(small, r2, 0.0)), np.log(c2))   # rho²
+            # log(cos² theta) from log|z|: z² underflows to 0 (rho = inf, pdf NaN) for z < 1e-154
+            log_c2 = 2.0 * np.log(np.abs(wo[..., 2])) - np.log(n2)
+            q = -2.0 * np.where(small, np.log1p(-np.where(small, r2, 0.0)), log_c2)   # rho²
             ratio = np.where(r2 > 1e-300, np.sqrt(q / np.where(r2 > 1e-300, r2, 1.0)), math.sqrt(2.0))
         return wo[..., :2] / np.sqrt(n2)[..., None] * ratio[..., None]
 
@@ -349,6 +350,10 @@ class SphericalMap:
         n2 = np.sum(wo * wo, axis=-1)
         s2 = (wo[..., 0] ** 2 + wo[..., 1] ** 2) / n2
         c2 = wo[..., 2] ** 2 / n2
+        # z > 0 with z² below the smallest normal (z < 1.5e-154) would give s = inf or NaN and a NaN
+        # pdf: take the smallest normal instead (s = 37.5; the density there is < 1e-300 either way).
+        tiny = np.finfo(np.float64).tiny
+        c2 = np.where((c2 < tiny) & (wo[..., 2] != 0), tiny, c2)
         s = np.where(s2 <= 0.5, ndtri(s2), -ndtri(c2))
         return np.stack([s, np.arctan2(wo[..., 1], wo[..., 0])], axis=-1)
 

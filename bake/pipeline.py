@@ -47,7 +47,33 @@ def bake_settings(entry, manifest_path):
     source = settings.setdefault("source", "auto")
     if source not in SOURCES:
         raise FlowBSDFError(f"material {entry.name!r}: bake source must be one of {SOURCES}", manifest_path)
+    for key, value in settings.items():
+        problem = _check_setting(key, value)
+        if problem:
+            raise FlowBSDFError(f"material {entry.name!r}: bake setting {key} = {value!r} {problem}",
+                                manifest_path)
     return settings
+
+
+# Limits of the numeric bake settings: (type, low, high). A typo like resolution = 1e9 must be
+# an error, not a bake that asks for terabytes.
+SETTING_LIMITS = {"resolution": (int, 2, 1024), "grid": (int, 8, 4096), "samples": (int, 64, 1 << 24),
+                  "first_bins": (int, 2, 512), "ideal_resolution": (int, 8, 2048),
+                  "memory_budget": (int, 1 << 10, 1 << 34), "tol": (float, 0.0, 10.0),
+                  "lobe_width": (float, 0.0, 1.6)}
+
+
+def _check_setting(key, value):
+    """Why a bake setting's value is unusable, or None."""
+    if key not in SETTING_LIMITS or (key == "lobe_width" and value == "auto"):
+        return None
+    kind, lo, hi = SETTING_LIMITS[key]
+    ok_type = isinstance(value, int) if kind is int else isinstance(value, (int, float))
+    if isinstance(value, bool) or not ok_type:
+        return f"must be {'an integer' if kind is int else 'a number'}"
+    if not (lo < value <= hi if kind is float else lo <= value <= hi):
+        return f"is out of range ({'(' if kind is float else '['}{lo}, {hi}])"
+    return None
 
 
 def inputs_of(material, settings, model_file):

@@ -267,8 +267,18 @@ def open_tables(path):
         K, R, C = len(meta["theta_bins"]), int(meta["rows"]), int(meta["cols"])
         a, b, w = arrays["a_edges"], arrays["b_edges"], arrays["weights"]
         cells = [arrays[n] for n in Tables.ARRAYS]
-    except (KeyError, TypeError, ValueError) as e:
-        raise FlowBSDFError(f"table file is missing {e}", path) from None
+    except KeyError as e:
+        raise FlowBSDFError(f"table file is incomplete (truncated or damaged?): {e} is missing", path) from None
+    except (TypeError, ValueError) as e:
+        raise FlowBSDFError(f"table metadata is malformed: {e}", path) from None
+    try:
+        bins = np.asarray(meta["theta_bins"], np.float64)
+    except (TypeError, ValueError):
+        bins = np.array([np.nan])
+    if (bins.ndim != 1 or K < 1 or not np.all(np.isfinite(bins)) or np.any(np.diff(bins) <= 0)
+            or bins[0] < 0 or bins[-1] > 0.5 * np.pi):
+        raise FlowBSDFError(f"theta_bins {meta['theta_bins']!r} must be increasing elevations in "
+                            "[0, pi/2]: corrupt file", path)
     shapes = [a.shape, b.shape, w.shape] + [c.shape for c in cells]
     if shapes != [(K, R + 1), (K * R, C + 1), (K * R, C * 3)] + [(K * R, C)] * len(cells):
         raise FlowBSDFError(f"table shapes {shapes} do not match {K} bins of {R}x{C}", path)

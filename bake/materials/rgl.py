@@ -146,6 +146,13 @@ def _check_rgl(f, path):
     for name in ("theta_i", "phi_i"):
         if np.any(np.diff(f[name]) <= 0):
             raise FlowBSDFError(f"field {name!r} must be strictly increasing, got {f[name].tolist()}", path)
+    if n_phi > 2:
+        # Mitsuba mirrors wi into the measured range by the symmetry 2 pi / span (1, 2 or 4);
+        # any other span has no such symmetry and would be evaluated wrongly.
+        span = float(f["phi_i"][-1]) - float(f["phi_i"][0])
+        if int(np.rint(2 * np.pi / span)) not in (1, 2, 4):
+            raise FlowBSDFError(f"field 'phi_i' spans {span:.4g} rad: an anisotropic RGL file covers the "
+                                "whole, half or quarter circle", path)
     for name in ("ndf", "sigma"):
         shape = expect(name, 2)
         if min(shape) < 2:
