@@ -20,14 +20,12 @@ equal to `albedo` unless ks or kd hit a bound).
 baseline the acceptance script compares against).
 """
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .errors import FlowBSDFError
-from .hashing import file_hash
+from .files import atomic_path, file_hash
 from .geometry import luminance
 from .materials.analytic import ggx_ndf, ggx_lambda, ggx_reflection_pdf, ggx_sample_reflection
 from .tables import open_tables
@@ -216,14 +214,8 @@ def ensure_fit(tables_path, log=None):
     fit = fit_closures(open_tables(tables_path))
     fit["tables_hash"] = digest
     fit["tables"] = tables_path.name
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(fit, f, indent=1)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(json.dumps(fit, indent=1))
     if log:
         log(f"[fit] wrote {path} (max relative error {max(fit['rel_error']):.3f})")
     return path

@@ -1,12 +1,11 @@
 """Float32 OpenEXR files of named 2D arrays plus JSON metadata, written atomically."""
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .errors import FlowBSDFError
+from .files import atomic_path
 
 META_KEY = "flowbsdf"
 
@@ -27,21 +26,11 @@ def write_exr(path, arrays, meta):
             header[META_KEY] = json.dumps(meta, sort_keys=True)
         parts.append(OpenEXR.Part(header, {"Y": array}, name=name))
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        with atomic_path(path) as tmp:
+            OpenEXR.File(parts).write(tmp)
     except OSError as e:
-        raise FlowBSDFError(f"cannot write the table file: {e.strerror or e} ({e.filename or path.parent})",
-                            path) from None
-    os.close(fd)
-    try:
-        OpenEXR.File(parts).write(tmp)
-        os.replace(tmp, path)
-    except OSError as e:
-        Path(tmp).unlink(missing_ok=True)
-        raise FlowBSDFError(f"cannot write the table file: {e.strerror or e}", path) from None
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        where = f" ({e.filename})" if getattr(e, "filename", None) else ""
+        raise FlowBSDFError(f"cannot write the table file: {e.strerror or e}{where}", path) from None
 
 
 def read_exr(path):

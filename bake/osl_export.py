@@ -27,14 +27,12 @@ file (OpenImageIO caches textures by name, so a rewritten file of the same name 
 served stale inside a running Blender), and older exports of the same tables are removed.
 """
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .errors import FlowBSDFError
-from .hashing import file_hash
+from .files import atomic_path, file_hash
 from .tables import open_tables
 
 LAYOUT = 1
@@ -73,15 +71,8 @@ def _write(path, img, meta):
     import OpenEXR
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
               META_KEY: json.dumps(meta, sort_keys=True)}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         OpenEXR.File(header, {"RGB": np.ascontiguousarray(img)}).write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def read_export(path):

@@ -3,6 +3,8 @@
 Layout of an output folder:
     <out>/models/<name>.flow.npz     trained flows (flowbsdf train)
     <out>/tables/<name>.exr          baked tables (flowbsdf bake)
+    <out>/tables/<name>.osl-<hash>.exr, <name>.fit.json   what the Blender node reads beside
+                                     them (bake/osl_export.py, bake/closure_fit.py)
 A table file records the hash of its inputs (material content, model file, bake settings,
 table format); a bake whose inputs hash matches the file on disk is skipped, any change
 rebuilds it, and a stale file is never used (`open_current_tables`).
@@ -13,6 +15,7 @@ import time
 from pathlib import Path
 
 from .errors import FlowBSDFError
+from .files import file_hash, remove_stale_temps
 from .tables import FORMAT_VERSION, open_tables
 
 # Bumped when the construction changes in a way that should rebuild existing tables.
@@ -28,14 +31,6 @@ def model_path(out_dir, name):
 
 def table_path(out_dir, name):
     return Path(out_dir) / "tables" / f"{name}.exr"
-
-
-def _file_hash(path):
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def bake_settings(entry, manifest_path):
@@ -79,7 +74,7 @@ def _check_setting(key, value):
 def inputs_of(material, settings, model_file):
     """What a table depends on, and its hash."""
     inputs = {"material": material.fingerprint(), "settings": settings,
-              "model": _file_hash(model_file) if model_file else None,
+              "model": file_hash(model_file) if model_file else None,
               "format": FORMAT_VERSION, "builder": BUILDER_VERSION}
     return inputs, hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()
 
@@ -123,17 +118,22 @@ def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
                          log=lambda s: log(f"[bake] {entry.name}: {s}"), **options)
     tables.meta.update(material=entry.name, source=used, inputs=inputs, inputs_hash=digest,
                        seconds=round(time.perf_counter() - t0, 1), nbytes=tables.nbytes)
+    remove_stale_temps(path)
     tables.save(path)
     return path, "baked"
 
 
 def bake_manifest(manifest, out_dir, name=None, force=False, log=print):
-    """Bake every selected entry; returns the paths written. Failures are reported per
-    material and raised together at the end, so one bad material does not stop the rest."""
+    """Bake every selected entry (tables, then their OSL texture and closure fit); returns the
+    table paths written. Failures are reported per material and raised together at the end,
+    so one bad material does not stop the rest."""
+    from .osl_export import bake_derived
     written, failures = [], []
     for entry in manifest.select(name, log=log):
         try:
             path, status = bake_entry(entry, out_dir, manifest.path, force=force, log=log)
+            if path is not None:    # what the Blender node needs beside the tables
+                bake_derived(path, log=log)
         except FlowBSDFError as e:
             failures.append(f"{entry.name}: {e}")
             log(f"[fail] {entry.name}: {e}")

@@ -22,7 +22,6 @@ tests/test_hard_cases.py runs the same cases with modest counts.
 """
 import json
 import math
-import os
 import struct
 import subprocess
 import sys
@@ -33,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .geometry import luminance, normalize, reflect
+from .geometry import luminance, reflect
 from .materials import open_material
 from .materials.base import Material, as_dirs
 

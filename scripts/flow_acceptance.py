@@ -11,7 +11,6 @@ fold fraction, and the chi-square test of sample() against pdf() (1e5 samples, 1
 half-vector bins, Šidák over all cells). Prints and writes a Markdown table.
 """
 import argparse
-import json
 import subprocess
 import sys
 import time

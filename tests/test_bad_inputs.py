@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from bake.errors import FlowBSDFError
-from bake.flow import load_model, save_model
+from bake.flow import load_model
 from bake.manifest import load_manifest
 from bake.materials import open_material
 from bake.materials.merl import DIMS, N_BINS
@@ -431,7 +431,10 @@ def test_cli_reports_bad_inputs_without_traceback(tmp_path):
     assert "Traceback" not in r.stderr
     assert str(bad) in r.stderr and "bad magic" in r.stderr
     out = tmp_path / "out"
-    assert _listing(out) == ["tables", "tables/good.exr"], "one bad material stopped the others, or debris"
+    listing = _listing(out)
+    # the good material's tables and what the Blender node reads beside them, nothing else
+    assert listing[:3] == ["tables", "tables/good.exr", "tables/good.fit.json"], listing
+    assert len(listing) == 4 and re.fullmatch(r"tables/good\.osl-[0-9a-f]{12}\.exr", listing[3]), listing
     open_tables(table_path(out, "good"))
 
 

@@ -82,3 +82,23 @@ def test_unknown_bake_setting(tmp_path):
     m = manifest(tmp_path, bake="bake = { resolutoin = 16 }")
     with pytest.raises(FlowBSDFError, match="unknown bake setting.*resolutoin"):
         bake_manifest(m, tmp_path / "out", log=lambda *_: None)
+
+
+def test_bake_writes_readable_files_and_the_node_products_and_clears_dead_temporaries(tmp_path):
+    import os
+    import time
+    out = tmp_path / "out"
+    m = manifest(tmp_path)
+    path = table_path(out, "matte")
+    path.parent.mkdir(parents=True)
+    dead = path.parent / f".{path.name}.abc123.tmp"          # what a bake killed mid-write leaves
+    dead.write_bytes(b"half a file")
+    old = time.time() - 3600
+    os.utime(dead, (old, old))
+    bake_manifest(m, out, log=lambda *_: None)
+    assert not dead.exists()
+    mask = os.umask(0)
+    os.umask(mask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~mask, oct(path.stat().st_mode)   # not mkstemp's 0600
+    names = sorted(p.name for p in path.parent.iterdir())
+    assert names[:2] == ["matte.exr", "matte.fit.json"] and names[2].startswith("matte.osl-"), names

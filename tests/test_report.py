@@ -11,7 +11,7 @@ from bake.materials import open_material
 from bake.baselines import CosineSampler, fit_ggx
 from bake.bench import samples_per_second, single_thread_env
 from bake.errors import FlowBSDFError
-from bake.geometry import incident, normalize, spherical_dir
+from bake.geometry import incident, spherical_dir
 from bake.ideal import IdealSampler
 from bake.metrics import chi2_test, relative_variance
 from bake.report import (SPEED_ERROR_FIELDS, plot_pdf_slices, plot_target, speed_error_rows,

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from bake.errors import FlowBSDFError
-from bake.geometry import incident, luminance
+from bake.geometry import incident
 from bake.ideal import IdealSampler
 from bake.materials import open_material
 from bake.metrics import chi2_test, relative_variance

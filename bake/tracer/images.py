@@ -1,28 +1,18 @@
 """Image files and image metrics: RGB EXR in/out, PNG out (zlib, no extra packages),
 tone mapping, false-colour error maps, MSE / MAE / SSIM."""
-import os
 import struct
-import tempfile
 import zlib
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import FlowBSDFError
+from ..files import atomic_path
 from ..geometry import LUMINANCE
 
 
 def _atomic(path, write):
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def write_exr(path, image, header=None):
