@@ -140,11 +140,43 @@ def _moments(material, wi, phi_ref, a0, a1, b0, b1, q, chunk=1 << 18):
     return mass, mx, my, rgb
 
 
-def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, rtol=0.02, q_max=64):
+def _moments_around(material, wi, phi_ref, a0, a1, b0, b1, box, q):
+    """Like _moments, with each cell cut at the box (lo_a, hi_a, lo_b, hi_b) that holds its
+    source points, widened a little: up to 3 x 3 pieces, each with its own q x q rule, so
+    that a sliver of mass at a hard edge inside a wide cell gets nodes of its own."""
+    lo_a, hi_a, lo_b, hi_b = box
+    cuts = []
+    for lo, hi, e0, e1 in ((lo_a, hi_a, a0, a1), (lo_b, hi_b, b0, b1)):
+        pad = np.maximum(0.5 * (hi - lo), 1e-3 * (e1 - e0))
+        inner0, inner1 = np.clip(lo - pad, e0, e1), np.clip(hi + pad, e0, e1)
+        cuts.append([e0, inner0, inner1, e1])
+    n = len(a0)
+    mass, mx, my, rgb = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, 3))
+    for i in range(3):
+        for j in range(3):
+            pa0, pa1 = cuts[0][i], cuts[0][i + 1]
+            pb0, pb1 = cuts[1][j], cuts[1][j + 1]
+            ok = np.flatnonzero((pa1 > pa0) & (pb1 > pb0))
+            if not len(ok):
+                continue
+            m, x, y, c = _moments(material, wi, phi_ref, pa0[ok], pa1[ok], pb0[ok], pb1[ok], q)
+            # piece-local first moments -> cell-local ones
+            sa, sb = (pa1 - pa0)[ok] / (a1 - a0)[ok], (pb1 - pb0)[ok] / (b1 - b0)[ok]
+            oa, ob = (pa0 - a0)[ok] / (a1 - a0)[ok], (pb0 - b0)[ok] / (b1 - b0)[ok]
+            mass[ok] += m
+            mx[ok] += m * oa + x * sa
+            my[ok] += m * ob + y * sb
+            rgb[ok] += c
+    return mass, mx, my, rgb
+
+
+def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, box=None, rtol=0.02, q_max=64):
     """Cell moments by a midpoint rule refined (q, 2q, 4q, ...) per cell until two levels
     agree within rtol and the rule does not fall short of `point_mass` (the importance-
     sampled mass of the source points in the cell): a lobe flank that the coarse nodes
-    straddle is found by the points."""
+    straddle is found by the points. Cells still short at q_max (a sliver of mass at a hard
+    edge inside a wide cell) are integrated again around their points' `box` (per cell
+    lo_a, hi_a, lo_b, hi_b)."""
     rows, cols = b_edges.shape[0], b_edges.shape[1] - 1
     a_e, b_e = a_edges.astype(np.float64), b_edges.astype(np.float64)
     a0 = np.repeat(a_e[:-1], cols)
@@ -163,6 +195,14 @@ def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, rtol=0
         settled = (np.abs(new[0] - old_mass) <= rtol * new[0] + tiny) & \
             (point_mass[active] <= 1.5 * new[0] + tiny)
         active = active[~settled]
+    if box is not None and len(active):
+        short = active[point_mass[active] > 1.5 * out[0][active] + tiny]
+        short = short[np.isfinite(box[0][short])]
+        if len(short):
+            new = _moments_around(material, wi, phi_ref, a0[short], a1[short], b0[short], b1[short],
+                                  [x[short] for x in box], q)
+            for o, v in zip(out, new):
+                o[short] = v
     mass, mx, my, rgb = out
     with np.errstate(divide="ignore", invalid="ignore"):
         mx = np.where(mass > 0, mx / mass, 0.5)
@@ -193,8 +233,14 @@ def _finish_bin(material, wi, phi_ref, a_edges, b_edges, a, b, point_mass, quadr
     rows, cols = b_edges.shape[0], b_edges.shape[1] - 1
     row = np.clip(np.searchsorted(a_edges, a, side="right") - 1, 0, rows - 1)
     col = _find_cols(b_edges, row, b)
-    point_mass = np.bincount(row * cols + col, weights=point_mass, minlength=rows * cols)
-    mass, mx, my, rgb = _cell_moments(material, wi, a_edges, b_edges, phi_ref, quadrature, point_mass)
+    cell = row * cols + col
+    has = point_mass > 0
+    box = [np.full(rows * cols, sign * np.inf) for sign in (1, -1, 1, -1)]
+    for k, v in enumerate((a, b)):
+        np.minimum.at(box[2 * k], cell[has], v[has])
+        np.maximum.at(box[2 * k + 1], cell[has], v[has])
+    point_mass = np.bincount(cell, weights=point_mass, minlength=rows * cols)
+    mass, mx, my, rgb = _cell_moments(material, wi, a_edges, b_edges, phi_ref, quadrature, point_mass, box)
     # Exponential rates matching each cell's first moments along a and b.
     alpha, beta = exp_rate_for_mean(mx), exp_rate_for_mean(my)
     # A floor of uniform density keeps pdf > 0 everywhere, so the table never loses a

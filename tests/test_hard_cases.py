@@ -31,9 +31,8 @@ CHI2_N = 100_000
 # The default run covers these; the rest are marked slow (same checks).
 DEFAULT = {"mirror_a0.002", "aniso_1to50", "grazing_ggx_a0.05", "seam_ggx_a0.03", "near_black", "over_unity",
            "rgl_negative_empty_rows", "merl_invalid_empty_rows", "cap_10deg"}
-# Tables of hard-edged materials fail the chi-square and the albedo (pdf integrates to 1.009 at
-# cap 89 deg, albedo estimate 4 % low) although sample/pdf/invert agree pointwise: a finding for
-# the tables' owner, kept as strict xfails so that the fix shows.
+# Tables of hard-edged materials: the albedo was 4-6 % low (fixed in tabulate); their chi-square
+# still fails by a hair (expected-count integration), kept as a strict xfail so that a fix shows.
 HARD_EDGED = {"cap_10deg", "mirror_cone_8deg"}
 
 
@@ -137,10 +136,11 @@ def test_albedo_is_unbiased(samplers, workdir, name):
         assert truth > 2.0
 
 
-@pytest.mark.xfail(strict=True, reason="tables of hard-edged materials: pdf integrates to 1.009 (cap, 89 deg), "
-                   "chi-square fails, albedo 4 % low; sample/pdf/invert agree pointwise (issue 8 finding)")
 @pytest.mark.parametrize("name", sorted(HARD_EDGED))
-def test_tables_on_hard_edged_materials(samplers, workdir, name):
+def test_tables_on_hard_edged_materials_keep_their_albedo(samplers, workdir, name):
+    """A sliver of f·cos at a hard edge inside a wide cell was missed by the cell quadrature
+    (albedo 4-6 % low, weights of rare samples huge); tabulate now integrates such cells around
+    their source points."""
     from bake.geometry import luminance
     from bake.metrics import sample_weights
     case = CASES[name]
@@ -148,8 +148,18 @@ def test_tables_on_hard_edged_materials(samplers, workdir, name):
     wi = case.directions()[-1]
     truth = float(luminance(IdealSampler(case.open(workdir), resolution=256).albedo(wi)))
     w = sample_weights(case.open(workdir), tab, wi, N, seed=5)
-    r = chi2_test(tab, wi, n=CHI2_N, n_tests=N_CHI2, seed=11, binning="cosine")
-    assert r.passed and abs(w.mean() - truth) < 5 * w.std() / math.sqrt(N) + 0.01 * truth, (r, w.mean(), truth)
+    assert abs(w.mean() - truth) < 5 * w.std() / math.sqrt(N) + 0.01 * truth, (w.mean(), truth)
+
+
+@pytest.mark.xfail(strict=True, reason="chi2_test's expected counts on hard-edged tables are off by ~0.1 % "
+                   "(adaptive integration of a discontinuous pdf): p = 3e-4 (cap), 6e-6 (cone) although "
+                   "the albedo is right (issue 8 finding, open)")
+@pytest.mark.parametrize("name", sorted(HARD_EDGED))
+def test_tables_on_hard_edged_materials_chi2(samplers, name):
+    case = CASES[name]
+    r = chi2_test(samplers[name]["tables"], case.directions()[-1], n=CHI2_N, n_tests=N_CHI2, seed=11,
+                  binning="cosine")
+    assert r.passed, r
 
 
 def test_seam_samples_land_on_both_sides(samplers, workdir):
