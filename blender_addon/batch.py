@@ -14,11 +14,16 @@ MSE, SSIM and a side-by-side image in <out>/validate/). Options:
     --out DIR          output folder (default: the scene's, //flowbsdf)
     --material NAME    only this Blender material (repeatable)
     --save-as PATH     save there instead of over the opened file;  --no-save: do not save
-    --no-bind          bake only (a farm Blender that cannot build the node); nothing saved
+    --no-bind          bake only (tables, OSL textures, fits); nodes not bound, nothing saved
     --spp N, --size W  validate: Cycles' samples per pixel (the reference takes 4x), image width
 Every line printed ends with a newline; progress lines start with `[progress K/N]`, the
 add-on's own with `[flowbsdf]`. Exit code 0 on success, 1 on any failure (with an
 `[flowbsdf] error:` line saying what failed).
+
+The node binds in every supported Blender: where Blender's Python has no numpy and Cycles no
+OSL (Debian's 3.4), the worker's bake writes the fit and OSL texture, and the node reads the
+fit's JSON and holds the fit only (see node.py); a Blender that compiles OSL adds the OSL
+back end when it opens the saved file. Each bound material's back end is logged.
 """
 import argparse
 import os
@@ -46,7 +51,7 @@ def _parser():
     p.add_argument("--spp", type=int, default=None, help="validate: Cycles' samples (reference: 4x)")
     p.add_argument("--size", type=int, default=None, help="validate: image width in pixels")
     p.add_argument("--no-bind", action="store_true",
-                   help="bake only (e.g. on a farm Blender that cannot build the node); not saved")
+                   help="bake only: nodes not bound, file not saved")
     return p
 
 
@@ -121,6 +126,8 @@ def _run(args):
             return 0
         bound = jobs.bind(rows, statuses)
         log(f"bound {len(bound)} material(s): {', '.join(bound)}")
+        for line in _node_report(scene, rows):
+            log(line)
         if args.no_save:
             log("not saved (--no-save)")
         elif args.save_as:
@@ -156,6 +163,24 @@ def _validate(scene, args):
         return 1
     log(f"validate: MSE {result['mse']:.4g}, SSIM {result['ssim']:.4f}; side by side: {result['image']}")
     return 0
+
+
+def _node_report(scene, rows):
+    """One line per bound material: what its Learned BSDF node renders in this scene and Blender."""
+    from . import node
+    lines = []
+    for mat in dict.fromkeys(r["material"] for r in rows):
+        group = next((n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup"
+                      and n.node_tree is not None and node.TREE_KEY in n.node_tree.keys()), None)
+        if group is not None:
+            info = node._info(group.node_tree)
+            err = info.get("fit_error", -1.0)
+            fit = f"fit error {err:.3f}" if err >= 0 else "no fit"
+            problems = f"; problems: {info['problems']}" if info.get("problems") else ""
+            lines.append(f"{mat.name}: node {group.node_tree.name!r} renders {node.node_status(group, scene)}; "
+                         f"{fit}; OSL back end {'in the node' if info.get('has_osl') else 'not in the node'}"
+                         f"{problems}")
+    return lines
 
 
 def cli_command(argv):

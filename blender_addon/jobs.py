@@ -1,9 +1,10 @@
 """The steps the panel and the batch command share: scan -> manifest -> worker -> bind nodes."""
 import os
+import subprocess
 
 import bpy
 
-from . import prefs, scan, worker
+from . import deps, prefs, scan, worker
 
 MANIFEST_NAME = "manifest.toml"
 
@@ -80,6 +81,47 @@ def _blend_path(path):
     return path
 
 
+# Writes what the node reads beside each table file (its OSL texture and closure fit), in the
+# worker Python, for a Blender whose own Python cannot (no numpy: Debian's 3.4).
+DERIVE_CODE = """
+import sys
+from bake.osl_export import bake_derived
+for k, path in enumerate(sys.argv[1:], 1):
+    print(f"[progress {k}/{len(sys.argv) - 1}] fit + OSL texture {path}", flush=True)
+    bake_derived(path, log=lambda line: print(line, flush=True))
+"""
+
+
+def ensure_derived(tables_paths, python=None, extra_paths=None):
+    """Make the OSL texture and closure fit of each table file current, in the worker Python,
+    when this Blender cannot (no numpy); elsewhere the node makes them itself when binding.
+    Returns the paths it derived; worker.JobError when the worker fails."""
+    from . import node
+    if node._bake_mod("osl_export") is not None:
+        return []
+    todo = [str(p) for p in tables_paths if os.path.isfile(p) and not node.derived_current(p)]
+    if not todo:
+        return []
+    p = prefs.get()
+    python = python or worker.python_for(p)
+    extra = worker.extra_paths(p) if extra_paths is None else extra_paths
+    try:
+        proc = subprocess.Popen([str(python), "-c", DERIVE_CODE, *todo], stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True, bufsize=1,
+                                env=deps.worker_env(python, extra))
+    except OSError as e:
+        raise worker.JobError(f"cannot start {python}: {e}") from None
+    lines = []
+    for line in proc.stdout:
+        lines.append(line.rstrip("\n"))
+        print(lines[-1], flush=True)
+    if proc.wait() != 0:
+        tail = [ln for ln in lines if ln.strip()][-1:] or ["no output"]
+        raise worker.JobError(f"the worker failed making the fit/OSL texture (exit code {proc.returncode}): "
+                              f"{tail[0]}")
+    return todo
+
+
 def bind(rows, statuses):
     """Bind every row with current tables to a Learned BSDF node. Returns the bound material
     names; raises BindError listing the ones that could not be bound."""
@@ -87,8 +129,13 @@ def bind(rows, statuses):
         from . import node
     except ImportError as e:
         raise BindError(f"the Learned BSDF node cannot be built in this Blender ({e}); the tables "
-                        "are baked: bind them in a Blender 4.2+ (or run with --no-bind)") from None
+                        "are baked: bind them in another Blender (or run with --no-bind)") from None
     bound, problems = [], []
+    try:
+        ensure_derived([info["tables_path"] for info in statuses.values()
+                        if info.get("tables_path") and scan.state_of(info) == "current"])
+    except worker.JobError as e:
+        raise BindError(f"not bound: {e}") from None
     for row in rows:
         info = statuses.get(row["name"])
         if info is None or scan.state_of(info) != "current":

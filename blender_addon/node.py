@@ -20,17 +20,27 @@ from the scene's back end ("osl", "fit" or "auto") by `set_backend`, before ever
 (render_pre handler) and after loading a file (load_post), and only to OSL when the OSL
 texture exists. Binding data sits in the tree's custom property "flowbsdf".
 
+Blenders without numpy or OSL (Debian's 3.4 for the batch path): nothing here imports
+numpy at module load. The fit is read from its JSON file (<name>.fit.json, written by the
+bake) with the json module, and the OSL texture is found by its content-hashed name; only
+missing or stale fits/textures need `bake` (numpy), imported on first use. Where Cycles
+cannot compile OSL (`_cycles.with_osl` false, as in Debian's 3.4), the group holds the fit
+alone, wired straight to its output (no Script node: an uncompiled Script node has no
+sockets to wire and points at an add-on path that differs per machine). Opening such a file
+with the add-on in a Blender that compiles OSL rebuilds the group with both back ends
+(load_post, `upgrade`). The group's socket is made with `tree.interface` (4.0+) or the
+legacy `tree.outputs` (3.x).
+
 API (used by the add-on's UI and operators): register, unregister, assign_learned_bsdf,
 set_backend, backend_of, node_status, sync.
 """
+import json
 import os
 import sys
 from pathlib import Path
 
 import bpy
 from bpy.app.handlers import persistent
-
-from .deps import bake as _bake  # noqa: F401  (makes the vendored bake importable)
 
 BACKENDS = ("osl", "fit", "auto")
 ENUM_ORDER = ("auto", "osl", "fit")     # the scene enum's items, as stored in files
@@ -44,12 +54,102 @@ SCRIPT = "FlowBSDF OSL"
 OSL_SOURCE = Path(__file__).resolve().parent / "osl" / "learned_bsdf.osl"
 # The grey diffuse used when a material has neither a fit nor tables.
 NEUTRAL = (0.5, 0.5, 0.5)
+# The fit file format (bake/closure_fit.py: load_fit, FIT_VERSION), read here without numpy.
+FIT_FORMAT = "flowbsdf-closure-fit"
+FIT_VERSION = 1
 
 
 def _bake_mod(name):
+    """A module of the add-on's `bake` (numpy), or None where this Blender's Python cannot
+    import it (no numpy: Debian's Blender 3.4)."""
     import importlib
-    pkg = _bake.__name__
-    return importlib.import_module(f"{pkg}.{name}")
+    from . import deps
+    try:
+        pkg = deps.bake.__name__
+        return importlib.import_module(f"{pkg}.{name}")
+    except ImportError:
+        return None
+
+
+def _file_hash(path):
+    """sha256 of the file's bytes (as bake.files.file_hash)."""
+    import hashlib
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def load_fit(path):
+    """The closure fit in a <name>.fit.json file (json only, no numpy); raises ValueError."""
+    path = Path(path)
+    try:
+        fit = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"closure fit not found: {path}") from None
+    except (OSError, ValueError) as e:
+        raise ValueError(f"closure fit unreadable ({e}): {path}") from None
+    if not isinstance(fit, dict) or fit.get("format") != FIT_FORMAT or fit.get("version") != FIT_VERSION:
+        raise ValueError(f"not a current FlowBSDF closure fit, re-bake: {path}")
+    for key in ("x", "diffuse", "specular", "roughness", "rel_error"):
+        if key not in fit:
+            raise ValueError(f"closure fit without {key!r}: {path}")
+    return fit
+
+
+def _fit_file(tables_path):
+    """The fit file beside a table file when it is current (its tables_hash matches), else the
+    one `bake` (re)makes, else a ValueError saying why."""
+    path = tables_path.with_name(tables_path.stem + ".fit.json")
+    digest = _file_hash(tables_path)
+    try:
+        if load_fit(path).get("tables_hash") == digest:
+            return path
+        why = f"closure fit stale (made from other tables): {path}"
+    except ValueError as e:
+        why = str(e)
+    closure_fit = _bake_mod("closure_fit")
+    if closure_fit is None:
+        raise ValueError(f"{why}; re-bake (refitting needs numpy, absent in this Blender)")
+    return closure_fit.ensure_fit(tables_path)
+
+
+def _osl_texture(tables_path):
+    """The OSL texture of a table file: made or refreshed by `bake` where it imports, else the
+    one the bake wrote (its name carries the tables' hash: bake/osl_export.export_path)."""
+    osl_export = _bake_mod("osl_export")
+    error = None
+    if osl_export is not None:
+        try:
+            return str(osl_export.ensure_osl_export(tables_path))
+        except Exception as e:      # noqa: BLE001  (e.g. no OpenEXR here: try the baked file)
+            error = e
+    digest = _file_hash(tables_path)
+    path = tables_path.with_name(f"{tables_path.stem}.osl-{digest[:12]}.exr")
+    if path.is_file():
+        return str(path)
+    raise ValueError(str(error) if error else f"OSL texture not exported (re-bake): {path}")
+
+
+def derived_current(tables_path):
+    """Whether a table file's fit and OSL texture exist and were made from its contents."""
+    tables_path = Path(tables_path)
+    digest = _file_hash(tables_path)
+    try:
+        fit_ok = load_fit(tables_path.with_name(tables_path.stem + ".fit.json")).get("tables_hash") == digest
+    except ValueError:
+        return False
+    return fit_ok and tables_path.with_name(f"{tables_path.stem}.osl-{digest[:12]}.exr").is_file()
+
+
+def osl_compiler_available():
+    """Whether this Blender's Cycles compiles OSL (Script nodes); Debian's 3.4 does not."""
+    try:
+        import _cycles
+    except ImportError:
+        return False
+    return bool(getattr(_cycles, "with_osl", False)) and hasattr(_cycles, "osl_compile")
 
 
 # ------------------------------------------------------------------------------ OSL script
@@ -93,6 +193,8 @@ def script_text(probe=False):
 
 def make_script_node(tree, probe=False):
     """A Script node running the shader, compiled (bytecode stored in the node)."""
+    if not osl_compiler_available():
+        raise RuntimeError("FlowBSDF OSL shader: this Blender's Cycles cannot compile OSL")
     import cycles.osl
     ensure_oslquery()
     node = tree.nodes.new("ShaderNodeScript")
@@ -137,6 +239,10 @@ def _tree_for(name):
 
 
 def _ensure_interface(tree):
+    if getattr(tree, "interface", None) is None:          # Blender < 4.0: the legacy API
+        if "BSDF" not in tree.outputs:
+            tree.outputs.new("NodeSocketShader", "BSDF")
+        return
     items = [i for i in tree.interface.items_tree if getattr(i, "item_type", "") == "SOCKET"]
     if not any(i.name == "BSDF" and i.in_out == "OUTPUT" for i in items):
         tree.interface.new_socket("BSDF", in_out="OUTPUT", socket_type="NodeSocketShader")
@@ -208,23 +314,22 @@ def _build_fit(tree, fit, loc=(-1400, -400)):
 
 def _build_tree(tree, name, tables_path, fit_path):
     """(Re)build the group's nodes for a material; records the binding in tree["flowbsdf"]."""
-    closure_fit = _bake_mod("closure_fit")
-    osl_export = _bake_mod("osl_export")
     problems = []
     fit = None
     osl_texture = ""
+    with_osl = osl_compiler_available()
     if tables_path.is_file():
         try:
-            osl_texture = str(osl_export.ensure_osl_export(tables_path))
+            osl_texture = _osl_texture(tables_path)
         except Exception as e:      # noqa: BLE001  (a broken table file must not break the material)
             problems.append(f"tables unreadable: {e}")
     else:
         problems.append(f"tables missing: {tables_path}")
     try:
         if fit_path is None and tables_path.is_file():
-            fit_path = closure_fit.ensure_fit(tables_path)
+            fit_path = _fit_file(tables_path)
         if fit_path is not None:
-            fit = closure_fit.load_fit(fit_path)
+            fit = load_fit(fit_path)
     except Exception as e:          # noqa: BLE001
         problems.append(f"fit unavailable: {e}")
 
@@ -234,6 +339,14 @@ def _build_tree(tree, name, tables_path, fit_path):
     out = nodes.new("NodeGroupOutput")
     out.location = (2600, 0)
     fit_out = _build_fit(tree, fit)
+    info = {"material": name, "tables": str(tables_path), "fit": str(fit_path or ""),
+            "osl_texture": osl_texture, "has_fit": fit is not None, "has_osl": with_osl,
+            "fit_error": float(max(fit["rel_error"])) if fit else -1.0,
+            "problems": "; ".join(problems)}
+    if not with_osl:            # the fit alone (see the module docstring); `upgrade` adds OSL later
+        links.new(fit_out, out.inputs[0])
+        tree[TREE_KEY] = info
+        return
     script = make_script_node(tree)
     script.name = script.label = SCRIPT
     script.location = (2200, 300)
@@ -250,10 +363,19 @@ def _build_tree(tree, name, tables_path, fit_path):
     links.new(script.outputs["BSDF"], mix.inputs[2])
     links.new(mix.outputs[0], out.inputs[0])
     script["flowbsdf_src"] = __import__("hashlib").sha256(script.script.as_string().encode()).hexdigest()
-    tree[TREE_KEY] = {"material": name, "tables": str(tables_path), "fit": str(fit_path or ""),
-                      "osl_texture": osl_texture, "has_fit": fit is not None,
-                      "fit_error": float(max(fit["rel_error"])) if fit else -1.0,
-                      "problems": "; ".join(problems)}
+    tree[TREE_KEY] = info
+
+
+def upgrade(tree):
+    """Rebuild a group made where OSL could not compile (it holds the fit only) with both back
+    ends, when this Blender compiles OSL. Returns True when it rebuilt the group."""
+    if tree.library is not None or tree.nodes.get(SCRIPT) is not None or not osl_compiler_available():
+        return False
+    info = _info(tree)
+    if not info.get("material") or not info.get("tables"):
+        return False
+    _build_tree(tree, info["material"], Path(info["tables"]), Path(info["fit"]) if info.get("fit") else None)
+    return True
 
 
 def assign_learned_bsdf(material, name, tables_path, fit_path=None):
@@ -340,6 +462,8 @@ def _resolve(scene, tree):
     fit = "fit" if info.get("has_fit") else "neutral grey (no fit)"
     if backend == "fit":
         return False, f"{fit} (scene back end: fit)"
+    if tree.nodes.get(SCRIPT) is None:
+        return False, f"{fit} (no OSL shader in the node: built in a Blender that cannot compile OSL)"
     ok, why = osl_available(scene)
     if not ok:
         return False, f"{fit} ({why})"
@@ -355,10 +479,10 @@ def _refresh_export(tree):
     """Re-export the OSL texture when the tables exist but their texture is missing or stale."""
     info = _info(tree)
     tables = Path(info.get("tables", ""))
-    if not tables.is_file():
+    if not tables.is_file() or tree.nodes.get(SCRIPT) is None:
         return
     try:
-        texture = str(_bake_mod("osl_export").ensure_osl_export(tables))
+        texture = _osl_texture(tables)
     except Exception as e:      # noqa: BLE001
         info["problems"] = f"tables unreadable: {e}"
         tree[TREE_KEY] = info
@@ -403,6 +527,11 @@ def _on_render_pre(scene, *_):
 
 @persistent
 def _on_load_post(*_):
+    for tree in list(_trees()):
+        try:
+            upgrade(tree)
+        except Exception as e:      # noqa: BLE001  (the fit still renders)
+            print(f"FlowBSDF: could not add the OSL back end to {tree.name}: {e}")
     for scene in bpy.data.scenes:
         sync(scene, refresh=True)
 

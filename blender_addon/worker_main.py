@@ -125,6 +125,9 @@ def cmd_bake(args):
             continue
         try:
             path, status = bake_entry(entry, args.out, manifest.path, log=emit)
+            if path is not None:        # the node's OSL texture and closure fit, beside the tables
+                from bake.osl_export import bake_derived
+                bake_derived(path, log=emit)
         except FlowBSDFError as e:
             failures.append(f"{entry.name}: {e}")
             emit(f"[fail] {failures[-1]}")
