@@ -19,7 +19,7 @@ from .files import file_hash, remove_stale_temps
 from .tables import FORMAT_VERSION, open_tables
 
 # Bumped when the construction changes in a way that should rebuild existing tables.
-BUILDER_VERSION = 1
+BUILDER_VERSION = 2      # 2: cells that miss a hard-edged sliver of mass are integrated around their points
 BAKE_KEYS = {"source", "tol", "memory_budget", "resolution", "grid", "lobe_width", "samples", "first_bins",
              "ideal_resolution"}
 SOURCES = ("auto", "flow", "ideal")

@@ -167,3 +167,46 @@ def sphere_view(width, height, scale=2.0, radius=1.0):
     hit = r2 < 1
     n = np.stack([X / radius, Y / radius, np.sqrt(np.maximum(1 - r2, 0))], -1)
     return n, hit
+
+
+def persp_camera(scene, distance=6.0, fov_deg=22.0):
+    """Perspective camera at (0, 0, distance) looking down -z (image up = world +y), `fov_deg`
+    across the larger image side (Blender's sensor fit AUTO, as the reference tracer's fov)."""
+    import bpy
+    import math
+    cam = bpy.data.cameras.new("camera")
+    cam.type = 'PERSP'
+    cam.sensor_fit = 'AUTO'
+    cam.angle = math.radians(fov_deg)
+    cam.clip_end = 100.0
+    ob = bpy.data.objects.new("camera", cam)
+    scene.collection.objects.link(ob)
+    ob.location = (0.0, 0.0, distance)
+    scene.camera = ob
+    return ob
+
+
+def sphere_view_persp(width, height, distance=6.0, fov_deg=22.0, radius=1.0, min_cos=0.05):
+    """Per pixel of persp_camera's image: the unit sphere's normal at the pixel centre (H, W, 3),
+    the view cosine there, and a mask of pixels whose whole footprint (centre and 4 corners)
+    hits the sphere with cos(view, normal) > min_cos at the centre (no silhouette pixels)."""
+    half = np.tan(np.radians(fov_deg) / 2) / max(width, height)
+    o = np.array([0.0, 0.0, distance])
+
+    def cast(px, py):
+        x, y = px * 2 - width, height - py * 2
+        d = np.stack([half * x, half * y, -np.ones_like(x)], -1)
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        b = d @ o
+        disc = b * b - (o @ o - radius * radius)
+        t = -b - np.sqrt(np.maximum(disc, 0.0))
+        return disc > 0, (o + t[..., None] * d) / radius, d
+
+    X, Y = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    hit, n, d = cast(X, Y)
+    cos = np.where(hit, -np.sum(n * d, -1), 0.0)
+    inner = hit & (cos > min_cos)
+    for dx in (-0.5, 0.5):
+        for dy in (-0.5, 0.5):
+            inner &= cast(X + dx, Y + dy)[0]
+    return n, cos, inner
