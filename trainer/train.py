@@ -359,6 +359,14 @@ class Trainer:
                 self.metrics[stage] = {"best": best["eval"], "best_step": best["step"], "history": history}
                 self.log(f"[{stage}] done already (checkpoint)")
                 return net
+        if state is None:
+            # The start (zero velocity: the base alone; or the teacher a student is copied from) is
+            # a candidate too: where training never beats it (a near-Lambertian material), keep it.
+            ev = self.evaluate(net, eval_steps)
+            ev.update(step=0, loss=float("nan"), time=0.0)
+            history.append(ev)
+            best = {"score": ev["nll"], "folds": ev["fold"] > 0, "net": copy.deepcopy(net.state_dict()),
+                    "step": 0, "eval": ev}
         t0 = time.time() - elapsed
         bar = self._progress(total, desc, step)
         stopped = False
