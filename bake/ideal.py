@@ -107,6 +107,23 @@ class Table:
         j = np.clip((v[:, 1] * n2).astype(np.int64), 0, n2 - 1)
         return self.density[i, j]
 
+    def sample_dir(self, u):
+        """(wo, pdf) in this table's frame; pdf 0 where the half vector reflects below the horizon."""
+        v = self.sample_u(u)
+        m = _half_vector(v)
+        w = reflect(self.wi[None, :], m)
+        jac = _dwo_du(self.wi[None, :], m, v[:, 0])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return w, np.where((w[:, 2] > 0) & (jac > 0), self.density_u(v) / jac, 0.0)
+
+    def pdf_dir(self, wo):
+        """The solid-angle density of sample_dir at wo (this table's frame)."""
+        m = normalize(self.wi[None, :] + wo)
+        v = _u_of_half_vector(m)
+        jac = _dwo_du(self.wi[None, :], m, v[:, 0])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where((wo[:, 2] > 0) & (jac > 0), self.density_u(v) / jac, 0.0)
+
 
 class IdealSampler:
     """Exact sampling of the tabulated target, one table per distinct (canonical) wi."""
@@ -154,14 +171,7 @@ class IdealSampler:
             if tab.total <= 0.0:
                 wo[idx, 2] = -1.0      # nothing to sample: an invalid direction with pdf 0
                 continue
-            v = tab.sample_u(u[idx])
-            m = _half_vector(v)
-            w = reflect(tab.wi[None, :], m)
-            jac = _dwo_du(tab.wi[None, :], m, v[:, 0])
-            ok = (w[:, 2] > 0) & (jac > 0)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                pdf[idx] = np.where(ok, tab.density_u(v) / jac, 0.0)
-            wo[idx] = w
+            wo[idx], pdf[idx] = tab.sample_dir(u[idx])
         return rotate_z(wo, phi_i), pdf
 
     def pdf(self, wi, wo):
@@ -172,13 +182,7 @@ class IdealSampler:
         for tab, idx in self._groups(cwi):
             if tab.total <= 0.0:
                 continue
-            w = cwo[idx]
-            m = normalize(tab.wi[None, :] + w)
-            v = _u_of_half_vector(m)
-            jac = _dwo_du(tab.wi[None, :], m, v[:, 0])
-            ok = (w[:, 2] > 0) & (jac > 0)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                out[idx] = np.where(ok, tab.density_u(v) / jac, 0.0)
+            out[idx] = tab.pdf_dir(cwo[idx])
         return out
 
     def albedo(self, wi):

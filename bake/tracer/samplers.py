@@ -15,8 +15,8 @@ import time
 import numpy as np
 
 from ..errors import FlowBSDFError
-from ..geometry import normalize, reflect, theta_phi
-from ..ideal import Table, _dwo_du, _half_vector, _u_of_half_vector
+from ..geometry import theta_phi
+from ..ideal import Table
 
 SAMPLERS = ("tables", "flow", "ideal", "ggx", "cosine")
 
@@ -81,13 +81,7 @@ class FineIdeal:
             tab = self._table(key)
             if tab.total <= 0.0:
                 continue
-            v = tab.sample_u(u[idx])
-            m = _half_vector(v)
-            w = reflect(tab.wi[None, :], m)
-            jac = _dwo_du(tab.wi[None, :], m, v[:, 0])
-            ok = (w[:, 2] > 0) & (jac > 0)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                pdf[idx] = np.where(ok, tab.density_u(v) / jac, 0.0)
+            w, pdf[idx] = tab.sample_dir(u[idx])
             wo[idx] = self._rot(w, rot[idx])
         return wo, pdf
 
@@ -100,13 +94,7 @@ class FineIdeal:
             tab = self._table(key)
             if tab.total <= 0.0:
                 continue
-            w = self._rot(wo[idx], -rot[idx])
-            m = normalize(tab.wi[None, :] + w)
-            v = _u_of_half_vector(m)
-            jac = _dwo_du(tab.wi[None, :], m, v[:, 0])
-            ok = (w[:, 2] > 0) & (jac > 0)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                out[idx] = np.where(ok, tab.density_u(v) / jac, 0.0)
+            out[idx] = tab.pdf_dir(self._rot(wo[idx], -rot[idx]))
         return out
 
 
