@@ -22,7 +22,6 @@ tests/test_hard_cases.py runs the same cases with modest counts.
 """
 import json
 import math
-import struct
 import subprocess
 import sys
 import textwrap
@@ -35,6 +34,7 @@ import numpy as np
 from .geometry import luminance, reflect
 from .materials import open_material
 from .materials.base import Material, as_dirs
+from .materials.rgl import write_tensor_file
 
 # ------------------------------------------------------------------------------ materials
 
@@ -71,25 +71,6 @@ class MirrorCone(Material):
         r = reflect(wi, np.array([0.0, 0.0, 1.0]))
         inside = (wi[:, 2] > 0) & (wo[:, 2] > 0) & (np.sum(r * wo, axis=1) > math.cos(math.radians(self.deg)))
         return np.where(inside[:, None], self.value, 0.0) * np.ones((1, 3))
-
-
-_RGL_CODES = {"u1": 1, "f4": 10}
-
-
-def write_tensor_file(path, fields):
-    """A minimal writer of RGL tensor files (version 1.0, data 8-byte aligned)."""
-    fields = {k: np.ascontiguousarray(v) for k, v in fields.items()}
-    table_size = 18 + sum(2 + len(k.encode()) + 11 + 8 * v.ndim for k, v in fields.items())
-    offset = (table_size + 7) // 8 * 8
-    table, data = bytearray(), bytearray()
-    for name, v in fields.items():
-        code = _RGL_CODES[v.dtype.str.lstrip("<|")]
-        table += struct.pack("<H", len(name.encode())) + name.encode()
-        table += struct.pack("<HBQ", v.ndim, code, offset + len(data)) + struct.pack(f"<{v.ndim}Q", *v.shape)
-        data += v.tobytes() + b"\0" * (-v.nbytes % 8)
-    head = b"tensor_file\0" + bytes([1, 0]) + struct.pack("<I", len(fields)) + bytes(table)
-    Path(path).write_bytes(head + b"\0" * (offset - len(head)) + bytes(data))
-    return Path(path)
 
 
 def synthetic_rgl(path, seed=0, n_theta=6, n=32):

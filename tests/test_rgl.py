@@ -9,31 +9,10 @@ import pytest
 from bake.errors import FlowBSDFError
 from bake.geometry import luminance, normalize, reflect, spherical_dir
 from bake.materials import open_material
-from bake.materials.rgl import RGLMaterial, read_tensor_file
+from bake.materials.rgl import RGLMaterial, read_tensor_file, write_tensor_file  # noqa: F401 (test_bad_inputs imports it from here)
 from conftest import RGL_FILES
 
-CODES = {np.dtype(k): v for k, v in
-         {"u1": 1, "i1": 2, "<u2": 3, "<i2": 4, "<u4": 5, "<i4": 6, "<u8": 7, "<i8": 8,
-          "<f2": 9, "<f4": 10, "<f8": 11}.items()}
-
-
 # ---------------------------------------------------------------- helpers
-
-def write_tensor_file(path, fields):
-    """Write {name: array} in the tensor_file layout (data 8-byte aligned after the table)."""
-    fields = {k: np.ascontiguousarray(v) for k, v in fields.items()}
-    table_size = 18 + sum(2 + len(k.encode()) + 11 + 8 * v.ndim for k, v in fields.items())
-    offset = (table_size + 7) // 8 * 8
-    table, data = bytearray(), bytearray()
-    for name, v in fields.items():
-        table += struct.pack("<H", len(name.encode())) + name.encode()
-        table += struct.pack("<HBQ", v.ndim, CODES[v.dtype], offset + len(data))
-        table += struct.pack(f"<{v.ndim}Q", *v.shape)
-        data += v.tobytes() + b"\0" * (-v.nbytes % 8)
-    head = b"tensor_file\0" + bytes([1, 0]) + struct.pack("<I", len(fields)) + bytes(table)
-    path.write_bytes(head + b"\0" * (offset - len(head)) + bytes(data))
-    return path
-
 
 def synthetic_fields(phi_i=(0.0,), n_theta=5, n_vndf=16, n_rgb=8, seed=0):
     """A small random RGB RGL material (positive vndf, rgb partly negative)."""

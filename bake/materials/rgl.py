@@ -27,6 +27,24 @@ RGL_FIELDS = ("theta_i", "phi_i", "ndf", "sigma", "vndf", "luminance", "rgb", "j
 CHUNK = 1 << 14  # eval works in chunks of this many pairs (keeps temporaries in cache)
 
 
+def write_tensor_file(path, fields):
+    """Write {name: array} in the tensor_file layout read above (data 8-byte aligned after the
+    table): synthetic files for tests and the stress suite."""
+    codes = {np.dtype(v): k for k, v in DTYPES.items()}
+    fields = {k: np.ascontiguousarray(v) for k, v in fields.items()}
+    table_size = 18 + sum(2 + len(k.encode()) + 11 + 8 * v.ndim for k, v in fields.items())
+    offset = (table_size + 7) // 8 * 8
+    table, data = bytearray(), bytearray()
+    for name, v in fields.items():
+        table += struct.pack("<H", len(name.encode())) + name.encode()
+        table += struct.pack("<HBQ", v.ndim, codes[v.dtype], offset + len(data))
+        table += struct.pack(f"<{v.ndim}Q", *v.shape)
+        data += v.tobytes() + b"\0" * (-v.nbytes % 8)
+    head = b"tensor_file\0" + bytes([1, 0]) + struct.pack("<I", len(fields)) + bytes(table)
+    Path(path).write_bytes(head + b"\0" * (offset - len(head)) + bytes(data))
+    return Path(path)
+
+
 def read_tensor_file(path, rgl=True):
     """Parse an RGL tensor file into {field name: read-only numpy array}.
 
