@@ -107,18 +107,23 @@ def add_plane(scene, material=None, size=2.0):
     return ob
 
 
-def ortho_camera(scene, distance=5.0, scale=2.0):
-    """Looking down -z at the origin, image covering [-scale/2, scale/2]^2."""
+def _camera(scene, distance, **settings):
+    """A camera at (0, 0, distance) looking down -z, with the given camera data settings."""
     import bpy
     cam = bpy.data.cameras.new("camera")
-    cam.type = 'ORTHO'
-    cam.ortho_scale = scale
+    for key, value in settings.items():
+        setattr(cam, key, value)
     cam.clip_end = 100.0
     ob = bpy.data.objects.new("camera", cam)
     scene.collection.objects.link(ob)
     ob.location = (0.0, 0.0, distance)
     scene.camera = ob
     return ob
+
+
+def ortho_camera(scene, distance=5.0, scale=2.0):
+    """Looking down -z at the origin, image covering [-scale/2, scale/2]^2."""
+    return _camera(scene, distance, type='ORTHO', ortho_scale=scale)
 
 
 def material_with(nodes_fn, name="m"):
@@ -172,18 +177,8 @@ def sphere_view(width, height, scale=2.0, radius=1.0):
 def persp_camera(scene, distance=6.0, fov_deg=22.0):
     """Perspective camera at (0, 0, distance) looking down -z (image up = world +y), `fov_deg`
     across the larger image side (Blender's sensor fit AUTO, as the reference tracer's fov)."""
-    import bpy
     import math
-    cam = bpy.data.cameras.new("camera")
-    cam.type = 'PERSP'
-    cam.sensor_fit = 'AUTO'
-    cam.angle = math.radians(fov_deg)
-    cam.clip_end = 100.0
-    ob = bpy.data.objects.new("camera", cam)
-    scene.collection.objects.link(ob)
-    ob.location = (0.0, 0.0, distance)
-    scene.camera = ob
-    return ob
+    return _camera(scene, distance, type='PERSP', sensor_fit='AUTO', angle=math.radians(fov_deg))
 
 
 def sphere_view_persp(width, height, distance=6.0, fov_deg=22.0, radius=1.0, min_cos=0.05):
