@@ -242,11 +242,6 @@ def _logsumexp(a, axis=-1):
     return np.log(np.sum(np.exp(a - m), axis=axis)) + m[..., 0]
 
 
-def mix_log_tail(q, logw, lam):
-    """log P(|z|² > q) for z ~ sum_k w_k N(0, exp(2 lam_k) I) in 2-D: logsumexp(log w_k - q / (2 v_k))."""
-    return _logsumexp(logw - 0.5 * q[:, None] * np.exp(-2.0 * lam))
-
-
 def mix_radial_cdf(q, logw, lam):
     """P(|z|² <= q) = sum_k w_k (1 - exp(-q / (2 v_k))), accurate for small q."""
     return np.sum(np.exp(logw) * -np.expm1(-0.5 * q[:, None] * np.exp(-2.0 * lam)), axis=-1)
@@ -260,9 +255,9 @@ def mix_radial_icdf(u1, logw, lam, max_iter=200):
     q = np.zeros(len(u1))
     active = np.ones(len(u1), bool)
     for _ in range(max_iter):
-        g = mix_log_tail(q[active], logw[active], lam[active])
-        # d/dq log tail = -sum_k w_k e^{-q/2v_k} / (2 v_k) / tail
         comp = logw[active] - 0.5 * q[active, None] * inv_v[active]
+        g = _logsumexp(comp)          # log P(|z|² > q) = logsumexp_k(log w_k - q / (2 v_k))
+        # d/dq log tail = -sum_k w_k e^{-q/2v_k} / (2 v_k) / tail
         slope = -0.5 * np.sum(np.exp(comp - g[:, None]) * inv_v[active], axis=-1)
         step = (target[active] - g) / slope
         q[active] += step
