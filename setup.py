@@ -40,8 +40,10 @@ setup(
         # the source hash lets bake.fasttables spot a library built from an older source;
         # -ffp-contract=off: no fused multiply-add (results must round as numpy's do)
         define_macros=[("FT_SOURCE_SHA", f'"{SHA}"')],
-        extra_compile_args=["-O2", "-ffp-contract=off", "-fno-math-errno", "-std=c99"],
-        libraries=["m"],
+        # -fopenmp-simd + libmvec: glibc's vector math in the block loops (x86-64 Linux; where
+        # this fails, bake.fasttables compiles it on first use without, -DFT_NO_MVEC)
+        extra_compile_args=["-O2", "-ffp-contract=off", "-fno-math-errno", "-std=c99", "-fopenmp-simd"],
+        libraries=["mvec", "m"],
         optional=True,
     )],
     cmdclass={"build_ext": OptionalBuildExt},

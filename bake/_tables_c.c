@@ -39,6 +39,27 @@
 #define FT_INLINE static inline
 #endif
 
+/* Vector math (GCC on x86-64 Linux): the per-block loops of libm calls run through glibc's
+ * libmvec (4 or 8 lanes, <= 4 ulp like libm), and `run` is compiled for AVX-512, AVX2 and
+ * the baseline, picked at load time by the CPU. Every sample goes through full blocks (run
+ * pads the last one), so a sample's result never depends on its place in a call. Build
+ * with -fopenmp-simd and link -lmvec; FT_NO_MVEC (or another compiler) builds plain C. */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && !defined(FT_NO_MVEC)
+#define FT_VEC __attribute__((simd("notinbranch")))
+double exp(double) FT_VEC;
+double expm1(double) FT_VEC;
+double log1p(double) FT_VEC;
+double atan2(double, double) FT_VEC;
+double hypot(double, double) FT_VEC;
+double cos(double) FT_VEC;
+double sin(double) FT_VEC;
+#define FT_SIMD _Pragma("omp simd")
+#define FT_CLONES __attribute__((target_clones("avx512f", "avx2", "default"), noinline))
+#else
+#define FT_SIMD
+#define FT_CLONES
+#endif
+
 #ifndef FT_SOURCE_SHA
 #define FT_SOURCE_SHA "unknown"
 #endif
@@ -95,25 +116,35 @@ FT_INLINE double mod_two_pi(double x) {
     return r;
 }
 
-/* expm1(k), the one every exact branch below needs (0: unused, |k| < SMALL) */
-FT_INLINE double rate_e(double k) { return fabs(k) < SMALL ? 0.0 : expm1(k); }
-
-/* exp_cdf, exp_inverse_cdf, exp_density of tables.py; e = rate_e(k) */
-FT_INLINE double exp_cdf(double x, double k, double e) {
-    if (fabs(k) < SMALL) return x + 0.5 * k * (x * x - x);
-    return expm1(k * x) / e;
+/* The exponential per axis, for a block: rate_e (expm1(k), the one every exact branch
+ * needs; 0 when unused, |k| < SMALL) and exp_cdf, exp_inverse_cdf, exp_density of
+ * tables.py (e = rate_e(k)). Each computes its libm function for every lane in a loop of
+ * its own (vector lanes; a call under a branch would not vectorize), then selects. */
+FT_INLINE void rate_e(const double *k, double *e) {
+    double t[BLK];
+    FT_SIMD for (int q = 0; q < BLK; q++) t[q] = expm1(k[q]);
+    for (int q = 0; q < BLK; q++) e[q] = fabs(k[q]) < SMALL ? 0.0 : t[q];
 }
 
-FT_INLINE double exp_inverse_cdf(double u, double k, double e) {
-    double r;
-    if (fabs(k) < SMALL) r = u - 0.5 * k * (u * u - u);
-    else r = log1p(u * e) / k;
-    return clip01(r);
+FT_INLINE void exp_cdf(const double *x, const double *k, const double *e, double *out) {
+    double t[BLK];
+    FT_SIMD for (int q = 0; q < BLK; q++) t[q] = expm1(k[q] * x[q]);
+    for (int q = 0; q < BLK; q++)
+        out[q] = fabs(k[q]) < SMALL ? x[q] + 0.5 * k[q] * (x[q] * x[q] - x[q]) : t[q] / e[q];
 }
 
-FT_INLINE double exp_density(double x, double k, double e) {
-    if (fabs(k) < SMALL) return 1.0 + k * (x - 0.5);
-    return k * exp(k * x) / e;
+FT_INLINE void exp_inverse_cdf(const double *u, const double *k, const double *e, double *out) {
+    double t[BLK];
+    FT_SIMD for (int q = 0; q < BLK; q++) t[q] = log1p(u[q] * e[q]);
+    for (int q = 0; q < BLK; q++)
+        out[q] = clip01(fabs(k[q]) < SMALL ? u[q] - 0.5 * k[q] * (u[q] * u[q] - u[q]) : t[q] / k[q]);
+}
+
+FT_INLINE void exp_density(const double *x, const double *k, const double *e, double *out) {
+    double t[BLK];
+    FT_SIMD for (int q = 0; q < BLK; q++) t[q] = exp(k[q] * x[q]);
+    for (int q = 0; q < BLK; q++)
+        out[q] = fabs(k[q]) < SMALL ? 1.0 + k[q] * (x[q] - 0.5) : k[q] * t[q] / e[q];
 }
 
 /* ------------------------------------------------------------------------ bins, views */
@@ -137,7 +168,7 @@ typedef struct {
 
 /* Tables._bins for one wi, from theta, phi (geometry.theta_phi) and cos(theta) (unused
  * when K == 1) */
-static void bin_of(const ft_tables *T, double theta, double phi, double cos_theta, ft_bin *B) {
+FT_INLINE void bin_of(const ft_tables *T, double theta, double phi, double cos_theta, ft_bin *B) {
     const int64_t K = T->K, R = T->R, C = T->C;
     int64_t k0 = 0, k1 = 0;
     double t = 0.0;
@@ -166,15 +197,20 @@ static void bin_of(const ft_tables *T, double theta, double phi, double cos_thet
     B->dc = (k1 - k0) * R * C;
 }
 
-/* The bins of nb directions w (row stride `stride`), one libm function per loop so the
- * calls of different samples overlap. */
-static void bins(const ft_tables *T, const double *w, int64_t stride, int nb, ft_bin *B) {
-    double theta[BLK], phi[BLK], c[BLK];
-    for (int k = 0; k < nb; k++) theta[k] = hypot(w[k * stride], w[k * stride + 1]);
-    for (int k = 0; k < nb; k++) theta[k] = atan2(theta[k], w[k * stride + 2]);
-    for (int k = 0; k < nb; k++) phi[k] = atan2(w[k * stride + 1], w[k * stride]);
-    for (int k = 0; k < nb; k++) c[k] = T->K != 1 ? cos(theta[k]) : 0.0;
-    for (int k = 0; k < nb; k++) bin_of(T, theta[k], phi[k], c[k], &B[k]);
+/* The bins of a block of directions w (row stride `stride`), one libm function per loop:
+ * the calls of different samples run in vector lanes. */
+FT_INLINE void bins(const ft_tables *T, const double *w, int64_t stride, ft_bin *B) {
+    double x[BLK], y[BLK], z[BLK], theta[BLK], phi[BLK], c[BLK];
+    for (int k = 0; k < BLK; k++) {
+        x[k] = w[k * stride];
+        y[k] = w[k * stride + 1];
+        z[k] = w[k * stride + 2];
+    }
+    FT_SIMD for (int k = 0; k < BLK; k++) theta[k] = hypot(x[k], y[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) theta[k] = atan2(theta[k], z[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) phi[k] = atan2(y[k], x[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) c[k] = cos(theta[k]);
+    for (int k = 0; k < BLK; k++) bin_of(T, theta[k], phi[k], c[k], &B[k]);
 }
 
 /* Tables._lerp of one element: x[off] of bin k0 with x[off + d] of bin k1; in flat mode
@@ -182,7 +218,7 @@ static void bins(const ft_tables *T, const double *w, int64_t stride, int nb, ft
 #define AT(x, off, d, Bk) (flat ? (x)[off] : (Bk).s * (x)[off] + (Bk).t * (x)[(off) + (d)])
 
 /* The flat view of one wi (bin B) into buf; returns 0 when out of memory. */
-static int flatten(const ft_tables *T, const ft_bin *B, int with_weights, ft_view *V, double **buf) {
+FT_INLINE int flatten(const ft_tables *T, const ft_bin *B, int with_weights, ft_view *V, double **buf) {
     const int64_t R = T->R, C = T->C, rows = R + 1, edges = R * (C + 1), cells = R * C;
     const double s = B->s, t = B->t;
     double *p = malloc(sizeof(double) * (size_t)(2 * rows + 2 * edges + (5 + (with_weights ? 3 : 0)) * cells));
@@ -202,8 +238,19 @@ static int flatten(const ft_tables *T, const ft_bin *B, int with_weights, ft_vie
         m[i] = s * T->m[B->kc + i] + t * T->m[B->kc + B->dc + i];
         alpha[i] = s * T->alpha[B->kc + i] + t * T->alpha[B->kc + B->dc + i];
         beta[i] = s * T->beta[B->kc + i] + t * T->beta[B->kc + B->dc + i];
-        ea[i] = rate_e(alpha[i]);
-        eb[i] = rate_e(beta[i]);
+    }
+    for (int64_t i0 = 0; i0 < cells; i0 += BLK) {   /* full blocks, as every other rate_e call */
+        double ka[BLK], kb[BLK], e1[BLK], e2[BLK];
+        for (int k = 0; k < BLK; k++) {
+            ka[k] = i0 + k < cells ? alpha[i0 + k] : 0.0;
+            kb[k] = i0 + k < cells ? beta[i0 + k] : 0.0;
+        }
+        rate_e(ka, e1);
+        rate_e(kb, e2);
+        for (int k = 0; k < BLK && i0 + k < cells; k++) {
+            ea[i0 + k] = e1[k];
+            eb[i0 + k] = e2[k];
+        }
     }
     if (with_weights)
         for (int64_t i = 0; i < 3 * cells; i++)
@@ -220,13 +267,13 @@ static int flatten(const ft_tables *T, const ft_bin *B, int with_weights, ft_vie
  * Interpolated edges and cumulative masses never decrease (a sum of two non-decreasing
  * roundings), so those i form a prefix and any bisection finds numpy's i. Branch-free: a
  * conditional move per halving (a mispredicted branch would cost more than the rest). */
-FT_INLINE void search_block(int nb, const double *value, int64_t n, const double *x, const ptrdiff_t *off,
+FT_INLINE void search_block(const double *value, int64_t n, const double *x, const ptrdiff_t *off,
                             const ptrdiff_t *d, const ft_bin *B, int64_t *lo, const int flat) {
-    for (int k = 0; k < nb; k++) lo[k] = 0;
+    for (int k = 0; k < BLK; k++) lo[k] = 0;
     int64_t len = n;
     while (len > 1) {
         const int64_t half = len / 2;
-        for (int k = 0; k < nb; k++) {
+        for (int k = 0; k < BLK; k++) {
             const int64_t mid = lo[k] + half;
             const double e = AT(x, off[k] + mid, d[k], B[k]);
             lo[k] = (e <= value[k]) ? mid : lo[k];
@@ -239,7 +286,7 @@ typedef struct {
     double a0, a1, b0, b1, m, ka, kb, ea, eb;
 } ft_cell;
 
-/* Tables._cell, with the rates' expm1 */
+/* Tables._cell; the rates' expm1 come from the flat view, or from rates_block */
 FT_INLINE void cell(const ft_view *V, const ft_bin *B, int64_t i, int64_t j, ft_cell *c, const int flat) {
     const ptrdiff_t ia = B->ka + i, ib = B->kb + i * (V->C + 1) + j, ic = B->kc + i * V->C + j;
     c->a0 = AT(V->a, ia, B->da, *B);
@@ -249,71 +296,117 @@ FT_INLINE void cell(const ft_view *V, const ft_bin *B, int64_t i, int64_t j, ft_
     c->m = AT(V->m, ic, B->dc, *B);
     c->ka = AT(V->alpha, ic, B->dc, *B);
     c->kb = AT(V->beta, ic, B->dc, *B);
-    c->ea = flat ? V->ea[ic] : rate_e(c->ka);
-    c->eb = flat ? V->eb[ic] : rate_e(c->kb);
+    c->ea = flat ? V->ea[ic] : 0.0;
+    c->eb = flat ? V->eb[ic] : 0.0;
 }
 
-/* Tables.sample for samples [0, nb) of a block: u (nb, 2) -> wo (nb, 3), pdf (nb) */
-FT_INLINE void sample_block(const ft_view *V, const ft_bin *B, int nb, const double *u, double *wo,
-                            double *pdf, const int flat) {
+/* expm1 of the interpolated rates of a block's cells (interpolated mode) */
+FT_INLINE void rates_block(ft_cell *cells, const int flat) {
+    if (flat) return;
+    double ka[BLK], kb[BLK], ea[BLK], eb[BLK];
+    for (int k = 0; k < BLK; k++) {
+        ka[k] = cells[k].ka;
+        kb[k] = cells[k].kb;
+    }
+    rate_e(ka, ea);
+    rate_e(kb, eb);
+    for (int k = 0; k < BLK; k++) {
+        cells[k].ea = ea[k];
+        cells[k].eb = eb[k];
+    }
+}
+
+/* Per-lane cell data in arrays (SoA): what the vector loops read */
+typedef struct {
+    double a0[BLK], a1[BLK], b0[BLK], b1[BLK], m[BLK], ka[BLK], kb[BLK], ea[BLK], eb[BLK];
+} ft_cells;
+
+FT_INLINE void cells_of(const ft_view *V, const ft_bin *B, const int64_t *I, const int64_t *J, ft_cells *S,
+                        const int flat) {
+    ft_cell c[BLK];
+    for (int k = 0; k < BLK; k++) cell(V, &B[k], I[k], J[k], &c[k], flat);
+    rates_block(c, flat);
+    for (int k = 0; k < BLK; k++) {
+        S->a0[k] = c[k].a0; S->a1[k] = c[k].a1; S->b0[k] = c[k].b0; S->b1[k] = c[k].b1;
+        S->m[k] = c[k].m; S->ka[k] = c[k].ka; S->kb[k] = c[k].kb; S->ea[k] = c[k].ea; S->eb[k] = c[k].eb;
+    }
+}
+
+/* the cell's density at in-cell (X, Y) */
+FT_INLINE void density_block(const ft_cells *S, const double *X, const double *Y, double *P) {
+    double dx[BLK], dy[BLK];
+    exp_density(X, S->ka, S->ea, dx);
+    exp_density(Y, S->kb, S->eb, dy);
+    for (int k = 0; k < BLK; k++)
+        P[k] = S->m[k] * dx[k] * dy[k] / ((S->a1[k] - S->a0[k]) * (S->b1[k] - S->b0[k]));
+}
+
+/* Tables.sample for one block: u (BLK, 2) -> wo (BLK, 3), pdf (BLK) */
+FT_INLINE void sample_block(const ft_view *V, const ft_bin *B, const double *u, double *wo, double *pdf,
+                            const int flat) {
     const int64_t R = V->R, C = V->C;
     int64_t I[BLK], J[BLK];
     double val[BLK], c0[BLK], c1[BLK];
     ptrdiff_t off[BLK], d[BLK];
-    for (int k = 0; k < nb; k++) {
+    for (int k = 0; k < BLK; k++) {
         val[k] = u[2 * k];
         off[k] = B[k].ka;
         d[k] = B[k].da;
     }
-    search_block(nb, val, R, V->row_cdf, off, d, B, I, flat);
-    for (int k = 0; k < nb; k++) {
+    search_block(val, R, V->row_cdf, off, d, B, I, flat);
+    for (int k = 0; k < BLK; k++) {
         c0[k] = AT(V->row_cdf, B[k].ka + I[k], B[k].da, B[k]);
         c1[k] = AT(V->row_cdf, B[k].ka + I[k] + 1, B[k].da, B[k]);
         val[k] = u[2 * k + 1] * (c1[k] - c0[k]);          /* v */
         off[k] = B[k].kb + I[k] * (C + 1);
         d[k] = B[k].db;
     }
-    search_block(nb, val, C, V->col_cum, off, d, B, J, flat);
-    /* The rest in short loops over the block, one libm function each: the calls of
-     * different samples are independent, so they overlap in the CPU. */
-    ft_cell cells[BLK];
-    double X[BLK], Y[BLK];
-    for (int k = 0; k < nb; k++) {
+    search_block(val, C, V->col_cum, off, d, B, J, flat);
+    ft_cells S;
+    double X[BLK], Y[BLK], A[BLK], Bv[BLK], sn[BLK], cs[BLK], ss[BLK];
+    for (int k = 0; k < BLK; k++) {
         const double d0 = AT(V->col_cum, off[k] + J[k], B[k].db, B[k]);
-        cell(V, &B[k], I[k], J[k], &cells[k], flat);
-        X[k] = clip01((u[2 * k] - c0[k]) / (c1[k] - c0[k]));
-        Y[k] = clip01((val[k] - d0) / cells[k].m);
+        X[k] = (u[2 * k] - c0[k]) / (c1[k] - c0[k]);
+        Y[k] = val[k] - d0;
     }
-    for (int k = 0; k < nb; k++) X[k] = exp_inverse_cdf(X[k], cells[k].ka, cells[k].ea);
-    for (int k = 0; k < nb; k++) Y[k] = exp_inverse_cdf(Y[k], cells[k].kb, cells[k].eb);
-    for (int k = 0; k < nb; k++) {
+    cells_of(V, B, I, J, &S, flat);
+    for (int k = 0; k < BLK; k++) {
+        X[k] = clip01(X[k]);
+        Y[k] = clip01(Y[k] / S.m[k]);
+    }
+    exp_inverse_cdf(X, S.ka, S.ea, X);
+    exp_inverse_cdf(Y, S.kb, S.eb, Y);
+    for (int k = 0; k < BLK; k++) {
         /* from_ab */
-        const ft_cell *c = &cells[k];
-        const double a = c->a0 + X[k] * (c->a1 - c->a0), b = c->b0 + Y[k] * (c->b1 - c->b0);
-        double r2 = a * (2.0 - a);
-        r2 = r2 < 0.0 ? 0.0 : r2;   /* np.maximum(., 0): NaN stays NaN */
-        const double sn = sqrt(r2);
-        const double phi = b - PI + B[k].phi_ref;
-        wo[3 * k] = sn * cos(phi);
-        wo[3 * k + 1] = sn * sin(phi);
-        wo[3 * k + 2] = 1.0 - a;
+        A[k] = S.a0[k] + X[k] * (S.a1[k] - S.a0[k]);
+        Bv[k] = S.b0[k] + Y[k] * (S.b1[k] - S.b0[k]);
+        double r2 = A[k] * (2.0 - A[k]);
+        sn[k] = r2 < 0.0 ? 0.0 : r2;   /* np.maximum(., 0): NaN stays NaN */
+        Bv[k] = Bv[k] - PI + B[k].phi_ref;
     }
-    for (int k = 0; k < nb; k++) {
-        const ft_cell *c = &cells[k];
-        pdf[k] = c->m * exp_density(X[k], c->ka, c->ea) * exp_density(Y[k], c->kb, c->eb)
-                 / ((c->a1 - c->a0) * (c->b1 - c->b0));
+    FT_SIMD for (int k = 0; k < BLK; k++) sn[k] = sqrt(sn[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) cs[k] = cos(Bv[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) ss[k] = sin(Bv[k]);
+    for (int k = 0; k < BLK; k++) {
+        wo[3 * k] = sn[k] * cs[k];
+        wo[3 * k + 1] = sn[k] * ss[k];
+        wo[3 * k + 2] = 1.0 - A[k];
     }
+    density_block(&S, X, Y, pdf);
 }
 
-/* Tables._locate for wo[0, nb) of a block: cell (I, J), in-cell X, Y, the cell, and when
- * want_p the unmasked pdf P. */
-FT_INLINE void locate_block(const ft_view *V, const ft_bin *B, int nb, const double *wo, int64_t *I, int64_t *J,
-                            double *X, double *Y, ft_cell *cells, double *P, const int want_p, const int flat) {
+/* Tables._locate for one block of wo: cell (I, J), in-cell X, Y, and the cells */
+FT_INLINE void locate_block(const ft_view *V, const ft_bin *B, const double *wo, int64_t *I, int64_t *J,
+                            double *X, double *Y, ft_cells *S, const int flat) {
     const int64_t R = V->R, C = V->C;
-    double A[BLK], Bv[BLK];
+    double A[BLK], Bv[BLK], wx[BLK], wy[BLK];
     ptrdiff_t off[BLK], d[BLK];
-    for (int k = 0; k < nb; k++) Bv[k] = atan2(wo[3 * k + 1], wo[3 * k]);
-    for (int k = 0; k < nb; k++) {
+    for (int k = 0; k < BLK; k++) {
+        wx[k] = wo[3 * k];
+        wy[k] = wo[3 * k + 1];
+    }
+    FT_SIMD for (int k = 0; k < BLK; k++) Bv[k] = atan2(wy[k], wx[k]);
+    for (int k = 0; k < BLK; k++) {
         /* to_ab */
         const double *w = wo + 3 * k;
         const double z = w[2];
@@ -323,64 +416,60 @@ FT_INLINE void locate_block(const ft_view *V, const ft_bin *B, int nb, const dou
         off[k] = B[k].ka;
         d[k] = B[k].da;
     }
-    search_block(nb, A, R, V->a, off, d, B, I, flat);
-    for (int k = 0; k < nb; k++) {
+    search_block(A, R, V->a, off, d, B, I, flat);
+    for (int k = 0; k < BLK; k++) {
         off[k] = B[k].kb + I[k] * (C + 1);
         d[k] = B[k].db;
     }
-    search_block(nb, Bv, C, V->b, off, d, B, J, flat);
-    for (int k = 0; k < nb; k++) {
-        ft_cell *c = &cells[k];
-        cell(V, &B[k], I[k], J[k], c, flat);
-        X[k] = clip01((A[k] - c->a0) / (c->a1 - c->a0));
-        Y[k] = clip01((Bv[k] - c->b0) / (c->b1 - c->b0));
+    search_block(Bv, C, V->b, off, d, B, J, flat);
+    cells_of(V, B, I, J, S, flat);
+    for (int k = 0; k < BLK; k++) {
+        X[k] = clip01((A[k] - S->a0[k]) / (S->a1[k] - S->a0[k]));
+        Y[k] = clip01((Bv[k] - S->b0[k]) / (S->b1[k] - S->b0[k]));
     }
-    if (want_p)
-        for (int k = 0; k < nb; k++) {
-            const ft_cell *c = &cells[k];
-            P[k] = c->m * exp_density(X[k], c->ka, c->ea) * exp_density(Y[k], c->kb, c->eb)
-                   / ((c->a1 - c->a0) * (c->b1 - c->b0));
-        }
 }
 
 /* Tables.pdf: 0 below the horizon */
-FT_INLINE void pdf_block(const ft_view *V, const ft_bin *B, int nb, const double *wo, double *pdf, const int flat) {
+FT_INLINE void pdf_block(const ft_view *V, const ft_bin *B, const double *wo, double *pdf, const int flat) {
     int64_t I[BLK], J[BLK];
     double X[BLK], Y[BLK], P[BLK];
-    ft_cell cells[BLK];
-    locate_block(V, B, nb, wo, I, J, X, Y, cells, P, 1, flat);
-    for (int k = 0; k < nb; k++) pdf[k] = wo[3 * k + 2] > 0.0 ? P[k] : 0.0;
+    ft_cells S;
+    locate_block(V, B, wo, I, J, X, Y, &S, flat);
+    density_block(&S, X, Y, P);
+    for (int k = 0; k < BLK; k++) pdf[k] = wo[3 * k + 2] > 0.0 ? P[k] : 0.0;
 }
 
-/* Tables.invert: wo -> u (nb, 2) */
-FT_INLINE void invert_block(const ft_view *V, const ft_bin *B, int nb, const double *wo, double *u, const int flat) {
+/* Tables.invert: wo -> u (BLK, 2) */
+FT_INLINE void invert_block(const ft_view *V, const ft_bin *B, const double *wo, double *u, const int flat) {
     const int64_t C = V->C;
     int64_t I[BLK], J[BLK];
     double X[BLK], Y[BLK];
-    ft_cell cells[BLK];
-    locate_block(V, B, nb, wo, I, J, X, Y, cells, NULL, 0, flat);
-    for (int k = 0; k < nb; k++) {
+    ft_cells S;
+    locate_block(V, B, wo, I, J, X, Y, &S, flat);
+    exp_cdf(X, S.ka, S.ea, X);
+    exp_cdf(Y, S.kb, S.eb, Y);
+    for (int k = 0; k < BLK; k++) {
         const ptrdiff_t row = B[k].kb + I[k] * (C + 1);
         const double c0 = AT(V->row_cdf, B[k].ka + I[k], B[k].da, B[k]);
         const double c1 = AT(V->row_cdf, B[k].ka + I[k] + 1, B[k].da, B[k]);
         const double d0 = AT(V->col_cum, row + J[k], B[k].db, B[k]);
         const double d1 = AT(V->col_cum, row + J[k] + 1, B[k].db, B[k]);
-        const ft_cell *c = &cells[k];
-        u[2 * k] = c0 + exp_cdf(X[k], c->ka, c->ea) * (c1 - c0);
-        u[2 * k + 1] = (d0 + exp_cdf(Y[k], c->kb, c->eb) * (d1 - d0)) / (c1 - c0);
+        u[2 * k] = c0 + X[k] * (c1 - c0);
+        u[2 * k + 1] = (d0 + Y[k] * (d1 - d0)) / (c1 - c0);
     }
 }
 
 /* Tables.eval: the cell's RGB weight x pdf / cos(theta_o); 0 unless wi and wo are both
  * above the horizon (wi_z: each sample's wi z) */
-FT_INLINE void eval_block(const ft_view *V, const ft_bin *B, int nb, const double *wo, const double *wi_z,
+FT_INLINE void eval_block(const ft_view *V, const ft_bin *B, const double *wo, const double *wi_z,
                           int64_t wi_stride, double *f, const int flat) {
     const int64_t C = V->C;
     int64_t I[BLK], J[BLK];
     double X[BLK], Y[BLK], P[BLK];
-    ft_cell cells[BLK];
-    locate_block(V, B, nb, wo, I, J, X, Y, cells, P, 1, flat);
-    for (int k = 0; k < nb; k++) {
+    ft_cells S;
+    locate_block(V, B, wo, I, J, X, Y, &S, flat);
+    density_block(&S, X, Y, P);
+    for (int k = 0; k < BLK; k++) {
         const double z = wo[3 * k + 2];
         const int above = z > 0.0 && wi_z[k * wi_stride] > 0.0;
         const double scale = P[k] / z;
@@ -400,27 +489,33 @@ enum { SAMPLE, PDF, INVERT, EVAL };
 /* Flat mode pays for itself from about one sample per cell. */
 #define FLAT_MIN_SAMPLES(R, C) ((R) * (C))
 
-FT_INLINE void run_block(int kind, const ft_view *V, const ft_bin *B, int nb, int64_t q0, const double *wi,
-                         int64_t wi_stride, const double *in, double *out, double *out2, const int flat) {
+FT_INLINE void run_block(int kind, const ft_view *V, const ft_bin *B, const double *wi, int64_t wi_stride,
+                         const double *in, double *out, double *out2, const int flat) {
     switch (kind) {
-    case SAMPLE: sample_block(V, B, nb, in + 2 * q0, out + 3 * q0, out2 + q0, flat); break;
-    case PDF: pdf_block(V, B, nb, in + 3 * q0, out + q0, flat); break;
-    case INVERT: invert_block(V, B, nb, in + 3 * q0, out + 2 * q0, flat); break;
-    default: eval_block(V, B, nb, in + 3 * q0, wi + q0 * wi_stride + 2, wi_stride, out + 3 * q0, flat); break;
+    case SAMPLE: sample_block(V, B, in, out, out2, flat); break;
+    case PDF: pdf_block(V, B, in, out, flat); break;
+    case INVERT: invert_block(V, B, in, out, flat); break;
+    default: eval_block(V, B, in, wi + 2, wi_stride, out, flat); break;
     }
 }
 
 /* The n samples: wi (n, 3) with row stride wi_stride (3, or 0: one wi for all), in (n, 2)
- * u or (n, 3) wo, out (and out2: sample's pdf). */
-static void run(int kind, const ft_tables *T, int64_t n, const double *wi, int64_t wi_stride, const double *in,
-                double *out, double *out2) {
+ * u or (n, 3) wo, out (and out2: sample's pdf). The last, partial block runs padded with
+ * copies of its first sample. */
+FT_CLONES static void run(int kind, const ft_tables *T, int64_t n, const double *wi, int64_t wi_stride,
+                          const double *in, double *out, double *out2) {
+    enum { IN = 3, OUT = 3 };
+    const int in_w = kind == SAMPLE ? 2 : 3, out_w = kind == SAMPLE ? 3 : (kind == PDF ? 1 : (kind == INVERT ? 2 : 3));
     ft_bin B[BLK];
     ft_view V = {T->R, T->C, T->a, T->b, T->m, T->alpha, T->beta, T->row_cdf, T->col_cum, T->weights,
                  NULL, NULL, NULL};
     double *buf = NULL;
+    double pad_wi[3 * BLK], pad_in[IN * BLK], pad_out[OUT * BLK], pad_out2[BLK];
     if (n <= 0) return;
     if (wi_stride == 0) {
-        bins(T, wi, 0, 1, B);
+        for (int k = 0; k < BLK; k++)
+            for (int c = 0; c < 3; c++) pad_wi[3 * k + c] = wi[c];
+        bins(T, pad_wi, 3, B);
         if (n >= FLAT_MIN_SAMPLES(T->R, T->C) && flatten(T, &B[0], kind == EVAL, &V, &buf)) {
             B[0].ka = B[0].kb = B[0].kc = B[0].da = B[0].db = B[0].dc = 0;
         }
@@ -428,10 +523,30 @@ static void run(int kind, const ft_tables *T, int64_t n, const double *wi, int64
     }
     for (int64_t q0 = 0; q0 < n; q0 += BLK) {
         const int nb = n - q0 < BLK ? (int)(n - q0) : BLK;
+        const double *w = wi_stride ? wi + q0 * wi_stride : pad_wi, *x = in + in_w * q0;
+        int64_t stride = wi_stride ? wi_stride : 3;
+        double *o = out + out_w * q0, *o2 = out2 ? out2 + q0 : NULL;
+        if (nb < BLK) {
+            for (int k = 0; k < BLK; k++) {
+                const int src = k < nb ? k : 0;
+                for (int c = 0; c < in_w; c++) pad_in[in_w * k + c] = x[in_w * src + c];
+                if (wi_stride)
+                    for (int c = 0; c < 3; c++) pad_wi[3 * k + c] = w[src * wi_stride + c];
+            }
+            x = pad_in;
+            if (wi_stride) { w = pad_wi; stride = 3; }
+            o = pad_out;
+            o2 = out2 ? pad_out2 : NULL;
+        }
         if (wi_stride != 0)
-            bins(T, wi + q0 * wi_stride, wi_stride, nb, B);
-        if (buf) run_block(kind, &V, B, nb, q0, wi, wi_stride, in, out, out2, 1);
-        else run_block(kind, &V, B, nb, q0, wi, wi_stride, in, out, out2, 0);
+            bins(T, w, stride, B);
+        if (buf) run_block(kind, &V, B, w, wi_stride ? stride : 0, x, o, o2, 1);
+        else run_block(kind, &V, B, w, wi_stride ? stride : 0, x, o, o2, 0);
+        if (nb < BLK) {
+            for (int k = 0; k < nb * out_w; k++) out[out_w * q0 + k] = pad_out[k];
+            if (out2)
+                for (int k = 0; k < nb; k++) out2[q0 + k] = pad_out2[k];
+        }
     }
     free(buf);
 }
