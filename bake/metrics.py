@@ -199,14 +199,14 @@ def chi2_test(sampler, wi, n=1_000_000, res=(32, 32), binning="halfvector", seed
     """Goodness of fit of sampler.sample(wi, .) against sampler.pdf(wi, .).
 
     Samples the sampler loses (pdf 0, or below the horizon) form one more bin whose
-    expected count is n times the mass pdf() does not account for.
+    expected count is n times the mass pdf() does not account for; a sampler whose pdf is
+    normalized by construction (attribute `normalized`, e.g. Tables) must lose none.
 
     The expected counts come from adaptive quadrature, which on a pdf with jumps (tables
     of hard-edged materials) is off by up to ~1e-4 of the total: at 1e6 samples that alone
     would fail a correct sampler. So each bin's variance is its expected count plus the
-    square of its quadrature error estimate (times 4n), and the lost bin is expected to hold
-    only the missing mass beyond the total quadrature error. For smooth pdfs the error
-    terms are ~1e-7 per bin and change nothing.
+    square of its quadrature error estimate (times 4n); the lost bin's is the total's. For
+    smooth pdfs the error terms are ~1e-7 per bin and change nothing.
     """
     wi = np.asarray(wi, float)
     rng = np.random.default_rng(seed)
@@ -230,9 +230,19 @@ def chi2_test(sampler, wi, n=1_000_000, res=(32, 32), binning="halfvector", seed
     if total > n * (1 + 1e-3):
         return Chi2Result(False, 0.0, math.inf, 0, 0.0, observed, expected,
                           f"pdf integrates to {total / n:.4f} > 1")
-    obs = np.append(observed.ravel(), n - valid.sum())
-    exp = np.append(expected.ravel(), max(n - total - total_err, 0.0))
-    err = np.append(quad_err.ravel(), 0.0)
+    lost = n - valid.sum()
+    if getattr(sampler, "normalized", False):
+        # pdf() integrates to 1 by construction: no sample may be lost, and what the
+        # quadrature misses of the total is its own error, not lost mass.
+        if lost:
+            return Chi2Result(False, 0.0, math.inf, 0, 0.0, observed, expected,
+                              f"{lost} samples lost although the sampler's pdf is normalized")
+        exp, err = expected.ravel(), quad_err.ravel()
+        obs = observed.ravel()
+    else:
+        obs = np.append(observed.ravel(), lost)
+        exp = np.append(expected.ravel(), max(n - total, 0.0))
+        err = np.append(quad_err.ravel(), total_err)
     # Pool every bin with a small expected count into one (as Mitsuba and pbrt do).
     small = exp < min_expected
     obs_p = np.append(obs[~small], obs[small].sum())
