@@ -74,7 +74,8 @@ def write_csv(rows, path):
 # ------------------------------------------------------------------ speed vs error
 
 SPEED_ERROR_FIELDS = ("material", "sampler", "theta_i", "rv", "albedo_mc", "albedo_quadrature", "lost",
-                      "sample_per_s", "pdf_per_s", "both_per_s", "ns_per_sample", "nbytes")
+                      "sample_per_s", "pdf_per_s", "both_per_s", "ns_per_sample",
+                      "sample_rwi_per_s", "pdf_rwi_per_s", "both_rwi_per_s", "nbytes")
 
 
 def _weights(material, sampler, wi, n, seed):
@@ -95,7 +96,9 @@ def speed_error_rows(name, material, samplers, thetas=THETAS_DEG, n=1 << 17, see
     samples for the same seed), the quadrature albedo (from the ideal sampler's table: an
     IdealSampler among `samplers` is reused), `lost` = fraction of samples with pdf 0,
     non-finite pdf or below the horizon, throughput of sample() and pdf() (bench, one
-    thread; NaN with speed=False), and `nbytes` when the sampler has that attribute.
+    thread; NaN with speed=False) at that wi and, per sampler, with a new wi per sample
+    (`*_rwi_per_s`: wi uniform in cos theta and phi, as a path tracer asks), and `nbytes`
+    when the sampler has that attribute.
     """
     from .bench import samples_per_second
     t0 = time.perf_counter()
@@ -103,6 +106,14 @@ def speed_error_rows(name, material, samplers, thetas=THETAS_DEG, n=1 << 17, see
     ideal = None
     if quadrature:
         ideal = next((s for s in samplers.values() if isinstance(s, IdealSampler)), None) or IdealSampler(material)
+    random_wi = {}
+    if speed:
+        rng = np.random.default_rng(seed + 2)
+        cos_t, phi = rng.random(speed_n), 2 * np.pi * rng.random(speed_n)
+        sin_t = np.sqrt(1 - cos_t ** 2)
+        wis = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
+        random_wi = {label: samples_per_second(sampler, wis, n=speed_n, repeat=speed_repeat, seed=seed + 1)
+                     for label, sampler in samplers.items()}
     rows = []
     for theta in thetas:
         wi = incident(theta)
@@ -118,6 +129,8 @@ def speed_error_rows(name, material, samplers, thetas=THETAS_DEG, n=1 << 17, see
                 "albedo_mc": float(mean), "albedo_quadrature": albedo, "lost": float(lost.mean()),
                 "sample_per_s": sp.get("sample_per_s", math.nan), "pdf_per_s": sp.get("pdf_per_s", math.nan),
                 "both_per_s": sp.get("both_per_s", math.nan), "ns_per_sample": sp.get("ns_per_sample", math.nan),
+                **{f"{k}_rwi_per_s": random_wi.get(label, {}).get(f"{k}_per_s", math.nan)
+                   for k in ("sample", "pdf", "both")},
                 "nbytes": None if nbytes is None else int(nbytes),
             })
     log(f"[speed-error] {name}: {len(samplers)} samplers x {len(thetas)} angles, {time.perf_counter() - t0:.1f}s")
@@ -139,6 +152,8 @@ def summary_rows(rows):
             "ns_per_sample": _nanmedian([r.get("ns_per_sample", math.nan) for r in sel]),
             "sample_per_s": _nanmedian([r.get("sample_per_s", math.nan) for r in sel]),
             "pdf_per_s": _nanmedian([r.get("pdf_per_s", math.nan) for r in sel]),
+            **{k: _nanmedian([r.get(k, math.nan) for r in sel])
+               for k in ("sample_rwi_per_s", "pdf_rwi_per_s", "both_rwi_per_s")},
             "nbytes": max(nbytes) if nbytes else None,
         })
     return out
@@ -169,16 +184,18 @@ def _fmt_bytes(x):
 
 
 def summary_markdown(rows):
-    """Per material x sampler: median / max rv, lost fraction, speed (1 thread), memory;
-    then the median rv of each sampler over every cell."""
+    """Per material x sampler: median / max rv, lost fraction, speed (1 thread; one wi per
+    call, then a new wi per sample), memory; then the median rv of each sampler over every cell."""
     lines = ["| material | sampler | median rv | max rv | max lost | sample+pdf /s | ns/sample | sample /s "
-             "| pdf /s | memory |", "|" + "---|" * 10]
+             "| pdf /s | random wi: sample+pdf /s | sample /s | pdf /s | memory |", "|" + "---|" * 13]
     for s in summary_rows(rows):
         ns = s["ns_per_sample"]
         lines.append(f"| {s['material']} | {s['sampler']} | {_fmt(s['median_rv'])} | {_fmt(s['max_rv'])} | "
                      f"{s['max_lost']:.3g} | {_fmt_rate(s['both_per_s'])} | "
                      f"{'-' if not np.isfinite(ns) else f'{ns:.3g}'} | {_fmt_rate(s['sample_per_s'])} | "
-                     f"{_fmt_rate(s['pdf_per_s'])} | {_fmt_bytes(s['nbytes'])} |")
+                     f"{_fmt_rate(s['pdf_per_s'])} | {_fmt_rate(s['both_rwi_per_s'])} | "
+                     f"{_fmt_rate(s['sample_rwi_per_s'])} | {_fmt_rate(s['pdf_rwi_per_s'])} | "
+                     f"{_fmt_bytes(s['nbytes'])} |")
     return "\n".join(lines)
 
 
