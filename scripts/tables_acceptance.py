@@ -1,11 +1,16 @@
 """Issue-4 acceptance numbers for the baked tables on the shared RGL materials.
 
     .venv/bin/python scripts/tables_acceptance.py [--out DIR] [--materials a,b] [--reuse]
+        [--models DIR] [--mitsuba] [--speed]
 
-Per material: plan and bake the tables (from the ideal tabulation), then at theta_i in
+Per material: plan and bake the tables (from the ideal tabulation, or with --models from
+the trained flow DIR/<name>.flow.npz: the product's path), then at theta_i in
 {0, 30, 60, 75, 85}: rv (2^18 samples), lost fraction, chi-square (Šidák over all 50
 cells), invert(sample(u)) error, pdf(sample) error; memory; bake time. With --reuse, tables
-already in DIR are loaded instead of baked. Prints a Markdown table and a summary.
+already in DIR are loaded instead of baked. --mitsuba: Mitsuba's `measured` sampler on the
+same file in the same run (rv with the same sample count, lost fraction). --speed: sample,
+pdf and sample+pdf per second on one thread, one wi per call and a new wi per sample, for
+the tables and (with --mitsuba) Mitsuba, side by side. Prints Markdown tables and a summary.
 """
 import argparse
 import sys
@@ -24,6 +29,7 @@ from bake.materials import open_material  # noqa: E402
 from bake.metrics import chi2_test, sample_weights  # noqa: E402
 from bake.tables import open_tables  # noqa: E402
 from bake.tabulate import plan_tables  # noqa: E402
+from bake.bench import samples_per_second  # noqa: E402
 
 THETAS = (0, 30, 60, 75, 85)
 
@@ -33,12 +39,15 @@ def main():
     p.add_argument("--out", default="/tmp/acc_tables")
     p.add_argument("--materials", default=",".join(RGL_FILES))
     p.add_argument("--reuse", action="store_true")
+    p.add_argument("--models", help="bake from the trained flows in this folder (<name>.flow.npz)")
+    p.add_argument("--mitsuba", action="store_true", help="Mitsuba's measured sampler beside ours")
+    p.add_argument("--speed", action="store_true", help="throughput, one thread, side by side")
     args = p.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     names = args.materials.split(",")
     n_tests = len(names) * len(THETAS)
-    rows = []
+    rows, peer_rows, speed_lines = [], [], []
     for name in names:
         mat = open_material(rgl_dir() / f"{name}.bsdf")
         path = out / f"{name}.exr"
@@ -46,7 +55,12 @@ def main():
         if args.reuse and path.is_file():
             tab = open_tables(path)
         else:
-            tab = plan_tables(mat, IdealSampler(mat))
+            if args.models:
+                from bake.flow import load_model
+                source = load_model(Path(args.models) / f"{name}.flow.npz")
+            else:
+                source = IdealSampler(mat)
+            tab = plan_tables(mat, source)
             tab.meta["seconds"] = round(time.perf_counter() - t0, 1)
             tab.save(path)
             tab = open_tables(path)
@@ -66,12 +80,52 @@ def main():
             line.append(f"{rv:.4f}{'' if chi.passed else ' (chi2 FAIL)'}")
             print(f"  {name} {theta}: rv {rv:.5f} lost {lost:.1e} inv {inv:.1e} pdf {pdf_err:.1e} {chi}", flush=True)
         print("| " + " | ".join(line) + " |", flush=True)
+        peer = None
+        if args.mitsuba:
+            from bake.mitsuba_peer import MitsubaMeasuredSampler
+            peer = MitsubaMeasuredSampler(rgl_dir() / f"{name}.bsdf")
+            for theta in THETAS:
+                w = sample_weights(mat, peer, incident(theta), 1 << 18, seed=7)
+                wo, pdf = peer.sample(incident(theta), np.random.default_rng(11).random((1 << 16, 2)))
+                peer_rows.append(dict(material=name, theta=theta, rv=w.var() / w.mean() ** 2,
+                                      lost=np.mean((pdf <= 0) | (wo[:, 2] <= 0))))
+            print(f"  {name} mitsuba rv: " + ", ".join(f"{r['rv']:.4f}" for r in peer_rows[-len(THETAS):]), flush=True)
+        if args.speed:
+            speed_lines.append(_speed_line(name, "tables", tab))
+            if peer is not None:
+                speed_lines.append(_speed_line(name, "mitsuba", peer))
+            print(speed_lines[-1], flush=True)
     rv = np.array([r["rv"] for r in rows])
     print(f"\nmedian rv {np.median(rv):.5f}, max {rv.max():.5f}; per theta median: " +
           ", ".join(f"{t}: {np.median([r['rv'] for r in rows if r['theta'] == t]):.5f}" for t in THETAS))
     print(f"chi2 passed {sum(r['chi2_pass'] for r in rows)}/{len(rows)}; max invert err "
           f"{max(r['inv'] for r in rows):.2e}; max pdf err {max(r['pdf_err'] for r in rows):.2e}; "
           f"max lost {max(r['lost'] for r in rows):.1e}; max memory {max(r['nbytes'] for r in rows) / 2**20:.2f} MiB")
+    if peer_rows:
+        prv = np.array([r["rv"] for r in peer_rows])
+        print(f"mitsuba: median rv {np.median(prv):.5f}, max {prv.max():.5f}; per theta median: " +
+              ", ".join(f"{t}: {np.median([r['rv'] for r in peer_rows if r['theta'] == t]):.5f}" for t in THETAS) +
+              f"; max lost {max(r['lost'] for r in peer_rows):.3f}")
+        wins = [np.median([r["rv"] for r in rows if r["theta"] == t]) <
+                np.median([r["rv"] for r in peer_rows if r["theta"] == t]) for t in THETAS]
+        print(f"tables below mitsuba in {sum(wins)}/{len(THETAS)} theta_i columns (median rv); "
+              f"cells below: {sum(a['rv'] < b['rv'] for a, b in zip(rows, peer_rows))}/{len(rows)}")
+    if speed_lines:
+        print("\n| material | sampler | one wi: sample /s | pdf /s | sample+pdf /s | new wi per sample: sample /s "
+              "| pdf /s | sample+pdf /s |\n|---|---|---|---|---|---|---|---|")
+        print("\n".join(speed_lines))
+
+
+def _speed_line(name, label, sampler, n=1 << 17):
+    rng = np.random.default_rng(5)
+    cos_t, phi = rng.random(n), 2 * np.pi * rng.random(n)
+    sin_t = np.sqrt(1 - cos_t ** 2)
+    wis = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
+    one = samples_per_second(sampler, incident(40.0, 0.3), n=n, repeat=5)
+    rnd = samples_per_second(sampler, wis, n=n, repeat=5)
+    rate = [f"{x / 1e6:.2f}M" for x in (one["sample_per_s"], one["pdf_per_s"], one["both_per_s"],
+                                         rnd["sample_per_s"], rnd["pdf_per_s"], rnd["both_per_s"])]
+    return f"| {name} | {label} | " + " | ".join(rate) + " |"
 
 
 if __name__ == "__main__":
