@@ -94,8 +94,8 @@ def integrate_bins(density, res, samples=None, tol=1e-7, crowd=64, max_depth=20,
 
     Each bin is a quadtree: a cell is split into four while its children's integral differs
     from its own by more than `tol`, or while it holds more than `crowd` of the given
-    samples ((n, 2) points in the square): where samples are, mass is, so a peak the
-    quadrature nodes straddle is still found. with_error=True also returns each bin's
+    samples ((n, 2) points in the square), or any of them while its integral is 0: where
+    samples are, mass is, so a peak the quadrature nodes straddle is still found. with_error=True also returns each bin's
     error estimate: the sum of |children - parent| over the cells it accepted.
     """
     na, nb = res
@@ -121,7 +121,10 @@ def integrate_bins(density, res, samples=None, tol=1e-7, crowd=64, max_depth=20,
         kid_sum = kids.reshape(4, n).sum(axis=0)
         refine = np.abs(kid_sum - whole) > tol
         if track:
-            refine |= np.bincount(s_cell, minlength=n) > crowd
+            count = np.bincount(s_cell, minlength=n)
+            # a crowd, or samples where the nodes saw nothing (a sliver: e.g. the horizon
+            # cutting through a half-vector bin)
+            refine |= (count > crowd) | ((count > 0) & (kid_sum <= 0))
         depth += 1
         evaluated += 4 * n
         if depth >= max_depth or evaluated > max_cells:

@@ -44,6 +44,23 @@ def test_adaptive_integration_finds_a_narrow_peak():
     assert bins[2, 6] == pytest.approx(1.0, abs=1e-6)
 
 
+def test_adaptive_integration_finds_a_sliver_where_samples_are():
+    """Mass in a strip of width 1e-4 along one edge (like the horizon cutting through a
+    half-vector bin at grazing incidence): every quadrature node misses it, so only the
+    samples can point the quadtree there (250 per bin here)."""
+    w = 1e-4
+
+    def density(a, b):
+        return np.where(a > 1.0 - w, 1.0 / w, 0.0)
+
+    rng = np.random.default_rng(3)
+    samples = np.stack([1.0 - w * rng.random(2000), rng.random(2000)], axis=-1)
+    assert integrate_bins(density, (8, 8), tol=1e-9).sum() < 0.5       # blind without samples
+    bins = integrate_bins(density, (8, 8), samples, tol=1e-9)
+    assert bins.sum() == pytest.approx(1.0, abs=0.01)
+    np.testing.assert_allclose(bins[7], 1 / 8, rtol=0.05)      # gaps between samples: a few %
+
+
 @pytest.mark.parametrize("theta", [0, 45, 89])
 def test_correct_samplers_pass(theta):
     wi = incident(theta, 0.7)
