@@ -108,13 +108,13 @@ class Table:
         return self.density[i, j]
 
     def sample_dir(self, u):
-        """(wo, pdf) in this table's frame; pdf 0 where the half vector reflects below the horizon."""
-        v = self.sample_u(u)
-        m = _half_vector(v)
+        """(wo, pdf) in this table's frame; pdf 0 where the half vector reflects below the horizon.
+        The pdf is pdf_dir(wo): a sample on a cell boundary whose round trip wo -> v lands in
+        the neighbouring cell gets that cell's density, as pdf() says (the stress suite found
+        3 in 2.5e6 disagreeing by up to 7e-4 when the pdf came from the sampled cell)."""
+        m = _half_vector(self.sample_u(u))
         w = reflect(self.wi[None, :], m)
-        jac = _dwo_du(self.wi[None, :], m, v[:, 0])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return w, np.where((w[:, 2] > 0) & (jac > 0), self.density_u(v) / jac, 0.0)
+        return w, self.pdf_dir(w)
 
     def pdf_dir(self, wo):
         """The solid-angle density of sample_dir at wo (this table's frame)."""
