@@ -347,8 +347,11 @@ class SphericalMap:
         c2 = wo[..., 2] ** 2 / n2
         # z > 0 with z² below the smallest normal (z < 1.5e-154) would give s = inf or NaN and a NaN
         # pdf: take the smallest normal instead (s = 37.5; the density there is < 1e-300 either way).
+        # The same at the pole (wo = normal, s = -inf): a light straight above a shading point
+        # asked pdf() there and got NaN (stress suite); the density's limit there is ~0.
         tiny = np.finfo(np.float64).tiny
         c2 = np.where((c2 < tiny) & (wo[..., 2] != 0), tiny, c2)
+        s2 = np.maximum(s2, tiny)
         s = np.where(s2 <= 0.5, ndtri(s2), -ndtri(c2))
         return np.stack([s, np.arctan2(wo[..., 1], wo[..., 0])], axis=-1)
 
@@ -356,7 +359,8 @@ class SphericalMap:
     def from_domain(x):
         x = np.asarray(x, dtype=np.float64)
         theta = x[..., 0]
-        s2, c2 = np.sin(theta) ** 2, np.cos(theta) ** 2
+        tiny = np.finfo(np.float64).tiny        # as in from_dir: the pole stays finite
+        s2, c2 = np.maximum(np.sin(theta) ** 2, tiny), np.maximum(np.cos(theta) ** 2, tiny)
         s = np.where(s2 <= 0.5, ndtri(s2), -ndtri(c2))
         return np.stack([s, wrap_angle(x[..., 1])], axis=-1)
 

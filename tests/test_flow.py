@@ -252,6 +252,22 @@ def test_model_file_round_trip(tmp_path):
     assert not list(tmp_path.glob("*.tmp"))
 
 
+@pytest.mark.parametrize("domain", ["disk", "spherical"])
+def test_the_normal_direction_has_a_finite_pdf(domain):
+    """wo exactly along the normal (a light straight above the shading point): the spherical
+    map's pole, where s = -inf once made pdf() and invert() NaN."""
+    import warnings
+    model = random_net(domain).to_numpy(4)
+    wi = unit([0.3, 0.1, 0.9])
+    pole = np.array([[0.0, 0.0, 1.0], [1e-12, 0.0, 1.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")          # no NaN even in the masked-out intermediate values
+        pdf = model.pdf(wi, pole)
+        u = model.invert(wi, pole)
+    # (finite: the limit at the pole is 0 or, for a base wider than the map's N(0, 1), +inf)
+    assert np.all(np.isfinite(pdf)) and np.all(pdf >= 0) and np.all(np.isfinite(u))
+
+
 def _write_npz(path, meta, arrays):
     payload = dict(arrays)
     if meta is not None:
