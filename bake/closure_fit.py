@@ -1,7 +1,9 @@
 """Cycles closures fitted to baked tables: the Learned BSDF node's fit back end.
 
 Per view angle (knots in x = 1 - cos theta_i, what Cycles' Layer Weight "Facing" gives),
-the baked BSDF f (Tables.eval) is approximated by what Cycles renders everywhere:
+the baked BSDF f (Tables.eval) is approximated by what Cycles renders everywhere
+(isotropic closures: for anisotropic tables the fit is made at phi_i = 0, wi in the xz
+plane, like every knot here; not an average over phi_i):
 
     f_fit = kd / pi  +  ks * f_ggx(alpha)
 
@@ -65,10 +67,9 @@ def baked_albedo(tables, cos_i):
     interpolated table (what a furnace render of the OSL back end converges to)."""
     theta = float(np.arccos(np.clip(cos_i, -1.0, 1.0)))
     wi = np.array([[np.sin(theta), 0.0, np.cos(theta)]])
-    k0, k1, t, _ = tables._bins(wi)
-    k0, k1, t = int(k0[0]), int(k1[0]), float(t[0])
-    m = (1 - t) * tables._m[k0] + t * tables._m[k1]
-    w = (1 - t) * tables.weights[k0].astype(np.float64) + t * tables.weights[k1].astype(np.float64)
+    bins, _ = tables._bins(wi)
+    m = tables._lerp(tables._m, bins)[0]
+    w = tables._lerp(tables._w.astype(np.float64), bins)[0]
     return np.einsum("rc,rck->k", m, w)
 
 

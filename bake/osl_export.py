@@ -25,6 +25,10 @@ The file is named after the table file's content hash (`<stem>.osl-<hash12>.exr`
 the tables) and carries the full hash in its metadata: a changed table gets a new export
 file (OpenImageIO caches textures by name, so a rewritten file of the same name could be
 served stale inside a running Blender), and older exports of the same tables are removed.
+
+The layout (and the shader) know bins over theta_i only: anisotropic tables get no export
+(`ensure_osl_export` raises IsotropicOnly, `bake_derived` logs it), and the Blender node
+renders their closure fit, as it does whenever the texture is missing.
 """
 import json
 from pathlib import Path
@@ -39,6 +43,10 @@ LAYOUT = 1
 META_KEY = "flowbsdf_osl"
 
 
+class IsotropicOnly(FlowBSDFError):
+    """The tables are anisotropic (bins over phi_i): the layout has theta bins only."""
+
+
 def export_path(tables_path, digest):
     tables_path = Path(tables_path)
     return tables_path.with_name(f"{tables_path.stem}.osl-{digest[:12]}.exr")
@@ -46,6 +54,8 @@ def export_path(tables_path, digest):
 
 def texture_image(tables):
     """The (H, W, 3) float32 image of the layout above."""
+    if tables.anisotropic:
+        raise IsotropicOnly("anisotropic tables have no OSL layout")
     K, R, C = len(tables.theta_bins), tables.rows, tables.cols
     P = max(K - 1, 1)
     width = max(C + 1, R + 1, K, 3)
@@ -110,19 +120,33 @@ def ensure_osl_export(tables_path, log=None):
     path = export_path(tables_path, digest)
     if not is_current(path, digest):
         tables = open_tables(tables_path)
-        _write(path, texture_image(tables),
-               {"layout": LAYOUT, "tables_hash": digest, "tables": tables_path.name,
-                "material": tables.meta.get("material")})
-        if log:
-            log(f"[osl] wrote {path}")
+        if tables.anisotropic:
+            path = None         # and no older export stays behind
+        else:
+            _write(path, texture_image(tables),
+                   {"layout": LAYOUT, "tables_hash": digest, "tables": tables_path.name,
+                    "material": tables.meta.get("material")})
+            if log:
+                log(f"[osl] wrote {path}")
     for old in tables_path.parent.glob(f"{tables_path.stem}.osl-*.exr"):
-        if old.name != path.name:
+        if path is None or old.name != path.name:
             old.unlink(missing_ok=True)
+    if path is None:
+        raise IsotropicOnly("anisotropic tables: the OSL back end reads isotropic tables only, so there is "
+                            "no OSL texture (the Blender node renders the closure fit)", tables_path)
     return path
 
 
 def bake_derived(tables_path, log=None):
-    """What the Blender node needs beside a table file: its OSL texture and its closure fit
-    (each rebuilt only when missing or stale). Called by the bake pipeline."""
+    """What the Blender node needs beside a table file: its OSL texture (None for anisotropic
+    tables, see IsotropicOnly) and its closure fit (each rebuilt only when missing or stale).
+    Called by the bake pipeline."""
     from .closure_fit import ensure_fit
-    return ensure_osl_export(tables_path, log=log), ensure_fit(tables_path, log=log)
+    try:
+        texture = ensure_osl_export(tables_path, log=log)
+    except IsotropicOnly as e:
+        texture = None
+        if log:
+            log(f"[osl] none for {Path(tables_path).name}: {e.problem}")
+    return texture, ensure_fit(tables_path, log=log)
+

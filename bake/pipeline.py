@@ -21,7 +21,7 @@ from .tables import FORMAT_VERSION, open_tables
 # Bumped when the construction changes in a way that should rebuild existing tables.
 BUILDER_VERSION = 2      # 2: cells that miss a hard-edged sliver of mass are integrated around their points
 BAKE_KEYS = {"source", "tol", "memory_budget", "resolution", "grid", "lobe_width", "samples", "first_bins",
-             "ideal_resolution"}
+             "ideal_resolution", "phi_count"}
 SOURCES = ("auto", "flow", "ideal")
 
 
@@ -53,7 +53,7 @@ def bake_settings(entry, manifest_path):
 # Limits of the numeric bake settings: (type, low, high). A typo like resolution = 1e9 must be
 # an error, not a bake that asks for terabytes.
 SETTING_LIMITS = {"resolution": (int, 2, 1024), "grid": (int, 8, 4096), "samples": (int, 64, 1 << 24),
-                  "first_bins": (int, 2, 512), "ideal_resolution": (int, 8, 2048),
+                  "first_bins": (int, 2, 512), "ideal_resolution": (int, 8, 2048), "phi_count": (int, 1, 256),
                   "memory_budget": (int, 1 << 10, 1 << 34), "tol": (float, 0.0, 10.0),
                   "lobe_width": (float, 0.0, 1.6)}
 
@@ -92,10 +92,6 @@ def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
     from .tabulate import plan_tables
     settings = bake_settings(entry, manifest_path)
     material = entry.open()
-    if not material.isotropic:
-        log(f"[skip] {entry.name}: anisotropic; tables over phi_i are not supported yet "
-            "(the flow and the ideal sampler serve it)")
-        return None, "unsupported"
     model_file = model_path(out_dir, entry.name)
     source_kind = settings["source"]
     if source_kind == "flow" and not model_file.is_file():

@@ -28,6 +28,14 @@ stay increasing (a convex combination of increasing lists), interpolated masses 
 distribution, so every wi gets an exact table, and a lobe moves with theta_i instead of
 fading between two positions (a displacement interpolation).
 
+Anisotropic materials (`phi_bins`): bins over theta_i x phi_i, the phi_i bins increasing
+azimuths within one period P of the material's rotational symmetry (`phi_period`, 2 pi
+unless the material says otherwise; pi for elliptic microfacet lobes), wrapping around.
+Each bin is built at its own wi (b stays relative to phi_i's mirror plane) and the four
+neighbouring bins are blended bilinearly: weights linear in cos(theta_i) times linear in
+phi_i, still a convex combination, so everything above holds. The C fast path serves
+isotropic tables only; anisotropic ones use the numpy code.
+
 Per cell the table also keeps the RGB estimator weight W = integral of f·cos over the
 cell / its share of the target; `eval` returns W·pdf/cos, the baked BSDF the Cycles OSL
 back end renders.
@@ -102,38 +110,54 @@ def _search(value, n, edge_at):
 # ------------------------------------------------------------------------------ sampling
 
 class Tables:
-    """The baked sampler of one material. Isotropic: bins over theta_i only."""
+    """The baked sampler of one material: bins over theta_i, and over phi_i when anisotropic.
+
+    Isotropic arrays: a_edges (K, R+1), b_edges (K, R, C+1), mass/alpha/beta (K, R, C),
+    weights (K, R, C, 3). Anisotropic ones (phi_bins given, P of them) have a phi axis
+    after the theta axis: a_edges (K, P, R+1), and so on.
+    """
 
     name = "tables"
+    normalized = True       # pdf() integrates to 1 (the cells tile the hemisphere): no sample is ever lost
     ARRAYS = ("mass", "alpha", "beta")
 
-    def __init__(self, theta_bins, a_edges, b_edges, mass, alpha, beta, weights, meta=None, backend="auto"):
+    def __init__(self, theta_bins, a_edges, b_edges, mass, alpha, beta, weights, meta=None, backend="auto",
+                 phi_bins=None, phi_period=TWO_PI):
         self.theta_bins = np.asarray(theta_bins, np.float64)
-        self.a_edges = np.asarray(a_edges, np.float32)     # (K, R+1)
-        self.b_edges = np.asarray(b_edges, np.float32)     # (K, R, C+1)
-        self.mass = np.asarray(mass, np.float32)           # (K, R, C)
-        self.alpha = np.asarray(alpha, np.float32)         # (K, R, C) slope along a
-        self.beta = np.asarray(beta, np.float32)           # (K, R, C) slope along b
-        self.weights = np.asarray(weights, np.float32)     # (K, R, C, 3)
+        self.phi_bins = None if phi_bins is None else np.asarray(phi_bins, np.float64)
+        self.phi_period = float(phi_period)
+        self.a_edges = np.asarray(a_edges, np.float32)     # (K, [P,] R+1)
+        self.b_edges = np.asarray(b_edges, np.float32)     # (K, [P,] R, C+1)
+        self.mass = np.asarray(mass, np.float32)           # (K, [P,] R, C)
+        self.alpha = np.asarray(alpha, np.float32)         # (K, [P,] R, C) slope along a
+        self.beta = np.asarray(beta, np.float32)           # (K, [P,] R, C) slope along b
+        self.weights = np.asarray(weights, np.float32)     # (K, [P,] R, C, 3)
         self.meta = dict(meta or {})
         self.backend = backend      # "auto" (C when available, see _fast), "numpy", "c"
-        self.rows = self.a_edges.shape[1] - 1
-        self.cols = self.b_edges.shape[2] - 1
+        self.rows = self.a_edges.shape[-1] - 1
+        self.cols = self.b_edges.shape[-1] - 1
+        # The working copies have one bin axis: bin k (isotropic), or k * P + p.
+        flat = lambda x, tail: x.reshape((-1,) + x.shape[x.ndim - tail:])      # noqa: E731
         # float64 working copies; the stored float32 values define the sampler exactly.
-        self._a = self.a_edges.astype(np.float64)
-        self._b = self.b_edges.astype(np.float64)
+        self._a = flat(self.a_edges, 1).astype(np.float64)
+        self._b = flat(self.b_edges, 2).astype(np.float64)
         # The outer edges are the hemisphere's: exactly 0 and 1 in a, 0 and 2 pi in b
         # (float32(2 pi) exceeds 2 pi, which would wrap the last column's end onto the first).
         self._a[:, 0], self._a[:, -1] = 0.0, 1.0
         self._b[..., 0], self._b[..., -1] = 0.0, TWO_PI
-        self._alpha = self.alpha.astype(np.float64)
-        self._beta = self.beta.astype(np.float64)
-        m = self.mass.astype(np.float64)
+        self._alpha = flat(self.alpha, 2).astype(np.float64)
+        self._beta = flat(self.beta, 2).astype(np.float64)
+        self._w = flat(self.weights, 3)
+        m = flat(self.mass, 2).astype(np.float64)
         m /= m.sum(axis=(1, 2), keepdims=True)
         self._m = m
         self._col_cum = np.concatenate([np.zeros(m.shape[:2] + (1,)), np.cumsum(m, axis=2)], axis=2)
         row_mass = self._col_cum[:, :, -1]
         self._row_cdf = np.concatenate([np.zeros((len(m), 1)), np.cumsum(row_mass, axis=1)], axis=1)
+
+    @property
+    def anisotropic(self):
+        return self.phi_bins is not None
 
     # -- C fast path ------------------------------------------------------------------
     # sample/pdf/invert/eval hand their inputs to bake/fasttables.py (C, same results to a
@@ -143,7 +167,7 @@ class Tables:
 
     @property
     def _fast(self):
-        if self.backend == "numpy":
+        if self.backend == "numpy" or self.anisotropic:     # the C code knows theta bins only
             return None
         if _fasttables is None or not _fasttables.AVAILABLE:
             if self.backend == "c":
@@ -159,44 +183,62 @@ class Tables:
         return sum(x.nbytes for x in (self.a_edges, self.b_edges, self.mass, self.alpha, self.beta, self.weights))
 
     def _bins(self, wi):
-        """Per sample: lower bin k0, upper bin k1, the upper one's weight t, and phi_ref."""
+        """Per sample: the bins to blend, (N, n) indices on the working copies' bin axis and
+        (N, n) weights (2 bins isotropic, 4 anisotropic), and phi_ref."""
         theta, phi = theta_phi(wi)
         K = len(self.theta_bins)
         if K == 1:
-            z = np.zeros(len(theta), np.int64)
-            return z, z, np.zeros(len(theta)), phi + np.pi
-        k = np.clip(np.searchsorted(self.theta_bins, theta, side="right") - 1, 0, K - 2)
-        # Weights linear in cos(theta_i): the mirror direction's a = 1 - cos(theta_i), the
-        # edges' main anchor, then moves exactly as the interpolated edges do.
-        c = np.cos(self.theta_bins)
-        t = np.clip((c[k] - np.cos(theta)) / (c[k] - c[k + 1]), 0.0, 1.0)
-        return k, k + 1, t, phi + np.pi
+            k, t = np.zeros(len(theta), np.int64), np.zeros(len(theta))
+        else:
+            k = np.clip(np.searchsorted(self.theta_bins, theta, side="right") - 1, 0, K - 2)
+            # Weights linear in cos(theta_i): the mirror direction's a = 1 - cos(theta_i), the
+            # edges' main anchor, then moves exactly as the interpolated edges do.
+            c = np.cos(self.theta_bins)
+            t = np.clip((c[k] - np.cos(theta)) / (c[k] - c[k + 1]), 0.0, 1.0)
+        corners = [(k, 1.0 - t), (np.minimum(k + 1, K - 1), t)]
+        if self.anisotropic:
+            P, period = len(self.phi_bins), self.phi_period
+            # phi_i within the period, from the first bin; the gap after the last bin wraps to
+            # the first one (+ period). x == period after rounding gives s = 1 on bin 0: right.
+            x = np.mod(phi - self.phi_bins[0], period)
+            starts = self.phi_bins - self.phi_bins[0]
+            p = np.clip(np.searchsorted(starts, x, side="right") - 1, 0, P - 1)
+            ends = np.append(starts[1:], period)
+            s = np.clip((x - starts[p]) / (ends[p] - starts[p]), 0.0, 1.0)
+            corners = [(kk * P + pp, wk * wp) for kk, wk in corners
+                       for pp, wp in ((p, 1.0 - s), ((p + 1) % P, s))]
+        return (np.stack([c[0] for c in corners], axis=1), np.stack([c[1] for c in corners], axis=1)), phi + np.pi
 
     @staticmethod
-    def _lerp(table, k0, k1, t, *idx):
-        return (1.0 - t) * table[(k0, *idx)] + t * table[(k1, *idx)]
+    def _lerp(table, bins, *idx):
+        """The blend of table[bin, *idx] over the bins (a convex combination per sample)."""
+        ks, ws = bins
+        out = 0.0
+        for c in range(ks.shape[1]):
+            v = table[(ks[:, c], *idx)]
+            out = out + ws[:, c].reshape((-1,) + (1,) * (v.ndim - 1)) * v
+        return out
 
-    def _cell(self, k0, k1, t, i, j):
+    def _cell(self, bins, i, j):
         """Edges, probability and slopes of cell (i, j) of the interpolated table."""
         L = self._lerp
-        a0, a1 = L(self._a, k0, k1, t, i), L(self._a, k0, k1, t, i + 1)
-        b0, b1 = L(self._b, k0, k1, t, i, j), L(self._b, k0, k1, t, i, j + 1)
-        return a0, a1, b0, b1, L(self._m, k0, k1, t, i, j), L(self._alpha, k0, k1, t, i, j), \
-            L(self._beta, k0, k1, t, i, j)
+        a0, a1 = L(self._a, bins, i), L(self._a, bins, i + 1)
+        b0, b1 = L(self._b, bins, i, j), L(self._b, bins, i, j + 1)
+        return a0, a1, b0, b1, L(self._m, bins, i, j), L(self._alpha, bins, i, j), L(self._beta, bins, i, j)
 
     def sample(self, wi, u):
         if (fast := self._fast) is not None and (out := fast.sample(self, wi, u)) is not None:
             return out      # C fast path; the numpy reference follows
         u = np.atleast_2d(np.asarray(u, np.float64))
         wi, _ = as_dirs(wi, np.empty((len(u), 3)))
-        k0, k1, t, phi_ref = self._bins(wi)
+        bins, phi_ref = self._bins(wi)
         L = self._lerp
-        i = _search(u[:, 0], self.rows, lambda m: L(self._row_cdf, k0, k1, t, m))
-        c0, c1 = L(self._row_cdf, k0, k1, t, i), L(self._row_cdf, k0, k1, t, i + 1)
+        i = _search(u[:, 0], self.rows, lambda m: L(self._row_cdf, bins, m))
+        c0, c1 = L(self._row_cdf, bins, i), L(self._row_cdf, bins, i + 1)
         v = u[:, 1] * (c1 - c0)
-        j = _search(v, self.cols, lambda m: L(self._col_cum, k0, k1, t, i, m))
-        d0 = L(self._col_cum, k0, k1, t, i, j)
-        a0, a1, b0, b1, m, ka, kb = self._cell(k0, k1, t, i, j)
+        j = _search(v, self.cols, lambda m: L(self._col_cum, bins, i, m))
+        d0 = L(self._col_cum, bins, i, j)
+        a0, a1, b0, b1, m, ka, kb = self._cell(bins, i, j)
         x = exp_inverse_cdf(np.clip((u[:, 0] - c0) / (c1 - c0), 0.0, 1.0), ka)
         y = exp_inverse_cdf(np.clip((v - d0) / m, 0.0, 1.0), kb)
         wo = from_ab(a0 + x * (a1 - a0), b0 + y * (b1 - b0), phi_ref)
@@ -204,16 +246,16 @@ class Tables:
         return wo, pdf
 
     def _locate(self, wi, wo):
-        k0, k1, t, phi_ref = self._bins(wi)
+        bins, phi_ref = self._bins(wi)
         a, b = to_ab(wo, phi_ref)
         L = self._lerp
-        i = _search(a, self.rows, lambda m: L(self._a, k0, k1, t, m))
-        j = _search(b, self.cols, lambda m: L(self._b, k0, k1, t, i, m))
-        a0, a1, b0, b1, m, ka, kb = self._cell(k0, k1, t, i, j)
+        i = _search(a, self.rows, lambda m: L(self._a, bins, m))
+        j = _search(b, self.cols, lambda m: L(self._b, bins, i, m))
+        a0, a1, b0, b1, m, ka, kb = self._cell(bins, i, j)
         x = np.clip((a - a0) / (a1 - a0), 0.0, 1.0)
         y = np.clip((b - b0) / (b1 - b0), 0.0, 1.0)
         pdf = m * exp_density(x, ka) * exp_density(y, kb) / ((a1 - a0) * (b1 - b0))
-        return (k0, k1, t), i, j, x, y, ka, kb, pdf
+        return bins, i, j, x, y, ka, kb, pdf
 
     def pdf(self, wi, wo):
         if (fast := self._fast) is not None and (out := fast.pdf(self, wi, wo)) is not None:
@@ -226,10 +268,10 @@ class Tables:
         if (fast := self._fast) is not None and (out := fast.invert(self, wi, wo)) is not None:
             return out      # C fast path; the numpy reference follows
         wi, wo = as_dirs(wi, wo)
-        (k0, k1, t), i, j, x, y, ka, kb, _ = self._locate(wi, wo)
+        bins, i, j, x, y, ka, kb, _ = self._locate(wi, wo)
         L = self._lerp
-        c0, c1 = L(self._row_cdf, k0, k1, t, i), L(self._row_cdf, k0, k1, t, i + 1)
-        d0, d1 = L(self._col_cum, k0, k1, t, i, j), L(self._col_cum, k0, k1, t, i, j + 1)
+        c0, c1 = L(self._row_cdf, bins, i), L(self._row_cdf, bins, i + 1)
+        d0, d1 = L(self._col_cum, bins, i, j), L(self._col_cum, bins, i, j + 1)
         u1 = c0 + exp_cdf(x, ka) * (c1 - c0)
         u2 = (d0 + exp_cdf(y, kb) * (d1 - d0)) / (c1 - c0)
         return np.stack([u1, u2], axis=-1)
@@ -239,8 +281,8 @@ class Tables:
         if (fast := self._fast) is not None and (out := fast.eval(self, wi, wo)) is not None:
             return out      # C fast path; the numpy reference follows
         wi, wo = as_dirs(wi, wo)
-        (k0, k1, t), i, j, _, _, _, _, pdf = self._locate(wi, wo)
-        w = (1.0 - t)[:, None] * self.weights[k0, i, j] + t[:, None] * self.weights[k1, i, j]
+        bins, i, j, _, _, _, _, pdf = self._locate(wi, wo)
+        w = self._lerp(self._w, bins, i, j)
         with np.errstate(divide="ignore", invalid="ignore"):
             f = w * (pdf / wo[:, 2])[:, None]
         return np.where(((wo[:, 2] > 0) & (wi[:, 2] > 0))[:, None], f, 0.0)
@@ -248,12 +290,36 @@ class Tables:
     # -- files -----------------------------------------------------------------------
 
     def save(self, path):
-        K, R, C = len(self.theta_bins), self.rows, self.cols
+        B, R, C = len(self._a), self.rows, self.cols       # B bins: K, or K x P
         meta = {**self.meta, "format": "flowbsdf-tables", "format_version": FORMAT_VERSION,
                 "theta_bins": [float(x) for x in self.theta_bins], "rows": R, "cols": C}
-        write_exr(path, {"a_edges": self.a_edges, "b_edges": self.b_edges.reshape(K * R, C + 1),
-                         **{n: getattr(self, n).reshape(K * R, C) for n in self.ARRAYS},
-                         "weights": self.weights.reshape(K * R, C * 3)}, meta)
+        if self.anisotropic:
+            meta.update(phi_bins=[float(x) for x in self.phi_bins], phi_period=self.phi_period)
+        write_exr(path, {"a_edges": self.a_edges.reshape(B, R + 1), "b_edges": self.b_edges.reshape(B * R, C + 1),
+                         **{n: getattr(self, n).reshape(B * R, C) for n in self.ARRAYS},
+                         "weights": self.weights.reshape(B * R, C * 3)}, meta)
+
+
+def _bins_of(meta, key, path, hi, lo=0.0, closed=True):
+    """The increasing list meta[key] within [lo, hi] (hi excluded unless closed), or FlowBSDFError."""
+    try:
+        bins = np.asarray(meta[key], np.float64)
+    except (TypeError, ValueError):
+        bins = np.array([np.nan])
+    if (bins.ndim != 1 or len(bins) < 1 or not np.all(np.isfinite(bins)) or np.any(np.diff(bins) <= 0)
+            or bins[0] < lo or (bins[-1] > hi if closed else bins[-1] >= hi)):
+        raise FlowBSDFError(f"{key} {meta[key]!r} must be increasing angles in [{lo:g}, {hi:g}"
+                            f"{']' if closed else ')'}: corrupt file", path)
+    return bins
+
+
+def _phi_period(meta, path):
+    """The period of phi_bins: 2 pi / n for a whole n (2 pi when absent)."""
+    period = meta.get("phi_period", TWO_PI)
+    n = TWO_PI / period if isinstance(period, (int, float)) and not isinstance(period, bool) and period > 0 else 0.0
+    if not (np.isfinite(n) and n >= 1 - 1e-9 and abs(n - round(n)) < 1e-9):
+        raise FlowBSDFError(f"phi_period {period!r} must be 2 pi / n for a whole n: corrupt file", path)
+    return float(period)
 
 
 def open_tables(path):
@@ -264,24 +330,23 @@ def open_tables(path):
         raise FlowBSDFError(f"table format version {meta.get('format_version')} "
                             f"(this FlowBSDF reads version {FORMAT_VERSION}); re-bake it", path)
     try:
-        K, R, C = len(meta["theta_bins"]), int(meta["rows"]), int(meta["cols"])
+        R, C = int(meta["rows"]), int(meta["cols"])
         a, b, w = arrays["a_edges"], arrays["b_edges"], arrays["weights"]
         cells = [arrays[n] for n in Tables.ARRAYS]
+        theta_bins = _bins_of(meta, "theta_bins", path, 0.5 * np.pi)
     except KeyError as e:
         raise FlowBSDFError(f"table file is incomplete (truncated or damaged?): {e} is missing", path) from None
     except (TypeError, ValueError) as e:
         raise FlowBSDFError(f"table metadata is malformed: {e}", path) from None
-    try:
-        bins = np.asarray(meta["theta_bins"], np.float64)
-    except (TypeError, ValueError):
-        bins = np.array([np.nan])
-    if (bins.ndim != 1 or K < 1 or not np.all(np.isfinite(bins)) or np.any(np.diff(bins) <= 0)
-            or bins[0] < 0 or bins[-1] > 0.5 * np.pi):
-        raise FlowBSDFError(f"theta_bins {meta['theta_bins']!r} must be increasing elevations in "
-                            "[0, pi/2]: corrupt file", path)
+    phi_bins, period = None, TWO_PI
+    if meta.get("phi_bins") is not None:       # anisotropic: bins over phi_i within one period
+        period = _phi_period(meta, path)
+        phi_bins = _bins_of(meta, "phi_bins", path, period, closed=False)
+    K, P = len(theta_bins), 1 if phi_bins is None else len(phi_bins)
+    B = K * P
     shapes = [a.shape, b.shape, w.shape] + [c.shape for c in cells]
-    if shapes != [(K, R + 1), (K * R, C + 1), (K * R, C * 3)] + [(K * R, C)] * len(cells):
-        raise FlowBSDFError(f"table shapes {shapes} do not match {K} bins of {R}x{C}", path)
+    if shapes != [(B, R + 1), (B * R, C + 1), (B * R, C * 3)] + [(B * R, C)] * len(cells):
+        raise FlowBSDFError(f"table shapes {shapes} do not match {K} x {P} bins of {R}x{C}", path)
     if not all(np.all(np.isfinite(x)) for x in (a, b, w, *cells)):
         raise FlowBSDFError("table holds NaN or inf", path)
     mass, alpha, beta = cells
@@ -289,5 +354,7 @@ def open_tables(path):
             or np.any(np.abs(alpha) > K_MAX) or np.any(np.abs(beta) > K_MAX)):
         raise FlowBSDFError("table edges not increasing, masses not positive or slopes out of "
                             "range: corrupt file", path)
-    return Tables(meta["theta_bins"], a, b.reshape(K, R, C + 1), *(c.reshape(K, R, C) for c in cells),
-                  w.reshape(K, R, C, 3), meta)
+    lead = (K,) if phi_bins is None else (K, P)
+    return Tables(theta_bins, a.reshape(*lead, R + 1), b.reshape(*lead, R, C + 1),
+                  *(c.reshape(*lead, R, C) for c in cells), w.reshape(*lead, R, C, 3), meta,
+                  phi_bins=phi_bins, phi_period=period)

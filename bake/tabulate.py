@@ -8,7 +8,7 @@ quadrature settles and agrees with the source points that fall in it).
 import numpy as np
 
 from .errors import FlowBSDFError
-from .geometry import luminance
+from .geometry import luminance, spherical_dir
 from .tables import _SMALL, K_MAX, TWO_PI, Tables, _search, from_ab, to_ab
 
 A_MIN = 1e-4     # the least gap between row knots (keeps every segment of rows non-empty)
@@ -260,28 +260,63 @@ def _find_cols(b_edges, row, b):
     return _search(b, b_edges.shape[1] - 1, lambda m: b_edges[row, m])
 
 
+def default_phi_bins(material, count):
+    """`count` evenly spaced azimuths over one period of the material's rotational symmetry."""
+    return np.arange(count) * (material.phi_period / count)
+
+
 def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_width=None, gamma=0.5,
                  row_share=0.02, col_share=0.05, quadrature=4, floor=1e-4, window=1,
-                 progress=None, cache=None):
-    """Tables of an isotropic material at the given incident elevations (radians).
+                 progress=None, cache=None, phi_bins=None):
+    """Tables of a material at the given incident elevations (radians) and, for an
+    anisotropic material, azimuths `phi_bins` (radians, increasing within [0, phi_period)
+    of the material; see default_phi_bins). Each azimuth's bins are built like an isotropic
+    material's (`_build_column`) at wi = (theta, phi).
+    """
+    if phi_bins is None and not material.isotropic:
+        raise FlowBSDFError("an anisotropic material needs bins over phi_i (phi_bins)")
+    theta_bins = np.sort(np.asarray(theta_bins, np.float64))
+    phis = [0.0] if phi_bins is None else [float(p) for p in phi_bins]
+    period = material.phi_period
+    if phi_bins is not None and (len(phis) < 1 or np.any(np.diff(phis) <= 0) or phis[0] < 0 or phis[-1] >= period):
+        raise FlowBSDFError(f"phi_bins {phis} must be increasing azimuths in [0, {period:g})")
+    cache = {} if cache is None else cache      # the source's points per bin, reusable across builds
+    done = [0]
+
+    def step():
+        done[0] += 1
+        if progress:
+            progress(done[0], len(theta_bins) * len(phis))
+
+    opts = dict(rows=rows, cols=cols, grid=grid, lobe_width=lobe_width, gamma=gamma, row_share=row_share,
+                col_share=col_share, quadrature=quadrature, floor=floor, window=window, step=step)
+    # One azimuth's source points are ~10 MB per bin: with several azimuths, each column's
+    # are dropped once it is built (caching them all took > 20 GB for a planned 1:6 GGX).
+    columns = [_build_column(material, source, theta_bins, phi, cache=cache if len(phis) == 1 else {}, **opts)
+               for phi in phis]
+    if phi_bins is None:
+        return Tables(theta_bins, *columns[0])
+    return Tables(theta_bins, *(np.stack(x, axis=1) for x in zip(*columns)), phi_bins=phis, phi_period=period)
+
+
+def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_width, gamma, row_share, col_share,
+                  quadrature, floor, window, cache, step):
+    """The bins at the elevations theta_bins and azimuth phi: a_edges, b_edges, mass, alpha,
+    beta, weights, each with a leading bin axis.
 
     Edges are anchored to the specular direction: row knots at the mirror direction and,
     given a lobe width, at the lobe zone's ends; column knots at the mirror plane and the
     lobe zone's azimuths. Between knots, a bin's edges sit at the quantiles of the pooled
-    points of its neighbours within `window` bins, in positions normalized to each bin's
-    knots: neighbouring bins then place a cell on the same part of the lobe, so
+    points of its neighbours within `window` bins (same phi), in positions normalized to
+    each bin's knots: neighbouring bins then place a cell on the same part of the lobe, so
     interpolating them moves the lobe instead of smearing it.
     """
-    if not material.isotropic:
-        raise FlowBSDFError("baking anisotropic materials is not supported yet (bins over phi_i)")
-    theta_bins = np.sort(np.asarray(theta_bins, np.float64))
     K = len(theta_bins)
-    wis = [np.array([np.sin(t), 0.0, np.cos(t)]) for t in theta_bins]
-    phi_ref = np.pi
-    cache = {} if cache is None else cache      # the source's points per bin, reusable across builds
+    wis = [spherical_dir(t, phi) for t in theta_bins]
+    phi_ref = phi + np.pi
     points = []
     for t, wi in zip(theta_bins, wis):
-        key = (float(t), grid, gamma)
+        key = (float(t), phi, grid, gamma)
         if key not in cache:
             cache[key] = _points(material, source, wi, grid, phi_ref, gamma)
         points.append(cache[key])
@@ -322,10 +357,9 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
     for k in range(K):
         a, b, _, pm = points[k]
         parts.append(_finish_bin(material, wis[k], phi_ref, a_edges[k], b_edges[k], a, b, pm, quadrature, floor))
-        if progress:
-            progress(k + 1, K)
+        step()
     mass, alpha, beta, weights = (np.stack(x) for x in zip(*parts))
-    return Tables(theta_bins, np.stack(a_edges), b_edges, mass, alpha, beta, weights)
+    return np.stack(a_edges), b_edges, mass, alpha, beta, weights
 
 
 def _normalize_rows(x, knots, row):
@@ -356,13 +390,19 @@ def lobe_width_of(material, ideal):
 
 def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution=None, first_bins=6,
                 theta_max_deg=89.5, min_gap_deg=0.2, samples=1 << 14, lobe_width="auto", ideal_resolution=256, log=None,
-                **options):
+                phi_count=8, **options):
     """Tables with only the resolution and incident bins this material needs.
 
     Resolution: the smallest of RESOLUTIONS whose single-bin tables reach rv <= tol / 2 at a
     few elevations. Bins: start from `first_bins` evenly spaced elevations; while the memory
     budget allows another bin, split the interval whose interpolated midpoint loses most
     against a bin built at that midpoint, until no interval loses more than tol / 2.
+
+    Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
+    (default_phi_bins). The resolution probe runs at 4 of them; the theta bins are planned
+    at the azimuth where the probe did worst and shared by all azimuths. `memory_budget`
+    bounds the theta bins as for an isotropic material, i.e. it is per azimuth: anisotropic
+    tables take up to phi_count times as much.
     """
     from .ideal import IdealSampler
     from .metrics import relative_variance
@@ -371,19 +411,29 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
     if lobe_width == "auto":
         lobe_width = lobe_width_of(material, ideal)
     opts = dict(lobe_width=lobe_width, cache={}, **options)
+    phi_bins = None if material.isotropic else default_phi_bins(material, phi_count)
 
-    def rv_at(tab, theta):
-        wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
-        return relative_variance(material, tab, wi, n=samples)[0]
+    def build(thetas, phi=0.0, phis=None):     # phis: all azimuths; else the single azimuth phi
+        if phi_bins is not None:
+            phis = [phi] if phis is None else phis
+        return build_tables(material, source, thetas, resolution, resolution, phi_bins=phis, **opts)
 
+    def rv_at(tab, theta, phi=0.0):
+        return relative_variance(material, tab, spherical_dir(theta, phi), n=samples)[0]
+
+    probe_phis = [0.0] if phi_bins is None else phi_bins[::max(1, len(phi_bins) // 4)]
+    worst_phi = 0.0
     if resolution is None:
         probe = np.radians([10.0, 45.0, 75.0, 86.0])
         for resolution in RESOLUTIONS:
-            worst = max(rv_at(build_tables(material, source, [t], resolution, resolution, **opts), t)
-                        for t in probe)
-            log(f"resolution {resolution}: single-bin rv {worst:.4f}")
+            by_phi = {phi: max(rv_at(build([t], phi), t, phi) for t in probe) for phi in probe_phis}
+            worst_phi, worst = max(by_phi.items(), key=lambda kv: kv[1])
+            log(f"resolution {resolution}: single-bin rv {worst:.4f}"
+                + ("" if phi_bins is None else f" (at phi_i {np.degrees(worst_phi):.1f} deg)"))
             if worst <= 0.5 * tol:
                 break
+    elif phi_bins is not None:
+        worst_phi = max(probe_phis, key=lambda phi: rv_at(build([np.radians(75.0)], phi), np.radians(75.0), phi))
     per_bin = FLOATS_PER_CELL * 4 * resolution * resolution
     max_bins = max(2, int(memory_budget // per_bin))
 
@@ -397,7 +447,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
 
     def own_rv(theta):        # what a bin built exactly at theta reaches: the floor of its interval
         if theta not in own:
-            own[theta] = rv_at(build_tables(material, source, [theta], resolution, resolution, **opts), theta)
+            own[theta] = rv_at(build([theta], worst_phi), theta, worst_phi)
         return own[theta]
 
     while len(bins) < max_bins:
@@ -407,15 +457,17 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
                     scores[(lo, hi)] = 0.0
                     continue
                 mid = midpoint(lo, hi)
-                pair = build_tables(material, source, [lo, hi], resolution, resolution, **opts)
+                pair = build([lo, hi], worst_phi)
                 # The interpolation's own error: what the midpoint loses against a bin built there.
-                scores[(lo, hi)] = max(rv_at(pair, mid) - max(own_rv(mid), 0.5 * tol), 0.0)
+                scores[(lo, hi)] = max(rv_at(pair, mid, worst_phi) - max(own_rv(mid), 0.5 * tol), 0.0)
         (lo, hi), worst = max(scores.items(), key=lambda kv: kv[1])
         if worst <= 0.5 * tol:
             break
         bins = sorted(bins + [midpoint(lo, hi)])
         del scores[(lo, hi)]
         log(f"bins {len(bins)}: split {np.degrees(lo):.2f}-{np.degrees(hi):.2f} deg (midpoint rv {worst:.4f})")
-    tables = build_tables(material, source, bins, resolution, resolution, **opts)
+    tables = build(bins, phis=phi_bins)
     tables.meta.update(resolution=resolution, lobe_width=lobe_width, tol=tol)
+    if phi_bins is not None:
+        tables.meta.update(phi_count=len(phi_bins), planned_at_phi=float(worst_phi))
     return tables

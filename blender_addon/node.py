@@ -322,7 +322,7 @@ def _build_tree(tree, name, tables_path, fit_path):
         try:
             osl_texture = _osl_texture(tables_path)
         except Exception as e:      # noqa: BLE001  (a broken table file must not break the material)
-            problems.append(f"tables unreadable: {e}")
+            problems.append(f"no OSL texture: {e}")
     else:
         problems.append(f"tables missing: {tables_path}")
     try:
@@ -484,7 +484,7 @@ def _refresh_export(tree):
     try:
         texture = _osl_texture(tables)
     except Exception as e:      # noqa: BLE001
-        info["problems"] = f"tables unreadable: {e}"
+        info["problems"] = f"no OSL texture: {e}"
         tree[TREE_KEY] = info
         return
     script = tree.nodes.get(SCRIPT)

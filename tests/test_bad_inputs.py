@@ -292,6 +292,17 @@ TABLES = [
     ("theta-bins-nan", lambda p, g: exr_with(p, g, meta=_meta_edit(theta_bins=[0.0, float("nan"), 1.5])),
      "theta_bins"),
     ("no-theta-bins", lambda p, g: exr_with(p, g, meta=_meta_edit(theta_bins=None)), "missing"),
+    # anisotropic files: phi_bins (and phi_period) in the metadata, the arrays K x P bins long
+    ("phi-bins-strings", lambda p, g: exr_with(p, g, meta=_meta_edit(phi_bins=["a"])), "phi_bins"),
+    ("phi-bins-unsorted", lambda p, g: exr_with(p, g, meta=_meta_edit(phi_bins=[1.0, 0.5])), "phi_bins"),
+    ("phi-bins-nan", lambda p, g: exr_with(p, g, meta=_meta_edit(phi_bins=[float("nan")])), "phi_bins"),
+    ("phi-bins-beyond-period", lambda p, g: exr_with(p, g, meta=_meta_edit(phi_bins=[0.0, 3.5], phi_period=np.pi)),
+     "phi_bins"),
+    ("phi-bins-empty", lambda p, g: exr_with(p, g, meta=_meta_edit(phi_bins=[])), "phi_bins"),
+    ("phi-period-not-a-divisor", lambda p, g: exr_with(p, g, meta=_meta_edit(phi_bins=[0.0], phi_period=2.0)),
+     "phi_period"),
+    ("phi-period-string", lambda p, g: exr_with(p, g, meta=_meta_edit(phi_bins=[0.0], phi_period="pi")), "phi_period"),
+    ("phi-bins-shapes", lambda p, g: exr_with(p, g, meta=_meta_edit(phi_bins=[0.0, 1.0])), "do not match"),
 ]
 
 

@@ -118,10 +118,9 @@ def test_osl_furnace_gives_the_baked_albedo(baked, name):
     var = np.zeros((inner.sum(), 3))
     for q, c in enumerate(normal[inner][:, 2]):
         theta = np.arccos(c)
-        k0, k1, t, _ = tab._bins(np.array([[np.sin(theta), 0.0, c]]))
-        k0, k1, t = int(k0[0]), int(k1[0]), float(t[0])
-        m = (1 - t) * tab._m[k0] + t * tab._m[k1]
-        w = (1 - t) * tab.weights[k0].astype(float) + t * tab.weights[k1].astype(float)
+        bins, _ = tab._bins(np.array([[np.sin(theta), 0.0, c]]))
+        m = tab._lerp(tab._m, bins)[0]
+        w = tab._lerp(tab._w.astype(float), bins)[0]
         ref[q] = np.einsum("rc,rck->k", m, w)
         var[q] = np.maximum(np.einsum("rc,rck->k", m, w * w) - ref[q] ** 2, 0.0)
         np.testing.assert_allclose(ref[q], baked_albedo(tab, c), rtol=1e-9)

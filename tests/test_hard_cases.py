@@ -5,9 +5,9 @@ grazing 85-89.9 deg, lobes across phi = +-pi, near-black and over-unity albedo, 
 RGL/MERL data with negative values, invalid entries and empty rows, f·cos zero over most
 of the hemisphere). `flowbsdf stress` runs the same with >= 1e8 samples per case.
 
-Samplers: small baked tables (isotropic cases; anisotropic materials are not baked yet, so
-those get the ideal sampler and the flow), the ideal sampler, and tiny trained flows on a
-near-mirror lobe (disk) and the 1:50 anisotropic lobe (spherical).
+Samplers: small baked tables (anisotropic cases: 8 phi_i bins over the period, see
+tests/test_aniso_tables.py), the ideal sampler, and tiny trained flows on a near-mirror lobe
+(disk) and the 1:50 anisotropic lobe (spherical).
 
 Checks per case and sampler (1e5 samples each, spread over the case's incident
 directions): no NaN/inf/negative pdf, no non-finite direction or weight; a sample has
@@ -43,10 +43,9 @@ def _fast(case):
 
 
 CASES = {c.name: _fast(c) for c in hard_cases()}
-ISOTROPIC = [n for n in CASES if "aniso" not in n]
 FLOW_CASES = ("aniso_1to50",)
 # every chi-square below: one incident direction per case and sampler, plus the flows'
-N_CHI2 = sum(2 if n in ISOTROPIC else 1 for n in CASES) + len(FLOW_CASES)
+N_CHI2 = 2 * len(CASES) + len(FLOW_CASES)
 TEST_BINS = np.radians([0.0, 40.0, 75.0, 86.0, 89.5])
 
 
@@ -56,7 +55,7 @@ def workdir(tmp_path_factory):
 
 
 class _Samplers(dict):
-    """{case: {sampler name: sampler}}, built on first use (small tables: 16x16, 5 bins)."""
+    """{case: {sampler name: sampler}}, built on first use (small tables: 16x16, 5 theta bins)."""
 
     def __init__(self, workdir):
         super().__init__()
@@ -65,10 +64,7 @@ class _Samplers(dict):
     def __missing__(self, name):
         mat = CASES[name].open(self.workdir)
         ideal = IdealSampler(mat, resolution=64)
-        out = {"ideal": ideal}
-        tab = make_tables(mat, ideal, size=16, grid=64, bins=TEST_BINS)
-        if tab is not None:
-            out["tables"] = tab
+        out = {"ideal": ideal, "tables": make_tables(mat, ideal, size=16, grid=64, bins=TEST_BINS)}
         self[name] = out
         return out
 
@@ -94,7 +90,7 @@ def _param(names):
 def test_hard_case(samplers, workdir, name):
     case = CASES[name]
     measured = "rgl" in name or "merl" in name
-    assert ("tables" in samplers[name]) == (name in ISOTROPIC), "anisotropic materials are not baked (yet)"
+    assert samplers[name]["tables"].anisotropic == ("aniso" in name)
     for sname, sampler in samplers[name].items():
         tally = _check(case, sampler, workdir, measured=measured)
         if sname == "tables":
@@ -162,6 +158,8 @@ def test_tables_on_hard_edged_materials_chi2(samplers, name):
 class _Loses:
     """Tables that drop the samples with u0 above 1 - fraction (pdf 0 from sample(); pdf() unchanged)."""
 
+    normalized = True       # what Tables claims
+
     def __init__(self, tables, fraction):
         self.tables, self.fraction = tables, fraction
 
@@ -216,8 +214,8 @@ def test_invalid_samples_are_marked_consistently(samplers, workdir):
 
 @pytest.fixture(scope="module")
 def flows(workdir):
-    """A tiny flow trained on the 1:50 anisotropic case (spherical; torch, ~10 s), the case the
-    tables cannot serve yet. (flowbsdf stress --train-flows trains more.)"""
+    """A tiny flow trained on the 1:50 anisotropic case (spherical; torch, ~10 s). (flowbsdf
+    stress --train-flows trains more.)"""
     pytest.importorskip("trainer")
     pytest.importorskip("torch")
     from trainer.sources import MaterialSource

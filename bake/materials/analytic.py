@@ -361,6 +361,7 @@ class Microfacet(AnalyticMaterial):
 
     DISTRIBUTIONS = ("ggx", "beckmann")
     FRESNELS = ("none", "schlick", "conductor")
+    phi_period = math.pi        # D and Lambda depend on (x, y) through x², y² and x y: even
 
     def __init__(self, distribution="ggx", alpha_x=0.1, alpha_y=None, angle=0.0, fresnel="none",
                  f0=None, eta=None, k=None, name=None):
@@ -518,6 +519,11 @@ class Mixture(AnalyticMaterial):
         self.isotropic = all(m.isotropic for m in self.components)
         self.name = name or "mix(" + ", ".join(f"{_fmt(w)}*{m.name}"
                                                for w, m in zip(self.weights, self.components)) + ")"
+
+    @property
+    def phi_period(self):       # periods 2 pi / n_k: the mix repeats after 2 pi / gcd(n_k)
+        n = [round(2.0 * math.pi / m.phi_period) for m in self.components if not m.isotropic]
+        return 2.0 * math.pi / math.gcd(*n) if n else 2.0 * math.pi
 
     def eval(self, wi, wo):
         wi, wo = as_dirs(wi, wo)

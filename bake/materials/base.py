@@ -21,6 +21,9 @@ class Material:
 
     name = "material"
     isotropic = True
+    # The rotational symmetry of an anisotropic BSDF: f(R wi, R wo) = f(wi, wo) for R the
+    # rotation about the normal by phi_period (2 pi: none). Baked tables bin phi_i over it.
+    phi_period = 2.0 * np.pi
 
     def eval(self, wi, wo):
         raise NotImplementedError

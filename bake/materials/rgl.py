@@ -387,6 +387,11 @@ class RGLMaterial(Material):
     def fingerprint(self):
         return self._sha256
 
+    @property
+    def phi_period(self):
+        """pi when wi is mirrored into a half or quarter circle (both flip under a rotation by pi)."""
+        return np.pi if self._reduction in (2, 4) else 2.0 * np.pi
+
     def eval(self, wi, wo):
         single = np.ndim(wi) == 1
         wi, wo = as_dirs(wi, wo)

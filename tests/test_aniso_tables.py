@@ -1,0 +1,140 @@
+"""Baked tables of anisotropic materials: bins over theta_i x phi_i (bake/tables.py).
+
+The hard cases aniso_1to50 (GGX alpha 0.5 x 0.01) and its rotated twin (0.01 x 0.5 at 37
+deg), small tables (16x16 cells, 5 theta bins x 8 phi bins over the period pi): sample, pdf
+and invert are one exact bijection at any wi, on bins and between them; the blend wraps
+around the period; chi-square passes between bins; rv is finite (and on bins as good as
+the ideal sampler's); files round-trip; `flowbsdf bake` bakes an anisotropic manifest entry.
+"""
+import math
+
+import numpy as np
+import pytest
+
+from bake.geometry import incident, rotate_z
+from bake.ideal import IdealSampler
+from bake.metrics import chi2_test, relative_variance
+from bake.stress import hard_cases, make_tables
+from bake.tables import open_tables
+
+NAMES = ("aniso_1to50", "aniso_1to50_rotated")
+CASES = {c.name: c for c in hard_cases() if c.name in NAMES}
+THETA_BINS = np.radians([0.0, 40.0, 75.0, 86.0, 89.5])
+PHIS_DEG = (0.0, 7.0, 22.5, 37.0, 180.0, 359.9)      # 8 bins over pi: 0, 22.5 and 180 on a bin
+CHI2_WIS = ((30.0, 7.0), (57.3, 100.0), (80.0, 211.0))       # all between bins
+N_CHI2 = len(NAMES) * len(CHI2_WIS)                           # every chi-square of this file
+
+
+@pytest.fixture(scope="module")
+def baked(tmp_path_factory):
+    """{case: (material, ideal sampler, tables)}."""
+    workdir = tmp_path_factory.mktemp("aniso")
+    out = {}
+    for name in NAMES:
+        mat = CASES[name].open(workdir)
+        ideal = IdealSampler(mat, resolution=64)
+        out[name] = (mat, ideal, make_tables(mat, ideal, size=16, grid=64, bins=THETA_BINS))
+    return out
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_tables_have_a_phi_axis(baked, name):
+    mat, _, tab = baked[name]
+    assert tab.anisotropic and tab.phi_period == pytest.approx(math.pi) == mat.phi_period
+    np.testing.assert_allclose(tab.phi_bins, np.arange(8) * math.pi / 8)
+    assert tab.mass.shape == (5, 8, 16, 16) and tab.a_edges.shape == (5, 8, 17)
+    assert tab._fast is None            # the C path is isotropic only: numpy serves these
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_sample_pdf_invert_exact_on_and_between_bins(baked, name):
+    _, _, tab = baked[name]
+    rng = np.random.default_rng(1)
+    for theta in (40.0, 30.0, 57.3, 88.0):          # on a theta bin, then between bins
+        for phi in PHIS_DEG:
+            wi = incident(theta, math.radians(phi))
+            u = rng.random((20000, 2))
+            wo, pdf = tab.sample(wi, u)
+            assert np.all(pdf > 0) and np.all(np.isfinite(pdf)) and np.all(wo[:, 2] > 0), (theta, phi)
+            np.testing.assert_allclose(tab.invert(wi, wo), u, rtol=0, atol=1e-9, err_msg=f"{theta} {phi}")
+            np.testing.assert_allclose(tab.pdf(wi, wo), pdf, rtol=1e-9, err_msg=f"{theta} {phi}")
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_phi_blend_is_periodic(baked, name):
+    """phi_i just below 2 pi and just above 0 get the same table; so do wi and wi turned by the
+    period (the material's symmetry), at the same wo turned alike."""
+    _, _, tab = baked[name]
+    rng = np.random.default_rng(2)
+    wo = tab.sample(incident(50.0, 0.0), rng.random((5000, 2)))[0]
+    below, above = tab.pdf(incident(50.0, -1e-12), wo), tab.pdf(incident(50.0, 1e-12), wo)
+    np.testing.assert_allclose(below, above, rtol=1e-6)
+    np.testing.assert_allclose(tab.pdf(incident(50.0, 2 * math.pi), wo), tab.pdf(incident(50.0, 0.0), wo),
+                               rtol=1e-9)
+    for phi in (0.3, 2.0):
+        turned = tab.pdf(incident(61.0, phi + tab.phi_period), rotate_z(wo, phi + tab.phi_period))
+        np.testing.assert_allclose(turned, tab.pdf(incident(61.0, phi), rotate_z(wo, phi)), rtol=1e-9)
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("theta,phi", CHI2_WIS)
+def test_chi2_between_bins(baked, name, theta, phi):
+    r = chi2_test(baked[name][2], incident(theta, math.radians(phi)), n=100_000, n_tests=N_CHI2, seed=11)
+    assert r.passed, (name, theta, phi, r)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_rv_against_the_ideal_sampler(baked, name):
+    """On bins the tables match the ideal sampler (rv within 2x of its; measured 0.26-1.3x).
+    Between bins rv is finite but far worse: the blend of two bins is no displacement of the
+    thin 1:50 lobe (which, near phi_i = 0 mod pi, passes over the pole and across the seam
+    b = 0). Measured with these tables: 2-980x the ideal sampler's rv (worst at theta_i and
+    phi_i both between bins), hence the loose bound: a guard against NaN/inf/collapse only."""
+    mat, ideal, tab = baked[name]
+    for theta, phi in ((40.0, 0.0), (75.0, 90.0), (40.0, 157.5)):        # on bins
+        wi = incident(theta, math.radians(phi))
+        rv, ref = relative_variance(mat, tab, wi, n=20000)[0], relative_variance(mat, ideal, wi, n=20000)[0]
+        assert rv < 2 * ref, (theta, phi, rv, ref)
+    for theta, phi in CHI2_WIS:
+        wi = incident(theta, math.radians(phi))
+        rv, ref = relative_variance(mat, tab, wi, n=20000)[0], relative_variance(mat, ideal, wi, n=20000)[0]
+        assert math.isfinite(rv) and rv < 2000 * ref, (theta, phi, rv, ref)
+
+
+def test_file_round_trip(baked, tmp_path):
+    _, _, tab = baked["aniso_1to50_rotated"]
+    path = tmp_path / "aniso.exr"
+    tab.save(path)
+    back = open_tables(path)
+    assert back.anisotropic and back.phi_period == tab.phi_period
+    np.testing.assert_array_equal(back.phi_bins, tab.phi_bins)
+    for key in ("a_edges", "b_edges", "mass", "alpha", "beta", "weights"):
+        np.testing.assert_array_equal(getattr(back, key), getattr(tab, key))
+    wi = incident(63.0, 2.5)
+    u = np.random.default_rng(3).random((2000, 2))
+    np.testing.assert_array_equal(back.sample(wi, u)[0], tab.sample(wi, u)[0])
+
+
+def test_bake_an_anisotropic_manifest_entry(tmp_path):
+    """flowbsdf bake bakes it (no more "[skip] anisotropic"); no OSL texture (isotropic only),
+    the closure fit is there; a second run finds it current."""
+    from bake.manifest import load_manifest
+    from bake.pipeline import bake_manifest, table_path
+    manifest = tmp_path / "manifest.toml"
+    manifest.write_text('[[material]]\nname = "brushed"\n'
+                        'source = { kind = "analytic", model = "ggx", alpha_x = 0.3, alpha_y = 0.05, angle = 20 }\n'
+                        'bake = { source = "ideal", resolution = 16, grid = 64, samples = 1024, first_bins = 3, '
+                        'tol = 5.0, ideal_resolution = 32, phi_count = 4 }\n')
+    out = tmp_path / "out"
+    lines = []
+    written = bake_manifest(load_manifest(manifest), out, log=lines.append)
+    path = table_path(out, "brushed")
+    assert written == [path], lines
+    tab = open_tables(path)
+    assert tab.anisotropic and len(tab.phi_bins) == 4 and len(tab.theta_bins) == 3
+    assert any("[osl] none" in line and "isotropic" in line for line in lines), lines
+    assert sorted(p.name for p in path.parent.iterdir()) == ["brushed.exr", "brushed.fit.json"]
+    wi = incident(50.0, 1.0)
+    wo, pdf = tab.sample(wi, np.random.default_rng(4).random((1000, 2)))
+    np.testing.assert_allclose(tab.pdf(wi, wo), pdf, rtol=1e-9)
+    assert bake_manifest(load_manifest(manifest), out, log=lines.append) == []
