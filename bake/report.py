@@ -75,7 +75,7 @@ def write_csv(rows, path):
 
 SPEED_ERROR_FIELDS = ("material", "sampler", "theta_i", "rv", "albedo_mc", "albedo_quadrature", "lost",
                       "sample_per_s", "pdf_per_s", "both_per_s", "ns_per_sample",
-                      "sample_rwi_per_s", "pdf_rwi_per_s", "both_rwi_per_s", "nbytes")
+                      "sample_rwi_per_s", "pdf_rwi_per_s", "both_rwi_per_s", "folds", "nbytes")
 
 
 def _weights(material, sampler, wi, n, seed):
@@ -97,7 +97,9 @@ def speed_error_rows(name, material, samplers, thetas=THETAS_DEG, n=1 << 17, see
     IdealSampler among `samplers` is reused), `lost` = fraction of samples with pdf 0,
     non-finite pdf or below the horizon, throughput of sample() and pdf() (bench, one
     thread; NaN with speed=False) at that wi and, per sampler, with a new wi per sample
-    (`*_rwi_per_s`: wi uniform in cos theta and phi, as a path tracer asks), and `nbytes`
+    (`*_rwi_per_s`: wi uniform in cos theta and phi, as a path tracer asks), `folds` (a
+    flow's share of samples whose Euler map folds, where its pdf is wrong: a flow run at
+    fewer steps than it was trained for can fold; NaN for other samplers), and `nbytes`
     when the sampler has that attribute.
     """
     from .bench import samples_per_second
@@ -120,6 +122,7 @@ def speed_error_rows(name, material, samplers, thetas=THETAS_DEG, n=1 << 17, see
         albedo = float(luminance(ideal.albedo(wi))) if ideal is not None else math.nan
         for label, sampler in samplers.items():
             w, lost = _weights(material, sampler, wi, n, seed)
+            folds = (getattr(sampler, "last_stats", None) or {}).get("fold_fraction", math.nan)
             mean = w.mean()
             rv = float(w.var() / mean ** 2) if mean != 0 else math.inf
             sp = samples_per_second(sampler, wi, n=speed_n, repeat=speed_repeat, seed=seed + 1) if speed else {}
@@ -131,7 +134,7 @@ def speed_error_rows(name, material, samplers, thetas=THETAS_DEG, n=1 << 17, see
                 "both_per_s": sp.get("both_per_s", math.nan), "ns_per_sample": sp.get("ns_per_sample", math.nan),
                 **{f"{k}_rwi_per_s": random_wi.get(label, {}).get(f"{k}_per_s", math.nan)
                    for k in ("sample", "pdf", "both")},
-                "nbytes": None if nbytes is None else int(nbytes),
+                "folds": folds, "nbytes": None if nbytes is None else int(nbytes),
             })
     log(f"[speed-error] {name}: {len(samplers)} samplers x {len(thetas)} angles, {time.perf_counter() - t0:.1f}s")
     return rows
@@ -154,6 +157,8 @@ def summary_rows(rows):
             "pdf_per_s": _nanmedian([r.get("pdf_per_s", math.nan) for r in sel]),
             **{k: _nanmedian([r.get(k, math.nan) for r in sel])
                for k in ("sample_rwi_per_s", "pdf_rwi_per_s", "both_rwi_per_s")},
+            "max_folds": max((r.get("folds", math.nan) for r in sel), default=math.nan,
+                             key=lambda x: -1.0 if x is None or not np.isfinite(x) else x),
             "nbytes": max(nbytes) if nbytes else None,
         })
     return out
@@ -190,7 +195,10 @@ def summary_markdown(rows):
              "| pdf /s | random wi: sample+pdf /s | sample /s | pdf /s | memory |", "|" + "---|" * 13]
     for s in summary_rows(rows):
         ns = s["ns_per_sample"]
-        lines.append(f"| {s['material']} | {s['sampler']} | {_fmt(s['median_rv'])} | {_fmt(s['max_rv'])} | "
+        folds = s["max_folds"]
+        label = s["sampler"] + (f" (folds {100 * folds:.2g} %: pdf wrong there)"
+                                if folds is not None and np.isfinite(folds) and folds > 0 else "")
+        lines.append(f"| {s['material']} | {label} | {_fmt(s['median_rv'])} | {_fmt(s['max_rv'])} | "
                      f"{s['max_lost']:.3g} | {_fmt_rate(s['both_per_s'])} | "
                      f"{'-' if not np.isfinite(ns) else f'{ns:.3g}'} | {_fmt_rate(s['sample_per_s'])} | "
                      f"{_fmt_rate(s['pdf_per_s'])} | {_fmt_rate(s['both_rwi_per_s'])} | "

@@ -15,7 +15,7 @@ from bake.geometry import incident, spherical_dir
 from bake.ideal import IdealSampler
 from bake.metrics import chi2_test, relative_variance
 from bake.report import (SPEED_ERROR_FIELDS, plot_pdf_slices, plot_target, speed_error_rows,
-                         summary_rows, write_report)
+                         summary_markdown, summary_rows, write_report)
 
 
 @pytest.fixture(scope="module")
@@ -195,3 +195,20 @@ def test_mitsuba_variant_choice(monkeypatch):
     assert mitsuba_peer.default_variant() == "scalar_rgb"     # never an LLVM older than 19
     monkeypatch.setenv("FLOWBSDF_MITSUBA_VARIANT", "scalar_spectral")
     assert mitsuba_peer.default_variant() == "scalar_spectral"
+
+
+def test_a_folding_flow_is_flagged_in_the_report():
+    """A flow run at too few Euler steps folds (its pdf is wrong there): the rows carry the
+    fold share and the summary says so; at enough steps the same flow does not fold."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_flow import random_net
+    from bake.materials.analytic import Lambert
+    net = random_net("disk", scale=1.0)
+    samplers = {"flow N=1": net.to_numpy(1), "flow N=64": net.to_numpy(64)}
+    rows = speed_error_rows("lambert", Lambert(0.8), samplers, thetas=(20,), n=1 << 12, speed=False)
+    folds = {r["sampler"]: r["folds"] for r in rows}
+    assert folds["flow N=1"] > 0.01 and folds["flow N=64"] == 0.0
+    text = summary_markdown(rows)
+    assert "flow N=1 (folds" in text and "flow N=64 (folds" not in text
