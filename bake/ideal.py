@@ -129,6 +129,7 @@ class IdealSampler:
     """Exact sampling of the tabulated target, one table per distinct (canonical) wi."""
 
     name = "ideal"
+    tabulates_per_wi = True     # a table per distinct wi: a new wi per sample means a new table each
 
     def __init__(self, material, resolution=256, supersample=2, max_tables=512):
         self.material, self.resolution, self.supersample = material, resolution, supersample

@@ -97,7 +97,8 @@ def speed_error_rows(name, material, samplers, thetas=THETAS_DEG, n=1 << 17, see
     IdealSampler among `samplers` is reused), `lost` = fraction of samples with pdf 0,
     non-finite pdf or below the horizon, throughput of sample() and pdf() (bench, one
     thread; NaN with speed=False) at that wi and, per sampler, with a new wi per sample
-    (`*_rwi_per_s`: wi uniform in cos theta and phi, as a path tracer asks), `folds` (a
+    (`*_rwi_per_s`: wi uniform in cos theta and phi, as a path tracer asks; NaN for the
+    ideal sampler, which would build a table per sample), `folds` (a
     flow's share of samples whose Euler map folds, where its pdf is wrong: a flow run at
     fewer steps than it was trained for can fold; NaN for other samplers), and `nbytes`
     when the sampler has that attribute.
@@ -115,7 +116,7 @@ def speed_error_rows(name, material, samplers, thetas=THETAS_DEG, n=1 << 17, see
         sin_t = np.sqrt(1 - cos_t ** 2)
         wis = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
         random_wi = {label: samples_per_second(sampler, wis, n=speed_n, repeat=speed_repeat, seed=seed + 1)
-                     for label, sampler in samplers.items()}
+                     for label, sampler in samplers.items() if not getattr(sampler, "tabulates_per_wi", False)}
     rows = []
     for theta in thetas:
         wi = incident(theta)
