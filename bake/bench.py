@@ -56,6 +56,15 @@ def single_threaded(sampler=None):
         yield "; ".join(notes)
 
 
+def random_incident(n, seed=0):
+    """n incident directions uniform in cos(theta) and phi: a new wi per sample, as a path
+    tracer asks (the speed runs' "new wi per sample" mode)."""
+    rng = np.random.default_rng(seed)
+    cos_t, phi = rng.random(n), 2 * np.pi * rng.random(n)
+    sin_t = np.sqrt(1 - cos_t ** 2)
+    return np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
+
+
 def _best_time(fn, repeat):
     best = np.inf
     for _ in range(repeat):

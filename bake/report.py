@@ -103,7 +103,7 @@ def speed_error_rows(name, material, samplers, thetas=THETAS_DEG, n=1 << 17, see
     fewer steps than it was trained for can fold; NaN for other samplers), and `nbytes`
     when the sampler has that attribute.
     """
-    from .bench import samples_per_second
+    from .bench import random_incident, samples_per_second
     t0 = time.perf_counter()
     samplers = dict(samplers)
     ideal = None
@@ -111,10 +111,7 @@ def speed_error_rows(name, material, samplers, thetas=THETAS_DEG, n=1 << 17, see
         ideal = next((s for s in samplers.values() if isinstance(s, IdealSampler)), None) or IdealSampler(material)
     random_wi = {}
     if speed:
-        rng = np.random.default_rng(seed + 2)
-        cos_t, phi = rng.random(speed_n), 2 * np.pi * rng.random(speed_n)
-        sin_t = np.sqrt(1 - cos_t ** 2)
-        wis = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
+        wis = random_incident(speed_n, seed + 2)
         random_wi = {label: samples_per_second(sampler, wis, n=speed_n, repeat=speed_repeat, seed=seed + 1)
                      for label, sampler in samplers.items() if not getattr(sampler, "tabulates_per_wi", False)}
     rows = []
@@ -158,17 +155,25 @@ def summary_rows(rows):
             "pdf_per_s": _nanmedian([r.get("pdf_per_s", math.nan) for r in sel]),
             **{k: _nanmedian([r.get(k, math.nan) for r in sel])
                for k in ("sample_rwi_per_s", "pdf_rwi_per_s", "both_rwi_per_s")},
-            "max_folds": max((r.get("folds", math.nan) for r in sel), default=math.nan,
-                             key=lambda x: -1.0 if x is None or not np.isfinite(x) else x),
+            "max_folds": _nanmax([r.get("folds", math.nan) for r in sel]),
             "nbytes": max(nbytes) if nbytes else None,
         })
     return out
 
 
-def _nanmedian(values):
+def _finite(values):
     v = np.array([math.nan if x is None else x for x in values], float)
-    v = v[np.isfinite(v)]
+    return v[np.isfinite(v)]
+
+
+def _nanmedian(values):
+    v = _finite(values)
     return float(np.median(v)) if len(v) else math.nan
+
+
+def _nanmax(values):
+    v = _finite(values)
+    return float(v.max()) if len(v) else math.nan
 
 
 def _fmt_rate(x):

@@ -29,7 +29,7 @@ from bake.materials import open_material  # noqa: E402
 from bake.metrics import chi2_test, sample_weights  # noqa: E402
 from bake.tables import open_tables  # noqa: E402
 from bake.tabulate import plan_tables  # noqa: E402
-from bake.bench import samples_per_second  # noqa: E402
+from bake.bench import random_incident, samples_per_second  # noqa: E402
 
 THETAS = (0, 30, 60, 75, 85)
 
@@ -117,12 +117,8 @@ def main():
 
 
 def _speed_line(name, label, sampler, n=1 << 17):
-    rng = np.random.default_rng(5)
-    cos_t, phi = rng.random(n), 2 * np.pi * rng.random(n)
-    sin_t = np.sqrt(1 - cos_t ** 2)
-    wis = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
     one = samples_per_second(sampler, incident(40.0, 0.3), n=n, repeat=5)
-    rnd = samples_per_second(sampler, wis, n=n, repeat=5)
+    rnd = samples_per_second(sampler, random_incident(n, seed=5), n=n, repeat=5)
     rate = [f"{x / 1e6:.2f}M" for x in (one["sample_per_s"], one["pdf_per_s"], one["both_per_s"],
                                          rnd["sample_per_s"], rnd["pdf_per_s"], rnd["both_per_s"])]
     return f"| {name} | {label} | " + " | ".join(rate) + " |"
