@@ -60,7 +60,9 @@ class Spherical:
         return np.mod(np.asarray(phi, float) + np.pi, 2.0 * np.pi) - np.pi
 
 
-DOMAINS = {"disk": Disk, "spherical": Spherical}
+# "halfvector" and "slope" flows (bake.flow.HalfVectorMap, SlopeMap) take their training data
+# as disk coordinates of wo: their half-vector maps depend on wi, so they live in the flow.
+DOMAINS = {"disk": Disk, "spherical": Spherical, "halfvector": Disk, "slope": Disk}
 
 
 def get_domain(name):

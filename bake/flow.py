@@ -11,6 +11,11 @@ Flow coordinates y live on an unbounded space, so no sample is ever lost:
                rho² = -2 log(1 - r²) = -4 log(cos theta_o).
   - spherical: y = (s, phi) in R x S¹, sin²(theta_o) = Phi(s), cos²(theta_o) = Phi(-s),
                Phi the standard normal CDF.
+  - halfvector: the disk map of the half vector h = (wi + wo)/|wi + wo| (HalfVectorMap): a
+               specular spike sits at y = 0 whatever wi; y whose mirror wo is below the
+               horizon are lost samples (pdf 0).
+  - slope:     y = (log tan theta_h, phi_h) in R x S¹ (SlopeMap): a GGX lobe of roughness
+               alpha is a unit-width bump at log(alpha), a spike over a glow two bumps.
 Both maps send the cosine-weighted hemisphere to the standard Gaussian (times a uniform
 phi), so for a Lambertian material the ideal flow is the identity with a standard
 base, and the target density in y is always f(wi, wo) times a Gaussian weight:
@@ -19,7 +24,8 @@ base, and the target density in y is always f(wi, wo) times a Gaussian weight:
 The horizon is at infinity (grazing directions get resolution, like an adaptive
 parameterization); in the spherical map the pole is at s = -inf.
 
-Base (conditioned on wi through a small MLP): disk, a diagonal Gaussian in y; spherical,
+Base (conditioned on wi through a small MLP): disk and halfvector, a diagonal Gaussian
+(or a scale mixture) in y; spherical,
 a Gaussian in s times a von Mises in phi. u maps to it through the inverse CDFs
 (ndtri for the Gaussian, numerical inversion of the von Mises CDF).
 
@@ -36,6 +42,9 @@ Precision: sample/pdf/invert agree to float precision (invert(sample(u)) == u, p
 the upper tail resolves only down to 1 - u ~ 1e-16 (z ~ 8.2), so for directions whose base
 point lies beyond that (probability < 1e-15) invert() saturates and sample(invert(wo)) is
 only approximately wo; pdf(wo) stays exact there.
+Half-vector maps (halfvector, slope) recover h from wo + wi, which a float64 wo holds only to
+~1e-16 absolute: within ~1e-5 rad of the mirror direction pdf/invert agree with sample to
+~1e-9 instead of 1e-12, and within 1e-12 rad (u at its extremes) only to ~1e-2.
 If det(I + J/N) <= 0 somewhere the Euler map folds (not a bijection there, pdf wrong):
 `last_stats["fold_fraction"]` reports it; trained models are checked for it.
 
@@ -67,9 +76,14 @@ U_MIN = 1e-17
 LAM_MIN_ABS = 8.0
 
 
+def planar(domain):
+    """Whether a domain's flow space is the plane R² (disk, halfvector), not R x S¹ (spherical, slope)."""
+    return domain in ("disk", "halfvector")
+
+
 def base_outputs(domain, components=1):
-    """Outputs of the base MLP: disk mu(2), log sigma(2) [, K weight logits, K-1 lam logits]; spherical 5."""
-    if domain != "disk":
+    """Outputs of the base MLP: planar mu(2), log sigma(2) [, K weight logits, K-1 lam logits]; spherical 5."""
+    if not planar(domain):
         return 5
     return 4 if components == 1 else 4 + 2 * components - 1
 
@@ -260,6 +274,8 @@ def mix_radial_icdf(u1, logw, lam, max_iter=200):
         # d/dq log tail = -sum_k w_k e^{-q/2v_k} / (2 v_k) / tail
         slope = -0.5 * np.sum(np.exp(comp - g[:, None]) * inv_v[active], axis=-1)
         step = (target[active] - g) / slope
+        # At u1 ~ 0 the target sits within rounding of log(sum w) = 0: never step below q = 0.
+        step = np.maximum(step, -q[active])
         q[active] += step
         done = np.abs(step) <= 1e-15 * np.maximum(q[active], 1e-300) + 1e-300
         idx = np.flatnonzero(active)
@@ -278,7 +294,7 @@ class DiskMap:
     periodic = (False, False)
 
     @staticmethod
-    def to_dir(y):
+    def to_dir(y, wi=None):
         y = np.asarray(y, dtype=np.float64)
         q = np.sum(y * y, axis=-1)                      # rho²
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -288,7 +304,7 @@ class DiskMap:
         return np.concatenate([y * ratio[..., None], z[..., None]], axis=-1)
 
     @staticmethod
-    def from_dir(wo):
+    def from_dir(wo, wi=None):
         """Flow coordinates of directions (cos theta_o from wo.z keeps precision near the rim)."""
         wo = np.asarray(wo, dtype=np.float64)
         n2 = np.sum(wo * wo, axis=-1)
@@ -302,7 +318,7 @@ class DiskMap:
         return wo[..., :2] / np.sqrt(n2)[..., None] * ratio[..., None]
 
     @staticmethod
-    def from_domain(x):
+    def from_domain(x, wi=None):
         """Flow coordinates of disk domain points (|x| < 1)."""
         x = np.asarray(x, dtype=np.float64)
         r2 = np.sum(x * x, axis=-1)
@@ -316,7 +332,7 @@ class DiskMap:
         return DiskMap.to_dir(y)[..., :2]
 
     @staticmethod
-    def log_dw_dy(y):
+    def log_dw_dy(y, wi=None):
         """log of d omega / dy (solid angle per unit flow area) = log(cos theta_o / 2)."""
         return -0.25 * np.sum(np.asarray(y) ** 2, axis=-1) - LOG2
 
@@ -332,7 +348,7 @@ class SphericalMap:
     periodic = (False, True)
 
     @staticmethod
-    def to_dir(y):
+    def to_dir(y, wi=None):
         y = np.asarray(y, dtype=np.float64)
         s, phi = y[..., 0], y[..., 1]
         st = np.sqrt(ndtr(s))
@@ -340,7 +356,7 @@ class SphericalMap:
         return np.stack([st * np.cos(phi), st * np.sin(phi), ct], axis=-1)
 
     @staticmethod
-    def from_dir(wo):
+    def from_dir(wo, wi=None):
         wo = np.asarray(wo, dtype=np.float64)
         n2 = np.sum(wo * wo, axis=-1)
         s2 = (wo[..., 0] ** 2 + wo[..., 1] ** 2) / n2
@@ -356,7 +372,7 @@ class SphericalMap:
         return np.stack([s, np.arctan2(wo[..., 1], wo[..., 0])], axis=-1)
 
     @staticmethod
-    def from_domain(x):
+    def from_domain(x, wi=None):
         x = np.asarray(x, dtype=np.float64)
         theta = x[..., 0]
         tiny = np.finfo(np.float64).tiny        # as in from_dir: the pole stays finite
@@ -371,7 +387,7 @@ class SphericalMap:
         return np.stack([theta, wrap_angle(y[..., 1])], axis=-1)
 
     @staticmethod
-    def log_dw_dy(y):
+    def log_dw_dy(y, wi=None):
         """log of d omega / (ds dphi) = log(N(s) / (2 cos theta_o))."""
         s = np.asarray(y, dtype=np.float64)[..., 0]
         with np.errstate(divide="ignore"):
@@ -382,7 +398,111 @@ class SphericalMap:
         return np.asarray(wo)[..., 2] > 0.0
 
 
-MAPS = {"disk": DiskMap, "spherical": SphericalMap}
+class HalfVectorMap:
+    """y in R² <-> the half vector h = (wi + wo) / |wi + wo| through DiskMap, wo = 2 (wi.h) h - wi.
+
+    A specular spike sits at y = 0 for every wi, so the flow learns nearly the same shape at
+    every incident angle. Every wo above the horizon has exactly one y, but a y whose mirror
+    direction falls below the horizon has no wo: sample() returns pdf 0 there (a lost sample,
+    no bias), and the trained model puts little mass there because its data has none.
+    d omega_o / dy = 4 (wi.h) d omega_h / dy. wi is the canonical incident direction per row.
+    The training data comes as disk coordinates of wo (bake.domains maps the name to Disk).
+    """
+
+    domain = "halfvector"
+    periodic = (False, False)
+
+    @staticmethod
+    def to_dir(y, wi):
+        h = DiskMap.to_dir(y)
+        return 2.0 * np.sum(wi * h, axis=-1, keepdims=True) * h - wi
+
+    @staticmethod
+    def from_dir(wo, wi):
+        wo = np.asarray(wo, dtype=np.float64)
+        wo = wo / np.linalg.norm(wo, axis=-1, keepdims=True)
+        return DiskMap.from_dir(wo + wi)
+
+    @staticmethod
+    def from_domain(x, wi):
+        return HalfVectorMap.from_dir(DiskMap.to_dir(DiskMap.from_domain(x)), wi)
+
+    @staticmethod
+    def log_dw_dy(y, wi):
+        cos_ih = np.sum(wi * DiskMap.to_dir(y), axis=-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return DiskMap.log_dw_dy(y) + np.log(4.0 * np.maximum(cos_ih, 0.0))
+
+    @staticmethod
+    def valid(wo):
+        return np.asarray(wo)[..., 2] > 0.0
+
+
+class SlopeMap:
+    """(s, phi) in R x S¹ <-> the half vector h at tan(theta_h) = e^s, azimuth phi; wo = 2 (wi.h) h - wi.
+
+    Log-polar slope space: a GGX lobe of any roughness alpha becomes a bump of unit width at
+    s = log(alpha), so a sharp spike over a broad glow (clear coats, lacquers) is two bumps
+    along one axis, which a flow can learn, where in a linear map their scales differ 100x.
+    d omega_h / (ds dphi) = sin²(theta_h) cos(theta_h); d omega_o = 4 (wi.h) d omega_h.
+    Like HalfVectorMap, a y whose mirror direction is below the horizon is a lost sample.
+    """
+
+    domain = "slope"
+    periodic = (False, True)
+
+    @staticmethod
+    def _half(y):
+        y = np.asarray(y, dtype=np.float64)
+        s, phi = y[..., 0], y[..., 1]
+        t = np.exp(-np.abs(s))                     # tan or cot of theta_h, never overflows
+        norm = 1.0 / np.sqrt(1.0 + t * t)
+        st = np.where(s > 0, norm, t * norm)
+        ct = np.where(s > 0, t * norm, norm)
+        return np.stack([st * np.cos(phi), st * np.sin(phi), ct], axis=-1)
+
+    @staticmethod
+    def to_dir(y, wi):
+        h = SlopeMap._half(y)
+        return 2.0 * np.sum(wi * h, axis=-1, keepdims=True) * h - wi
+
+    @staticmethod
+    def from_dir(wo, wi):
+        wo = np.asarray(wo, dtype=np.float64)
+        h = wo / np.linalg.norm(wo, axis=-1, keepdims=True) + wi
+        tiny = np.finfo(np.float64).tiny          # h along the normal: s = -inf, kept finite
+        r = np.maximum(np.hypot(h[..., 0], h[..., 1]), tiny)
+        with np.errstate(divide="ignore"):
+            s = np.log(r) - np.log(np.maximum(h[..., 2], tiny))
+        return np.stack([s, np.arctan2(h[..., 1], h[..., 0])], axis=-1)
+
+    @staticmethod
+    def from_domain(x, wi):
+        return SlopeMap.from_dir(DiskMap.to_dir(DiskMap.from_domain(x)), wi)
+
+    @staticmethod
+    def log_dw_dy(y, wi):
+        s = np.asarray(y, dtype=np.float64)[..., 0]
+        log_sin = -0.5 * np.logaddexp(0.0, -2.0 * s)
+        log_cos = -0.5 * np.logaddexp(0.0, 2.0 * s)
+        cos_ih = np.sum(wi * SlopeMap._half(y), axis=-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return 2.0 * log_sin + log_cos + np.log(4.0 * np.maximum(cos_ih, 0.0))
+
+    @staticmethod
+    def valid(wo):
+        return np.asarray(wo)[..., 2] > 0.0
+
+
+MAPS = {"disk": DiskMap, "spherical": SphericalMap, "halfvector": HalfVectorMap, "slope": SlopeMap}
+
+
+def canonical_wi(c, isotropic):
+    """The incident direction of conditioning features (isotropic: rotated to phi_i = 0)."""
+    c = np.asarray(c, dtype=np.float64)
+    if isotropic:
+        return np.stack([c[..., 0], np.zeros_like(c[..., 0]), c[..., 1]], axis=-1)
+    return c
 
 
 # --------------------------------------------------------------------------- features
@@ -409,7 +529,7 @@ def time_features(t, n_freq):
 
 
 def space_dim(domain):
-    return 2 if domain == "disk" else 3
+    return 2 if planar(domain) else 3
 
 
 # --------------------------------------------------------------------------- MLPs
@@ -494,7 +614,8 @@ class FlowModel:
             raise FlowBSDFError(f"base kappa_max {self.kappa_max} must be finite and >= 0", self.path)
         if self.time_freq < 0:
             raise FlowBSDFError(f"velocity time_freq {self.time_freq} must be >= 0", self.path)
-        self.components = int(base.get("components", 1)) if self.domain_name == "disk" else 1
+        self.planar = planar(self.domain_name)
+        self.components = int(base.get("components", 1)) if self.planar else 1
         self.base_net = MLP(*_layers(arrays, "base", meta, self.path))
         self.vel_net = MLP(*_layers(arrays, "vel", meta, self.path))
         self.last_stats = {}
@@ -544,7 +665,7 @@ class FlowModel:
         lam (n,K)); spherical (mu_s, log_sigma_s, mu_phi, kappa), each (n,)."""
         out = self.base_net(c)
         lo, hi = self.log_sigma_range
-        if self.domain_name == "disk":
+        if self.planar:
             K = self.components
             ls = lo + (hi - lo) * _sigmoid(out[:, 2:4])
             if K == 1:
@@ -571,7 +692,7 @@ class FlowModel:
     def base_from_u(self, c, u):
         """u in [0,1)² -> y0 and log p0(y0)."""
         u = np.clip(np.asarray(u, dtype=np.float64), U_MIN, 1.0 - 2.0 ** -53)
-        if self.domain_name == "disk":
+        if self.planar:
             mu, ls, logw, lam = self.base_params(c)
             if self.components == 1:
                 z = ndtri(u)
@@ -588,7 +709,7 @@ class FlowModel:
 
     def base_to_u(self, c, y0):
         """y0 -> u and log p0(y0)."""
-        if self.domain_name == "disk":
+        if self.planar:
             mu, ls, logw, lam = self.base_params(c)
             z = (y0 - mu) * np.exp(-ls)
             if self.components == 1:
@@ -613,7 +734,7 @@ class FlowModel:
     def _vel_input(self, y, t, c):
         n = len(y)
         tf = time_features(np.full(n, t), self.time_freq)
-        if self.domain_name == "disk":
+        if self.planar:
             sp = y
         else:
             sp = np.stack([y[:, 0], np.cos(y[:, 1]), np.sin(y[:, 1])], axis=-1)
@@ -627,7 +748,7 @@ class FlowModel:
         h = self._vel_input(y, t, c)
         W0 = self.vel_net.W[0]
         a = h @ W0.T + self.vel_net.b[0]
-        if self.domain_name == "disk":
+        if self.planar:
             da = W0.T[:2, None, :]                       # d a / d y_j: the same for every row
         else:
             da = np.stack([np.broadcast_to(W0[:, 0], a.shape),
@@ -654,7 +775,7 @@ class FlowModel:
             with np.errstate(invalid="ignore", divide="ignore"):
                 logdet += np.log(np.abs(det))
             y = y + v / n_steps
-        if self.domain_name == "spherical":
+        if not self.planar:
             y[:, 1] = wrap_angle(y[:, 1])
         return y, logdet, min_det
 
@@ -672,7 +793,7 @@ class FlowModel:
             with np.errstate(invalid="ignore", divide="ignore"):
                 logdet += np.log(np.abs(det))
             y = x
-        if self.domain_name == "spherical":
+        if not self.planar:
             y[:, 1] = wrap_angle(y[:, 1])
         return y, logdet, min_det, converged
 
@@ -768,8 +889,9 @@ class FlowModel:
         c, phi_i, ok = self._canonical(wi, n)
         y0, logp0 = self.base_from_u(c, u)
         y1, logdet, min_det = self.flow_forward(c, y0)
-        wo = self.map.to_dir(y1)
-        log_pdf = logp0 - logdet - self.map.log_dw_dy(y1)
+        wi_c = canonical_wi(c, self.isotropic)
+        wo = self.map.to_dir(y1, wi_c)
+        log_pdf = logp0 - logdet - self.map.log_dw_dy(y1, wi_c)
         with np.errstate(over="ignore"):
             pdf = np.where(ok & self.map.valid(wo), np.exp(log_pdf), 0.0)
         if self.isotropic:
@@ -788,10 +910,11 @@ class FlowModel:
             wo = _rotate_z(wo, -phi_i)
         valid = ok & self.map.valid(wo)
         wo_safe = np.where(valid[:, None], wo, np.array([0.0, 0.0, 1.0]))
-        y1 = self.map.from_dir(wo_safe)
+        wi_c = canonical_wi(c, self.isotropic)
+        y1 = self.map.from_dir(wo_safe, wi_c)
         y0, logdet, min_det, conv = self.flow_inverse(c, y1)
         u, logp0 = self.base_to_u(c, y0)
-        log_pdf = logp0 - logdet - self.map.log_dw_dy(y1)
+        log_pdf = logp0 - logdet - self.map.log_dw_dy(y1, wi_c)
         return (u, log_pdf, valid), {"folds": int(np.sum(min_det <= 0.0)),
                                      "not_converged": int(np.sum(~conv & valid))}
 
@@ -907,7 +1030,7 @@ def load_model(path):
         if key not in meta:
             raise FlowBSDFError(f"model metadata lacks {key!r}", path)
     if meta["domain"] not in MAPS:
-        raise FlowBSDFError(f"model domain {meta['domain']!r} is unknown (expected disk or spherical)", path)
+        raise FlowBSDFError(f"model domain {meta['domain']!r} is unknown (expected one of {sorted(MAPS)})", path)
     if not isinstance(meta["steps"], int) or not 1 <= meta["steps"] <= MAX_STEPS:
         raise FlowBSDFError(f"model steps {meta['steps']!r} must be an integer in [1, {MAX_STEPS}]", path)
     for k, v in arrays.items():

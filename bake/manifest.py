@@ -1,7 +1,7 @@
 """The manifest (`manifest.toml`): which materials a scene needs, and how to model them.
 
     [defaults]                      # optional; applies to every material
-    domain = "disk"                 # "disk" | "spherical"
+    domain = "disk"                 # "disk" | "spherical" | "halfvector"
     train = { preset = "balanced" } # settings for the trainer
     bake = { }                      # settings for the baker
 

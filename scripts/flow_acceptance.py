@@ -1,7 +1,7 @@
 """Issue-3 acceptance numbers: the trained flows on the shared RGL materials.
 
     .venv/bin/python scripts/flow_acceptance.py --models DIR [--materials a,b] [--train]
-        [--preset balanced] [--set key=value ...] [--out report.md]
+        [--preset balanced] [--domain disk] [--set key=value ...] [--out report.md]
 
 With --train, materials without a model in DIR are trained first (`python -m trainer
 train`, one subprocess per material, its wall time recorded). Then per material, at
@@ -32,11 +32,11 @@ from bake.metrics import chi2_test, sample_weights  # noqa: E402
 THETAS = (0, 30, 60, 75, 85)
 
 
-def train(name, models, preset, settings):
+def train(name, models, preset, settings, domain):
     manifest = models / f"{name}.toml"
     train = ", ".join([f'preset = "{preset}"'] + [f"{k} = {v}" for k, v in settings])
     manifest.write_text(f'[[material]]\nname = "{name}"\nsource = "{rgl_dir() / (name + ".bsdf")}"\n'
-                        f"train = {{ {train} }}\n")
+                        f'domain = "{domain}"\ntrain = {{ {train} }}\n')
     t0 = time.time()
     with open(models / f"{name}.log", "w") as log:
         code = subprocess.call([sys.executable, "-m", "trainer", "train", str(manifest), "--out", str(models),
@@ -57,6 +57,7 @@ def main():
     p.add_argument("--materials", default=",".join(RGL_FILES))
     p.add_argument("--train", action="store_true")
     p.add_argument("--preset", default="balanced")
+    p.add_argument("--domain", default="disk", help="flow domain for --train: disk | spherical | halfvector")
     p.add_argument("--set", action="append", default=[], help="training setting key=value (TOML value)")
     p.add_argument("--no-chi2", action="store_true")
     p.add_argument("--out", default=None)
@@ -75,7 +76,7 @@ def main():
             if not args.train:
                 print(f"[skip] {name}: no model in {models}", flush=True)
                 continue
-            train(name, models, args.preset, settings)
+            train(name, models, args.preset, settings, args.domain)
         model = load_model(path)
         mat = open_material(rgl_dir() / f"{name}.bsdf")
         ggx = fit_ggx(mat, IdealSampler(mat))

@@ -72,7 +72,7 @@ class BaseNet(nn.Module):
                  components=1):
         super().__init__()
         self.domain = domain
-        self.components = int(components) if domain == "disk" else 1
+        self.components = int(components) if npflow.planar(domain) else 1
         self.n_out = npflow.base_outputs(domain, self.components)
         self.net = MLP(cond_dim, width, depth, self.n_out, zero_last=True)
         self.log_sigma_range = tuple(float(v) for v in log_sigma_range)
@@ -83,7 +83,7 @@ class BaseNet(nn.Module):
         with torch.no_grad():
             b = self.net.layers[-1].bias
             raw_ls0 = math.log((0.0 - lo) / (hi - 0.0))
-            if domain == "disk":
+            if npflow.planar(domain):
                 b[2:4] = raw_ls0
                 K = self.components
                 for k in range(1, K):
@@ -98,7 +98,7 @@ class BaseNet(nn.Module):
         """Disk: mu (n,2), ls (n,2), log weights (n,K), lam (n,K). Spherical: mu_s, ls, mu_phi, kappa."""
         out = self.net(c)
         lo, hi = self.log_sigma_range
-        if self.domain == "disk":
+        if npflow.planar(self.domain):
             K = self.components
             mu, ls = out[:, 0:2], lo + (hi - lo) * torch.sigmoid(out[:, 2:4])
             if K == 1:
@@ -114,7 +114,7 @@ class BaseNet(nn.Module):
         return out[:, 0], ls, mu_phi, kappa
 
     def log_prob(self, c, y):
-        if self.domain == "disk":
+        if npflow.planar(self.domain):
             mu, ls, logw, lam = self.params(c)
             z = (y - mu) * torch.exp(-ls)
             q = (z * z).sum(-1, keepdim=True)
@@ -130,7 +130,7 @@ class BaseNet(nn.Module):
     def sample(self, c, generator=None):
         """Ancestral sampling (the same distribution bake.flow draws through its inverse CDF)."""
         n = len(c)
-        if self.domain == "disk":
+        if npflow.planar(self.domain):
             mu, ls, logw, lam = self.params(c)
             z = torch.randn(n, 2, generator=generator, dtype=c.dtype).to(c.device)
             if self.components > 1:
@@ -189,7 +189,7 @@ class VelocityNet(nn.Module):
         if t.dim() == 0:
             t = t.expand(len(y))
         tf = time_features(t, self.time_freq)
-        if self.domain == "disk":
+        if npflow.planar(self.domain):
             sp = y
         else:
             sp = torch.stack([y[:, 0], torch.cos(y[:, 1]), torch.sin(y[:, 1])], dim=-1)
@@ -203,7 +203,7 @@ class VelocityNet(nn.Module):
         h = self._input(y, t, c)
         n = len(y)
         dh = torch.zeros(2, n, h.shape[1], dtype=h.dtype, device=h.device)
-        if self.domain == "disk":
+        if npflow.planar(self.domain):
             dh[0, :, 0] = 1.0
             dh[1, :, 1] = 1.0
         else:
@@ -242,7 +242,7 @@ class FlowNet(nn.Module):
     def displacement(self, y0, y1):
         """y1 - y0, the phi component wrapped to the shortest angle (spherical)."""
         d = y1 - y0
-        if self.domain == "spherical":
+        if not npflow.planar(self.domain):
             d = torch.stack([d[:, 0], wrap(d[:, 1])], dim=-1)
         return d
 
@@ -360,6 +360,6 @@ def euler_inverse(net, c, y1, n_steps, tol=1e-10, max_iter=40):
         min_det = torch.minimum(min_det, det_out)
         logdet += torch.log(det_out.abs())
         y = x
-    if net.domain == "spherical":
+    if not npflow.planar(net.domain):
         y = torch.stack([y[:, 0], wrap(y[:, 1])], dim=-1)
     return y, logdet, min_det, converged

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from bake import flow as npflow
+from bake.domains import get_domain
 from bake.errors import FlowBSDFError
 
 from .model import FlowNet, euler_inverse, step_det
@@ -71,7 +72,7 @@ COMMON = dict(
     kappa_max=32.0, base_components=1, warmup=100, min_lr_frac=0.05, ckpt_every=250, fold_penalty=0.0,
     fold_margin=0.05, grad_clip=1.0, min_frac=0.5,
 )
-DEFAULT_STEPS = {"disk": 4, "spherical": 8}
+DEFAULT_STEPS = {"disk": 4, "halfvector": 4, "spherical": 8, "slope": 8}
 STAGES = ("base", "flow", "reflow")
 # The settings each stage's result depends on (beyond those of the stages before it).
 STAGE_KEYS = {
@@ -119,13 +120,13 @@ class PreparedSource:
         if self.isotropic:
             phi_i = np.arctan2(wi[:, 1], wi[:, 0])
             if np.any(phi_i != 0.0):
-                if self.domain == "disk":
+                if get_domain(self.domain).name == "disk":    # disk coordinates of wo (half-vector maps too)
                     c, s = np.cos(-phi_i), np.sin(-phi_i)
                     x1 = np.stack([c * x1[:, 0] - s * x1[:, 1], s * x1[:, 0] + c * x1[:, 1]], axis=-1)
                 else:
                     x1 = np.stack([x1[:, 0], x1[:, 1] - phi_i], axis=-1)
         c = npflow.cond_features(wi, self.isotropic)
-        y1 = self.map.from_domain(x1)
+        y1 = self.map.from_domain(x1, npflow.canonical_wi(c, self.isotropic))
         ok = np.all(np.isfinite(y1), axis=1) & (wi[:, 2] > 0)
         return c[ok], y1[ok]
 
@@ -236,7 +237,7 @@ class Trainer:
         if not hasattr(self, "_holdout"):
             rng = np.random.default_rng([self.settings["seed"], 7919])
             c, y = self.data.draw(self.settings["holdout"], rng)
-            self._holdout = (c, y, npflow.MAPS[self.domain].log_dw_dy(y))
+            self._holdout = (c, y, npflow.MAPS[self.domain].log_dw_dy(y, npflow.canonical_wi(c, self.isotropic)))
         return self._holdout
 
     def evaluate(self, net, steps, fold_repeats=1):
@@ -436,7 +437,7 @@ class Trainer:
         s, n_steps = self.settings, self.steps
         cp = c[: max(256, len(c) // 4)]
         with torch.no_grad():
-            if self.domain == "disk":
+            if npflow.planar(self.domain):
                 mu = net.base.params(cp)[0]
                 y = mu + 1.5 * (net.base.sample(cp, gen) - mu)
             else:
