@@ -45,7 +45,7 @@ def cmd_bake(args):
 def cmd_report(args):
     from .manifest import load_manifest
     from .report import report_manifest
-    steps = tuple(int(x) for x in getattr(args, "steps", "2,4,8").split(","))
+    steps = tuple(int(x) for x in getattr(args, "steps", "2,4,8").split(",") if x.strip())
     written = report_manifest(load_manifest(args.manifest), args.out, name=args.material, n=args.samples,
                               steps=steps)
     print(Path(written["markdown"]).read_text())
@@ -67,7 +67,7 @@ def cmd_run(args):
             raise FlowBSDFError("training failed (see above); rerun to resume from the checkpoints")
     bake_manifest(manifest, args.out, name=args.material)
     args.samples = args.samples or 1 << 15
-    args.steps = "4"        # the flow at the step count it was trained for (the report command shows more)
+    args.steps = ""         # only the flow at the step count it was trained for (the report command shows more)
     cmd_report(args)
 
 
@@ -98,7 +98,7 @@ def build_parser():
     b.add_argument("--force", action="store_true", help="rebuild even when the inputs did not change")
     r = command("report", cmd_report, "speed vs error of every sampler (OUT/report)")
     r.add_argument("--samples", type=int, default=1 << 17, help="samples per rv cell")
-    r.add_argument("--steps", default="2,4,8", help="Euler step counts of the flow to compare")
+    r.add_argument("--steps", default="2,4,8", help="Euler step counts of the flow to compare (its trained N is always added)")
     m = command("run", cmd_run, "the main job: train -> bake -> report")
     m.add_argument("--preset", default="fast", choices=["fast", "balanced", "paper"])
     m.add_argument("--no-train", action="store_true", help="bake from the ideal tabulation only")

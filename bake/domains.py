@@ -60,9 +60,9 @@ class Spherical:
         return np.mod(np.asarray(phi, float) + np.pi, 2.0 * np.pi) - np.pi
 
 
-# "halfvector" and "slope" flows (bake.flow.HalfVectorMap, SlopeMap) take their training data
-# as disk coordinates of wo: their half-vector maps depend on wi, so they live in the flow.
-DOMAINS = {"disk": Disk, "spherical": Spherical, "halfvector": Disk, "slope": Disk}
+# A "slope" flow (bake.flow.SlopeMap) takes its training data as disk coordinates of wo: its
+# half-vector map depends on wi, so it lives in the flow.
+DOMAINS = {"disk": Disk, "spherical": Spherical, "slope": Disk}
 
 
 def get_domain(name):

@@ -11,11 +11,10 @@ Flow coordinates y live on an unbounded space, so no sample is ever lost:
                rho² = -2 log(1 - r²) = -4 log(cos theta_o).
   - spherical: y = (s, phi) in R x S¹, sin²(theta_o) = Phi(s), cos²(theta_o) = Phi(-s),
                Phi the standard normal CDF.
-  - halfvector: the disk map of the half vector h = (wi + wo)/|wi + wo| (HalfVectorMap): a
-               specular spike sits at y = 0 whatever wi; y whose mirror wo is below the
-               horizon are lost samples (pdf 0).
-  - slope:     y = (log tan theta_h, phi_h) in R x S¹ (SlopeMap): a GGX lobe of roughness
-               alpha is a unit-width bump at log(alpha), a spike over a glow two bumps.
+  - slope:     y = (log tan theta_h, phi_h) in R x S¹ (SlopeMap), h = (wi + wo)/|wi + wo|
+               the half vector: a GGX lobe of roughness alpha is a unit-width bump at
+               log(alpha) whatever wi, a spike over a glow two bumps; a y whose mirror
+               direction is below the horizon is a lost sample (pdf 0).
 Both maps send the cosine-weighted hemisphere to the standard Gaussian (times a uniform
 phi), so for a Lambertian material the ideal flow is the identity with a standard
 base, and the target density in y is always f(wi, wo) times a Gaussian weight:
@@ -24,8 +23,8 @@ base, and the target density in y is always f(wi, wo) times a Gaussian weight:
 The horizon is at infinity (grazing directions get resolution, like an adaptive
 parameterization); in the spherical map the pole is at s = -inf.
 
-Base (conditioned on wi through a small MLP): disk and halfvector, a diagonal Gaussian
-(or a scale mixture) in y; spherical,
+Base (conditioned on wi through a small MLP): disk, a diagonal Gaussian (or a scale
+mixture) in y; spherical,
 a Gaussian in s times a von Mises in phi. u maps to it through the inverse CDFs
 (ndtri for the Gaussian, numerical inversion of the von Mises CDF).
 
@@ -42,7 +41,7 @@ Precision: sample/pdf/invert agree to float precision (invert(sample(u)) == u, p
 the upper tail resolves only down to 1 - u ~ 1e-16 (z ~ 8.2), so for directions whose base
 point lies beyond that (probability < 1e-15) invert() saturates and sample(invert(wo)) is
 only approximately wo; pdf(wo) stays exact there.
-Half-vector maps (halfvector, slope) recover h from wo + wi, which a float64 wo holds only to
+The slope map recovers h from wo + wi, which a float64 wo holds only to
 ~1e-16 absolute: within ~1e-5 rad of the mirror direction pdf/invert agree with sample to
 ~1e-9 instead of 1e-12, and within 1e-12 rad (u at its extremes) only to ~1e-2.
 If det(I + J/N) <= 0 somewhere the Euler map folds (not a bijection there, pdf wrong):
@@ -77,8 +76,8 @@ LAM_MIN_ABS = 8.0
 
 
 def planar(domain):
-    """Whether a domain's flow space is the plane R² (disk, halfvector), not R x S¹ (spherical, slope)."""
-    return domain in ("disk", "halfvector")
+    """Whether a domain's flow space is the plane R² (disk), not R x S¹ (spherical, slope)."""
+    return domain == "disk"
 
 
 def base_outputs(domain, components=1):
@@ -398,46 +397,6 @@ class SphericalMap:
         return np.asarray(wo)[..., 2] > 0.0
 
 
-class HalfVectorMap:
-    """y in R² <-> the half vector h = (wi + wo) / |wi + wo| through DiskMap, wo = 2 (wi.h) h - wi.
-
-    A specular spike sits at y = 0 for every wi, so the flow learns nearly the same shape at
-    every incident angle. Every wo above the horizon has exactly one y, but a y whose mirror
-    direction falls below the horizon has no wo: sample() returns pdf 0 there (a lost sample,
-    no bias), and the trained model puts little mass there because its data has none.
-    d omega_o / dy = 4 (wi.h) d omega_h / dy. wi is the canonical incident direction per row.
-    The training data comes as disk coordinates of wo (bake.domains maps the name to Disk).
-    """
-
-    domain = "halfvector"
-    periodic = (False, False)
-
-    @staticmethod
-    def to_dir(y, wi):
-        h = DiskMap.to_dir(y)
-        return 2.0 * np.sum(wi * h, axis=-1, keepdims=True) * h - wi
-
-    @staticmethod
-    def from_dir(wo, wi):
-        wo = np.asarray(wo, dtype=np.float64)
-        wo = wo / np.linalg.norm(wo, axis=-1, keepdims=True)
-        return DiskMap.from_dir(wo + wi)
-
-    @staticmethod
-    def from_domain(x, wi):
-        return HalfVectorMap.from_dir(DiskMap.to_dir(DiskMap.from_domain(x)), wi)
-
-    @staticmethod
-    def log_dw_dy(y, wi):
-        cos_ih = np.sum(wi * DiskMap.to_dir(y), axis=-1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return DiskMap.log_dw_dy(y) + np.log(4.0 * np.maximum(cos_ih, 0.0))
-
-    @staticmethod
-    def valid(wo):
-        return np.asarray(wo)[..., 2] > 0.0
-
-
 class SlopeMap:
     """(s, phi) in R x S¹ <-> the half vector h at tan(theta_h) = e^s, azimuth phi; wo = 2 (wi.h) h - wi.
 
@@ -445,7 +404,10 @@ class SlopeMap:
     s = log(alpha), so a sharp spike over a broad glow (clear coats, lacquers) is two bumps
     along one axis, which a flow can learn, where in a linear map their scales differ 100x.
     d omega_h / (ds dphi) = sin²(theta_h) cos(theta_h); d omega_o = 4 (wi.h) d omega_h.
-    Like HalfVectorMap, a y whose mirror direction is below the horizon is a lost sample.
+    Every wo above the horizon has exactly one y, but a y whose mirror direction falls below
+    the horizon has no wo: sample() returns pdf 0 there (a lost sample, no bias), and a trained
+    model puts little mass there because its data has none. wi: the canonical incident
+    direction per row. Training data comes as disk coordinates of wo (bake.domains: Disk).
     """
 
     domain = "slope"
@@ -494,7 +456,7 @@ class SlopeMap:
         return np.asarray(wo)[..., 2] > 0.0
 
 
-MAPS = {"disk": DiskMap, "spherical": SphericalMap, "halfvector": HalfVectorMap, "slope": SlopeMap}
+MAPS = {"disk": DiskMap, "spherical": SphericalMap, "slope": SlopeMap}
 
 
 def canonical_wi(c, isotropic):

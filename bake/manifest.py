@@ -1,7 +1,7 @@
 """The manifest (`manifest.toml`): which materials a scene needs, and how to model them.
 
     [defaults]                      # optional; applies to every material
-    domain = "disk"                 # "disk" | "spherical" | "halfvector"
+    domain = "auto"                 # "auto" (slope or disk, from the material) | "disk" | "spherical" | "slope"
     train = { preset = "balanced" } # settings for the trainer
     bake = { }                      # settings for the baker
 
@@ -33,7 +33,7 @@ NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
 class MaterialEntry:
     name: str
     source: object
-    domain: str = "disk"
+    domain: str = "auto"
     optional: bool = False
     train: dict = field(default_factory=dict)
     bake: dict = field(default_factory=dict)
@@ -87,9 +87,12 @@ def _check_keys(table, allowed, where, path):
                             f"{', '.join(map(repr, unknown))} (allowed: {', '.join(sorted(allowed))})", path)
 
 
+DOMAIN_CHOICES = ("auto", *sorted(DOMAINS))
+
+
 def _check_domain(value, where, path):
-    if value not in DOMAINS:
-        raise FlowBSDFError(f"{where}: domain must be one of {sorted(DOMAINS)}, not {value!r}", path)
+    if value not in DOMAIN_CHOICES:
+        raise FlowBSDFError(f"{where}: domain must be one of {list(DOMAIN_CHOICES)}, not {value!r}", path)
     return value
 
 
@@ -112,7 +115,7 @@ def load_manifest(path):
     _check_keys(data, TOP_KEYS, "top level", path)
     defaults = _check_table(data.get("defaults", {}), "defaults", "top level", path)
     _check_keys(defaults, DEFAULT_KEYS, "[defaults]", path)
-    default_domain = _check_domain(defaults.get("domain", "disk"), "[defaults]", path)
+    default_domain = _check_domain(defaults.get("domain", "auto"), "[defaults]", path)
     default_train = _check_table(defaults.get("train", {}), "train", "[defaults]", path)
     default_bake = _check_table(defaults.get("bake", {}), "bake", "[defaults]", path)
 

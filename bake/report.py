@@ -397,7 +397,7 @@ def plot_target(material, theta_i, path, res=256, title=None, decades=4):
 
 def manifest_samplers(entry, material, out_dir, manifest_path, steps=(2, 4, 8), log=print):
     """Every sampler the report compares for one material: baselines, the ideal tabulation,
-    the flow at several step counts, the baked tables (and a half-resolution rebuild on the
+    the flow at several step counts (always its trained N), the baked tables (and a half-resolution rebuild on the
     same bins), plain tabulation at the tables' memory, and Mitsuba's sampler for RGL files."""
     from .baselines import UniformSampler
     from .ideal import BinnedIdeal
@@ -409,7 +409,7 @@ def manifest_samplers(entry, material, out_dir, manifest_path, steps=(2, 4, 8), 
     if model_file.is_file():
         from .flow import load_model
         model = load_model(model_file)
-        for n in steps:
+        for n in sorted(set(steps) | {model.steps}):
             samplers[f"flow N={n}"] = model.with_steps(n)
     tables = open_current_tables(entry, out_dir, manifest_path)
     if tables is not None:
@@ -438,6 +438,7 @@ def report_manifest(manifest, out_dir, name=None, thetas=THETAS_DEG, n=1 << 17, 
         material = entry.open()
         samplers = manifest_samplers(entry, material, out_dir, manifest.path, steps=steps, log=log)
         rows += speed_error_rows(entry.name, material, samplers, thetas=thetas, n=n, log=log)
-        shown = {k: samplers[k] for k in ("ideal", "flow N=4", "tables") if k in samplers}
+        trained = next((f"flow N={m.meta['steps']}" for k, m in samplers.items() if k.startswith("flow N=")), None)
+        shown = {k: samplers[k] for k in ("ideal", trained, "tables") if k in samplers}
         slices.append((entry.name, material, shown, 60.0))
     return write_report(rows, Path(out_dir) / "report", slices=slices)

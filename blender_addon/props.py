@@ -81,7 +81,7 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
     domain: bpy.props.EnumProperty(name="Domain", items=[
         ("DISK", "Disk", "Projected hemisphere (isotropic materials)"),
         ("SPHERICAL", "Spherical", "theta, phi (anisotropic materials)"),
-        ("HALFVECTOR", "Half vector", "Projected half vector: a specular spike sits at the centre for every view (glossy materials)")])
+        ("SLOPE", "Slope", "log tan theta_h, phi_h of the half vector: sharp and layered glossy materials")])
     preset: bpy.props.EnumProperty(name="Training", default="BALANCED", items=[
         ("FAST", "Fast", "~1 min per material"), ("BALANCED", "Balanced", "5-8 min on 2 cores"),
         ("PAPER", "Paper", "GPU advised")])

@@ -1,7 +1,7 @@
 """Issue-3 acceptance numbers: the trained flows on the shared RGL materials.
 
     .venv/bin/python scripts/flow_acceptance.py --models DIR [--materials a,b] [--train]
-        [--preset balanced] [--domain disk] [--set key=value ...] [--out report.md]
+        [--preset balanced] [--domain auto] [--set key=value ...] [--out report.md]
 
 With --train, materials without a model in DIR are trained first (`python -m trainer
 train`, one subprocess per material, its wall time recorded). Then per material, at
@@ -57,7 +57,7 @@ def main():
     p.add_argument("--materials", default=",".join(RGL_FILES))
     p.add_argument("--train", action="store_true")
     p.add_argument("--preset", default="balanced")
-    p.add_argument("--domain", default="disk", help="flow domain for --train: disk | spherical | halfvector")
+    p.add_argument("--domain", default="auto", help="flow domain for --train: auto | disk | spherical | slope")
     p.add_argument("--set", action="append", default=[], help="training setting key=value (TOML value)")
     p.add_argument("--no-chi2", action="store_true")
     p.add_argument("--out", default=None)

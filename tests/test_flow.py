@@ -84,13 +84,12 @@ def test_coordinate_maps_round_trip_and_jacobian(cmap):
     np.testing.assert_allclose(np.log(area), cmap.log_dw_dy(y), atol=1e-5)
 
 
-@pytest.mark.parametrize("cmap", [F.HalfVectorMap, F.SlopeMap])
-def test_half_vector_maps_round_trip_jacobian_and_lost_region(cmap):
+def test_slope_map_round_trip_jacobian_and_lost_region():
+    cmap = F.SlopeMap
     rng = np.random.default_rng(11)
     y = rng.normal(size=(4000, 2)) * 1.5
-    if cmap is F.SlopeMap:
-        y[:, 0] -= 1.0
-        y[:, 1] = F.wrap_angle(y[:, 1])
+    y[:, 0] -= 1.0
+    y[:, 1] = F.wrap_angle(y[:, 1])
     for deg in (0.0, 40.0, 85.0):
         wi = np.broadcast_to([np.sin(np.radians(deg)), 0.0, np.cos(np.radians(deg))], (len(y), 3))
         w = cmap.to_dir(y, wi)
@@ -105,10 +104,9 @@ def test_half_vector_maps_round_trip_jacobian_and_lost_region(cmap):
         wa, wb = cmap.to_dir(yy + [e, 0], ww), cmap.to_dir(yy + [0, e], ww)
         area = np.linalg.norm(np.cross(wa - w0, wb - w0), axis=1) / e ** 2
         np.testing.assert_allclose(np.log(area), cmap.log_dw_dy(yy, ww), atol=1e-5)
-    # The specular direction: y = 0 (half vector map) or s -> -inf (slope map), for every wi.
+    # The specular direction is s -> -inf for every wi.
     wi = np.array([[0.6, 0.0, 0.8]])
-    spec = np.zeros((1, 2)) if cmap is F.HalfVectorMap else np.array([[-40.0, 0.3]])
-    np.testing.assert_allclose(cmap.to_dir(spec, wi), wi * [-1, -1, 1], atol=1e-15)
+    np.testing.assert_allclose(cmap.to_dir(np.array([[-40.0, 0.3]]), wi), wi * [-1, -1, 1], atol=1e-15)
     assert np.all(np.isfinite(cmap.from_dir(wi * [-1, -1, 1], wi)))      # pole: finite, like spherical
 
 
@@ -147,7 +145,7 @@ def test_maps_send_the_cosine_lobe_to_the_standard_gaussian():
 
 # --------------------------------------------------------------------------- torch <-> numpy
 
-@pytest.mark.parametrize("domain", ["disk", "spherical", "halfvector", "slope"])
+@pytest.mark.parametrize("domain", ["disk", "spherical", "slope"])
 @pytest.mark.parametrize("isotropic", [True, False])
 def test_numpy_matches_torch(domain, isotropic):
     net = random_net(domain, isotropic)
@@ -245,7 +243,7 @@ def test_log_det_formula_matches_autograd():
 
 @pytest.mark.parametrize("domain,isotropic,components", [
     ("disk", True, 1), ("disk", False, 1), ("spherical", True, 1), ("spherical", False, 1), ("disk", True, 3),
-    ("halfvector", True, 1), ("halfvector", False, 2), ("slope", True, 1), ("slope", False, 1)])
+    ("slope", True, 1), ("slope", False, 1)])
 def test_invert_sample_and_pdf_agree(domain, isotropic, components):
     model = random_net(domain, isotropic, scale=0.3, components=components).to_numpy(4)
     rng = np.random.default_rng(5)
@@ -257,20 +255,20 @@ def test_invert_sample_and_pdf_agree(domain, isotropic, components):
         assert np.all(np.isfinite(wo)) and np.all(pdf >= 0)
         np.testing.assert_allclose(np.linalg.norm(wo, axis=1), 1.0, atol=1e-14)
         kept = pdf > 0
-        # Only half-vector maps lose samples (mirror direction below the horizon), with pdf 0 exactly there.
+        # Only the slope map loses samples (mirror direction below the horizon), with pdf 0 exactly there.
         assert np.array_equal(kept, wo[:, 2] > 0)
-        assert kept.all() if domain in ("disk", "spherical") else (kept.any() and not kept.all())
+        assert kept.all() if domain != "slope" else (kept.any() and not kept.all())
         u, wo, pdf = u0[kept], wo[kept], pdf[kept]
         u2 = model.invert(wi, wo)
         assert model.last_stats["not_converged"] == 0
         d = np.abs(u2 - u)
         if domain in ("spherical", "slope") or components > 1:
             d[:, 1] = np.minimum(d[:, 1], 1 - d[:, 1])   # u_phi (or the mixture's polar angle) is periodic
-        # Half-vector maps: near the mirror direction wo holds the half vector's offset from the
+        # Slope map: near the mirror direction wo holds the half vector's offset from the
         # normal only to ~1e-16 absolute, so u comes back to ~1e-9 there (measured 8e-10, 4e-9).
-        tol = 1e-8 if domain in ("halfvector", "slope") else 1e-12 if components == 1 else 1e-11
+        tol = 1e-8 if domain == "slope" else 1e-12 if components == 1 else 1e-11
         assert d[kept[:4].sum():].max() < tol, d.max()
-        if domain in ("halfvector", "slope"):
+        if domain == "slope":
             # ... and pdf() to ~1e-9; u at the extremes (the first rows, probability < 1e-15) puts wo
             # within 1e-12 rad of the mirror direction, beyond what a float64 direction resolves.
             first = kept[:4].sum()
@@ -596,3 +594,20 @@ def test_training_never_ends_worse_than_its_start(tmp_path):
         assert tr.metrics[stage]["best"]["nll"] <= min(h["nll"] for h in history) + 1e-12
     model = F.load_model(path)
     assert model.meta["metrics"]["holdout_nll"] <= tr.metrics["flow"]["history"][0]["nll"] + 1e-6
+
+
+def test_auto_domain_picks_slope_for_sharp_gloss_and_disk_for_matte():
+    from bake.ideal import IdealSampler
+    from bake.materials import open_material
+    from trainer.sources import SLOPE_SHARE, choose_domain
+    picks = {}
+    for name, spec in {"lambert": {"model": "lambert", "albedo": 0.8},
+                       "ggx_rough": {"model": "ggx", "alpha": 0.5, "f0": 0.9},
+                       "ggx_sharp": {"model": "ggx", "alpha": 0.04, "f0": 0.9},
+                       "plastic": {"model": "plastic", "albedo": 0.5, "alpha": 0.02}}.items():
+        mat = open_material({"kind": "analytic", **spec})
+        picks[name] = choose_domain(IdealSampler(mat, resolution=64))
+    assert picks["lambert"][0] == "disk" and picks["lambert"][1] < 0.05       # measured 0.031
+    assert picks["ggx_rough"][0] == "disk"
+    assert picks["ggx_sharp"][0] == "slope" and picks["ggx_sharp"][1] > 0.7     # measured 0.83
+    assert picks["plastic"][0] == "slope" and SLOPE_SHARE <= picks["plastic"][1] < 0.9, picks

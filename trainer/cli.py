@@ -53,7 +53,7 @@ def cmd_train(args):
 
     from bake.manifest import load_manifest
 
-    from .sources import MaterialSource
+    from .sources import SLOPE_SHARE, SPECULAR_CONE_DEG, MaterialSource, choose_domain
     from .train import train
 
     if args.device == "cuda" and not torch.cuda.is_available():
@@ -79,17 +79,25 @@ def cmd_train(args):
         source_kw = {k: settings.pop(k) for k in list(settings) if k in SOURCE_KEYS}
         if "theta_i" in source_kw:
             source_kw["theta_i"] = np.radians(np.asarray(source_kw["theta_i"], float))
-        domain = getattr(entry, "domain", None) or "disk"
+        domain = getattr(entry, "domain", None) or "auto"
         material = entry.open()
         seed = settings.get("seed", 0)
-        source = MaterialSource(material, domain, seed=seed, **source_kw)
+        source = MaterialSource(material, "disk" if domain == "auto" else domain, seed=seed, **source_kw)
+        extra = {}
+        if domain == "auto":
+            domain, share = choose_domain(source.sampler)
+            extra["domain_choice"] = {"rule": f"slope if >= {SLOPE_SHARE} of f·cos within "
+                                              f"{SPECULAR_CONE_DEG} deg of the specular half vector",
+                                      "specular_share": round(share, 4)}
+            print(f"[{entry.name}] domain auto -> {domain} ({share:.1%} of f·cos within "
+                  f"{SPECULAR_CONE_DEG:g} deg of the specular direction)", file=sys.stderr)
         fingerprint = material.fingerprint()
         print(f"[{entry.name}] training ({domain}, preset {preset}) -> {out}", file=sys.stderr)
         path = train(source, out / f"{entry.name}.train", preset=preset, domain=domain,
                      isotropic=material.isotropic, name=entry.name, device=args.device,
                      progress=not args.no_progress, log=log,
                      meta={"material": {"fingerprint": fingerprint, "kind": type(material).__name__},
-                           "source": source.describe()},
+                           "source": source.describe(), **extra},
                      **settings)
         final = out / path.name
         out.mkdir(parents=True, exist_ok=True)

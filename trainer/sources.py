@@ -13,6 +13,36 @@ from bake.domains import get_domain
 from bake.errors import FlowBSDFError
 
 
+# domain = "auto": the slope domain when at some incident elevation at least SLOPE_SHARE of
+# f·cos has its half vector within SPECULAR_CONE_DEG of the normal (a spike, usually over a
+# glow, which the disk domain learns poorly), else disk (a Lambertian is its identity flow).
+SPECULAR_CONE_DEG = 5.0
+SLOPE_SHARE = 0.1
+
+
+def specular_share(sampler, thetas_deg=(0.0, 30.0, 60.0), n=1 << 15, seed=0):
+    """Largest share over thetas_deg of f·cos whose half vector is within SPECULAR_CONE_DEG of
+    the normal, from exact samples of `sampler` (the ideal tabulation)."""
+    rng = np.random.default_rng([seed, 31337])
+    cos_cone = np.cos(np.radians(SPECULAR_CONE_DEG))
+    share = 0.0
+    for t in np.radians(thetas_deg):
+        wi = np.array([np.sin(t), 0.0, np.cos(t)])
+        wo, pdf = sampler.sample(wi, rng.random((n, 2)))
+        ok = (pdf > 0) & (wo[:, 2] > 0)
+        if not ok.any():
+            continue
+        h = wo[ok] + wi
+        share = max(share, float(np.mean(h[:, 2] / np.linalg.norm(h, axis=1) > cos_cone)))
+    return share
+
+
+def choose_domain(sampler):
+    """(domain, share) for manifest domain "auto"."""
+    share = specular_share(sampler)
+    return ("slope" if share >= SLOPE_SHARE else "disk"), share
+
+
 def default_theta_grid(n=45, max_deg=89.0):
     """Cell centres of n equal bins of theta_i over [0, max_deg] degrees, in radians."""
     return np.radians((np.arange(n) + 0.5) / n * max_deg)

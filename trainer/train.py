@@ -72,7 +72,7 @@ COMMON = dict(
     kappa_max=32.0, base_components=1, warmup=100, min_lr_frac=0.05, ckpt_every=250, fold_penalty=0.0,
     fold_margin=0.05, grad_clip=1.0, min_frac=0.5,
 )
-DEFAULT_STEPS = {"disk": 4, "halfvector": 4, "spherical": 8, "slope": 8}
+DEFAULT_STEPS = {"disk": 4, "spherical": 8, "slope": 8}
 STAGES = ("base", "flow", "reflow")
 # The settings each stage's result depends on (beyond those of the stages before it).
 STAGE_KEYS = {
@@ -120,7 +120,7 @@ class PreparedSource:
         if self.isotropic:
             phi_i = np.arctan2(wi[:, 1], wi[:, 0])
             if np.any(phi_i != 0.0):
-                if get_domain(self.domain).name == "disk":    # disk coordinates of wo (half-vector maps too)
+                if get_domain(self.domain).name == "disk":    # disk coordinates of wo (slope flows too)
                     c, s = np.cos(-phi_i), np.sin(-phi_i)
                     x1 = np.stack([c * x1[:, 0] - s * x1[:, 1], s * x1[:, 0] + c * x1[:, 1]], axis=-1)
                 else:
