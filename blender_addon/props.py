@@ -78,7 +78,8 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
                                               description='JSON overrides, e.g. {"alpha": 0.2}')
     python_callable: bpy.props.StringProperty(name="Callable", description="module:function")
     python_isotropic: bpy.props.BoolProperty(name="Isotropic", default=True)
-    domain: bpy.props.EnumProperty(name="Domain", items=[
+    domain: bpy.props.EnumProperty(name="Domain", default="AUTO", items=[
+        ("AUTO", "Auto", "Slope for sharp or layered gloss, disk otherwise (decided from the material)"),
         ("DISK", "Disk", "Projected hemisphere (isotropic materials)"),
         ("SPHERICAL", "Spherical", "theta, phi (anisotropic materials)"),
         ("SLOPE", "Slope", "log tan theta_h, phi_h of the half vector: sharp and layered glossy materials")])

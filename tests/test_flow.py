@@ -557,6 +557,8 @@ optional = true
     mat = open_material({"kind": "analytic", "model": "ggx", "alpha": 0.4})
     assert model.meta["material"]["fingerprint"] == mat.fingerprint()
     assert model.meta["training"]["settings"]["preset"] == "fast" and model.steps == 4
+    # The manifest's default domain "auto" chose disk for this rough lobe and says why.
+    assert model.domain_name == "disk" and model.meta["domain_choice"]["specular_share"] < 0.1
     assert model.meta["velocity"]["width"] == 8 and model.meta["velocity"]["depth"] == 2   # the student
     wo, pdf = model.sample(unit([0.5, 0, 0.8]), np.random.default_rng(0).random((100, 2)))
     assert np.all(pdf > 0)
