@@ -125,7 +125,7 @@ class Case:
     build: object              # workdir -> Material
     wis: list                  # (theta_i, phi_i) in degrees
     note: str = ""
-    flow_domain: str = "disk"
+    flow_domain: str = "auto"  # the manifest default: slope for the sharp lobes, disk otherwise
     flow: bool = False         # train a tiny flow for it (`--train-flows`)
     chi2_binning: str = "halfvector"
     material: object = None
@@ -157,9 +157,9 @@ def hard_cases():
         Case("mirror_a0.002", _spec(model="ggx", alpha=0.002), _thetas((0.0, 30.0, 60.0, 85.0, 89.5)),
              "near-mirror GGX lobe", flow=True),
         Case("mirror_a0.005_conductor", _spec(model="ggx", alpha=0.005, eta=[0.2, 0.92, 1.1], k=[3.9, 2.45, 2.14]),
-             _thetas((10.0, 45.0, 80.0, 88.0))),
+             _thetas((10.0, 45.0, 80.0, 88.0)), flow=True),
         Case("mirror_a0.01_plastic", _spec(model="plastic", albedo=[0.6, 0.2, 0.1], alpha=0.01),
-             _thetas((0.0, 40.0, 75.0, 89.0)), "a sharp coat over a diffuse base"),
+             _thetas((0.0, 40.0, 75.0, 89.0)), "a sharp coat over a diffuse base", flow=True),
         Case("aniso_1to50", _spec(model="ggx", alpha_x=0.5, alpha_y=0.01),
              [(t, p) for t in (30.0, 70.0, 88.0) for p in ANISO_PHI], "anisotropy 1:50 at 12 phi_i",
              flow_domain="spherical", flow=True),

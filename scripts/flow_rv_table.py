@@ -51,16 +51,23 @@ def flow_samples(net, theta, n_steps, n=1 << 15, seed=5):
         y1, logdet, min_det = net64.euler(c, y0, n_steps)
     y1 = y1.numpy()
     cmap = F.MAPS[net.domain]
-    if net.domain == "spherical":
+    if not F.planar(net.domain):
         y1[:, 1] = F.wrap_angle(y1[:, 1])
-    log_p = (lp0 - logdet).numpy() - cmap.log_dw_dy(y1)
+    wi_rows = np.broadcast_to(wi, (n, 3))
+    log_p = (lp0 - logdet).numpy() - cmap.log_dw_dy(y1, wi_rows)
     return wi, y1, log_p, min_det.numpy()
+
+
+def flow_directions(net, wi, y1):
+    """wo of flow coordinates y1 and whether each is above the horizon (slope maps lose some)."""
+    wo = F.MAPS[net.domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
+    return wo, wo[:, 2] > 0
 
 
 def rv_torch(net, src, theta, n_steps, n=1 << 15, seed=5):
     wi, y1, log_p, min_det = flow_samples(net, theta, n_steps, n, seed)
-    wo = F.MAPS[net.domain].to_dir(y1)
-    w = src.density(wi, wo) / np.exp(log_p)
+    wo, ok = flow_directions(net, wi, y1)
+    w = np.where(ok, src.density(wi, wo) / np.exp(log_p), 0.0)
     return w.var() / w.mean() ** 2, float(np.mean(min_det <= 0))
 
 
@@ -99,7 +106,7 @@ def net_from_state(state, domain, isotropic, settings):
     cd = F.cond_dim(isotropic)
     time_freq = (vin - F.space_dim(domain) - 1 - cd) // 2
     comps = 1
-    while domain == "disk" and F.base_outputs(domain, comps) < bout:
+    while F.planar(domain) and F.base_outputs(domain, comps) < bout:
         comps += 1
     net = FlowNet(domain, isotropic, vel_width=vw, vel_depth=vd, time_freq=time_freq, base_width=bw,
                   base_depth=bd, log_sigma_range=settings["log_sigma_range"], kappa_max=settings["kappa_max"],
@@ -135,7 +142,7 @@ def load_trained(ckpt_dir, model_path=None):
 def material_weights(material, wi, y1, log_p, domain):
     """w = lum(f)·cos / pdf as bake.metrics.sample_weights (lost samples: 0)."""
     from bake.geometry import luminance
-    wo = F.MAPS[domain].to_dir(y1)
+    wo = F.MAPS[domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
     with np.errstate(over="ignore"):
         pdf = np.exp(log_p)
     ok = (pdf > 0) & (wo[:, 2] > 0) & np.isfinite(pdf)
@@ -154,9 +161,10 @@ def crosscheck(net, model_file_arrays, theta, n_steps, domain, k=64, seed=11):
     if model_file_arrays is not None:   # the student: check it is the exported file's weights
         for key, v in net.arrays().items():
             assert np.array_equal(v.astype(np.float32), model_file_arrays[key]), key
-    wo = F.MAPS[domain].to_dir(y1)
-    p_np = model.pdf(wi, wo)
-    return float(np.max(np.abs(p_np / np.exp(log_p) - 1.0))), int(np.sum(min_det <= 0))
+    wo = F.MAPS[domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
+    ok = wo[:, 2] > 0                   # slope maps lose samples below the horizon: pdf 0 both ways
+    p_np = model.pdf(wi, wo[ok])
+    return float(np.max(np.abs(p_np / np.exp(log_p[ok]) - 1.0))), int(np.sum(min_det <= 0))
 
 
 def trained_main(argv):

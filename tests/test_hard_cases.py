@@ -249,7 +249,7 @@ def test_flow_on_hard_case(flows, workdir, name):
     assert r.passed, (name, case.wis[-1], r)
 
 
-@pytest.mark.parametrize("domain", ["disk", "spherical"])
+@pytest.mark.parametrize("domain", ["disk", "spherical", "slope"])
 def test_flow_pdf_is_finite_at_the_horizon(domain):
     """pdf() of a flow at directions a hair above the horizon (wo.z down to 1e-320): it was NaN
     for wo.z < 1e-154 (cos² underflowed, flow coordinates became inf). sample() never returns
