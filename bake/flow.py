@@ -6,7 +6,8 @@ direction wi, in three bijective pieces:
     u --(inverse CDF of the base)--> y0 --(N Euler steps of the velocity MLP)--> y1
       --(fixed coordinate map)--> wo
 
-Flow coordinates y live on an unbounded space, so no sample is ever lost:
+Flow coordinates y live on an unbounded space (for disk and spherical a bijection onto the
+hemisphere, so no sample is ever lost):
   - disk:      y in R², y = x * rho / r with x = (wo.x, wo.y), r = |x| = sin(theta_o),
                rho² = -2 log(1 - r²) = -4 log(cos theta_o).
   - spherical: y = (s, phi) in R x S¹, sin²(theta_o) = Phi(s), cos²(theta_o) = Phi(-s),
@@ -15,18 +16,17 @@ Flow coordinates y live on an unbounded space, so no sample is ever lost:
                the half vector: a GGX lobe of roughness alpha is a unit-width bump at
                log(alpha) whatever wi, a spike over a glow two bumps; a y whose mirror
                direction is below the horizon is a lost sample (pdf 0).
-Both maps send the cosine-weighted hemisphere to the standard Gaussian (times a uniform
-phi), so for a Lambertian material the ideal flow is the identity with a standard
-base, and the target density in y is always f(wi, wo) times a Gaussian weight:
+The disk and spherical maps send the cosine-weighted hemisphere to the standard Gaussian
+(times a uniform phi), so for a Lambertian material the ideal flow is the identity with a
+standard base, and the target density in y is always f(wi, wo) times a Gaussian weight:
   disk:       d omega / dy          = cos(theta_o) / 2
   spherical:  d omega / (ds dphi)   = N(s) / (2 cos(theta_o))     (N the normal density)
 The horizon is at infinity (grazing directions get resolution, like an adaptive
 parameterization); in the spherical map the pole is at s = -inf.
 
 Base (conditioned on wi through a small MLP): disk, a diagonal Gaussian (or a scale
-mixture) in y; spherical,
-a Gaussian in s times a von Mises in phi. u maps to it through the inverse CDFs
-(ndtri for the Gaussian, numerical inversion of the von Mises CDF).
+mixture) in y; spherical and slope, a Gaussian in s times a von Mises in phi. u maps to it
+through the inverse CDFs (ndtri for the Gaussian, numerical inversion of the von Mises CDF).
 
 Each Euler step y_{k+1} = y_k + D(y_k, t_k, c) / N, t_k = k / N, multiplies the density by
 1 / det(I + J_k / N), J_k = dD/dy (2x2, analytic forward-mode derivatives of the MLP), so
@@ -81,7 +81,7 @@ def planar(domain):
 
 
 def base_outputs(domain, components=1):
-    """Outputs of the base MLP: planar mu(2), log sigma(2) [, K weight logits, K-1 lam logits]; spherical 5."""
+    """Outputs of the base MLP: disk mu(2), log sigma(2) [, K weight logits, K-1 lam logits]; others 5."""
     if not planar(domain):
         return 5
     return 4 if components == 1 else 4 + 2 * components - 1

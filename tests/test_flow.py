@@ -569,7 +569,7 @@ optional = true
 # --------------------------------------------------------------------------- slow: real presets
 
 @pytest.mark.slow
-@pytest.mark.parametrize("domain,max_rv", [("disk", 0.15), ("spherical", 0.15)])
+@pytest.mark.parametrize("domain,max_rv", [("disk", 0.15), ("spherical", 0.15), ("slope", 0.15)])
 def test_balanced_preset_on_a_ggx_lobe(tmp_path, domain, max_rv):
     """The balanced preset (<= 10 min on 2 cores): reflowed N-step sampler of a GGX lobe."""
     from trainer.train import train
