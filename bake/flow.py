@@ -61,7 +61,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .domains import get_domain
+from .domains import Disk, get_domain
 from .errors import FlowBSDFError
 
 FORMAT = "flowbsdf-flow"
@@ -440,7 +440,7 @@ class SlopeMap:
 
     @staticmethod
     def from_domain(x, wi):
-        return SlopeMap.from_dir(DiskMap.to_dir(DiskMap.from_domain(x)), wi)
+        return SlopeMap.from_dir(Disk().to_dir(x), wi)
 
     @staticmethod
     def log_dw_dy(y, wi):
