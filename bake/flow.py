@@ -44,6 +44,15 @@ only approximately wo; pdf(wo) stays exact there.
 The slope map recovers h from wo + wi, which a float64 wo holds only to
 ~1e-16 absolute: within ~1e-5 rad of the mirror direction pdf/invert agree with sample to
 ~1e-9 instead of 1e-12, and within 1e-12 rad (u at its extremes) only to ~1e-2.
+Defensive mixture: a model may carry `defensive` = eps in [0, MAX_DEFENSIVE] (chosen by the trainer
+on held-out relative variance; 0 in version-1 files): sample() then draws wo uniformly over the
+hemisphere with probability eps (u1 < eps) and from the flow otherwise (u1 rescaled), and every
+density is the mixture's, (1 - eps) p_flow + eps / (2 pi). Why: the rv of a flow alone can be
+infinite where the target has heavier tails than the flow's pdf: measured data keeps f·cos > 0
+up to the horizon, where a disk flow's pdf vanishes like cos; a GGX lobe's density in the slope
+map decays exponentially toward the mirror direction (s -> -inf), a Gaussian in s faster. The
+uniform share bounds w = f·cos / pdf by 2 pi f·cos / eps. The sampler is then two-to-one:
+invert() returns the flow component's u (in [eps, 1) x [0, 1)); sample(invert(wo)) == wo still.
 If det(I + J/N) <= 0 somewhere the Euler map folds (not a bijection there, pdf wrong):
 `last_stats["fold_fraction"]` reports it; trained models are checked for it.
 
@@ -65,7 +74,9 @@ from .domains import Disk, get_domain
 from .errors import FlowBSDFError
 
 FORMAT = "flowbsdf-flow"
-VERSION = 1
+VERSION = 2                      # 2 added `defensive`; version-1 files load with defensive = 0
+READS_VERSIONS = (1, 2)
+MAX_DEFENSIVE = 0.5
 LOG_2PI = math.log(2.0 * math.pi)
 LOG2 = math.log(2.0)
 SQRT1_2 = math.sqrt(0.5)
@@ -576,6 +587,9 @@ class FlowModel:
             raise FlowBSDFError(f"base kappa_max {self.kappa_max} must be finite and >= 0", self.path)
         if self.time_freq < 0:
             raise FlowBSDFError(f"velocity time_freq {self.time_freq} must be >= 0", self.path)
+        self.defensive = float(meta.get("defensive", 0.0))
+        if not 0.0 <= self.defensive <= MAX_DEFENSIVE:
+            raise FlowBSDFError(f"defensive weight {self.defensive} must be in [0, {MAX_DEFENSIVE}]", self.path)
         self.planar = planar(self.domain_name)
         self.components = int(base.get("components", 1)) if self.planar else 1
         self.base_net = MLP(*_layers(arrays, "base", meta, self.path))
@@ -599,6 +613,15 @@ class FlowModel:
             raise FlowBSDFError(f"steps must be >= 1, not {n}")
         other = copy.copy(self)
         other.steps = int(n)
+        other.last_stats = {}
+        return other
+
+    def with_defensive(self, eps):
+        """A copy with another defensive (uniform) mixture weight; 0 gives the bare flow."""
+        if not 0.0 <= float(eps) <= MAX_DEFENSIVE:
+            raise FlowBSDFError(f"defensive weight must be in [0, {MAX_DEFENSIVE}], not {eps}")
+        other = copy.copy(self)
+        other.defensive = float(eps)
         other.last_stats = {}
         return other
 
@@ -844,7 +867,28 @@ class FlowModel:
     def sample(self, wi, u):
         """wo (n,3) and pdf (n,) (per steradian) for u (n,2) in [0,1)² and wi (3,) or (n,3)."""
         u = np.atleast_2d(np.asarray(u, dtype=np.float64))
-        return self._chunked(self._sample, wi, u)
+        eps = self.defensive
+        if eps == 0.0:
+            return self._chunked(self._sample, wi, u)
+        n = len(u)
+        wi = np.asarray(wi, dtype=np.float64)
+        per_row = wi.ndim == 2 and len(wi) == n and n > 1
+        uni = u[:, 0] < eps
+        wo, pdf, stats = np.zeros((n, 3)), np.zeros(n), {"n": n, "fold_fraction": 0.0}
+        f = np.flatnonzero(~uni)
+        if len(f):
+            wo[f], pdf_flow = self._chunked(self._sample, wi[f] if per_row else wi,
+                                            np.stack([(u[f, 0] - eps) / (1.0 - eps), u[f, 1]], axis=-1))
+            stats = dict(self.last_stats, n=n)     # folds: a share of the flow's samples
+            pdf[f] = np.where(pdf_flow > 0, (1.0 - eps) * pdf_flow + eps / (2.0 * np.pi), 0.0)
+        d = np.flatnonzero(uni)
+        if len(d):
+            z = u[d, 0] / eps
+            s, ph = np.sqrt(np.maximum(0.0, 1.0 - z * z)), 2.0 * np.pi * u[d, 1]
+            wo[d] = np.stack([s * np.cos(ph), s * np.sin(ph), z], axis=-1)
+            pdf[d] = self.pdf(wi[d] if per_row else wi, wo[d])
+        self.last_stats = stats
+        return wo, pdf
 
     def _sample(self, wi, u):
         n = len(u)
@@ -884,11 +928,16 @@ class FlowModel:
         """Density (per steradian) of sample() at wo; 0 below the horizon."""
         _, log_pdf, valid = self._inverse(wi, wo)
         with np.errstate(over="ignore"):
-            return np.where(valid, np.exp(log_pdf), 0.0)
+            p = np.exp(log_pdf)
+        eps = self.defensive
+        return np.where(valid, (1.0 - eps) * p + eps / (2.0 * np.pi) if eps else p, 0.0)
 
     def invert(self, wi, wo):
-        """u with sample(wi, u) = wo (NaN where wo is below the horizon)."""
+        """u with sample(wi, u) = wo (NaN where wo is below the horizon); with a defensive
+        share, the flow component's u."""
         u, _, valid = self._inverse(wi, wo)
+        if self.defensive:
+            u = np.stack([self.defensive + (1.0 - self.defensive) * u[:, 0], u[:, 1]], axis=-1)
         return np.where(valid[:, None], u, np.nan)
 
 
@@ -985,9 +1034,9 @@ def load_model(path):
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         got = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
         raise FlowBSDFError(f"not a FlowBSDF model file (format {got!r}, expected {FORMAT!r})", path)
-    if meta.get("version") != VERSION:
+    if meta.get("version") not in READS_VERSIONS:
         raise FlowBSDFError(f"model file version {meta.get('version')!r} is not supported "
-                            f"(this build reads version {VERSION}); retrain or update FlowBSDF", path)
+                            f"(this build reads versions {list(READS_VERSIONS)}); retrain or update FlowBSDF", path)
     for key in ("domain", "isotropic", "steps", "base", "velocity"):
         if key not in meta:
             raise FlowBSDFError(f"model metadata lacks {key!r}", path)

@@ -3,6 +3,8 @@
 - `relative_variance`: rv = Var[w] / E[w]², w = lum(f·cos)/pdf of the one-sample albedo
   estimator (the chi-square divergence of the sampler from the ideal f·cos; 0 is perfect).
   Samples the sampler loses (pdf 0 or below the horizon) count as w = 0.
+  `relative_variance_ref` estimates the same rv as an integral sampled from a reference (the
+  ideal sampler), which does not understate heavy tails.
 - `chi2_test`: goodness of fit of sample() against pdf(), binned on (cos theta, phi), with
   expected counts integrated adaptively (a quadtree refined where the quadrature error
   estimate is large or where samples crowd, so sharp lobes are integrated, not missed),
@@ -33,6 +35,38 @@ def relative_variance(material, sampler, wi, n=1 << 17, seed=0):
     if mean == 0.0:
         return math.inf, 0.0
     return float(w.var() / mean ** 2), float(mean)
+
+
+def relative_variance_ref(material, sampler, wi, reference, k=512, seed=0):
+    """(rv, tail share) of `sampler` at wi, rv = integral of g²/q d(omega) / A² - 1 (g = lum(f·cos),
+    A its integral, q = sampler.pdf), estimated with wo drawn from `reference` (the ideal sampler:
+    pdf close to g / A) on a jittered k x k grid of u.
+
+    The same rv as relative_variance, but the direct estimate draws from q itself, so it sees the
+    regions q rarely visits (where g/q is largest) rarely: its finite-sample value understates a
+    heavy-tailed rv, and shows a finite number where rv is infinite (e.g. a pdf that vanishes like
+    cos at the horizon under measured data whose f·cos does not). Here those regions come at the
+    reference's rate. The tail share is the largest single point's share of the integral: ~1/k²
+    for a smooth integrand, near 1 when one point decides the value (rv then grows with k).
+    """
+    rng = np.random.default_rng(seed)
+    grid = (np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="ij"), axis=-1).reshape(-1, 2)
+            + rng.random((k * k, 2))) / k
+    wi = np.asarray(wi, float)
+    wo, h = reference.sample(wi, grid)
+    ok = (h > 0) & (wo[:, 2] > 0) & np.isfinite(h)
+    wo, h = wo[ok], h[ok]
+    g = luminance(material.eval(wi, wo)) * wo[:, 2]
+    albedo = np.sum(g / h) / len(grid)
+    if albedo <= 0.0:
+        return math.inf, 1.0
+    q = sampler.pdf(wi, wo)
+    if np.any((q <= 0) & (g > 0)):
+        return math.inf, 1.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        terms = np.where(g > 0, g * g / (h * q), 0.0)
+    total = np.sum(terms)
+    return float(total / len(grid) / albedo ** 2 - 1.0), float(np.max(terms) / total)
 
 
 # ---------------------------------------------------------------------------- chi-square

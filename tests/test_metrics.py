@@ -7,7 +7,7 @@ from bake.baselines import CosineSampler, GGXSampler, UniformSampler, fit_ggx
 from bake.geometry import incident
 from bake.ideal import IdealSampler
 from bake.materials import open_material
-from bake.metrics import chi2_sf, chi2_test, integrate_bins, relative_variance, sidak_alpha
+from bake.metrics import chi2_sf, chi2_test, integrate_bins, relative_variance, relative_variance_ref, sidak_alpha
 
 # One Šidák family for every chi-square test in this file.
 N_TESTS = 16
@@ -135,6 +135,43 @@ def test_relative_variance_of_exact_sampling_is_zero():
     assert rv == pytest.approx(0.0, abs=1e-20) and albedo == pytest.approx(0.5)
     rv_uniform, _ = relative_variance(mat, UniformSampler(), incident(30), n=200_000)
     assert rv_uniform == pytest.approx(1 / 3, rel=0.02)     # Var[2 cos] / E[2 cos]² = 4/3 - 1
+
+
+def test_relative_variance_ref_agrees_with_the_direct_estimate():
+    mat = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})
+    rv, tail = relative_variance_ref(mat, UniformSampler(), incident(30), CosineSampler(), k=256)
+    assert rv == pytest.approx(1 / 3, rel=1e-3) and tail < 1e-4
+    mat = open_material({"kind": "analytic", "model": "ggx", "alpha": 0.3})
+    ideal = IdealSampler(mat, resolution=128)
+    for theta in (0, 60):
+        direct = relative_variance(mat, CosineSampler(), incident(theta), n=400_000, seed=1)[0]
+        ref = relative_variance_ref(mat, CosineSampler(), incident(theta), ideal, k=256)[0]
+        assert ref == pytest.approx(direct, rel=0.05), theta
+
+
+class _FlatTarget:
+    """f·cos = 1 / (2 pi) for every wo: f·cos does not vanish at the horizon (as in measured data)."""
+    isotropic = True
+
+    def eval(self, wi, wo):
+        wo = np.atleast_2d(wo)
+        return np.repeat((0.5 / np.pi / np.maximum(wo[:, 2], 1e-300))[:, None], 3, axis=1)
+
+
+def test_relative_variance_ref_exposes_an_infinite_rv():
+    """Cosine sampling of a target that stays positive at the horizon: rv = integral of
+    1/(2 cos) over uniform wo - 1 diverges like ln k on a k x k grid. The direct estimate looks
+    finite; the reference estimate grows by ~ln 8 from k = 128 to 1024 (plus heavy-tailed noise
+    of ~0.5 per run, hence medians over seeds) and says that one point carries a visible share."""
+    mat, wi, seeds = _FlatTarget(), incident(30), range(5)
+    coarse = np.median([relative_variance_ref(mat, CosineSampler(), wi, UniformSampler(), 128, s)[0] for s in seeds])
+    fine = [relative_variance_ref(mat, CosineSampler(), wi, UniformSampler(), 1024, s) for s in seeds]
+    assert np.median([f[0] for f in fine]) - coarse > 0.5 * math.log(8)
+    assert min(f[1] for f in fine) > 1e-3
+    direct = np.median([relative_variance(mat, CosineSampler(), wi, n=1 << 16, seed=s)[0] for s in seeds])
+    assert direct < np.median([f[0] for f in fine])
+    # A sampler with the right tail: uniform sampling is exact for this target.
+    assert relative_variance_ref(mat, UniformSampler(), wi, UniformSampler(), 256)[0] == pytest.approx(0, abs=1e-12)
 
 
 def test_ggx_fit_recovers_a_ggx_material():

@@ -1,6 +1,7 @@
 """Training-data sources for real materials: exact samples of max(lum f, 0)·cos from bake.ideal.
 
-A source only has to provide `draw(n, rng) -> (wi (n,3), x1 (n,2) domain coordinates)`.
+A source has to provide `draw(n, rng) -> (wi (n,3), x1 (n,2) domain coordinates)`, and may
+provide `density(wi, wo)`, the normalized target (the trainer scores the defensive share with it).
 `MaterialSource` draws wi from a fixed grid of incident directions (the ideal sampler
 builds one table per distinct wi, so a grid keeps that finite) and pre-draws a pool of
 exact samples once; `draw` then picks random pool entries (fast, deterministic given rng).
@@ -101,6 +102,10 @@ class MaterialSource:
             raise FlowBSDFError(f"material {getattr(self.material, 'name', '?')} reflects nothing "
                                 "(max(lum f, 0)·cos is zero): nothing to train")
         self._pool = (wi, self.domain.from_dir(wo))
+
+    def density(self, wi, wo):
+        """The normalized target density (per steradian) the samples follow: the ideal tabulation's."""
+        return self.sampler.pdf(wi, wo)
 
     def draw(self, n, rng):
         if self._pool is None:
