@@ -44,7 +44,12 @@ point lies beyond that (probability < 1e-15) invert() saturates and sample(inver
 only approximately wo; pdf(wo) stays exact there.
 The slope map recovers h from wo + wi, which a float64 wo holds only to
 ~1e-16 absolute: within ~1e-5 rad of the mirror direction pdf/invert agree with sample to
-~1e-9 instead of 1e-12, and within 1e-12 rad (u at its extremes) only to ~1e-2.
+~1e-9 instead of 1e-12, and within 1e-12 rad (u at its extremes) only to ~1e-2. With the
+logistic base (v2 slope files) a flow whose s-scale exceeds 1/2 (broader than GGX) has a pdf
+per steradian that grows without bound toward the mirror direction, like theta_h^(1/scale - 2)
+(integrable; its w -> 0 there); a random net of scale ~2 puts ~5 % of its samples within 1e-6
+rad of it, where float64 wo no longer resolves the half vector's azimuth and pdf/invert agree
+with sample() only roughly (a trained lobe, scale ~0.5-1 at s ~ log alpha, puts < 1e-8 there).
 Defensive mixture: a model may carry `defensive` = eps in [0, MAX_DEFENSIVE] (chosen by the trainer
 on held-out relative variance; 0 in version-1 files): sample() then draws wo uniformly over the
 hemisphere with probability eps (u1 < eps) and from the flow otherwise (u1 rescaled), and every

@@ -12,13 +12,15 @@ import numpy as np
 from .baselines import CosineSampler, fit_ggx
 from .geometry import incident, luminance
 from .ideal import IdealSampler
-from .metrics import relative_variance
+from .metrics import relative_variance, relative_variance_ref
 
 THETAS_DEG = (0, 30, 60, 75, 85)
 
 
 def yardstick_rows(name, material, thetas=THETAS_DEG, n=1 << 17, seed=0, extra=(), log=print):
-    """One row per (sampler, theta_i): rv and the albedo estimate, plus the quadrature albedo."""
+    """One row per (sampler, theta_i): rv (metrics.relative_variance_ref, sampled from the ideal
+    tabulation: the direct estimate understates heavy tails), the direct estimate `rv_direct`
+    with its albedo estimate, and the quadrature albedo. Same sample budget n for both."""
     t0 = time.perf_counter()
     ideal = IdealSampler(material)
     ggx = fit_ggx(material, ideal)
@@ -28,9 +30,10 @@ def yardstick_rows(name, material, thetas=THETAS_DEG, n=1 << 17, seed=0, extra=(
         wi = incident(theta)
         albedo = float(luminance(ideal.albedo(wi)))
         for sampler in samplers:
-            rv, estimate = relative_variance(material, sampler, wi, n=n, seed=seed)
+            rv_direct, estimate = relative_variance(material, sampler, wi, n=n, seed=seed)
+            rv = relative_variance_ref(material, sampler, wi, ideal, k=math.isqrt(n), seed=seed)[0]
             rows.append({"material": name, "sampler": sampler.name, "theta_i": theta, "rv": rv,
-                         "albedo_mc": estimate, "albedo_quadrature": albedo})
+                         "rv_direct": rv_direct, "albedo_mc": estimate, "albedo_quadrature": albedo})
     log(f"[yardsticks] {name}: {repr(ggx)}, {time.perf_counter() - t0:.1f}s")
     return rows
 
@@ -73,7 +76,7 @@ def write_csv(rows, path):
 
 # ------------------------------------------------------------------ speed vs error
 
-SPEED_ERROR_FIELDS = ("material", "sampler", "theta_i", "rv", "albedo_mc", "albedo_quadrature", "lost",
+SPEED_ERROR_FIELDS = ("material", "sampler", "theta_i", "rv", "rv_direct", "albedo_mc", "albedo_quadrature", "lost",
                       "sample_per_s", "pdf_per_s", "both_per_s", "ns_per_sample",
                       "sample_rwi_per_s", "pdf_rwi_per_s", "both_rwi_per_s", "folds", "nbytes")
 
@@ -92,8 +95,11 @@ def speed_error_rows(name, material, samplers, thetas=THETAS_DEG, n=1 << 17, see
                      speed_n=1 << 15, speed_repeat=3, speed=True, quadrature=True, log=print):
     """One row per (sampler label, theta_i) with the fields of SPEED_ERROR_FIELDS:
 
-    rv and albedo estimate of the one-sample estimator (as metrics.relative_variance: same
-    samples for the same seed), the quadrature albedo (from the ideal sampler's table: an
+    rv: with quadrature (an ideal sampler at hand) metrics.relative_variance_ref against it
+    (wo from the ideal on a jittered isqrt(n)² grid: sees the tails the sampler's own samples
+    rarely reach), else the direct estimate; `rv_direct` and the albedo estimate of the
+    one-sample estimator (as metrics.relative_variance: same samples for the same seed), the
+    quadrature albedo (from the ideal sampler's table: an
     IdealSampler among `samplers` is reused), `lost` = fraction of samples with pdf 0,
     non-finite pdf or below the horizon, throughput of sample() and pdf() (bench, one
     thread; NaN with speed=False) at that wi and, per sampler, with a new wi per sample
@@ -122,11 +128,13 @@ def speed_error_rows(name, material, samplers, thetas=THETAS_DEG, n=1 << 17, see
             w, lost = _weights(material, sampler, wi, n, seed)
             folds = (getattr(sampler, "last_stats", None) or {}).get("fold_fraction", math.nan)
             mean = w.mean()
-            rv = float(w.var() / mean ** 2) if mean != 0 else math.inf
+            rv_direct = float(w.var() / mean ** 2) if mean != 0 else math.inf
+            rv = rv_direct if ideal is None else \
+                relative_variance_ref(material, sampler, wi, ideal, k=math.isqrt(n), seed=seed)[0]
             sp = samples_per_second(sampler, wi, n=speed_n, repeat=speed_repeat, seed=seed + 1) if speed else {}
             nbytes = getattr(sampler, "nbytes", None)
             rows.append({
-                "material": name, "sampler": label, "theta_i": theta, "rv": rv,
+                "material": name, "sampler": label, "theta_i": theta, "rv": rv, "rv_direct": rv_direct,
                 "albedo_mc": float(mean), "albedo_quadrature": albedo, "lost": float(lost.mean()),
                 "sample_per_s": sp.get("sample_per_s", math.nan), "pdf_per_s": sp.get("pdf_per_s", math.nan),
                 "both_per_s": sp.get("both_per_s", math.nan), "ns_per_sample": sp.get("ns_per_sample", math.nan),
