@@ -415,6 +415,14 @@ def test_defensive_mixture_keeps_sample_pdf_and_invert_consistent(domain, tmp_pa
     assert F.load_model(path).defensive == 0.0
 
 
+def test_defensive_setting_is_checked_before_training():
+    for bad in (0.9, -0.1, "yes", True):
+        with pytest.raises(FlowBSDFError, match="defensive"):
+            make_settings("fast", "disk", defensive=bad)
+    assert make_settings("fast", "disk", defensive=0)["defensive"] == 0
+    assert make_settings("fast", "disk")["defensive"] == "auto"
+
+
 def test_bake_flow_does_not_import_torch():
     import subprocess
     import sys

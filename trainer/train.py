@@ -104,6 +104,10 @@ def make_settings(preset="balanced", domain="disk", **overrides):
         s[k] = v
     if s["steps"] is None:
         s["steps"] = DEFAULT_STEPS[domain]
+    d = s["defensive"]
+    if d != "auto" and not (isinstance(d, (int, float)) and not isinstance(d, bool) and 0 <= d <= npflow.MAX_DEFENSIVE):
+        raise FlowBSDFError(f"training setting defensive = {d!r}: expected \"auto\" or a number in "
+                            f"[0, {npflow.MAX_DEFENSIVE}]")
     return s
 
 
@@ -559,23 +563,17 @@ class Trainer:
         self.log(f"wrote {path} (held-out NLL {final['nll']:.4f}, fold {final['fold']:.2%})")
         return path
 
-
     def choose_defensive(self, model):
         """(defensive share, {share: held-out rv}). rv(eps) = E_p[p / q_eps] - 1 over pairs drawn
         from the target p (the source's normalized density, e.g. the ideal tabulation), q_eps =
         (1 - eps) q + eps / (2 pi): the chi-square divergence the renders pay, which the NLL the
         stages minimize does not see in the far tails."""
-        setting = self.settings["defensive"]
-        if setting != "auto":
-            eps = float(setting)
-            if not 0.0 <= eps <= npflow.MAX_DEFENSIVE:
-                raise FlowBSDFError(f"training setting defensive = {setting!r}: expected \"auto\" or a "
-                                    f"number in [0, {npflow.MAX_DEFENSIVE}]")
-            return eps, {}
+        if self.settings["defensive"] != "auto":
+            return float(self.settings["defensive"]), {}
         source = self.data.source
         if not hasattr(source, "density"):
-            self.log("defensive share 0: the training source has no density to score it with")
-            return 0.0, {}
+            self.log(f"defensive share {DEFENSIVE_CHOICES[0]:g}: the training source has no density to score others")
+            return DEFENSIVE_CHOICES[0], {}
         wi, x1 = source.draw(DEFENSIVE_SAMPLES, np.random.default_rng([self.settings["seed"], 4099]))
         wo = get_domain(self.domain).to_dir(x1)
         p = source.density(wi, wo)
