@@ -25,9 +25,8 @@ The horizon is at infinity (grazing directions get resolution, like an adaptive
 parameterization); in the spherical map the pole is at s = -inf.
 
 Base (conditioned on wi through a small MLP): disk, a diagonal Gaussian (or a scale
-mixture) in y; spherical, a Gaussian in s times a von Mises in phi; slope, a logistic in s
-(S_DISTS) times a von Mises. u maps to it through the inverse CDFs (ndtri for the Gaussian,
-the logit for the logistic, numerical inversion of the von Mises CDF).
+mixture) in y; spherical and slope, a Gaussian in s times a von Mises in phi. u maps to it
+through the inverse CDFs (ndtri for the Gaussian, numerical inversion of the von Mises CDF).
 
 Each Euler step y_{k+1} = y_k + D(y_k, t_k, c) / N, t_k = k / N, multiplies the density by
 1 / det(I + J_k / N), J_k = dD/dy (2x2, analytic forward-mode derivatives of the MLP), so
@@ -44,12 +43,7 @@ point lies beyond that (probability < 1e-15) invert() saturates and sample(inver
 only approximately wo; pdf(wo) stays exact there.
 The slope map recovers h from wo + wi, which a float64 wo holds only to
 ~1e-16 absolute: within ~1e-5 rad of the mirror direction pdf/invert agree with sample to
-~1e-9 instead of 1e-12, and within 1e-12 rad (u at its extremes) only to ~1e-2. With the
-logistic base (v2 slope files) a flow whose s-scale exceeds 1/2 (broader than GGX) has a pdf
-per steradian that grows without bound toward the mirror direction, like theta_h^(1/scale - 2)
-(integrable; its w -> 0 there); a random net of scale ~2 puts ~5 % of its samples within 1e-6
-rad of it, where float64 wo no longer resolves the half vector's azimuth and pdf/invert agree
-with sample() only roughly (a trained lobe, scale ~0.5-1 at s ~ log alpha, puts < 1e-8 there).
+~1e-9 instead of 1e-12, and within 1e-12 rad (u at its extremes) only to ~1e-2.
 Defensive mixture: a model may carry `defensive` = eps in [0, MAX_DEFENSIVE] (chosen by the trainer
 on held-out relative variance; 0 in version-1 files): sample() then draws wo uniformly over the
 hemisphere with probability eps (u1 < eps) and from the flow otherwise (u1 rescaled), and every
@@ -123,20 +117,6 @@ def log_normal_pdf(z):
     return -0.5 * np.asarray(z) ** 2 - 0.5 * LOG_2PI
 
 
-def log_logistic_pdf(z):
-    z = np.asarray(z, dtype=np.float64)
-    return -np.abs(z) - 2.0 * np.log1p(np.exp(-np.abs(z)))
-
-
-def logistic_cdf(z):
-    return _sigmoid(z)
-
-
-def logistic_icdf(u):
-    u = np.asarray(u, dtype=np.float64)
-    return np.log(u) - np.log1p(-u)
-
-
 # Acklam's rational approximation of the normal quantile (relative error 1.2e-9), refined below.
 _A = (-3.969683028665376e+01, 2.209460984245205e+02, -2.759285104469687e+02,
       1.383577518672690e+02, -3.066479806614716e+01, 2.506628277459239e+00)
@@ -183,16 +163,6 @@ def ndtri(p):
     out[p == 0.0] = -np.inf
     out[p == 1.0] = np.inf
     return out
-
-
-# The base's distribution of s (the first flow coordinate) outside the disk domain. Slope: a GGX
-# lobe is exactly logistic in s = log tan theta_h (density sech²(s - log alpha) / 2: scale 1/2), with
-# exponential tails toward the mirror direction (s -> -inf) and the grazing tail; a Gaussian
-# base vanishes faster than any such target at both ends, which makes w = f·cos/pdf unbounded
-# right at the peak. Version-1 slope files used the normal.
-S_DISTS = {"spherical": "normal", "slope": "logistic"}
-S_DIST_FUNCS = {"normal": (ndtri, ndtr, log_normal_pdf),
-                "logistic": (logistic_icdf, logistic_cdf, log_logistic_pdf)}
 
 
 def wrap_angle(a):
@@ -621,10 +591,6 @@ class FlowModel:
         if not 0.0 <= self.defensive <= MAX_DEFENSIVE:
             raise FlowBSDFError(f"defensive weight {self.defensive} must be in [0, {MAX_DEFENSIVE}]", self.path)
         self.planar = planar(self.domain_name)
-        self.s_dist = base.get("s_dist", "normal")
-        if self.s_dist not in S_DIST_FUNCS:
-            raise FlowBSDFError(f"base s_dist {self.s_dist!r} is unknown (expected one of {sorted(S_DIST_FUNCS)})",
-                                self.path)
         self.components = int(base.get("components", 1)) if self.planar else 1
         self.base_net = MLP(*_layers(arrays, "base", meta, self.path))
         self.vel_net = MLP(*_layers(arrays, "vel", meta, self.path))
@@ -721,11 +687,10 @@ class FlowModel:
             z = np.stack([r * np.cos(ang), r * np.sin(ang)], axis=-1)
             return mu + np.exp(ls) * z, self._mix_log_density(z, logw, lam) - np.sum(ls, axis=-1)
         mu_s, ls, mu_phi, kappa = self.base_params(c)
-        icdf, _, log_pdf = S_DIST_FUNCS[self.s_dist]
-        z = icdf(u[:, 0])
+        z = ndtri(u[:, 0])
         psi = vm_icdf(u[:, 1], kappa, vm_terms(float(np.max(kappa, initial=0.0))))
         y0 = np.stack([mu_s + np.exp(ls) * z, wrap_angle(mu_phi + psi)], axis=-1)
-        return y0, log_pdf(z) - ls + vm_log_pdf(psi, kappa)
+        return y0, log_normal_pdf(z) - ls + vm_log_pdf(psi, kappa)
 
     def base_to_u(self, c, y0):
         """y0 -> u and log p0(y0)."""
@@ -743,9 +708,8 @@ class FlowModel:
         psi = wrap_angle(y0[:, 1] - mu_phi)
         u1 = vm_cdf(psi, kappa, vm_terms(float(np.max(kappa, initial=0.0))))
         u1 = np.where(u1 >= 1.0, u1 - 1.0, u1)
-        _, cdf, log_pdf = S_DIST_FUNCS[self.s_dist]
-        u = np.stack([cdf(z), np.clip(u1, 0.0, None)], axis=-1)
-        return u, log_pdf(z) - ls + vm_log_pdf(psi, kappa)
+        u = np.stack([ndtr(z), np.clip(u1, 0.0, None)], axis=-1)
+        return u, log_normal_pdf(z) - ls + vm_log_pdf(psi, kappa)
 
     def base_log_prob(self, c, y0):
         return self.base_to_u(c, y0)[1]

@@ -266,9 +266,9 @@ def test_invert_sample_and_pdf_agree(domain, isotropic, components):
         assert kept.all() if domain != "slope" else (kept.any() and not kept.all())
         u, wo, pdf = u0[kept], wo[kept], pdf[kept]
         if domain == "slope":
-            # The logistic base's tail toward the mirror direction (this random net's scale is ~2,
-            # 4x a GGX lobe's) puts ~5 % of these samples within 1e-6 rad of it, where a float64
-            # wo no longer resolves the half vector's azimuth: checked for finiteness only.
+            # Samples within 1e-6 rad of the mirror direction, where a float64 wo no longer
+            # resolves the half vector's azimuth, are checked for finiteness only (none here
+            # with the Gaussian base; a heavier-tailed base put ~5 % there).
             resolved = _half_vector_resolved(wo, wi)
             assert resolved.mean() > 0.9 and np.all(np.isfinite(pdf))
             n_first = int(resolved[:kept[:4].sum()].sum())
@@ -527,20 +527,22 @@ def test_spherical_lobe_across_phi_pi(trained_spherical):
     assert abs(p[0] / p[1] - 1) < 1e-4
 
 
-def test_sharp_lobe_slope_beats_disk_honestly(tmp_path):
+def test_sharp_lobe_flows_get_a_defensive_share(tmp_path):
     """rv measured honestly, E_p[p/q] - 1 with wo drawn from the exact lobe (GGX alpha 0.05),
-    of tiny disk and slope flows. The disk flow leaves the GGX tails all but uncovered (bare rv
-    ~1e30), which the trainer answers with a defensive uniform share (measured: eps 0.1 ->
-    0.61 / 0.36 / 0.68 at 0 / 40 / 70 deg). The slope flow with its logistic base (a GGX lobe is
-    exactly logistic in log tan theta_h) is at 0.020-0.021 bare and gets the 1 % floor (with a Gaussian base
-    it had been 0.1-436 by angle, where the direct estimate from its own samples said
-    0.02-0.04). Its sample() passes the chi-square test against its pdf()."""
+    of tiny disk and slope flows: the bare flows leave parts of the lobe all but uncovered (the
+    disk flow the GGX tails: rv ~1e30; the slope flow the mirror direction itself, where a
+    Gaussian in s = log tan theta_h vanishes faster than the lobe: rv 0.1-436 by angle), which
+    the direct estimate from the flow's own samples never showed (it read 0.02-0.04 for slope).
+    The trainer's defensive uniform share brings the mean over 0/40/70 deg down by far
+    (measured: disk 0.1 -> 0.61 / 0.36 / 0.68; slope 0.01 -> 0.5-1.1 / 0.8-2 / 0.7-1.4 over
+    seeds), and the slope model's mixture sampler passes the chi-square test."""
     from bake.metrics import chi2_test
-    rv, models = {}, {}
     for domain in ("disk", "slope"):
         src = GGXReflection(domain, alpha=0.05, theta_max_deg=80)
         _, path = _train_tiny(tmp_path / domain, domain, src)
-        models[domain] = model = F.load_model(path)
+        model = F.load_model(path)
+        assert model.defensive > 0.0
+        rv = {}
         rng = np.random.default_rng(13)
         for deg in (0, 40, 70):
             wi = np.tile(unit([np.sin(np.radians(deg)), 0, np.cos(np.radians(deg))]), (1 << 14, 1))
@@ -548,15 +550,14 @@ def test_sharp_lobe_slope_beats_disk_honestly(tmp_path):
             p = src.density(wi, wo)
             for m in (model, model.with_defensive(0.0)):
                 with np.errstate(divide="ignore"):
-                    rv[domain, m.defensive, deg] = float(np.mean(np.where(p > 0, p / m.pdf(wi, wo), 0.0)) - 1.0)
-    disk, slope = models["disk"].defensive, models["slope"].defensive
-    assert disk > 0.0
-    assert np.mean([rv["disk", disk, d] for d in (0, 40, 70)]) < 0.1 * np.mean([rv["disk", 0.0, d] for d in (0, 40, 70)])
-    for deg in (0, 40, 70):
-        assert rv["slope", slope, deg] < 0.05 and rv["slope", slope, deg] < 0.2 * rv["disk", disk, deg], rv
-    for deg in (0, 70):
-        wi = unit([np.sin(np.radians(deg)), 0, np.cos(np.radians(deg))])
-        assert chi2_test(models["slope"], wi, n=100_000, res=(16, 16), seed=3, n_tests=2).passed, deg
+                    rv[m.defensive, deg] = float(np.mean(np.where(p > 0, p / m.pdf(wi, wo), 0.0)) - 1.0)
+        chosen = np.mean([rv[model.defensive, deg] for deg in (0, 40, 70)])
+        bare = np.mean([rv[0.0, deg] for deg in (0, 40, 70)])
+        assert chosen < 2.0 and chosen < 0.1 * bare, (domain, rv)
+        if domain == "slope":
+            for deg in (0, 70):
+                wi = unit([np.sin(np.radians(deg)), 0, np.cos(np.radians(deg))])
+                assert chi2_test(model, wi, n=100_000, res=(16, 16), seed=3, n_tests=2).passed, deg
 
 
 def test_reflow_beats_the_teacher_at_few_steps(trained_disk):

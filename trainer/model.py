@@ -66,8 +66,7 @@ class BaseNet(nn.Module):
     """The conditional base. Disk: a scale mixture of `components` Gaussians sharing the mean
     mu and the axis scales exp(ls) (component k's extra log scale lam_k <= 0, lam_0 = 0), so
     that one base holds a sharp spike and a broad glow; bake.flow samples it through its
-    radial inverse CDF (a bijection of the unit square). Spherical: Gaussian(s) x von Mises(phi);
-    slope: logistic(s) x von Mises(phi) (bake.flow.S_DISTS)."""
+    radial inverse CDF (a bijection of the unit square). Spherical: Gaussian(s) x von Mises(phi)."""
 
     def __init__(self, domain, cond_dim, width=32, depth=2, log_sigma_range=(-4.0, 1.5), kappa_max=32.0,
                  components=1):
@@ -78,7 +77,6 @@ class BaseNet(nn.Module):
         self.net = MLP(cond_dim, width, depth, self.n_out, zero_last=True)
         self.log_sigma_range = tuple(float(v) for v in log_sigma_range)
         self.kappa_max = float(kappa_max)
-        self.s_dist = npflow.S_DISTS.get(domain)
         lo, hi = self.log_sigma_range
         # Start as the standard base (sigma = 1, uniform phi): the ideal base of a Lambertian;
         # extra components start narrower (lam = -1.5 k) with equal weights.
@@ -126,11 +124,7 @@ class BaseNet(nn.Module):
         z = (y[:, 0] - mu_s) * torch.exp(-ls)
         psi = y[:, 1] - mu_phi
         log_i0 = torch.log(torch.special.i0e(kappa)) + kappa
-        if self.s_dist == "logistic":
-            log_ps = -z - 2.0 * torch.nn.functional.softplus(-z)
-        else:
-            log_ps = -0.5 * z * z - 0.5 * LOG_2PI
-        return log_ps - ls + kappa * torch.cos(psi) - LOG_2PI - log_i0
+        return -0.5 * z * z - 0.5 * LOG_2PI - ls + kappa * torch.cos(psi) - LOG_2PI - log_i0
 
     @torch.no_grad()
     def sample(self, c, generator=None):
@@ -144,11 +138,7 @@ class BaseNet(nn.Module):
                 z = z * torch.exp(torch.gather(lam, 1, k))
             return mu + torch.exp(ls) * z
         mu_s, ls, mu_phi, kappa = self.params(c)
-        if self.s_dist == "logistic":
-            u = torch.rand(n, generator=generator, dtype=c.dtype).clamp(1e-12, 1.0 - 1e-7)
-            z = (torch.log(u) - torch.log1p(-u)).to(c.device)
-        else:
-            z = torch.randn(n, generator=generator, dtype=c.dtype).to(c.device)
+        z = torch.randn(n, generator=generator, dtype=c.dtype).to(c.device)
         psi = sample_von_mises(kappa.cpu(), generator).to(c.device)
         return torch.stack([mu_s + torch.exp(ls) * z, wrap(mu_phi + psi)], dim=-1)
 
@@ -299,8 +289,7 @@ class FlowNet(nn.Module):
             "domain": self.domain, "isotropic": self.isotropic, "steps": int(steps),
             "base": {"width": cfg["base_width"], "depth": cfg["base_depth"],
                      "log_sigma_range": cfg["log_sigma_range"], "kappa_max": cfg["kappa_max"],
-                     "components": cfg["base_components"], **({"s_dist": npflow.S_DISTS[self.domain]}
-                                                                if self.domain in npflow.S_DISTS else {})},
+                     "components": cfg["base_components"]},
             "velocity": {"width": cfg["vel_width"], "depth": cfg["vel_depth"],
                          "time_freq": cfg["time_freq"], "activation": "silu"},
         }

@@ -452,10 +452,10 @@ class Trainer:
                 mu = net.base.params(cp)[0]
                 y = mu + 1.5 * (net.base.sample(cp, gen) - mu)
             else:
-                mu_s = net.base.params(cp)[0]
+                mu_s, ls, _, _ = net.base.params(cp)
                 z = torch.rand(len(cp), 2, generator=gen).to(cp.device)
-                s0 = net.base.sample(cp, gen)[:, 0]
-                y = torch.stack([mu_s + 1.5 * (s0 - mu_s), (2 * z[:, 0] - 1) * math.pi], dim=-1)
+                y = torch.stack([mu_s + 1.5 * torch.exp(ls) * torch.randn(len(cp), generator=gen).to(cp.device),
+                                 (2 * z[:, 0] - 1) * math.pi], dim=-1)
             k = int(torch.randint(n_steps, (1,), generator=gen))
             for j in range(k):
                 y = y + net.vel(y, torch.tensor(j / n_steps, device=cp.device), cp) / n_steps
