@@ -70,6 +70,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .baselines import UniformSampler
 from .domains import Disk, get_domain
 from .errors import FlowBSDFError
 
@@ -77,6 +78,18 @@ FORMAT = "flowbsdf-flow"
 VERSION = 2                      # 2 added `defensive`; version-1 files load with defensive = 0
 READS_VERSIONS = (1, 2)
 MAX_DEFENSIVE = 0.5
+UNIFORM_PDF = 0.5 / math.pi      # uniform over the hemisphere, per steradian
+
+
+def with_uniform_share(pdf, eps):
+    """The defensive mixture's density from the flow's own: (1 - eps) pdf + eps uniform."""
+    return (1.0 - eps) * pdf + eps * UNIFORM_PDF if eps else pdf
+
+
+def _check_defensive(eps, path=None):
+    if not 0.0 <= float(eps) <= MAX_DEFENSIVE:
+        raise FlowBSDFError(f"defensive weight {eps} must be in [0, {MAX_DEFENSIVE}]", path)
+    return float(eps)
 LOG_2PI = math.log(2.0 * math.pi)
 LOG2 = math.log(2.0)
 SQRT1_2 = math.sqrt(0.5)
@@ -587,9 +600,7 @@ class FlowModel:
             raise FlowBSDFError(f"base kappa_max {self.kappa_max} must be finite and >= 0", self.path)
         if self.time_freq < 0:
             raise FlowBSDFError(f"velocity time_freq {self.time_freq} must be >= 0", self.path)
-        self.defensive = float(meta.get("defensive", 0.0))
-        if not 0.0 <= self.defensive <= MAX_DEFENSIVE:
-            raise FlowBSDFError(f"defensive weight {self.defensive} must be in [0, {MAX_DEFENSIVE}]", self.path)
+        self.defensive = _check_defensive(meta.get("defensive", 0.0), self.path)
         self.planar = planar(self.domain_name)
         self.components = int(base.get("components", 1)) if self.planar else 1
         self.base_net = MLP(*_layers(arrays, "base", meta, self.path))
@@ -618,10 +629,8 @@ class FlowModel:
 
     def with_defensive(self, eps):
         """A copy with another defensive (uniform) mixture weight; 0 gives the bare flow."""
-        if not 0.0 <= float(eps) <= MAX_DEFENSIVE:
-            raise FlowBSDFError(f"defensive weight must be in [0, {MAX_DEFENSIVE}], not {eps}")
         other = copy.copy(self)
-        other.defensive = float(eps)
+        other.defensive = _check_defensive(eps)
         other.last_stats = {}
         return other
 
@@ -880,13 +889,12 @@ class FlowModel:
             wo[f], pdf_flow = self._chunked(self._sample, wi[f] if per_row else wi,
                                             np.stack([(u[f, 0] - eps) / (1.0 - eps), u[f, 1]], axis=-1))
             stats = dict(self.last_stats, n=n)     # folds: a share of the flow's samples
-            pdf[f] = np.where(pdf_flow > 0, (1.0 - eps) * pdf_flow + eps / (2.0 * np.pi), 0.0)
+            pdf[f] = np.where(pdf_flow > 0, with_uniform_share(pdf_flow, eps), 0.0)
         d = np.flatnonzero(uni)
         if len(d):
-            z = u[d, 0] / eps
-            s, ph = np.sqrt(np.maximum(0.0, 1.0 - z * z)), 2.0 * np.pi * u[d, 1]
-            wo[d] = np.stack([s * np.cos(ph), s * np.sin(ph), z], axis=-1)
-            pdf[d] = self.pdf(wi[d] if per_row else wi, wo[d])
+            wi_d = wi[d] if per_row else wi
+            wo[d] = UniformSampler().sample(wi_d, np.stack([u[d, 0] / eps, u[d, 1]], axis=-1))[0]
+            pdf[d] = self.pdf(wi_d, wo[d])
         self.last_stats = stats
         return wo, pdf
 
@@ -929,8 +937,7 @@ class FlowModel:
         _, log_pdf, valid = self._inverse(wi, wo)
         with np.errstate(over="ignore"):
             p = np.exp(log_pdf)
-        eps = self.defensive
-        return np.where(valid, (1.0 - eps) * p + eps / (2.0 * np.pi) if eps else p, 0.0)
+        return np.where(valid, with_uniform_share(p, self.defensive), 0.0)
 
     def invert(self, wi, wo):
         """u with sample(wi, u) = wo (NaN where wo is below the horizon); with a defensive

@@ -580,9 +580,8 @@ class Trainer:
         q = model.with_defensive(0.0).pdf(wi, wo)
         scores = {}
         for eps in DEFENSIVE_CHOICES:
-            q_eps = (1.0 - eps) * q + eps / (2.0 * np.pi)
             with np.errstate(divide="ignore"):
-                ratio = np.where(p > 0, p / q_eps, 0.0)
+                ratio = np.where(p > 0, p / npflow.with_uniform_share(q, eps), 0.0)
             scores[eps] = float(np.mean(ratio) - 1.0)
         best = min(scores, key=lambda e: (scores[e], e))
         self.log("held-out rv by defensive share: " + ", ".join(f"{e:g}: {r:.4g}" for e, r in scores.items())
