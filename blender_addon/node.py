@@ -8,7 +8,9 @@ add-on installed, and materials append and link like any other. Its node tree,
   a text block and as compiled bytecode) that samples the baked tables exactly and
   continues the path with ray_portal_bsdf (Cycles CPU with Open Shading Language on).
   Its input "Fallback" is the fit: when the OSL texture is missing or unreadable at
-  render time, the shader returns the fit instead of black.
+  render time, the shader returns the fit instead of black. The fit's parameters also
+  feed the shader, which renders their share `cv_share` with Cycles' closures as a
+  control variate and samples only the rest from the tables.
 - fit: Cycles closures (Diffuse BSDF + GGX Glossy BSDF) whose colours and roughness are
   piecewise-linear functions of the view angle (Layer Weight "Facing" = 1 - cos theta_i),
   fitted at bake time (bake/closure_fit.py). Its parameters live in the node tree, so it
@@ -56,7 +58,7 @@ OSL_SOURCE = Path(__file__).resolve().parent / "osl" / "learned_bsdf.osl"
 NEUTRAL = (0.5, 0.5, 0.5)
 # The fit file format (bake/closure_fit.py: load_fit, FIT_VERSION), read here without numpy.
 FIT_FORMAT = "flowbsdf-closure-fit"
-FIT_VERSION = 1
+FIT_VERSION = 2
 
 
 def _bake_mod(name):
@@ -92,7 +94,7 @@ def load_fit(path):
         raise ValueError(f"closure fit unreadable ({e}): {path}") from None
     if not isinstance(fit, dict) or fit.get("format") != FIT_FORMAT or fit.get("version") != FIT_VERSION:
         raise ValueError(f"not a current FlowBSDF closure fit, re-bake: {path}")
-    for key in ("x", "diffuse", "specular", "roughness", "rel_error"):
+    for key in ("x", "diffuse", "specular", "roughness", "rel_error", "cv_share"):
         if key not in fit:
             raise ValueError(f"closure fit without {key!r}: {path}")
     return fit
@@ -279,13 +281,15 @@ def _piecewise(tree, x_socket, xs, values, loc):
 
 
 def _build_fit(tree, fit, loc=(-1400, -400)):
-    """The fit back end's closures; returns its shader output socket."""
+    """The fit back end's closures; returns its shader output socket and the sockets of its
+    parameters and control-variate share (diffuse, specular, roughness, share), None without
+    a fit."""
     nodes, links = tree.nodes, tree.links
     diffuse = nodes.new("ShaderNodeBsdfDiffuse")
     diffuse.location = (loc[0] + 3400, loc[1])
     if fit is None:
         diffuse.inputs["Color"].default_value = (*NEUTRAL, 1.0)
-        return diffuse.outputs[0]
+        return diffuse.outputs[0], None
     facing = nodes.new("ShaderNodeLayerWeight")
     facing.inputs["Blend"].default_value = 0.5          # Facing = 1 - |cos theta_i|
     facing.location = loc
@@ -309,7 +313,8 @@ def _build_fit(tree, fit, loc=(-1400, -400)):
     add.location = (loc[0] + 3600, loc[1] - 200)
     links.new(diffuse.outputs[0], add.inputs[0])
     links.new(glossy.outputs[0], add.inputs[1])
-    return add.outputs[0]
+    share = _piecewise(tree, x, xs, fit["cv_share"], (loc[0] + 200, loc[1] - 1500))
+    return add.outputs[0], (kd, ks, sep.outputs[0], share)
 
 
 def _build_tree(tree, name, tables_path, fit_path):
@@ -338,7 +343,7 @@ def _build_tree(tree, name, tables_path, fit_path):
     nodes, links = tree.nodes, tree.links
     out = nodes.new("NodeGroupOutput")
     out.location = (2600, 0)
-    fit_out = _build_fit(tree, fit)
+    fit_out, fit_params = _build_fit(tree, fit)
     info = {"material": name, "tables": str(tables_path), "fit": str(fit_path or ""),
             "osl_texture": osl_texture, "has_fit": fit is not None, "has_osl": with_osl,
             "fit_error": float(max(fit["rel_error"])) if fit else -1.0,
@@ -352,6 +357,11 @@ def _build_tree(tree, name, tables_path, fit_path):
     script.location = (2200, 300)
     script.inputs["Tables"].default_value = osl_texture
     links.new(fit_out, script.inputs["Fallback"])
+    if fit_params is not None:      # the fit as the OSL shader's control variate
+        for socket, name in zip(fit_params, ("FitDiffuse", "FitSpecular", "FitRoughness", "ControlVariate")):
+            links.new(socket, script.inputs[name])
+    else:
+        script.inputs["ControlVariate"].default_value = (0.0, 0.0, 0.0, 1.0)
     switch = nodes.new("ShaderNodeValue")
     switch.name = switch.label = SWITCH
     switch.outputs[0].default_value = 0.0

@@ -16,17 +16,20 @@ The tracer always evaluates its scene material's `eval`. Two references are rend
   - "true": the manifest material's own eval (tables sampling): the baked-vs-true difference
     is reported separately (relative mean, MSE), and the MSEs against it too.
 
-Per material, at equal spp: OSL back end, closure fit (and the fit at 4x spp, to split its
-error into bias^2 + noise), Principled BSDF fit (closure_fit.principled_params); render
+Per material, at equal spp: OSL back end (over OSL_SEEDS Cycles seeds: its noise is
+measured, not predicted, since the fit's control-variate share changes it; and once more
+with the share set to 0, the tables alone), closure fit (and the fit at 4x spp, to split
+its error into bias^2 + noise), Principled BSDF fit (closure_fit.principled_params); render
 times relative to Principled.
 
     .venv/bin/python scripts/cycles_acceptance.py [names...] [--spp 256] [--size 64]
-        [--ref-spp 4096] [--true-spp N] [--env soft|sunny|both] [--workers 2]
+        [--ref-spp 4096] [--true-spp N] [--env soft|sunny|both] [--workers 2] [--reuse-refs]
 Writes out/cycles_acceptance.md (and out/cycles_acceptance/<env>_<name>_*.exr); logs to stdout.
 """
 import argparse
 import dataclasses
 import json
+import os
 import re
 import sys
 import time
@@ -44,6 +47,7 @@ from bake.manifest import load_manifest  # noqa: E402
 from bake.tables import open_tables  # noqa: E402
 
 DEFAULT = ["paper_white", "cm_military_green", "chm_mint"]
+OSL_SEEDS = 8
 DISTANCE, FOV = 6.0, 22.0
 
 
@@ -86,7 +90,8 @@ class BakedBSDF:
 def cycles_scene(kind, name, tables_path, env_path, size, spp, fit=None, seed=0,
                  segments=256, rings=128, distance=DISTANCE, fov=FOV):
     """The Blender scene (current scene reset) with the sphere's material for `kind`:
-    osl | fit (the Learned BSDF node's back ends) | principled. Returns (scene, material)."""
+    osl | fit (the Learned BSDF node's back ends) | osl0 (OSL, control-variate share 0) |
+    principled. Returns (scene, material)."""
     import bpy
     from blender_addon import node as lb
     sc = cs.reset(size, size, spp=spp, seed=seed)
@@ -106,17 +111,26 @@ def cycles_scene(kind, name, tables_path, env_path, size, spp, fit=None, seed=0,
     else:
         lb.register()
         mat = bpy.data.materials.new(name)
-        lb.assign_learned_bsdf(mat, name, tables_path)
-        lb.set_backend(sc, kind)
+        node = lb.assign_learned_bsdf(mat, name, tables_path)
+        lb.set_backend(sc, "osl" if kind == "osl0" else kind)
+        if kind == "osl0":
+            share = node.node_tree.nodes[lb.SCRIPT].inputs["ControlVariate"]
+            for link in list(share.links):
+                node.node_tree.links.remove(link)
+            share.default_value = (0.0, 0.0, 0.0, 1.0)
     cs.add_sphere(sc, mat, segments=segments, rings=rings)
     return sc, mat
 
 
-def render_case(*args, **kw):
+def render_case(*args, seeds=1, **kw):
+    """(image, or (seeds, H, W, 3) images for Cycles seeds 0..seeds-1; seconds per render)."""
     sc, _ = cycles_scene(*args, **kw)
-    t0 = time.perf_counter()
-    img = cs.render(sc)
-    return img, time.perf_counter() - t0
+    imgs, t0 = [], time.perf_counter()
+    for seed in range(seeds):
+        sc.cycles.seed = seed
+        imgs.append(cs.render(sc))
+    secs = (time.perf_counter() - t0) / seeds
+    return (imgs[0] if seeds == 1 else np.array(imgs)), secs
 
 
 def export_for_tracer(name, tables_path, env_path, size, folder, manifest_path, **kw):
@@ -156,7 +170,7 @@ def z_stats(img, ref, var_img, var_ref, mask):
     return float(np.sqrt(np.mean(z ** 2))), float(np.mean(np.abs(z) > 3)), mean_d, se
 
 
-CASES = lambda spp: (("osl", spp), ("fit", spp), ("fit", 4 * spp), ("principled", spp))  # noqa: E731
+CASES = lambda spp: (("osl", spp), ("osl0", spp), ("fit", spp), ("fit", 4 * spp), ("principled", spp))  # noqa: E731
 
 
 def run_material(name, env_kind, env_path, args, manifest_path):
@@ -169,13 +183,17 @@ def run_material(name, env_kind, env_path, args, manifest_path):
     scene_path = export_for_tracer(name, tables_path, env_path, args.size, folder, manifest_path)
     times = {}
     for which, spp in (("baked", args.ref_spp), ("true", args.true_spp or args.ref_spp)):
+        if args.reuse_refs and (folder / f"tracer_{which}.npy").is_file():
+            print(f"[{env_kind} {name}] tracer {which}: reused", flush=True)
+            continue
         img, var, var1, secs = trace(scene_path, manifest_path, tables, which, spp, workers=args.workers)
         print(f"[{env_kind} {name}] tracer {which} {spp} spp: {secs:.0f} s", flush=True)
         np.save(folder / f"tracer_{which}.npy", np.stack([img, var, var1]))
     from bake.closure_fit import ensure_fit
     fit = load_fit(ensure_fit(tables_path))
     for kind, spp in CASES(args.spp):
-        img, secs = render_case(kind, name, tables_path, env_path, args.size, spp, fit=fit)
+        img, secs = render_case(kind, name, tables_path, env_path, args.size, spp, fit=fit,
+                                seeds=OSL_SEEDS if kind.startswith("osl") else 1)
         np.save(folder / f"{kind}_{spp}.npy", img)
         times[f"{kind}_{spp}"] = secs
         print(f"[{env_kind} {name}] {kind} {spp} spp: {secs:.1f} s", flush=True)
@@ -186,7 +204,7 @@ def run_material(name, env_kind, env_path, args, manifest_path):
 def times_from_log(log):
     """{(env, name): {kind_spp: seconds}} from a run's log (runs before times.json existed)."""
     out = {}
-    for m in re.finditer(r"^\[(\w+) (\w+)\] (osl|fit|principled) (\d+) spp: .*?([\d.]+) s$", Path(log).read_text(), re.M):
+    for m in re.finditer(r"^\[(\w+) (\w+)\] (osl0|osl|fit|principled) (\d+) spp: .*?([\d.]+) s$", Path(log).read_text(), re.M):
         out.setdefault((m[1], m[2]), {})[f"{m[3]}_{m[4]}"] = float(m[5])
     return out
 
@@ -202,16 +220,18 @@ def analyse(name, env_kind, args, times=None):
     out = {}
     for kind, spp in CASES(args.spp):
         img = np.load(folder / f"{kind}_{spp}.npy")
-        d = (img - ref)[inner]
-        out[(kind, spp)] = (float(np.mean(d ** 2)), times[f"{kind}_{spp}"], img,
-                            float(np.mean((img - true)[inner] ** 2)))
-        print(f"[{env_kind} {name}] {kind} {spp} spp: MSE {np.mean(d ** 2):.3e}, mean rel "
-              f"{np.mean(d) / np.mean(ref[inner]):+.4f}", flush=True)
-    osl = out[("osl", args.spp)][2]
-    # OSL samples exactly as the tracer's baked run (same tables, same weights): its per-pixel
-    # variance at spp is the tracer's per-sample variance / spp.
-    var_osl = var1 / args.spp
-    rms_z, frac3, mean_d, se = z_stats(osl, ref, var_osl, ref_var, inner)
+        imgs = img if img.ndim == 4 else img[None]          # OSL: one render per seed
+        d = (imgs - ref)[:, inner]
+        out[(kind, spp)] = (float(np.mean(d ** 2)), times[f"{kind}_{spp}"], imgs,
+                            float(np.mean((imgs - true)[:, inner] ** 2)))
+        print(f"[{env_kind} {name}] {kind} {spp} spp: MSE {np.mean(d ** 2):.3e} (mean of {len(imgs)} "
+              f"render(s)), mean rel {np.mean(d) / np.mean(ref[inner]):+.4f}", flush=True)
+    imgs = out[("osl", args.spp)][2]
+    # The OSL noise, measured over the seeds (the fit's control-variate share makes it differ
+    # from the tables' own, which the tracer's per-sample variance would predict): the test
+    # image is the seeds' mean, its per-pixel variance var / seeds (t-distributed z, K - 1 dof).
+    var_osl = imgs.var(0, ddof=1) / len(imgs)
+    rms_z, frac3, mean_d, se = z_stats(imgs.mean(0), ref, var_osl, ref_var, inner)
     m = ref[inner].mean(0)
     mse_fit, mse_fit4 = out[("fit", args.spp)][0], out[("fit", 4 * args.spp)][0]
     ref_mse = float(np.mean(ref_var[inner]))
@@ -220,7 +240,8 @@ def analyse(name, env_kind, args, times=None):
     noise = max(4.0 / 3.0 * (mse_fit - mse_fit4), 0.0)
     row = {"env": env_kind, "name": name, "mean": float(m.mean()), "ref_mse": ref_mse,
            "ref_spp": spp_of(ref_var, var1), "true_spp": spp_of(true_var, true_var1),
-           "osl": out[("osl", args.spp)][0], "osl_expected": float(np.mean(var_osl[inner])) + ref_mse,
+           "osl": out[("osl", args.spp)][0], "osl0": out[("osl0", args.spp)][0],
+           "osl0_expected": float(np.mean(var1[inner])) / args.spp + ref_mse,
            "rms_z": rms_z, "frac3": frac3, "osl_rel": float(mean_d.mean() / m.mean()),
            "osl_rel_se": float(np.sqrt(np.mean(se ** 2)) / m.mean()),
            "osl_rel_z": float(np.max(np.abs(mean_d / se))),
@@ -250,6 +271,7 @@ def main(argv=None):
     ap.add_argument("--true-spp", type=int, default=0, help="spp of the true-material render (default ref-spp)")
     ap.add_argument("--env", choices=("soft", "sunny", "both"), default="soft")
     ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--reuse-refs", action="store_true", help="keep the tracer references already saved")
     ap.add_argument("--from-saved", action="store_true",
                     help="no rendering: analyse the saved renders in out/cycles_acceptance/")
     ap.add_argument("--times-log", help="with --from-saved: take render times from this run log")
@@ -284,27 +306,30 @@ def write(rows, args):
              "scene exported by blender_addon/validate.export_scene. Pixels: the sphere's interior (no "
              "silhouette pixels, cos view > 0.05). MSE: mean over those pixels and RGB.", "",
              "- **baked ref**: tracer with the scene material's eval = Tables.eval (what the OSL back end "
-             "renders). OSL z: per-pixel (OSL - ref) / sqrt(var_OSL + var_ref), var_OSL = tracer per-sample "
-             "variance / spp; rms z ~ 1 and ~0.3% beyond 3 if within MC error. Sphere mean: relative "
-             "difference +- its standard error.",
+             f"renders). OSL: {OSL_SEEDS} renders (Cycles seeds); MSE = their mean MSE (one render at the spp). "
+             f"OSL z: per-pixel (mean of the renders - ref) / sqrt(var_OSL + var_ref), var_OSL from the seeds' "
+             f"spread ({OSL_SEEDS - 1} dof: rms z ~ {np.sqrt((OSL_SEEDS - 1) / (OSL_SEEDS - 3)):.2f} and a few "
+             "% beyond 3 if within MC error). Sphere mean: relative difference +- its standard error.",
+             "- OSL share 0: the same shader with the fit's control-variate share set to 0 (the tables "
+             "alone); 'expected' is its MSE predicted from the tracer's per-sample variance.",
              "- Fit MSE = bias^2 + noise (noise from the fit at 4x spp; bias^2 net of the reference's noise).",
              "- **true ref**: the same tracer render with the true material's eval; baked-vs-true is the "
              "tables' own error (sphere-mean relative difference; MSE net of both references' noise). "
              "MSE vs true ref: net of the true reference's noise^2.",
-             "- Noise: the OSL shader hashes its u (Cycles gives OSL no sampler state): plain Monte Carlo, "
-             "whose MSE the tracer predicts (column 'expected'); Cycles' own closures (fit, Principled) get "
-             "its stratified QMC samples, so their noise at equal spp is much lower.",
-             "- Times: whole render call incl. scene sync, 2 cores shared with a background training job "
-             "(load ~8).", "",
+             "- Noise: the OSL shader hashes its u (Cycles gives OSL no sampler state): plain Monte Carlo "
+             "for what it samples from the tables; Cycles' own closures (fit, Principled, and the share of the "
+             "fit the OSL shader renders as control variate) get its stratified QMC samples.",
+             f"- Times: whole render call incl. scene sync (OSL: mean over its renders), 2 cores, load "
+             f"{os.getloadavg()[0]:.1f} when written.", "",
              "| env | material | ref spp | mean radiance | ref noise^2 | OSL rms z (\\|z\\|>3) | OSL sphere-mean rel. diff | "
-             "OSL MSE (expected if unbiased) | fit MSE (bias^2 + noise) | Principled MSE | baked-vs-true mean rel. +- SE (MSE) | "
+             "OSL MSE | OSL share 0 MSE (expected) | fit MSE (bias^2 + noise) | Principled MSE | baked-vs-true mean rel. +- SE (MSE) | "
              "MSE vs true ref: OSL / fit / Principled | time OSL/Pr | time fit/Pr |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         mse_bt = f"{r['baked_vs_true_mse']:.1e}" if r["baked_vs_true_mse"] > 0 else "below noise"
         lines.append(
             f"| {r['env']} | {r['name']} | {r['ref_spp']} / {r['true_spp']} | {r['mean']:.4f} | {r['ref_mse']:.1e} | {r['rms_z']:.3f} ({r['frac3']:.4f}) | "
-            f"{r['osl_rel']:+.5f} +- {r['osl_rel_se']:.5f} | {r['osl']:.2e} ({r['osl_expected']:.2e}) | "
+            f"{r['osl_rel']:+.5f} +- {r['osl_rel_se']:.5f} | {r['osl']:.2e} | {r['osl0']:.2e} ({r['osl0_expected']:.2e}) | "
             f"{r['fit']:.2e} ({r['fit_bias2']:.2e} + {r['fit_noise']:.2e}) | {r['principled']:.2e} | "
             f"{r['baked_vs_true_rel']:+.4f} +- {r['baked_vs_true_se']:.4f} ({mse_bt}) | "
             f"{r['osl_true']:.2e} / {r['fit_true']:.2e} / {r['principled_true']:.2e} | "

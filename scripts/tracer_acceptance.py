@@ -48,9 +48,12 @@ def main():
     ap.add_argument("--bsdf-only", action="store_true", help="samplers without light sampling (the "
                     "reference keeps MIS): shows the samplers' own quality")
     ap.add_argument("--workers", type=int, default=1, help="processes per render (forked)")
+    ap.add_argument("--flow-dir", help="also the flow sampler: its models as <dir>/models/<name>.flow.npz")
+    ap.add_argument("--seed", type=int, default=1, help="seed of the samplers' renders")
     ap.add_argument("--reference-from", help="reuse the references of an earlier run: its Markdown path "
                     "(reads <run>/<material>/reference.exr and the reference noise from <run>.csv)")
     args = ap.parse_args()
+    samplers = SAMPLERS + (["flow"] if args.flow_dir else [])
 
     manifest = load_manifest(args.manifest)
     entries = [e for e in manifest.select(log=log) if isinstance(e.source, str) and e.source.endswith(".bsdf")]
@@ -88,10 +91,11 @@ def main():
             if reference is None:
                 log(f"[acceptance] {e.name}: no reference in {args.reference_from}; skipped")
                 continue
-        rows, (ref, ref_var) = compare(scene, SAMPLERS, args.spp, args.ref_spp, img_dir / e.name,
+        rows, (ref, ref_var) = compare(scene, samplers, args.spp, args.ref_spp, img_dir / e.name,
                                        reference=reference,
                                        reference_sampler="ideal", mis=not args.bsdf_only, equal_time=True,
-                                       seed=1, tables_dir=args.tables_dir, log=log, workers=args.workers)
+                                       seed=args.seed, tables_dir=args.tables_dir, log=log, workers=args.workers,
+                                       dirs={"flow": args.flow_dir} if args.flow_dir else None)
         results[e.name] = {"rows": rows, "ref_noise": float(np.mean(ref_var)), "seconds": time.time() - t0,
                            "load": os.getloadavg()[0]}
         write(results, args, out_md, time.time() - t_start)
@@ -132,17 +136,20 @@ def write(results, args, out_md, elapsed):
              f"reference; 'ref noise' = the reference's own mean variance per pixel (a floor every MSE "
              f"contains). Machine: 2 cores shared with other jobs (load shown per material); "
              f"{args.workers} process(es). Elapsed {elapsed / 60:.0f} min.", ""]
+    names = SAMPLERS + (["flow"] if any(_get(res["rows"], "flow", "equal spp") for res in results.values()) else [])
     for mode in ("equal spp", "equal time"):
         lines += [f"## {mode}", "",
-                  "| material | tables | ggx-fit | ideal | cosine | tables/ggx | tables/ideal | spp (t/g/i/c) "
-                  "| ref noise |",
-                  "|---|---:|---:|---:|---:|---:|---:|---|---:|"]
+                  "| material | " + " | ".join(n if n != "ggx" else "ggx-fit" for n in names) + " | tables/ggx | "
+                  + ("flow/ggx | " if "flow" in names else "") + "tables/ideal | spp (" + "/".join(n[0] for n in names)
+                  + ") | ref noise |",
+                  "|---|" + "---:|" * (len(names) + 2 + ("flow" in names)) + "---|---:|"]
         for name, res in results.items():
-            r = {s: _get(res["rows"], s, mode) for s in SAMPLERS}
-            mse = {s: (r[s]["mse"] if r[s] else float("nan")) for s in SAMPLERS}
-            spp = "/".join(str(r[s]["spp"]) if r[s] else "-" for s in SAMPLERS)
-            lines.append(f"| {name} | {mse['tables']:.3g} | {mse['ggx']:.3g} | {mse['ideal']:.3g} | "
-                         f"{mse['cosine']:.3g} | {mse['tables'] / mse['ggx']:.3f} | "
+            r = {s: _get(res["rows"], s, mode) for s in names}
+            mse = {s: (r[s]["mse"] if r[s] else float("nan")) for s in names}
+            spp = "/".join(str(r[s]["spp"]) if r[s] else "-" for s in names)
+            flow_ratio = f"{mse['flow'] / mse['ggx']:.3f} | " if "flow" in names else ""
+            lines.append(f"| {name} | " + " | ".join(f"{mse[s]:.3g}" for s in names)
+                         + f" | {mse['tables'] / mse['ggx']:.3f} | {flow_ratio}"
                          f"{mse['tables'] / mse['ideal']:.2f} | {spp} | {res['ref_noise']:.2g} |")
         ok_ggx = sum(1 for res in results.values()
                      if (a := _get(res["rows"], "tables", mode)) and (b := _get(res["rows"], "ggx", mode))

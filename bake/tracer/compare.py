@@ -41,15 +41,16 @@ def metrics(img, ref):
 
 
 def compare(scene, names, spp, reference_spp, out_dir, reference_sampler="ideal", mis=True,
-            equal_time=True, seed=1, tables_dir="out", log=print, reference=None, workers=1):
-    """Returns (rows, reference image). reference: a precomputed (image, variance) to reuse."""
+            equal_time=True, seed=1, tables_dir="out", log=print, reference=None, workers=1, dirs=None):
+    """Returns (rows, reference image). reference: a precomputed (image, variance) to reuse;
+    dirs: {sampler name: output folder} where a sampler's files are not under tables_dir."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     built = {}      # samplers by name, built (and tabulated) once
 
     def samplers_for(name):
         if name not in built:
-            built[name] = scene_samplers(scene, name, tables_dir, log=log)
+            built[name] = scene_samplers(scene, name, (dirs or {}).get(name, tables_dir), log=log)
             _prepare(built[name])
         return built[name]
 
