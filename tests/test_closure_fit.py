@@ -84,10 +84,10 @@ def test_derived_files_are_cached_rebuilt_and_atomic(tmp_path, lambert, glossy):
     lambert.save(path)
     tex, fit = bake_derived(path)
     img, meta = read_export(tex)
-    assert meta["layout"] == LAYOUT and img.dtype == np.float32
+    assert meta["layout"] == LAYOUT and img.dtype == np.float32 and img.shape[2] == 4
     K, R, C = len(lambert.theta_bins), lambert.rows, lambert.cols
-    assert tuple(img[0, 0]) == (LAYOUT, K, R) and tuple(img[0, 1]) == (C, img.shape[1], img.shape[0])
-    np.testing.assert_array_equal(img[2:2 + R, :C], lambert.weights[0])
+    assert tuple(img[0, 0, :3]) == (LAYOUT, K, R) and tuple(img[0, 1, :3]) == (C, img.shape[1], img.shape[0])
+    np.testing.assert_array_equal(img[2:2 + R, :C, :3], lambert.weights[0])
     stamp = (tex.stat().st_mtime_ns, fit.stat().st_mtime_ns)
     assert bake_derived(path) == (tex, fit)
     assert (tex.stat().st_mtime_ns, fit.stat().st_mtime_ns) == stamp, "current files were rebuilt"
