@@ -130,10 +130,10 @@ def fit_knot(tables, theta, n=2048, seed=0, alphas=ALPHAS):
     _, kd, ks, alpha, rel, fit_albedo = best
     wo_g = ggx_sample_reflection(wi, alpha, alpha, _stratified(n, rng))
     wo = np.concatenate([fixed, wo_g[wo_g[:, 2] > 0]])
-    f_fit = kd[None, :] * (wo[:, 2:3] / np.pi) + ks[None, :] * ggx_fcos(wi, wo, alpha)[:, None]
-    f_baked = tables.eval(wi, wo) * wo[:, 2:3]
+    fcos_fit = kd[None, :] * (wo[:, 2:3] / np.pi) + ks[None, :] * ggx_fcos(wi, wo, alpha)[:, None]
+    fcos_baked = tables.eval(wi, wo) * wo[:, 2:3]
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(f_fit > 0, f_baked / f_fit, np.inf)
+        ratio = np.where(fcos_fit > 0, fcos_baked / fcos_fit, np.inf)
     share = np.clip(CV_MARGIN * ratio.min(axis=0), 0.0, 1.0) * (rel <= CV_MAX_ERROR)
     return kd, ks, float(alpha), float(rel), fit_albedo, albedo, share
 
