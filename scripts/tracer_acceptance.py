@@ -50,6 +50,7 @@ def main():
     ap.add_argument("--workers", type=int, default=1, help="processes per render (forked)")
     ap.add_argument("--flow-dir", help="also the flow sampler: its models as <dir>/models/<name>.flow.npz")
     ap.add_argument("--seed", type=int, default=1, help="seed of the samplers' renders")
+    ap.add_argument("--scene", default="shaderball-env", help="built-in scene (shaderball-env | shaderball-ambient)")
     ap.add_argument("--reference-from", help="reuse the references of an earlier run: its Markdown path "
                     "(reads <run>/<material>/reference.exr and the reference noise from <run>.csv)")
     args = ap.parse_args()
@@ -82,7 +83,7 @@ def main():
         pending.remove(e)
         log(f"[acceptance] {e.name}: {args.size}x{args.size}, reference ideal {args.ref_spp} spp, "
             f"samplers {args.spp} spp (load {os.getloadavg()[0]:.1f})")
-        scene = builtin_scene("shaderball-env", material=e.name, manifest=manifest, width=args.size,
+        scene = builtin_scene(args.scene, material=e.name, manifest=manifest, width=args.size,
                               height=args.size)
         t0 = time.time()
         reference = None
@@ -128,7 +129,9 @@ def _get(rows, sampler, mode):
 
 def write(results, args, out_md, elapsed):
     lines = [f"# Tracer acceptance (issue 5)", "",
-             f"Scene: builtin:shaderball-env (analytic shader ball, procedural soft sky), {args.size}x{args.size} "
+             f"Scene: builtin:{args.scene} (analytic shader ball, "
+             f"{'procedural soft sky' if args.scene == 'shaderball-env' else 'constant white environment'}), "
+             f"{args.size}x{args.size} "
              f"pixels, {'BSDF sampling only' if args.bsdf_only else 'MIS'}, max depth 12. Reference: ideal "
              f"sampler (1 deg bins, 256x512), MIS, {args.ref_spp} spp, "
              f"own seed. Samplers at {args.spp} spp (equal spp) and for the time the tables took at "

@@ -514,6 +514,17 @@ def test_environment_from_an_exr_file_and_png_output(tmp_path):
     np.testing.assert_array_equal(back[:16], tonemap(img))
 
 
+def test_ambient_shaderball_is_a_furnace():
+    """builtin:shaderball-ambient is the ball under a constant white sky: a white Lambertian
+    renders 1 everywhere, in the ball's crevices too (interreflections close the furnace)."""
+    from bake.materials.analytic import from_spec
+    scene = builtin_scene("shaderball-ambient", material=from_spec({"model": "lambert", "albedo": 1.0}),
+                          width=16, height=16)
+    img, var, _ = render(scene, [CosineSampler()], spp=16, mis=True, seed=3)
+    assert abs(img.mean() - 1.0) < 0.01, img.mean()
+    assert np.mean(np.abs(img - 1.0) < 4 * np.sqrt(var) + 1e-6) > 0.99
+
+
 def test_missing_tables_and_models_say_so(tmp_path):
     scene = builtin_scene("shaderball-env", material="red_plastic", manifest=ROOT / "manifest.toml")
     with pytest.raises(FlowBSDFError, match="no baked tables"):

@@ -70,8 +70,10 @@ environment. Shading normals: sphere and plane exact, meshes interpolate vertex 
 surface contribute nothing.
 
 Built-in scenes (`builtin:NAME`, no files needed): `shaderball-env` (a shader-ball-like
-procedural mesh under a soft procedural sky) and `shaderball-point` (the same ball on a
-grey floor lit by one point light, black environment). `builtin_scene(name, material=...)`
+procedural mesh under a soft procedural sky), `shaderball-ambient` (the same ball under a
+constant white environment, the softest light: what noise remains comes from BSDF sampling
+and the ball's own occlusion) and `shaderball-point` (the same ball on a grey floor lit by
+one point light, black environment). `builtin_scene(name, material=...)`
 puts a manifest material (or a Material object) on the ball.
 """
 import json
@@ -87,7 +89,7 @@ from .lights import Environment, PointLight, QuadLight, read_image, sky_image
 
 SAMPLER_NAMES = ("tables", "flow", "ideal", "ggx", "cosine")
 INLINE_SAMPLERS = ("cosine", "ggx", "ideal", "render")
-BUILTINS = ("shaderball-env", "shaderball-point")
+BUILTINS = ("shaderball-env", "shaderball-ambient", "shaderball-point")
 
 
 # --------------------------------------------------------------------------- data
@@ -775,6 +777,9 @@ def builtin_scene(name, material=None, manifest=None, width=128, height=128):
     ball = _builtin_material(material, manifest)
     if name == "shaderball-env":
         lights = [Environment(sky_image())]
+        mats = [ball]
+    elif name == "shaderball-ambient":
+        lights = [Environment(np.ones((8, 16, 3)))]
         mats = [ball]
     else:
         lights = [PointLight([2.0, -2.5, 4.0], [30.0, 30.0, 30.0])]
