@@ -88,7 +88,7 @@ class BakedBSDF:
 
 
 def cycles_scene(kind, name, tables_path, env_path, size, spp, fit=None, seed=0,
-                 segments=256, rings=128, distance=DISTANCE, fov=FOV):
+                 segments=256, rings=128, distance=DISTANCE, fov=FOV, world_mis=False):
     """The Blender scene (current scene reset) with the sphere's material for `kind`:
     osl | fit (the Learned BSDF node's back ends) | osl0 (OSL, control-variate share 0) |
     principled. Returns (scene, material)."""
@@ -98,7 +98,9 @@ def cycles_scene(kind, name, tables_path, env_path, size, spp, fit=None, seed=0,
     sc.cycles.pixel_filter_type = 'BOX'
     sc.cycles.filter_width = 1.0
     cs.persp_camera(sc, distance=distance, fov_deg=fov)
-    cs.set_world(sc, image=env_path)
+    world = cs.set_world(sc, image=env_path)
+    if world_mis:           # Blender's default: the world importance-sampled (Cycles' closures only)
+        world.cycles.sampling_method = 'AUTOMATIC'
     if kind == "principled":
         params = principled_params(fit)
 
@@ -193,12 +195,17 @@ def run_material(name, env_kind, env_path, args, manifest_path):
     fit = load_fit(ensure_fit(tables_path))
     for kind, spp in CASES(args.spp):
         img, secs = render_case(kind, name, tables_path, env_path, args.size, spp, fit=fit,
-                                seeds=OSL_SEEDS if kind.startswith("osl") else 1)
-        np.save(folder / f"{kind}_{spp}.npy", img)
+                                seeds=OSL_SEEDS if kind.startswith("osl") else 1, world_mis=args.world_mis)
+        np.save(folder / f"{kind}_{spp}{_tag(args)}.npy", img)
         times[f"{kind}_{spp}"] = secs
         print(f"[{env_kind} {name}] {kind} {spp} spp: {secs:.1f} s", flush=True)
-    (folder / "times.json").write_text(json.dumps(times))
+    (folder / f"times{_tag(args)}.json").write_text(json.dumps(times))
     return analyse(name, env_kind, args)
+
+
+def _tag(args):
+    """File-name tag of the Cycles renders: with the world importance-sampled, their own files."""
+    return "_worldmis" if getattr(args, "world_mis", False) else ""
 
 
 def times_from_log(log):
@@ -212,14 +219,14 @@ def times_from_log(log):
 def analyse(name, env_kind, args, times=None):
     folder = ROOT / "out" / "cycles_acceptance" / f"{env_kind}_{name}"
     if times is None:
-        times = json.loads((folder / "times.json").read_text())
+        times = json.loads((folder / f"times{_tag(args)}.json").read_text())
     ref, ref_var, var1 = np.load(folder / "tracer_baked.npy")
     true, true_var, true_var1 = np.load(folder / "tracer_true.npy")
     spp_of = lambda v, v1: int(round(float(np.median(v1[v > 0] / v[v > 0]))))  # noqa: E731
     _, cos, inner = cs.sphere_view_persp(args.size, args.size, DISTANCE, FOV)
     out = {}
     for kind, spp in CASES(args.spp):
-        img = np.load(folder / f"{kind}_{spp}.npy")
+        img = np.load(folder / f"{kind}_{spp}{_tag(args)}.npy")
         imgs = img if img.ndim == 4 else img[None]          # OSL: one render per seed
         d = (imgs - ref)[:, inner]
         out[(kind, spp)] = (float(np.mean(d ** 2)), times[f"{kind}_{spp}"], imgs,
@@ -272,6 +279,8 @@ def main(argv=None):
     ap.add_argument("--env", choices=("soft", "sunny", "both"), default="soft")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--reuse-refs", action="store_true", help="keep the tracer references already saved")
+    ap.add_argument("--world-mis", action="store_true", help="Cycles importance-samples the world (Blender's "
+                    "default; the references stay BSDF-only: the same converged image)")
     ap.add_argument("--from-saved", action="store_true",
                     help="no rendering: analyse the saved renders in out/cycles_acceptance/")
     ap.add_argument("--times-log", help="with --from-saved: take render times from this run log")
@@ -300,7 +309,8 @@ def main(argv=None):
 def write(rows, args):
     lines = ["# Cycles acceptance (issue 6): sphere under an environment map vs the reference tracer",
              "",
-             f"{args.size}x{args.size} px, perspective camera, box filter; Cycles (bpy 5.0.1, CPU, 2 threads) "
+             f"{args.size}x{args.size} px, perspective camera, box filter; Cycles (bpy 5.0.1, CPU, 2 threads"
+             f"{', world importance-sampled' if args.world_mis else ', world not light-sampled'}) "
              f"at {args.spp} spp; reference: bake/tracer, BSDF-only, tables sampling (ref spp: baked / true "
              "reference, per row), "
              "scene exported by blender_addon/validate.export_scene. Pixels: the sphere's interior (no "
