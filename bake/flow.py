@@ -79,6 +79,13 @@ VERSION = 2                      # 2 added `defensive`; version-1 files load wit
 READS_VERSIONS = (1, 2)
 MAX_DEFENSIVE = 0.5
 UNIFORM_PDF = 0.5 / math.pi      # uniform over the hemisphere, per steradian
+LOG_2PI = math.log(2.0 * math.pi)
+LOG2 = math.log(2.0)
+SQRT1_2 = math.sqrt(0.5)
+# u is clipped into [U_MIN, 1 - 2^-53] so that u = 0 (probability 2^-53) maps to a finite point.
+U_MIN = 1e-17
+# Disk base mixtures: component k's log scale relative to the broadest, lam_k, lies in (-LAM_MIN_ABS, 0].
+LAM_MIN_ABS = 8.0
 
 
 def with_uniform_share(pdf, eps):
@@ -90,13 +97,6 @@ def _check_defensive(eps, path=None):
     if not 0.0 <= float(eps) <= MAX_DEFENSIVE:
         raise FlowBSDFError(f"defensive weight {eps} must be in [0, {MAX_DEFENSIVE}]", path)
     return float(eps)
-LOG_2PI = math.log(2.0 * math.pi)
-LOG2 = math.log(2.0)
-SQRT1_2 = math.sqrt(0.5)
-# u is clipped into [U_MIN, 1 - 2^-53] so that u = 0 (probability 2^-53) maps to a finite point.
-U_MIN = 1e-17
-# Disk base mixtures: component k's log scale relative to the broadest, lam_k, lies in (-LAM_MIN_ABS, 0].
-LAM_MIN_ABS = 8.0
 
 
 def planar(domain):

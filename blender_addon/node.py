@@ -34,7 +34,7 @@ with the add-on in a Blender that compiles OSL rebuilds the group with both back
 legacy `tree.outputs` (3.x).
 
 API (used by the add-on's UI and operators): register, unregister, assign_learned_bsdf,
-set_backend, backend_of, node_status, sync.
+set_backend, backend_of, node_status, sync, set_control_variate.
 """
 import json
 import os
@@ -361,7 +361,7 @@ def _build_tree(tree, name, tables_path, fit_path):
         for socket, name in zip(fit_params, ("FitDiffuse", "FitSpecular", "FitRoughness", "ControlVariate")):
             links.new(socket, script.inputs[name])
     else:
-        script.inputs["ControlVariate"].default_value = (0.0, 0.0, 0.0, 1.0)
+        _set_share(script, 0.0)
     switch = nodes.new("ShaderNodeValue")
     switch.name = switch.label = SWITCH
     switch.outputs[0].default_value = 0.0
@@ -374,6 +374,20 @@ def _build_tree(tree, name, tables_path, fit_path):
     links.new(mix.outputs[0], out.inputs[0])
     script["flowbsdf_src"] = __import__("hashlib").sha256(script.script.as_string().encode()).hexdigest()
     tree[TREE_KEY] = info
+
+
+def _set_share(script, share):
+    sock = script.inputs["ControlVariate"]
+    for link in list(sock.links):
+        script.id_data.links.remove(link)
+    sock.default_value = (share, share, share, 1.0)
+
+
+def set_control_variate(group_node, share):
+    """Override the OSL shader's control-variate share (the group feeds the fit's `cv_share`):
+    0 samples everything from the tables, 1 subtracts the whole fit; any value is unbiased.
+    A rebuild of the group (assign_learned_bsdf, upgrade) restores the fit's share."""
+    _set_share(group_node.node_tree.nodes[SCRIPT], float(share))
 
 
 def upgrade(tree):

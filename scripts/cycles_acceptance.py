@@ -116,10 +116,7 @@ def cycles_scene(kind, name, tables_path, env_path, size, spp, fit=None, seed=0,
         node = lb.assign_learned_bsdf(mat, name, tables_path)
         lb.set_backend(sc, "osl" if kind == "osl0" else kind)
         if kind == "osl0":
-            share = node.node_tree.nodes[lb.SCRIPT].inputs["ControlVariate"]
-            for link in list(share.links):
-                node.node_tree.links.remove(link)
-            share.default_value = (0.0, 0.0, 0.0, 1.0)
+            lb.set_control_variate(node, 0.0)
     cs.add_sphere(sc, mat, segments=segments, rings=rings)
     return sc, mat
 
@@ -127,12 +124,9 @@ def cycles_scene(kind, name, tables_path, env_path, size, spp, fit=None, seed=0,
 def render_case(*args, seeds=1, **kw):
     """(image, or (seeds, H, W, 3) images for Cycles seeds 0..seeds-1; seconds per render)."""
     sc, _ = cycles_scene(*args, **kw)
-    imgs, t0 = [], time.perf_counter()
-    for seed in range(seeds):
-        sc.cycles.seed = seed
-        imgs.append(cs.render(sc))
-    secs = (time.perf_counter() - t0) / seeds
-    return (imgs[0] if seeds == 1 else np.array(imgs)), secs
+    t0 = time.perf_counter()
+    imgs = cs.render_seeds(sc, seeds)
+    return (imgs[0] if seeds == 1 else imgs), (time.perf_counter() - t0) / seeds
 
 
 def export_for_tracer(name, tables_path, env_path, size, folder, manifest_path, **kw):

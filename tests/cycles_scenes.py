@@ -162,6 +162,15 @@ def render(scene):
         Path(path).unlink(missing_ok=True)
 
 
+def render_seeds(scene, seeds):
+    """Renders with Cycles seeds 0..seeds-1: (seeds, H, W, 3)."""
+    imgs = []
+    for seed in range(seeds):
+        scene.cycles.seed = seed
+        imgs.append(render(scene))
+    return np.array(imgs)
+
+
 def sphere_view(width, height, scale=2.0, radius=1.0):
     """Per pixel of ortho_camera's image: the sphere's normal (H, W, 3) (camera along -z, image
     x = world x, image rows top to bottom = world y descending) and the hit mask."""

@@ -154,15 +154,6 @@ def test_osl_furnace_anisotropic(aniso_tables):
     _assert_furnace(img[inner], ref, var, spp)
 
 
-def set_control_variate(node, share):
-    """Override the OSL shader's control-variate share (the node feeds the fit's cv_share)."""
-    script = node.node_tree.nodes[lb.SCRIPT]
-    sock = script.inputs["ControlVariate"]
-    for link in list(sock.links):
-        node.node_tree.links.remove(link)
-    sock.default_value = (share, share, share, 1.0)
-
-
 def _furnace(path, spp, backend, n=40, control_variate=None):
     sc = cs.reset(n, n, spp=spp)
     sc.cycles.filter_width = 0.01
@@ -171,7 +162,7 @@ def _furnace(path, spp, backend, n=40, control_variate=None):
     mat = bpy.data.materials.new("furnace")
     node = lb.assign_learned_bsdf(mat, path.stem, path)
     if control_variate is not None:
-        set_control_variate(node, control_variate)
+        lb.set_control_variate(node, control_variate)
     lb.set_backend(sc, backend)
     cs.add_sphere(sc, mat)
     img = cs.render(sc)
@@ -360,11 +351,7 @@ def _osl_vs_tracer_scene(baked, name, n, spp, tmp_path, seed=0):
 
 def _seeded_renders(sc, seeds):
     """Renders of a scene with Cycles seeds 0..seeds-1: (mean, variance of the mean) per pixel."""
-    imgs = []
-    for seed in range(seeds):
-        sc.cycles.seed = seed
-        imgs.append(cs.render(sc))
-    imgs = np.array(imgs)
+    imgs = cs.render_seeds(sc, seeds)
     return imgs.mean(0), imgs.var(0, ddof=1) / seeds
 
 
@@ -380,7 +367,7 @@ def _check_osl_matches_tracer(tables_path, name, tmp_path, share=None, n=24, spp
     from bake.tracer.scene import scene_from_dict
     sc, node, path = _osl_vs_tracer_scene({name: tables_path}, name, n, spp, tmp_path)
     if share is not None:
-        set_control_variate(node, share)
+        lb.set_control_variate(node, share)
     osl, var_osl = _seeded_renders(sc, seeds)
 
     data = tomllib.loads(Path(path).read_text())
@@ -468,7 +455,7 @@ def test_control_variate_cuts_noise_on_a_well_fitted_material(baked, tmp_path):
     fit = load_fit(baked[name].with_name(f"{name}.fit.json"))
     assert min(min(s) for s in fit["cv_share"][:-3]) > 0.7, fit["cv_share"]
     with_cv, var_with = _seeded_renders(sc, seeds)
-    set_control_variate(node, 0.0)
+    lb.set_control_variate(node, 0.0)
     alone, var_alone = _seeded_renders(sc, seeds)
     _, _, inner = cs.sphere_view_persp(n, n, 6.0, 22.0)
     ratio = var_with[inner].mean() / var_alone[inner].mean()
