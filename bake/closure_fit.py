@@ -18,17 +18,6 @@ cosine and the GGX lobe's samplers, fixed seed). Recorded per knot: the relative
 error of f cos (`rel_error`) and the albedo the closures really reach (`fit_albedo`,
 equal to `albedo` unless ks or kd hit a bound).
 
-Per knot the fit also records `cv_share` (RGB): the largest multiple of the fit, up to 1,
-that stays below the baked BSDF (x 0.95, the minimum of f_baked / f_fit over the samples
-above and the fit lobe's own), and 0 where the fit's rel_error exceeds 0.1. The OSL back
-end renders that share of the fit with Cycles' closures as a control variate and samples
-only the rest from the tables: a residual that stays positive keeps its estimator free of
-sign flips (blender_addon/osl/learned_bsdf.osl), and a poor fit would spread the residual's
-weights more than Cycles' stratified sampling of the share saves (measured in Cycles, soft
-environment, 256 spp, MSE with / without: paper_white 4.4e-4 / 9.8e-4 with shares
-0.67-0.8 below 65 deg; chm_mint 2.0e-4 / 1.65e-4 with shares 0.1-0.35 at rel_error 0.34-0.69;
-cm_military_green 5.5e-6 / 5.4e-6).
-
 `principled_params(fit)` maps a fit to one view-independent Principled BSDF (the
 baseline the acceptance script compares against).
 """
@@ -44,8 +33,6 @@ from .materials.analytic import ggx_ndf, ggx_lambda, ggx_reflection_pdf, ggx_sam
 from .tables import open_tables
 
 FIT_VERSION = 2
-CV_MARGIN = 0.95
-CV_MAX_ERROR = 0.1     # no control variate where the fit's rel_error is larger
 KNOTS_DEG = (0.0, 15.0, 30.0, 40.0, 50.0, 58.0, 65.0, 70.0, 74.0, 78.0, 81.0, 84.0, 86.0, 88.0, 89.5)
 ALPHAS = np.geomspace(0.002, 1.0, 24)
 
@@ -96,7 +83,7 @@ def ggx_albedo(wi, alpha, n=1024, seed=0):
 
 
 def fit_knot(tables, theta, n=2048, seed=0, alphas=ALPHAS):
-    """The best (kd, ks, alpha, rel_error, fit albedo, baked albedo, cv share) at one view angle."""
+    """The best (kd, ks, alpha, rel_error, fit albedo, baked albedo) at one view angle."""
     rng = np.random.default_rng(seed)
     wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
     albedo = baked_albedo(tables, np.cos(theta))
@@ -128,14 +115,7 @@ def fit_knot(tables, theta, n=2048, seed=0, alphas=ALPHAS):
         if best is None or err < best[0]:
             best = (err, kd, ks, alpha, np.sqrt(err / max(norm, 1e-300)), kd + ks * a_ggx)
     _, kd, ks, alpha, rel, fit_albedo = best
-    wo_g = ggx_sample_reflection(wi, alpha, alpha, _stratified(n, rng))
-    wo = np.concatenate([fixed, wo_g[wo_g[:, 2] > 0]])
-    fcos_fit = kd[None, :] * (wo[:, 2:3] / np.pi) + ks[None, :] * ggx_fcos(wi, wo, alpha)[:, None]
-    fcos_baked = tables.eval(wi, wo) * wo[:, 2:3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(fcos_fit > 0, fcos_baked / fcos_fit, np.inf)
-    share = np.clip(CV_MARGIN * ratio.min(axis=0), 0.0, 1.0) * (rel <= CV_MAX_ERROR)
-    return kd, ks, float(alpha), float(rel), fit_albedo, albedo, share
+    return kd, ks, float(alpha), float(rel), fit_albedo, albedo
 
 
 def fit_closures(tables, knots_deg=KNOTS_DEG, n=2048, seed=0):
@@ -143,11 +123,11 @@ def fit_closures(tables, knots_deg=KNOTS_DEG, n=2048, seed=0):
     r = sqrt(alpha), the relative L2 error of f cos and the albedos."""
     out = {"format": "flowbsdf-closure-fit", "version": FIT_VERSION, "model": "diffuse+ggx",
            "x": [], "theta_deg": [], "diffuse": [], "specular": [], "roughness": [], "alpha": [],
-           "rel_error": [], "albedo": [], "fit_albedo": [], "cv_share": []}
+           "rel_error": [], "albedo": [], "fit_albedo": []}
     # Knots ascending in x = 1 - cos theta (Facing), i.e. ascending theta.
     for deg in sorted(knots_deg):
         theta = np.radians(deg)
-        kd, ks, alpha, rel, fit_albedo, albedo, share = fit_knot(tables, theta, n=n, seed=seed)
+        kd, ks, alpha, rel, fit_albedo, albedo = fit_knot(tables, theta, n=n, seed=seed)
         out["x"].append(float(1.0 - np.cos(theta)))
         out["theta_deg"].append(float(deg))
         out["diffuse"].append([float(v) for v in kd])
@@ -157,10 +137,9 @@ def fit_closures(tables, knots_deg=KNOTS_DEG, n=2048, seed=0):
         out["rel_error"].append(rel)
         out["albedo"].append([float(v) for v in albedo])
         out["fit_albedo"].append([float(v) for v in fit_albedo])
-        out["cv_share"].append([float(v) for v in share])
     # The node clamps Facing to the knots' range: extend to x = 1 (grazing) with the last knot.
     if out["x"][-1] < 1.0:
-        for key in ("diffuse", "specular", "roughness", "alpha", "rel_error", "albedo", "fit_albedo", "cv_share"):
+        for key in ("diffuse", "specular", "roughness", "alpha", "rel_error", "albedo", "fit_albedo"):
             out[key].append(out[key][-1])
         out["x"].append(1.0)
         out["theta_deg"].append(90.0)

@@ -8,9 +8,9 @@ add-on installed, and materials append and link like any other. Its node tree,
   a text block and as compiled bytecode) that samples the baked tables exactly and
   continues the path with ray_portal_bsdf (Cycles CPU with Open Shading Language on).
   Its input "Fallback" is the fit: when the OSL texture is missing or unreadable at
-  render time, the shader returns the fit instead of black. The fit's parameters also
-  feed the shader, which renders their share `cv_share` with Cycles' closures as a
-  control variate and samples only the rest from the tables.
+  render time, the shader returns the fit instead of black. The scene's pixel filter and
+  seed feed the shader (`film_settings`, set with the back end): on camera rays it
+  stratifies its samples by their position in the pixel.
 - fit: Cycles closures (Diffuse BSDF + GGX Glossy BSDF) whose colours and roughness are
   piecewise-linear functions of the view angle (Layer Weight "Facing" = 1 - cos theta_i),
   fitted at bake time (bake/closure_fit.py). Its parameters live in the node tree, so it
@@ -34,7 +34,7 @@ with the add-on in a Blender that compiles OSL rebuilds the group with both back
 legacy `tree.outputs` (3.x).
 
 API (used by the add-on's UI and operators): register, unregister, assign_learned_bsdf,
-set_backend, backend_of, node_status, sync, set_control_variate.
+set_backend, backend_of, node_status, sync, film_settings.
 """
 import json
 import os
@@ -94,7 +94,7 @@ def load_fit(path):
         raise ValueError(f"closure fit unreadable ({e}): {path}") from None
     if not isinstance(fit, dict) or fit.get("format") != FIT_FORMAT or fit.get("version") != FIT_VERSION:
         raise ValueError(f"not a current FlowBSDF closure fit, re-bake: {path}")
-    for key in ("x", "diffuse", "specular", "roughness", "rel_error", "cv_share"):
+    for key in ("x", "diffuse", "specular", "roughness", "rel_error"):
         if key not in fit:
             raise ValueError(f"closure fit without {key!r}: {path}")
     return fit
@@ -281,15 +281,14 @@ def _piecewise(tree, x_socket, xs, values, loc):
 
 
 def _build_fit(tree, fit, loc=(-1400, -400)):
-    """The fit back end's closures; returns its shader output socket and the sockets of its
-    parameters and control-variate share (diffuse, specular, roughness, share), None without
-    a fit."""
+    """The fit back end's closures (a neutral grey diffuse without a fit); returns their
+    shader output socket."""
     nodes, links = tree.nodes, tree.links
     diffuse = nodes.new("ShaderNodeBsdfDiffuse")
     diffuse.location = (loc[0] + 3400, loc[1])
     if fit is None:
         diffuse.inputs["Color"].default_value = (*NEUTRAL, 1.0)
-        return diffuse.outputs[0], None
+        return diffuse.outputs[0]
     facing = nodes.new("ShaderNodeLayerWeight")
     facing.inputs["Blend"].default_value = 0.5          # Facing = 1 - |cos theta_i|
     facing.location = loc
@@ -313,8 +312,7 @@ def _build_fit(tree, fit, loc=(-1400, -400)):
     add.location = (loc[0] + 3600, loc[1] - 200)
     links.new(diffuse.outputs[0], add.inputs[0])
     links.new(glossy.outputs[0], add.inputs[1])
-    share = _piecewise(tree, x, xs, fit["cv_share"], (loc[0] + 200, loc[1] - 1500))
-    return add.outputs[0], (kd, ks, sep.outputs[0], share)
+    return add.outputs[0]
 
 
 def _build_tree(tree, name, tables_path, fit_path):
@@ -343,7 +341,7 @@ def _build_tree(tree, name, tables_path, fit_path):
     nodes, links = tree.nodes, tree.links
     out = nodes.new("NodeGroupOutput")
     out.location = (2600, 0)
-    fit_out, fit_params = _build_fit(tree, fit)
+    fit_out = _build_fit(tree, fit)
     info = {"material": name, "tables": str(tables_path), "fit": str(fit_path or ""),
             "osl_texture": osl_texture, "has_fit": fit is not None, "has_osl": with_osl,
             "fit_error": float(max(fit["rel_error"])) if fit else -1.0,
@@ -357,11 +355,9 @@ def _build_tree(tree, name, tables_path, fit_path):
     script.location = (2200, 300)
     script.inputs["Tables"].default_value = osl_texture
     links.new(fit_out, script.inputs["Fallback"])
-    if fit_params is not None:      # the fit as the OSL shader's control variate
-        for socket, name in zip(fit_params, ("FitDiffuse", "FitSpecular", "FitRoughness", "ControlVariate")):
-            links.new(socket, script.inputs[name])
-    else:
-        _set_share(script, 0.0)
+    scene = getattr(bpy.context, "scene", None)
+    if scene is not None and scene.render.engine == 'CYCLES':
+        _set_inputs(script, film_settings(scene))
     switch = nodes.new("ShaderNodeValue")
     switch.name = switch.label = SWITCH
     switch.outputs[0].default_value = 0.0
@@ -374,20 +370,6 @@ def _build_tree(tree, name, tables_path, fit_path):
     links.new(mix.outputs[0], out.inputs[0])
     script["flowbsdf_src"] = __import__("hashlib").sha256(script.script.as_string().encode()).hexdigest()
     tree[TREE_KEY] = info
-
-
-def _set_share(script, share):
-    sock = script.inputs["ControlVariate"]
-    for link in list(sock.links):
-        script.id_data.links.remove(link)
-    sock.default_value = (share, share, share, 1.0)
-
-
-def set_control_variate(group_node, share):
-    """Override the OSL shader's control-variate share (the group feeds the fit's `cv_share`):
-    0 samples everything from the tables, 1 subtracts the whole fit; any value is unbiased.
-    A rebuild of the group (assign_learned_bsdf, upgrade) restores the fit's share."""
-    _set_share(group_node.node_tree.nodes[SCRIPT], float(share))
 
 
 def upgrade(tree):
@@ -518,17 +500,45 @@ def _refresh_export(tree):
         tree[TREE_KEY] = info
 
 
+FILM_FILTERS = {'BOX': 1, 'BLACKMAN_HARRIS': 2, 'GAUSSIAN': 3}
+
+
+def film_settings(scene):
+    """What the OSL shader needs to stratify camera-ray samples: {input name: value}
+    (the pixel filter as the shader's code, its width, the render's seed). Cycles' box filter
+    is one pixel wide whatever the width setting (which its UI hides for the box)."""
+    cy = scene.cycles
+    seed = cy.seed + (scene.frame_current if getattr(cy, "use_animated_seed", False) else 0)
+    width = 1.0 if cy.pixel_filter_type == 'BOX' else float(cy.filter_width)
+    return {"FilmFilter": FILM_FILTERS.get(cy.pixel_filter_type, 0), "FilmWidth": width,
+            "Seed": int(seed) & 0x7FFFFFFF}
+
+
+def _set_inputs(node, values):
+    for name, value in values.items():
+        sock = node.inputs.get(name)
+        if sock is not None and sock.default_value != value:
+            sock.default_value = value
+
+
 def sync(scene, refresh=False):
-    """Set every Learned BSDF group's switch for `scene`; with refresh, re-export stale textures."""
+    """Set every Learned BSDF group's switch and film settings for `scene`; with refresh,
+    re-export stale textures."""
+    film = film_settings(scene) if scene.render.engine == 'CYCLES' else None
     for tree in _trees():
-        if refresh and tree.library is None:
+        if tree.library is not None:
+            continue
+        if refresh:
             _refresh_export(tree)
         use_osl, _ = _resolve(scene, tree)
         switch = tree.nodes.get(SWITCH)
-        if switch is not None and tree.library is None:
+        if switch is not None:
             value = 1.0 if use_osl else 0.0
             if switch.outputs[0].default_value != value:
                 switch.outputs[0].default_value = value
+        script = tree.nodes.get(SCRIPT)
+        if script is not None and film is not None:
+            _set_inputs(script, film)
 
 
 def node_status(node, scene=None):

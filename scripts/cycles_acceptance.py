@@ -17,8 +17,8 @@ The tracer always evaluates its scene material's `eval`. Two references are rend
     is reported separately (relative mean, MSE), and the MSEs against it too.
 
 Per material, at equal spp: OSL back end (over OSL_SEEDS Cycles seeds: its noise is
-measured, not predicted, since the fit's control-variate share changes it; and once more
-with the share set to 0, the tables alone), closure fit (and the fit at 4x spp, to split
+measured, not predicted, since the film-stratified u of camera rays changes it; and once more
+with u hashed everywhere, the shader's fallback without film settings), closure fit (and the fit at 4x spp, to split
 its error into bias^2 + noise), Principled BSDF fit (closure_fit.principled_params); render
 times relative to Principled.
 
@@ -90,7 +90,7 @@ class BakedBSDF:
 def cycles_scene(kind, name, tables_path, env_path, size, spp, fit=None, seed=0,
                  segments=256, rings=128, distance=DISTANCE, fov=FOV, world_mis=False):
     """The Blender scene (current scene reset) with the sphere's material for `kind`:
-    osl | fit (the Learned BSDF node's back ends) | osl0 (OSL, control-variate share 0) |
+    osl | fit (the Learned BSDF node's back ends) | oslhash (OSL, u hashed on camera rays too) |
     principled. Returns (scene, material)."""
     import bpy
     from blender_addon import node as lb
@@ -114,9 +114,9 @@ def cycles_scene(kind, name, tables_path, env_path, size, spp, fit=None, seed=0,
         lb.register()
         mat = bpy.data.materials.new(name)
         node = lb.assign_learned_bsdf(mat, name, tables_path)
-        lb.set_backend(sc, "osl" if kind == "osl0" else kind)
-        if kind == "osl0":
-            lb.set_control_variate(node, 0.0)
+        lb.set_backend(sc, "osl" if kind == "oslhash" else kind)
+        if kind == "oslhash":
+            cs.hashed_u(node)
     cs.add_sphere(sc, mat, segments=segments, rings=rings)
     return sc, mat
 
@@ -166,7 +166,7 @@ def z_stats(img, ref, var_img, var_ref, mask):
     return float(np.sqrt(np.mean(z ** 2))), float(np.mean(np.abs(z) > 3)), mean_d, se
 
 
-CASES = lambda spp: (("osl", spp), ("osl0", spp), ("fit", spp), ("fit", 4 * spp), ("principled", spp))  # noqa: E731
+CASES = lambda spp: (("osl", spp), ("oslhash", spp), ("fit", spp), ("fit", 4 * spp), ("principled", spp))  # noqa: E731
 
 
 def run_material(name, env_kind, env_path, args, manifest_path):
@@ -205,7 +205,7 @@ def _tag(args):
 def times_from_log(log):
     """{(env, name): {kind_spp: seconds}} from a run's log (runs before times.json existed)."""
     out = {}
-    for m in re.finditer(r"^\[(\w+) (\w+)\] (osl0|osl|fit|principled) (\d+) spp: .*?([\d.]+) s$", Path(log).read_text(), re.M):
+    for m in re.finditer(r"^\[(\w+) (\w+)\] (oslhash|osl|fit|principled) (\d+) spp: .*?([\d.]+) s$", Path(log).read_text(), re.M):
         out.setdefault((m[1], m[2]), {})[f"{m[3]}_{m[4]}"] = float(m[5])
     return out
 
@@ -228,8 +228,8 @@ def analyse(name, env_kind, args, times=None):
         print(f"[{env_kind} {name}] {kind} {spp} spp: MSE {np.mean(d ** 2):.3e} (mean of {len(imgs)} "
               f"render(s)), mean rel {np.mean(d) / np.mean(ref[inner]):+.4f}", flush=True)
     imgs = out[("osl", args.spp)][2]
-    # The OSL noise, measured over the seeds (the fit's control-variate share makes it differ
-    # from the tables' own, which the tracer's per-sample variance would predict): the test
+    # The OSL noise, measured over the seeds (the film-stratified u makes it differ from the
+    # tables' own, which the tracer's per-sample variance would predict): the test
     # image is the seeds' mean, its per-pixel variance var / seeds (t-distributed z, K - 1 dof).
     var_osl = imgs.var(0, ddof=1) / len(imgs)
     rms_z, frac3, mean_d, se = z_stats(imgs.mean(0), ref, var_osl, ref_var, inner)
@@ -241,8 +241,8 @@ def analyse(name, env_kind, args, times=None):
     noise = max(4.0 / 3.0 * (mse_fit - mse_fit4), 0.0)
     row = {"env": env_kind, "name": name, "mean": float(m.mean()), "ref_mse": ref_mse,
            "ref_spp": spp_of(ref_var, var1), "true_spp": spp_of(true_var, true_var1),
-           "osl": out[("osl", args.spp)][0], "osl0": out[("osl0", args.spp)][0],
-           "osl0_expected": float(np.mean(var1[inner])) / args.spp + ref_mse,
+           "osl": out[("osl", args.spp)][0], "oslhash": out[("oslhash", args.spp)][0],
+           "oslhash_expected": float(np.mean(var1[inner])) / args.spp + ref_mse,
            "rms_z": rms_z, "frac3": frac3, "osl_rel": float(mean_d.mean() / m.mean()),
            "osl_rel_se": float(np.sqrt(np.mean(se ** 2)) / m.mean()),
            "osl_rel_z": float(np.max(np.abs(mean_d / se))),
@@ -314,26 +314,27 @@ def write(rows, args):
              f"OSL z: per-pixel (mean of the renders - ref) / sqrt(var_OSL + var_ref), var_OSL from the seeds' "
              f"spread ({OSL_SEEDS - 1} dof: rms z ~ {np.sqrt((OSL_SEEDS - 1) / (OSL_SEEDS - 3)):.2f} and a few "
              "% beyond 3 if within MC error). Sphere mean: relative difference +- its standard error.",
-             "- OSL share 0: the same shader with the fit's control-variate share set to 0 (the tables "
-             "alone); 'expected' is its MSE predicted from the tracer's per-sample variance.",
+             "- OSL hashed u: the same shader with u hashed on camera rays too (its fallback without the "
+             "scene's film settings: plain Monte Carlo); 'expected' is its MSE predicted from the tracer's "
+             "per-sample variance.",
              "- Fit MSE = bias^2 + noise (noise from the fit at 4x spp; bias^2 net of the reference's noise).",
              "- **true ref**: the same tracer render with the true material's eval; baked-vs-true is the "
              "tables' own error (sphere-mean relative difference; MSE net of both references' noise). "
              "MSE vs true ref: net of the true reference's noise^2.",
-             "- Noise: the OSL shader hashes its u (Cycles gives OSL no sampler state): plain Monte Carlo "
-             "for what it samples from the tables; Cycles' own closures (fit, Principled, and the share of the "
-             "fit the OSL shader renders as control variate) get its stratified QMC samples.",
+             "- Noise: Cycles gives OSL no sampler state; on camera rays the OSL shader takes u from the "
+             "sample's position in its pixel (Cycles' stratified film sample, rotated per pixel), deeper it "
+             "hashes u (plain Monte Carlo). Cycles' own closures (fit, Principled) get its QMC samples everywhere.",
              f"- Times: whole render call incl. scene sync (OSL: mean over its renders), 2 cores, load "
              f"{os.getloadavg()[0]:.1f} when written.", "",
              "| env | material | ref spp | mean radiance | ref noise^2 | OSL rms z (\\|z\\|>3) | OSL sphere-mean rel. diff | "
-             "OSL MSE | OSL share 0 MSE (expected) | fit MSE (bias^2 + noise) | Principled MSE | baked-vs-true mean rel. +- SE (MSE) | "
+             "OSL MSE | OSL hashed-u MSE (expected) | fit MSE (bias^2 + noise) | Principled MSE | baked-vs-true mean rel. +- SE (MSE) | "
              "MSE vs true ref: OSL / fit / Principled | time OSL/Pr | time fit/Pr |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         mse_bt = f"{r['baked_vs_true_mse']:.1e}" if r["baked_vs_true_mse"] > 0 else "below noise"
         lines.append(
             f"| {r['env']} | {r['name']} | {r['ref_spp']} / {r['true_spp']} | {r['mean']:.4f} | {r['ref_mse']:.1e} | {r['rms_z']:.3f} ({r['frac3']:.4f}) | "
-            f"{r['osl_rel']:+.5f} +- {r['osl_rel_se']:.5f} | {r['osl']:.2e} | {r['osl0']:.2e} ({r['osl0_expected']:.2e}) | "
+            f"{r['osl_rel']:+.5f} +- {r['osl_rel_se']:.5f} | {r['osl']:.2e} | {r['oslhash']:.2e} ({r['oslhash_expected']:.2e}) | "
             f"{r['fit']:.2e} ({r['fit_bias2']:.2e} + {r['fit_noise']:.2e}) | {r['principled']:.2e} | "
             f"{r['baked_vs_true_rel']:+.4f} +- {r['baked_vs_true_se']:.4f} ({mse_bt}) | "
             f"{r['osl_true']:.2e} / {r['fit_true']:.2e} / {r['principled_true']:.2e} | "

@@ -171,6 +171,15 @@ def render_seeds(scene, seeds):
     return np.array(imgs)
 
 
+def hashed_u(group_node):
+    """Make a Learned BSDF node's OSL shader hash u on camera rays too (what it does without the
+    scene's film settings), for comparisons. Unregisters the add-on's handlers, which would set
+    the film settings again before the render."""
+    from blender_addon import node as lb
+    lb.unregister()
+    group_node.node_tree.nodes[lb.SCRIPT].inputs["FilmFilter"].default_value = 0
+
+
 def sphere_view(width, height, scale=2.0, radius=1.0):
     """Per pixel of ortho_camera's image: the sphere's normal (H, W, 3) (camera along -z, image
     x = world x, image rows top to bottom = world y descending) and the hit mask."""
