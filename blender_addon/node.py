@@ -241,13 +241,19 @@ def _tree_for(name):
 
 
 def _ensure_interface(tree):
+    """The group's sockets: the BSDF output and the Tangent input (anisotropic tables' frame:
+    world x when unlinked, projected onto the tangent plane by the shader)."""
     if getattr(tree, "interface", None) is None:          # Blender < 4.0: the legacy API
         if "BSDF" not in tree.outputs:
             tree.outputs.new("NodeSocketShader", "BSDF")
+        if "Tangent" not in tree.inputs:
+            tree.inputs.new("NodeSocketVector", "Tangent").default_value = TANGENT
         return
     items = [i for i in tree.interface.items_tree if getattr(i, "item_type", "") == "SOCKET"]
     if not any(i.name == "BSDF" and i.in_out == "OUTPUT" for i in items):
         tree.interface.new_socket("BSDF", in_out="OUTPUT", socket_type="NodeSocketShader")
+    if not any(i.name == "Tangent" and i.in_out == "INPUT" for i in items):
+        tree.interface.new_socket("Tangent", in_out="INPUT", socket_type="NodeSocketVector").default_value = TANGENT
 
 
 def _piecewise(tree, x_socket, xs, values, loc):
@@ -355,6 +361,9 @@ def _build_tree(tree, name, tables_path, fit_path):
     script.location = (2200, 300)
     script.inputs["Tables"].default_value = osl_texture
     links.new(fit_out, script.inputs["Fallback"])
+    group_in = nodes.new("NodeGroupInput")
+    group_in.location = (1900, 600)
+    links.new(group_in.outputs["Tangent"], script.inputs["Tangent"])
     scene = getattr(bpy.context, "scene", None)
     if scene is not None and scene.render.engine == 'CYCLES':
         _set_inputs(script, film_settings(scene))
@@ -500,6 +509,7 @@ def _refresh_export(tree):
         tree[TREE_KEY] = info
 
 
+TANGENT = (1.0, 0.0, 0.0)       # the group's Tangent input when unlinked: world x (the tracer's default)
 FILM_FILTERS = {'BOX': 1, 'BLACKMAN_HARRIS': 2, 'GAUSSIAN': 3}
 
 

@@ -134,16 +134,18 @@ def test_osl_sampler_is_tables_sample_anisotropic(aniso_tables):
         np.testing.assert_allclose(_probe(tex, n, theta, 2, phi)[:, 0], pdf, rtol=1e-3)
 
 
-def test_osl_furnace_anisotropic(aniso_tables):
+@pytest.mark.parametrize("tangent", [None, (0.6, 0.8, 0.0)])
+def test_osl_furnace_anisotropic(aniso_tables, tangent):
     """Anisotropic tables in the furnace: each pixel is the baked albedo at its wi in the
-    tangent frame (x = world x projected onto the tangent plane, the shader's default), within
-    Monte Carlo error: the frame, phi_i and the four-bin blend are the numpy reference's."""
+    tangent frame (x = the node's Tangent input, world x when unset, projected onto the
+    tangent plane), within Monte Carlo error: the frame, phi_i and the four-bin blend are the
+    numpy reference's."""
     from bake.tables import open_tables
     tab = open_tables(aniso_tables)
     spp = 256
-    img, normal, inner, node, sc = _furnace(aniso_tables, spp, "osl")
+    img, normal, inner, node, sc = _furnace(aniso_tables, spp, "osl", tangent=tangent)
     assert lb.node_status(node, sc) == "OSL"
-    tangent = np.array([1.0, 0.0, 0.0])
+    tangent = np.array(tangent or lb.TANGENT)
     stats = []
     for nrm in normal[inner]:
         tx = tangent - nrm @ tangent * nrm
@@ -154,13 +156,15 @@ def test_osl_furnace_anisotropic(aniso_tables):
     _assert_furnace(img[inner], ref, var, spp)
 
 
-def _furnace(path, spp, backend, n=40):
+def _furnace(path, spp, backend, n=40, tangent=None):
     sc = cs.reset(n, n, spp=spp)
     sc.cycles.filter_width = 0.01
     cs.ortho_camera(sc, scale=2.2)
     cs.set_world(sc, (1.0, 1.0, 1.0))
     mat = bpy.data.materials.new("furnace")
     node = lb.assign_learned_bsdf(mat, path.stem, path)
+    if tangent is not None:
+        node.inputs["Tangent"].default_value = tangent
     lb.set_backend(sc, backend)
     cs.add_sphere(sc, mat)
     img = cs.render(sc)
