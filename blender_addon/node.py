@@ -19,8 +19,10 @@ add-on installed, and materials append and link like any other. Its node tree,
 A Mix Shader whose factor is the Value node "FlowBSDF backend" (1 = OSL, 0 = fit) picks
 one; with a constant factor Cycles compiles only the chosen branch. The factor is set
 from the scene's back end ("osl", "fit" or "auto") by `set_backend`, before every render
-(render_pre handler) and after loading a file (load_post), and only to OSL when the OSL
-texture exists. Binding data sits in the tree's custom property "flowbsdf".
+(render_pre handler), on every scene change and frame change (depsgraph_update_post,
+frame_change_post: the viewport follows)
+and after loading a file (load_post), and only to OSL when the OSL texture exists; the
+OSL shader's film settings (`film_settings`) likewise. Binding data sits in the tree's custom property "flowbsdf".
 
 Blenders without numpy or OSL (Debian's 3.4 for the batch path): nothing here imports
 numpy at module load. The fit is read from its JSON file (<name>.fit.json, written by the
@@ -570,6 +572,11 @@ def _on_render_pre(scene, *_):
 
 
 @persistent
+def _on_scene_change(scene, *_):
+    sync(scene)         # the viewport follows back end, pixel filter and (animated) seed changes
+
+
+@persistent
 def _on_load_post(*_):
     for tree in list(_trees()):
         try:
@@ -580,6 +587,12 @@ def _on_load_post(*_):
         sync(scene, refresh=True)
 
 
+def _handlers():
+    h = bpy.app.handlers
+    return ((h.render_pre, _on_render_pre), (h.load_post, _on_load_post),
+            (h.depsgraph_update_post, _on_scene_change), (h.frame_change_post, _on_scene_change))
+
+
 def register():
     bpy.types.Scene.flowbsdf_backend = bpy.props.EnumProperty(
         name="FlowBSDF back end",
@@ -588,15 +601,13 @@ def register():
                ("osl", "OSL", "Sample the baked tables exactly (Cycles CPU, Open Shading Language)"),
                ("fit", "Closure fit", "Cycles closures fitted at bake time (GPU, viewport)")],
         default="auto", update=lambda self, _ctx: sync(self))
-    for handlers, fn in ((bpy.app.handlers.render_pre, _on_render_pre),
-                         (bpy.app.handlers.load_post, _on_load_post)):
+    for handlers, fn in _handlers():
         if fn not in handlers:
             handlers.append(fn)
 
 
 def unregister():
-    for handlers, fn in ((bpy.app.handlers.render_pre, _on_render_pre),
-                         (bpy.app.handlers.load_post, _on_load_post)):
+    for handlers, fn in _handlers():
         if fn in handlers:
             handlers.remove(fn)
     if hasattr(bpy.types.Scene, SCENE_PROP):

@@ -299,6 +299,25 @@ def test_assign_twice_reuses_the_group(baked):
     assert os.path.isfile(a.node_tree[lb.TREE_KEY]["osl_texture"])
 
 
+def test_film_settings_follow_the_scene(baked):
+    """The OSL shader gets the scene's pixel filter, width and seed when the node is made and
+    after every change (the viewport renders without render_pre); the box is always 1 px."""
+    sc = cs.reset(8, 8, spp=1, seed=5)
+    sc.cycles.pixel_filter_type = 'GAUSSIAN'
+    sc.cycles.filter_width = 2.0
+    mat = bpy.data.materials.new("m")
+    script = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"]).node_tree.nodes[lb.SCRIPT]
+    got = lambda: {k: script.inputs[k].default_value for k in ("FilmFilter", "FilmWidth", "Seed")}  # noqa: E731
+    assert got() == {"FilmFilter": 3, "FilmWidth": 2.0, "Seed": 5}
+    sc.cycles.pixel_filter_type = 'BOX'
+    sc.cycles.seed = 9
+    bpy.context.view_layer.update()
+    assert got() == {"FilmFilter": 1, "FilmWidth": 1.0, "Seed": 9}
+    sc.cycles.use_animated_seed = True
+    sc.frame_set(4)
+    assert got()["Seed"] == 13
+
+
 def _soft_env(path, w=64, h=32):
     """A soft sky (gradient, ground, broad warm glow): no small bright features."""
     import OpenEXR
