@@ -3,7 +3,8 @@
 Edges are quantiles of a stratified set of the source's directions, anchored to the
 specular direction and pooled over neighbouring incident bins; masses, exponential rates
 and RGB weights are integrated from the true f·cos per cell (refined until the cell's
-quadrature settles and agrees with the source points that fall in it).
+quadrature settles and agrees with the source points that fall in it). A cell's rates match
+its first moments, bounded by the log range of its own f·cos along each axis.
 """
 import numpy as np
 
@@ -118,13 +119,15 @@ def lobe_col_knots(a_mid, lobe_width):
 
 def _moments(material, wi, phi_ref, a0, a1, b0, b1, q, chunk=1 << 18):
     """Per cell [a0,a1]x[b0,b1], a q x q midpoint rule: target mass, its mean local x and y,
-    and the RGB integral of f·cos (da db = d omega)."""
+    the RGB integral of f·cos (da db = d omega), and the target's marginal densities along
+    a and b at the q nodes of each axis (shape (cells, q))."""
     s = (np.arange(q) + 0.5) / q
     X = np.repeat(s, q)
     Y = np.tile(s, q)
     n = len(a0)
     mass, mx, my = np.zeros(n), np.zeros(n), np.zeros(n)
     rgb = np.zeros((n, 3))
+    along_a, along_b = np.zeros((n, q)), np.zeros((n, q))
     step = max(1, chunk // (q * q))
     for c0 in range(0, n, step):
         sl = slice(c0, min(n, c0 + step))
@@ -133,17 +136,23 @@ def _moments(material, wi, phi_ref, a0, a1, b0, b1, q, chunk=1 << 18):
         wo = from_ab(A, B, phi_ref)
         value = (material.eval(wi, wo) * wo[:, 2:3]).reshape(-1, q * q, 3)
         area = ((a1 - a0) * (b1 - b0))[sl] / (q * q)
-        g = np.maximum(luminance(value), 0.0) * area[:, None]
+        lum = np.maximum(luminance(value), 0.0)
+        g = lum * area[:, None]
         mass[sl] = g.sum(axis=1)
         mx[sl], my[sl] = g @ X, g @ Y
         rgb[sl] = value.sum(axis=1) * area[:, None]
-    return mass, mx, my, rgb
+        grid = lum.reshape(-1, q, q)
+        along_a[sl] = grid.sum(axis=2) * ((b1 - b0)[sl] / q)[:, None]
+        along_b[sl] = grid.sum(axis=1) * ((a1 - a0)[sl] / q)[:, None]
+    return mass, mx, my, rgb, along_a, along_b
 
 
 def _moments_around(material, wi, phi_ref, a0, a1, b0, b1, box, q):
     """Like _moments, with each cell cut at the box (lo_a, hi_a, lo_b, hi_b) that holds its
     source points, widened a little: up to 3 x 3 pieces, each with its own q x q rule, so
-    that a sliver of mass at a hard edge inside a wide cell gets nodes of its own."""
+    that a sliver of mass at a hard edge inside a wide cell gets nodes of its own. The
+    marginal densities come at the 3 q nodes per axis, with their cell-local positions
+    (NaN for empty pieces)."""
     lo_a, hi_a, lo_b, hi_b = box
     cuts = []
     for lo, hi, e0, e1 in ((lo_a, hi_a, a0, a1), (lo_b, hi_b, b0, b1)):
@@ -152,6 +161,8 @@ def _moments_around(material, wi, phi_ref, a0, a1, b0, b1, box, q):
         cuts.append([e0, inner0, inner1, e1])
     n = len(a0)
     mass, mx, my, rgb = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, 3))
+    along_a, along_b, at_a, at_b = (np.full((n, 3, q), np.nan) for _ in range(4))
+    s = (np.arange(q) + 0.5) / q
     for i in range(3):
         for j in range(3):
             pa0, pa1 = cuts[0][i], cuts[0][i + 1]
@@ -159,7 +170,7 @@ def _moments_around(material, wi, phi_ref, a0, a1, b0, b1, box, q):
             ok = np.flatnonzero((pa1 > pa0) & (pb1 > pb0))
             if not len(ok):
                 continue
-            m, x, y, c = _moments(material, wi, phi_ref, pa0[ok], pa1[ok], pb0[ok], pb1[ok], q)
+            m, x, y, c, pa, pb = _moments(material, wi, phi_ref, pa0[ok], pa1[ok], pb0[ok], pb1[ok], q)
             # piece-local first moments -> cell-local ones
             sa, sb = (pa1 - pa0)[ok] / (a1 - a0)[ok], (pb1 - pb0)[ok] / (b1 - b0)[ok]
             oa, ob = (pa0 - a0)[ok] / (a1 - a0)[ok], (pb0 - b0)[ok] / (b1 - b0)[ok]
@@ -167,7 +178,22 @@ def _moments_around(material, wi, phi_ref, a0, a1, b0, b1, box, q):
             mx[ok] += m * oa + x * sa
             my[ok] += m * ob + y * sb
             rgb[ok] += c
-    return mass, mx, my, rgb
+            along_a[ok, i] = np.nan_to_num(along_a[ok, i]) + pa
+            along_b[ok, j] = np.nan_to_num(along_b[ok, j]) + pb
+            at_a[ok, i], at_b[ok, j] = oa[:, None] + s * sa[:, None], ob[:, None] + s * sb[:, None]
+    return (mass, mx, my, rgb) + tuple(x.reshape(n, -1) for x in (along_a, along_b, at_a, at_b))
+
+
+def _rate_bound(marginal, at):
+    """The largest exponential rate a cell's marginal density supports: the log of its
+    max / min over the nodes where it is positive, per unit of the distance (cell-local)
+    those nodes span; inf where fewer than two nodes are positive."""
+    pos = marginal > 0
+    hi = np.max(np.where(pos, marginal, 0.0), axis=1)
+    lo = np.min(np.where(pos, marginal, np.inf), axis=1)
+    span = np.max(np.where(pos, at, -np.inf), axis=1) - np.min(np.where(pos, at, np.inf), axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(span > 0, np.log(hi / lo) / span, np.inf)
 
 
 def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, box=None, rtol=0.02, q_max=64):
@@ -176,19 +202,28 @@ def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, box=No
     sampled mass of the source points in the cell): a lobe flank that the coarse nodes
     straddle is found by the points. Cells still short at q_max (a sliver of mass at a hard
     edge inside a wide cell) are integrated again around their points' `box` (per cell
-    lo_a, hi_a, lo_b, hi_b)."""
+    lo_a, hi_a, lo_b, hi_b). Returns mass, mean local x and y, RGB integral, and the rate
+    bounds along a and b (_rate_bound of the finest rule's marginals)."""
     rows, cols = b_edges.shape[0], b_edges.shape[1] - 1
     a_e, b_e = a_edges.astype(np.float64), b_edges.astype(np.float64)
     a0 = np.repeat(a_e[:-1], cols)
     a1 = np.repeat(a_e[1:], cols)
     b0, b1 = b_e[:, :-1].ravel(), b_e[:, 1:].ravel()
     point_mass = point_mass.ravel()
-    out = list(_moments(material, wi, phi_ref, a0, a1, b0, b1, q))
+
+    def rule(moments, at_a, at_b):
+        return moments[:4] + (_rate_bound(moments[4], at_a), _rate_bound(moments[5], at_b))
+
+    def uniform(moments, q):
+        nodes = (np.arange(q) + 0.5) / q
+        return rule(moments, nodes, nodes)
+
+    out = list(uniform(_moments(material, wi, phi_ref, a0, a1, b0, b1, q), q))
     tiny = 1e-7 * max(out[0].sum(), point_mass.sum())
     active = np.arange(len(a0))
     while q < q_max and len(active):
         q *= 2
-        new = _moments(material, wi, phi_ref, a0[active], a1[active], b0[active], b1[active], q)
+        new = uniform(_moments(material, wi, phi_ref, a0[active], a1[active], b0[active], b1[active], q), q)
         old_mass = out[0][active]
         for o, v in zip(out, new):
             o[active] = v
@@ -199,16 +234,18 @@ def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, box=No
         short = active[point_mass[active] > 1.5 * out[0][active] + tiny]
         short = short[np.isfinite(box[0][short])]
         if len(short):
-            new = _moments_around(material, wi, phi_ref, a0[short], a1[short], b0[short], b1[short],
-                                  [x[short] for x in box], q)
+            around = _moments_around(material, wi, phi_ref, a0[short], a1[short], b0[short], b1[short],
+                                     [x[short] for x in box], q)
+            new = rule(around[:6], *around[6:])
             for o, v in zip(out, new):
                 o[short] = v
-    mass, mx, my, rgb = out
+    mass, mx, my, rgb, bound_a, bound_b = out
     with np.errstate(divide="ignore", invalid="ignore"):
         mx = np.where(mass > 0, mx / mass, 0.5)
         my = np.where(mass > 0, my / mass, 0.5)
     shape = (rows, cols)
-    return mass.reshape(shape), mx.reshape(shape), my.reshape(shape), rgb.reshape(shape + (3,))
+    return tuple(x.reshape(shape) for x in (mass, mx, my)) + (rgb.reshape(shape + (3,)),) + \
+        tuple(x.reshape(shape) for x in (bound_a, bound_b))
 
 
 def _points(material, source, wi, grid, phi_ref, gamma):
@@ -240,9 +277,12 @@ def _finish_bin(material, wi, phi_ref, a_edges, b_edges, a, b, point_mass, quadr
         np.minimum.at(box[2 * k], cell[has], v[has])
         np.maximum.at(box[2 * k + 1], cell[has], v[has])
     point_mass = np.bincount(cell, weights=point_mass, minlength=rows * cols)
-    mass, mx, my, rgb = _cell_moments(material, wi, a_edges, b_edges, phi_ref, quadrature, point_mass, box)
-    # Exponential rates matching each cell's first moments along a and b.
-    alpha, beta = exp_rate_for_mean(mx), exp_rate_for_mean(my)
+    mass, mx, my, rgb, bound_a, bound_b = _cell_moments(material, wi, a_edges, b_edges, phi_ref, quadrature,
+                                                         point_mass, box)
+    # Exponential rates matching each cell's first moments along a and b, no steeper than
+    # the cell's own f·cos: a rate fitted to a flank must not keep decaying past a floor.
+    alpha = np.clip(exp_rate_for_mean(mx), -bound_a, bound_a)
+    beta = np.clip(exp_rate_for_mean(my), -bound_b, bound_b)
     # A floor of uniform density keeps pdf > 0 everywhere, so the table never loses a
     # direction where f·cos > 0 (unbiased whatever the quadrature missed).
     area = np.diff(a_edges.astype(np.float64))[:, None] * np.diff(b_edges.astype(np.float64), axis=1)

@@ -5,9 +5,10 @@ from bake.errors import FlowBSDFError
 from bake.geometry import incident
 from bake.ideal import IdealSampler
 from bake.materials import open_material
+from bake.materials.base import Material, as_dirs
 from bake.metrics import chi2_test, relative_variance
-from bake.tables import exp_cdf, exp_density, exp_inverse_cdf, open_tables
-from bake.tabulate import build_tables, exp_rate_for_mean, plan_tables
+from bake.tables import TWO_PI, Tables, exp_cdf, exp_density, exp_inverse_cdf, from_ab, open_tables, to_ab
+from bake.tabulate import _finish_bin, build_tables, exp_rate_for_mean, plan_tables
 
 HARD = {
     "mirror-ish": {"kind": "analytic", "model": "ggx", "alpha": 0.005},
@@ -43,6 +44,38 @@ def test_exponential_cell_density_is_consistent():
         grid = (np.arange(200000) + 0.5) / 200000
         d = exp_density(grid, np.full_like(grid, k))
         assert np.mean(d * grid) == pytest.approx(mean, abs=1e-4)
+
+
+class FlankThenFloor(Material):
+    """f·cos depending on the azimuth b alone (table coordinates at phi_i = 0): a flank
+    e^(-60 y) falling from b = 1 to b = 1.5 (y in [0, 1]) onto a floor of 1e-3, with a gap
+    of 0 for y in [0.2, 0.5]."""
+
+    def eval(self, wi, wo):
+        wi, wo = as_dirs(wi, wo)
+        _, b = to_ab(wo, np.pi)
+        g = (1e-3 + np.exp(-60.0 * np.abs(b - 1.0) / 0.5)) * ((b < 1.1) | (b > 1.25))
+        return np.repeat((g / np.maximum(wo[:, 2], 1e-12))[:, None], 3, axis=1) * (wo[:, 2:3] > 0)
+
+
+def test_cell_rate_stops_at_the_floor_of_f_cos():
+    """Matching the first moment alone gives the flank cell b in [1, 1.5] beta = -24.6:
+    its pdf at the floor end would be ~1e-8 of f·cos's share there (a heavy-tailed
+    estimator). The rate stays within the log range of the cell's own f·cos (over where it
+    is positive), and the in-cell pdf keeps at least 1/10 of f·cos's share of the cell
+    wherever f·cos > 0."""
+    mat, wi = FlankThenFloor(), incident(40.0)
+    a_edges, b_edges, none = np.array([0.0, 0.5, 1.0]), np.array([[0.0, 1.0, 1.5, TWO_PI]] * 2), np.empty(0)
+    prob, alpha, beta, w = _finish_bin(mat, wi, np.pi, a_edges, b_edges, none, none, none, 4, 1e-4)
+    assert np.all(np.abs(beta[:, 1]) <= np.log(1.001 / (1e-3 + np.exp(-60.0)))) and np.all(beta[:, 1] < -3)
+    tab = Tables([np.radians(40.0)], a_edges[None], b_edges[None], prob[None], alpha[None], beta[None], w[None])
+    y = (np.arange(4096) + 0.5) / 4096
+    wo = from_ab(np.full_like(y, 0.25), 1.0 + 0.5 * y, np.pi)
+    g, pdf = mat.target(wi, wo), tab.pdf(wi, wo)
+    assert np.min(pdf[g > 0] / pdf.mean() / (g[g > 0] / g.mean())) > 0.1
+    wo, pdf = tab.sample(wi, np.random.default_rng(4).random((20000, 2)))
+    np.testing.assert_allclose(tab.pdf(wi, wo), pdf, rtol=1e-9)
+    assert chi2_test(tab, wi, n=200_000).passed
 
 
 @pytest.mark.parametrize("name", sorted(HARD))
