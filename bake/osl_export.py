@@ -12,16 +12,23 @@ b = k P + p as in Tables. Layout (W = texture width, rows from the top of the im
 
     row 0                   header: (LAYOUT, K, R), (C, W, H), (P, phi period, 0)
     row 1                   cos(theta_bin k) at x = k (red); phi_bin p at x = p (green)
-    rows 2 + b R + i        bin b, table row i: cell j at x = j holds W_bij (RGB)
-    rows 2 + B R + b R + i  bin b, table row i: cell j holds (mass, alpha, beta)
-    corner block (k, p), k = 0 .. max(K - 1, 1) - 1, first row 2 + 2 B R + (k P + p)(2 + 2 R):
+    row 2                   theta guide: at x = g < W, (lo, hi) brackets k for cos theta_i in
+                            [g / W, (g + 1) / W)
+    rows 3 + b R + i        bin b, table row i: cell j at x = j holds W_bij (RGB)
+    rows 3 + B R + b R + i  bin b, table row i: cell j holds (mass, alpha, beta)
+    corner block (k, p), k = 0 .. max(K - 1, 1) - 1, first row 3 + 2 B R + (k P + p)(3 + 3 R):
         +0          row CDF, x = 0..R
         +1          a edges, x = 0..R
         +2 + i      column cumulative sums of row i, x = 0..C
         +2 + R + i  b edges of row i, x = 0..C
+        +2 + 2 R    row guide: at x = g < G_R = R, (lo, hi) brackets the row for u0 in [g, g + 1) / R
+        +3 + 2 R + i  column guide of row i: at x = g < G_C = C, (lo, hi) brackets the column for
+                    u1 in [g, g + 1) / C
       with the four bins a sample blends in its channels: red (k, p), green (k + 1, p), blue
       (k, p + 1), alpha (k + 1, p + 1) (p + 1 wrapping to 0; k + 1 clipped to K - 1), so one
-      fetch gives all four ends of the blend.
+      fetch gives all four ends of the blend. A guide's bracket holds for any blend of the four
+      (for every bin: its value at lo is below the fraction, at hi above it), so the shader's
+      binary searches start from it: one fetch instead of log2(R) or log2(C).
 
 The file is named after the table file's content hash (`<stem>.osl-<hash12>.exr` next to
 the tables) and carries the full hash in its metadata: a changed table gets a new export
@@ -37,13 +44,35 @@ from .errors import FlowBSDFError
 from .files import atomic_path, file_hash
 from .tables import open_tables
 
-LAYOUT = 2
+LAYOUT = 3
 META_KEY = "flowbsdf_osl"
 
 
 def export_path(tables_path, digest):
+    """<stem>.osl<LAYOUT>-<hash12>.exr beside the tables (blender_addon/node.py builds the same name)."""
     tables_path = Path(tables_path)
-    return tables_path.with_name(f"{tables_path.stem}.osl-{digest[:12]}.exr")
+    return tables_path.with_name(f"{tables_path.stem}.osl{LAYOUT}-{digest[:12]}.exr")
+
+
+def _guide(cum, totals, count):
+    """(count, 2) brackets over the last axis of the cumulative sums `cum` (n_bins, n + 1)
+    whose totals are `totals` (n_bins,): for u in [g, g + 1) / count, the index searched for
+    (the last i with sum_b w_b cum_b[i] <= u sum_b w_b totals_b, any weights w >= 0) lies in
+    [lo, hi). Bins of total 0 add nothing to the blend and are left out."""
+    n = cum.shape[1] - 1
+    live = totals > 0
+    if not live.any():
+        return np.tile([0.0, n], (count, 1))
+    cum, totals = cum[live], totals[live]
+    g = np.arange(count)
+    below = cum[:, None, :] < (g / count)[None, :, None] * totals[:, None, None]          # (b, g, i)
+    above = cum[:, None, :] > ((g + 1) / count)[None, :, None] * totals[:, None, None]
+    lo = np.where(below.any(2), n - np.argmax(below[:, :, ::-1], axis=2), 0)       # last i below + 1 ...
+    lo = np.maximum(lo - 1, 0)                                                     # ... -> last i below
+    hi = np.where(above.any(2), np.argmax(above, axis=2), n)
+    # One index more on each side: the shader's target carries float32 rounding (its column
+    # target u1 (c1 - c0) comes from the row CDF, not from the row's own sums).
+    return np.stack([np.maximum(lo.min(0) - 1, 0), np.minimum(hi.max(0) + 1, n)], axis=1).astype(np.float64)
 
 
 def texture_image(tables):
@@ -53,25 +82,38 @@ def texture_image(tables):
     B = K * P
     KP = max(K - 1, 1)
     width = max(C + 1, R + 1, K, P, 3)
-    height = 2 + 2 * B * R + KP * P * (2 + 2 * R)
+    height = 3 + 2 * B * R + KP * P * (3 + 3 * R)
     img = np.zeros((height, width, 4), np.float64)
     img[0, 0, :3] = (LAYOUT, K, R)
     img[0, 1, :3] = (C, width, height)
     img[0, 2, :3] = (P, tables.phi_period, 0)
-    img[1, :K, 0] = np.cos(tables.theta_bins)
+    cos_bins = np.cos(tables.theta_bins).astype(np.float32).astype(np.float64)
+    img[1, :K, 0] = cos_bins
     img[1, :P, 1] = [0.0] if tables.phi_bins is None else tables.phi_bins
-    img[2:2 + B * R, :C, :3] = tables._w.reshape(B * R, C, 3)
+    # theta guide: k* = the last k with cos_k >= cos_i; for cos_i in [g, g + 1) / width,
+    # lo = the last k with cos_k > (g + 1) / width, hi = the first k with cos_k < g / width.
+    g = np.arange(width)
+    img[2, :, 0] = [max(np.sum(cos_bins > (x + 1) / width) - 1, 0) for x in g]
+    img[2, :, 1] = [K - np.sum(cos_bins < x / width) for x in g]
+    img[3:3 + B * R, :C, :3] = tables._w.reshape(B * R, C, 3)
     cells = np.stack([tables._m, tables._alpha, tables._beta], axis=-1)      # (B, R, C, 3)
-    img[2 + B * R:2 + 2 * B * R, :C, :3] = cells.reshape(B * R, C, 3)
+    img[3 + B * R:3 + 2 * B * R, :C, :3] = cells.reshape(B * R, C, 3)
+    f32 = lambda x: np.asarray(x, np.float32).astype(np.float64)      # noqa: E731  (what the shader reads)
     for k in range(KP):
         for p in range(P):
-            base = 2 + 2 * B * R + (k * P + p) * (2 + 2 * R)
+            base = 3 + 2 * B * R + (k * P + p) * (3 + 3 * R)
             k1, p1 = min(k + 1, K - 1), (p + 1) % P
-            for ch, b in enumerate((k * P + p, k1 * P + p, k * P + p1, k1 * P + p1)):
+            blend = [k * P + p, k1 * P + p, k * P + p1, k1 * P + p1]
+            for ch, b in enumerate(blend):
                 img[base, :R + 1, ch] = tables._row_cdf[b]
                 img[base + 1, :R + 1, ch] = tables._a[b]
                 img[base + 2:base + 2 + R, :C + 1, ch] = tables._col_cum[b]
                 img[base + 2 + R:base + 2 + 2 * R, :C + 1, ch] = tables._b[b]
+            row_cdf = f32(tables._row_cdf[blend])
+            img[base + 2 + 2 * R, :R, :2] = _guide(row_cdf, row_cdf[:, -1], R)
+            for i in range(R):
+                col_cum = f32(tables._col_cum[blend, i])
+                img[base + 3 + 2 * R + i, :C, :2] = _guide(col_cum, col_cum[:, -1], C)
     return img.astype(np.float32)
 
 
@@ -123,7 +165,7 @@ def ensure_osl_export(tables_path, log=None):
                 "material": tables.meta.get("material"), "anisotropic": tables.anisotropic})
         if log:
             log(f"[osl] wrote {path}")
-    for old in tables_path.parent.glob(f"{tables_path.stem}.osl-*.exr"):
+    for old in tables_path.parent.glob(f"{tables_path.stem}.osl*-*.exr"):
         if old.name != path.name:
             old.unlink(missing_ok=True)
     return path

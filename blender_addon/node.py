@@ -60,6 +60,7 @@ OSL_SOURCE = Path(__file__).resolve().parent / "osl" / "learned_bsdf.osl"
 NEUTRAL = (0.5, 0.5, 0.5)
 # The fit file format (bake/closure_fit.py: load_fit, FIT_VERSION), read here without numpy.
 FIT_FORMAT = "flowbsdf-closure-fit"
+OSL_LAYOUT = 3          # the OSL texture's layout (bake/osl_export.LAYOUT): part of its file name
 FIT_VERSION = 2
 
 
@@ -130,7 +131,7 @@ def _osl_texture(tables_path):
         except Exception as e:      # noqa: BLE001  (e.g. no OpenEXR here: try the baked file)
             error = e
     digest = _file_hash(tables_path)
-    path = tables_path.with_name(f"{tables_path.stem}.osl-{digest[:12]}.exr")
+    path = tables_path.with_name(f"{tables_path.stem}.osl{OSL_LAYOUT}-{digest[:12]}.exr")
     if path.is_file():
         return str(path)
     raise ValueError(str(error) if error else f"OSL texture not exported (re-bake): {path}")
@@ -144,7 +145,7 @@ def derived_current(tables_path):
         fit_ok = load_fit(tables_path.with_name(tables_path.stem + ".fit.json")).get("tables_hash") == digest
     except ValueError:
         return False
-    return fit_ok and tables_path.with_name(f"{tables_path.stem}.osl-{digest[:12]}.exr").is_file()
+    return fit_ok and tables_path.with_name(f"{tables_path.stem}.osl{OSL_LAYOUT}-{digest[:12]}.exr").is_file()
 
 
 def osl_compiler_available():

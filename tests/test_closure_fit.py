@@ -6,7 +6,7 @@ from bake import closure_fit
 from bake.errors import FlowBSDFError
 from bake.ideal import IdealSampler
 from bake.materials import open_material
-from bake.osl_export import LAYOUT, bake_derived, ensure_osl_export, read_export
+from bake.osl_export import LAYOUT, _guide, bake_derived, ensure_osl_export, read_export
 from bake.tabulate import build_tables
 
 BINS = np.radians([0.0, 30.0, 60.0, 80.0, 89.5])
@@ -87,7 +87,7 @@ def test_derived_files_are_cached_rebuilt_and_atomic(tmp_path, lambert, glossy):
     assert meta["layout"] == LAYOUT and img.dtype == np.float32 and img.shape[2] == 4
     K, R, C = len(lambert.theta_bins), lambert.rows, lambert.cols
     assert tuple(img[0, 0, :3]) == (LAYOUT, K, R) and tuple(img[0, 1, :3]) == (C, img.shape[1], img.shape[0])
-    np.testing.assert_array_equal(img[2:2 + R, :C, :3], lambert.weights[0])
+    np.testing.assert_array_equal(img[3:3 + R, :C, :3], lambert.weights[0])
     stamp = (tex.stat().st_mtime_ns, fit.stat().st_mtime_ns)
     assert bake_derived(path) == (tex, fit)
     assert (tex.stat().st_mtime_ns, fit.stat().st_mtime_ns) == stamp, "current files were rebuilt"
@@ -102,3 +102,29 @@ def test_derived_files_are_cached_rebuilt_and_atomic(tmp_path, lambert, glossy):
     assert closure_fit.load_fit(closure_fit.ensure_fit(path))["version"] == closure_fit.FIT_VERSION
     with pytest.raises(FlowBSDFError, match="not found"):
         ensure_osl_export(tmp_path / "gone.exr")
+
+
+def test_guides_bracket_the_search_for_any_blend():
+    """The OSL texture's guides: for u in [g, g + 1) / count, the index the shader searches
+    (the last i with the blended cumulative sum <= u x the blended total) lies in the guide's
+    [lo, hi), whatever the blend weights; rows with zeros, empty bins and tiny masses."""
+    rng = np.random.default_rng(0)
+    for trial in range(200):
+        n = int(rng.integers(1, 40))
+        m = rng.random((4, n)) ** rng.uniform(1, 8)
+        m[rng.random((4, n)) < 0.3] = 0
+        if trial % 7 == 0:
+            m[0] = 0
+        cum = np.concatenate([np.zeros((4, 1)), np.cumsum(m, 1)], 1).astype(np.float32).astype(np.float64)
+        count = int(rng.integers(1, 70))
+        guide = _guide(cum, cum[:, -1], count)
+        assert np.all((guide[:, 0] >= 0) & (guide[:, 1] <= n) & (guide[:, 1] - guide[:, 0] >= 1))
+        for _ in range(100):
+            w = rng.random(4) * (rng.random(4) < 0.7)
+            if not np.sum(w * cum[:, -1]) > 0:
+                continue
+            u = rng.random()
+            blend = w @ cum
+            i = np.nonzero(blend[:n] <= u * blend[-1])[0].max()
+            lo, hi = guide[min(int(u * count), count - 1)]
+            assert lo <= i < hi, (trial, i, lo, hi)

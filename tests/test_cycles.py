@@ -74,7 +74,9 @@ def _probe(tex, n, theta, mode, phi=0.0):
 def test_osl_sampler_is_tables_sample(baked, name):
     """Same u -> same wo, the same weight (= baked f cos / pdf) and the same pdf as the numpy
     reference (the sampler's exact density: weight x pdf = baked f cos)."""
+    from bake.osl_export import LAYOUT
     from bake.tables import open_tables
+    assert lb.OSL_LAYOUT == LAYOUT and f"#define LAYOUT {LAYOUT}\n" in lb.shader_source()
     tab = open_tables(baked[name])
     tab.backend = "numpy"
     tex = ensure_osl_export(baked[name])

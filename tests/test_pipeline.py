@@ -7,6 +7,7 @@ import pytest
 from bake.cli import main
 from bake.errors import FlowBSDFError
 from bake.manifest import load_manifest
+from bake.osl_export import LAYOUT
 from bake.pipeline import bake_manifest, open_current_tables, table_path
 from bake.tables import open_tables
 
@@ -104,4 +105,4 @@ def test_bake_writes_readable_files_and_the_node_products_and_clears_dead_tempor
     os.umask(mask)
     assert path.stat().st_mode & 0o777 == 0o666 & ~mask, oct(path.stat().st_mode)   # not mkstemp's 0600
     names = sorted(p.name for p in path.parent.iterdir())
-    assert names[:2] == ["matte.exr", "matte.fit.json"] and names[2].startswith("matte.osl-"), names
+    assert names[:2] == ["matte.exr", "matte.fit.json"] and names[2].startswith(f"matte.osl{LAYOUT}-"), names
