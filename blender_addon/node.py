@@ -490,7 +490,22 @@ def _resolve(scene, tree):
         return False, f"{fit} (tables missing: {tables})"
     if not texture or not os.path.isfile(texture):
         return False, f"{fit} (OSL texture missing: {texture or 'not exported'})"
+    lights = unseen_lights(scene)
+    if lights:
+        why = (f"light objects ({', '.join(lights[:3])}{', ...' if len(lights) > 3 else ''}) do not reach "
+               "OSL sampling, which sees only the world and emissive surfaces")
+        return (False, f"{fit} ({why})") if backend == "auto" else (True, f"OSL (warning: {why})")
     return True, "OSL"
+
+
+def unseen_lights(scene):
+    """Names of the scene's light objects that render: the OSL back end cannot light its
+    material with them (ray_portal_bsdf takes no light sampling, and Cycles' rays do not
+    hit light objects), so `auto` picks the fit where there are any."""
+    def renders(ob):
+        return not ob.hide_render and any(not c.hide_render for c in ob.users_collection)
+    return sorted(ob.name for ob in scene.objects
+                  if ob.type == 'LIGHT' and renders(ob) and getattr(ob.data, "energy", 1.0) > 0)
 
 
 def _refresh_export(tree):
@@ -562,7 +577,7 @@ def node_status(node, scene=None):
     scene = scene or bpy.context.scene
     status = _resolve(scene, tree)[1]
     problems = _info(tree).get("problems")
-    return f"{status} [{problems}]" if problems and status == "OSL" else status
+    return f"{status} [{problems}]" if problems and status.startswith("OSL") else status
 
 
 # ------------------------------------------------------------------------------ handlers

@@ -301,6 +301,41 @@ def test_assign_twice_reuses_the_group(baked):
     assert os.path.isfile(a.node_tree[lb.TREE_KEY]["osl_texture"])
 
 
+def test_auto_picks_the_fit_under_light_objects(baked):
+    """Light objects do not reach the OSL back end (measured: a Lambertian plane under a point,
+    sun, spot or area light renders 0 with it): `auto` renders the fit while one renders, and a
+    forced OSL back end says why its image lacks them. Emission 0, hidden from render or in a
+    collection hidden from render: the light does not count."""
+    sc = cs.reset(8, 8, spp=1)
+    mat = bpy.data.materials.new("m")
+    node = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
+    lb.set_backend(sc, "auto")
+    assert lb.node_status(node, sc) == "OSL"
+    lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", 'POINT'))
+    sc.collection.objects.link(lamp)
+    bpy.context.view_layer.update()
+    assert lb.node_status(node, sc).startswith("fit (light objects (Lamp)")
+    assert switch_of(node) == 0.0
+    lb.set_backend(sc, "osl")
+    assert lb.node_status(node, sc).startswith("OSL (warning: light objects (Lamp)") and switch_of(node) == 1.0
+    lb.set_backend(sc, "auto")
+    for hide, restore in ((lambda: setattr(lamp, "hide_render", True), lambda: setattr(lamp, "hide_render", False)),
+                          (lambda: setattr(lamp.data, "energy", 0.0), lambda: setattr(lamp.data, "energy", 10.0))):
+        hide()
+        bpy.context.view_layer.update()
+        assert lb.node_status(node, sc) == "OSL" and switch_of(node) == 1.0
+        restore()
+        bpy.context.view_layer.update()
+        assert switch_of(node) == 0.0
+    hidden = bpy.data.collections.new("hidden")
+    sc.collection.children.link(hidden)
+    sc.collection.objects.unlink(lamp)
+    hidden.objects.link(lamp)
+    hidden.hide_render = True
+    bpy.context.view_layer.update()
+    assert lb.node_status(node, sc) == "OSL"
+
+
 def test_film_settings_follow_the_scene(baked):
     """The OSL shader gets the scene's pixel filter, width and seed when the node is made and
     after every change (the viewport renders without render_pre); the box is always 1 px."""
