@@ -472,8 +472,9 @@ def osl_available(scene):
     return True, ""
 
 
-def _resolve(scene, tree):
-    """(use OSL?, status text) for one group in one scene."""
+def _resolve(scene, tree, lights=None):
+    """(use OSL?, status text) for one group in one scene (`lights`: unseen_lights(scene),
+    computed here when not given)."""
     info = _info(tree)
     backend = backend_of(scene)
     texture = info.get("osl_texture", "")
@@ -490,7 +491,7 @@ def _resolve(scene, tree):
         return False, f"{fit} (tables missing: {tables})"
     if not texture or not os.path.isfile(texture):
         return False, f"{fit} (OSL texture missing: {texture or 'not exported'})"
-    lights = unseen_lights(scene)
+    lights = unseen_lights(scene) if lights is None else lights
     if lights:
         why = (f"light objects ({', '.join(lights[:3])}{', ...' if len(lights) > 3 else ''}) do not reach "
                "OSL sampling, which sees only the world and emissive surfaces")
@@ -553,12 +554,15 @@ def sync(scene, refresh=False):
     """Set every Learned BSDF group's switch and film settings for `scene`; with refresh,
     re-export stale textures."""
     film = film_settings(scene) if scene.render.engine == 'CYCLES' else None
+    lights = None
     for tree in _trees():
         if tree.library is not None:
             continue
         if refresh:
             _refresh_export(tree)
-        use_osl, _ = _resolve(scene, tree)
+        if lights is None:
+            lights = unseen_lights(scene)       # once per sync: it runs on every scene change
+        use_osl, _ = _resolve(scene, tree, lights)
         switch = tree.nodes.get(SWITCH)
         if switch is not None:
             value = 1.0 if use_osl else 0.0
