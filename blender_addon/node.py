@@ -38,6 +38,7 @@ legacy `tree.outputs` (3.x).
 API (used by the add-on's UI and operators): register, unregister, assign_learned_bsdf,
 set_backend, backend_of, node_status, sync, film_settings.
 """
+import contextlib
 import json
 import os
 import sys
@@ -196,32 +197,50 @@ def script_text(probe=False):
     return text
 
 
+@contextlib.contextmanager
+def _own_tempdir():
+    """Cycles leaves the compiled .oso of an internal Script node in the temporary folder
+    (cycles/osl.py; it compiles on every script assignment too): run compiles with a
+    temporary folder of our own, removed afterwards."""
+    import shutil
+    import tempfile
+    folder, saved = tempfile.mkdtemp(prefix="flowbsdf_osl_"), tempfile.tempdir
+    tempfile.tempdir = folder
+    try:
+        yield
+    finally:
+        tempfile.tempdir = saved
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def make_script_node(tree, probe=False):
     """A Script node running the shader, compiled (bytecode stored in the node)."""
     if not osl_compiler_available():
         raise RuntimeError("FlowBSDF OSL shader: this Blender's Cycles cannot compile OSL")
     import cycles.osl
     ensure_oslquery()
-    node = tree.nodes.new("ShaderNodeScript")
-    node.mode = 'INTERNAL'
-    node.script = script_text(probe)
-    if not cycles.osl.update_script_node(node, _report) or "BSDF" not in node.outputs:
-        raise RuntimeError("FlowBSDF OSL shader: compilation gave no sockets")
+    with _own_tempdir():
+        node = tree.nodes.new("ShaderNodeScript")
+        node.mode = 'INTERNAL'
+        node.script = script_text(probe)
+        if not cycles.osl.update_script_node(node, _report) or "BSDF" not in node.outputs:
+            raise RuntimeError("FlowBSDF OSL shader: compilation gave no sockets")
     return node
 
 
 def _refresh_script(node):
     """Recompile when the shipped source changed (an older add-on version wrote the file)."""
-    text = script_text()
-    if node.script is None or node.script.name != text.name:
-        node.script = text
     import hashlib
-    src_hash = hashlib.sha256(text.as_string().encode()).hexdigest()
-    if node.get("flowbsdf_src") != src_hash or not node.bytecode:
-        import cycles.osl
-        ensure_oslquery()
-        cycles.osl.update_script_node(node, _report)
-        node["flowbsdf_src"] = src_hash
+    import cycles.osl
+    ensure_oslquery()
+    with _own_tempdir():
+        text = script_text()
+        if node.script is None or node.script.name != text.name:
+            node.script = text
+        src_hash = hashlib.sha256(text.as_string().encode()).hexdigest()
+        if node.get("flowbsdf_src") != src_hash or not node.bytecode:
+            cycles.osl.update_script_node(node, _report)
+            node["flowbsdf_src"] = src_hash
 
 
 # ------------------------------------------------------------------------------ the group

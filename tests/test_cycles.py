@@ -289,9 +289,13 @@ def switch_of(node):
 
 
 def test_assign_twice_reuses_the_group(baked):
+    """... and compiling the shader leaves no files behind (Cycles would leave its .oso)."""
+    import tempfile
     cs.reset(8, 8, spp=1)
     mat = bpy.data.materials.new("m")
+    before = set(Path(tempfile.gettempdir()).glob("*.oso"))
     a = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
+    assert not set(Path(tempfile.gettempdir()).glob("*.oso")) - before
     b = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
     assert a.name == b.name and a.node_tree.name == b.node_tree.name
     assert sum(n.bl_idname == "ShaderNodeGroup" for n in mat.node_tree.nodes) == 1
