@@ -36,7 +36,7 @@ with the add-on in a Blender that compiles OSL rebuilds the group with both back
 legacy `tree.outputs` (3.x).
 
 API (used by the add-on's UI and operators): register, unregister, assign_learned_bsdf,
-set_backend, backend_of, node_status, sync, film_settings.
+set_backend, backend_of, node_status, sync, film_settings, unseen_lights.
 """
 import contextlib
 import json
