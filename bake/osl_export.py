@@ -13,7 +13,8 @@ b = k P + p as in Tables. Layout (W = texture width, rows from the top of the im
     row 0                   header: (LAYOUT, K, R), (C, W, H), (P, phi period, 0)
     row 1                   cos(theta_bin k) at x = k (red); phi_bin p at x = p (green)
     row 2                   theta guide: at x = g < W, (lo, hi) brackets k for cos theta_i in
-                            [g / W, (g + 1) / W)
+                            [g / W, (g + 1) / W), then cos(theta_bin k), cos(theta_bin k + 1) for
+                            k = min(lo, K - 2) (what the shader needs when hi = lo + 1)
     rows 3 + b R + i        bin b, table row i: cell j at x = j holds W_bij (RGB)
     rows 3 + B R + b R + i  bin b, table row i: cell j holds (mass, alpha, beta)
     corner block (k, p), k = 0 .. max(K - 1, 1) - 1, first row 3 + 2 B R + (k P + p)(3 + 3 R):
@@ -95,6 +96,8 @@ def texture_image(tables):
     g = np.arange(width)
     img[2, :, 0] = [max(np.sum(cos_bins > (x + 1) / width) - 1, 0) for x in g]
     img[2, :, 1] = [K - np.sum(cos_bins < x / width) for x in g]
+    k = np.clip(img[2, :, 0].astype(int), 0, max(K - 2, 0))
+    img[2, :, 2], img[2, :, 3] = cos_bins[k], cos_bins[np.minimum(k + 1, K - 1)]
     img[3:3 + B * R, :C, :3] = tables._w.reshape(B * R, C, 3)
     cells = np.stack([tables._m, tables._alpha, tables._beta], axis=-1)      # (B, R, C, 3)
     img[3 + B * R:3 + 2 * B * R, :C, :3] = cells.reshape(B * R, C, 3)
