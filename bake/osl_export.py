@@ -66,14 +66,15 @@ def _guide(cum, totals, count):
         return np.tile([0.0, n], (count, 1))
     cum, totals = cum[live], totals[live]
     g = np.arange(count)
-    below = cum[:, None, :] < (g / count)[None, :, None] * totals[:, None, None]          # (b, g, i)
-    above = cum[:, None, :] > ((g + 1) / count)[None, :, None] * totals[:, None, None]
-    lo = np.where(below.any(2), n - np.argmax(below[:, :, ::-1], axis=2), 0)       # last i below + 1 ...
-    lo = np.maximum(lo - 1, 0)                                                     # ... -> last i below
-    hi = np.where(above.any(2), np.argmax(above, axis=2), n)
+    # cum is non-decreasing: counting the entries below / above a fraction finds the last
+    # index below it and the first above it, per bin and g.
+    below = np.sum(cum[:, None, :] < (g / count)[None, :, None] * totals[:, None, None], axis=2)
+    above = np.sum(cum[:, None, :] > ((g + 1) / count)[None, :, None] * totals[:, None, None], axis=2)
+    lo = np.maximum(below - 1, 0).min(0)
+    hi = np.minimum(n + 1 - above, n).max(0)
     # One index more on each side: the shader's target carries float32 rounding (its column
     # target u1 (c1 - c0) comes from the row CDF, not from the row's own sums).
-    return np.stack([np.maximum(lo.min(0) - 1, 0), np.minimum(hi.max(0) + 1, n)], axis=1).astype(np.float64)
+    return np.stack([np.maximum(lo - 1, 0), np.minimum(hi + 1, n)], axis=1).astype(np.float64)
 
 
 def texture_image(tables):

@@ -19,10 +19,10 @@ add-on installed, and materials append and link like any other. Its node tree,
 A Mix Shader whose factor is the Value node "FlowBSDF backend" (1 = OSL, 0 = fit) picks
 one; with a constant factor Cycles compiles only the chosen branch. The factor is set
 from the scene's back end ("osl", "fit" or "auto") by `set_backend`, before every render
-(render_pre handler), on every scene change and frame change (depsgraph_update_post,
-frame_change_post: the viewport follows)
-and after loading a file (load_post), and only to OSL when the OSL texture exists; the
-OSL shader's film settings (`film_settings`) likewise. Binding data sits in the tree's custom property "flowbsdf".
+(render_pre handler), on every scene and frame change (depsgraph_update_post,
+frame_change_post: the viewport follows) and after loading a file (load_post), and only to
+OSL when the OSL texture exists; the OSL shader's film settings (`film_settings`) likewise.
+Binding data sits in the tree's custom property "flowbsdf".
 
 Blenders without numpy or OSL (Debian's 3.4 for the batch path): nothing here imports
 numpy at module load. The fit is read from its JSON file (<name>.fit.json, written by the
@@ -32,7 +32,7 @@ cannot compile OSL (`_cycles.with_osl` false, as in Debian's 3.4), the group hol
 alone, wired straight to its output (no Script node: an uncompiled Script node has no
 sockets to wire and points at an add-on path that differs per machine). Opening such a file
 with the add-on in a Blender that compiles OSL rebuilds the group with both back ends
-(load_post, `upgrade`). The group's socket is made with `tree.interface` (4.0+) or the
+(load_post, `upgrade`), as it does a group whose shader an older add-on compiled. The group's socket is made with `tree.interface` (4.0+) or the
 legacy `tree.outputs` (3.x).
 
 API (used by the add-on's UI and operators): register, unregister, assign_learned_bsdf,
@@ -131,11 +131,15 @@ def _osl_texture(tables_path):
             return str(osl_export.ensure_osl_export(tables_path))
         except Exception as e:      # noqa: BLE001  (e.g. no OpenEXR here: try the baked file)
             error = e
-    digest = _file_hash(tables_path)
-    path = tables_path.with_name(f"{tables_path.stem}.osl{OSL_LAYOUT}-{digest[:12]}.exr")
+    path = _texture_path(tables_path, _file_hash(tables_path))
     if path.is_file():
         return str(path)
     raise ValueError(str(error) if error else f"OSL texture not exported (re-bake): {path}")
+
+
+def _texture_path(tables_path, digest):
+    """The OSL texture's name beside the tables (bake/osl_export.export_path, without numpy)."""
+    return tables_path.with_name(f"{tables_path.stem}.osl{OSL_LAYOUT}-{digest[:12]}.exr")
 
 
 def derived_current(tables_path):
@@ -146,7 +150,7 @@ def derived_current(tables_path):
         fit_ok = load_fit(tables_path.with_name(tables_path.stem + ".fit.json")).get("tables_hash") == digest
     except ValueError:
         return False
-    return fit_ok and tables_path.with_name(f"{tables_path.stem}.osl{OSL_LAYOUT}-{digest[:12]}.exr").is_file()
+    return fit_ok and _texture_path(tables_path, digest).is_file()
 
 
 def osl_compiler_available():
@@ -228,19 +232,10 @@ def make_script_node(tree, probe=False):
     return node
 
 
-def _refresh_script(node):
-    """Recompile when the shipped source changed (an older add-on version wrote the file)."""
+def _source_hash():
+    """The shipped shader's content hash: a group records the one it was built with."""
     import hashlib
-    import cycles.osl
-    ensure_oslquery()
-    with _own_tempdir():
-        text = script_text()
-        if node.script is None or node.script.name != text.name:
-            node.script = text
-        src_hash = hashlib.sha256(text.as_string().encode()).hexdigest()
-        if node.get("flowbsdf_src") != src_hash or not node.bytecode:
-            cycles.osl.update_script_node(node, _report)
-            node["flowbsdf_src"] = src_hash
+    return hashlib.sha256(shader_source().rstrip("\n").encode()).hexdigest()
 
 
 # ------------------------------------------------------------------------------ the group
@@ -386,9 +381,6 @@ def _build_tree(tree, name, tables_path, fit_path):
     group_in = nodes.new("NodeGroupInput")
     group_in.location = (1900, 600)
     links.new(group_in.outputs["Tangent"], script.inputs["Tangent"])
-    scene = getattr(bpy.context, "scene", None)
-    if scene is not None and scene.render.engine == 'CYCLES':
-        _set_inputs(script, film_settings(scene))
     switch = nodes.new("ShaderNodeValue")
     switch.name = switch.label = SWITCH
     switch.outputs[0].default_value = 0.0
@@ -399,14 +391,19 @@ def _build_tree(tree, name, tables_path, fit_path):
     links.new(fit_out, mix.inputs[1])
     links.new(script.outputs["BSDF"], mix.inputs[2])
     links.new(mix.outputs[0], out.inputs[0])
-    script["flowbsdf_src"] = __import__("hashlib").sha256(script.script.as_string().encode()).hexdigest()
+    script["flowbsdf_src"] = _source_hash()
     tree[TREE_KEY] = info
 
 
 def upgrade(tree):
-    """Rebuild a group made where OSL could not compile (it holds the fit only) with both back
-    ends, when this Blender compiles OSL. Returns True when it rebuilt the group."""
-    if tree.library is not None or tree.nodes.get(SCRIPT) is not None or not osl_compiler_available():
+    """Rebuild a group, when this Blender compiles OSL, that was made where OSL could not
+    compile (it holds the fit only) or by an add-on whose shader differs (its bytecode would
+    not read the current texture layout and would render the fallback). Returns True when it
+    rebuilt the group."""
+    if tree.library is not None or not osl_compiler_available():
+        return False
+    script = tree.nodes.get(SCRIPT)
+    if script is not None and script.get("flowbsdf_src") == _source_hash():
         return False
     info = _info(tree)
     if not info.get("material") or not info.get("tables"):

@@ -76,7 +76,9 @@ def test_osl_sampler_is_tables_sample(baked, name):
     reference (the sampler's exact density: weight x pdf = baked f cos)."""
     from bake.osl_export import LAYOUT
     from bake.tables import open_tables
+    from bake.osl_export import export_path
     assert lb.OSL_LAYOUT == LAYOUT and f"#define LAYOUT {LAYOUT}\n" in lb.shader_source()
+    assert lb._texture_path(baked[name], "0" * 64) == export_path(baked[name], "0" * 64)
     tab = open_tables(baked[name])
     tab.backend = "numpy"
     tex = ensure_osl_export(baked[name])
@@ -303,6 +305,23 @@ def test_assign_twice_reuses_the_group(baked):
     out = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial")
     assert out.inputs["Surface"].links[0].from_node.name == a.name
     assert os.path.isfile(a.node_tree[lb.TREE_KEY]["osl_texture"])
+
+
+def test_a_group_from_an_older_shader_is_rebuilt_on_load(baked, tmp_path):
+    """A .blend whose group holds the bytecode of another add-on version (it would not read
+    the current texture layout) gets the group rebuilt when it is opened; a current one is
+    left alone."""
+    cs.reset(8, 8, spp=1)
+    mat = bpy.data.materials.new("m")
+    tree = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"]).node_tree
+    assert not lb.upgrade(tree)
+    tree.nodes[lb.SCRIPT]["flowbsdf_src"] = "an older shader"
+    name, path = tree.name, tmp_path / "old.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    bpy.ops.wm.open_mainfile(filepath=str(path))         # load_post -> upgrade
+    tree = bpy.data.node_groups[name]
+    assert tree.nodes[lb.SCRIPT]["flowbsdf_src"] == lb._source_hash()
+    assert not lb.upgrade(tree)
 
 
 def test_auto_picks_the_fit_under_light_objects(baked):
