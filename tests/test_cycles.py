@@ -51,7 +51,7 @@ def registered():
     lb.unregister()
 
 
-def _probe(tex, n, theta, mode, phi=0.0):
+def _probe(tex, n, theta, mode, phi=0.0, world=""):
     sc = cs.reset(n, n, spp=1)
     sc.cycles.filter_width = 0.01             # every pixel's one sample at its centre
     cs.ortho_camera(sc)
@@ -60,6 +60,7 @@ def _probe(tex, n, theta, mode, phi=0.0):
     def nodes(tree):
         s = lb.make_script_node(tree, probe=True)
         s.inputs["Tables"].default_value = str(tex)
+        s.inputs["World"].default_value = str(world)
         s.inputs["ProbeN"].default_value = n
         s.inputs["ProbeTheta"].default_value = theta
         s.inputs["ProbePhi"].default_value = phi
@@ -102,6 +103,58 @@ def test_osl_sampler_is_tables_sample(baked, name):
         np.testing.assert_allclose(pdf_osl, pdf, rtol=1e-3)
 
 
+def _hemisphere_directions(n):
+    """The probe's directions for modes 3 and 4: z = u0, phi = 2 pi u1 at the pixel centres."""
+    iy, ix = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    z, phi = (ix.ravel() + 0.5) / n, 2 * np.pi * (iy.ravel() + 0.5) / n
+    s = np.sqrt(1 - z * z)
+    return np.stack([s * np.cos(phi), s * np.sin(phi), z], 1)
+
+
+def _assert_osl_eval_is_numpy(tex, tab, angles):
+    """The shader's eval_tables (next-event estimation's pdf and baked f cos) gives numpy's
+    Tables.pdf and Tables.eval x cos at directions all over the hemisphere."""
+    from bake.geometry import incident
+    n = 32
+    wo = _hemisphere_directions(n)
+    for theta_deg, phi_deg in angles:
+        wi = incident(theta_deg, np.radians(phi_deg))
+        pdf = tab.pdf(wi, wo)
+        fcos = tab.eval(wi, wo) * wo[:, 2:3]
+        theta, phi = np.radians(theta_deg), np.radians(phi_deg)
+        np.testing.assert_allclose(_probe(tex, n, theta, 3, phi)[:, 0], pdf, rtol=1e-3, atol=1e-7)
+        np.testing.assert_allclose(_probe(tex, n, theta, 4, phi), fcos, rtol=1e-3, atol=1e-7)
+
+
+@pytest.mark.parametrize("name", ["plastic", "gold"])
+def test_osl_eval_is_tables_pdf_and_eval(baked, name):
+    from bake.tables import open_tables
+    tab = open_tables(baked[name])
+    tab.backend = "numpy"
+    _assert_osl_eval_is_numpy(ensure_osl_export(baked[name]), tab, [(0.0, 0.0), (33.0, 0.0), (71.3, 0.0), (88.0, 0.0)])
+
+
+def test_osl_world_map_is_numpy(tmp_path):
+    """The shader's world-map sampling (direction and pdf) is bake.world_map.WorldMap's, and its
+    pdf_world reads back the sampled pixel's density."""
+    from bake.world_map import WorldMap, write_world_texture
+    rng = np.random.default_rng(3)
+    img = rng.random((24, 48, 3)) ** 4
+    img[3, 40] = 300.0                      # a sun
+    img[20:, :] = 0.0                       # black below: never drawn, pdf 0
+    wm = WorldMap(img)
+    path = write_world_texture(tmp_path / "world.exr", wm)
+    n = 40
+    iy, ix = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    u = np.stack([(ix.ravel() + 0.5) / n, (iy.ravel() + 0.5) / n], 1)
+    d, pdf = wm.sample(u)
+    d_osl = 2.0 * _probe("", n, 0.0, 5, world=path) - 1.0
+    assert np.abs(d_osl - d).max() < 2e-4
+    np.testing.assert_allclose(_probe("", n, 0.0, 6, world=path)[:, 0], pdf, rtol=1e-5)
+    np.testing.assert_allclose(_probe("", n, 0.0, 7, world=path)[:, 0], pdf, rtol=1e-5)
+    assert pdf.min() > 0 and np.all(d[:, 2] > np.cos(np.pi * 20 / 24) - 1e-6)
+
+
 @pytest.fixture(scope="module")
 def aniso_tables(tmp_path_factory):
     """Small anisotropic tables (GGX 0.3 x 0.05 at 20 deg: 3 theta x 4 phi bins over pi)."""
@@ -136,6 +189,7 @@ def test_osl_sampler_is_tables_sample_anisotropic(aniso_tables):
         assert err.max() < 3e-4 and np.median(err) < 2e-5, (theta_deg, phi_deg, err.max(), np.median(err))
         np.testing.assert_allclose(_probe(tex, n, theta, 1, phi), weight, rtol=2e-5, atol=1e-7)
         np.testing.assert_allclose(_probe(tex, n, theta, 2, phi)[:, 0], pdf, rtol=1e-3)
+    _assert_osl_eval_is_numpy(tex, tab, [(0.0, 0.0), (30.0, 10.0), (70.0, 170.0), (60.0, 300.0)])
 
 
 @pytest.mark.parametrize("tangent", [None, (0.6, 0.8, 0.0)])
@@ -324,37 +378,29 @@ def test_a_group_from_an_older_shader_is_rebuilt_on_load(baked, tmp_path):
     assert not lb.upgrade(tree)
 
 
-def test_auto_picks_the_fit_under_light_objects(baked):
-    """Light objects do not reach the OSL back end (measured: a Lambertian plane under a point,
-    sun, spot or area light renders 0 with it): `auto` renders the fit while one renders, and a
-    forced OSL back end says why its image lacks them. Emission 0, hidden from render or in a
-    collection hidden from render: the light does not count."""
+def test_auto_picks_osl_under_light_objects_and_says_what_it_does_not_light(baked):
+    """Lamps are light-sampled inside the OSL shader, so `auto` keeps OSL where they render;
+    the status names what the shader does not light as Cycles would (lamps past the slots)."""
+    from blender_addon import lamps
     sc = cs.reset(8, 8, spp=1)
     mat = bpy.data.materials.new("m")
     node = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
     lb.set_backend(sc, "auto")
     assert lb.node_status(node, sc) == "OSL"
-    lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", 'POINT'))
-    sc.collection.objects.link(lamp)
-    bpy.context.view_layer.update()
-    assert lb.node_status(node, sc).startswith("fit (light objects (Lamp)")
-    assert switch_of(node) == 0.0
-    lb.set_backend(sc, "osl")
-    assert lb.node_status(node, sc).startswith("OSL (warning: light objects (Lamp)") and switch_of(node) == 1.0
-    lb.set_backend(sc, "auto")
-    for hide, restore in ((lambda: setattr(lamp, "hide_render", True), lambda: setattr(lamp, "hide_render", False)),
-                          (lambda: setattr(lamp.data, "energy", 0.0), lambda: setattr(lamp.data, "energy", 10.0))):
-        hide()
+    made = []
+    for k in range(lamps.SLOTS + 2):
+        lamp = bpy.data.objects.new(f"Lamp{k:02d}", bpy.data.lights.new(f"Lamp{k:02d}", 'POINT'))
+        sc.collection.objects.link(lamp)
+        made.append(lamp)
         bpy.context.view_layer.update()
-        assert lb.node_status(node, sc) == "OSL" and switch_of(node) == 1.0
-        restore()
-        bpy.context.view_layer.update()
-        assert switch_of(node) == 0.0
-    hidden = bpy.data.collections.new("hidden")
-    sc.collection.children.link(hidden)
-    sc.collection.objects.unlink(lamp)
-    hidden.objects.link(lamp)
-    hidden.hide_render = True
+        if k < lamps.SLOTS:
+            assert lb.node_status(node, sc) == "OSL" and switch_of(node) == 1.0
+    status = lb.node_status(node, sc)
+    assert status.startswith("OSL (warning: 2 lamp(s) past the first 8 are not lit (Lamp08, Lamp09)"), status
+    script = node.node_tree.nodes[lb.SCRIPT]
+    assert [script.inputs[f"L{k}Kind"].default_value for k in range(lamps.SLOTS)] == [1] * lamps.SLOTS
+    for lamp in made[lamps.SLOTS:]:
+        lamp.hide_render = True
     bpy.context.view_layer.update()
     assert lb.node_status(node, sc) == "OSL"
 

@@ -1,0 +1,156 @@
+"""The scene's lamps, passed to the Learned BSDF's OSL shader (blender_addon/osl/lamps.h).
+
+The shader has LAMP slots of sockets (`L<k>Kind`, `Flags`, `P`, `X`, `Y`, `Z`, `Color`,
+`Strength`, `Size`). `bind(script, scene)` fills one slot per lamp that renders: the kind,
+the flags and the shape are set as values (a change of lamp type, visibility or shape binds
+again on the next scene update), everything that animates is a driver on the socket reading
+the lamp: its world matrix (location and axes, scale included; an RNA path indexes
+matrix_world by [column][row]), colour (times the blackbody
+colour when Temperature is on), energy x 2^exposure, and sizes. Drivers evaluate without
+Python (simple expressions), so keyframed lamps render right at every frame, in the
+viewport and on farms, with auto-run off.
+
+What the shader does not model is said by `limits(scene)`, which the node's status shows:
+lamps past the slots, light linking, node-based lamp shaders (their Emission strength and
+colour are not read), and zero-spread area lamps.
+"""
+import bpy
+
+SLOTS = 8
+KIND = {"POINT": 1, "SPOT": 2, "SUN": 3, "AREA": 4}
+ELLIPSE = 5                                     # AREA with shape DISK or ELLIPSE
+SHADOW, MIS, CAMERA, DIFFUSE, GLOSSY, SPHERE, NORMALIZE = 1, 2, 4, 8, 16, 32, 64
+KEY = "flowbsdf_lamps"                          # on the group tree: the bound lamp set
+
+
+def renders(ob):
+    return not ob.hide_render and any(not c.hide_render for c in ob.users_collection)
+
+
+def scene_lamps(scene):
+    """The light objects that render in `scene` (light portals are not lights), by name."""
+    return sorted((ob for ob in scene.objects if ob.type == 'LIGHT' and renders(ob)
+                   and not getattr(ob.data.cycles, "is_portal", False)), key=lambda ob: ob.name)
+
+
+def kind_of(light):
+    if light.type == "AREA" and light.shape in ("DISK", "ELLIPSE"):
+        return ELLIPSE
+    return KIND.get(light.type, 0)
+
+
+def flags_of(ob):
+    light = ob.data
+    flags = 0
+    flags |= SHADOW if getattr(light, "use_shadow", True) else 0
+    flags |= MIS if getattr(light.cycles, "use_multiple_importance_sampling", True) else 0
+    flags |= CAMERA if getattr(ob, "visible_camera", True) else 0
+    flags |= DIFFUSE if getattr(ob, "visible_diffuse", True) else 0
+    flags |= GLOSSY if getattr(ob, "visible_glossy", True) else 0
+    flags |= SPHERE if not getattr(light, "use_soft_falloff", True) else 0
+    flags |= NORMALIZE if getattr(light, "normalize", True) else 0
+    return flags
+
+
+def _size_paths(light):
+    """The data paths (on the light) of the Size socket's three components."""
+    if light.type in ("POINT", "SPOT"):
+        return ["shadow_soft_size"] + (["spot_size", "spot_blend"] if light.type == "SPOT" else [None, None])
+    if light.type == "SUN":
+        return ["angle", None, None]
+    size_y = "size_y" if light.shape in ("RECTANGLE", "ELLIPSE") else "size"
+    return ["size", size_y, "spread"]
+
+
+def _drive(tree, path, index, id_, expression, variables):
+    """A driver on tree[path][index]: `expression` over variables {name: (id, data path)}."""
+    fc = tree.driver_add(path, index)
+    drv = fc.driver
+    drv.type = 'SCRIPTED'
+    while drv.variables:
+        drv.variables.remove(drv.variables[0])
+    for name, (target, data_path) in variables.items():
+        var = drv.variables.new()
+        var.name = name
+        var.type = 'SINGLE_PROP'
+        var.targets[0].id_type = 'OBJECT' if isinstance(target, bpy.types.Object) else 'LIGHT'
+        var.targets[0].id = target
+        var.targets[0].data_path = data_path
+    drv.expression = expression
+    for mod in list(fc.modifiers):       # driver_add may add a generator: the driver alone decides
+        fc.modifiers.remove(mod)
+
+
+def _socket_path(script, name):
+    return f'nodes["{script.name}"].inputs["{name}"].default_value'
+
+
+def signature(scene):
+    """What a binding depends on beyond animation: lamp names, kinds, flags and shapes."""
+    return repr([(ob.name, ob.data.name, kind_of(ob.data), flags_of(ob), getattr(ob.data, "shape", ""),
+                  getattr(ob.data, "use_temperature", False)) for ob in scene_lamps(scene)[:SLOTS]])
+
+
+def bind(script, scene):
+    """Fill the shader's lamp slots with `scene`'s lamps (drivers for what animates). Does
+    nothing when the group is already bound to the same lamp set."""
+    tree = script.id_data
+    sig = signature(scene)
+    if tree.get(KEY) == sig:
+        return
+    lamps = scene_lamps(scene)[:SLOTS]
+    for k in range(SLOTS):
+        prefix = f"L{k}"
+        for name in ("P", "X", "Y", "Z", "Color", "Strength", "Size"):
+            path = _socket_path(script, prefix + name)
+            try:
+                tree.driver_remove(path)
+            except TypeError:
+                pass
+        if k >= len(lamps):
+            script.inputs[prefix + "Kind"].default_value = 0
+            script.inputs[prefix + "Strength"].default_value = 0.0
+            continue
+        ob, light = lamps[k], lamps[k].data
+        script.inputs[prefix + "Kind"].default_value = kind_of(light)
+        script.inputs[prefix + "Flags"].default_value = flags_of(ob)
+        for i in range(3):
+            _drive(tree, _socket_path(script, prefix + "P"), i, ob, "m", {"m": (ob, f"matrix_world[3][{i}]")})
+            for axis, col in (("X", 0), ("Y", 1), ("Z", 2)):
+                _drive(tree, _socket_path(script, prefix + axis), i, ob, "m",
+                       {"m": (ob, f"matrix_world[{col}][{i}]")})
+            if getattr(light, "use_temperature", False):
+                _drive(tree, _socket_path(script, prefix + "Color"), i, light, "c*t",
+                       {"c": (light, f"color[{i}]"), "t": (light, f"temperature_color[{i}]")})
+            else:
+                _drive(tree, _socket_path(script, prefix + "Color"), i, light, "c", {"c": (light, f"color[{i}]")})
+            path = _size_paths(light)[i]
+            if path is None:
+                script.inputs[prefix + "Size"].default_value[i] = 0.0
+            else:
+                _drive(tree, _socket_path(script, prefix + "Size"), i, light, "s", {"s": (light, path)})
+        if hasattr(light, "exposure"):
+            _drive(tree, _socket_path(script, prefix + "Strength"), -1, light, "e*pow(2, x)",
+                   {"e": (light, "energy"), "x": (light, "exposure")})
+        else:
+            _drive(tree, _socket_path(script, prefix + "Strength"), -1, light, "e", {"e": (light, "energy")})
+    tree[KEY] = sig
+
+
+def limits(scene):
+    """What the shader does not light as Cycles would, in words (empty when all is modelled)."""
+    lamps = scene_lamps(scene)
+    notes = []
+    if len(lamps) > SLOTS:
+        notes.append(f"{len(lamps) - SLOTS} lamp(s) past the first {SLOTS} are not lit "
+                     f"({', '.join(ob.name for ob in lamps[SLOTS:][:3])}{', ...' if len(lamps) > SLOTS + 3 else ''})")
+    linked = [ob.name for ob in lamps if getattr(getattr(ob, "light_linking", None), "receiver_collection", None)]
+    if linked:
+        notes.append(f"light linking not honoured ({', '.join(linked[:3])})")
+    noded = [ob.name for ob in lamps[:SLOTS] if getattr(ob.data, "use_nodes", False)]
+    if noded:
+        notes.append(f"lamp node shaders not evaluated, colour x strength only ({', '.join(noded[:3])})")
+    flat = [ob.name for ob in lamps[:SLOTS] if ob.data.type == "AREA" and getattr(ob.data, "spread", 1.0) <= 0.0]
+    if flat:
+        notes.append(f"area lamps with spread 0 are not lit ({', '.join(flat[:3])})")
+    return notes

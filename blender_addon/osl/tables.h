@@ -1,0 +1,250 @@
+// FlowBSDF OSL: the baked tables (bake/osl_export.py's texture layout): header, sampling and
+// evaluation. A port of bake/tables.py's Tables.sample and Tables._locate (the numpy reference).
+// Every texel is fetched with "interp", "closest" and zero derivatives, so values come back exact.
+
+#define LAYOUT 3
+#define K_SMALL 1e-4
+
+float fetch1(string file, float W, float H, int x, int y)
+{
+    color c = texture(file, (x + 0.5) / W, (y + 0.5) / H, 0, 0, 0, 0,
+                      "interp", "closest", "wrap", "clamp");
+    return c[0];
+}
+
+color fetch(string file, float W, float H, int x, int y)
+{
+    return texture(file, (x + 0.5) / W, (y + 0.5) / H, 0, 0, 0, 0,
+                   "interp", "closest", "wrap", "clamp");
+}
+
+// phi_bin p (row 1, green).
+float fetch_phi(string file, float W, float H, int p)
+{
+    color c = fetch(file, W, H, p, 1);
+    return c[1];
+}
+
+// One fetch of a corner-block texel, blended over its four bins (red, green, blue, alpha).
+color fetch4(string file, float W, float H, int x, int y, output float alpha)
+{
+    return texture(file, (x + 0.5) / W, (y + 0.5) / H, 0, 0, 0, 0,
+                   "interp", "closest", "wrap", "clamp", "alpha", alpha);
+}
+
+float fetch_blend(string file, float W, float H, int x, int y, float w[4])
+{
+    float alpha = 0;
+    color c = fetch4(file, W, H, x, y, alpha);
+    return w[0] * c[0] + w[1] * c[1] + w[2] * c[2] + w[3] * alpha;
+}
+
+float log1p_(float x)
+{
+    float y = 1.0 + x;
+    float d = y - 1.0;
+    return (d == 0.0) ? x : log(y) * (x / d);
+}
+
+float expm1_(float x)
+{
+    return (abs(x) < 1e-5) ? x + 0.5 * x * x : exp(x) - 1.0;
+}
+
+// The in-cell density k e^(k x) / (e^k - 1) on [0, 1] (bake/tables.py exp_density).
+float exp_density(float x, float k)
+{
+    if (abs(k) < K_SMALL)
+        return 1.0 + k * (x - 0.5);
+    return k * exp(k * x) / expm1_(k);
+}
+
+// Inverse CDF of the in-cell density k e^(k x) / (e^k - 1) on [0, 1] (bake/tables.py).
+float exp_inverse_cdf(float u, float k)
+{
+    float x;
+    if (abs(k) < K_SMALL)
+        x = u - 0.5 * k * (u * u - u);
+    else
+        x = log1p_(u * expm1_(k)) / k;
+    return clamp(x, 0.0, 1.0);
+}
+
+// The texture's header: 1 and (W, H, K, R, C, P, phi period) when it is a current export.
+int read_header(string file, output float W, output float H, output int K, output int R,
+                output int C, output int NP, output float period)
+{
+    int res[2];
+    if (!gettextureinfo(file, "resolution", res) || res[0] < 3 || res[1] < 3)
+        return 0;
+    W = res[0];
+    H = res[1];
+    color h0 = fetch(file, W, H, 0, 0);      // (LAYOUT, K, R)
+    color h1 = fetch(file, W, H, 1, 0);      // (C, W, H)
+    color h2 = fetch(file, W, H, 2, 0);      // (P, phi period, 0)
+    K = int(h0[1]);
+    R = int(h0[2]);
+    C = int(h1[0]);
+    NP = int(h2[0]);
+    period = h2[1];
+    return int(h0[0]) == LAYOUT && int(h1[1]) == res[0] && int(h1[2]) == res[1]
+        && K >= 1 && R >= 1 && C >= 1 && NP >= 1 && period > 0.0;
+}
+
+// The bins a direction blends at (cos theta_i, phi_i) (phi_i in the tangent frame; 0 when
+// NP = 1): their indices, weights and the first row of their corner block.
+void blend_bins(string file, float W, float H, int K, int R, int NP, float period,
+                float cos_i, float phi_i, output int bins[4], output float w[4], output int base)
+{
+    // theta_i: the last k with theta_bin k <= theta_i (cos_k >= cos_i), weight t toward k + 1.
+    int k = 0;
+    float t = 0.0;
+    if (K > 1) {
+        float c1 = 0;
+        color guide = fetch4(file, W, H, min(int(cos_i * W), int(W) - 1), 2, c1);
+        int lo = int(guide[0]), hi = int(guide[1]);
+        float c0 = guide[2];        // cos of bins min(lo, K - 2) and the next (c1)
+        if (hi - lo > 1) {
+            while (hi - lo > 1) {
+                int mid = (lo + hi) / 2;
+                if (fetch1(file, W, H, mid, 1) >= cos_i) lo = mid; else hi = mid;
+            }
+            c0 = fetch1(file, W, H, min(lo, K - 2), 1);
+            c1 = fetch1(file, W, H, min(lo, K - 2) + 1, 1);
+        }
+        k = min(lo, K - 2);
+        t = clamp((c0 - cos_i) / (c0 - c1), 0.0, 1.0);
+    }
+    // phi_i: within the period from the first bin; the last bin's gap wraps to the first.
+    int p = 0;
+    float sp = 0.0;
+    if (NP > 1) {
+        float phi0 = fetch_phi(file, W, H, 0);
+        float x = mod(phi_i - phi0, period);
+        int lo = 0, hi = NP;
+        while (hi - lo > 1) {
+            int mid = (lo + hi) / 2;
+            if (fetch_phi(file, W, H, mid) - phi0 <= x) lo = mid; else hi = mid;
+        }
+        p = lo;
+        float start = fetch_phi(file, W, H, p) - phi0;
+        float end = (p + 1 < NP) ? fetch_phi(file, W, H, p + 1) - phi0 : period;
+        sp = clamp((x - start) / (end - start), 0.0, 1.0);
+    }
+    int k1 = min(k + 1, K - 1);
+    int p1 = (p + 1) % NP;
+    w[0] = (1.0 - t) * (1.0 - sp);
+    w[1] = t * (1.0 - sp);
+    w[2] = (1.0 - t) * sp;
+    w[3] = t * sp;
+    bins[0] = k * NP + p;
+    bins[1] = k1 * NP + p;
+    bins[2] = k * NP + p1;
+    bins[3] = k1 * NP + p1;
+    base = 3 + 2 * K * NP * R + (k * NP + p) * (3 + 3 * R);
+}
+
+// Cell (i, j) of the blended table: its weight W (baked f cos / pdf) and (mass, alpha, beta).
+void blend_cell(string file, float W, float H, int B, int R, int bins[4], float w[4], int i, int j,
+                output color weight, output color cell)
+{
+    cell = 0;
+    weight = 0;
+    for (int c = 0; c < 4; c++) {
+        if (w[c] > 0.0) {
+            cell += w[c] * fetch(file, W, H, j, 3 + B * R + bins[c] * R + i);
+            weight += w[c] * fetch(file, W, H, j, 3 + bins[c] * R + i);
+        }
+    }
+}
+
+// Samples the tables at (cos theta_i, phi_i): wo in the local frame (x toward phi = 0), its
+// weight (baked f cos / pdf) and pdf per steradian.
+void sample_tables(string file, float W, float H, int K, int R, int C, int NP, float period,
+                   float cos_i, float phi_i, float u0, float u1,
+                   output vector wo, output color weight, output float pdf)
+{
+    int bins[4];
+    float w[4];
+    int base;
+    blend_bins(file, W, H, K, R, NP, period, cos_i, phi_i, bins, w, base);
+
+    // Row: the last i with CDF_i <= u0 (the guide brackets it).
+    color guide = fetch(file, W, H, min(int(u0 * R), R - 1), base + 2 + 2 * R);
+    int lo = int(guide[0]), hi = int(guide[1]);
+    while (hi - lo > 1) {
+        int mid = (lo + hi) / 2;
+        if (fetch_blend(file, W, H, mid, base, w) <= u0) lo = mid; else hi = mid;
+    }
+    int i = lo;
+    float c0 = fetch_blend(file, W, H, i, base, w);
+    float c1 = fetch_blend(file, W, H, i + 1, base, w);
+    float v = u1 * (c1 - c0);
+    // Column: the last j with cumsum_ij <= v.
+    int yrow = base + 2 + i;
+    guide = fetch(file, W, H, min(int(u1 * C), C - 1), base + 3 + 2 * R + i);
+    lo = int(guide[0]);
+    hi = int(guide[1]);
+    while (hi - lo > 1) {
+        int mid = (lo + hi) / 2;
+        if (fetch_blend(file, W, H, mid, yrow, w) <= v) lo = mid; else hi = mid;
+    }
+    int j = lo;
+    float d0 = fetch_blend(file, W, H, j, yrow, w);
+    float a0 = fetch_blend(file, W, H, i, base + 1, w);
+    float a1 = fetch_blend(file, W, H, i + 1, base + 1, w);
+    float b0 = fetch_blend(file, W, H, j, base + 2 + R + i, w);
+    float b1 = fetch_blend(file, W, H, j + 1, base + 2 + R + i, w);
+    color cell;
+    blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, cell);
+    float x = exp_inverse_cdf(clamp((u0 - c0) / (c1 - c0), 0.0, 1.0), cell[1]);
+    float y = exp_inverse_cdf(clamp((v - d0) / cell[0], 0.0, 1.0), cell[2]);
+    float a = a0 + x * (a1 - a0);
+    float b = b0 + y * (b1 - b0);
+    float s = sqrt(max(a * (2.0 - a), 0.0));
+    // b is the azimuth from the mirror plane of wi, + pi: phi_o = b - pi + (phi_i + pi).
+    wo = vector(s * cos(b + phi_i), s * sin(b + phi_i), 1.0 - a);
+    pdf = cell[0] * exp_density(x, cell[1]) * exp_density(y, cell[2]) / ((a1 - a0) * (b1 - b0));
+}
+
+// The tables' pdf (per steradian) and baked f cos (= the cell's weight x pdf) at a direction
+// wo of the local frame (Tables.pdf and Tables.eval x cos): 0 below the horizon.
+void eval_tables(string file, float W, float H, int K, int R, int C, int NP, float period,
+                 float cos_i, float phi_i, vector wo, output color fcos, output float pdf)
+{
+    fcos = 0;
+    pdf = 0;
+    if (wo[2] <= 0.0)
+        return;
+    int bins[4];
+    float w[4];
+    int base;
+    blend_bins(file, W, H, K, R, NP, period, cos_i, phi_i, bins, w, base);
+    float a = min((wo[0] * wo[0] + wo[1] * wo[1]) / (1.0 + wo[2]), 1.0);
+    float b = mod(atan2(wo[1], wo[0]) - phi_i, 2.0 * M_PI);     // as in sample_tables: phi_o = b + phi_i
+    // Row: the last i with a_i <= a; column: the last j with b_ij <= b.
+    int lo = 0, hi = R;
+    while (hi - lo > 1) {
+        int mid = (lo + hi) / 2;
+        if (fetch_blend(file, W, H, mid, base + 1, w) <= a) lo = mid; else hi = mid;
+    }
+    int i = lo;
+    int brow = base + 2 + R + i;
+    lo = 0;
+    hi = C;
+    while (hi - lo > 1) {
+        int mid = (lo + hi) / 2;
+        if (fetch_blend(file, W, H, mid, brow, w) <= b) lo = mid; else hi = mid;
+    }
+    int j = lo;
+    float a0 = fetch_blend(file, W, H, i, base + 1, w);
+    float a1 = fetch_blend(file, W, H, i + 1, base + 1, w);
+    float b0 = fetch_blend(file, W, H, j, brow, w);
+    float b1 = fetch_blend(file, W, H, j + 1, brow, w);
+    color weight, cell;
+    blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, cell);
+    float x = clamp((a - a0) / (a1 - a0), 0.0, 1.0);
+    float y = clamp((b - b0) / (b1 - b0), 0.0, 1.0);
+    pdf = cell[0] * exp_density(x, cell[1]) * exp_density(y, cell[2]) / ((a1 - a0) * (b1 - b0));
+    fcos = weight * pdf;
+}

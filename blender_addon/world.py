@@ -1,0 +1,147 @@
+"""The world's importance map for the Learned BSDF's shaders (bake/world_map.py).
+
+`bake_world_map(scene, folder)` renders the scene's world — whatever its nodes: an HDRI, a
+Sky Texture with its sun — into a small equirectangular image with Cycles (a temporary
+scene holding only a panoramic camera, so nothing occludes the world), and writes the
+texture the shaders sample. The texture is named after the world's state (`world_key`):
+its node tree, their values and images, and the frame when the world is animated; an
+unchanged world reuses its file.
+
+The map decides only where the shaders draw directions (Cycles evaluates the true world
+along them), so an outdated map costs noise, never bias. That is why it is rebuilt outside
+renders (a render cannot start another one): when a material is bound, when a file loads and
+shortly after the world changes (`schedule`), and before a render only if it is missing.
+"""
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+
+import bpy
+
+WIDTH, HEIGHT, SPP = 256, 128, 16
+# The share of portal directions drawn from the world map: none for a near-constant world,
+# where the tables alone are the better choice.
+SHARE = 0.5
+FLAT = 1.5          # the map's peak pdf over a uniform sphere's, below which the world is "flat"
+
+
+_LAYOUT_PROPS = {"rna_type", "location", "location_absolute", "width", "height", "select", "dimensions",
+                 "name", "label", "show_options", "show_preview", "hide", "show_texture", "warning_propagation"}
+
+
+def _value(v):
+    if isinstance(v, float):
+        return round(v, 6)
+    if isinstance(v, (str, int, bool)) or v is None:
+        return v
+    try:
+        return tuple(_value(x) for x in v)
+    except TypeError:
+        return repr(v)
+
+
+def world_key(scene):
+    """A content hash of the scene's world as it renders now (nodes, values, images, frame when animated)."""
+    world = scene.world
+    if world is None:
+        return None
+    h = hashlib.sha256()
+    h.update(repr((world.name, WIDTH, HEIGHT, SPP)).encode())
+    tree = world.node_tree      # (use_nodes is deprecated in 5.0; worlds made by Blender have a tree)
+    if tree is None:
+        h.update(repr(_value(world.color)).encode())
+    else:
+        for node in sorted(tree.nodes, key=lambda n: n.name):
+            h.update(repr((node.name, node.bl_idname)).encode())
+            for prop in node.bl_rna.properties:
+                if prop.identifier in _LAYOUT_PROPS:
+                    continue
+                value = getattr(node, prop.identifier, None)
+                if isinstance(value, bpy.types.Image):
+                    file = bpy.path.abspath(value.filepath)
+                    value = (value.filepath, os.path.getmtime(file) if os.path.isfile(file) else 0)
+                elif prop.type in ('POINTER', 'COLLECTION'):
+                    continue
+                h.update(repr((prop.identifier, _value(value))).encode())
+            for sock in node.inputs:
+                if not sock.is_linked and hasattr(sock, "default_value"):
+                    h.update(repr(_value(sock.default_value)).encode())
+        for link in tree.links:
+            h.update(repr((link.from_node.name, link.from_socket.identifier,
+                           link.to_node.name, link.to_socket.identifier)).encode())
+    if world.animation_data or (tree is not None and tree.animation_data):
+        h.update(repr(scene.frame_current).encode())
+    return h.hexdigest()
+
+
+def map_path(folder, key):
+    return Path(folder) / f"world-{key[:16]}.exr"
+
+
+def render_world(scene, width=WIDTH, height=HEIGHT, spp=SPP):
+    """The scene's world as an equirectangular radiance image (height, width, 3), row 0 the
+    zenith, column u = 0.5 - atan2(y, x) / 2 pi (bake/world_map.py)."""
+    tmp = bpy.data.scenes.new("FlowBSDF world map")
+    cam_data = bpy.data.cameras.new("FlowBSDF world map")
+    cam = bpy.data.objects.new("FlowBSDF world map", cam_data)
+    fd, path = tempfile.mkstemp(suffix=".exr", prefix="flowbsdf_world_")
+    os.close(fd)
+    try:
+        tmp.world = scene.world
+        tmp.frame_current = scene.frame_current
+        tmp.collection.objects.link(cam)
+        tmp.camera = cam
+        cam_data.type = 'PANO'
+        if hasattr(cam_data, "panorama_type"):
+            cam_data.panorama_type = 'EQUIRECTANGULAR'
+        else:                                   # Blender < 4.0
+            cam_data.cycles.panorama_type = 'EQUIRECTANGULAR'
+        cam.rotation_euler = (1.5707963267948966, 0.0, -1.5707963267948966)   # measured: Blender's convention
+        r = tmp.render
+        r.engine = 'CYCLES'
+        r.resolution_x, r.resolution_y, r.resolution_percentage = width, height, 100
+        r.image_settings.file_format = 'OPEN_EXR'
+        r.image_settings.color_depth = '32'
+        r.filepath = path
+        tmp.cycles.device = 'CPU'
+        tmp.cycles.samples = spp
+        tmp.cycles.use_adaptive_sampling = False
+        tmp.cycles.use_denoising = False
+        tmp.cycles.pixel_filter_type = 'BOX'
+        tmp.view_settings.view_transform = 'Standard'
+        bpy.ops.render.render(write_still=True, scene=tmp.name)
+        image = bpy.data.images.load(path)
+        try:
+            import numpy as np
+            px = np.array(image.pixels[:], np.float32).reshape(height, width, image.channels)
+        finally:
+            bpy.data.images.remove(image)
+        return px[::-1, :, :3]          # Blender's pixels start at the bottom row
+    finally:
+        bpy.data.scenes.remove(tmp)
+        bpy.data.objects.remove(cam)
+        bpy.data.cameras.remove(cam_data)
+        Path(path).unlink(missing_ok=True)
+
+
+def bake_world_map(scene, folder):
+    """(texture path, share of portal directions to draw from it) for the scene's world, made
+    when missing; (None, 0) for no world, a black one, or where numpy/bake are missing."""
+    key = world_key(scene)
+    if key is None:
+        return None, 0.0
+    from . import node
+    world_map = node._bake_mod("world_map")
+    if world_map is None:
+        return None, 0.0
+    path = map_path(folder, key)
+    meta = world_map.read_world_meta(path)
+    if meta is None:
+        try:
+            wm = world_map.WorldMap(render_world(scene))
+        except world_map.FlowBSDFError:         # black world: nothing to sample
+            return None, 0.0
+        meta = {"key": key, "peak": wm.peak}
+        world_map.write_world_texture(path, wm, meta)
+    return str(path), (SHARE if meta.get("peak", 0.0) > FLAT else 0.0)
