@@ -127,7 +127,7 @@ def test_point_light_on_lambert_matches_the_formula(shape):
     mat = open_material({"kind": "analytic", "model": "lambert", "albedo": albedo})
     cam = Camera(np.array([0.0, -0.5, 4.0]), np.array([0.0, 0.0, 0.0]), fov=50.0, width=24, height=24)
     from bake.tracer.lights import PointLight
-    scene = Scene(cam, [SceneMaterial("m", mat, learned=True)], [PointLight(light, [intensity] * 3)])
+    scene = Scene(cam, [SceneMaterial("m", mat, learned=True)], [PointLight(light, intensity=[intensity] * 3)])
     if shape == "plane":
         scene.add_plane([0, 0, 0], [0, 0, 1], 0)
         normal = lambda p: np.array([[0.0, 0.0, 1.0]])     # noqa: E731
@@ -159,7 +159,7 @@ def test_anisotropic_materials_follow_the_tangent():
         mat = open_material({"kind": "analytic", "model": "ggx", "alpha_x": 0.4, "alpha_y": 0.03,
                              "angle": angle, "f0": 0.9})
         cam = Camera(np.array([0.0, -3.0, 2.0]), np.array([0.0, 0.0, 0.0]), fov=60.0, width=16, height=16)
-        scene = Scene(cam, [SceneMaterial("m", mat, learned=True)], [PointLight([0.5, 1.5, 1.5], [5] * 3)])
+        scene = Scene(cam, [SceneMaterial("m", mat, learned=True)], [PointLight([0.5, 1.5, 1.5], intensity=[5] * 3)])
         scene.add_plane([0, 0, 0], [0, 0, 1], 0, tangent=tangent)
         return render(scene.finish(), [CosineSampler()], spp=2, seed=1)[0]
 
@@ -282,15 +282,36 @@ type = "environment"
 sky = { sun_size = 15, sun_strength = 3 }
 strength = 0.5
 [[light]]
-type = "quad"
-corner = [-1.5, -1.5, 3]
-edge1 = [0, 1, 0]
-edge2 = [1, 0, 0]
+type = "area"
+position = [-1, -1, 3]
+axis_u = [1, 0, 0]
+axis_v = [0, 1.5, 0]
+shape = "ellipse"
+spread = 100
 radiance = [6, 6, 6]
 [[light]]
 type = "point"
 position = [2, -2, 3]
 intensity = [5, 5, 5]
+[[light]]
+type = "point"
+position = [-2, 1, 2]
+strength = [40, 40, 40]
+radius = 0.3
+soft_falloff = false
+[[light]]
+type = "spot"
+position = [1, 1, 3]
+direction = [-0.3, -0.3, -1]
+size = 50
+blend = 0.3
+radius = 0.2
+strength = [200, 200, 200]
+[[light]]
+type = "sun"
+direction = [0.3, 0.5, -1]
+angle = 15
+strength = [1, 1, 1]
 """)
     scene = load_scene(tmp_path / "s.toml")
     from bake.tracer.samplers import scene_samplers
@@ -298,20 +319,26 @@ intensity = [5, 5, 5]
     a = block_stats(scene, samplers, mis=True, passes=64, seed=11)
     b = block_stats(scene, samplers, mis=False, passes=64, seed=12)
     assert np.all(np.abs(z_scores(a, b)) < Z_MAX)
-    # MIS is the lower-noise estimator here (the quad and the sun are small)
+    # MIS is the lower-noise estimator here (the lamps and the sky's sun are small)
     assert np.sum(a[1]) < np.sum(b[1])
 
 
-def test_quad_light_faces_edge1_cross_edge2():
-    from bake.tracer.lights import QuadLight
-    q = QuadLight([-1, -1, 2], [2, 0, 0], [0, 2, 0], [1, 1, 1])      # emits towards +z
+def test_area_light_emits_along_minus_u_cross_v():
+    from bake.tracer.lights import AreaLight
     p = np.zeros((4, 3))
-    _, _, Li, pdf = q.sample(p, np.full((4, 2), 0.5))
-    assert np.all(Li == 0) and np.all(pdf == 0)                       # the floor sees its back
-    q = QuadLight([-1, -1, 2], [0, 2, 0], [2, 0, 0], [1, 1, 1])      # emits towards -z
+    q = AreaLight([0, 0, 2], [2, 0, 0], [0, 2, 0], radiance=[1, 1, 1])        # local -Z = -z: down
     wl, dist, Li, pdf = q.sample(p, np.full((4, 2), 0.5))
     np.testing.assert_allclose(Li, 1.0)
     np.testing.assert_allclose(pdf, 4.0 / 4.0)                        # dist² / (area cos) = 4 / 4
+    q = AreaLight([0, 0, 2], [0, 2, 0], [2, 0, 0], radiance=[1, 1, 1])        # emits up
+    _, _, Li, pdf = q.sample(p, np.full((4, 2), 0.5))
+    assert np.all(Li == 0) and np.all(pdf == 0)                       # the floor sees its back
+
+
+def test_quad_lights_say_how_to_migrate(tmp_path):
+    (tmp_path / "q.toml").write_text(GOOD + '[[light]]\ntype = "quad"\ncorner = [0, 0, 2]\n')
+    with pytest.raises(FlowBSDFError, match="replaced by 'area'.*axis_u = edge2"):
+        load_scene(tmp_path / "q.toml")
 
 
 # ------------------------------------------------------------------------ environment
