@@ -300,7 +300,12 @@ class SunLight:
 class AreaLight:
     """Blender's area lamp (see the module docstring): centre `position`, full extents axis_u
     and axis_v (perpendicular; scale included), a rectangle or (ellipse) the ellipse inscribed
-    in it. Exactly one of `strength` (S) and `radiance` (before the spread factor)."""
+    in it. Exactly one of `strength` (S) and `radiance` (before the spread factor).
+
+    Sampling: uniform by area over the shape; with a spread < 180 deg, uniform over the part
+    of the shape's bounding rectangle that lies within the spread circle's bounding square
+    (outside the circle of radius h tan(spread/2) about the point's projection, h its height,
+    the lamp sends the point nothing), points outside an ellipse giving no light."""
     delta = False
 
     def __init__(self, position, axis_u, axis_v, *, strength=None, radiance=None, ellipse=False,
@@ -308,7 +313,8 @@ class AreaLight:
         self.position, self.axis_u, self.axis_v = (np.asarray(x, float) for x in (position, axis_u, axis_v))
         n = np.cross(self.axis_u, self.axis_v)
         self.ellipse = bool(ellipse)
-        self.area = float(np.linalg.norm(n)) * (np.pi / 4 if self.ellipse else 1.0)
+        self.len_u, self.len_v = np.linalg.norm(self.axis_u), np.linalg.norm(self.axis_v)
+        self.area = self.len_u * self.len_v * (np.pi / 4 if self.ellipse else 1.0)
         if not self.area > 0:
             raise ValueError("area light has zero area")
         self.normal = -n / np.linalg.norm(n)                 # the emission direction, local -Z
@@ -334,20 +340,44 @@ class AreaLight:
             f = np.where(front, np.maximum((self.tan_half - tan) * self.spread_norm, 0.0), 0.0)
         return f[:, None] * self.radiance[None, :]
 
+    def _coords(self, x):
+        """Coordinates along axis_u, axis_v in units of the full extents (the shape: |a|, |b| <= 1/2)."""
+        return x @ self.axis_u / self.len_u ** 2, x @ self.axis_v / self.len_v ** 2
+
+    def _region(self, p):
+        """(lo_a, hi_a, lo_b, hi_b, area) of the part of the shape's bounding rectangle that
+        sampling from points p covers; area 0 where p gets no light."""
+        n = len(p)
+        if np.isinf(self.tan_half):
+            lo, hi = np.full(n, -0.5), np.full(n, 0.5)
+            return lo, hi, lo, hi, np.full(n, self.area)
+        x = p - self.position
+        r = np.maximum(x @ self.normal, 0.0) * self.tan_half
+        a, b = self._coords(x)
+        lo_a, hi_a = np.maximum(a - r / self.len_u, -0.5), np.minimum(a + r / self.len_u, 0.5)
+        lo_b, hi_b = np.maximum(b - r / self.len_v, -0.5), np.minimum(b + r / self.len_v, 0.5)
+        area = np.maximum(hi_a - lo_a, 0.0) * np.maximum(hi_b - lo_b, 0.0) * self.len_u * self.len_v
+        return lo_a, hi_a, lo_b, hi_b, area
+
+    def _inside(self, a, b):
+        return a * a + b * b <= 0.25 if self.ellipse else (np.abs(a) <= 0.5) & (np.abs(b) <= 0.5)
+
     def sample(self, p, u):
-        if self.ellipse:
+        lo_a, hi_a, lo_b, hi_b, region = self._region(p)
+        if self.ellipse and np.isinf(self.tan_half):
             a, b = _disk(u)
             a, b = a / 2, b / 2
         else:
-            a, b = u[:, 0] - 0.5, u[:, 1] - 0.5
+            a, b = lo_a + u[:, 0] * (hi_a - lo_a), lo_b + u[:, 1] * (hi_b - lo_b)
         q = self.position + a[:, None] * self.axis_u + b[:, None] * self.axis_v
         wl = q - p
         dist = np.linalg.norm(wl, axis=1)
         wl = wl / dist[:, None]
         cos_l = -(wl @ self.normal)
+        ok = (cos_l > 0) & (region > 0) & self._inside(a, b)
         with np.errstate(divide="ignore", invalid="ignore"):
-            pdf = np.where(cos_l > 0, dist * dist / (self.area * cos_l), 0.0)
-        return wl, dist, self._emitted(cos_l), pdf
+            pdf = np.where(ok, dist * dist / (region * cos_l), 0.0)
+        return wl, dist, np.where(ok[:, None], self._emitted(cos_l), 0.0), pdf
 
     def intersect(self, o, d, t_max):
         """One-sided: rays travelling against the normal."""
@@ -355,19 +385,19 @@ class AreaLight:
         with np.errstate(divide="ignore", invalid="ignore"):
             t = ((self.position - o) @ self.normal) / dn
         x = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d - self.position
-        a = x @ self.axis_u / (self.axis_u @ self.axis_u)
-        b = x @ self.axis_v / (self.axis_v @ self.axis_v)
-        inside = a * a + b * b <= 0.25 if self.ellipse else (np.abs(a) <= 0.5) & (np.abs(b) <= 0.5)
-        hit = (dn < 0) & (t > EPS_T) & (t < t_max) & inside
+        hit = (dn < 0) & (t > EPS_T) & (t < t_max) & self._inside(*self._coords(x))
         return hit, np.where(hit, t, np.inf)
 
     def eval_hit(self, o, d, t):
         return self._emitted(-(d @ self.normal))
 
     def pdf_hit(self, o, d, t):
+        lo_a, hi_a, lo_b, hi_b, region = self._region(o)
+        a, b = self._coords(o + t[:, None] * d - self.position)
         cos_l = -(d @ self.normal)
+        ok = (cos_l > 0) & (region > 0) & (a >= lo_a) & (a <= hi_a) & (b >= lo_b) & (b <= hi_b)
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(cos_l > 0, t * t / (self.area * cos_l), 0.0)
+            return np.where(ok, t * t / (region * cos_l), 0.0)
 
 
 # --------------------------------------------------------------------------- images

@@ -1,0 +1,210 @@
+"""Blender's lamps in the reference tracer against Cycles' own renders.
+
+Each case lights a Lambertian plane (and a Lambertian sphere where the lamp has a size the
+sphere's shading resolves) with one lamp, in Cycles (bpy, SVM, Diffuse BSDF, black world, ortho
+camera looking down -z, box pixel filter) and in the tracer (the lamp written in the scene
+format with Blender's conventions spelled out here: S = color * energy * 2^exposure, sizes
+times object scale). Per pixel and channel z = (Cycles - tracer) / sqrt(var + var), the Cycles
+variance from 8 seeds, the tracer's from its 1024 passes; and the image means agree.
+Also: each hittable lamp's sample() against its pdf_hit() (chi-square and the solid angle).
+"""
+import math
+
+import numpy as np
+import pytest
+
+import cycles_scenes as cs
+from bake.baselines import CosineSampler
+from bake.materials import open_material
+from bake.metrics import chi2_test
+from bake.tracer.integrator import render
+from bake.tracer.scene import SceneMaterial, scene_from_dict
+
+N = 24                  # pixels per side; the view covers [-1, 1]^2 of the plane z = 0
+ALBEDO = 0.8
+Z_MAX = 5.0             # per pixel and channel (~1700 values: a false alarm ~1e-3)
+
+
+class OrthoCamera:
+    """The tracer's side of cycles_scenes.ortho_camera: rays straight down -z from z = distance,
+    image x = world x, rows top to bottom = world y descending (duck-types scene.Camera)."""
+
+    def __init__(self, n=N, distance=5.0, scale=2.0):
+        self.width = self.height = n
+        self.distance, self.scale = distance, scale
+
+    def rays(self, px, py, jitter):
+        x = ((px + jitter[:, 0]) / self.width - 0.5) * self.scale
+        y = (0.5 - (py + jitter[:, 1]) / self.height) * self.scale
+        o = np.stack([x, y, np.full(len(x), self.distance)], axis=1)
+        return o, np.tile([0.0, 0.0, -1.0], (len(x), 1))
+
+
+SPHERE = ([-0.45, 0.35, 0.35], 0.35)        # centre, radius: a ball on the plane
+
+
+def tracer_scene(lamps, sphere=False):
+    """The plane (and the ball) lit by `lamps` (scene-format [[light]] tables)."""
+    data = {"camera": {"position": [0, 0, 5], "look_at": [0, 0.001, 0], "width": N, "height": N},
+            "materials": {"m": {"model": "lambert", "albedo": ALBEDO}},
+            "shape": [{"type": "plane", "point": [0, 0, 0], "normal": [0, 0, 1], "size": 8, "material": "m"}],
+            "light": lamps, "render": {"max_depth": 64}}
+    if sphere:
+        data["shape"].append({"type": "sphere", "center": SPHERE[0], "radius": SPHERE[1], "material": "m"})
+    scene = scene_from_dict(data)
+    scene.camera = OrthoCamera()
+    return scene
+
+
+def cycles_scene(lamps, sphere=False, spp=64):
+    """The same in Cycles; lamps: (type, object settings, light data settings) triples."""
+    bpy = cs.bpy_or_skip()
+    sc = cs.reset(N, N, spp=spp, osl=False, threads=1)
+    sc.cycles.pixel_filter_type = 'BOX'
+    sc.cycles.filter_width = 1.0
+    sc.cycles.light_sampling_threshold = 0.0
+    cs.set_world(sc, (0.0, 0.0, 0.0))
+    cs.ortho_camera(sc, distance=5.0, scale=2.0)
+
+    def diffuse(tree):
+        node = tree.nodes.new("ShaderNodeBsdfDiffuse")
+        node.inputs["Color"].default_value = (ALBEDO, ALBEDO, ALBEDO, 1.0)
+        return node.outputs[0]
+    mat = cs.material_with(diffuse)
+    cs.add_plane(sc, mat, size=8.0)
+    if sphere:
+        ob = cs.add_sphere(sc, mat, radius=SPHERE[1], segments=96, rings=48)
+        ob.location = SPHERE[0]
+    for kind, obj, data in lamps:
+        light = bpy.data.lights.new(kind.lower(), kind)
+        for k, v in data.items():
+            setattr(light, k, v)
+        ob = bpy.data.objects.new(kind.lower(), light)
+        for k, v in obj.items():
+            setattr(ob, k, v)
+        sc.collection.objects.link(ob)
+    return sc
+
+
+def compare(cycles_lamps, tracer_lamps, sphere=False, seeds=8, spp=128, tracer_spp=1024, seed=1):
+    """(z per pixel and channel, image mean ratio Cycles / tracer, its standard error, the
+    Cycles image, the tracer's). Cycles' pixels are independent (its sample pattern is
+    scrambled per pixel), as are the tracer's: the image mean's variance is the sum of theirs."""
+    sc = cycles_scene(cycles_lamps, sphere, spp)
+    imgs = cs.render_seeds(sc, seeds).astype(float)
+    cyc, var_c = imgs.mean(0), imgs.var(0, ddof=1) / seeds
+    scene = tracer_scene(tracer_lamps, sphere)
+    mat = open_material({"kind": "analytic", "model": "lambert", "albedo": ALBEDO})
+    scene.materials = [SceneMaterial("m", mat, learned=False, sampler="cosine")]
+    ref, var_t, _ = render(scene, [CosineSampler()], spp=tracer_spp, mis=True, seed=seed)
+    # Where a pixel's light comes from rare paths (a few bounces off the ball, a corner of a
+    # spread's reach) a pass variance can be 0 though the value is not: differences below
+    # 1e-5 of the brightest pixel are taken as noise, not resolved.
+    sigma = np.sqrt(var_c + var_t + (1e-5 * ref.max()) ** 2)
+    z = (cyc - ref) / sigma
+    m_c, m_t = cyc.mean(), ref.mean()
+    se = math.sqrt((var_c.sum() + var_t.sum()) / var_t.size ** 2)
+    return z, m_c / m_t, se / m_t, cyc, ref
+
+
+def euler(rx, ry, rz):
+    """Blender's XYZ Euler rotation matrix (world from local)."""
+    cx, sx, cy, sy, cz, sz = (f(a) for a in (rx, ry, rz) for f in (math.cos, math.sin))
+    X = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    Y = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Z = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return Z @ Y @ X
+
+
+# Blender's conventions, spelled out: a lamp object at LOC turned by ROT (and scaled); the
+# tracer's entry from its numbers. S = color * energy * 2^exposure (* the temperature's colour).
+LOC, ROT = (0.1, 0.0, 1.0), (0.3, -0.2, 0.5)
+R = euler(*ROT)
+SEEN = {"visible_camera": True}        # Blender's lamps are invisible to camera rays by default
+
+
+def point(radius=0.0, soft=True, camera=False, z=0.7, energy=50.0):
+    obj = {"location": (0.3, -0.2, z), **(SEEN if camera else {})}
+    data = {"energy": energy, "shadow_soft_size": radius, "use_soft_falloff": soft}
+    entry = {"type": "point", "position": [0.3, -0.2, z], "strength": [energy] * 3, "radius": radius,
+             "soft_falloff": soft, "camera": camera}
+    return ("POINT", obj, data), entry
+
+
+def spot(radius=0.0, blend=0.5, scale=(1.0, 1.0, 1.0), energy=80.0, size=60.0):
+    obj = {"location": (0.1, 0.0, 1.2), "rotation_euler": ROT, "scale": scale}
+    data = {"energy": energy, "spot_size": math.radians(size), "spot_blend": blend, "shadow_soft_size": radius}
+    entry = {"type": "spot", "position": [0.1, 0.0, 1.2], "frame": (R @ np.diag(scale)).tolist(), "size": size,
+             "blend": blend, "strength": [energy] * 3, "radius": radius, "camera": False}
+    return ("SPOT", obj, data), entry
+
+
+def sun(angle=0.0, energy=3.0, normalize=True):
+    data = {"energy": energy, "angle": math.radians(angle), "normalize": normalize}
+    s = energy if normalize else energy * math.pi * math.sin(math.radians(angle) / 2) ** 2
+    entry = {"type": "sun", "direction": (-R[:, 2]).tolist(), "strength": [s] * 3, "angle": angle, "camera": False}
+    return ("SUN", {"rotation_euler": ROT}, data), entry
+
+
+def area(shape, spread=180.0, size=(0.8, 0.5), scale=(1.0, 1.0, 1.0), energy=30.0, color=(1.0, 1.0, 1.0),
+         exposure=0.0, temperature=None, normalize=True):
+    obj = {"location": LOC, "rotation_euler": ROT, "scale": scale}
+    data = {"energy": energy, "shape": shape, "size": size[0], "size_y": size[1], "spread": math.radians(spread),
+            "color": color, "exposure": exposure, "normalize": normalize}
+    sx = size[0] * scale[0]
+    sy = (size[1] if shape in ("RECTANGLE", "ELLIPSE") else size[0]) * scale[1]
+    s = np.asarray(color) * energy * 2.0 ** exposure
+    if temperature is not None:
+        data.update(use_temperature=True, temperature=temperature)
+        s = s * blackbody(temperature)
+    ellipse = shape in ("DISK", "ELLIPSE")
+    if not normalize:                                   # radiance S / pi: S times the area
+        s = s * sx * sy * (math.pi / 4 if ellipse else 1.0)
+    entry = {"type": "area", "position": list(LOC), "axis_u": (R[:, 0] * sx).tolist(),
+             "axis_v": (R[:, 1] * sy).tolist(), "shape": "ellipse" if ellipse else "rectangle",
+             "spread": spread, "strength": list(s), "camera": False}
+    return ("AREA", obj, data), entry
+
+
+def blackbody(kelvin):
+    """Blender's colour of a lamp's temperature (what its temperature_color reports)."""
+    bpy = cs.bpy_or_skip()
+    light = bpy.data.lights.new("probe", "POINT")
+    light.use_temperature, light.temperature = True, kelvin
+    rgb = np.array(light.temperature_color)
+    bpy.data.lights.remove(light)
+    return rgb
+
+
+CASES = {
+    "point r=0": (point(),),
+    "point r>0 soft falloff (disk), seen": (point(0.4, camera=True),),
+    "point r>0 sphere, seen, ball": (point(0.4, soft=False, camera=True), True),
+    "spot r=0 blend, cone edge in view": (spot(),),
+    "spot r>0 non-uniform scale (elliptic cone)": (spot(0.3, blend=0.2, scale=(1.0, 0.5, 1.0)),),
+    "sun angle 0, ball": (sun(), True),
+    "sun angle 40, ball": (sun(40.0), True),
+    "sun angle 40, normalize off": (sun(40.0, normalize=False), True),
+    "area square": (area("SQUARE"),),
+    "area square spread 60": (area("SQUARE", 60.0),),
+    "area rectangle, non-uniform scale": (area("RECTANGLE", scale=(1.5, 0.6, 1.0)),),
+    "area rectangle spread 60": (area("RECTANGLE", 60.0),),
+    "area disk": (area("DISK"),),
+    "area disk spread 60, normalize off": (area("DISK", 60.0, normalize=False),),
+    "area ellipse": (area("ELLIPSE"),),
+    "area ellipse spread 60, non-uniform scale": (area("ELLIPSE", 60.0, size=(0.8, 1.2), scale=(2.0, 0.5, 1.0)),),
+    "area colour, exposure, temperature": (area("SQUARE", color=(1.0, 0.5, 0.25), exposure=1.5,
+                                                temperature=4000.0),),
+}
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_lamp_matches_cycles(case):
+    (blender, entry), *ball = CASES[case]
+    z, ratio, se, cyc, ref = compare([blender], [entry], sphere=bool(ball))
+    assert np.mean(ref > 1e-3) > 0.2                        # the lamp lights the view
+    assert np.max(np.abs(z)) < Z_MAX, (case, np.max(np.abs(z)))
+    assert abs(ratio - 1) < max(4 * se, 2e-3), (case, ratio, se)
+    if case.startswith("spot r=0"):                          # pixels dark, in the blend and full
+        lum = ref[..., 1] / ref[..., 1].max()
+        assert (lum < 1e-3).sum() > 20 and ((lum > 0.1) & (lum < 0.6)).sum() > 20 and (lum > 0.9).sum() > 5
