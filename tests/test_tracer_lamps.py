@@ -208,3 +208,80 @@ def test_lamp_matches_cycles(case):
     if case.startswith("spot r=0"):                          # pixels dark, in the blend and full
         lum = ref[..., 1] / ref[..., 1].max()
         assert (lum < 1e-3).sum() > 20 and ((lum > 0.1) & (lum < 0.6)).sum() > 20 and (lum > 0.9).sum() > 5
+
+
+# ------------------------------------------------------------------------ sample() vs pdf_hit()
+
+class LampAsSampler:
+    """A lamp seen from point p as a direction sampler in a frame whose z axis points at
+    `axis` (the lamp), the interface metrics.chi2_test takes."""
+
+    def __init__(self, lamp, p, axis):
+        from bake.tracer.lights import _basis
+        self.lamp, self.p = lamp, np.asarray(p, float)
+        z = np.asarray(axis, float)[None, :] / np.linalg.norm(axis)
+        s, t = _basis(z)
+        self.frame = np.concatenate([s, t, z])                   # rows: local x, y, z
+
+    def sample(self, wi, u):
+        wl, _, _, pdf = self.lamp.sample(np.tile(self.p, (len(u), 1)), u)
+        return wl @ self.frame.T, pdf
+
+    def pdf(self, wi, wo):
+        d = wo @ self.frame
+        o = np.tile(self.p, (len(d), 1))
+        hit, t = self.lamp.intersect(o, d, np.full(len(d), np.inf))
+        return np.where(hit, self.lamp.pdf_hit(o, d, np.where(hit, t, 1.0)), 0.0)
+
+
+def hittable_lamps():
+    from bake.tracer.lights import AreaLight, PointLight, SpotLight, SunLight
+    down = np.diag([1.0, 1.0, 1.0])
+    return {
+        "point sphere": PointLight([0.3, 0.2, 1.0], strength=[1] * 3, radius=0.6, soft_falloff=False),
+        "point disk": PointLight([0.3, 0.2, 1.0], strength=[1] * 3, radius=0.6),
+        "spot sphere": SpotLight([0.3, 0.2, 1.0], frame=down, size_deg=90, blend=0.3, strength=[1] * 3,
+                                 radius=0.6, soft_falloff=False),
+        "sun 50 deg": SunLight([0.2, 0.4, -1.0], strength=[1] * 3, angle_deg=50.0),
+        "area rectangle": AreaLight([0.3, 0.2, 0.8], R[:, 0] * 1.5, R[:, 1] * 0.8, strength=[1] * 3),
+        "area ellipse": AreaLight([0.3, 0.2, 0.8], R[:, 0] * 1.5, R[:, 1] * 0.8, strength=[1] * 3, ellipse=True),
+        "area rectangle spread 60": AreaLight([0.3, 0.2, 0.8], R[:, 0] * 1.5, R[:, 1] * 0.8, strength=[1] * 3,
+                                              spread_deg=60.0),
+        "area ellipse spread 60": AreaLight([0.3, 0.2, 0.8], R[:, 0] * 1.5, R[:, 1] * 0.8, strength=[1] * 3,
+                                            ellipse=True, spread_deg=60.0),
+    }
+
+
+@pytest.mark.parametrize("name", list(hittable_lamps()))
+def test_lamp_sampling_matches_its_pdf(name):
+    """sample() from a point near the lamp against pdf_hit(): the returned pdf and distance
+    are what pdf_hit() and intersect() give the sampled direction, and the directions follow
+    pdf_hit() (chi-square on (cos theta, phi) about the lamp's centre)."""
+    lamp = hittable_lamps()[name]
+    p = np.array([0.0, 0.0, 0.1])
+    rng = np.random.default_rng(3)
+    n = 20000
+    o = np.tile(p, (n, 1))
+    wl, dist, Li, pdf = lamp.sample(o, rng.random((n, 2)))
+    ok = pdf > 0
+    assert ok.mean() > 0.3
+    hit, t = lamp.intersect(o[ok], wl[ok], np.full(ok.sum(), np.inf))
+    assert hit.all()
+    if np.all(np.isfinite(dist)):
+        np.testing.assert_allclose(t, dist[ok], rtol=1e-9)
+    np.testing.assert_allclose(lamp.pdf_hit(o[ok], wl[ok], t), pdf[ok], rtol=1e-9)
+    np.testing.assert_allclose(lamp.eval_hit(o[ok], wl[ok], t), Li[ok], rtol=1e-12)
+    axis = lamp.toward if hasattr(lamp, "toward") else lamp.position - p
+    result = chi2_test(LampAsSampler(lamp, p, axis), [0.0, 0.0, 1.0], n=200_000, res=(24, 24),
+                       binning="cosine", seed=5)
+    assert result.passed, result
+
+
+def test_the_pdf_check_catches_a_wrong_solid_angle():
+    """...and has power: a sphere lamp whose pdf_hit() is that of a sphere 3 % larger fails."""
+    from bake.tracer.lights import PointLight
+    lamp = PointLight([0.3, 0.2, 1.0], strength=[1] * 3, radius=0.6, soft_falloff=False)
+    wrong = PointLight([0.3, 0.2, 1.0], strength=[1] * 3, radius=0.618, soft_falloff=False)
+    sampler = LampAsSampler(lamp, [0.0, 0.0, 0.1], [0.3, 0.2, 0.9])
+    sampler.pdf = LampAsSampler(wrong, [0.0, 0.0, 0.1], [0.3, 0.2, 0.9]).pdf
+    assert not chi2_test(sampler, [0.0, 0.0, 1.0], n=200_000, res=(24, 24), binning="cosine", seed=5).passed
