@@ -88,23 +88,37 @@ def cycles_scene(lamps, sphere=False, spp=64):
 
 def compare(cycles_lamps, tracer_lamps, sphere=False, seeds=8, spp=128, tracer_spp=1024, seed=1):
     """(z per pixel and channel, image mean ratio Cycles / tracer, its standard error, the
-    Cycles image, the tracer's). Cycles' pixels are independent (its sample pattern is
-    scrambled per pixel), as are the tracer's: the image mean's variance is the sum of theirs."""
-    sc = cycles_scene(cycles_lamps, sphere, spp)
-    imgs = cs.render_seeds(sc, seeds).astype(float)
-    cyc, var_c = imgs.mean(0), imgs.var(0, ddof=1) / seeds
+    Cycles image, the tracer's)."""
+    cyc, var_c = cycles_stats(cycles_scene(cycles_lamps, sphere, spp), seeds)
     scene = tracer_scene(tracer_lamps, sphere)
     mat = open_material({"kind": "analytic", "model": "lambert", "albedo": ALBEDO})
     scene.materials = [SceneMaterial("m", mat, learned=False, sampler="cosine")]
     ref, var_t, _ = render(scene, [CosineSampler()], spp=tracer_spp, mis=True, seed=seed)
+    return (*agreement(cyc, var_c, ref, var_t), cyc, ref)
+
+
+def cycles_stats(sc, seeds):
+    """Cycles' image over `seeds` seeds: (mean, variance of the mean) per pixel and channel."""
+    imgs = cs.render_seeds(sc, seeds).astype(float)
+    return imgs.mean(0), imgs.var(0, ddof=1) / seeds
+
+
+def agreement(cyc, var_c, ref, var_t):
+    """(z per pixel and channel, image mean ratio Cycles / tracer, its standard error).
+    Cycles' pixels are independent (its sample pattern is scrambled per pixel), as are the
+    tracer's: the image mean's variance is the sum of theirs over the pixels."""
     # Where a pixel's light comes from rare paths (a few bounces off the ball, a corner of a
     # spread's reach) a pass variance can be 0 though the value is not: differences below
     # 1e-5 of the brightest pixel are taken as noise, not resolved.
     sigma = np.sqrt(var_c + var_t + (1e-5 * ref.max()) ** 2)
-    z = (cyc - ref) / sigma
-    m_c, m_t = cyc.mean(), ref.mean()
+    m_t = ref.mean()
     se = math.sqrt((var_c.sum() + var_t.sum()) / var_t.size ** 2)
-    return z, m_c / m_t, se / m_t, cyc, ref
+    return (cyc - ref) / sigma, cyc.mean() / m_t, se / m_t
+
+
+def assert_agree(z, ratio, se, what):
+    assert np.max(np.abs(z)) < Z_MAX, (what, np.max(np.abs(z)))
+    assert abs(ratio - 1) < max(4 * se, 2e-3), (what, ratio, se)
 
 
 def euler(rx, ry, rz):
@@ -203,8 +217,7 @@ def test_lamp_matches_cycles(case):
     (blender, entry), *ball = CASES[case]
     z, ratio, se, cyc, ref = compare([blender], [entry], sphere=bool(ball))
     assert np.mean(ref > 1e-3) > 0.2                        # the lamp lights the view
-    assert np.max(np.abs(z)) < Z_MAX, (case, np.max(np.abs(z)))
-    assert abs(ratio - 1) < max(4 * se, 2e-3), (case, ratio, se)
+    assert_agree(z, ratio, se, case)
     if case.startswith("spot r=0"):                          # pixels dark, in the blend and full
         lum = ref[..., 1] / ref[..., 1].max()
         assert (lum < 1e-3).sum() > 20 and ((lum > 0.1) & (lum < 0.6)).sum() > 20 and (lum > 0.9).sum() > 5
@@ -285,3 +298,44 @@ def test_the_pdf_check_catches_a_wrong_solid_angle():
     sampler = LampAsSampler(lamp, [0.0, 0.0, 0.1], [0.3, 0.2, 0.9])
     sampler.pdf = LampAsSampler(wrong, [0.0, 0.0, 0.1], [0.3, 0.2, 0.9]).pdf
     assert not chi2_test(sampler, [0.0, 0.0, 1.0], n=200_000, res=(24, 24), binning="cosine", seed=5).passed
+
+
+# ------------------------------------------------------------------------ the validate exporter
+
+def test_validate_exports_every_lamp_as_cycles_renders_it(tmp_path):
+    """A scene with one lamp of each type (a seen point with a radius, a scaled spot, a sun
+    with an angle, a mirrored ellipse with a spread and Normalize off, colour and exposure),
+    exported by the validate exporter and rendered by the tracer, matches Cycles' Diffuse render
+    of the same scene; what the tracer cannot render is refused, not dropped."""
+    import tomllib
+    cs.bpy_or_skip()
+    from blender_addon import validate
+    from bake.tracer.samplers import scene_samplers
+    from bake.tracer.scene import load_scene
+    lamps = [point(0.3, camera=True, z=0.8, energy=20.0)[0], spot(0.2, scale=(1.0, 0.6, 1.0), energy=40.0)[0],
+             sun(10.0, energy=1.0)[0],
+             area("ELLIPSE", 90.0, size=(0.6, 0.9), scale=(-1.5, 1.0, 1.0), energy=10.0, color=(1.0, 0.7, 0.4),
+                  exposure=0.5, normalize=False)[0]]
+    sc = cycles_scene(lamps, sphere=True, spp=128)
+    cs.persp_camera(sc, distance=6.0, fov_deg=22.0)
+    path, notes = validate.export_scene(sc, str(tmp_path / "v"), [], N, N, "unused.toml")
+    data = tomllib.loads(open(path).read())
+    assert sorted(l["type"] for l in data["light"]) == ["area", "environment", "point", "spot", "sun"]
+    cyc, var_c = cycles_stats(sc, 8)
+    scene = load_scene(path)
+    ref, var_t, _ = render(scene, scene_samplers(scene, "cosine", log=lambda s: None), spp=512, seed=2)
+    z, ratio, se = agreement(cyc, var_c, ref, var_t)
+    assert_agree(z, ratio, se, "exported scene")
+
+    import bpy
+    lamp = next(o for o in sc.objects if o.type == "LIGHT" and o.data.type == "SPOT")
+    for setting, value, problem in (("use_shadow", False, "casts no shadow"),
+                                    ("use_square", True, "square spot"),
+                                    ("diffuse_factor", 0.5, "diffuse_factor")):
+        setattr(lamp.data, setting, value)
+        with pytest.raises(validate.ExportError, match=problem):
+            validate.export_scene(sc, str(tmp_path / "v"), [], N, N, "unused.toml")
+        setattr(lamp.data, setting, not value if isinstance(value, bool) else 1.0)
+    lamp.light_linking.receiver_collection = bpy.data.collections.new("lit")
+    with pytest.raises(validate.ExportError, match="light or shadow linking"):
+        validate.export_scene(sc, str(tmp_path / "v"), [], N, N, "unused.toml")

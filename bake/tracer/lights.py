@@ -102,8 +102,11 @@ class Environment:
         return d, self.lum_over_total[row, col], self.image[row, col]
 
     def sample(self, p, u):
+        n = len(p)
+        if self.cdf is None:                    # a black world: nothing to sample
+            return np.tile([0.0, 0.0, 1.0], (n, 1)), np.full(n, np.inf), np.zeros((n, 3)), np.zeros(n)
         d, pdf, Li = self.sample_dir(u)
-        return d, np.full(len(p), np.inf), Li, pdf
+        return d, np.full(n, np.inf), Li, pdf
 
 
 def _unit(v):
