@@ -10,11 +10,13 @@ the lamp (Blender's object ray visibility).
 
 Lamps follow Cycles: they are not geometry -- they cast no shadow, and a ray that hits one goes on
 through it. S below is Blender's strength, color * energy * 2^exposure (W; the sun's is an
-irradiance, W/m^2). Checked against Cycles renders in tests/test_tracer_lamps.py.
+irradiance, W/m^2; Blender's Normalize off is folded into S by the exporter). Checked against
+Cycles renders in tests/test_tracer_lamps.py.
 
   point  radius 0: a delta light of intensity S/(4 pi) W/sr. Radius r > 0: radiance
          S/(4 pi * pi r^2) on a disk of radius r that faces the shading point (soft falloff,
-         Blender's default) or on a sphere of radius r (sampled by solid angle).
+         Blender's default) or on a sphere of radius r (sampled by solid angle). The radius
+         is Blender's as it is: object scale does not change it.
   spot   a point lamp whose radiance leaving in direction w is scaled by
          smoothstep((cos a - cos(size/2)) / ((1 - cos(size/2)) * blend)), a = the angle between
          w and the lamp's -Z in the lamp's frame (object scale included: a non-uniform scale
