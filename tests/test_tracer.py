@@ -502,6 +502,68 @@ def test_bad_scene_files_name_the_file(tmp_path, edit, problem):
     assert e.value.path is not None and Path(e.value.path).name in ("bad.toml", "missing.exr", "gone.obj")
 
 
+# ------------------------------------------------------------------------ lamp entries
+
+@pytest.mark.parametrize("lamp, problem", [
+    ('type = "point"\nposition = [0, 0, 2]', "needs exactly one of strength, intensity"),
+    ('type = "point"\nposition = [0, 0, 2]\nstrength = 1\nintensity = 1', "needs exactly one of strength, intensity"),
+    ('type = "point"\nposition = [0, 0, 2]\nstrength = -1', "values must be >= 0"),
+    ('type = "point"\nposition = [0, 0, 2]\nstrength = 1\nradius = -0.1', r"radius: must be in \[0"),
+    ('type = "point"\nposition = [0, 0, 2]\nstrength = 1\nsoft_falloff = 1', "soft_falloff: expected true or false"),
+    ('type = "point"\nposition = [0, 0, 2]\nstrength = 1\nsize = 30', "unknown key 'size'"),
+    ('type = "spot"\nposition = [0, 0, 2]\nstrength = 1\nsize = 30\nblend = 0', "exactly one of direction, frame"),
+    ('type = "spot"\nposition = [0, 0, 2]\nstrength = 1\nsize = 30\nblend = 2\ndirection = [0, 0, -1]',
+     r"blend: must be in \[0, 1\]"),
+    ('type = "spot"\nposition = [0, 0, 2]\nstrength = 1\nsize = 30\nblend = 0\nframe = [[1, 0, 0], [0, 1, 0]]',
+     "invertible 3x3"),
+    ('type = "sun"\ndirection = [0, 0, 0]\nstrength = 1', "direction: must not be zero"),
+    ('type = "sun"\ndirection = [0, 0, -1]\nstrength = 1\nangle = 200', r"angle: must be in \[0, 180\]"),
+    ('type = "area"\nposition = [0, 0, 2]\naxis_u = [1, 0, 0]\naxis_v = [1, 1, 0]\nstrength = 1', "perpendicular"),
+    ('type = "area"\nposition = [0, 0, 2]\naxis_u = [1, 0, 0]\naxis_v = [0, 1, 0]\nstrength = 1\nspread = 0',
+     r"spread: must be in \(0, 180\]"),
+    ('type = "area"\nposition = [0, 0, 2]\naxis_u = [1, 0, 0]\naxis_v = [0, 1, 0]\nstrength = 1\nshape = "disk"',
+     "shape: must be rectangle or ellipse"),
+    ('type = "area"\nposition = [0, 0, 2]\naxis_u = [1, 0, 0]\naxis_v = [0, 1, 0]\nstrength = 1\ncamera = "no"',
+     "camera: expected true or false"),
+    ('type = "lamp"', "type must be environment, point, spot, sun, area"),
+])
+def test_bad_lamp_entries_say_what_is_wrong(tmp_path, lamp, problem):
+    (tmp_path / "s.toml").write_text(GOOD + "[[light]]\n" + lamp + "\n")
+    with pytest.raises(FlowBSDFError, match=problem):
+        load_scene(tmp_path / "s.toml")
+
+
+def test_lamp_entries_build_blenders_lamps(tmp_path):
+    """Strength and intensity of a point lamp are S and S / 4 pi; a spot's direction is the
+    -Z of its frame; an ellipse's area is pi/4 of its extents'."""
+    (tmp_path / "s.toml").write_text(GOOD + "[[light]]\n" + """type = "point"
+position = [0, 0, 2]
+intensity = [1, 2, 3]
+[[light]]
+type = "spot"
+position = [0, 0, 2]
+direction = [0, 1, -1]
+size = 40
+blend = 0.1
+strength = 8
+[[light]]
+type = "area"
+position = [0, 0, 2]
+axis_u = [2, 0, 0]
+axis_v = [0, 1, 0]
+shape = "ellipse"
+strength = [3, 3, 3]
+""")
+    _, pt, sp, ar = load_scene(tmp_path / "s.toml").lights
+    np.testing.assert_allclose(pt.strength, 4 * np.pi * np.array([1, 2, 3]))
+    assert pt.delta and sp.delta and not ar.delta
+    axis = np.array([[0.0, 1.0, -1.0]]) / np.sqrt(2)
+    assert sp.attenuation(axis)[0] == 1.0 and sp.attenuation(-axis)[0] == 0.0
+    np.testing.assert_allclose(ar.area, np.pi / 2)
+    np.testing.assert_allclose(ar.radiance, 3 / (np.pi * np.pi / 2))
+    np.testing.assert_allclose(ar.normal, [0, 0, -1])
+
+
 def test_bad_mesh_file_names_the_mesh(tmp_path):
     (tmp_path / "m.obj").write_text("v 0 0 0\nv 1 0 0\nf 1 2 9\n")
     (tmp_path / "s.toml").write_text(GOOD + '[[shape]]\ntype = "mesh"\nfile = "m.obj"\nmaterial = "m"\n')
