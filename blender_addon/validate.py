@@ -3,9 +3,14 @@
 Export (here, pure bpy): the scene camera (perspective), every rendered mesh object as
 world-space OBJ files (one per material slot), learned materials as manifest materials
 (sampled from their baked tables), other materials as a Lambertian of their base colour
-(said in the report), the world as a constant colour or its environment image. Point,
-spot, sun and area lights are left out: the OSL back end cannot sample lights, so the
-comparison is made under the environment with BSDF sampling only, in both renderers.
+(said in the report), the world as a constant colour or its environment image, and every
+point, spot, sun and area lamp with Cycles' radiometry (bake/tracer/lights.py): world-space
+position and frame, strength = color * temperature colour * energy * 2^exposure (Normalize
+off folded in), radius, soft falloff, spot size and blend, sun angle, area shape, size times
+object scale and spread, camera visibility. A lamp the tracer cannot render as Cycles does
+(light nodes, light linking, per-lobe factors or visibility, no shadow, a square spot,
+spread 0, sheared frames, Normalize off on a point/spot with a radius) is an ExportError,
+never dropped; a portal (no emitter) is left out with a note.
 Then Cycles renders the same view here (small, OSL back end), and the worker renders the
 reference and writes MSE / SSIM and a side-by-side image (validate/compare.png).
 """
@@ -83,6 +88,90 @@ def _world(scene):
                       "Environment Texture can be exported")
 
 
+def _lamp(obj):
+    """The tracer's [[light]] table for a lamp object (Cycles' conventions; checked against
+    Cycles in tests/test_tracer_lamps.py), None for a portal; ExportError if it has no
+    faithful equivalent."""
+    light, name = obj.data, f"lamp {obj.name!r}"
+    if light.type == "AREA" and light.cycles.is_portal:
+        return None
+
+    def refuse(why):
+        raise ExportError(f"{name}: {why}: the reference tracer cannot render it as Cycles does")
+    if getattr(light, "use_nodes", False) and light.node_tree is not None and not _plain_emission(light.node_tree):
+        refuse("its light shader uses nodes (IES, textures, ...)")
+    link = getattr(obj, "light_linking", None)
+    if link is not None and (link.receiver_collection is not None or link.blocker_collection is not None):
+        refuse("it uses light or shadow linking")
+    factors = [f for f in ("diffuse_factor", "specular_factor", "transmission_factor", "volume_factor")
+               if getattr(light, f, 1.0) != 1.0]
+    hidden = [v for v in ("visible_diffuse", "visible_glossy", "visible_transmission", "visible_volume_scatter")
+              if not getattr(obj, v, True)]
+    if factors or hidden:
+        refuse(f"{', '.join(factors + hidden)} (the tracer's lamps light every kind of bounce alike)")
+    if not light.use_shadow:
+        refuse("it casts no shadow")
+    m = obj.matrix_world
+    frame = m.to_3x3()
+    strength = [c * light.energy * 2.0 ** light.exposure for c in light.color]
+    if light.use_temperature:
+        strength = [s * c for s, c in zip(strength, light.temperature_color)]
+    entry = {"type": light.type.lower(), "camera": bool(obj.visible_camera)}
+    if light.type in ("POINT", "SPOT"):
+        radius = float(light.shadow_soft_size)           # not scaled by the object (Cycles)
+        if not light.normalize:
+            if radius > 0:
+                refuse("Normalize is off on a lamp with a radius")
+            strength = [4.0 * s for s in strength]       # intensity S / pi instead of S / 4 pi
+        entry.update(position=_vec(m.translation), strength=_vec(strength), radius=round(radius, 6),
+                     soft_falloff=bool(light.use_soft_falloff))
+        if light.type == "SPOT":
+            if light.use_square:
+                refuse("it is a square spot")
+            entry.update(frame=[_vec(row) for row in frame], size=round(math.degrees(light.spot_size), 6),
+                         blend=round(float(light.spot_blend), 6))
+        return entry
+    if light.type == "SUN":
+        angle = float(light.angle)
+        if not light.normalize and angle > 0:            # radiance S instead of S / (pi sin^2(angle/2))
+            strength = [s * math.pi * math.sin(angle / 2) ** 2 for s in strength]
+        entry.update(direction=_vec((frame @ _axis(0, 0, -1)).normalized()), strength=_vec(strength),
+                     angle=round(math.degrees(angle), 6))
+        return entry
+    if light.type != "AREA":
+        refuse(f"it is a {light.type.lower()} lamp")
+    if light.spread <= 0:
+        refuse("its spread is 0 (a parallel beam)")
+    sx = light.size
+    sy = light.size_y if light.shape in ("RECTANGLE", "ELLIPSE") else light.size
+    u, v, w = (frame.col[k].copy() for k in range(3))
+    if u.length == 0 or v.length == 0 or w.length == 0 or abs(u.normalized().dot(v.normalized())) > 1e-5 \
+            or abs(abs(u.cross(v).normalized().dot(w.normalized())) - 1) > 1e-5:
+        refuse("its transform is sheared or degenerate")
+    if u.cross(v).dot(w) < 0:                            # mirrored: keep -(u x v) = the lamp's -Z
+        u.negate()
+    ellipse = light.shape in ("DISK", "ELLIPSE")
+    if not light.normalize:                              # radiance S / pi instead of S / (pi A)
+        area = u.length * sx * v.length * sy * (math.pi / 4 if ellipse else 1.0)
+        strength = [s * area for s in strength]
+    entry.update(position=_vec(m.translation), axis_u=_vec(u * sx), axis_v=_vec(v * sy),
+                 shape="ellipse" if ellipse else "rectangle", strength=_vec(strength),
+                 spread=round(math.degrees(light.spread), 6))
+    return entry
+
+
+def _plain_emission(tree):
+    """True for a light node tree that is the default: an Emission (white, strength 1) into
+    the output, nothing else."""
+    kinds = sorted(n.bl_idname for n in tree.nodes)
+    if kinds != ["ShaderNodeEmission", "ShaderNodeOutputLight"]:
+        return False
+    em = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeEmission")
+    col, strength = em.inputs["Color"], em.inputs["Strength"]
+    return not col.is_linked and not strength.is_linked and tuple(col.default_value[:3]) == (1.0, 1.0, 1.0) \
+        and strength.default_value == 1.0
+
+
 def _write_obj(path, verts, normals, tris):
     with open(path, "w", encoding="utf-8") as f:
         for v in verts:
@@ -125,11 +214,16 @@ def export_scene(scene, folder, rows, width, height, manifest_path):
     learned = {r["material"].name_full: r["name"] for r in rows}
     depsgraph = bpy.context.evaluated_depsgraph_get()
     objects = scan.rendered_objects(scene)
-    materials, shapes, notes = {}, [], []
+    materials, shapes, lamps, notes = {}, [], [], []
     for name, obj in sorted(objects.items()):
+        if obj.type == "LIGHT":
+            lamp = _lamp(obj)
+            if lamp is None:
+                notes.append(f"portal {obj.name} left out (it guides world sampling and emits nothing)")
+            else:
+                lamps.append(lamp)
+            continue
         if obj.type not in ("MESH", "CURVE", "SURFACE", "META", "FONT"):
-            if obj.type in ("LIGHT",):
-                notes.append(f"light {obj.name} left out (BSDF-only comparison under the environment)")
             continue
         parts = _mesh_parts(obj.evaluated_get(depsgraph))
         for index, (verts, normals, tris) in sorted(parts.items()):
@@ -159,7 +253,8 @@ def export_scene(scene, folder, rows, width, height, manifest_path):
         lines += ["", f"[materials.{key}]"] + [f"{k} = {scan._toml_value(v)}" for k, v in spec.items()]
     for shape in shapes:
         lines += ["", "[[shape]]"] + [f"{k} = {scan._toml_value(v)}" for k, v in shape.items()]
-    lines += ["", "[[light]]"] + [f"{k} = {scan._toml_value(v)}" for k, v in _world(scene).items()]
+    for light in [_world(scene)] + lamps:
+        lines += ["", "[[light]]"] + [f"{k} = {scan._toml_value(v)}" for k, v in light.items()]
     lines += ["", "[render]", "max_depth = 12", ""]
     path = os.path.join(folder, "scene.toml")
     with open(path, "w", encoding="utf-8") as f:

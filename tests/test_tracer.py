@@ -127,7 +127,7 @@ def test_point_light_on_lambert_matches_the_formula(shape):
     mat = open_material({"kind": "analytic", "model": "lambert", "albedo": albedo})
     cam = Camera(np.array([0.0, -0.5, 4.0]), np.array([0.0, 0.0, 0.0]), fov=50.0, width=24, height=24)
     from bake.tracer.lights import PointLight
-    scene = Scene(cam, [SceneMaterial("m", mat, learned=True)], [PointLight(light, [intensity] * 3)])
+    scene = Scene(cam, [SceneMaterial("m", mat, learned=True)], [PointLight(light, intensity=[intensity] * 3)])
     if shape == "plane":
         scene.add_plane([0, 0, 0], [0, 0, 1], 0)
         normal = lambda p: np.array([[0.0, 0.0, 1.0]])     # noqa: E731
@@ -159,7 +159,7 @@ def test_anisotropic_materials_follow_the_tangent():
         mat = open_material({"kind": "analytic", "model": "ggx", "alpha_x": 0.4, "alpha_y": 0.03,
                              "angle": angle, "f0": 0.9})
         cam = Camera(np.array([0.0, -3.0, 2.0]), np.array([0.0, 0.0, 0.0]), fov=60.0, width=16, height=16)
-        scene = Scene(cam, [SceneMaterial("m", mat, learned=True)], [PointLight([0.5, 1.5, 1.5], [5] * 3)])
+        scene = Scene(cam, [SceneMaterial("m", mat, learned=True)], [PointLight([0.5, 1.5, 1.5], intensity=[5] * 3)])
         scene.add_plane([0, 0, 0], [0, 0, 1], 0, tangent=tangent)
         return render(scene.finish(), [CosineSampler()], spp=2, seed=1)[0]
 
@@ -282,15 +282,36 @@ type = "environment"
 sky = { sun_size = 15, sun_strength = 3 }
 strength = 0.5
 [[light]]
-type = "quad"
-corner = [-1.5, -1.5, 3]
-edge1 = [0, 1, 0]
-edge2 = [1, 0, 0]
+type = "area"
+position = [-1, -1, 3]
+axis_u = [1, 0, 0]
+axis_v = [0, 1.5, 0]
+shape = "ellipse"
+spread = 100
 radiance = [6, 6, 6]
 [[light]]
 type = "point"
 position = [2, -2, 3]
 intensity = [5, 5, 5]
+[[light]]
+type = "point"
+position = [-2, 1, 2]
+strength = [40, 40, 40]
+radius = 0.3
+soft_falloff = false
+[[light]]
+type = "spot"
+position = [1, 1, 3]
+direction = [-0.3, -0.3, -1]
+size = 50
+blend = 0.3
+radius = 0.2
+strength = [200, 200, 200]
+[[light]]
+type = "sun"
+direction = [0.3, 0.5, -1]
+angle = 15
+strength = [1, 1, 1]
 """)
     scene = load_scene(tmp_path / "s.toml")
     from bake.tracer.samplers import scene_samplers
@@ -298,20 +319,26 @@ intensity = [5, 5, 5]
     a = block_stats(scene, samplers, mis=True, passes=64, seed=11)
     b = block_stats(scene, samplers, mis=False, passes=64, seed=12)
     assert np.all(np.abs(z_scores(a, b)) < Z_MAX)
-    # MIS is the lower-noise estimator here (the quad and the sun are small)
+    # MIS is the lower-noise estimator here (the lamps and the sky's sun are small)
     assert np.sum(a[1]) < np.sum(b[1])
 
 
-def test_quad_light_faces_edge1_cross_edge2():
-    from bake.tracer.lights import QuadLight
-    q = QuadLight([-1, -1, 2], [2, 0, 0], [0, 2, 0], [1, 1, 1])      # emits towards +z
+def test_area_light_emits_along_minus_u_cross_v():
+    from bake.tracer.lights import AreaLight
     p = np.zeros((4, 3))
-    _, _, Li, pdf = q.sample(p, np.full((4, 2), 0.5))
-    assert np.all(Li == 0) and np.all(pdf == 0)                       # the floor sees its back
-    q = QuadLight([-1, -1, 2], [0, 2, 0], [2, 0, 0], [1, 1, 1])      # emits towards -z
+    q = AreaLight([0, 0, 2], [2, 0, 0], [0, 2, 0], radiance=[1, 1, 1])        # local -Z = -z: down
     wl, dist, Li, pdf = q.sample(p, np.full((4, 2), 0.5))
     np.testing.assert_allclose(Li, 1.0)
     np.testing.assert_allclose(pdf, 4.0 / 4.0)                        # dist² / (area cos) = 4 / 4
+    q = AreaLight([0, 0, 2], [0, 2, 0], [2, 0, 0], radiance=[1, 1, 1])        # emits up
+    _, _, Li, pdf = q.sample(p, np.full((4, 2), 0.5))
+    assert np.all(Li == 0) and np.all(pdf == 0)                       # the floor sees its back
+
+
+def test_quad_lights_say_how_to_migrate(tmp_path):
+    (tmp_path / "q.toml").write_text(GOOD + '[[light]]\ntype = "quad"\ncorner = [0, 0, 2]\n')
+    with pytest.raises(FlowBSDFError, match="replaced by 'area'.*axis_u = edge2"):
+        load_scene(tmp_path / "q.toml")
 
 
 # ------------------------------------------------------------------------ environment
@@ -473,6 +500,68 @@ def test_bad_scene_files_name_the_file(tmp_path, edit, problem):
     with pytest.raises(FlowBSDFError, match=problem) as e:
         load_scene(path)
     assert e.value.path is not None and Path(e.value.path).name in ("bad.toml", "missing.exr", "gone.obj")
+
+
+# ------------------------------------------------------------------------ lamp entries
+
+@pytest.mark.parametrize("lamp, problem", [
+    ('type = "point"\nposition = [0, 0, 2]', "needs exactly one of strength, intensity"),
+    ('type = "point"\nposition = [0, 0, 2]\nstrength = 1\nintensity = 1', "needs exactly one of strength, intensity"),
+    ('type = "point"\nposition = [0, 0, 2]\nstrength = -1', "values must be >= 0"),
+    ('type = "point"\nposition = [0, 0, 2]\nstrength = 1\nradius = -0.1', r"radius: must be in \[0"),
+    ('type = "point"\nposition = [0, 0, 2]\nstrength = 1\nsoft_falloff = 1', "soft_falloff: expected true or false"),
+    ('type = "point"\nposition = [0, 0, 2]\nstrength = 1\nsize = 30', "unknown key 'size'"),
+    ('type = "spot"\nposition = [0, 0, 2]\nstrength = 1\nsize = 30\nblend = 0', "exactly one of direction, frame"),
+    ('type = "spot"\nposition = [0, 0, 2]\nstrength = 1\nsize = 30\nblend = 2\ndirection = [0, 0, -1]',
+     r"blend: must be in \[0, 1\]"),
+    ('type = "spot"\nposition = [0, 0, 2]\nstrength = 1\nsize = 30\nblend = 0\nframe = [[1, 0, 0], [0, 1, 0]]',
+     "invertible 3x3"),
+    ('type = "sun"\ndirection = [0, 0, 0]\nstrength = 1', "direction: must not be zero"),
+    ('type = "sun"\ndirection = [0, 0, -1]\nstrength = 1\nangle = 200', r"angle: must be in \[0, 180\]"),
+    ('type = "area"\nposition = [0, 0, 2]\naxis_u = [1, 0, 0]\naxis_v = [1, 1, 0]\nstrength = 1', "perpendicular"),
+    ('type = "area"\nposition = [0, 0, 2]\naxis_u = [1, 0, 0]\naxis_v = [0, 1, 0]\nstrength = 1\nspread = 0',
+     r"spread: must be in \(0, 180\]"),
+    ('type = "area"\nposition = [0, 0, 2]\naxis_u = [1, 0, 0]\naxis_v = [0, 1, 0]\nstrength = 1\nshape = "disk"',
+     "shape: must be rectangle or ellipse"),
+    ('type = "area"\nposition = [0, 0, 2]\naxis_u = [1, 0, 0]\naxis_v = [0, 1, 0]\nstrength = 1\ncamera = "no"',
+     "camera: expected true or false"),
+    ('type = "lamp"', "type must be environment, point, spot, sun, area"),
+])
+def test_bad_lamp_entries_say_what_is_wrong(tmp_path, lamp, problem):
+    (tmp_path / "s.toml").write_text(GOOD + "[[light]]\n" + lamp + "\n")
+    with pytest.raises(FlowBSDFError, match=problem):
+        load_scene(tmp_path / "s.toml")
+
+
+def test_lamp_entries_build_blenders_lamps(tmp_path):
+    """Strength and intensity of a point lamp are S and S / 4 pi; a spot's direction is the
+    -Z of its frame; an ellipse's area is pi/4 of its extents'."""
+    (tmp_path / "s.toml").write_text(GOOD + "[[light]]\n" + """type = "point"
+position = [0, 0, 2]
+intensity = [1, 2, 3]
+[[light]]
+type = "spot"
+position = [0, 0, 2]
+direction = [0, 1, -1]
+size = 40
+blend = 0.1
+strength = 8
+[[light]]
+type = "area"
+position = [0, 0, 2]
+axis_u = [2, 0, 0]
+axis_v = [0, 1, 0]
+shape = "ellipse"
+strength = [3, 3, 3]
+""")
+    _, pt, sp, ar = load_scene(tmp_path / "s.toml").lights
+    np.testing.assert_allclose(pt.strength, 4 * np.pi * np.array([1, 2, 3]))
+    assert pt.delta and sp.delta and not ar.delta
+    axis = np.array([[0.0, 1.0, -1.0]]) / np.sqrt(2)
+    assert sp.attenuation(axis)[0] == 1.0 and sp.attenuation(-axis)[0] == 0.0
+    np.testing.assert_allclose(ar.area, np.pi / 2)
+    np.testing.assert_allclose(ar.radiance, 3 / (np.pi * np.pi / 2))
+    np.testing.assert_allclose(ar.normal, [0, 0, -1])
 
 
 def test_bad_mesh_file_names_the_mesh(tmp_path):

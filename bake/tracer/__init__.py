@@ -2,8 +2,9 @@
 tables, the flow, the ideal tabulation, a fitted GGX lobe, cosine -- and compares them.
 
     scene.py       scene files (TOML/JSON; format in its docstring), OBJ/PLY, built-in scenes
-    accel.py       ray intersection: triangle BVH, analytic spheres, planes, quads, lathe pieces
-    lights.py      environment (image, procedural sky, constant; importance sampled), point, quad
+    accel.py       ray intersection: triangle BVH, analytic spheres, planes, lathe pieces
+    lights.py      environment (image, procedural sky, constant; importance sampled) and
+                   Blender's lamps (point, spot, sun, area) with Cycles' radiometry
     samplers.py    a sampler by name for a scene material (tables | flow | ideal | ggx | cosine)
     integrator.py  wavefront path tracer: MIS (power heuristic) or BSDF-only, Russian roulette
     compare.py     reference vs samplers at equal spp and equal time: EXR, PNG, MSE/MAE/SSIM

@@ -1,4 +1,4 @@
-"""Ray intersection, vectorized over rays: a triangle BVH plus analytic spheres, planes and quads.
+"""Ray intersection, vectorized over rays: a triangle BVH plus analytic spheres, planes and lathes.
 
 The BVH is built once (median split on the longest centroid axis, leaves of at most
 LEAF_SIZE triangles) and traversed breadth-first for all rays at once: a list of
@@ -139,25 +139,6 @@ def intersect_planes(o, d, points, normals, axes, half_sizes, t_best):
         if np.isfinite(h):
             x = o + t[:, None] * d - p
             ok &= (np.abs(x @ ax_u) <= h) & (np.abs(x @ ax_v) <= h)
-        t_best[ok] = t[ok]
-        idx[ok] = k
-    return idx
-
-
-def intersect_quads(o, d, corners, edge1, edge2, t_best):
-    """Parallelograms corner + s edge1 + t edge2, s, t in [0, 1]; index or -1."""
-    idx = np.full(len(o), -1)
-    for k, (c, e1, e2) in enumerate(zip(corners, edge1, edge2)):
-        n = np.cross(e1, e2)
-        dn = d @ n
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = ((c - o) @ n) / dn
-        x = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d - c
-        # coordinates in the (e1, e2) basis via the dual basis
-        g = np.array([[e1 @ e1, e1 @ e2], [e1 @ e2, e2 @ e2]])
-        s_t = np.linalg.solve(g, np.stack([x @ e1, x @ e2]))
-        ok = (np.abs(dn) > 1e-18) & (t > EPS_T) & (t < t_best) & (s_t[0] >= 0) & (s_t[0] <= 1) \
-            & (s_t[1] >= 0) & (s_t[1] <= 1)
         t_best[ok] = t[ok]
         idx[ok] = k
     return idx

@@ -9,8 +9,11 @@ Modes
   mis:       next-event estimation (one light chosen uniformly, then a direction from
              it) combined with BSDF sampling by the power heuristic; the BSDF sampler's
              pdf() of light-sampled directions enters the weight.
-  bsdf-only: only BSDF sampling finds the environment and area lights. Point lights
-             can never be hit, so they are always sampled directly (no weight needed).
+  bsdf-only: only BSDF sampling finds the environment and the lamps it can hit. Delta
+             lamps (point and spot of radius 0, sun of angle 0) can never be hit, so they
+             are always sampled directly (no weight needed).
+Lamps never block rays (as in Cycles): shadow rays ignore them, and a ray adds the emission
+of every lamp it passes before the surface it hits. Camera rays skip lamps with camera false.
 Russian roulette from depth 3: survive with probability min(1, max |throughput|) (at
 least 0.05), the weight divided by it (unbiased). Paths stop at scene.max_depth bounces.
 
@@ -108,21 +111,22 @@ class PathTracer:
             hit = scene.intersect(o, d)
             st.rays += len(o)
             kind = hit["kind"]
-            # ---- emission found by this ray (environment on a miss, quad lights on a hit)
+            # ---- emission found by this ray: the environment on a miss, every lamp the ray
+            # passes before the surface it hits (lamps do not stop rays)
             miss = kind == Hit.NONE
             if scene.env is not None and miss.any():
                 Le = scene.env.eval(d[miss])
                 w = self._mis_weight_emitter(prev_pdf[miss], prev_delta[miss], scene.env.pdf(d[miss]))
                 L[alive[miss]] += beta[miss] * Le * w[:, None]
-            on_light = kind == Hit.LIGHT
-            if on_light.any():
-                for k, q in enumerate(scene.quads):
-                    m = on_light & (hit["index"] == k)
-                    if m.any():
-                        Le = q.eval_hit(d[m])
-                        w = self._mis_weight_emitter(prev_pdf[m], prev_delta[m], q.pdf_hit(d[m], hit["t"][m]))
-                        L[alive[m]] += beta[m] * Le * w[:, None]
-            surf = (kind != Hit.NONE) & (kind != Hit.LIGHT)
+            for lamp in scene.lamps:
+                if depth == 0 and not lamp.camera:
+                    continue
+                m, t = lamp.intersect(o, d, hit["t"])
+                if m.any():
+                    om, dm, tm = o[m], d[m], t[m]
+                    w = self._mis_weight_emitter(prev_pdf[m], prev_delta[m], lamp.pdf_hit(om, dm, tm))
+                    L[alive[m]] += beta[m] * lamp.eval_hit(om, dm, tm) * w[:, None]
+            surf = ~miss
             if depth == scene.max_depth or not surf.any():
                 break
             # ---- keep surface hits

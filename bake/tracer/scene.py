@@ -49,23 +49,45 @@ z-up, lengths in any unit, relative paths resolve against the scene file's folde
     strength = 1.0                # sun_strength, zenith, horizon, ground} (procedural, all
     rotate_z = 0.0                # optional) or constant = [r, g, b]
 
-    [[light]]
-    type = "point"
+    [[light]]                     # Blender's lamps, Cycles' radiometry (bake/tracer/lights.py);
+    type = "point"                # strength = Blender's color * energy * 2^exposure
     position = [2, -2, 4]
-    intensity = [40, 40, 40]      # radiant intensity, W/sr (radiance at distance r: I / r^2)
+    strength = [500, 500, 500]    # W; or intensity = [40, 40, 40] (W/sr, = strength / 4 pi)
+    radius = 0.0                  # default 0: a delta light; > 0: hit by BSDF rays (MIS)
+    soft_falloff = true           # Blender's Soft Falloff (default): a disk facing the shading
+                                  # point; false: a sphere
+    camera = true                 # seen by camera rays (any lamp; default true)
 
     [[light]]
-    type = "quad"                 # one-sided parallelogram, emits towards edge1 x edge2
-    corner = [-0.5, -0.5, 3]
-    edge1 = [0, 1, 0]
-    edge2 = [1, 0, 0]
-    radiance = [10, 10, 10]
+    type = "spot"                 # strength, radius, soft_falloff, camera as for point
+    position = [0, 0, 3]
+    direction = [0, 0, -1]        # the cone's axis; or frame = [[..], [..], [..]]: the lamp's
+                                  # world-from-local 3x3 (rows, object scale included), cone about -Z
+    size = 45                     # full cone angle, degrees
+    blend = 0.15
+    strength = [500, 500, 500]
+
+    [[light]]
+    type = "sun"
+    direction = [0, 0.5, -1]      # where the light travels (Blender: the lamp's -Z)
+    strength = [3, 3, 3]          # irradiance, W/m^2
+    angle = 0.0                   # full angle, degrees; > 0: a cone hit by BSDF rays (MIS)
+
+    [[light]]
+    type = "area"                 # one-sided, emits along -(axis_u x axis_v) (Blender: local -Z)
+    position = [0, 0, 3]          # centre
+    axis_u = [1, 0, 0]            # full extents, perpendicular (Blender: size * scale along
+    axis_v = [0, 1, 0]            # local X and Y)
+    shape = "rectangle"           # or "ellipse" (square and disk are the equal-sided cases)
+    strength = [100, 100, 100]    # W; or radiance = [..] (before the spread factor)
+    spread = 180                  # degrees
 
     [render]                      # optional
     max_depth = 12                # path length limit (Russian roulette from depth 3)
 
 Surfaces are two-sided (the shading normal is flipped towards the viewer); at most one
-environment. Shading normals: sphere and plane exact, meshes interpolate vertex normals
+environment. Lamps are not geometry (as in Cycles): they cast no shadow and rays go on through
+them. Shading normals: sphere and plane exact, meshes interpolate vertex normals
 (face normals when the file has none); directions on the wrong side of the geometric
 surface contribute nothing.
 
@@ -84,8 +106,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FlowBSDFError
-from .accel import TriangleBVH, intersect_lathe, intersect_planes, intersect_quads, intersect_spheres
-from .lights import Environment, PointLight, QuadLight, read_image, sky_image
+from .accel import TriangleBVH, intersect_lathe, intersect_planes, intersect_spheres
+from .lights import AreaLight, Environment, PointLight, SpotLight, SunLight, read_image, sky_image
 
 SAMPLER_NAMES = ("tables", "flow", "ideal", "ggx", "cosine")
 INLINE_SAMPLERS = ("cosine", "ggx", "ideal", "render")
@@ -136,7 +158,7 @@ class Mesh:
 
 class Hit:
     """Surface data of the nearest hits of a batch of rays (valid where `kind` > 0)."""
-    NONE, TRIANGLE, SPHERE, PLANE, LIGHT, LATHE = 0, 1, 2, 3, 4, 5
+    NONE, TRIANGLE, SPHERE, PLANE, LATHE = 0, 1, 2, 3, 4
 
 
 class Scene:
@@ -144,7 +166,8 @@ class Scene:
         self.camera, self.materials, self.lights = camera, materials, lights
         self.path, self.max_depth = str(path), int(max_depth)
         self.env = next((l for l in lights if isinstance(l, Environment)), None)
-        self.quads = [l for l in lights if isinstance(l, QuadLight)]
+        # lamps BSDF rays can hit (found along each ray by the integrator, not by intersect())
+        self.lamps = [l for l in lights if not l.delta and not isinstance(l, Environment)]
         self._tris = []          # (v0, v1, v2, n0, n1, n2, mat, tangent) lists per mesh
         self.spheres, self.planes, self.lathes = [], [], []
         self.bvh = None
@@ -192,7 +215,7 @@ class Scene:
 
     # ---- queries
     def _nearest(self, o, d, t_best, any_hit=False):
-        tri = sph = pl = qd = None
+        tri = sph = pl = None
         if self.bvh is not None:
             tri, b1, b2 = self.bvh.intersect(o, d, t_best, any_hit=any_hit)
         else:
@@ -211,13 +234,10 @@ class Scene:
         if self.planes:
             pl = intersect_planes(o, d, [p[0] for p in self.planes], [p[1] for p in self.planes],
                                   [p[2] for p in self.planes], [p[3] for p in self.planes], t_best)
-        if self.quads:
-            qd = intersect_quads(o, d, [q.corner for q in self.quads], [q.edge1 for q in self.quads],
-                                 [q.edge2 for q in self.quads], t_best)
-        return tri, b1, b2, (lat, lat_n), sph, pl, qd
+        return tri, b1, b2, (lat, lat_n), sph, pl
 
     def occluded(self, o, d, tmax):
-        """True where something lies along o + t d for 0 < t < tmax (area lights included)."""
+        """True where something lies along o + t d for 0 < t < tmax (lamps never block)."""
         t_best = np.array(tmax, float, copy=True)
         t0 = t_best.copy()
         self._nearest(o, d, t_best, any_hit=True)
@@ -227,11 +247,11 @@ class Scene:
         """Nearest hit: dict with t, kind, p, ng, ns, tangent, mat, light (arrays over rays)."""
         n = len(o)
         t = np.full(n, np.inf)
-        tri, b1, b2, (lat, lat_n), sph, pl, qd = self._nearest(o, d, t)
+        tri, b1, b2, (lat, lat_n), sph, pl = self._nearest(o, d, t)
         # later kinds overwrite t only where nearer, so the last index set wins: resolve in order
         kind = np.zeros(n, np.int64)
         idx = np.full(n, -1)
-        for k, ids in ((Hit.TRIANGLE, tri), (Hit.LATHE, lat), (Hit.SPHERE, sph), (Hit.PLANE, pl), (Hit.LIGHT, qd)):
+        for k, ids in ((Hit.TRIANGLE, tri), (Hit.LATHE, lat), (Hit.SPHERE, sph), (Hit.PLANE, pl)):
             if ids is not None:
                 sel = ids >= 0
                 kind[sel], idx[sel] = k, ids[sel]
@@ -259,9 +279,6 @@ class Scene:
             m = (kind == Hit.PLANE) & (idx == k)
             ng[m] = ns[m] = nrm
             tan[m], mat[m] = tg, mt
-        for k, q in enumerate(self.quads):
-            m = (kind == Hit.LIGHT) & (idx == k)
-            ng[m] = ns[m] = q.normal
         ng = _unit(ng)
         ns = _unit(ns)
         return {"t": t, "kind": kind, "index": idx, "p": p, "ng": ng, "ns": ns, "tangent": tan, "mat": mat}
@@ -751,19 +768,92 @@ def _light(path, where, ls):
         else:
             image = _vec(path, f"{where}.constant", ls["constant"], positive=True)[None, None, :]
         return Environment(image, strength, _num(path, f"{where}.rotate_z", ls.get("rotate_z", 0.0)))
-    if kind == "point":
-        _keys(path, where, ls, {"type", "position", "intensity"}, ("position", "intensity"))
-        return PointLight(_vec(path, f"{where}.position", ls["position"]),
-                          _vec(path, f"{where}.intensity", ls["intensity"], positive=True))
     if kind == "quad":
-        _keys(path, where, ls, {"type", "corner", "edge1", "edge2", "radiance"},
-              ("corner", "edge1", "edge2", "radiance"))
-        e1, e2 = _vec(path, f"{where}.edge1", ls["edge1"]), _vec(path, f"{where}.edge2", ls["edge2"])
-        if np.linalg.norm(np.cross(e1, e2)) == 0:
-            _bad(path, f"{where}: edge1 and edge2 span no area")
-        return QuadLight(_vec(path, f"{where}.corner", ls["corner"]), e1, e2,
-                         _vec(path, f"{where}.radiance", ls["radiance"], positive=True))
-    _bad(path, f"{where}: type must be environment, point or quad, not {kind!r}")
+        _bad(path, f"{where}: type 'quad' was replaced by 'area' (Blender's area lamp: it casts no shadow "
+                   "and rays go on through it): position = corner + (edge1 + edge2) / 2, axis_u = edge2, "
+                   "axis_v = edge1, radiance as before")
+    if kind not in LAMP_KEYS:
+        _bad(path, f"{where}: type must be environment, {', '.join(LAMP_KEYS)}, not {kind!r}")
+    required = {"point": ("position",), "spot": ("position", "size", "blend"), "sun": ("direction",),
+                "area": ("position", "axis_u", "axis_v")}[kind]
+    _keys(path, where, ls, LAMP_KEYS[kind] | {"type", "camera"}, required)
+    camera = ls.get("camera", True)
+    if not isinstance(camera, bool):
+        _bad(path, f"{where}.camera: expected true or false, got {camera!r}")
+
+    def num(key, default, lo, hi, lo_closed):
+        """ls[key] (or default) within (lo, hi], or [lo, hi] when lo_closed."""
+        x = _num(path, f"{where}.{key}", ls.get(key, default))
+        if x < lo or (x == lo and not lo_closed) or x > hi:
+            _bad(path, f"{where}.{key}: must be in {'[' if lo_closed else '('}{lo}, {hi}], got {x!r}")
+        return x
+
+    def vec(key):
+        return _vec(path, f"{where}.{key}", ls[key])
+
+    power = _one_of(path, where, ls, ("strength", "intensity") if kind == "point" else
+                    ("strength", "radiance") if kind == "area" else ("strength",))
+    if kind == "area":
+        u, v = vec("axis_u"), vec("axis_v")
+        if np.linalg.norm(np.cross(u, v)) == 0 or abs(u @ v) > 1e-6 * np.linalg.norm(u) * np.linalg.norm(v):
+            _bad(path, f"{where}: axis_u and axis_v must be perpendicular and not zero")
+        shape = ls.get("shape", "rectangle")
+        if shape not in ("rectangle", "ellipse"):
+            _bad(path, f"{where}.shape: must be rectangle or ellipse, not {shape!r}")
+        return AreaLight(vec("position"), u, v, ellipse=shape == "ellipse", camera=camera,
+                         spread_deg=num("spread", 180.0, 0, 180, False), **power)
+    if kind == "sun":
+        return SunLight(_direction(path, where, ls), angle_deg=num("angle", 0.0, 0, 180, True), camera=camera,
+                        **power)
+    soft = ls.get("soft_falloff", True)
+    if not isinstance(soft, bool):
+        _bad(path, f"{where}.soft_falloff: expected true or false, got {soft!r}")
+    point = dict(radius=num("radius", 0.0, 0, np.inf, True), soft_falloff=soft, camera=camera, **power)
+    if kind == "point":
+        return PointLight(vec("position"), **point)
+    if ("direction" in ls) == ("frame" in ls):
+        _bad(path, f"{where}: a spot needs exactly one of direction, frame")
+    if "frame" in ls:
+        try:
+            frame = np.asarray(ls["frame"], float)
+        except (TypeError, ValueError):
+            frame = None
+        if frame is None or frame.shape != (3, 3) or not np.all(np.isfinite(frame)) \
+                or abs(np.linalg.det(frame)) < 1e-12:
+            _bad(path, f"{where}.frame: expected an invertible 3x3 matrix (3 rows of 3 numbers)")
+    else:
+        axis = _direction(path, where, ls)
+        frame = np.column_stack([*_perpendiculars(axis), -axis])
+    return SpotLight(vec("position"), frame=frame, size_deg=num("size", None, 0, 180, False),
+                     blend=num("blend", None, 0, 1, True), **point)
+
+
+LAMP_KEYS = {
+    "point": {"position", "strength", "intensity", "radius", "soft_falloff"},
+    "spot": {"position", "strength", "radius", "soft_falloff", "direction", "frame", "size", "blend"},
+    "sun": {"direction", "strength", "angle"},
+    "area": {"position", "axis_u", "axis_v", "shape", "strength", "radiance", "spread"},
+}
+
+
+def _one_of(path, where, ls, keys):
+    """{key: rgb} for the one of `keys` the lamp gives (values >= 0)."""
+    given = [k for k in keys if k in ls]
+    if len(given) != 1:
+        _bad(path, f"{where}: needs exactly one of {', '.join(keys)}")
+    return {given[0]: _vec(path, f"{where}.{given[0]}", ls[given[0]], positive=True)}
+
+
+def _direction(path, where, ls):
+    d = _vec(path, f"{where}.direction", ls["direction"])
+    if np.linalg.norm(d) == 0:
+        _bad(path, f"{where}.direction: must not be zero")
+    return d / np.linalg.norm(d)
+
+
+def _perpendiculars(n):
+    a = _any_perp(n)
+    return a, np.cross(n, a)
 
 
 # --------------------------------------------------------------------------- built-ins
@@ -782,7 +872,7 @@ def builtin_scene(name, material=None, manifest=None, width=128, height=128):
         lights = [Environment(np.ones((8, 16, 3)))]
         mats = [ball]
     else:
-        lights = [PointLight([2.0, -2.5, 4.0], [30.0, 30.0, 30.0])]
+        lights = [PointLight([2.0, -2.5, 4.0], intensity=[30.0, 30.0, 30.0])]
         from ..materials.analytic import from_spec
         mats = [ball, SceneMaterial("floor", from_spec({"model": "lambert", "albedo": 0.5}),
                                     learned=False, sampler="cosine")]
