@@ -565,7 +565,10 @@ def film_settings(scene):
 def _set_inputs(node, values):
     for name, value in values.items():
         sock = node.inputs.get(name)
-        if sock is not None and sock.default_value != value:
+        if sock is None:
+            continue
+        current = sock.default_value
+        if (tuple(current) if hasattr(current, "__len__") and not isinstance(current, str) else current) != value:
             sock.default_value = value
 
 
@@ -596,28 +599,18 @@ def sync(scene, refresh=False, bake_world=False):
             folder = Path(_info(tree).get("tables", "")).parent
             if folder not in worlds:
                 worlds[folder] = _world_inputs(scene, folder, bake_world)
-            path, share = worlds[folder]
-            _set_inputs(script, {"World": path, "WorldShare": share})
+            _set_inputs(script, worlds[folder])
 
 
 def _world_inputs(scene, folder, bake):
-    """(world map texture, share) for the shader: the current map when it exists (made when
-    `bake`), else none — then the portal samples the tables alone (still unbiased)."""
+    """The shader's world inputs (world.shader_inputs): the world's map when it exists (made
+    when `bake`), else none — then the portal samples the tables alone (still unbiased)."""
     from . import world
     try:
-        if bake:
-            path, share = world.bake_world_map(scene, folder)
-            return path or "", share
-        key = world.world_key(scene)
-        world_map = _bake_mod("world_map")
-        path = world.map_path(folder, key) if key else None
-        meta = world_map.read_world_meta(path) if path and world_map else None
-        if meta is None:
-            return "", 0.0
-        return str(path), (world.SHARE if meta.get("peak", 0.0) > world.FLAT else 0.0)
+        return world.bake_world_map(scene, folder) if bake else world.current_inputs(scene, folder)
     except Exception as e:      # noqa: BLE001  (no world map: noisier, not wrong)
         print(f"FlowBSDF: no world importance map: {e}")
-        return "", 0.0
+        return world.shader_inputs(None, None, None)
 
 
 def update_world(scene):

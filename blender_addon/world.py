@@ -19,10 +19,11 @@ from pathlib import Path
 
 import bpy
 
-WIDTH, HEIGHT, SPP = 256, 128, 16
-# The share of portal directions drawn from the world map: none for a near-constant world,
-# where the tables alone are the better choice.
+WIDTH, HEIGHT, SPP = 1024, 512, 4
+# The shares of portal directions drawn from the world map and from a Sky Texture's sun disc:
+# no map for a near-constant world, where the tables alone are the better choice.
 SHARE = 0.5
+SUN_SHARE, SUN_MAP_SHARE = 0.3, 0.2     # with a sun: its disc, and the map for the sky
 FLAT = 1.5          # the map's peak pdf over a uniform sphere's, below which the world is "flat"
 
 
@@ -73,6 +74,36 @@ def world_key(scene):
     if world.animation_data or (tree is not None and tree.animation_data):
         h.update(repr(scene.frame_current).encode())
     return h.hexdigest()
+
+
+def sun_of(scene):
+    """(direction toward the sun, cos of its half angle) of the world's Sky Texture with a sun
+    disc; None without one, or when its Vector input is linked (mapped)."""
+    import math
+    world = scene.world
+    tree = world.node_tree if world is not None else None
+    if tree is None:
+        return None
+    for node in tree.nodes:
+        if (node.bl_idname == "ShaderNodeTexSky" and not node.mute and getattr(node, "sun_disc", False)
+                and node.sky_type not in ("PREETHAM", "HOSEK_WILKIE")
+                and not any(sock.is_linked for sock in node.inputs) and node.outputs[0].is_linked):
+            e, r = node.sun_elevation, node.sun_rotation
+            # measured against the rendered map: azimuth pi / 2 - rotation in world space
+            return ((math.cos(e) * math.sin(r), math.cos(e) * math.cos(r), math.sin(e)),
+                    math.cos(0.5 * node.sun_size))
+    return None
+
+
+def shader_inputs(path, meta, sun):
+    """The OSL shader's world inputs for a map (path, its metadata or None) and a sun (sun_of)."""
+    flat = meta is None or meta.get("peak", 0.0) <= FLAT
+    inputs = {"World": str(path) if meta else "", "WorldShare": 0.0 if flat else SHARE,
+              "SunDirection": (0.0, 0.0, 1.0), "SunCos": 1.0, "SunShare": 0.0}
+    if sun is not None:
+        inputs.update(SunDirection=sun[0], SunCos=sun[1], SunShare=SUN_SHARE,
+                      WorldShare=0.0 if flat else SUN_MAP_SHARE)
+    return inputs
 
 
 def map_path(folder, key):
@@ -126,22 +157,31 @@ def render_world(scene, width=WIDTH, height=HEIGHT, spp=SPP):
 
 
 def bake_world_map(scene, folder):
-    """(texture path, share of portal directions to draw from it) for the scene's world, made
-    when missing; (None, 0) for no world, a black one, or where numpy/bake are missing."""
+    """The shader's world inputs (shader_inputs) for the scene's world, its map rendered when
+    missing; no map for no world, a black one, or where numpy/bake are missing."""
     key = world_key(scene)
-    if key is None:
-        return None, 0.0
     from . import node
     world_map = node._bake_mod("world_map")
-    if world_map is None:
-        return None, 0.0
+    if key is None or world_map is None:
+        return shader_inputs(None, None, None)
     path = map_path(folder, key)
     meta = world_map.read_world_meta(path)
     if meta is None:
         try:
             wm = world_map.WorldMap(render_world(scene))
+            meta = {"key": key, "peak": wm.peak}
+            world_map.write_world_texture(path, wm, meta)
         except world_map.FlowBSDFError:         # black world: nothing to sample
-            return None, 0.0
-        meta = {"key": key, "peak": wm.peak}
-        world_map.write_world_texture(path, wm, meta)
-    return str(path), (SHARE if meta.get("peak", 0.0) > FLAT else 0.0)
+            meta = None
+    return shader_inputs(path, meta, sun_of(scene))
+
+
+def current_inputs(scene, folder):
+    """The shader's world inputs from the map already made for the world as it is now (none
+    when it is not made yet: then the tables sample alone, unbiased, noisier)."""
+    key = world_key(scene)
+    from . import node
+    world_map = node._bake_mod("world_map")
+    path = map_path(folder, key) if key else None
+    meta = world_map.read_world_meta(path) if path is not None and world_map is not None else None
+    return shader_inputs(path, meta, sun_of(scene) if key else None)
