@@ -1,0 +1,453 @@
+"""The baked-table sampler as a plain Cycles shader node graph (SVM): every Cycles device.
+
+`build_svm_sampler` adds to a shader node tree the nodes that reproduce `Tables.sample`
+(bake/tables.py, the numpy reference) on the texture of bake/svm_export.py, and ends in a
+Ray Portal BSDF that continues the path in the sampled direction with weight W = baked
+f·cos / pdf. Nothing needs OSL: the graph runs wherever Cycles runs (CPU with OSL off,
+CUDA, OptiX, HIP, Metal, oneAPI). The table sizes, offsets and search step counts are
+constants of the graph, read from the texture's metadata when it is built; a table file
+that changes gets a new texture (its name holds the tables' hash) and needs a rebuild.
+
+Per shading point:
+- wi = Incoming, n = the shading normal; cos theta_i = wi . n. The local frame's x is wi's
+  own azimuth (isotropic tables: phi_i = 0) or, for anisotropic tables, the Tangent input
+  (world x when unlinked) projected onto the tangent plane, phi_i = atan2(wi . y, wi . x);
+  at normal incidence / a tangent along n, any perpendicular (as learned_bsdf.osl).
+- u0, u1, u2: White Noise 4D of (Position, Ray Length) -> r, then White Noise 4D of
+  (Incoming, r + Portal Depth + 64 Ray Depth) -> its colour (Cycles gives a node graph no
+  sampler state: every path vertex hashes its own numbers).
+- theta_i and phi_i bins through the texture's bin guides, the corner block's header
+  gives the blend weights; the row search on u0 and the column search on u1 (v = u1 x the
+  row's mass) run a fixed number of branchless steps from their guide's bracket; the
+  cell's exponential inverse CDFs give the point in the cell (both branches of
+  exp_inverse_cdf computed and one selected by multiplying with 0 / 1: exact, no NaN);
+  the direction goes to world space by the frame.
+- Color = W when cos theta_i > 0 and the direction is above the geometric surface, else 0
+  (the path ends). Cycles drops a closure whose mean weight is below 1e-5 (bsdf_ray_portal
+  _setup): a weight below 2e-5 is Russian-rouletted up to 2e-5 with u2 instead (unbiased).
+
+Cycles compiles the graph into SVM instructions in node creation order wherever that
+order is topological (svm.cpp generate_svm_nodes sweeps the nodes by id and emits every
+node whose inputs are done), and frees a value's stack slots after its last user. The
+builder creates every node just before its first use, so few values are alive at once:
+the stack (255 floats; past it Cycles prints "out of SVM stack space" and renders the
+material black) holds the graph with wide margin (tests/test_svm.py measures the margin
+with Cycles' own message). Channels are read with a dot product against a vector, never a
+Separate node (its unlinked outputs keep stack slots for the whole shader).
+
+`build_svm_probe` builds the same sampler on inputs read from a probe image (per pixel
+u0, u1, cos theta_i, phi_i) and returns an Emission that encodes wo (0.5 + 0.5 wo), the
+weight or the pdf, side by side: for tests against numpy.
+
+API: build_svm_sampler, build_svm_probe, graph_counts.
+"""
+import math
+from pathlib import Path
+
+import bpy
+
+CUTOFF = 1e-5           # Cycles' CLOSURE_WEIGHT_CUTOFF
+K_SMALL = 1e-4          # bake/tables.py _SMALL: the in-cell density's small-rate branch
+TANGENT = (1.0, 0.0, 0.0)
+GROUP_PREFIX = "FlowBSDF SVM "
+X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
+
+
+def _svm_export():
+    import importlib
+    from . import deps
+    return importlib.import_module(f"{deps.bake.__name__}.svm_export")
+
+
+def _image(path):
+    """The texture as Cycles must read it: texel values bit-exact."""
+    image = bpy.data.images.load(str(path), check_existing=True)
+    image.colorspace_settings.name = 'Non-Color'
+    image.alpha_mode = 'CHANNEL_PACKED'
+    if hasattr(image, "use_half_precision"):
+        image.use_half_precision = False
+    return image
+
+
+class _Graph:
+    """Adds nodes to a node tree in evaluation order (see the module docstring), laid out in
+    columns; inputs are sockets (linked) or constants (set)."""
+
+    def __init__(self, tree, location=(0.0, 0.0)):
+        self.tree, self.location, self.count = tree, location, 0
+
+    def node(self, kind, **props):
+        node = self.tree.nodes.new(kind)
+        for key, value in props.items():
+            setattr(node, key, value)
+        node.location = (self.location[0] + 180.0 * (self.count // 10), self.location[1] - 160.0 * (self.count % 10))
+        node.hide = True
+        self.count += 1
+        return node
+
+    def set(self, socket, value):
+        if isinstance(value, bpy.types.NodeSocket):
+            self.tree.links.new(value, socket)
+        else:
+            socket.default_value = value
+
+    def math(self, op, a, b=0.0, c=0.0, clamp=False):
+        node = self.node("ShaderNodeMath", operation=op, use_clamp=clamp)
+        for socket, value in zip(node.inputs, (a, b, c)):
+            self.set(socket, value)
+        return node.outputs[0]
+
+    def vmath(self, op, a, b=(0.0, 0.0, 0.0), c=(0.0, 0.0, 0.0), scale=None):
+        node = self.node("ShaderNodeVectorMath", operation=op)
+        for socket, value in zip(node.inputs, (a, b, c)):
+            self.set(socket, value)
+        if scale is not None:
+            self.set(node.inputs[3], scale)
+        return node.outputs[1 if op in ('DOT_PRODUCT', 'LENGTH', 'DISTANCE') else 0]
+
+    def dot(self, a, b):
+        return self.vmath('DOT_PRODUCT', a, b)
+
+    def scale(self, v, f):
+        return self.vmath('SCALE', v, scale=f)
+
+    def combine(self, x, y, z=0.0):
+        node = self.node("ShaderNodeCombineXYZ")
+        for socket, value in zip(node.inputs, (x, y, z)):
+            self.set(socket, value)
+        return node.outputs[0]
+
+    def group(self, tree, **inputs):
+        node = self.node("ShaderNodeGroup", node_tree=tree)
+        for name, value in inputs.items():
+            self.set(node.inputs[name], value)
+        return node.outputs
+
+    def select(self, flag, a, b, clamp=False):
+        """flag ? a : b for flag in {0, 1}, exactly (a x 1 + b x 0): no rounding, unlike a mix."""
+        return self.math('MULTIPLY_ADD', a, flag, self.math('MULTIPLY', b, self.math('SUBTRACT', 1.0, flag)),
+                         clamp=clamp)
+
+
+# ------------------------------------------------------------------------------ node groups
+
+def _interface(tree, inputs, outputs):
+    for name, kind in inputs:
+        tree.interface.new_socket(name, in_out="INPUT", socket_type=f"NodeSocket{kind}")
+    for name, kind in outputs:
+        tree.interface.new_socket(name, in_out="OUTPUT", socket_type=f"NodeSocket{kind}")
+
+
+def _record_group(image):
+    """Group "record": one texel at UV blended over the bins: dot(colour, Weights) + alpha x
+    Weight A (a record in red/green: Weights = (w0, w1, 0), Weight A = 0; in blue/alpha:
+    (0, 0, w0) and w1; four bins: (w0, w1, w2) and w3)."""
+    name = f"{GROUP_PREFIX}record: {image.name}"
+    tree = bpy.data.node_groups.get(name)
+    if tree is not None:
+        return tree
+    tree = bpy.data.node_groups.new(name, "ShaderNodeTree")
+    _interface(tree, [("UV", "Vector"), ("Weights", "Vector"), ("Weight A", "Float")], [("Value", "Float")])
+    g = _Graph(tree)
+    inp = g.node("NodeGroupInput").outputs
+    tex = g.node("ShaderNodeTexImage", image=image, interpolation='Closest', extension='EXTEND')
+    g.set(tex.inputs["Vector"], inp["UV"])
+    value = g.math('MULTIPLY_ADD', tex.outputs["Alpha"], inp["Weight A"], g.dot(tex.outputs["Color"], inp["Weights"]))
+    g.set(g.node("NodeGroupOutput").inputs["Value"], value)
+    return tree
+
+
+def _step_group(image):
+    """Group "search step" (branchless binary search): index = Lo + Half; Lo stays there when
+    the record at Base + index x Stride is <= Target, else goes back to Lo."""
+    name = f"{GROUP_PREFIX}search step: {image.name}"
+    tree = bpy.data.node_groups.get(name)
+    if tree is not None:
+        return tree
+    tree = bpy.data.node_groups.new(name, "ShaderNodeTree")
+    _interface(tree, [("Lo", "Float"), ("Target", "Float"), ("Base", "Vector"), ("Stride", "Vector"),
+                      ("Half", "Float"), ("Weights", "Vector"), ("Weight A", "Float")], [("Lo", "Float")])
+    g = _Graph(tree)
+    inp = g.node("NodeGroupInput").outputs
+    index = g.math('ADD', inp["Lo"], inp["Half"])
+    uv = g.vmath('MULTIPLY_ADD', index, inp["Stride"], inp["Base"])
+    value = g.group(_record_group(image), UV=uv, Weights=inp["Weights"], **{"Weight A": inp["Weight A"]})[0]
+    above = g.math('GREATER_THAN', value, inp["Target"])
+    lo = g.math('MULTIPLY_ADD', above, g.math('MULTIPLY', inp["Half"], -1.0), index)
+    g.set(g.node("NodeGroupOutput").inputs["Lo"], lo)
+    return tree
+
+
+# ------------------------------------------------------------------------------ the sampler
+
+class _Sampler:
+    """The sampler's nodes on one SVM texture (layout: bake/svm_export.py)."""
+
+    def __init__(self, g, texture_path):
+        self.g = g
+        self.lay = _svm_export().read_layout(texture_path)
+        self.image = _image(texture_path)
+        self.record_tree = _record_group(self.image)
+        self.step_tree = _step_group(self.image)
+        self.du = 1.0 / self.lay["width"]
+        self.dv = 1.0 / self.lay["height"]
+
+    def fetch(self, uv):
+        tex = self.g.node("ShaderNodeTexImage", image=self.image, interpolation='Closest', extension='EXTEND')
+        self.g.set(tex.inputs["Vector"], uv)
+        return tex.outputs["Color"], tex.outputs["Alpha"]
+
+    def record(self, uv, slot):
+        wv, wa = self.weights[slot]
+        return self.g.group(self.record_tree, UV=uv, Weights=wv, **{"Weight A": wa})[0]
+
+    def texel_uv(self, x, y):
+        """uv of the global texel (x, y) (constants)."""
+        return ((x + 0.5) * self.du, 1.0 - (y + 0.5) * self.dv, 0.0)
+
+    def offset(self, base, dx=0.0, dy=0.0):
+        """base + (dx, dy) texels (dy down the image)."""
+        return self.g.vmath('ADD', base, (dx * self.du, -dy * self.dv, 0.0)) if dx or dy else base
+
+    def bin_count(self, guide, value, index_value):
+        """The bin index from a bin guide ([x0, G]) at `value`, the entry floor(index_value G)."""
+        g, lay = self.g, self.lay
+        x0, count = guide
+        entry = g.math('FLOOR', g.math('MULTIPLY', index_value, float(count)))
+        uv_x = g.math('MULTIPLY_ADD', entry, self.du, (x0 + 0.5) * self.du)
+        color, alpha = self.fetch(g.combine(uv_x, 1.0 - 0.5 * self.dv))
+        # [value < t_j] = ceil(clamp(t_j - value, 0, 1)) per channel
+        below = g.vmath('CEIL', g.vmath('MAXIMUM', g.vmath('MINIMUM', g.vmath('SUBTRACT', color, value),
+                                                            (1.0, 1.0, 1.0)), (0.0, 0.0, 0.0)))
+        return g.math('SUBTRACT', alpha, g.dot(below, (1.0, 1.0, 1.0)))
+
+    def search(self, lo, target, base, stride, steps, slot):
+        wv, wa = self.weights[slot]
+        for s in reversed(range(steps)):
+            lo = self.g.group(self.step_tree, Lo=lo, Target=target, Base=base, Stride=(stride * self.du, 0.0, 0.0),
+                              Half=float(2 ** s), Weights=wv, **{"Weight A": wa})[0]
+        return lo
+
+    def guide_lo(self, base, u, count):
+        """The guide's lo for u in [0, 1] (entries at base + g texels, g < count)."""
+        g = self.g
+        entry = g.math('MINIMUM', g.math('FLOOR', g.math('MULTIPLY', u, float(count))), count - 1.0)
+        color, _ = self.fetch(g.vmath('MULTIPLY_ADD', entry, (self.du, 0.0, 0.0), base))
+        return g.dot(color, X)
+
+    def sample(self, cos_i, phi_i, u0, u1):
+        """(wo in the local frame, weight W (colour), pdf) for sockets cos theta_i (>= 0),
+        phi_i (None for isotropic tables), u0, u1."""
+        g, lay = self.g, self.lay
+        K, P, R, C, nb = lay["K"], lay["P"], lay["R"], lay["C"], lay["NB"]
+        bw, bh = lay["block"]
+        nx = lay["blocks_per_row"]
+
+        # incident bins: the corner (k, p) and the blend weights t (theta), s (phi)
+        k = self.bin_count(lay["theta_guide"], g.math('MULTIPLY', cos_i, -1.0), g.math('SUBTRACT', 1.0, cos_i)) \
+            if K > 1 else 0.0
+        if P > 1:
+            x = g.math('FLOORED_MODULO', g.math('SUBTRACT', phi_i, lay["phi0"]), lay["period"])
+            p = self.bin_count(lay["phi_guide"], x, g.math('MULTIPLY', x, 1.0 / lay["period"]))
+            corner = g.math('MULTIPLY_ADD', k, float(P), p)
+        else:
+            corner = k
+        if lay["corners"] > nx:
+            brow = g.math('FLOOR', g.math('MULTIPLY_ADD', corner, 1.0 / nx, 0.5 / nx))
+            bcol = g.math('MULTIPLY_ADD', brow, -float(nx), corner)
+        else:
+            brow, bcol = 0.0, corner
+        origin = g.combine(g.math('MULTIPLY_ADD', bcol, bw * self.du, 0.5 * self.du),
+                           g.math('MULTIPLY_ADD', brow, -bh * self.dv, 1.0 - 1.5 * self.dv))
+        head, head_a = self.fetch(origin)
+        t = s = 0.0
+        if K > 1:
+            c_k, c_k1 = g.dot(head, X), g.dot(head, Y)
+            t = g.math('DIVIDE', g.math('SUBTRACT', c_k, cos_i), g.math('SUBTRACT', c_k, c_k1), clamp=True)
+        if P > 1:
+            start = g.dot(head, Z)
+            s = g.math('DIVIDE', g.math('SUBTRACT', x, start), g.math('SUBTRACT', head_a, start), clamp=True)
+        if nb == 2:
+            w0 = g.math('SUBTRACT', 1.0, t)
+            self.weights = [(g.combine(w0, t), 0.0), (g.combine(0.0, 0.0, w0), t)]
+        else:
+            t1, s1 = g.math('SUBTRACT', 1.0, t), g.math('SUBTRACT', 1.0, s)
+            self.weights = [(g.combine(g.math('MULTIPLY', t1, s1), g.math('MULTIPLY', t, s1), g.math('MULTIPLY', t1, s)),
+                             g.math('MULTIPLY', t, s))]
+        rpt = 4 // nb                   # records per texel: record q at texel q // rpt, slot q % rpt
+
+        def quantity(base, q):
+            return self.record(self.offset(base, q // rpt), q % rpt)
+
+        # row i: the last with CDF(i) <= u0
+        sr = lay["row_stride"]
+        rows = self.offset(origin, lay["x_row"])
+        i = self.search(self.guide_lo(self.offset(origin, 1), u0, lay["row_guide"]), u0, rows, sr, lay["row_steps"], 0)
+        rec = g.vmath('MULTIPLY_ADD', i, (sr * self.du, 0.0, 0.0), rows)
+        rec1 = self.offset(rec, sr)
+        c0, a0, c1, a1 = quantity(rec, 0), quantity(rec, 1), quantity(rec1, 0), quantity(rec1, 1)
+        v = g.math('MULTIPLY', u1, g.math('SUBTRACT', c1, c0))
+        # column j of row i: the last with cumsum(i, j) <= v
+        sc, sx = lay["col_stride"], lay["cell_stride"]
+        row = g.vmath('MULTIPLY_ADD', i, (0.0, -self.dv, 0.0), self.offset(origin, 0, 1))
+        cols = self.offset(row, lay["x_col"])
+        j = self.search(self.guide_lo(row, u1, lay["col_guide"]), v, cols, sc, lay["col_steps"], 0)
+        rec = g.vmath('MULTIPLY_ADD', j, (sc * self.du, 0.0, 0.0), cols)
+        d0, b0, b1 = quantity(rec, 0), quantity(rec, 1), quantity(self.offset(rec, sc), 1)
+        cell = g.vmath('MULTIPLY_ADD', j, (sx * self.du, 0.0, 0.0), self.offset(row, lay["x_cell"]))
+        m, ka, kb, wr, wg, wb = (quantity(cell, q) for q in range(6))
+
+        # the point in the cell, then wo
+        x_in, ex_a = _exp_inverse_cdf(g, g.math('DIVIDE', g.math('SUBTRACT', u0, c0), g.math('SUBTRACT', c1, c0),
+                                                clamp=True), ka)
+        y_in, ex_b = _exp_inverse_cdf(g, g.math('DIVIDE', g.math('SUBTRACT', v, d0), m, clamp=True), kb)
+        da, db = g.math('SUBTRACT', a1, a0), g.math('SUBTRACT', b1, b0)
+        a = g.math('MULTIPLY_ADD', x_in, da, a0)
+        b = g.math('MULTIPLY_ADD', y_in, db, b0)
+        sin_o = g.math('SQRT', g.math('MULTIPLY', a, g.math('SUBTRACT', 2.0, a)))
+        phi_o = g.math('ADD', b, phi_i) if phi_i is not None else b
+        wo = (g.math('MULTIPLY', sin_o, g.math('COSINE', phi_o)), g.math('MULTIPLY', sin_o, g.math('SINE', phi_o)),
+              g.math('SUBTRACT', 1.0, a))
+        weight = g.combine(wr, wg, wb)
+        dens = g.math('MULTIPLY', _exp_density(g, x_in, ka, ex_a), _exp_density(g, y_in, kb, ex_b))
+        pdf = g.math('DIVIDE', g.math('MULTIPLY', m, dens), g.math('MULTIPLY', da, db))
+        return wo, weight, pdf
+
+
+def _expm1(g, k):
+    """e^k - 1 to float precision near k = 0: 2 sinh(k / 2) e^(k / 2)."""
+    h = g.math('MULTIPLY', k, 0.5)
+    return g.math('MULTIPLY', g.math('MULTIPLY', g.math('SINH', h), g.math('EXPONENT', h)), 2.0)
+
+
+def _log1p(g, z):
+    """log(1 + z) to float precision near z = 0: log(w) z / (w - 1) with w = 1 + z, or z
+    where w rounds to 1."""
+    w = g.math('ADD', z, 1.0)
+    d = g.math('SUBTRACT', w, 1.0)
+    exact = g.math('LESS_THAN', g.math('ABSOLUTE', d), 1e-30)
+    return g.math('MULTIPLY_ADD', exact, z, g.math('MULTIPLY', g.math('LOGARITHM', w, math.e), g.math('DIVIDE', z, d)))
+
+
+def _small(g, k):
+    return g.math('LESS_THAN', g.math('ABSOLUTE', k), K_SMALL)
+
+
+def _exp_inverse_cdf(g, u, k):
+    """bake/tables.py exp_inverse_cdf, both branches, one selected; also e^k - 1 (reused)."""
+    series = g.math('MULTIPLY_ADD', g.math('MULTIPLY', k, g.math('MULTIPLY', u, g.math('SUBTRACT', 1.0, u))), 0.5, u)
+    ex = _expm1(g, k)
+    exact = g.math('DIVIDE', _log1p(g, g.math('MULTIPLY', u, ex)), k)
+    return g.select(_small(g, k), series, exact, clamp=True), ex
+
+
+def _exp_density(g, x, k, ex):
+    """bake/tables.py exp_density, both branches, one selected."""
+    series = g.math('MULTIPLY_ADD', k, g.math('SUBTRACT', x, 0.5), 1.0)
+    exact = g.math('DIVIDE', g.math('MULTIPLY', k, g.math('EXPONENT', g.math('MULTIPLY', k, x))), ex)
+    return g.select(_small(g, k), series, exact)
+
+
+# ------------------------------------------------------------------------------ public
+
+def _frame(g, n, reference):
+    """Unit x and y of the local frame: `reference` projected onto the plane of n, or any
+    perpendicular where that vanishes (as learned_bsdf.osl)."""
+    along = g.vmath('SUBTRACT', reference, g.scale(n, g.dot(reference, n)))
+    usable = g.math('GREATER_THAN', g.vmath('LENGTH', along), 1e-7)
+    # cross(n, x) unless n is near x, then cross(n, (1, 1, 0))
+    near_x = g.math('GREATER_THAN', g.math('ABSOLUTE', g.dot(n, X)), 0.9)
+    other = g.vmath('CROSS_PRODUCT', n, g.combine(1.0, near_x))
+    tx = g.vmath('NORMALIZE', g.vmath('ADD', g.scale(along, usable),
+                                      g.scale(other, g.math('SUBTRACT', 1.0, usable))))
+    return tx, g.vmath('CROSS_PRODUCT', n, tx)
+
+
+def _random(g, geometry, light_path):
+    """u0, u1, u2 hashed from the shading point and the incoming ray (module docstring)."""
+    noise = g.node("ShaderNodeTexWhiteNoise", noise_dimensions='4D')
+    g.set(noise.inputs["Vector"], geometry.outputs["Position"])
+    g.set(noise.inputs["W"], light_path.outputs["Ray Length"])
+    depth = g.math('MULTIPLY_ADD', light_path.outputs["Ray Depth"], 64.0, light_path.outputs["Portal Depth"])
+    noise2 = g.node("ShaderNodeTexWhiteNoise", noise_dimensions='4D')
+    g.set(noise2.inputs["Vector"], geometry.outputs["Incoming"])
+    g.set(noise2.inputs["W"], g.math('ADD', noise.outputs["Value"], depth))
+    return tuple(g.dot(noise2.outputs["Color"], axis) for axis in (X, Y, Z))
+
+
+def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, location=(0.0, 0.0)):
+    """Add to the shader node tree `tree` the sampler of the SVM texture `texture_path`
+    (bake/svm_export.ensure_svm_export) ending in a Ray Portal BSDF; returns its shader output
+    socket. Anisotropic tables take their frame's x from `group_input_tangent_socket` (a
+    vector socket, e.g. the Learned BSDF group's Tangent input), world x when None."""
+    g = _Graph(tree, location)
+    sampler = _Sampler(g, texture_path)
+    geometry = g.node("ShaderNodeNewGeometry")
+    light_path = g.node("ShaderNodeLightPath")
+    n, wi = geometry.outputs["Normal"], geometry.outputs["Incoming"]
+    cos_raw = g.dot(wi, n)
+    cos_i = g.math('MAXIMUM', cos_raw, 0.0)
+    u0, u1, u2 = _random(g, geometry, light_path)
+    phi_i = None
+    if sampler.lay["P"] > 1:
+        tangent = group_input_tangent_socket if group_input_tangent_socket is not None else TANGENT
+        tx, ty = _frame(g, n, tangent)
+        phi_i = g.math('ARCTAN2', g.dot(wi, ty), g.dot(wi, tx))
+    wo, weight, _ = sampler.sample(cos_i, phi_i, u0, u1)
+    if phi_i is None:
+        tx, ty = _frame(g, n, wi)
+    direction = g.vmath('ADD', g.vmath('ADD', g.scale(tx, wo[0]), g.scale(ty, wo[1])), g.scale(n, wo[2]))
+    # zero (the path ends) for light from below the surface or a direction below the geometry
+    valid = g.math('MULTIPLY', g.math('GREATER_THAN', cos_raw, 0.0),
+                   g.math('GREATER_THAN', g.dot(direction, geometry.outputs["True Normal"]), 0.0))
+    weight = g.scale(weight, valid)
+    # Cycles drops a closure of mean weight < CUTOFF: roulette those below 2 CUTOFF up to it
+    keep = g.math('MULTIPLY', g.dot(weight, (1.0 / 3, 1.0 / 3, 1.0 / 3)), 0.5 / CUTOFF, clamp=True)
+    survive = g.math('LESS_THAN', g.math('MULTIPLY', u2, 1.0 - 2.0 ** -24), keep)
+    weight = g.scale(weight, g.math('DIVIDE', survive, keep))
+    portal = g.node("ShaderNodeBsdfRayPortal")
+    g.set(portal.inputs["Color"], weight)
+    g.set(portal.inputs["Position"], geometry.outputs["Position"])
+    g.set(portal.inputs["Direction"], direction)
+    return portal.outputs["BSDF"]
+
+
+def build_svm_probe(tree, texture_path, probe_path, location=(0.0, 0.0)):
+    """The sampler on inputs from the probe image `probe_path` (w x h texels (u0, u1,
+    cos theta_i, phi_i), float32 RGBA EXR) for a camera whose window spans 3 w x h pixels
+    (orthographic, pixel centres): pixel column x shows texel x mod w of the probe, as
+    0.5 + 0.5 wo (x < w), the weight W (w <= x < 2 w) or the pdf (x >= 2 w), through an
+    Emission of strength 1. Returns the Emission's output socket."""
+    g = _Graph(tree, location)
+    sampler = _Sampler(g, texture_path)
+    window = g.node("ShaderNodeTexCoord").outputs["Window"]
+    wx = g.math('MULTIPLY', g.dot(window, X), 3.0)
+    mode = g.math('FLOOR', wx)
+    probe = g.node("ShaderNodeTexImage", image=_image(probe_path), interpolation='Closest', extension='EXTEND')
+    g.set(probe.inputs["Vector"], g.combine(g.math('FRACT', wx), g.dot(window, Y)))
+    values = probe.outputs["Color"]
+    u0, u1, cos_i = (g.dot(values, axis) for axis in (X, Y, Z))
+    phi_i = probe.outputs["Alpha"] if sampler.lay["P"] > 1 else None
+    wo, weight, pdf = sampler.sample(cos_i, phi_i, u0, u1)
+    shown = g.vmath('MULTIPLY_ADD', g.combine(*wo), (0.5, 0.5, 0.5), (0.5, 0.5, 0.5))
+    first, last = g.math('LESS_THAN', mode, 0.5), g.math('GREATER_THAN', mode, 1.5)
+    middle = g.math('SUBTRACT', g.math('SUBTRACT', 1.0, first), last)
+    color = g.vmath('ADD', g.vmath('ADD', g.scale(shown, first), g.scale(weight, middle)), g.scale(pdf, last))
+    emission = g.node("ShaderNodeEmission")
+    g.set(emission.inputs["Color"], color)
+    emission.inputs["Strength"].default_value = 1.0
+    return emission.outputs["Emission"]
+
+
+def graph_counts(tree):
+    """(shader nodes, image lookups) of a tree with its node groups expanded (frames, group
+    inputs/outputs and reroutes not counted): what Cycles compiles."""
+    nodes = lookups = 0
+    for node in tree.nodes:
+        if node.bl_idname == "ShaderNodeGroup" and node.node_tree is not None:
+            n, lk = graph_counts(node.node_tree)
+            nodes, lookups = nodes + n, lookups + lk
+        elif node.bl_idname not in ("NodeGroupInput", "NodeGroupOutput", "NodeFrame", "NodeReroute"):
+            nodes += 1
+            lookups += node.bl_idname in ("ShaderNodeTexImage",)
+    return nodes, lookups
