@@ -33,19 +33,22 @@ second). Layout 1 (W x H texels):
         row 0, x = 1 + g     row guide, g < GR: (lo, hi) brackets the row for u0 in
                              [g, g + 1) / GR (osl_export._guide), lo lowered so that
                              lo + 2^row_steps - 1 stays within the records
-        row 0, x = XR + SR i records [row CDF(i), a edge(i)], i = 0 .. max(R + 1, 2^row_steps) - 1
-                             (CDF 2 past the end: the branchless search never stops there)
+        row 0, x = XR + SR i records [row CDF(i), a edge(i)], i = 0 .. NR - 1, NR = max(R + 1,
+                             2^row_steps, 2^ceil(log2 R)) (8 past the end: a branchless search,
+                             the sampler's from its guide or the pdf's from 0, never stops there)
         row 1 + i, x = g     column guide of table row i, g < GC: (lo, hi) for u1 in
                              [g, g + 1) / GC, lowered likewise
-        row 1 + i, x = XC + SC j   records [column cumsum(i, j), b edge(i, j)], j = 0 ..
-                             max(C + 1, 2^col_steps) - 1 (cumsum 2 past the end)
+        row 1 + i, x = XC + SC j   records [column cumsum(i, j), b edge(i, j)], j = 0 .. NC - 1,
+                             NC = max(C + 1, 2^col_steps, 2^ceil(log2 C)) (8 past the end)
         row 1 + i, x = XX + SX j   records [mass, alpha, beta, W red, W green, W blue] of
                              cell (i, j), j < C
       SR = SC = 2 / (4 / NB) texels (1 isotropic, 2 anisotropic), SX = 6 NB / 4.
 
-The graph's binary searches are branchless: from the guide's lo, steps of 2^(n-1) .. 1
-(n = row_steps or col_steps: the guides' widest bracket, over all corners, fixed when
-the graph is built) move lo forward where the blended record is <= the target.
+The graph's binary searches are branchless: lo moves forward by 2^(n-1), ..., 1 where the
+blended record there is <= the target. The sampler's (CDFs) start from their guide's lo,
+n = row_steps or col_steps (the guides' widest bracket over all corners, fixed when the
+graph is built); the pdf's (the inverse, on the a and b edges) start from 0 over all R
+(C). Results are capped at R - 1 (C - 1): a blended total can round to <= a target near it.
 
 Every side stays within MAX_SIDE (16384, the GPU texture limit of some devices): blocks
 wrap into rows of NX blocks; tables too large for that raise FlowBSDFError.
@@ -69,7 +72,7 @@ from .tables import open_tables
 LAYOUT = 1
 META_KEY = "flowbsdf_svm"
 MAX_SIDE = 16384
-PAST_END = 2.0          # a cumulative value above any target (targets are <= 1)
+PAST_END = 8.0          # a record value above any target (CDFs and a <= 1, b <= 2 pi)
 UNUSED = 1e30           # a bin guide threshold no value reaches
 CELL_QUANTITIES = 6     # mass, alpha, beta, W red, W green, W blue
 
@@ -112,6 +115,11 @@ def _steps(guides):
     return int(np.ceil(np.log2(width))) if width > 1 else 0
 
 
+def _full_steps(n):
+    """Binary search steps over n entries without a guide."""
+    return int(n - 1).bit_length()
+
+
 def _records(quantities, nb, count):
     """Texels (count, n, 4) packing records (one per quantity, each (count, nb)), 4 // nb per texel."""
     flat = np.concatenate([np.asarray(q, np.float64).reshape(count, nb) for q in quantities], axis=1)
@@ -140,7 +148,9 @@ def texture_image(tables):
             cum = _f32(tables._col_cum[blend(k, p), i])
             col_guides.append(_guide(cum, cum[:, -1], C))
     row_steps, col_steps = _steps(row_guides), _steps(col_guides)
-    n_row, n_col = max(R + 1, 2 ** row_steps), max(C + 1, 2 ** col_steps)
+    # records for the widest search: the sampler's from its guides, the pdf's over all R (C)
+    n_row = max(R + 1, 2 ** max(row_steps, _full_steps(R)))
+    n_col = max(C + 1, 2 ** max(col_steps, _full_steps(C)))
 
     def lowered(guide, n, steps):
         g = guide.copy()

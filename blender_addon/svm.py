@@ -39,7 +39,7 @@ Separate node (its unlinked outputs keep stack slots for the whole shader).
 u0, u1, cos theta_i, phi_i) and returns an Emission that encodes wo (0.5 + 0.5 wo), the
 weight or the pdf, side by side: for tests against numpy.
 
-API: build_svm_sampler, build_svm_probe, graph_counts.
+API: build_svm_sampler, tables_pdf_graph, build_svm_probe, graph_counts.
 """
 import math
 from pathlib import Path
@@ -47,6 +47,7 @@ from pathlib import Path
 import bpy
 
 CUTOFF = 1e-5           # Cycles' CLOSURE_WEIGHT_CUTOFF
+CELL_QUANTITIES = 6     # bake/svm_export.py: mass, alpha, beta, W red, W green, W blue
 K_SMALL = 1e-4          # bake/tables.py _SMALL: the in-cell density's small-rate branch
 TANGENT = (1.0, 0.0, 0.0)
 GROUP_PREFIX = "FlowBSDF SVM "
@@ -181,7 +182,9 @@ def _step_group(image):
 # ------------------------------------------------------------------------------ the sampler
 
 class _Sampler:
-    """The sampler's nodes on one SVM texture (layout: bake/svm_export.py)."""
+    """The sampler's nodes on one SVM texture (layout: bake/svm_export.py). `incident` adds
+    the bin lookup and blend weights (once per graph), then `sample` and `locate` add the
+    sampler and its inverse (the pdf at a direction)."""
 
     def __init__(self, g, texture_path):
         self.g = g
@@ -191,27 +194,47 @@ class _Sampler:
         self.step_tree = _step_group(self.image)
         self.du = 1.0 / self.lay["width"]
         self.dv = 1.0 / self.lay["height"]
+        self.rpt = 4 // self.lay["NB"]          # records per texel: record q at texel q // rpt, slot q % rpt
 
     def fetch(self, uv):
         tex = self.g.node("ShaderNodeTexImage", image=self.image, interpolation='Closest', extension='EXTEND')
         self.g.set(tex.inputs["Vector"], uv)
         return tex.outputs["Color"], tex.outputs["Alpha"]
 
-    def record(self, uv, slot):
-        wv, wa = self.weights[slot]
-        return self.g.group(self.record_tree, UV=uv, Weights=wv, **{"Weight A": wa})[0]
-
-    def texel_uv(self, x, y):
-        """uv of the global texel (x, y) (constants)."""
-        return ((x + 0.5) * self.du, 1.0 - (y + 0.5) * self.dv, 0.0)
-
     def offset(self, base, dx=0.0, dy=0.0):
         """base + (dx, dy) texels (dy down the image)."""
         return self.g.vmath('ADD', base, (dx * self.du, -dy * self.dv, 0.0)) if dx or dy else base
 
+    def quantity(self, base, q):
+        """Quantity q of the records at texel `base`, blended over the bins."""
+        wv, wa = self.weights[q % self.rpt]
+        return self.g.group(self.record_tree, UV=self.offset(base, q // self.rpt), Weights=wv, **{"Weight A": wa})[0]
+
+    def at(self, base, index, stride):
+        """The texel `index` records of `stride` texels after `base`."""
+        return self.g.vmath('MULTIPLY_ADD', index, (stride * self.du, 0.0, 0.0), base)
+
+    def search(self, lo, target, base, stride, steps, q, last):
+        """The last index <= `last` whose quantity q is <= target, from lo (branchless, `steps`
+        halvings). The end record (a total) can round to <= a target near its value: `last`
+        caps the result there."""
+        wv, wa = self.weights[q % self.rpt]
+        base = self.offset(base, q // self.rpt)
+        for s in reversed(range(steps)):
+            lo = self.g.group(self.step_tree, Lo=lo, Target=target, Base=base, Stride=(stride * self.du, 0.0, 0.0),
+                              Half=float(2 ** s), Weights=wv, **{"Weight A": wa})[0]
+        return self.g.math('MINIMUM', lo, float(last))
+
+    def guide_lo(self, base, u, count):
+        """The guide's lo for u in [0, 1] (entries at base + g texels, g < count)."""
+        g = self.g
+        entry = g.math('MINIMUM', g.math('FLOOR', g.math('MULTIPLY', u, float(count))), count - 1.0)
+        color, _ = self.fetch(self.at(base, entry, 1))
+        return g.dot(color, X)
+
     def bin_count(self, guide, value, index_value):
         """The bin index from a bin guide ([x0, G]) at `value`, the entry floor(index_value G)."""
-        g, lay = self.g, self.lay
+        g = self.g
         x0, count = guide
         entry = g.math('FLOOR', g.math('MULTIPLY', index_value, float(count)))
         uv_x = g.math('MULTIPLY_ADD', entry, self.du, (x0 + 0.5) * self.du)
@@ -221,29 +244,12 @@ class _Sampler:
                                                             (1.0, 1.0, 1.0)), (0.0, 0.0, 0.0)))
         return g.math('SUBTRACT', alpha, g.dot(below, (1.0, 1.0, 1.0)))
 
-    def search(self, lo, target, base, stride, steps, slot):
-        wv, wa = self.weights[slot]
-        for s in reversed(range(steps)):
-            lo = self.g.group(self.step_tree, Lo=lo, Target=target, Base=base, Stride=(stride * self.du, 0.0, 0.0),
-                              Half=float(2 ** s), Weights=wv, **{"Weight A": wa})[0]
-        return lo
-
-    def guide_lo(self, base, u, count):
-        """The guide's lo for u in [0, 1] (entries at base + g texels, g < count)."""
-        g = self.g
-        entry = g.math('MINIMUM', g.math('FLOOR', g.math('MULTIPLY', u, float(count))), count - 1.0)
-        color, _ = self.fetch(g.vmath('MULTIPLY_ADD', entry, (self.du, 0.0, 0.0), base))
-        return g.dot(color, X)
-
-    def sample(self, cos_i, phi_i, u0, u1):
-        """(wo in the local frame, weight W (colour), pdf) for sockets cos theta_i (>= 0),
-        phi_i (None for isotropic tables), u0, u1."""
+    def incident(self, cos_i, phi_i):
+        """The corner block of the incident bins at sockets cos theta_i (>= 0) and phi_i (None
+        for isotropic tables), and the blend weights (self.origin, self.weights)."""
         g, lay = self.g, self.lay
-        K, P, R, C, nb = lay["K"], lay["P"], lay["R"], lay["C"], lay["NB"]
+        K, P, nx = lay["K"], lay["P"], lay["blocks_per_row"]
         bw, bh = lay["block"]
-        nx = lay["blocks_per_row"]
-
-        # incident bins: the corner (k, p) and the blend weights t (theta), s (phi)
         k = self.bin_count(lay["theta_guide"], g.math('MULTIPLY', cos_i, -1.0), g.math('SUBTRACT', 1.0, cos_i)) \
             if K > 1 else 0.0
         if P > 1:
@@ -257,9 +263,9 @@ class _Sampler:
             bcol = g.math('MULTIPLY_ADD', brow, -float(nx), corner)
         else:
             brow, bcol = 0.0, corner
-        origin = g.combine(g.math('MULTIPLY_ADD', bcol, bw * self.du, 0.5 * self.du),
-                           g.math('MULTIPLY_ADD', brow, -bh * self.dv, 1.0 - 1.5 * self.dv))
-        head, head_a = self.fetch(origin)
+        self.origin = g.combine(g.math('MULTIPLY_ADD', bcol, bw * self.du, 0.5 * self.du),
+                                g.math('MULTIPLY_ADD', brow, -bh * self.dv, 1.0 - 1.5 * self.dv))
+        head, head_a = self.fetch(self.origin)
         t = s = 0.0
         if K > 1:
             c_k, c_k1 = g.dot(head, X), g.dot(head, Y)
@@ -267,51 +273,102 @@ class _Sampler:
         if P > 1:
             start = g.dot(head, Z)
             s = g.math('DIVIDE', g.math('SUBTRACT', x, start), g.math('SUBTRACT', head_a, start), clamp=True)
-        if nb == 2:
+        if lay["NB"] == 2:
             w0 = g.math('SUBTRACT', 1.0, t)
             self.weights = [(g.combine(w0, t), 0.0), (g.combine(0.0, 0.0, w0), t)]
         else:
             t1, s1 = g.math('SUBTRACT', 1.0, t), g.math('SUBTRACT', 1.0, s)
             self.weights = [(g.combine(g.math('MULTIPLY', t1, s1), g.math('MULTIPLY', t, s1), g.math('MULTIPLY', t1, s)),
                              g.math('MULTIPLY', t, s))]
-        rpt = 4 // nb                   # records per texel: record q at texel q // rpt, slot q % rpt
 
-        def quantity(base, q):
-            return self.record(self.offset(base, q // rpt), q % rpt)
+    def rows(self):
+        return self.offset(self.origin, self.lay["x_row"])
 
+    def row(self, i):
+        """Texel (0, 1 + i) of the block: table row i's guide, then its records."""
+        return self.g.vmath('MULTIPLY_ADD', i, (0.0, -self.dv, 0.0), self.offset(self.origin, 0, 1))
+
+    def cell(self, i, j, a0, a1, b0, b1):
+        """Cell (i, j) of the blended table: (mass, alpha, beta, W, a1 - a0, b1 - b0)."""
+        g, lay = self.g, self.lay
+        cell = self.at(self.offset(self.row(i), lay["x_cell"]), j, lay["cell_stride"])
+        m, ka, kb, wr, wg, wb = (self.quantity(cell, q) for q in range(CELL_QUANTITIES))
+        return m, ka, kb, g.combine(wr, wg, wb), g.math('SUBTRACT', a1, a0), g.math('SUBTRACT', b1, b0)
+
+    def pdf(self, m, x, ka, kb, y, da, db, ex_a=None, ex_b=None):
+        """m exp_density(x, ka) exp_density(y, kb) / (da db) (bake/tables.py)."""
+        g = self.g
+        dens = g.math('MULTIPLY', _exp_density(g, x, ka, ex_a), _exp_density(g, y, kb, ex_b))
+        return g.math('DIVIDE', g.math('MULTIPLY', m, dens), g.math('MULTIPLY', da, db))
+
+    def sample(self, u0, u1):
+        """Tables.sample after `incident`: (a, b, weight W (colour), pdf) for sockets u0, u1."""
+        g, lay = self.g, self.lay
+        R, C, sr, sc = lay["R"], lay["C"], lay["row_stride"], lay["col_stride"]
         # row i: the last with CDF(i) <= u0
-        sr = lay["row_stride"]
-        rows = self.offset(origin, lay["x_row"])
-        i = self.search(self.guide_lo(self.offset(origin, 1), u0, lay["row_guide"]), u0, rows, sr, lay["row_steps"], 0)
-        rec = g.vmath('MULTIPLY_ADD', i, (sr * self.du, 0.0, 0.0), rows)
+        rows = self.rows()
+        i = self.search(self.guide_lo(self.offset(self.origin, 1), u0, lay["row_guide"]), u0, rows, sr,
+                        lay["row_steps"], 0, R - 1)
+        rec = self.at(rows, i, sr)
         rec1 = self.offset(rec, sr)
-        c0, a0, c1, a1 = quantity(rec, 0), quantity(rec, 1), quantity(rec1, 0), quantity(rec1, 1)
+        c0, a0, c1, a1 = (self.quantity(r, q) for r, q in ((rec, 0), (rec, 1), (rec1, 0), (rec1, 1)))
         v = g.math('MULTIPLY', u1, g.math('SUBTRACT', c1, c0))
         # column j of row i: the last with cumsum(i, j) <= v
-        sc, sx = lay["col_stride"], lay["cell_stride"]
-        row = g.vmath('MULTIPLY_ADD', i, (0.0, -self.dv, 0.0), self.offset(origin, 0, 1))
+        row = self.row(i)
         cols = self.offset(row, lay["x_col"])
-        j = self.search(self.guide_lo(row, u1, lay["col_guide"]), v, cols, sc, lay["col_steps"], 0)
-        rec = g.vmath('MULTIPLY_ADD', j, (sc * self.du, 0.0, 0.0), cols)
-        d0, b0, b1 = quantity(rec, 0), quantity(rec, 1), quantity(self.offset(rec, sc), 1)
-        cell = g.vmath('MULTIPLY_ADD', j, (sx * self.du, 0.0, 0.0), self.offset(row, lay["x_cell"]))
-        m, ka, kb, wr, wg, wb = (quantity(cell, q) for q in range(6))
+        j = self.search(self.guide_lo(row, u1, lay["col_guide"]), v, cols, sc, lay["col_steps"], 0, C - 1)
+        rec = self.at(cols, j, sc)
+        d0, b0, b1 = self.quantity(rec, 0), self.quantity(rec, 1), self.quantity(self.offset(rec, sc), 1)
+        m, ka, kb, weight, da, db = self.cell(i, j, a0, a1, b0, b1)
+        # the point in the cell
+        x, ex_a = _exp_inverse_cdf(g, g.math('DIVIDE', g.math('SUBTRACT', u0, c0), g.math('SUBTRACT', c1, c0),
+                                             clamp=True), ka)
+        y, ex_b = _exp_inverse_cdf(g, g.math('DIVIDE', g.math('SUBTRACT', v, d0), m, clamp=True), kb)
+        a = g.math('MULTIPLY_ADD', x, da, a0)
+        b = g.math('MULTIPLY_ADD', y, db, b0)
+        return a, b, weight, self.pdf(m, x, ka, kb, y, da, db, ex_a, ex_b)
 
-        # the point in the cell, then wo
-        x_in, ex_a = _exp_inverse_cdf(g, g.math('DIVIDE', g.math('SUBTRACT', u0, c0), g.math('SUBTRACT', c1, c0),
-                                                clamp=True), ka)
-        y_in, ex_b = _exp_inverse_cdf(g, g.math('DIVIDE', g.math('SUBTRACT', v, d0), m, clamp=True), kb)
-        da, db = g.math('SUBTRACT', a1, a0), g.math('SUBTRACT', b1, b0)
-        a = g.math('MULTIPLY_ADD', x_in, da, a0)
-        b = g.math('MULTIPLY_ADD', y_in, db, b0)
-        sin_o = g.math('SQRT', g.math('MULTIPLY', a, g.math('SUBTRACT', 2.0, a)))
-        phi_o = g.math('ADD', b, phi_i) if phi_i is not None else b
-        wo = (g.math('MULTIPLY', sin_o, g.math('COSINE', phi_o)), g.math('MULTIPLY', sin_o, g.math('SINE', phi_o)),
-              g.math('SUBTRACT', 1.0, a))
-        weight = g.combine(wr, wg, wb)
-        dens = g.math('MULTIPLY', _exp_density(g, x_in, ka, ex_a), _exp_density(g, y_in, kb, ex_b))
-        pdf = g.math('DIVIDE', g.math('MULTIPLY', m, dens), g.math('MULTIPLY', da, db))
-        return wo, weight, pdf
+    def locate(self, a, b):
+        """Tables._locate after `incident`: (pdf, W (colour)) at table coordinates a, b."""
+        g, lay = self.g, self.lay
+        R, C, sr, sc = lay["R"], lay["C"], lay["row_stride"], lay["col_stride"]
+        rows = self.rows()
+        i = self.search(0.0, a, rows, sr, _log2(R), 1, R - 1)
+        rec = self.at(rows, i, sr)
+        a0, a1 = self.quantity(rec, 1), self.quantity(self.offset(rec, sr), 1)
+        cols = self.offset(self.row(i), lay["x_col"])
+        j = self.search(0.0, b, cols, sc, _log2(C), 1, C - 1)
+        rec = self.at(cols, j, sc)
+        b0, b1 = self.quantity(rec, 1), self.quantity(self.offset(rec, sc), 1)
+        m, ka, kb, weight, da, db = self.cell(i, j, a0, a1, b0, b1)
+        x = g.math('DIVIDE', g.math('SUBTRACT', a, a0), da, clamp=True)
+        y = g.math('DIVIDE', g.math('SUBTRACT', b, b0), db, clamp=True)
+        return self.pdf(m, x, ka, kb, y, da, db), weight
+
+
+def _log2(n):
+    """Binary search steps over n entries."""
+    return max(int(n - 1).bit_length(), 0)
+
+
+def _from_ab(g, a, b, phi_i):
+    """bake/tables.py from_ab in the frame whose x is at azimuth -phi_i from wi's: wo as floats."""
+    sin_o = g.math('SQRT', g.math('MULTIPLY', a, g.math('SUBTRACT', 2.0, a)))
+    phi_o = g.math('ADD', b, phi_i) if phi_i is not None else b
+    return (g.math('MULTIPLY', sin_o, g.math('COSINE', phi_o)), g.math('MULTIPLY', sin_o, g.math('SINE', phi_o)),
+            g.math('SUBTRACT', 1.0, a))
+
+
+def _to_ab(g, wo, phi_i):
+    """bake/tables.py to_ab (phi_ref = phi_i + pi) of a local direction (floats x, y, z)."""
+    x, y, z = wo
+    a = g.math('DIVIDE', g.math('ADD', g.math('MULTIPLY', x, x), g.math('MULTIPLY', y, y)),
+               g.math('ADD', g.math('MAXIMUM', z, 0.0), 1.0))
+    a = g.select(g.math('GREATER_THAN', z, 0.0), g.math('MINIMUM', a, 1.0), 1.0)
+    azimuth = g.math('ARCTAN2', y, x)
+    if phi_i is not None:
+        azimuth = g.math('SUBTRACT', azimuth, phi_i)
+    return a, g.math('FLOORED_MODULO', azimuth, 2.0 * math.pi)
 
 
 def _expm1(g, k):
@@ -341,8 +398,9 @@ def _exp_inverse_cdf(g, u, k):
     return g.select(_small(g, k), series, exact, clamp=True), ex
 
 
-def _exp_density(g, x, k, ex):
-    """bake/tables.py exp_density, both branches, one selected."""
+def _exp_density(g, x, k, ex=None):
+    """bake/tables.py exp_density, both branches, one selected (ex: e^k - 1 when known)."""
+    ex = _expm1(g, k) if ex is None else ex
     series = g.math('MULTIPLY_ADD', k, g.math('SUBTRACT', x, 0.5), 1.0)
     exact = g.math('DIVIDE', g.math('MULTIPLY', k, g.math('EXPONENT', g.math('MULTIPLY', k, x))), ex)
     return g.select(_small(g, k), series, exact)
@@ -375,6 +433,20 @@ def _random(g, geometry, light_path):
     return tuple(g.dot(noise2.outputs["Color"], axis) for axis in (X, Y, Z))
 
 
+def _shading(g, sampler, tangent):
+    """The shading point: (geometry node, n, wi, cos theta_i as is and clamped to >= 0, and
+    for anisotropic tables the frame (tx, ty) and phi_i, else None, None, None: the
+    isotropic frame follows wi, `_frame(g, n, wi)`, built where it is used)."""
+    geometry = g.node("ShaderNodeNewGeometry")
+    n, wi = geometry.outputs["Normal"], geometry.outputs["Incoming"]
+    cos_raw = g.dot(wi, n)
+    frame = (None, None, None)
+    if sampler.lay["P"] > 1:
+        tx, ty = _frame(g, n, TANGENT if tangent is None else tangent)
+        frame = (tx, ty, g.math('ARCTAN2', g.dot(wi, ty), g.dot(wi, tx)))
+    return geometry, n, wi, cos_raw, g.math('MAXIMUM', cos_raw, 0.0), frame
+
+
 def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, location=(0.0, 0.0)):
     """Add to the shader node tree `tree` the sampler of the SVM texture `texture_path`
     (bake/svm_export.ensure_svm_export) ending in a Ray Portal BSDF; returns its shader output
@@ -382,18 +454,11 @@ def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, locat
     vector socket, e.g. the Learned BSDF group's Tangent input), world x when None."""
     g = _Graph(tree, location)
     sampler = _Sampler(g, texture_path)
-    geometry = g.node("ShaderNodeNewGeometry")
-    light_path = g.node("ShaderNodeLightPath")
-    n, wi = geometry.outputs["Normal"], geometry.outputs["Incoming"]
-    cos_raw = g.dot(wi, n)
-    cos_i = g.math('MAXIMUM', cos_raw, 0.0)
-    u0, u1, u2 = _random(g, geometry, light_path)
-    phi_i = None
-    if sampler.lay["P"] > 1:
-        tangent = group_input_tangent_socket if group_input_tangent_socket is not None else TANGENT
-        tx, ty = _frame(g, n, tangent)
-        phi_i = g.math('ARCTAN2', g.dot(wi, ty), g.dot(wi, tx))
-    wo, weight, _ = sampler.sample(cos_i, phi_i, u0, u1)
+    geometry, n, wi, cos_raw, cos_i, (tx, ty, phi_i) = _shading(g, sampler, group_input_tangent_socket)
+    u0, u1, u2 = _random(g, geometry, g.node("ShaderNodeLightPath"))
+    sampler.incident(cos_i, phi_i)
+    a, b, weight, _ = sampler.sample(u0, u1)
+    wo = _from_ab(g, a, b, phi_i)
     if phi_i is None:
         tx, ty = _frame(g, n, wi)
     direction = g.vmath('ADD', g.vmath('ADD', g.scale(tx, wo[0]), g.scale(ty, wo[1])), g.scale(n, wo[2]))
@@ -412,27 +477,64 @@ def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, locat
     return portal.outputs["BSDF"]
 
 
-def build_svm_probe(tree, texture_path, probe_path, location=(0.0, 0.0)):
-    """The sampler on inputs from the probe image `probe_path` (w x h texels (u0, u1,
-    cos theta_i, phi_i), float32 RGBA EXR) for a camera whose window spans 3 w x h pixels
-    (orthographic, pixel centres): pixel column x shows texel x mod w of the probe, as
-    0.5 + 0.5 wo (x < w), the weight W (w <= x < 2 w) or the pdf (x >= 2 w), through an
-    Emission of strength 1. Returns the Emission's output socket."""
+def tables_pdf_graph(tree, texture_path, wo_socket, group_input_tangent_socket=None, location=(0.0, 0.0)):
+    """Add to `tree` the inverse of the sampler: at the world direction `wo_socket` (a unit
+    vector socket), the tables' pdf (per steradian, 0 below the shading surface) and baked
+    f·cos (colour: W x pdf, 0 when wi or wo is below the surface), as Tables.pdf and
+    Tables.eval x cos theta_o do. Returns (pdf socket, f·cos socket)."""
+    g = _Graph(tree, location)
+    sampler = _Sampler(g, texture_path)
+    _, n, wi, cos_raw, cos_i, (tx, ty, phi_i) = _shading(g, sampler, group_input_tangent_socket)
+    if phi_i is None:
+        tx, ty = _frame(g, n, wi)
+    local = tuple(g.dot(wo_socket, axis) for axis in (tx, ty, n))
+    pdf, fcos = _inverse(g, sampler, cos_i, phi_i, local)
+    fcos = g.scale(fcos, g.math('GREATER_THAN', cos_raw, 0.0))
+    return pdf, fcos
+
+
+def _inverse(g, sampler, cos_i, phi_i, wo):
+    """(pdf, f·cos) at the local direction wo (floats x, y, z), both 0 for wo_z <= 0."""
+    sampler.incident(cos_i, phi_i)
+    pdf, weight = sampler.locate(*_to_ab(g, wo, phi_i))
+    pdf = g.math('MULTIPLY', pdf, g.math('GREATER_THAN', wo[2], 0.0))
+    return pdf, g.scale(weight, pdf)
+
+
+def build_svm_probe(tree, texture_path, probe_path, inverse=False, location=(0.0, 0.0)):
+    """The sampler (or with `inverse`, tables_pdf_graph's inverse) on inputs from the probe image
+    `probe_path` (w x h float32 RGBA texels: u0, u1, cos theta_i, phi_i; with `inverse`,
+    cos theta_o, phi_o, cos theta_i, phi_i, in the frame whose x is the tangent: wi at phi_i)
+    for a camera whose window spans 3 w x h pixels (orthographic, pixel centres): pixel
+    column x shows texel x mod w of the probe, as 0.5 + 0.5 wo, the weight W and the pdf
+    (thirds of the image; with `inverse`: the pdf, f·cos and 0), through an Emission of
+    strength 1. Returns the Emission's output socket."""
     g = _Graph(tree, location)
     sampler = _Sampler(g, texture_path)
     window = g.node("ShaderNodeTexCoord").outputs["Window"]
     wx = g.math('MULTIPLY', g.dot(window, X), 3.0)
-    mode = g.math('FLOOR', wx)
+    third = g.math('FLOOR', wx)
     probe = g.node("ShaderNodeTexImage", image=_image(probe_path), interpolation='Closest', extension='EXTEND')
     g.set(probe.inputs["Vector"], g.combine(g.math('FRACT', wx), g.dot(window, Y)))
     values = probe.outputs["Color"]
-    u0, u1, cos_i = (g.dot(values, axis) for axis in (X, Y, Z))
+    first, second, cos_i = (g.dot(values, axis) for axis in (X, Y, Z))
     phi_i = probe.outputs["Alpha"] if sampler.lay["P"] > 1 else None
-    wo, weight, pdf = sampler.sample(cos_i, phi_i, u0, u1)
-    shown = g.vmath('MULTIPLY_ADD', g.combine(*wo), (0.5, 0.5, 0.5), (0.5, 0.5, 0.5))
-    first, last = g.math('LESS_THAN', mode, 0.5), g.math('GREATER_THAN', mode, 1.5)
-    middle = g.math('SUBTRACT', g.math('SUBTRACT', 1.0, first), last)
-    color = g.vmath('ADD', g.vmath('ADD', g.scale(shown, first), g.scale(weight, middle)), g.scale(pdf, last))
+    if inverse:
+        sin_o = g.math('SQRT', g.math('SUBTRACT', 1.0, g.math('MULTIPLY', first, first)))
+        wo = (g.math('MULTIPLY', sin_o, g.math('COSINE', second)), g.math('MULTIPLY', sin_o, g.math('SINE', second)),
+              first)
+        pdf, fcos = _inverse(g, sampler, cos_i, phi_i, wo)
+        shown = (pdf, fcos, (0.0, 0.0, 0.0))
+    else:
+        sampler.incident(cos_i, phi_i)
+        a, b, weight, pdf = sampler.sample(first, second)
+        wo = g.vmath('MULTIPLY_ADD', g.combine(*_from_ab(g, a, b, phi_i)), (0.5, 0.5, 0.5), (0.5, 0.5, 0.5))
+        shown = (wo, weight, pdf)
+    # one of the three by its third of the image: x 1 and x 0 (exact)
+    left, right = g.math('LESS_THAN', third, 0.5), g.math('GREATER_THAN', third, 1.5)
+    middle = g.math('SUBTRACT', g.math('SUBTRACT', 1.0, left), right)
+    color = g.vmath('ADD', g.vmath('ADD', g.scale(shown[0], left), g.scale(shown[1], middle)),
+                    g.scale(shown[2], right))
     emission = g.node("ShaderNodeEmission")
     g.set(emission.inputs["Color"], color)
     emission.inputs["Strength"].default_value = 1.0
