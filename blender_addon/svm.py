@@ -15,7 +15,11 @@ Per shading point:
   at normal incidence / a tangent along n, any perpendicular (as learned_bsdf.osl).
 - u0, u1, u2: White Noise 4D of (Position, Ray Length) -> r, then White Noise 4D of
   (Incoming, r + Portal Depth + 64 Ray Depth) -> its colour (Cycles gives a node graph no
-  sampler state: every path vertex hashes its own numbers).
+  sampler state: every path vertex hashes its own numbers). On camera rays before any
+  portal, with Cycles' box pixel filter (`film_settings`, `set_film`), u0, u1 come from
+  the sample's place in its pixel instead, rotated per pixel by a hash: Cycles places a
+  pixel's samples by its stratified sequence, so their u are stratified too (much less
+  noise where the camera sees the material directly; unbiased: each u stays uniform).
 - theta_i and phi_i bins through the texture's bin guides, the corner block's header
   gives the blend weights; the row search on u0 and the column search on u1 (v = u1 x the
   row's mass) run a fixed number of branchless steps from their guide's bracket; the
@@ -35,22 +39,26 @@ material black) holds the graph with wide margin (tests/test_svm.py measures the
 with Cycles' own message). Channels are read with a dot product against a vector, never a
 Separate node (its unlinked outputs keep stack slots for the whole shader).
 
-`build_svm_probe` builds the same sampler on inputs read from a probe image (per pixel
-u0, u1, cos theta_i, phi_i) and returns an Emission that encodes wo (0.5 + 0.5 wo), the
-weight or the pdf, side by side: for tests against numpy.
+`tables_pdf_graph` adds the sampler's inverse (Tables._locate): at a given direction, the
+pdf and the baked f·cos, from branchless searches of the blended a edges (the row) and b
+edges (the column) and the cell's exponential densities: what one-sample MIS with another
+sampling strategy (e.g. the world map) needs.
 
-API: build_svm_sampler, tables_pdf_graph, build_svm_probe, graph_counts.
+`build_svm_probe` builds the sampler (or its inverse) on inputs read from a probe image
+(per pixel u0, u1, cos theta_i, phi_i) and returns an Emission that encodes wo (0.5 +
+0.5 wo), the weight and the pdf side by side: for tests against numpy.
+
+API: build_svm_sampler, tables_pdf_graph, build_svm_probe, graph_counts, film_settings, set_film.
 """
 import math
-from pathlib import Path
 
 import bpy
 
 CUTOFF = 1e-5           # Cycles' CLOSURE_WEIGHT_CUTOFF
-CELL_QUANTITIES = 6     # bake/svm_export.py: mass, alpha, beta, W red, W green, W blue
 K_SMALL = 1e-4          # bake/tables.py _SMALL: the in-cell density's small-rate branch
 TANGENT = (1.0, 0.0, 0.0)
 GROUP_PREFIX = "FlowBSDF SVM "
+FILM = "FlowBSDF SVM film"      # a Combine XYZ node per sampler: film_settings
 X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
 
 
@@ -292,7 +300,7 @@ class _Sampler:
         """Cell (i, j) of the blended table: (mass, alpha, beta, W, a1 - a0, b1 - b0)."""
         g, lay = self.g, self.lay
         cell = self.at(self.offset(self.row(i), lay["x_cell"]), j, lay["cell_stride"])
-        m, ka, kb, wr, wg, wb = (self.quantity(cell, q) for q in range(CELL_QUANTITIES))
+        m, ka, kb, wr, wg, wb = (self.quantity(cell, q) for q in range(_svm_export().CELL_QUANTITIES))
         return m, ka, kb, g.combine(wr, wg, wb), g.math('SUBTRACT', a1, a0), g.math('SUBTRACT', b1, b0)
 
     def pdf(self, m, x, ka, kb, y, da, db, ex_a=None, ex_b=None):
@@ -447,15 +455,57 @@ def _shading(g, sampler, tangent):
     return geometry, n, wi, cos_raw, g.math('MAXIMUM', cos_raw, 0.0), frame
 
 
+def film_settings(scene):
+    """(raster width, raster height, 1 if camera rays may take u from their place in the pixel
+    else 0) of a scene: only Cycles' box filter places a pixel's samples uniformly in it (1 px
+    whatever its width setting; other filters spread them by their weight)."""
+    r = scene.render
+    box = scene.render.engine == 'CYCLES' and scene.cycles.pixel_filter_type == 'BOX'
+    return (r.resolution_x * r.resolution_percentage / 100.0, r.resolution_y * r.resolution_percentage / 100.0,
+            1.0 if box else 0.0)
+
+
+def set_film(tree, scene):
+    """Write the scene's film_settings into the sampler graphs in `tree` (their "FlowBSDF SVM
+    film" nodes); call it when the scene's resolution or pixel filter changes."""
+    values = film_settings(scene)
+    for node in tree.nodes:
+        if node.name.startswith(FILM):
+            for socket, value in zip(node.inputs, values):
+                if socket.default_value != value:
+                    socket.default_value = value
+
+
+def _film_u(g, light_path, hashed):
+    """(u0, u1): on camera rays before any portal, the sample's place in its pixel (raster
+    position from the Window coordinate, Cranley-Patterson rotated by a hash of the pixel), when
+    the film node says so (set_film); else the hashed u0, u1. Cycles places a pixel's samples
+    by its stratified sequence, so a pixel's u are stratified too."""
+    film = g.node("ShaderNodeCombineXYZ", name=FILM, label=FILM)
+    for socket, value in zip(film.inputs, film_settings(bpy.context.scene)):
+        socket.default_value = value
+    raster = g.vmath('MULTIPLY', g.node("ShaderNodeTexCoord").outputs["Window"], film.outputs[0])
+    rotation = g.node("ShaderNodeTexWhiteNoise", noise_dimensions='3D')
+    g.set(rotation.inputs["Vector"], g.vmath('FLOOR', raster))
+    u = g.vmath('FRACTION', g.vmath('ADD', g.vmath('FRACTION', raster), rotation.outputs["Color"]))
+    first = g.math('MULTIPLY', light_path.outputs["Is Camera Ray"],
+                   g.math('LESS_THAN', light_path.outputs["Portal Depth"], 0.5))
+    use = g.math('MULTIPLY', first, g.dot(film.outputs[0], Z))
+    return tuple(g.select(use, g.dot(u, axis), h) for axis, h in zip((X, Y), hashed))
+
+
 def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, location=(0.0, 0.0)):
     """Add to the shader node tree `tree` the sampler of the SVM texture `texture_path`
     (bake/svm_export.ensure_svm_export) ending in a Ray Portal BSDF; returns its shader output
     socket. Anisotropic tables take their frame's x from `group_input_tangent_socket` (a
-    vector socket, e.g. the Learned BSDF group's Tangent input), world x when None."""
+    vector socket, e.g. the Learned BSDF group's Tangent input), world x when None. Camera
+    rays stratify u by the film when the current scene allows it (set_film updates that)."""
     g = _Graph(tree, location)
     sampler = _Sampler(g, texture_path)
     geometry, n, wi, cos_raw, cos_i, (tx, ty, phi_i) = _shading(g, sampler, group_input_tangent_socket)
-    u0, u1, u2 = _random(g, geometry, g.node("ShaderNodeLightPath"))
+    light_path = g.node("ShaderNodeLightPath")
+    u0, u1, u2 = _random(g, geometry, light_path)
+    u0, u1 = _film_u(g, light_path, (u0, u1))
     sampler.incident(cos_i, phi_i)
     a, b, weight, _ = sampler.sample(u0, u1)
     wo = _from_ab(g, a, b, phi_i)
