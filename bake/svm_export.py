@@ -51,7 +51,16 @@ graph is built); the pdf's (the inverse, on the a and b edges) start from 0 over
 (C). Results are capped at R - 1 (C - 1): a blended total can round to <= a target near it.
 
 Every side stays within MAX_SIDE (16384, the GPU texture limit of some devices): blocks
-wrap into rows of NX blocks; tables too large for that raise FlowBSDFError.
+wrap into rows of NX blocks; tables too large for that raise FlowBSDFError. (64 x 64 cells:
+40 theta bins, 12519 x 66 texels, 13 MB; 12 x 8 anisotropic bins, 16184 x 261, 68 MB: every
+corner block repeats its bins' data, so that one fetch serves the whole blend.)
+
+Metadata (JSON in the header attribute "flowbsdf_svm"): layout (LAYOUT), K, P, R, C, NB,
+period, phi0 (phi_bin 0), width, height (W, H), block ([BW, BH]), blocks_per_row (NX),
+corners, x_row, x_col, x_cell, row_stride, col_stride, cell_stride (XR, XC, XX, SR, SC, SX),
+row_guide, col_guide (GR = R, GC = C), row_steps, col_steps, theta_guide and phi_guide
+([x0, G]: the guide's first texel and G, the smallest power of two >= 16 that leaves at most
+three starts to an entry), plus tables_hash, tables (file name), material, anisotropic.
 
 The file is named after the table file's content hash (`<stem>.svm<LAYOUT>-<hash12>.exr`
 next to the tables) and carries the full hash in its metadata: a changed table gets a new
@@ -178,7 +187,7 @@ def texture_image(tables):
         raise FlowBSDFError(f"tables of {K} x {P} bins of {R} x {C} cells need an SVM texture of "
                             f"{width} x {height} texels, more than {MAX_SIDE} per side")
 
-    img = np.zeros((height, width, 4), np.float64)
+    img = np.zeros((height, width, 4), np.float32)
     img[0, :gt] = theta_guide
     img[0, gt:gt + gp] = phi_guide
     ends = np.append(starts[1:], period)
@@ -213,7 +222,7 @@ def texture_image(tables):
               "row_stride": sr, "col_stride": sc, "cell_stride": sx,
               "row_guide": R, "col_guide": C, "row_steps": row_steps, "col_steps": col_steps,
               "theta_guide": [0, gt - 1], "phi_guide": [gt, gp - 1]}
-    return img.astype(np.float32), layout
+    return img, layout
 
 
 def _write(path, img, meta):

@@ -25,7 +25,7 @@ def _synthetic(K, P, R=64, C=64, seed=0):
     lead = (K,) if P is None else (K, P)
     a = np.sort(rng.random(lead + (R + 1,)), -1)
     b = np.sort(rng.random(lead + (R, C + 1)), -1) * 2 * np.pi
-    mass = rng.random(lead + (R, C)) ** 8 + 1e-6
+    mass = rng.random(lead + (R, C)) ** 4 + 1e-3
     slopes = [rng.uniform(-30, 30, lead + (R, C)) for _ in range(2)]
     return Tables(np.radians(np.linspace(0.0, 89.5, K)), a, b, mass, *slopes, rng.random(lead + (R, C, 3)),
                   phi_bins=None if P is None else np.arange(P) * np.pi / P, phi_period=np.pi if P else 2 * np.pi)
@@ -108,17 +108,17 @@ def _probe(svm, texture, inputs, folder, width=32, inverse=False):
 EXTREMES = [[2.0 ** -24, 2.0 ** -24], [1.0 - 2.0 ** -24, 1.0 - 2.0 ** -24], [2.0 ** -24, 0.3], [0.3, 1.0 - 2.0 ** -24]]
 
 
-def _probe_inputs(angles, per_angle=100, seed=0):
+def _probe_inputs(angles, per_angle=100, seed=0, extremes=True):
     """Per (theta_i, phi_i) in degrees: u on a grid of cell centres, random u, then EXTREMES
     (not u0 = 0: there wo is the pole, where eval's cell, hence its weight, is not the
     sampled one). Returns (inputs (n, 4) float32, mask of the extremes)."""
     side = int(np.sqrt(per_angle))
     g = (np.arange(side) + 0.5) / side
     u = np.concatenate([np.stack(np.meshgrid(g, g), -1).reshape(-1, 2),
-                        np.random.default_rng(seed).random((24, 2)), EXTREMES])
+                        np.random.default_rng(seed).random((24, 2)), EXTREMES if extremes else np.zeros((0, 2))])
     rows = [np.column_stack([u, np.full(len(u), np.cos(np.radians(t))), np.full(len(u), np.radians(p))])
             for t, p in angles]
-    extreme = np.tile(np.arange(len(u)) >= len(u) - len(EXTREMES), len(angles))
+    extreme = np.tile(np.arange(len(u)) >= len(u) - len(EXTREMES) * extremes, len(angles))
     return np.concatenate(rows).astype(np.float32), extreme
 
 
@@ -130,21 +130,23 @@ def _numpy_sample(tab, inputs):
     return wo, tab.eval(wi, wo) * wo[:, 2:3] / pdf[:, None], pdf
 
 
-def _assert_probe_is_numpy(svm, tables_path, angles, folder):
-    """wo within 3e-4 (median 2e-5), weight rtol 1e-4, pdf rtol 1e-3. At u = 1 - 2^-24 the
-    in-cell remainder (v - cumsum) / mass cancels in float32 (the graph) where a tail cell's
-    mass is ~1e-4 of its row's: there the same cell (weight) and wo within 2e-3, pdf 1e-2."""
+def _assert_probe_is_numpy(svm, tables_path, angles, folder, extremes=True):
+    """wo within 3e-4 (median 2e-5), weight rtol 1e-4, pdf rtol 1e-3. At the EXTREMES of u the
+    point within the cell is float32-limited in the graph (the remainder (v - cumsum) / mass
+    cancels where a cell's mass is ~1e-4 of its row's): there the same cell (weight rtol
+    1e-4), wo within 2e-3, pdf rtol 1e-2."""
     tab = open_tables(tables_path)
     tab.backend = "numpy"
-    inputs, extreme = _probe_inputs(angles)
+    inputs, extreme = _probe_inputs(angles, extremes=extremes)
     wo, weight, pdf = _probe(svm, svm_export.ensure_svm_export(tables_path), inputs, folder)
     ref_wo, ref_weight, ref_pdf = _numpy_sample(tab, inputs)
     err = np.abs(wo - ref_wo).max(axis=1)
     assert err[~extreme].max() < 3e-4 and np.median(err) < 2e-5, (err[~extreme].max(), np.median(err))
-    assert err[extreme].max() < 2e-3, err[extreme].max()
+    assert not extremes or err[extreme].max() < 2e-3, err[extreme].max()
     np.testing.assert_allclose(weight, ref_weight, rtol=1e-4, atol=1e-7)
     np.testing.assert_allclose(pdf[~extreme], ref_pdf[~extreme], rtol=1e-3)
-    np.testing.assert_allclose(pdf[extreme], ref_pdf[extreme], rtol=1e-2)
+    if extremes:
+        np.testing.assert_allclose(pdf[extreme], ref_pdf[extreme], rtol=1e-2)
 
 
 def test_svm_sampler_is_tables_sample(svm, plastic, tmp_path):
@@ -161,6 +163,19 @@ def test_svm_sampler_is_tables_sample_anisotropic(svm, brushed, tmp_path):
     angles = [(0.0, 0.0), (45.0, 45.0), (30.0, 10.0), (70.0, 170.0), (60.0, 300.0), (20.0, -10.0),
               (89.5, 90.0), (50.0, 179.99)]
     _assert_probe_is_numpy(svm, brushed, angles, tmp_path)
+
+
+@pytest.mark.parametrize("K,P", [(1, None), (2, 3)])
+def test_svm_sampler_on_odd_synthetic_tables(svm, K, P, tmp_path):
+    """Random tables of odd shapes: one theta bin (no blend), 3 phi bins, 8 x 12 cells (not
+    square, not powers of two); masses over three decades, slopes up to the limit 30. (Not at
+    the extremes of u: a cell's light end under a random slope of -30 is ill-conditioned in
+    float32, where numpy is float64; the extremes are checked on the baked tables.)"""
+    path = tmp_path / "synthetic.exr"
+    _synthetic(K, P, R=8, C=12, seed=K).save(path)
+    # (at theta_i = 0 numpy's wi has no azimuth: phi_i 0 there, as a render's phi_i is)
+    angles = [(0.0, 0.0)] + [(t, p) for t in (40.0, 89.0) for p in ((0.0, 100.0, 170.0) if P else (0.0,))]
+    _assert_probe_is_numpy(svm, path, angles, tmp_path, extremes=False)
 
 
 @pytest.mark.parametrize("which", ["plastic", "brushed"])
