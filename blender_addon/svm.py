@@ -140,47 +140,56 @@ class _Graph:
 
 # ------------------------------------------------------------------------------ node groups
 
-def _interface(tree, inputs, outputs):
-    for name, kind in inputs:
-        tree.interface.new_socket(name, in_out="INPUT", socket_type=f"NodeSocket{kind}")
-    for name, kind in outputs:
-        tree.interface.new_socket(name, in_out="OUTPUT", socket_type=f"NodeSocket{kind}")
-
-
-def _record_group(image):
-    """Group "record": one texel at UV blended over the bins: dot(colour, Weights) + alpha x
-    Weight A (a record in red/green: Weights = (w0, w1, 0), Weight A = 0; in blue/alpha:
-    (0, 0, w0) and w1; four bins: (w0, w1, w2) and w3)."""
-    name = f"{GROUP_PREFIX}record: {image.name}"
+def _group(name, inputs, outputs):
+    """(existing node group of that name, None) or (None, a new empty one with the sockets)."""
     tree = bpy.data.node_groups.get(name)
     if tree is not None:
-        return tree
+        return tree, None
     tree = bpy.data.node_groups.new(name, "ShaderNodeTree")
-    _interface(tree, [("UV", "Vector"), ("Weights", "Vector"), ("Weight A", "Float")], [("Value", "Float")])
+    for socket, kind in inputs:
+        tree.interface.new_socket(socket, in_out="INPUT", socket_type=f"NodeSocket{kind}")
+    for socket, kind in outputs:
+        tree.interface.new_socket(socket, in_out="OUTPUT", socket_type=f"NodeSocket{kind}")
+    return None, tree
+
+
+def _weight_inputs(alpha):
+    return [("Weights", "Vector")] + ([("Weight A", "Float")] if alpha else [])
+
+
+def _record_group(image, alpha):
+    """Group "record": the texel at UV blended over the bins: dot(colour, Weights), + alpha x
+    Weight A with `alpha` (a record in red/green: Weights = (w0, w1, 0), no alpha; in
+    blue/alpha: (0, 0, w0) and w1; four bins: (w0, w1, w2) and w3)."""
+    done, tree = _group(f"{GROUP_PREFIX}record{' RGBA' if alpha else ' RGB'}: {image.name}",
+                        [("UV", "Vector")] + _weight_inputs(alpha), [("Value", "Float")])
+    if done:
+        return done
     g = _Graph(tree)
     inp = g.node("NodeGroupInput").outputs
     tex = g.node("ShaderNodeTexImage", image=image, interpolation='Closest', extension='EXTEND')
     g.set(tex.inputs["Vector"], inp["UV"])
-    value = g.math('MULTIPLY_ADD', tex.outputs["Alpha"], inp["Weight A"], g.dot(tex.outputs["Color"], inp["Weights"]))
+    value = g.dot(tex.outputs["Color"], inp["Weights"])
+    if alpha:
+        value = g.math('MULTIPLY_ADD', tex.outputs["Alpha"], inp["Weight A"], value)
     g.set(g.node("NodeGroupOutput").inputs["Value"], value)
     return tree
 
 
-def _step_group(image):
-    """Group "search step" (branchless binary search): index = Lo + Half; Lo stays there when
-    the record at Base + index x Stride is <= Target, else goes back to Lo."""
-    name = f"{GROUP_PREFIX}search step: {image.name}"
-    tree = bpy.data.node_groups.get(name)
-    if tree is not None:
-        return tree
-    tree = bpy.data.node_groups.new(name, "ShaderNodeTree")
-    _interface(tree, [("Lo", "Float"), ("Target", "Float"), ("Base", "Vector"), ("Stride", "Vector"),
-                      ("Half", "Float"), ("Weights", "Vector"), ("Weight A", "Float")], [("Lo", "Float")])
+def _step_group(image, alpha):
+    """Group "search step" (branchless binary search): index = Lo + Half; Lo moves there when
+    the record at Base + index x Stride is <= Target."""
+    done, tree = _group(f"{GROUP_PREFIX}search step{' RGBA' if alpha else ' RGB'}: {image.name}",
+                        [("Lo", "Float"), ("Target", "Float"), ("Base", "Vector"), ("Stride", "Vector"),
+                         ("Half", "Float")] + _weight_inputs(alpha), [("Lo", "Float")])
+    if done:
+        return done
     g = _Graph(tree)
     inp = g.node("NodeGroupInput").outputs
     index = g.math('ADD', inp["Lo"], inp["Half"])
     uv = g.vmath('MULTIPLY_ADD', index, inp["Stride"], inp["Base"])
-    value = g.group(_record_group(image), UV=uv, Weights=inp["Weights"], **{"Weight A": inp["Weight A"]})[0]
+    weights = {name: inp[name] for name, _ in _weight_inputs(alpha)}
+    value = g.group(_record_group(image, alpha), UV=uv, **weights)[0]
     above = g.math('GREATER_THAN', value, inp["Target"])
     lo = g.math('MULTIPLY_ADD', above, g.math('MULTIPLY', inp["Half"], -1.0), index)
     g.set(g.node("NodeGroupOutput").inputs["Lo"], lo)
@@ -198,8 +207,6 @@ class _Sampler:
         self.g = g
         self.lay = _svm_export().read_layout(texture_path)
         self.image = _image(texture_path)
-        self.record_tree = _record_group(self.image)
-        self.step_tree = _step_group(self.image)
         self.du = 1.0 / self.lay["width"]
         self.dv = 1.0 / self.lay["height"]
         self.rpt = 4 // self.lay["NB"]          # records per texel: record q at texel q // rpt, slot q % rpt
@@ -213,10 +220,15 @@ class _Sampler:
         """base + (dx, dy) texels (dy down the image)."""
         return self.g.vmath('ADD', base, (dx * self.du, -dy * self.dv, 0.0)) if dx or dy else base
 
+    def blend(self, q):
+        """(alpha used?, the group inputs that blend quantity q's slot of a texel)."""
+        wv, wa = self.weights[q % self.rpt]
+        return wa is not None, ({"Weights": wv} if wa is None else {"Weights": wv, "Weight A": wa})
+
     def quantity(self, base, q):
         """Quantity q of the records at texel `base`, blended over the bins."""
-        wv, wa = self.weights[q % self.rpt]
-        return self.g.group(self.record_tree, UV=self.offset(base, q // self.rpt), Weights=wv, **{"Weight A": wa})[0]
+        alpha, weights = self.blend(q)
+        return self.g.group(_record_group(self.image, alpha), UV=self.offset(base, q // self.rpt), **weights)[0]
 
     def at(self, base, index, stride):
         """The texel `index` records of `stride` texels after `base`."""
@@ -226,11 +238,11 @@ class _Sampler:
         """The last index <= `last` whose quantity q is <= target, from lo (branchless, `steps`
         halvings). The end record (a total) can round to <= a target near its value: `last`
         caps the result there."""
-        wv, wa = self.weights[q % self.rpt]
+        alpha, weights = self.blend(q)
         base = self.offset(base, q // self.rpt)
         for s in reversed(range(steps)):
-            lo = self.g.group(self.step_tree, Lo=lo, Target=target, Base=base, Stride=(stride * self.du, 0.0, 0.0),
-                              Half=float(2 ** s), Weights=wv, **{"Weight A": wa})[0]
+            lo = self.g.group(_step_group(self.image, alpha), Lo=lo, Target=target, Base=base,
+                              Stride=(stride * self.du, 0.0, 0.0), Half=float(2 ** s), **weights)[0]
         return self.g.math('MINIMUM', lo, float(last))
 
     def guide_lo(self, base, u, count):
@@ -283,7 +295,7 @@ class _Sampler:
             s = g.math('DIVIDE', g.math('SUBTRACT', x, start), g.math('SUBTRACT', head_a, start), clamp=True)
         if lay["NB"] == 2:
             w0 = g.math('SUBTRACT', 1.0, t)
-            self.weights = [(g.combine(w0, t), 0.0), (g.combine(0.0, 0.0, w0), t)]
+            self.weights = [(g.combine(w0, t), None), (g.combine(0.0, 0.0, w0), t)]
         else:
             t1, s1 = g.math('SUBTRACT', 1.0, t), g.math('SUBTRACT', 1.0, s)
             self.weights = [(g.combine(g.math('MULTIPLY', t1, s1), g.math('MULTIPLY', t, s1), g.math('MULTIPLY', t1, s)),
