@@ -156,10 +156,18 @@ def test_svm_sampler_is_tables_sample(svm, plastic, tmp_path):
     _assert_probe_is_numpy(svm, plastic, angles, tmp_path)
 
 
-def test_svm_sampler_is_tables_sample_anisotropic(svm, brushed, tmp_path):
+@pytest.mark.parametrize("wrapped", [False, True])
+def test_svm_sampler_is_tables_sample_anisotropic(svm, brushed, tmp_path, monkeypatch, wrapped):
     """Anisotropic (3 theta x 4 phi bins over a period of 180 deg): the four-bin blend on
     bins, between them and across the period's wrap (phi_i past the last bin, 135 deg, or
-    negative)."""
+    negative). `wrapped`: with the texture's side limit lowered to 300 texels, its 8 corner
+    blocks wrap into 4 rows of 2 (as large tables' do at 16384)."""
+    if wrapped:
+        monkeypatch.setattr(svm_export, "MAX_SIDE", 300)
+        copy = tmp_path / brushed.name          # its own export, beside it
+        copy.write_bytes(brushed.read_bytes())
+        brushed = copy
+        assert svm_export.read_layout(svm_export.ensure_svm_export(brushed))["blocks_per_row"] == 2
     angles = [(0.0, 0.0), (45.0, 45.0), (30.0, 10.0), (70.0, 170.0), (60.0, 300.0), (20.0, -10.0),
               (89.5, 90.0), (50.0, 179.99)]
     _assert_probe_is_numpy(svm, brushed, angles, tmp_path)
