@@ -296,6 +296,60 @@ def test_svm_furnace_anisotropic_with_a_tangent(svm, brushed):
     cs.assert_furnace(img[inner], ref, var, spp)
 
 
+def _frame(n, reference):
+    """The graph's local frame (x, y) at normal n from a reference direction (wi or tangent)."""
+    tx = reference - reference @ n * n
+    tx /= np.linalg.norm(tx)
+    return tx, np.cross(n, tx)
+
+
+@pytest.mark.parametrize("which,tangent", [("plastic", None), ("brushed", (0.6, 0.8, 0.0))])
+def test_svm_directions_are_in_world_space(svm, which, tangent, request):
+    """A plane tilted 60 deg to an orthographic camera under a sky of radiance 0.5 + 0.5 d (per
+    channel the x, y, z of the direction d): the image is E[W L(d)] over the tables' samples
+    put in the graph's frame (x from wi, or from the tangent), numpy's within Monte Carlo
+    error; the same expectation with the frame turned by 90 deg about n is rejected."""
+    path = request.getfixturevalue(which)
+    tab = open_tables(path)
+    sc = cs.reset(24, 24, spp=128, osl=False, threads=1)
+    cs.ortho_camera(sc, scale=0.8)
+    world = cs.set_world(sc)
+    sky = world.node_tree
+    light = sky.nodes.new("ShaderNodeVectorMath")
+    light.operation = 'MULTIPLY_ADD'
+    sky.links.new(sky.nodes.new("ShaderNodeTexCoord").outputs["Generated"], light.inputs[0])   # the direction
+    light.inputs[1].default_value = light.inputs[2].default_value = (0.5, 0.5, 0.5)
+    sky.links.new(light.outputs[0], next(n for n in sky.nodes if n.type == 'BACKGROUND').inputs["Color"])
+
+    def nodes(tree):
+        socket = None
+        if tangent is not None:
+            socket = tree.nodes.new("ShaderNodeCombineXYZ")
+            for s, v in zip(socket.inputs, tangent):
+                s.default_value = v
+            socket = socket.outputs[0]
+        return svm.build_svm_sampler(tree, svm_export.ensure_svm_export(path), socket)
+    cs.add_plane(sc, cs.material_with(nodes), size=4.0).rotation_euler = (np.radians(60.0), 0.0, 0.0)
+    pixels = cs.render(sc).reshape(-1, 3)
+    got, se = pixels.mean(0), pixels.std(0, ddof=1) / np.sqrt(len(pixels))
+
+    n, view = np.array([0.0, -np.sin(np.radians(60.0)), 0.5]), np.array([0.0, 0.0, 1.0])
+    tx, ty = _frame(n, view if tangent is None else np.array(tangent))
+    wi = np.array([view @ tx, view @ ty, view @ n])
+    wo, pdf = tab.sample(np.tile(wi, (400000, 1)), np.random.default_rng(3).random((400000, 2)))
+    weight = tab.eval(wi, wo) * wo[:, 2:3] / pdf[:, None]
+
+    def expected(x, y):
+        d = wo[:, :1] * x + wo[:, 1:2] * y + wo[:, 2:] * n
+        v = weight * (0.5 + 0.5 * d)
+        return v.mean(0), v.std(0) / np.sqrt(len(v))
+    ref, ref_se = expected(tx, ty)
+    tol = 4 * np.sqrt(se ** 2 + ref_se ** 2)
+    assert np.all(np.abs(got - ref) < tol), (got, ref, tol)
+    turned = expected(ty, -tx)[0]
+    assert np.any(np.abs(got - turned) > 3 * tol), (got, turned, tol)
+
+
 def test_svm_film_stratified_u_is_unbiased_and_cuts_noise(svm, plastic):
     """Camera rays take u from their place in the pixel under Cycles' box filter (per-pixel
     rotation); set_film turns that off for a wider filter (hashed u). A plane tilted 60 deg
