@@ -57,7 +57,8 @@ import bpy
 CUTOFF = 1e-5           # Cycles' CLOSURE_WEIGHT_CUTOFF
 K_SMALL = 1e-4          # bake/tables.py _SMALL: the in-cell density's small-rate branch
 TANGENT = (1.0, 0.0, 0.0)
-GROUP_PREFIX = "FlowBSDF SVM "
+GRAPH_VERSION = 1       # in the node groups' names: a graph built by other code gets new groups
+GROUP_PREFIX = f"FlowBSDF SVM{GRAPH_VERSION} "
 FILM = "FlowBSDF SVM film"      # a Combine XYZ node per sampler: film_settings
 X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
 
@@ -210,6 +211,7 @@ class _Sampler:
         self.du = 1.0 / self.lay["width"]
         self.dv = 1.0 / self.lay["height"]
         self.rpt = 4 // self.lay["NB"]          # records per texel: record q at texel q // rpt, slot q % rpt
+        self.offsets = {}
 
     def fetch(self, uv):
         tex = self.g.node("ShaderNodeTexImage", image=self.image, interpolation='Closest', extension='EXTEND')
@@ -217,8 +219,13 @@ class _Sampler:
         return tex.outputs["Color"], tex.outputs["Alpha"]
 
     def offset(self, base, dx=0.0, dy=0.0):
-        """base + (dx, dy) texels (dy down the image)."""
-        return self.g.vmath('ADD', base, (dx * self.du, -dy * self.dv, 0.0)) if dx or dy else base
+        """base + (dx, dy) texels (dy down the image), made once per base and offset."""
+        if not (dx or dy):
+            return base
+        key = (base.node.name, base.identifier, dx, dy)
+        if key not in self.offsets:
+            self.offsets[key] = self.g.vmath('ADD', base, (dx * self.du, -dy * self.dv, 0.0))
+        return self.offsets[key]
 
     def blend(self, q):
         """(alpha used?, the group inputs that blend quantity q's slot of a texel)."""
@@ -604,14 +611,32 @@ def build_svm_probe(tree, texture_path, probe_path, inverse=False, location=(0.0
 
 
 def graph_counts(tree):
-    """(shader nodes, image lookups) of a tree with its node groups expanded (frames, group
-    inputs/outputs and reroutes not counted): what Cycles compiles."""
-    nodes = lookups = 0
+    """(shader nodes, texture lookups per sample) of a tree, node groups expanded as Cycles
+    compiles them (group inputs/outputs, frames and reroutes not counted; image lookups of
+    the same image at the same coordinates counted once: Cycles merges identical nodes)."""
+    nodes, lookups = _count(tree, (), {})
+    return nodes, len(lookups)
+
+
+def _count(tree, path, outer):
+    """(nodes, {(image, coordinate source)}) in `tree`, a group instance at `path` whose
+    inputs come from the sources `outer` (by socket identifier)."""
+    def source(socket):
+        if not socket.is_linked:
+            value = socket.default_value
+            return ("constant", tuple(value) if hasattr(value, "__len__") else value)
+        link = socket.links[0]
+        if link.from_node.bl_idname == "NodeGroupInput":
+            return outer.get(link.from_socket.identifier)
+        return (path, link.from_node.name, link.from_socket.identifier)
+    nodes, lookups = 0, set()
     for node in tree.nodes:
         if node.bl_idname == "ShaderNodeGroup" and node.node_tree is not None:
-            n, lk = graph_counts(node.node_tree)
-            nodes, lookups = nodes + n, lookups + lk
+            inner = {socket.identifier: source(socket) for socket in node.inputs}
+            n, lk = _count(node.node_tree, path + (node.name,), inner)
+            nodes, lookups = nodes + n, lookups | lk
         elif node.bl_idname not in ("NodeGroupInput", "NodeGroupOutput", "NodeFrame", "NodeReroute"):
             nodes += 1
-            lookups += node.bl_idname in ("ShaderNodeTexImage",)
+            if node.bl_idname == "ShaderNodeTexImage":
+                lookups.add((node.image.name if node.image else "", source(node.inputs["Vector"])))
     return nodes, lookups
