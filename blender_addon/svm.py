@@ -48,7 +48,8 @@ sampling strategy (e.g. the world map) needs.
 (per pixel u0, u1, cos theta_i, phi_i) and returns an Emission that encodes wo (0.5 +
 0.5 wo), the weight and the pdf side by side: for tests against numpy.
 
-API: build_svm_sampler, tables_pdf_graph, build_svm_probe, graph_counts, film_settings, set_film.
+API: build_svm_sampler, sample_graph, tables_pdf_graph, build_svm_probe, graph_counts,
+film_settings, set_film.
 """
 import math
 
@@ -513,6 +514,36 @@ def _film_u(g, light_path, hashed):
     return tuple(g.select(use, g.dot(u, axis), h) for axis, h in zip((X, Y), hashed))
 
 
+def sample_graph(tree, texture_path, group_input_tangent_socket=None, location=(0.0, 0.0)):
+    """Add to `tree` the sampler of the SVM texture `texture_path` without the closure: a dict
+    of sockets: "direction" (world, unit), "weight" (colour W = baked f·cos / pdf), "pdf"
+    (per steradian), "valid" (1 when cos theta_i > 0 and the direction is above the geometric
+    surface, else 0), "position" (the shading point) and "u2" (a third uniform number of
+    this path vertex, unused by the sampler; film-stratified u0, u1 are used). For building
+    on: build_svm_sampler, or a mixture with another strategy (one-sample MIS, with
+    tables_pdf_graph at the other strategy's direction). Anisotropic tables take their frame's
+    x from `group_input_tangent_socket` (world x when None)."""
+    return _sample(_Graph(tree, location), texture_path, group_input_tangent_socket)
+
+
+def _sample(g, texture_path, group_input_tangent_socket):
+    sampler = _Sampler(g, texture_path)
+    geometry, n, wi, cos_raw, cos_i, (tx, ty, phi_i) = _shading(g, sampler, group_input_tangent_socket)
+    light_path = g.node("ShaderNodeLightPath")
+    u0, u1, u2 = _random(g, geometry, light_path)
+    u0, u1 = _film_u(g, light_path, (u0, u1))
+    sampler.incident(cos_i, phi_i)
+    a, b, weight, pdf = sampler.sample(u0, u1)
+    wo = _from_ab(g, a, b, phi_i)
+    if phi_i is None:
+        tx, ty = _frame(g, n, wi)
+    direction = g.vmath('ADD', g.vmath('ADD', g.scale(tx, wo[0]), g.scale(ty, wo[1])), g.scale(n, wo[2]))
+    valid = g.math('MULTIPLY', g.math('GREATER_THAN', cos_raw, 0.0),
+                   g.math('GREATER_THAN', g.dot(direction, geometry.outputs["True Normal"]), 0.0))
+    return {"direction": direction, "weight": weight, "pdf": pdf, "valid": valid,
+            "position": geometry.outputs["Position"], "u2": u2}
+
+
 def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, location=(0.0, 0.0)):
     """Add to the shader node tree `tree` the sampler of the SVM texture `texture_path`
     (bake/svm_export.ensure_svm_export) ending in a Ray Portal BSDF; returns its shader output
@@ -520,29 +551,17 @@ def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, locat
     vector socket, e.g. the Learned BSDF group's Tangent input), world x when None. Camera
     rays stratify u by the film when the current scene allows it (set_film updates that)."""
     g = _Graph(tree, location)
-    sampler = _Sampler(g, texture_path)
-    geometry, n, wi, cos_raw, cos_i, (tx, ty, phi_i) = _shading(g, sampler, group_input_tangent_socket)
-    light_path = g.node("ShaderNodeLightPath")
-    u0, u1, u2 = _random(g, geometry, light_path)
-    u0, u1 = _film_u(g, light_path, (u0, u1))
-    sampler.incident(cos_i, phi_i)
-    a, b, weight, _ = sampler.sample(u0, u1)
-    wo = _from_ab(g, a, b, phi_i)
-    if phi_i is None:
-        tx, ty = _frame(g, n, wi)
-    direction = g.vmath('ADD', g.vmath('ADD', g.scale(tx, wo[0]), g.scale(ty, wo[1])), g.scale(n, wo[2]))
+    out = _sample(g, texture_path, group_input_tangent_socket)
     # zero (the path ends) for light from below the surface or a direction below the geometry
-    valid = g.math('MULTIPLY', g.math('GREATER_THAN', cos_raw, 0.0),
-                   g.math('GREATER_THAN', g.dot(direction, geometry.outputs["True Normal"]), 0.0))
-    weight = g.scale(weight, valid)
+    weight = g.scale(out["weight"], out["valid"])
     # Cycles drops a closure of mean weight < CUTOFF: roulette those below 2 CUTOFF up to it
     keep = g.math('MULTIPLY', g.dot(weight, (1.0 / 3, 1.0 / 3, 1.0 / 3)), 0.5 / CUTOFF, clamp=True)
-    survive = g.math('LESS_THAN', g.math('MULTIPLY', u2, 1.0 - 2.0 ** -24), keep)
+    survive = g.math('LESS_THAN', g.math('MULTIPLY', out["u2"], 1.0 - 2.0 ** -24), keep)
     weight = g.scale(weight, g.math('DIVIDE', survive, keep))
     portal = g.node("ShaderNodeBsdfRayPortal")
     g.set(portal.inputs["Color"], weight)
-    g.set(portal.inputs["Position"], geometry.outputs["Position"])
-    g.set(portal.inputs["Direction"], direction)
+    g.set(portal.inputs["Position"], out["position"])
+    g.set(portal.inputs["Direction"], out["direction"])
     return portal.outputs["BSDF"]
 
 
