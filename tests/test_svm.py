@@ -215,6 +215,66 @@ def test_svm_pdf_is_tables_pdf(svm, which, request, tmp_path):
     assert np.all(zero == 0)
 
 
+def _frame(n, reference):
+    """The graph's local frame (x, y) at normal n from a reference direction (wi or tangent)."""
+    tx = reference - reference @ n * n
+    tx /= np.linalg.norm(tx)
+    return tx, np.cross(n, tx)
+
+
+def _tangent_socket(tree, tangent):
+    """A vector socket holding `tangent` (None: None, the graph's default)."""
+    if tangent is None:
+        return None
+    node = tree.nodes.new("ShaderNodeCombineXYZ")
+    for socket, value in zip(node.inputs, tangent):
+        socket.default_value = value
+    return node.outputs[0]
+
+
+@pytest.mark.parametrize("which,tangent", [("plastic", None), ("brushed", (0.6, 0.8, 0.0))])
+def test_svm_pdf_graph_inverts_the_sampler(svm, which, tangent, request):
+    """On a sphere (every wi), in world space: tables_pdf_graph at sample_graph's direction
+    gives the sampler's own pdf, and its f·cos is W x pdf (rtol 1e-3), wherever the sample is
+    valid (above the surface). Two renders of the same samples (same seed): (pdf, pdf of the
+    inverse, valid), then f·cos / (W pdf)."""
+    texture = svm_export.ensure_svm_export(request.getfixturevalue(which))
+
+    def render(show):
+        sc = cs.reset(24, 24, spp=1, osl=False, threads=1)
+        sc.cycles.filter_width = 0.01
+        cs.ortho_camera(sc, scale=2.2)
+
+        def nodes(tree):
+            links, new = tree.links, tree.nodes.new
+            socket = _tangent_socket(tree, tangent)
+            out = svm.sample_graph(tree, texture, socket)
+            pdf, fcos = svm.tables_pdf_graph(tree, texture, out["direction"], socket)
+            emission = new("ShaderNodeEmission")
+            if show == "pdf":
+                combine = new("ShaderNodeCombineXYZ")
+                for i, value in enumerate((out["pdf"], pdf, out["valid"])):
+                    links.new(value, combine.inputs[i])
+                links.new(combine.outputs[0], emission.inputs["Color"])
+            else:
+                expected, ratio = new("ShaderNodeVectorMath"), new("ShaderNodeVectorMath")
+                expected.operation, ratio.operation = 'SCALE', 'DIVIDE'
+                links.new(out["weight"], expected.inputs[0])
+                links.new(out["pdf"], expected.inputs["Scale"])
+                links.new(fcos, ratio.inputs[0])
+                links.new(expected.outputs[0], ratio.inputs[1])
+                links.new(ratio.outputs[0], emission.inputs["Color"])
+            return emission.outputs[0]
+        cs.add_sphere(sc, cs.material_with(nodes))
+        return cs.render(sc)
+    pdfs, ratio = render("pdf"), render("f·cos")
+    _, hit = cs.sphere_view(24, 24, scale=2.2)
+    valid = hit & (pdfs[..., 2] == 1.0)
+    assert valid.sum() > 300
+    np.testing.assert_allclose(pdfs[valid][:, 1], pdfs[valid][:, 0], rtol=1e-3)
+    np.testing.assert_allclose(ratio[valid], 1.0, rtol=1e-3)
+
+
 def _svm_furnace(svm, texture, spp, n=32, tangent=None, ballast=0):
     """A sphere in a white furnace with the SVM sampler (OSL off), optionally its Tangent input
     linked to a constant and `ballast` extra floats kept alive across the whole graph (see
@@ -225,12 +285,7 @@ def _svm_furnace(svm, texture, spp, n=32, tangent=None, ballast=0):
     cs.set_world(sc, (1.0, 1.0, 1.0))
 
     def nodes(tree):
-        socket = None
-        if tangent is not None:
-            socket = tree.nodes.new("ShaderNodeCombineXYZ")
-            for s, v in zip(socket.inputs, tangent):
-                s.default_value = v
-            socket = socket.outputs[0]
+        socket = _tangent_socket(tree, tangent)
         return _keep_alive(tree, ballast, lambda: svm.build_svm_sampler(tree, texture, socket))
     cs.add_sphere(sc, cs.material_with(nodes))
     img = cs.render(sc)
@@ -288,19 +343,10 @@ def test_svm_furnace_anisotropic_with_a_tangent(svm, brushed):
     img, normal, inner = _svm_furnace(svm, svm_export.ensure_svm_export(brushed), spp, tangent=tangent)
     stats = []
     for nrm in normal[inner]:
-        tx = tangent - nrm @ tangent * nrm
-        tx /= np.linalg.norm(tx)
-        ty = np.cross(nrm, tx)
+        tx, ty = _frame(nrm, tangent)
         stats.append(cs.albedo_and_variance(tab, np.array([tx[2], ty[2], nrm[2]])))   # the view (0, 0, 1)
     ref, var = (np.array(x) for x in zip(*stats))
     cs.assert_furnace(img[inner], ref, var, spp)
-
-
-def _frame(n, reference):
-    """The graph's local frame (x, y) at normal n from a reference direction (wi or tangent)."""
-    tx = reference - reference @ n * n
-    tx /= np.linalg.norm(tx)
-    return tx, np.cross(n, tx)
 
 
 @pytest.mark.parametrize("which,tangent", [("plastic", None), ("brushed", (0.6, 0.8, 0.0))])
@@ -322,13 +368,7 @@ def test_svm_directions_are_in_world_space(svm, which, tangent, request):
     sky.links.new(light.outputs[0], next(n for n in sky.nodes if n.type == 'BACKGROUND').inputs["Color"])
 
     def nodes(tree):
-        socket = None
-        if tangent is not None:
-            socket = tree.nodes.new("ShaderNodeCombineXYZ")
-            for s, v in zip(socket.inputs, tangent):
-                s.default_value = v
-            socket = socket.outputs[0]
-        return svm.build_svm_sampler(tree, svm_export.ensure_svm_export(path), socket)
+        return svm.build_svm_sampler(tree, svm_export.ensure_svm_export(path), _tangent_socket(tree, tangent))
     cs.add_plane(sc, cs.material_with(nodes), size=4.0).rotation_euler = (np.radians(60.0), 0.0, 0.0)
     pixels = cs.render(sc).reshape(-1, 3)
     got, se = pixels.mean(0), pixels.std(0, ddof=1) / np.sqrt(len(pixels))
