@@ -6,7 +6,7 @@ white world (a furnace: every path shades the sphere once, then leaves). One Cyc
 Each back end renders at 32 spp and at --spp, interleaved over --repeats rounds; the cost per
 sample is the CPU time difference over the extra samples (sync, BVH and shader compilation
 cancel out), per shaded sample (sphere pixels x extra spp); CPU time of the process, not wall
-time, as other jobs may share the cores. SVM, Diffuse and Principled render with
+time, and the fastest run, as other jobs may share the cores. SVM, Diffuse and Principled render with
 OSL off; the OSL back end (and a Diffuse with OSL on, for scale) with OSL on. Also reports the
 SVM graph's node and lookup counts (node groups expanded, as Cycles compiles them) and the
 time to build it in Python and to compile it (an 8 x 8 px, 1 spp render).
@@ -14,7 +14,6 @@ time to build it in Python and to compile it (an 8 x 8 px, 1 spp render).
     .venv/bin/python scripts/svm_bench.py TABLES.exr [--spp 512] [--size 48] [--repeats 3]
 """
 import argparse
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -97,10 +96,11 @@ def main():
             for spp in (32, args.spp):
                 seconds, pixels = _render_time(osl, fn, args.size, spp)
                 times[name][spp].append(seconds)
-    print(f"{args.size}x{args.size} sphere ({pixels} px), one thread, CPU seconds, median of {args.repeats}:")
+    print(f"{args.size}x{args.size} sphere ({pixels} px), one thread, CPU seconds, fastest of {args.repeats} "
+          f"(other jobs on the machine only ever slow a run down):")
     per_sample = {}
     for name, t in times.items():
-        high, low = statistics.median(t[args.spp]), statistics.median(t[32])
+        high, low = min(t[args.spp]), min(t[32])
         per_sample[name] = (high - low) / (pixels * (args.spp - 32)) * 1e9
         print(f"  {name:18s} {args.spp} spp {high:6.2f} s  ({' '.join(f'{x:.2f}' for x in t[args.spp])})   "
               f"{per_sample[name]:6.0f} ns per shaded sample")
