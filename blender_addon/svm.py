@@ -316,10 +316,11 @@ class _Sampler:
         """Texel (0, 1 + i) of the block: table row i's guide, then its records."""
         return self.g.vmath('MULTIPLY_ADD', i, (0.0, -self.dv, 0.0), self.offset(self.origin, 0, 1))
 
-    def cell(self, i, j, a0, a1, b0, b1):
-        """Cell (i, j) of the blended table: (mass, alpha, beta, W, a1 - a0, b1 - b0)."""
+    def cell(self, row, j, a0, a1, b0, b1):
+        """Cell j of the blended table's row at texel `row` (self.row): (mass, alpha, beta, W,
+        a1 - a0, b1 - b0)."""
         g, lay = self.g, self.lay
-        cell = self.at(self.offset(self.row(i), lay["x_cell"]), j, lay["cell_stride"])
+        cell = self.at(self.offset(row, lay["x_cell"]), j, lay["cell_stride"])
         m, ka, kb, wr, wg, wb = (self.quantity(cell, q) for q in range(_svm_export().CELL_QUANTITIES))
         return m, ka, kb, g.combine(wr, wg, wb), g.math('SUBTRACT', a1, a0), g.math('SUBTRACT', b1, b0)
 
@@ -347,7 +348,7 @@ class _Sampler:
         j = self.search(self.guide_lo(row, u1, lay["col_guide"]), v, cols, sc, lay["col_steps"], 0, C - 1)
         rec = self.at(cols, j, sc)
         d0, b0, b1 = self.quantity(rec, 0), self.quantity(rec, 1), self.quantity(self.offset(rec, sc), 1)
-        m, ka, kb, weight, da, db = self.cell(i, j, a0, a1, b0, b1)
+        m, ka, kb, weight, da, db = self.cell(row, j, a0, a1, b0, b1)
         # the point in the cell
         x, ex_a = _exp_inverse_cdf(g, g.math('DIVIDE', g.math('SUBTRACT', u0, c0), g.math('SUBTRACT', c1, c0),
                                              clamp=True), ka)
@@ -364,11 +365,12 @@ class _Sampler:
         i = self.search(0.0, a, rows, sr, _log2(R), 1, R - 1)
         rec = self.at(rows, i, sr)
         a0, a1 = self.quantity(rec, 1), self.quantity(self.offset(rec, sr), 1)
-        cols = self.offset(self.row(i), lay["x_col"])
+        row = self.row(i)
+        cols = self.offset(row, lay["x_col"])
         j = self.search(0.0, b, cols, sc, _log2(C), 1, C - 1)
         rec = self.at(cols, j, sc)
         b0, b1 = self.quantity(rec, 1), self.quantity(self.offset(rec, sc), 1)
-        m, ka, kb, weight, da, db = self.cell(i, j, a0, a1, b0, b1)
+        m, ka, kb, weight, da, db = self.cell(row, j, a0, a1, b0, b1)
         x = g.math('DIVIDE', g.math('SUBTRACT', a, a0), da, clamp=True)
         y = g.math('DIVIDE', g.math('SUBTRACT', b, b0), db, clamp=True)
         return self.pdf(m, x, ka, kb, y, da, db), weight
@@ -380,7 +382,8 @@ def _log2(n):
 
 
 def _from_ab(g, a, b, phi_i):
-    """bake/tables.py from_ab in the frame whose x is at azimuth -phi_i from wi's: wo as floats."""
+    """bake/tables.py from_ab: wo (floats x, y, z) in the local frame, where wi has azimuth phi_i
+    (None: 0, the isotropic frame that follows wi)."""
     sin_o = g.math('SQRT', g.math('MULTIPLY', a, g.math('SUBTRACT', 2.0, a)))
     phi_o = g.math('ADD', b, phi_i) if phi_i is not None else b
     return (g.math('MULTIPLY', sin_o, g.math('COSINE', phi_o)), g.math('MULTIPLY', sin_o, g.math('SINE', phi_o)),
