@@ -1,4 +1,5 @@
-"""Small Cycles scenes for the Learned BSDF tests and scripts/cycles_acceptance.py (bpy module).
+"""Small Cycles scenes for the Learned BSDF tests and scripts/cycles_acceptance.py (bpy module),
+and the small baked tables and white-furnace checks the Cycles tests share.
 
 render() returns the linear float32 image (H, W, 3), top row first, read back from a
 32-bit OpenEXR, so pixel values are exactly what Cycles accumulated.
@@ -10,15 +11,16 @@ from pathlib import Path
 import numpy as np
 
 
-def bpy_or_skip():
+def bpy_or_skip(need_osl=True):
+    """bpy, or skip the calling test module with the reason (no bpy; no OSL when `need_osl`)."""
     import pytest
     try:
         import bpy  # noqa: F401
     except Exception as e:  # noqa: BLE001
-        pytest.skip(f"bpy (Blender as a Python module) is not importable: {e}")
+        pytest.skip(f"bpy (Blender as a Python module) is not importable: {e}", allow_module_level=True)
     import _cycles
-    if not _cycles.with_osl:
-        pytest.skip("this bpy build has no OSL")
+    if need_osl and not _cycles.with_osl:
+        pytest.skip("this bpy build has no OSL", allow_module_level=True)
     return bpy
 
 
@@ -223,3 +225,58 @@ def sphere_view_persp(width, height, distance=6.0, fov_deg=22.0, radius=1.0, min
         for dy in (-0.5, 0.5):
             inner &= cast(X + dx, Y + dy)[0]
     return n, cos, inner
+
+
+# ------------------------------------------------------------------------------ small tables
+
+SMALL_BINS = np.radians([0.0, 30.0, 60.0, 80.0, 89.5])
+
+
+def small_tables(source, name, folder):
+    """16 x 16-cell tables over SMALL_BINS from the ideal tabulation, saved as <folder>/<name>.exr."""
+    from bake.ideal import IdealSampler
+    from bake.materials import open_material
+    from bake.tabulate import build_tables
+    mat = open_material(source)
+    tab = build_tables(mat, IdealSampler(mat, resolution=64), SMALL_BINS, rows=16, cols=16, grid=96)
+    tab.meta["material"] = name
+    tab.save(folder / f"{name}.exr")
+    return folder / f"{name}.exr"
+
+
+def aniso_small_tables(folder):
+    """Small anisotropic tables (GGX 0.3 x 0.05 at 20 deg: 3 theta x 4 phi bins over pi), saved
+    as <folder>/brushed.exr."""
+    from bake.ideal import IdealSampler
+    from bake.materials import open_material
+    from bake.tabulate import build_tables
+    mat = open_material({"kind": "analytic", "model": "ggx", "alpha_x": 0.3, "alpha_y": 0.05, "angle": 20})
+    phi_bins = np.arange(4) * (mat.phi_period / 4)
+    tab = build_tables(mat, IdealSampler(mat, resolution=48), np.radians([0.0, 45.0, 89.5]), rows=16, cols=16,
+                       grid=64, phi_bins=phi_bins)
+    path = folder / "brushed.exr"
+    tab.meta["material"] = "brushed"
+    tab.save(path)
+    return path
+
+
+def albedo_and_variance(tab, wi):
+    """E[W] and Var[W] of the baked tables at one wi (local frame): what a furnace pixel
+    converges to, and the per-sample variance of a table sampler's weight there."""
+    bins, _ = tab._bins(wi[None])
+    m = tab._lerp(tab._m, bins)[0]
+    w = tab._lerp(tab._w.astype(float), bins)[0]
+    mean = np.einsum("rc,rck->k", m, w)
+    return mean, np.maximum(np.einsum("rc,rck->k", m, w * w) - mean ** 2, 0.0)
+
+
+def assert_furnace(got, ref, var, spp):
+    """Per-pixel z-scores and the mean over the sphere within Monte Carlo error. A smooth-shaded
+    mesh loses the samples that go below its geometric normal (~5e-4 here, as Cycles' own
+    closures do): allowed, beside the MC error."""
+    sigma = np.sqrt(var / spp + (1e-3 * ref) ** 2)
+    z = (got - ref) / sigma
+    assert np.sqrt(np.mean(z ** 2)) < 1.5, np.sqrt(np.mean(z ** 2, axis=0))
+    rel = (got.mean(0) - ref.mean(0)) / ref.mean(0)
+    sigma_mean = np.sqrt(np.sum(var / spp, axis=0)) / len(ref) / ref.mean(0)
+    assert np.all(np.abs(rel) < 4 * sigma_mean + 1.5e-3), (rel, sigma_mean)

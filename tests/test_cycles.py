@@ -11,16 +11,14 @@ import pytest
 
 import cycles_scenes as cs
 from bake.closure_fit import baked_albedo, load_fit, params_at
-from bake.ideal import IdealSampler
-from bake.materials import open_material
 from bake.osl_export import ensure_osl_export
-from bake.tabulate import build_tables
 
 bpy = cs.bpy_or_skip()
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
 from blender_addon import node as lb  # noqa: E402
+from cycles_scenes import (albedo_and_variance as _albedo_and_variance, assert_furnace as _assert_furnace,  # noqa: E402
+                           small_tables as _small_tables)
 
-BINS = np.radians([0.0, 30.0, 60.0, 80.0, 89.5])
 SPECS = {
     "plastic": {"kind": "analytic", "model": "plastic", "albedo": [0.7, 0.1, 0.08], "alpha": 0.12},
     "gold": {"kind": "analytic", "model": "ggx", "alpha": 0.15, "f0": [0.9, 0.6, 0.3]},
@@ -33,15 +31,6 @@ def baked(tmp_path_factory):
     """Small baked tables (16 x 16 cells, 5 bins) per material, written as the pipeline does."""
     root = tmp_path_factory.mktemp("tables")
     return {name: _small_tables(spec, name, root) for name, spec in SPECS.items()}
-
-
-def _small_tables(source, name, folder):
-    """16 x 16-cell tables over BINS from the ideal tabulation, saved as <folder>/<name>.exr."""
-    mat = open_material(source)
-    tab = build_tables(mat, IdealSampler(mat, resolution=64), BINS, rows=16, cols=16, grid=96)
-    tab.meta["material"] = name
-    tab.save(folder / f"{name}.exr")
-    return folder / f"{name}.exr"
 
 
 @pytest.fixture(autouse=True)
@@ -157,15 +146,8 @@ def test_osl_world_map_is_numpy(tmp_path):
 
 @pytest.fixture(scope="module")
 def aniso_tables(tmp_path_factory):
-    """Small anisotropic tables (GGX 0.3 x 0.05 at 20 deg: 3 theta x 4 phi bins over pi)."""
-    mat = open_material({"kind": "analytic", "model": "ggx", "alpha_x": 0.3, "alpha_y": 0.05, "angle": 20})
-    phi_bins = np.arange(4) * (mat.phi_period / 4)
-    tab = build_tables(mat, IdealSampler(mat, resolution=48), np.radians([0.0, 45.0, 89.5]), rows=16, cols=16,
-                       grid=64, phi_bins=phi_bins)
-    path = tmp_path_factory.mktemp("aniso") / "brushed.exr"
-    tab.meta["material"] = "brushed"
-    tab.save(path)
-    return path
+    """Small anisotropic tables (cycles_scenes.aniso_small_tables)."""
+    return cs.aniso_small_tables(tmp_path_factory.mktemp("aniso"))
 
 
 def test_osl_sampler_is_tables_sample_anisotropic(aniso_tables):
@@ -244,28 +226,6 @@ def test_osl_furnace_gives_the_baked_albedo(baked, name):
     ref, var = zip(*(_albedo_and_variance(tab, np.array([np.sqrt(1.0 - c * c), 0.0, c])) for c in cos))
     np.testing.assert_allclose(ref, [baked_albedo(tab, c) for c in cos], rtol=1e-9)
     _assert_furnace(img[inner], np.array(ref), np.array(var), spp)
-
-
-def _albedo_and_variance(tab, wi):
-    """E[W] and Var[W] of the baked tables at one wi (local frame): what a furnace pixel
-    converges to, and the per-sample variance of the OSL shader's weight there."""
-    bins, _ = tab._bins(wi[None])
-    m = tab._lerp(tab._m, bins)[0]
-    w = tab._lerp(tab._w.astype(float), bins)[0]
-    mean = np.einsum("rc,rck->k", m, w)
-    return mean, np.maximum(np.einsum("rc,rck->k", m, w * w) - mean ** 2, 0.0)
-
-
-def _assert_furnace(got, ref, var, spp):
-    """Per-pixel z-scores and the mean over the sphere within Monte Carlo error. A smooth-shaded
-    mesh loses the samples that go below its geometric normal (~5e-4 here, as Cycles' own
-    closures do): allowed, beside the MC error."""
-    sigma = np.sqrt(var / spp + (1e-3 * ref) ** 2)
-    z = (got - ref) / sigma
-    assert np.sqrt(np.mean(z ** 2)) < 1.5, np.sqrt(np.mean(z ** 2, axis=0))
-    rel = (got.mean(0) - ref.mean(0)) / ref.mean(0)
-    sigma_mean = np.sqrt(np.sum(var / spp, axis=0)) / len(ref) / ref.mean(0)
-    assert np.all(np.abs(rel) < 4 * sigma_mean + 1.5e-3), (rel, sigma_mean)
 
 
 def test_fit_furnace_gives_the_fitted_albedo(baked):

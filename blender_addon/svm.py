@@ -1,0 +1,664 @@
+"""The baked-table sampler as a plain Cycles shader node graph (SVM): every Cycles device.
+
+`build_svm_sampler` adds to a shader node tree the nodes that reproduce `Tables.sample`
+(bake/tables.py, the numpy reference) on the texture of bake/svm_export.py, and ends in a
+Ray Portal BSDF that continues the path in the sampled direction with weight W = baked
+f·cos / pdf. Nothing needs OSL: the graph runs wherever Cycles runs (CPU with OSL off,
+CUDA, OptiX, HIP, Metal, oneAPI). The table sizes, offsets and search step counts are
+constants of the graph, read from the texture's metadata when it is built; a table file
+that changes gets a new texture (its name holds the tables' hash) and needs a rebuild.
+
+Per shading point:
+- wi = Incoming, n = the shading normal; cos theta_i = wi . n. The local frame's x is wi's
+  own azimuth (isotropic tables: phi_i = 0) or, for anisotropic tables, the Tangent input
+  (world x when unlinked) projected onto the tangent plane, phi_i = atan2(wi . y, wi . x);
+  at normal incidence / a tangent along n, any perpendicular (as learned_bsdf.osl).
+- u0, u1, u2: White Noise 4D of (Position, Ray Length) -> r, then White Noise 4D of
+  (Incoming, r + Portal Depth + 64 Ray Depth) -> its colour (Cycles gives a node graph no
+  sampler state: every path vertex hashes its own numbers). On camera rays before any
+  portal, with Cycles' box pixel filter (`film_settings`, `set_film`), u0, u1 come from
+  the sample's place in its pixel instead, rotated per pixel by a hash: Cycles places a
+  pixel's samples by its stratified sequence, so their u are stratified too (much less
+  noise where the camera sees the material directly; unbiased: each u stays uniform).
+- theta_i and phi_i bins through the texture's bin guides, the corner block's header
+  gives the blend weights; the row search on u0 and the column search on u1 (v = u1 x the
+  row's mass) run a fixed number of branchless steps from their guide's bracket; the
+  cell's exponential inverse CDFs give the point in the cell (both branches of
+  exp_inverse_cdf computed and one selected by multiplying with 0 / 1: exact, no NaN);
+  the direction goes to world space by the frame.
+- Color = W when cos theta_i > 0 and the direction is above the geometric surface, else 0
+  (the path ends). Cycles drops a closure whose mean weight is below 1e-5 (bsdf_ray_portal
+  _setup): a weight below 2e-5 is Russian-rouletted up to 2e-5 with u2 instead (unbiased).
+
+Cycles compiles the graph into SVM instructions in node creation order wherever that
+order is topological (svm.cpp generate_svm_nodes sweeps the nodes by id and emits every
+node whose inputs are done), and frees a value's stack slots after its last user. The
+builder creates every node just before its first use, so few values are alive at once:
+the stack (255 floats; past it Cycles prints "out of SVM stack space" and renders the
+material black) holds the graph with wide margin (tests/test_svm.py measures the margin
+with Cycles' own message). Channels are read with a dot product against a vector, never a
+Separate node (its unlinked outputs keep stack slots for the whole shader).
+
+`tables_pdf_graph` adds the sampler's inverse (Tables._locate): at a given direction, the
+pdf and the baked f·cos, from branchless searches of the blended a edges (the row) and b
+edges (the column) and the cell's exponential densities: what one-sample MIS with another
+sampling strategy (e.g. the world map) needs.
+
+`build_svm_probe` builds the sampler (or its inverse) on inputs read from a probe image
+(per pixel u0, u1, cos theta_i, phi_i) and returns an Emission that encodes wo (0.5 +
+0.5 wo), the weight and the pdf side by side: for tests against numpy.
+
+API: build_svm_sampler, sample_graph, tables_pdf_graph, build_svm_probe, graph_counts,
+film_settings, set_film.
+"""
+import math
+
+import bpy
+
+CUTOFF = 1e-5           # Cycles' CLOSURE_WEIGHT_CUTOFF
+K_SMALL = 1e-4          # bake/tables.py _SMALL: the in-cell density's small-rate branch
+TANGENT = (1.0, 0.0, 0.0)
+GRAPH_VERSION = 1       # in the node groups' names: a graph built by other code gets new groups
+GROUP_PREFIX = f"FlowBSDF SVM{GRAPH_VERSION} "
+FILM = "FlowBSDF SVM film"      # a Combine XYZ node per sampler: film_settings
+X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
+
+
+def _svm_export():
+    import importlib
+    from . import deps
+    return importlib.import_module(f"{deps.bake.__name__}.svm_export")
+
+
+def _image(path):
+    """The texture as Cycles must read it: texel values bit-exact."""
+    image = bpy.data.images.load(str(path), check_existing=True)
+    image.colorspace_settings.name = 'Non-Color'
+    image.alpha_mode = 'CHANNEL_PACKED'
+    if hasattr(image, "use_half_precision"):
+        image.use_half_precision = False
+    return image
+
+
+class _Graph:
+    """Adds nodes to a node tree in evaluation order (see the module docstring), laid out in
+    columns; inputs are sockets (linked) or constants (set)."""
+
+    def __init__(self, tree, location=(0.0, 0.0)):
+        self.tree, self.location, self.count = tree, location, 0
+
+    def node(self, kind, **props):
+        node = self.tree.nodes.new(kind)
+        for key, value in props.items():
+            setattr(node, key, value)
+        node.location = (self.location[0] + 180.0 * (self.count // 10), self.location[1] - 160.0 * (self.count % 10))
+        node.hide = True
+        self.count += 1
+        return node
+
+    def set(self, socket, value):
+        if isinstance(value, bpy.types.NodeSocket):
+            self.tree.links.new(value, socket)
+        else:
+            socket.default_value = value
+
+    def math(self, op, a, b=0.0, c=0.0, clamp=False):
+        node = self.node("ShaderNodeMath", operation=op, use_clamp=clamp)
+        for socket, value in zip(node.inputs, (a, b, c)):
+            self.set(socket, value)
+        return node.outputs[0]
+
+    def vmath(self, op, a, b=(0.0, 0.0, 0.0), c=(0.0, 0.0, 0.0), scale=None):
+        node = self.node("ShaderNodeVectorMath", operation=op)
+        for socket, value in zip(node.inputs, (a, b, c)):
+            self.set(socket, value)
+        if scale is not None:
+            self.set(node.inputs[3], scale)
+        return node.outputs[1 if op in ('DOT_PRODUCT', 'LENGTH', 'DISTANCE') else 0]
+
+    def dot(self, a, b):
+        return self.vmath('DOT_PRODUCT', a, b)
+
+    def scale(self, v, f):
+        return self.vmath('SCALE', v, scale=f)
+
+    def combine(self, x, y, z=0.0):
+        node = self.node("ShaderNodeCombineXYZ")
+        for socket, value in zip(node.inputs, (x, y, z)):
+            self.set(socket, value)
+        return node.outputs[0]
+
+    def group(self, tree, **inputs):
+        node = self.node("ShaderNodeGroup", node_tree=tree)
+        for name, value in inputs.items():
+            self.set(node.inputs[name], value)
+        return node.outputs
+
+    def select(self, flag, a, b, clamp=False):
+        """flag ? a : b for flag in {0, 1}, exactly (a x 1 + b x 0): no rounding, unlike a mix."""
+        return self.math('MULTIPLY_ADD', a, flag, self.math('MULTIPLY', b, self.math('SUBTRACT', 1.0, flag)),
+                         clamp=clamp)
+
+
+# ------------------------------------------------------------------------------ node groups
+
+def _group(name, inputs, outputs):
+    """(existing node group of that name, None) or (None, a new empty one with the sockets)."""
+    tree = bpy.data.node_groups.get(name)
+    if tree is not None:
+        return tree, None
+    tree = bpy.data.node_groups.new(name, "ShaderNodeTree")
+    for socket, kind in inputs:
+        tree.interface.new_socket(socket, in_out="INPUT", socket_type=f"NodeSocket{kind}")
+    for socket, kind in outputs:
+        tree.interface.new_socket(socket, in_out="OUTPUT", socket_type=f"NodeSocket{kind}")
+    return None, tree
+
+
+def _weight_inputs(alpha):
+    return [("Weights", "Vector")] + ([("Weight A", "Float")] if alpha else [])
+
+
+def _record_group(image, alpha):
+    """Group "record": the texel at UV blended over the bins: dot(colour, Weights), + alpha x
+    Weight A with `alpha` (a record in red/green: Weights = (w0, w1, 0), no alpha; in
+    blue/alpha: (0, 0, w0) and w1; four bins: (w0, w1, w2) and w3)."""
+    done, tree = _group(f"{GROUP_PREFIX}record{' RGBA' if alpha else ' RGB'}: {image.name}",
+                        [("UV", "Vector")] + _weight_inputs(alpha), [("Value", "Float")])
+    if done:
+        return done
+    g = _Graph(tree)
+    inp = g.node("NodeGroupInput").outputs
+    tex = g.node("ShaderNodeTexImage", image=image, interpolation='Closest', extension='EXTEND')
+    g.set(tex.inputs["Vector"], inp["UV"])
+    value = g.dot(tex.outputs["Color"], inp["Weights"])
+    if alpha:
+        value = g.math('MULTIPLY_ADD', tex.outputs["Alpha"], inp["Weight A"], value)
+    g.set(g.node("NodeGroupOutput").inputs["Value"], value)
+    return tree
+
+
+def _step_group(image, alpha):
+    """Group "search step" (branchless binary search): index = Lo + Half; Lo moves there when
+    the record at Base + index x Stride is <= Target."""
+    done, tree = _group(f"{GROUP_PREFIX}search step{' RGBA' if alpha else ' RGB'}: {image.name}",
+                        [("Lo", "Float"), ("Target", "Float"), ("Base", "Vector"), ("Stride", "Vector"),
+                         ("Half", "Float")] + _weight_inputs(alpha), [("Lo", "Float")])
+    if done:
+        return done
+    g = _Graph(tree)
+    inp = g.node("NodeGroupInput").outputs
+    index = g.math('ADD', inp["Lo"], inp["Half"])
+    uv = g.vmath('MULTIPLY_ADD', index, inp["Stride"], inp["Base"])
+    weights = {name: inp[name] for name, _ in _weight_inputs(alpha)}
+    value = g.group(_record_group(image, alpha), UV=uv, **weights)[0]
+    above = g.math('GREATER_THAN', value, inp["Target"])
+    lo = g.math('MULTIPLY_ADD', above, g.math('MULTIPLY', inp["Half"], -1.0), index)
+    g.set(g.node("NodeGroupOutput").inputs["Lo"], lo)
+    return tree
+
+
+# ------------------------------------------------------------------------------ the sampler
+
+class _Sampler:
+    """The sampler's nodes on one SVM texture (layout: bake/svm_export.py). `incident` adds
+    the bin lookup and blend weights (once per graph), then `sample` and `locate` add the
+    sampler and its inverse (the pdf at a direction)."""
+
+    def __init__(self, g, texture_path):
+        self.g = g
+        self.lay = _svm_export().read_layout(texture_path)
+        self.image = _image(texture_path)
+        self.du = 1.0 / self.lay["width"]
+        self.dv = 1.0 / self.lay["height"]
+        self.rpt = 4 // self.lay["NB"]          # records per texel: record q at texel q // rpt, slot q % rpt
+        self.offsets = {}
+
+    def fetch(self, uv):
+        tex = self.g.node("ShaderNodeTexImage", image=self.image, interpolation='Closest', extension='EXTEND')
+        self.g.set(tex.inputs["Vector"], uv)
+        return tex.outputs["Color"], tex.outputs["Alpha"]
+
+    def offset(self, base, dx=0.0, dy=0.0):
+        """base + (dx, dy) texels (dy down the image), made once per base and offset."""
+        if not (dx or dy):
+            return base
+        key = (base.node.name, base.identifier, dx, dy)
+        if key not in self.offsets:
+            self.offsets[key] = self.g.vmath('ADD', base, (dx * self.du, -dy * self.dv, 0.0))
+        return self.offsets[key]
+
+    def blend(self, q):
+        """(alpha used?, the group inputs that blend quantity q's slot of a texel)."""
+        wv, wa = self.weights[q % self.rpt]
+        return wa is not None, ({"Weights": wv} if wa is None else {"Weights": wv, "Weight A": wa})
+
+    def quantity(self, base, q):
+        """Quantity q of the records at texel `base`, blended over the bins."""
+        alpha, weights = self.blend(q)
+        return self.g.group(_record_group(self.image, alpha), UV=self.offset(base, q // self.rpt), **weights)[0]
+
+    def at(self, base, index, stride):
+        """The texel `index` records of `stride` texels after `base`."""
+        return self.g.vmath('MULTIPLY_ADD', index, (stride * self.du, 0.0, 0.0), base)
+
+    def search(self, lo, target, base, stride, steps, q, last):
+        """The last index <= `last` whose quantity q is <= target, from lo (branchless, `steps`
+        halvings). The end record (a total) can round to <= a target near its value: `last`
+        caps the result there."""
+        alpha, weights = self.blend(q)
+        base = self.offset(base, q // self.rpt)
+        for s in reversed(range(steps)):
+            lo = self.g.group(_step_group(self.image, alpha), Lo=lo, Target=target, Base=base,
+                              Stride=(stride * self.du, 0.0, 0.0), Half=float(2 ** s), **weights)[0]
+        return self.g.math('MINIMUM', lo, float(last))
+
+    def guide_lo(self, base, u, count):
+        """The guide's lo for u in [0, 1] (entries at base + g texels, g < count)."""
+        g = self.g
+        entry = g.math('MINIMUM', g.math('FLOOR', g.math('MULTIPLY', u, float(count))), count - 1.0)
+        color, _ = self.fetch(self.at(base, entry, 1))
+        return g.dot(color, X)
+
+    def bin_count(self, guide, value, index_value):
+        """The bin index from a bin guide ([x0, G]) at `value`, the entry floor(index_value G)."""
+        g = self.g
+        x0, count = guide
+        entry = g.math('FLOOR', g.math('MULTIPLY', index_value, float(count)))
+        uv_x = g.math('MULTIPLY_ADD', entry, self.du, (x0 + 0.5) * self.du)
+        color, alpha = self.fetch(g.combine(uv_x, 1.0 - 0.5 * self.dv))
+        # [value < t_j] = ceil(clamp(t_j - value, 0, 1)) per channel
+        below = g.vmath('CEIL', g.vmath('MAXIMUM', g.vmath('MINIMUM', g.vmath('SUBTRACT', color, value),
+                                                            (1.0, 1.0, 1.0)), (0.0, 0.0, 0.0)))
+        return g.math('SUBTRACT', alpha, g.dot(below, (1.0, 1.0, 1.0)))
+
+    def incident(self, cos_i, phi_i):
+        """The corner block of the incident bins at sockets cos theta_i (>= 0) and phi_i (None
+        for isotropic tables), and the blend weights (self.origin, self.weights)."""
+        g, lay = self.g, self.lay
+        K, P, nx = lay["K"], lay["P"], lay["blocks_per_row"]
+        bw, bh = lay["block"]
+        k = self.bin_count(lay["theta_guide"], g.math('MULTIPLY', cos_i, -1.0), g.math('SUBTRACT', 1.0, cos_i)) \
+            if K > 1 else 0.0
+        if P > 1:
+            x = g.math('FLOORED_MODULO', g.math('SUBTRACT', phi_i, lay["phi0"]), lay["period"])
+            p = self.bin_count(lay["phi_guide"], x, g.math('MULTIPLY', x, 1.0 / lay["period"]))
+            corner = g.math('MULTIPLY_ADD', k, float(P), p)
+        else:
+            corner = k
+        if lay["corners"] > nx:
+            brow = g.math('FLOOR', g.math('MULTIPLY_ADD', corner, 1.0 / nx, 0.5 / nx))
+            bcol = g.math('MULTIPLY_ADD', brow, -float(nx), corner)
+        else:
+            brow, bcol = 0.0, corner
+        self.origin = g.combine(g.math('MULTIPLY_ADD', bcol, bw * self.du, 0.5 * self.du),
+                                g.math('MULTIPLY_ADD', brow, -bh * self.dv, 1.0 - 1.5 * self.dv))
+        head, head_a = self.fetch(self.origin)
+        t = s = 0.0
+        if K > 1:
+            c_k, c_k1 = g.dot(head, X), g.dot(head, Y)
+            t = g.math('DIVIDE', g.math('SUBTRACT', c_k, cos_i), g.math('SUBTRACT', c_k, c_k1), clamp=True)
+        if P > 1:
+            start = g.dot(head, Z)
+            s = g.math('DIVIDE', g.math('SUBTRACT', x, start), g.math('SUBTRACT', head_a, start), clamp=True)
+        if lay["NB"] == 2:
+            w0 = g.math('SUBTRACT', 1.0, t)
+            self.weights = [(g.combine(w0, t), None), (g.combine(0.0, 0.0, w0), t)]
+        else:
+            t1, s1 = g.math('SUBTRACT', 1.0, t), g.math('SUBTRACT', 1.0, s)
+            self.weights = [(g.combine(g.math('MULTIPLY', t1, s1), g.math('MULTIPLY', t, s1), g.math('MULTIPLY', t1, s)),
+                             g.math('MULTIPLY', t, s))]
+
+    def rows(self):
+        return self.offset(self.origin, self.lay["x_row"])
+
+    def row(self, i):
+        """Texel (0, 1 + i) of the block: table row i's guide, then its records."""
+        return self.g.vmath('MULTIPLY_ADD', i, (0.0, -self.dv, 0.0), self.offset(self.origin, 0, 1))
+
+    def cell(self, row, j, a0, a1, b0, b1):
+        """Cell j of the blended table's row at texel `row` (self.row): (mass, alpha, beta, W,
+        a1 - a0, b1 - b0)."""
+        g, lay = self.g, self.lay
+        cell = self.at(self.offset(row, lay["x_cell"]), j, lay["cell_stride"])
+        m, ka, kb, wr, wg, wb = (self.quantity(cell, q) for q in range(_svm_export().CELL_QUANTITIES))
+        return m, ka, kb, g.combine(wr, wg, wb), g.math('SUBTRACT', a1, a0), g.math('SUBTRACT', b1, b0)
+
+    def pdf(self, m, x, ka, kb, y, da, db, ex_a=None, ex_b=None):
+        """m exp_density(x, ka) exp_density(y, kb) / (da db) (bake/tables.py)."""
+        g = self.g
+        dens = g.math('MULTIPLY', _exp_density(g, x, ka, ex_a), _exp_density(g, y, kb, ex_b))
+        return g.math('DIVIDE', g.math('MULTIPLY', m, dens), g.math('MULTIPLY', da, db))
+
+    def sample(self, u0, u1):
+        """Tables.sample after `incident`: (a, b, weight W (colour), pdf) for sockets u0, u1."""
+        g, lay = self.g, self.lay
+        R, C, sr, sc = lay["R"], lay["C"], lay["row_stride"], lay["col_stride"]
+        # row i: the last with CDF(i) <= u0
+        rows = self.rows()
+        i = self.search(self.guide_lo(self.offset(self.origin, 1), u0, lay["row_guide"]), u0, rows, sr,
+                        lay["row_steps"], 0, R - 1)
+        rec = self.at(rows, i, sr)
+        rec1 = self.offset(rec, sr)
+        c0, a0, c1, a1 = (self.quantity(r, q) for r, q in ((rec, 0), (rec, 1), (rec1, 0), (rec1, 1)))
+        v = g.math('MULTIPLY', u1, g.math('SUBTRACT', c1, c0))
+        # column j of row i: the last with cumsum(i, j) <= v
+        row = self.row(i)
+        cols = self.offset(row, lay["x_col"])
+        j = self.search(self.guide_lo(row, u1, lay["col_guide"]), v, cols, sc, lay["col_steps"], 0, C - 1)
+        rec = self.at(cols, j, sc)
+        d0, b0, b1 = self.quantity(rec, 0), self.quantity(rec, 1), self.quantity(self.offset(rec, sc), 1)
+        m, ka, kb, weight, da, db = self.cell(row, j, a0, a1, b0, b1)
+        # the point in the cell
+        x, ex_a = _exp_inverse_cdf(g, g.math('DIVIDE', g.math('SUBTRACT', u0, c0), g.math('SUBTRACT', c1, c0),
+                                             clamp=True), ka)
+        y, ex_b = _exp_inverse_cdf(g, g.math('DIVIDE', g.math('SUBTRACT', v, d0), m, clamp=True), kb)
+        a = g.math('MULTIPLY_ADD', x, da, a0)
+        b = g.math('MULTIPLY_ADD', y, db, b0)
+        return a, b, weight, self.pdf(m, x, ka, kb, y, da, db, ex_a, ex_b)
+
+    def locate(self, a, b):
+        """Tables._locate after `incident`: (pdf, W (colour)) at table coordinates a, b."""
+        g, lay = self.g, self.lay
+        R, C, sr, sc = lay["R"], lay["C"], lay["row_stride"], lay["col_stride"]
+        rows = self.rows()
+        i = self.search(0.0, a, rows, sr, _log2(R), 1, R - 1)
+        rec = self.at(rows, i, sr)
+        a0, a1 = self.quantity(rec, 1), self.quantity(self.offset(rec, sr), 1)
+        row = self.row(i)
+        cols = self.offset(row, lay["x_col"])
+        j = self.search(0.0, b, cols, sc, _log2(C), 1, C - 1)
+        rec = self.at(cols, j, sc)
+        b0, b1 = self.quantity(rec, 1), self.quantity(self.offset(rec, sc), 1)
+        m, ka, kb, weight, da, db = self.cell(row, j, a0, a1, b0, b1)
+        x = g.math('DIVIDE', g.math('SUBTRACT', a, a0), da, clamp=True)
+        y = g.math('DIVIDE', g.math('SUBTRACT', b, b0), db, clamp=True)
+        return self.pdf(m, x, ka, kb, y, da, db), weight
+
+
+def _log2(n):
+    """Binary search steps over n entries."""
+    return max(int(n - 1).bit_length(), 0)
+
+
+def _from_ab(g, a, b, phi_i):
+    """bake/tables.py from_ab: wo (floats x, y, z) in the local frame, where wi has azimuth phi_i
+    (None: 0, the isotropic frame that follows wi)."""
+    sin_o = g.math('SQRT', g.math('MULTIPLY', a, g.math('SUBTRACT', 2.0, a)))
+    phi_o = g.math('ADD', b, phi_i) if phi_i is not None else b
+    return (g.math('MULTIPLY', sin_o, g.math('COSINE', phi_o)), g.math('MULTIPLY', sin_o, g.math('SINE', phi_o)),
+            g.math('SUBTRACT', 1.0, a))
+
+
+def _to_ab(g, wo, phi_i):
+    """bake/tables.py to_ab (phi_ref = phi_i + pi) of a local direction (floats x, y, z)."""
+    x, y, z = wo
+    a = g.math('DIVIDE', g.math('ADD', g.math('MULTIPLY', x, x), g.math('MULTIPLY', y, y)),
+               g.math('ADD', g.math('MAXIMUM', z, 0.0), 1.0))
+    a = g.select(g.math('GREATER_THAN', z, 0.0), g.math('MINIMUM', a, 1.0), 1.0)
+    azimuth = g.math('ARCTAN2', y, x)
+    if phi_i is not None:
+        azimuth = g.math('SUBTRACT', azimuth, phi_i)
+    return a, g.math('FLOORED_MODULO', azimuth, 2.0 * math.pi)
+
+
+def _expm1(g, k):
+    """e^k - 1 to float precision near k = 0: 2 sinh(k / 2) e^(k / 2)."""
+    h = g.math('MULTIPLY', k, 0.5)
+    return g.math('MULTIPLY', g.math('MULTIPLY', g.math('SINH', h), g.math('EXPONENT', h)), 2.0)
+
+
+def _log1p(g, z):
+    """log(1 + z) to float precision near z = 0: log(w) z / (w - 1) with w = 1 + z, or z
+    where w rounds to 1."""
+    w = g.math('ADD', z, 1.0)
+    d = g.math('SUBTRACT', w, 1.0)
+    exact = g.math('LESS_THAN', g.math('ABSOLUTE', d), 1e-30)
+    return g.math('MULTIPLY_ADD', exact, z, g.math('MULTIPLY', g.math('LOGARITHM', w, math.e), g.math('DIVIDE', z, d)))
+
+
+def _small(g, k):
+    return g.math('LESS_THAN', g.math('ABSOLUTE', k), K_SMALL)
+
+
+def _exp_inverse_cdf(g, u, k):
+    """bake/tables.py exp_inverse_cdf, both branches, one selected; also e^k - 1 (reused)."""
+    series = g.math('MULTIPLY_ADD', g.math('MULTIPLY', k, g.math('MULTIPLY', u, g.math('SUBTRACT', 1.0, u))), 0.5, u)
+    ex = _expm1(g, k)
+    exact = g.math('DIVIDE', _log1p(g, g.math('MULTIPLY', u, ex)), k)
+    return g.select(_small(g, k), series, exact, clamp=True), ex
+
+
+def _exp_density(g, x, k, ex=None):
+    """bake/tables.py exp_density, both branches, one selected (ex: e^k - 1 when known)."""
+    ex = _expm1(g, k) if ex is None else ex
+    series = g.math('MULTIPLY_ADD', k, g.math('SUBTRACT', x, 0.5), 1.0)
+    exact = g.math('DIVIDE', g.math('MULTIPLY', k, g.math('EXPONENT', g.math('MULTIPLY', k, x))), ex)
+    return g.select(_small(g, k), series, exact)
+
+
+# ------------------------------------------------------------------------------ public
+
+def _frame(g, n, reference):
+    """Unit x and y of the local frame: `reference` projected onto the plane of n, or any
+    perpendicular where that vanishes (as learned_bsdf.osl)."""
+    along = g.vmath('SUBTRACT', reference, g.scale(n, g.dot(reference, n)))
+    usable = g.math('GREATER_THAN', g.vmath('LENGTH', along), 1e-7)
+    # cross(n, x) unless n is near x, then cross(n, (1, 1, 0))
+    near_x = g.math('GREATER_THAN', g.math('ABSOLUTE', g.dot(n, X)), 0.9)
+    other = g.vmath('CROSS_PRODUCT', n, g.combine(1.0, near_x))
+    tx = g.vmath('NORMALIZE', g.vmath('ADD', g.scale(along, usable),
+                                      g.scale(other, g.math('SUBTRACT', 1.0, usable))))
+    return tx, g.vmath('CROSS_PRODUCT', n, tx)
+
+
+def _random(g, geometry, light_path):
+    """u0, u1, u2 hashed from the shading point and the incoming ray (module docstring)."""
+    noise = g.node("ShaderNodeTexWhiteNoise", noise_dimensions='4D')
+    g.set(noise.inputs["Vector"], geometry.outputs["Position"])
+    g.set(noise.inputs["W"], light_path.outputs["Ray Length"])
+    depth = g.math('MULTIPLY_ADD', light_path.outputs["Ray Depth"], 64.0, light_path.outputs["Portal Depth"])
+    noise2 = g.node("ShaderNodeTexWhiteNoise", noise_dimensions='4D')
+    g.set(noise2.inputs["Vector"], geometry.outputs["Incoming"])
+    g.set(noise2.inputs["W"], g.math('ADD', noise.outputs["Value"], depth))
+    return tuple(g.dot(noise2.outputs["Color"], axis) for axis in (X, Y, Z))
+
+
+def _shading(g, sampler, tangent):
+    """The shading point: (geometry node, n, wi, cos theta_i as is and clamped to >= 0, and
+    for anisotropic tables the frame (tx, ty) and phi_i, else None, None, None: the
+    isotropic frame follows wi, `_frame(g, n, wi)`, built where it is used)."""
+    geometry = g.node("ShaderNodeNewGeometry")
+    n, wi = geometry.outputs["Normal"], geometry.outputs["Incoming"]
+    cos_raw = g.dot(wi, n)
+    frame = (None, None, None)
+    if sampler.lay["P"] > 1:
+        tx, ty = _frame(g, n, TANGENT if tangent is None else tangent)
+        frame = (tx, ty, g.math('ARCTAN2', g.dot(wi, ty), g.dot(wi, tx)))
+    return geometry, n, wi, cos_raw, g.math('MAXIMUM', cos_raw, 0.0), frame
+
+
+def film_settings(scene):
+    """(raster width, raster height, 1 if camera rays may take u from their place in the pixel
+    else 0) of a scene: only Cycles' box filter places a pixel's samples uniformly in it (1 px
+    whatever its width setting; other filters spread them by their weight)."""
+    r = scene.render
+    box = scene.render.engine == 'CYCLES' and scene.cycles.pixel_filter_type == 'BOX'
+    return (r.resolution_x * r.resolution_percentage / 100.0, r.resolution_y * r.resolution_percentage / 100.0,
+            1.0 if box else 0.0)
+
+
+def set_film(tree, scene):
+    """Write the scene's film_settings into the sampler graphs in `tree` (their "FlowBSDF SVM
+    film" nodes); call it when the scene's resolution or pixel filter changes."""
+    values = film_settings(scene)
+    for node in tree.nodes:
+        if node.name.startswith(FILM):
+            for socket, value in zip(node.inputs, values):
+                if socket.default_value != value:
+                    socket.default_value = value
+
+
+def _film_u(g, light_path, hashed):
+    """(u0, u1): on camera rays before any portal, the sample's place in its pixel (raster
+    position from the Window coordinate, Cranley-Patterson rotated by a hash of the pixel), when
+    the film node says so (set_film); else the hashed u0, u1. Cycles places a pixel's samples
+    by its stratified sequence, so a pixel's u are stratified too."""
+    film = g.node("ShaderNodeCombineXYZ", name=FILM, label=FILM)
+    for socket, value in zip(film.inputs, film_settings(bpy.context.scene)):
+        socket.default_value = value
+    raster = g.vmath('MULTIPLY', g.node("ShaderNodeTexCoord").outputs["Window"], film.outputs[0])
+    rotation = g.node("ShaderNodeTexWhiteNoise", noise_dimensions='3D')
+    g.set(rotation.inputs["Vector"], g.vmath('FLOOR', raster))
+    u = g.vmath('FRACTION', g.vmath('ADD', g.vmath('FRACTION', raster), rotation.outputs["Color"]))
+    first = g.math('MULTIPLY', light_path.outputs["Is Camera Ray"],
+                   g.math('LESS_THAN', light_path.outputs["Portal Depth"], 0.5))
+    use = g.math('MULTIPLY', first, g.dot(film.outputs[0], Z))
+    return tuple(g.select(use, g.dot(u, axis), h) for axis, h in zip((X, Y), hashed))
+
+
+def sample_graph(tree, texture_path, group_input_tangent_socket=None, location=(0.0, 0.0)):
+    """Add to `tree` the sampler of the SVM texture `texture_path` without the closure: a dict
+    of sockets: "direction" (world, unit), "weight" (colour W = baked f·cos / pdf), "pdf"
+    (per steradian), "valid" (1 when cos theta_i > 0 and the direction is above the geometric
+    surface, else 0), "position" (the shading point) and "u2" (a third uniform number of
+    this path vertex, unused by the sampler; film-stratified u0, u1 are used). For building
+    on: build_svm_sampler, or a mixture with another strategy (one-sample MIS, with
+    tables_pdf_graph at the other strategy's direction). Anisotropic tables take their frame's
+    x from `group_input_tangent_socket` (world x when None)."""
+    return _sample(_Graph(tree, location), texture_path, group_input_tangent_socket)
+
+
+def _sample(g, texture_path, group_input_tangent_socket):
+    sampler = _Sampler(g, texture_path)
+    geometry, n, wi, cos_raw, cos_i, (tx, ty, phi_i) = _shading(g, sampler, group_input_tangent_socket)
+    light_path = g.node("ShaderNodeLightPath")
+    u0, u1, u2 = _random(g, geometry, light_path)
+    u0, u1 = _film_u(g, light_path, (u0, u1))
+    sampler.incident(cos_i, phi_i)
+    a, b, weight, pdf = sampler.sample(u0, u1)
+    wo = _from_ab(g, a, b, phi_i)
+    if phi_i is None:
+        tx, ty = _frame(g, n, wi)
+    direction = g.vmath('ADD', g.vmath('ADD', g.scale(tx, wo[0]), g.scale(ty, wo[1])), g.scale(n, wo[2]))
+    valid = g.math('MULTIPLY', g.math('GREATER_THAN', cos_raw, 0.0),
+                   g.math('GREATER_THAN', g.dot(direction, geometry.outputs["True Normal"]), 0.0))
+    return {"direction": direction, "weight": weight, "pdf": pdf, "valid": valid,
+            "position": geometry.outputs["Position"], "u2": u2}
+
+
+def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, location=(0.0, 0.0)):
+    """Add to the shader node tree `tree` the sampler of the SVM texture `texture_path`
+    (bake/svm_export.ensure_svm_export) ending in a Ray Portal BSDF; returns its shader output
+    socket. Anisotropic tables take their frame's x from `group_input_tangent_socket` (a
+    vector socket, e.g. the Learned BSDF group's Tangent input), world x when None. Camera
+    rays stratify u by the film when the current scene allows it (set_film updates that)."""
+    g = _Graph(tree, location)
+    out = _sample(g, texture_path, group_input_tangent_socket)
+    # zero (the path ends) for light from below the surface or a direction below the geometry
+    weight = g.scale(out["weight"], out["valid"])
+    # Cycles drops a closure of mean weight < CUTOFF: roulette those below 2 CUTOFF up to it
+    keep = g.math('MULTIPLY', g.dot(weight, (1.0 / 3, 1.0 / 3, 1.0 / 3)), 0.5 / CUTOFF, clamp=True)
+    survive = g.math('LESS_THAN', g.math('MULTIPLY', out["u2"], 1.0 - 2.0 ** -24), keep)
+    weight = g.scale(weight, g.math('DIVIDE', survive, keep))
+    portal = g.node("ShaderNodeBsdfRayPortal")
+    g.set(portal.inputs["Color"], weight)
+    g.set(portal.inputs["Position"], out["position"])
+    g.set(portal.inputs["Direction"], out["direction"])
+    return portal.outputs["BSDF"]
+
+
+def tables_pdf_graph(tree, texture_path, wo_socket, group_input_tangent_socket=None, location=(0.0, 0.0)):
+    """Add to `tree` the inverse of the sampler: at the world direction `wo_socket` (a unit
+    vector socket), the tables' pdf (per steradian, 0 below the shading surface) and baked
+    f·cos (colour: W x pdf, 0 when wi or wo is below the surface), as Tables.pdf and
+    Tables.eval x cos theta_o do. Returns (pdf socket, f·cos socket)."""
+    g = _Graph(tree, location)
+    sampler = _Sampler(g, texture_path)
+    _, n, wi, cos_raw, cos_i, (tx, ty, phi_i) = _shading(g, sampler, group_input_tangent_socket)
+    if phi_i is None:
+        tx, ty = _frame(g, n, wi)
+    local = tuple(g.dot(wo_socket, axis) for axis in (tx, ty, n))
+    pdf, fcos = _inverse(g, sampler, cos_i, phi_i, local)
+    fcos = g.scale(fcos, g.math('GREATER_THAN', cos_raw, 0.0))
+    return pdf, fcos
+
+
+def _inverse(g, sampler, cos_i, phi_i, wo):
+    """(pdf, f·cos) at the local direction wo (floats x, y, z), both 0 for wo_z <= 0."""
+    sampler.incident(cos_i, phi_i)
+    pdf, weight = sampler.locate(*_to_ab(g, wo, phi_i))
+    pdf = g.math('MULTIPLY', pdf, g.math('GREATER_THAN', wo[2], 0.0))
+    return pdf, g.scale(weight, pdf)
+
+
+def build_svm_probe(tree, texture_path, probe_path, inverse=False, location=(0.0, 0.0)):
+    """The sampler (or with `inverse`, tables_pdf_graph's inverse) on inputs from the probe image
+    `probe_path` (w x h float32 RGBA texels: u0, u1, cos theta_i, phi_i; with `inverse`,
+    cos theta_o, phi_o, cos theta_i, phi_i, in the frame whose x is the tangent: wi at phi_i)
+    for a camera whose window spans 3 w x h pixels (orthographic, pixel centres): pixel
+    column x shows texel x mod w of the probe, as 0.5 + 0.5 wo, the weight W and the pdf
+    (thirds of the image; with `inverse`: the pdf, f·cos and 0), through an Emission of
+    strength 1. Returns the Emission's output socket."""
+    g = _Graph(tree, location)
+    sampler = _Sampler(g, texture_path)
+    window = g.node("ShaderNodeTexCoord").outputs["Window"]
+    wx = g.math('MULTIPLY', g.dot(window, X), 3.0)
+    third = g.math('FLOOR', wx)
+    probe = g.node("ShaderNodeTexImage", image=_image(probe_path), interpolation='Closest', extension='EXTEND')
+    g.set(probe.inputs["Vector"], g.combine(g.math('FRACT', wx), g.dot(window, Y)))
+    values = probe.outputs["Color"]
+    first, second, cos_i = (g.dot(values, axis) for axis in (X, Y, Z))
+    phi_i = probe.outputs["Alpha"] if sampler.lay["P"] > 1 else None
+    if inverse:
+        sin_o = g.math('SQRT', g.math('SUBTRACT', 1.0, g.math('MULTIPLY', first, first)))
+        wo = (g.math('MULTIPLY', sin_o, g.math('COSINE', second)), g.math('MULTIPLY', sin_o, g.math('SINE', second)),
+              first)
+        pdf, fcos = _inverse(g, sampler, cos_i, phi_i, wo)
+        shown = (pdf, fcos, (0.0, 0.0, 0.0))
+    else:
+        sampler.incident(cos_i, phi_i)
+        a, b, weight, pdf = sampler.sample(first, second)
+        wo = g.vmath('MULTIPLY_ADD', g.combine(*_from_ab(g, a, b, phi_i)), (0.5, 0.5, 0.5), (0.5, 0.5, 0.5))
+        shown = (wo, weight, pdf)
+    # one of the three by its third of the image: x 1 and x 0 (exact)
+    left, right = g.math('LESS_THAN', third, 0.5), g.math('GREATER_THAN', third, 1.5)
+    middle = g.math('SUBTRACT', g.math('SUBTRACT', 1.0, left), right)
+    color = g.vmath('ADD', g.vmath('ADD', g.scale(shown[0], left), g.scale(shown[1], middle)),
+                    g.scale(shown[2], right))
+    emission = g.node("ShaderNodeEmission")
+    g.set(emission.inputs["Color"], color)
+    emission.inputs["Strength"].default_value = 1.0
+    return emission.outputs["Emission"]
+
+
+def graph_counts(tree):
+    """(shader nodes, texture lookups per sample) of a tree, node groups expanded as Cycles
+    compiles them (group inputs/outputs, frames and reroutes not counted; image lookups of
+    the same image at the same coordinates counted once: Cycles merges identical nodes)."""
+    nodes, lookups = _count(tree, (), {})
+    return nodes, len(lookups)
+
+
+def _count(tree, path, outer):
+    """(nodes, {(image, coordinate source)}) in `tree`, a group instance at `path` whose
+    inputs come from the sources `outer` (by socket identifier)."""
+    def source(socket):
+        if not socket.is_linked:
+            value = socket.default_value
+            return ("constant", tuple(value) if hasattr(value, "__len__") else value)
+        link = socket.links[0]
+        if link.from_node.bl_idname == "NodeGroupInput":
+            return outer.get(link.from_socket.identifier)
+        return (path, link.from_node.name, link.from_socket.identifier)
+    nodes, lookups = 0, set()
+    for node in tree.nodes:
+        if node.bl_idname == "ShaderNodeGroup" and node.node_tree is not None:
+            inner = {socket.identifier: source(socket) for socket in node.inputs}
+            n, lk = _count(node.node_tree, path + (node.name,), inner)
+            nodes, lookups = nodes + n, lookups | lk
+        elif node.bl_idname not in ("NodeGroupInput", "NodeGroupOutput", "NodeFrame", "NodeReroute"):
+            nodes += 1
+            if node.bl_idname == "ShaderNodeTexImage":
+                lookups.add((node.image.name if node.image else "", source(node.inputs["Vector"])))
+    return nodes, lookups

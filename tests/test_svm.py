@@ -1,0 +1,437 @@
+"""The SVM back end (bake/svm_export.py, blender_addon/svm.py): its texture fits GPU texture
+limits for the largest tables the baker writes; the node graph samples exactly what numpy's
+Tables.sample does (probe); it renders the baked albedo in a white furnace with OSL off; and
+it leaves the SVM stack a wide margin, measured with Cycles' own overflow message.
+Cycles tests need bpy (skipped with the reason without it), not OSL."""
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import cycles_scenes as cs
+from bake import svm_export
+from bake.errors import FlowBSDFError
+from bake.tables import Tables, open_tables
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
+
+PLASTIC = {"kind": "analytic", "model": "plastic", "albedo": [0.7, 0.1, 0.08], "alpha": 0.12}
+
+
+def _synthetic(K, P, R=64, C=64, seed=0):
+    """Valid tables of the given size with random content (K theta bins, P phi bins or None)."""
+    rng = np.random.default_rng(seed)
+    lead = (K,) if P is None else (K, P)
+    a = np.sort(rng.random(lead + (R + 1,)), -1)
+    b = np.sort(rng.random(lead + (R, C + 1)), -1) * 2 * np.pi
+    mass = rng.random(lead + (R, C)) ** 4 + 1e-3
+    slopes = [rng.uniform(-30, 30, lead + (R, C)) for _ in range(2)]
+    return Tables(np.radians(np.linspace(0.0, 89.5, K)), a, b, mass, *slopes, rng.random(lead + (R, C, 3)),
+                  phi_bins=None if P is None else np.arange(P) * np.pi / P, phi_period=np.pi if P else 2 * np.pi)
+
+
+@pytest.mark.parametrize("K,P", [(40, None), (12, 8)])
+def test_texture_fits_gpu_limits_for_the_largest_tables(K, P):
+    """40 theta bins of 64 x 64 cells, and 12 x 8 anisotropic bins (blocks wrap into rows)."""
+    img, lay = svm_export.texture_image(_synthetic(K, P))
+    assert img.shape == (lay["height"], lay["width"], 4) and img.dtype == np.float32
+    assert max(img.shape[:2]) <= svm_export.MAX_SIDE, img.shape
+    assert lay["corners"] == (K - 1) * (P or 1)
+    assert np.all(np.isfinite(img))
+
+
+def test_texture_too_large_for_gpus_is_an_error():
+    with pytest.raises(FlowBSDFError, match="more than 16384 per side"):
+        svm_export.texture_image(_synthetic(2, None, R=2, C=4000))
+
+
+@pytest.fixture(scope="module")
+def plastic(tmp_path_factory):
+    return cs.small_tables(PLASTIC, "plastic", tmp_path_factory.mktemp("svm_plastic"))
+
+
+@pytest.fixture(scope="module")
+def brushed(tmp_path_factory):
+    return cs.aniso_small_tables(tmp_path_factory.mktemp("svm_brushed"))
+
+
+def test_export_is_named_by_the_tables_hash(plastic, tmp_path):
+    """A changed table file gets a new texture (Blender caches images by name) and the old one
+    goes; the graph's constants come from the texture's header (no OpenEXR module needed)."""
+    path = tmp_path / "plastic.exr"
+    path.write_bytes(plastic.read_bytes())
+    first = svm_export.ensure_svm_export(path)
+    assert first == svm_export.ensure_svm_export(path) and first.name.startswith("plastic.svm1-")
+    lay = svm_export.read_layout(first)
+    assert (lay["K"], lay["P"], lay["R"], lay["C"], lay["NB"]) == (5, 1, 16, 16, 2)
+    tab = open_tables(path)
+    tab.meta["note"] = "changed"
+    tab.save(path)
+    second = svm_export.ensure_svm_export(path)
+    assert second != first and second.is_file() and not first.exists()
+    for other in (path, tmp_path / "missing.exr"):
+        with pytest.raises(FlowBSDFError):
+            svm_export.read_layout(other)
+
+
+# ------------------------------------------------------------------------------ Cycles
+
+@pytest.fixture(scope="module")
+def svm():
+    cs.bpy_or_skip(need_osl=False)
+    from blender_addon import svm
+    return svm
+
+
+def _probe(svm, texture, inputs, folder, width=32, inverse=False):
+    """The graph's (wo, weight, pdf) for probe inputs (n, 4): u0, u1, cos theta_i, phi_i; with
+    `inverse`, (pdf, f·cos, zeros) for inputs cos theta_o, phi_o, cos theta_i, phi_i."""
+    import OpenEXR
+    n = len(inputs)
+    height = -(-n // width)
+    grid = np.concatenate([inputs, np.repeat(inputs[-1:], height * width - n, 0)]).astype(np.float32)
+    path = folder / "probe.exr"
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                 {"RGBA": grid.reshape(height, width, 4)}).write(str(path))
+    sc = cs.reset(3 * width, height, spp=1, osl=False, threads=1)
+    sc.cycles.filter_width = 0.01             # every pixel's one sample at its centre
+    cs.ortho_camera(sc)
+    cs.add_plane(sc, cs.material_with(lambda tree: svm.build_svm_probe(tree, texture, path, inverse)), size=20.0)
+    img = cs.render(sc)
+    thirds = [img[:, k * width:(k + 1) * width].reshape(-1, 3)[:n] for k in range(3)]
+    if inverse:
+        return thirds[0][:, 0], thirds[1], thirds[2]
+    return 2.0 * thirds[0] - 1.0, thirds[1], thirds[2][:, 0]
+
+
+EXTREMES = [[2.0 ** -24, 2.0 ** -24], [1.0 - 2.0 ** -24, 1.0 - 2.0 ** -24], [2.0 ** -24, 0.3], [0.3, 1.0 - 2.0 ** -24]]
+
+
+def _probe_inputs(angles, per_angle=100, seed=0, extremes=True):
+    """Per (theta_i, phi_i) in degrees: u on a grid of cell centres, random u, then EXTREMES
+    (not u0 = 0: there wo is the pole, where eval's cell, hence its weight, is not the
+    sampled one). Returns (inputs (n, 4) float32, mask of the extremes)."""
+    side = int(np.sqrt(per_angle))
+    g = (np.arange(side) + 0.5) / side
+    u = np.concatenate([np.stack(np.meshgrid(g, g), -1).reshape(-1, 2),
+                        np.random.default_rng(seed).random((24, 2)), EXTREMES if extremes else np.zeros((0, 2))])
+    rows = [np.column_stack([u, np.full(len(u), np.cos(np.radians(t))), np.full(len(u), np.radians(p))])
+            for t, p in angles]
+    extreme = np.tile(np.arange(len(u)) >= len(u) - len(EXTREMES) * extremes, len(angles))
+    return np.concatenate(rows).astype(np.float32), extreme
+
+
+def _numpy_sample(tab, inputs):
+    """Tables.sample at the probe's float32 inputs: wo, weight (baked f cos / pdf), pdf."""
+    theta, phi = np.arccos(inputs[:, 2].astype(np.float64)), inputs[:, 3].astype(np.float64)
+    wi = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], 1)
+    wo, pdf = tab.sample(wi, inputs[:, :2].astype(np.float64))
+    return wo, tab.eval(wi, wo) * wo[:, 2:3] / pdf[:, None], pdf
+
+
+def _assert_probe_is_numpy(svm, tables_path, angles, folder, extremes=True):
+    """wo within 3e-4 (median 2e-5), weight rtol 1e-4, pdf rtol 1e-3. At the EXTREMES of u the
+    point within the cell is float32-limited in the graph (the remainder (v - cumsum) / mass
+    cancels where a cell's mass is ~1e-4 of its row's): there the same cell (weight rtol
+    1e-4), wo within 2e-3, pdf rtol 1e-2."""
+    tab = open_tables(tables_path)
+    tab.backend = "numpy"
+    inputs, extreme = _probe_inputs(angles, extremes=extremes)
+    wo, weight, pdf = _probe(svm, svm_export.ensure_svm_export(tables_path), inputs, folder)
+    ref_wo, ref_weight, ref_pdf = _numpy_sample(tab, inputs)
+    err = np.abs(wo - ref_wo).max(axis=1)
+    assert err[~extreme].max() < 3e-4 and np.median(err) < 2e-5, (err[~extreme].max(), np.median(err))
+    assert not extremes or err[extreme].max() < 2e-3, err[extreme].max()
+    np.testing.assert_allclose(weight, ref_weight, rtol=1e-4, atol=1e-7)
+    np.testing.assert_allclose(pdf[~extreme], ref_pdf[~extreme], rtol=1e-3)
+    if extremes:
+        np.testing.assert_allclose(pdf[extreme], ref_pdf[extreme], rtol=1e-2)
+
+
+def test_svm_sampler_is_tables_sample(svm, plastic, tmp_path):
+    """Isotropic: same u -> same wo, weight and pdf as numpy, on bins (0, 30, 60, 80, 89.5
+    deg) and between them."""
+    angles = [(t, 0.0) for t in (0.0, 17.0, 30.0, 45.0, 60.0, 71.3, 80.0, 85.0, 89.5, 89.9)]
+    _assert_probe_is_numpy(svm, plastic, angles, tmp_path)
+
+
+@pytest.mark.parametrize("wrapped", [False, True])
+def test_svm_sampler_is_tables_sample_anisotropic(svm, brushed, tmp_path, monkeypatch, wrapped):
+    """Anisotropic (3 theta x 4 phi bins over a period of 180 deg): the four-bin blend on
+    bins, between them and across the period's wrap (phi_i past the last bin, 135 deg, or
+    negative). `wrapped`: with the texture's side limit lowered to 300 texels, its 8 corner
+    blocks wrap into 4 rows of 2 (as large tables' do at 16384)."""
+    if wrapped:
+        monkeypatch.setattr(svm_export, "MAX_SIDE", 300)
+        copy = tmp_path / brushed.name          # its own export, beside it
+        copy.write_bytes(brushed.read_bytes())
+        brushed = copy
+        assert svm_export.read_layout(svm_export.ensure_svm_export(brushed))["blocks_per_row"] == 2
+    angles = [(0.0, 0.0), (45.0, 45.0), (30.0, 10.0), (70.0, 170.0), (60.0, 300.0), (20.0, -10.0),
+              (89.5, 90.0), (50.0, 179.99)]
+    _assert_probe_is_numpy(svm, brushed, angles, tmp_path)
+
+
+@pytest.mark.parametrize("K,P", [(1, None), (2, 3)])
+def test_svm_sampler_on_odd_synthetic_tables(svm, K, P, tmp_path):
+    """Random tables of odd shapes: one theta bin (no blend), 3 phi bins, 8 x 12 cells (not
+    square, not powers of two); masses over three decades, slopes up to the limit 30. (Not at
+    the extremes of u: a cell's light end under a random slope of -30 is ill-conditioned in
+    float32, where numpy is float64; the extremes are checked on the baked tables.)"""
+    path = tmp_path / "synthetic.exr"
+    _synthetic(K, P, R=8, C=12, seed=K).save(path)
+    # (at theta_i = 0 numpy's wi has no azimuth: phi_i 0 there, as a render's phi_i is)
+    angles = [(0.0, 0.0)] + [(t, p) for t in (40.0, 89.0) for p in ((0.0, 100.0, 170.0) if P else (0.0,))]
+    _assert_probe_is_numpy(svm, path, angles, tmp_path, extremes=False)
+
+
+@pytest.mark.parametrize("which", ["plastic", "brushed"])
+def test_svm_pdf_is_tables_pdf(svm, which, request, tmp_path):
+    """tables_pdf_graph's inverse (the pdf and baked f·cos at a given direction, for one-sample
+    MIS) against numpy's Tables.pdf and Tables.eval x cos theta_o: at directions sampled from
+    the tables (where the pdf is the sampler's own) and uniform over the hemisphere."""
+    path = request.getfixturevalue(which)
+    tab = open_tables(path)
+    tab.backend = "numpy"
+    rng = np.random.default_rng(1)
+    n = 1024
+    cos_i = np.cos(np.radians(rng.uniform(0.0, 89.9, n)))
+    phi_i = rng.uniform(-np.pi, np.pi, n) if tab.anisotropic else np.zeros(n)
+    sin_i = np.sqrt(1.0 - cos_i ** 2)
+    wi = np.stack([sin_i * np.cos(phi_i), sin_i * np.sin(phi_i), cos_i], 1)
+    sampled, _ = tab.sample(wi, rng.random((n, 2)))
+    uniform = np.stack([rng.uniform(-np.pi, np.pi, n), rng.random(n)], 1)      # (phi, cos) uniform in solid angle
+    cos_o = np.where(np.arange(n) % 2 == 0, sampled[:, 2], uniform[:, 1])
+    phi_o = np.where(np.arange(n) % 2 == 0, np.arctan2(sampled[:, 1], sampled[:, 0]), uniform[:, 0])
+    inputs = np.stack([cos_o, phi_o, cos_i, phi_i], 1).astype(np.float32)
+    pdf, fcos, zero = _probe(svm, svm_export.ensure_svm_export(path), inputs, tmp_path, inverse=True)
+    x = inputs.astype(np.float64)
+    sin = lambda c: np.sqrt(1.0 - c ** 2)      # noqa: E731
+    wi = np.stack([sin(x[:, 2]) * np.cos(x[:, 3]), sin(x[:, 2]) * np.sin(x[:, 3]), x[:, 2]], 1)
+    wo = np.stack([sin(x[:, 0]) * np.cos(x[:, 1]), sin(x[:, 0]) * np.sin(x[:, 1]), x[:, 0]], 1)
+    np.testing.assert_allclose(pdf, tab.pdf(wi, wo), rtol=1e-3)
+    np.testing.assert_allclose(fcos, tab.eval(wi, wo) * wo[:, 2:3], rtol=1e-3, atol=1e-9)
+    assert np.all(zero == 0)
+
+
+def _frame(n, reference):
+    """The graph's local frame (x, y) at normal n from a reference direction (wi or tangent)."""
+    tx = reference - reference @ n * n
+    tx /= np.linalg.norm(tx)
+    return tx, np.cross(n, tx)
+
+
+def _tangent_socket(tree, tangent):
+    """A vector socket holding `tangent` (None: None, the graph's default)."""
+    if tangent is None:
+        return None
+    node = tree.nodes.new("ShaderNodeCombineXYZ")
+    for socket, value in zip(node.inputs, tangent):
+        socket.default_value = value
+    return node.outputs[0]
+
+
+@pytest.mark.parametrize("which,tangent", [("plastic", None), ("brushed", (0.6, 0.8, 0.0))])
+def test_svm_pdf_graph_inverts_the_sampler(svm, which, tangent, request):
+    """On a sphere (every wi), in world space: tables_pdf_graph at sample_graph's direction
+    gives the sampler's own pdf, and its f·cos is W x pdf (rtol 1e-3), wherever the sample is
+    valid (above the surface). Two renders of the same samples (same seed): (pdf, pdf of the
+    inverse, valid), then f·cos / (W pdf)."""
+    texture = svm_export.ensure_svm_export(request.getfixturevalue(which))
+
+    def render(show):
+        sc = cs.reset(24, 24, spp=1, osl=False, threads=1)
+        sc.cycles.filter_width = 0.01
+        cs.ortho_camera(sc, scale=2.2)
+
+        def nodes(tree):
+            links, new = tree.links, tree.nodes.new
+            socket = _tangent_socket(tree, tangent)
+            out = svm.sample_graph(tree, texture, socket)
+            pdf, fcos = svm.tables_pdf_graph(tree, texture, out["direction"], socket)
+            emission = new("ShaderNodeEmission")
+            if show == "pdf":
+                combine = new("ShaderNodeCombineXYZ")
+                for i, value in enumerate((out["pdf"], pdf, out["valid"])):
+                    links.new(value, combine.inputs[i])
+                links.new(combine.outputs[0], emission.inputs["Color"])
+            else:
+                expected, ratio = new("ShaderNodeVectorMath"), new("ShaderNodeVectorMath")
+                expected.operation, ratio.operation = 'SCALE', 'DIVIDE'
+                links.new(out["weight"], expected.inputs[0])
+                links.new(out["pdf"], expected.inputs["Scale"])
+                links.new(fcos, ratio.inputs[0])
+                links.new(expected.outputs[0], ratio.inputs[1])
+                links.new(ratio.outputs[0], emission.inputs["Color"])
+            return emission.outputs[0]
+        cs.add_sphere(sc, cs.material_with(nodes))
+        return cs.render(sc)
+    pdfs, ratio = render("pdf"), render("f·cos")
+    _, hit = cs.sphere_view(24, 24, scale=2.2)
+    valid = hit & (pdfs[..., 2] == 1.0)
+    assert valid.sum() > 300
+    np.testing.assert_allclose(pdfs[valid][:, 1], pdfs[valid][:, 0], rtol=1e-3)
+    np.testing.assert_allclose(ratio[valid], 1.0, rtol=1e-3)
+
+
+def _svm_furnace(svm, texture, spp, n=32, tangent=None, ballast=0):
+    """A sphere in a white furnace with the SVM sampler (OSL off), optionally its Tangent input
+    linked to a constant and `ballast` extra floats kept alive across the whole graph (see
+    _keep_alive). Returns (image, normals, mask of the inner pixels)."""
+    sc = cs.reset(n, n, spp=spp, osl=False, threads=1)
+    sc.cycles.filter_width = 0.01
+    cs.ortho_camera(sc, scale=2.2)
+    cs.set_world(sc, (1.0, 1.0, 1.0))
+
+    def nodes(tree):
+        socket = _tangent_socket(tree, tangent)
+        return _keep_alive(tree, ballast, lambda: svm.build_svm_sampler(tree, texture, socket))
+    cs.add_sphere(sc, cs.material_with(nodes))
+    img = cs.render(sc)
+    normal, hit = cs.sphere_view(n, n, scale=2.2)
+    return img, normal, hit & (normal[..., 2] > 0.3)
+
+
+def _keep_alive(tree, count, build):
+    """build() -> a Ray Portal's output, with `count` floats computed before the graph (lowest
+    node ids: Cycles emits them first) and consumed after it (added to the portal's Color
+    times a runtime zero): they hold `count` SVM stack slots while the graph runs."""
+    if not count:
+        return build()
+    nodes, links = tree.nodes, tree.links
+    length = nodes.new("ShaderNodeLightPath").outputs["Ray Length"]
+
+    def math(op, a, b):
+        node = nodes.new("ShaderNodeMath")
+        node.operation = op
+        for socket, value in zip(node.inputs, (a, b)):
+            if isinstance(value, float):
+                socket.default_value = value
+            else:
+                links.new(value, socket)
+        return node.outputs[0]
+    held = [math('MULTIPLY', length, 1.0 + i) for i in range(count)]
+    out = build()
+    total = held[0]
+    for h in held[1:]:
+        total = math('ADD', total, h)
+    color = out.node.inputs["Color"]
+    add = nodes.new("ShaderNodeVectorMath")
+    links.new(color.links[0].from_socket, add.inputs[0])
+    links.new(math('MULTIPLY', total, math('LESS_THAN', length, -1.0)), add.inputs[1])
+    links.new(add.outputs[0], color)
+    return out
+
+
+def test_svm_furnace_gives_the_baked_albedo(svm, plastic):
+    """Sphere under a constant white sky, OSL off: each pixel is the baked albedo E[W] at its
+    view angle within Monte Carlo error (hashed u: the variance Var[W] / spp)."""
+    tab = open_tables(plastic)
+    spp = 256
+    img, normal, inner = _svm_furnace(svm, svm_export.ensure_svm_export(plastic), spp)
+    cos = normal[inner][:, 2]
+    ref, var = zip(*(cs.albedo_and_variance(tab, np.array([np.sqrt(1.0 - c * c), 0.0, c])) for c in cos))
+    cs.assert_furnace(img[inner], np.array(ref), np.array(var), spp)
+
+
+def test_svm_furnace_anisotropic_with_a_tangent(svm, brushed):
+    """Anisotropic tables with the Tangent input linked: each pixel is the baked albedo at its
+    wi in the frame of the tangent projected onto the tangent plane."""
+    tab = open_tables(brushed)
+    spp, tangent = 256, np.array([0.6, 0.8, 0.0])
+    img, normal, inner = _svm_furnace(svm, svm_export.ensure_svm_export(brushed), spp, tangent=tangent)
+    stats = []
+    for nrm in normal[inner]:
+        tx, ty = _frame(nrm, tangent)
+        stats.append(cs.albedo_and_variance(tab, np.array([tx[2], ty[2], nrm[2]])))   # the view (0, 0, 1)
+    ref, var = (np.array(x) for x in zip(*stats))
+    cs.assert_furnace(img[inner], ref, var, spp)
+
+
+@pytest.mark.parametrize("which,tangent", [("plastic", None), ("brushed", (0.6, 0.8, 0.0))])
+def test_svm_directions_are_in_world_space(svm, which, tangent, request):
+    """A plane tilted 60 deg to an orthographic camera under a sky of radiance 0.5 + 0.5 d (per
+    channel the x, y, z of the direction d): the image is E[W L(d)] over the tables' samples
+    put in the graph's frame (x from wi, or from the tangent), numpy's within Monte Carlo
+    error; the same expectation with the frame turned by 90 deg about n is rejected."""
+    path = request.getfixturevalue(which)
+    tab = open_tables(path)
+    sc = cs.reset(24, 24, spp=128, osl=False, threads=1)
+    cs.ortho_camera(sc, scale=0.8)
+    world = cs.set_world(sc)
+    sky = world.node_tree
+    light = sky.nodes.new("ShaderNodeVectorMath")
+    light.operation = 'MULTIPLY_ADD'
+    sky.links.new(sky.nodes.new("ShaderNodeTexCoord").outputs["Generated"], light.inputs[0])   # the direction
+    light.inputs[1].default_value = light.inputs[2].default_value = (0.5, 0.5, 0.5)
+    sky.links.new(light.outputs[0], next(n for n in sky.nodes if n.type == 'BACKGROUND').inputs["Color"])
+
+    def nodes(tree):
+        return svm.build_svm_sampler(tree, svm_export.ensure_svm_export(path), _tangent_socket(tree, tangent))
+    cs.add_plane(sc, cs.material_with(nodes), size=4.0).rotation_euler = (np.radians(60.0), 0.0, 0.0)
+    pixels = cs.render(sc).reshape(-1, 3)
+    got, se = pixels.mean(0), pixels.std(0, ddof=1) / np.sqrt(len(pixels))
+
+    n, view = np.array([0.0, -np.sin(np.radians(60.0)), 0.5]), np.array([0.0, 0.0, 1.0])
+    tx, ty = _frame(n, view if tangent is None else np.array(tangent))
+    wi = np.array([view @ tx, view @ ty, view @ n])
+    wo, pdf = tab.sample(np.tile(wi, (400000, 1)), np.random.default_rng(3).random((400000, 2)))
+    weight = tab.eval(wi, wo) * wo[:, 2:3] / pdf[:, None]
+
+    def expected(x, y):
+        d = wo[:, :1] * x + wo[:, 1:2] * y + wo[:, 2:] * n
+        v = weight * (0.5 + 0.5 * d)
+        return v.mean(0), v.std(0) / np.sqrt(len(v))
+    ref, ref_se = expected(tx, ty)
+    tol = 4 * np.sqrt(se ** 2 + ref_se ** 2)
+    assert np.all(np.abs(got - ref) < tol), (got, ref, tol)
+    turned = expected(ty, -tx)[0]
+    assert np.any(np.abs(got - turned) > 3 * tol), (got, turned, tol)
+
+
+def test_svm_film_stratified_u_is_unbiased_and_cuts_noise(svm, plastic):
+    """Camera rays take u from their place in the pixel under Cycles' box filter (per-pixel
+    rotation); set_film turns that off for a wider filter (hashed u). A plane tilted 60 deg
+    under a white sky converges to the baked albedo at cos theta_i = 0.5 either way (mean over
+    pixels and seeds within 4 standard errors); the film's per-pixel variance over seeds is far
+    below the hashed one's (measured 0.09 of it)."""
+    from bake.closure_fit import baked_albedo
+    ref = baked_albedo(open_tables(plastic), 0.5)
+    sc = cs.reset(16, 16, spp=64, osl=False, threads=1)
+    sc.cycles.pixel_filter_type = 'BOX'
+    cs.ortho_camera(sc, scale=0.8)
+    cs.set_world(sc, (1.0, 1.0, 1.0))
+    texture = svm_export.ensure_svm_export(plastic)
+    mat = cs.material_with(lambda tree: svm.build_svm_sampler(tree, texture))
+    film = next(n for n in mat.node_tree.nodes if n.name.startswith(svm.FILM))
+    assert [s.default_value for s in film.inputs] == [16.0, 16.0, 1.0]
+    cs.add_plane(sc, mat, size=4.0).rotation_euler = (np.radians(60.0), 0.0, 0.0)
+    stratified = cs.render_seeds(sc, 8)
+    sc.cycles.pixel_filter_type = 'BLACKMAN_HARRIS'
+    svm.set_film(mat.node_tree, sc)
+    assert film.inputs[2].default_value == 0.0
+    hashed = cs.render_seeds(sc, 8)
+    for imgs in (stratified, hashed):
+        means = imgs.reshape(len(imgs), -1, 3).mean(1)
+        se = means.std(0, ddof=1) / np.sqrt(len(imgs))
+        assert np.all(np.abs(means.mean(0) - ref) < 4 * se + 1e-4 * ref), (means.mean(0), ref, se)
+    ratio = stratified.var(0, ddof=1).mean() / hashed.var(0, ddof=1).mean()
+    assert ratio < 0.2, ratio
+
+
+def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, capfd):
+    """The anisotropic graph (the larger one) with 200 of the stack's 255 floats held by other
+    values renders the image it renders alone; with 250 held, Cycles reports the
+    overflow and renders the material black (so the check can fail)."""
+    texture = svm_export.ensure_svm_export(brushed)
+    alone, _, sphere = _svm_furnace(svm, texture, 1, n=8)
+    assert sphere.sum() >= 16 and np.all(alone[sphere].mean(0) > 0.1)
+    capfd.readouterr()
+    held = _svm_furnace(svm, texture, 1, n=8, ballast=200)[0]
+    out, err = capfd.readouterr()
+    assert "out of SVM stack space" not in out + err
+    np.testing.assert_allclose(held, alone, rtol=1e-6)     # (two renders alone differ by an ulp too)
+    overflow = _svm_furnace(svm, texture, 1, n=8, ballast=250)[0]
+    out, err = capfd.readouterr()
+    assert "out of SVM stack space" in out + err and np.all(overflow[sphere] == 0)
