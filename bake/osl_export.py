@@ -176,7 +176,10 @@ def ensure_osl_export(tables_path, log=None):
 
 
 def bake_derived(tables_path, log=None):
-    """What the Blender node needs beside a table file: its OSL texture and its closure fit
-    (each rebuilt only when missing or stale). Called by the bake pipeline."""
+    """What the Blender node needs beside a table file: its OSL texture, its SVM texture
+    (bake/svm_export.py) and its closure fit (each rebuilt only when missing or stale).
+    Called by the bake pipeline; returns (OSL texture, fit)."""
     from .closure_fit import ensure_fit
+    from .svm_export import ensure_svm_export
+    ensure_svm_export(tables_path, log=log)
     return ensure_osl_export(tables_path, log=log), ensure_fit(tables_path, log=log)

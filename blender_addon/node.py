@@ -1,39 +1,47 @@
 """The "Learned BSDF" node: a shader node group bound to one baked material.
 
-A plain group node (ShaderNodeGroup), so a .blend renders the same with or without the
-add-on installed, and materials append and link like any other. Its node tree,
-"Learned BSDF: <material>", holds both back ends:
+A plain group node (ShaderNodeGroup), so a .blend renders with or without the add-on
+installed, and materials append and link like any other. Its node tree, "Learned BSDF:
+<material>", holds three back ends:
 
-- OSL: a Script node running blender_addon/osl/learned_bsdf.osl (stored in the .blend as
-  a text block and as compiled bytecode) that samples the baked tables exactly and
-  continues the path with ray_portal_bsdf (Cycles CPU with Open Shading Language on).
-  Its input "Fallback" is the fit: when the OSL texture is missing or unreadable at
-  render time, the shader returns the fit instead of black. The scene's pixel filter and
-  seed feed the shader (`film_settings`, set with the back end): on camera rays it
-  stratifies its samples by their position in the pixel.
+- OSL (Cycles on the CPU with Open Shading Language on): a Script node running
+  blender_addon/osl/learned_bsdf.osl (stored in the .blend as a text block and compiled
+  bytecode). It samples the baked tables exactly, lights the material with the scene's
+  lamps (next-event estimation with MIS: lamps.py passes them in by drivers) and draws
+  the portal direction from a mixture of the tables, the world's importance map and a Sky
+  Texture's sun (world.py renders the map), continuing the path with ray_portal_bsdf. Its
+  input "Fallback" is the fit: with the OSL texture missing at render time it renders the
+  fit instead of black. The scene's pixel filter and seed feed it (`film_settings`): on
+  camera rays it stratifies its samples by their place in the pixel.
+- SVM (every Cycles device, GPU included; Blender 4.2+): the same table sampler as plain
+  shader nodes ending in a Ray Portal BSDF (svm.py, texture bake/svm_export.py): exact for
+  the world and emissive surfaces; lamps are not light-sampled.
 - fit: Cycles closures (Diffuse BSDF + GGX Glossy BSDF) whose colours and roughness are
   piecewise-linear functions of the view angle (Layer Weight "Facing" = 1 - cos theta_i),
   fitted at bake time (bake/closure_fit.py). Its parameters live in the node tree, so it
-  renders everywhere (SVM, GPU, viewport) even when the table files are gone.
+  renders everywhere (Eevee, previews) even when the table files are gone; approximate.
 
-A Mix Shader whose factor is the Value node "FlowBSDF backend" (1 = OSL, 0 = fit) picks
-one; with a constant factor Cycles compiles only the chosen branch. The factor is set
-from the scene's back end ("osl", "fit" or "auto") by `set_backend`, before every render
-(render_pre handler), on every scene and frame change (depsgraph_update_post,
-frame_change_post: the viewport follows) and after loading a file (load_post), and only to
-OSL when the OSL texture exists; the OSL shader's film settings (`film_settings`) likewise.
+Two Mix Shaders pick one: "FlowBSDF SVM backend" (fit or SVM), then "FlowBSDF backend"
+(that or OSL); with constant factors Cycles compiles only the chosen branch. The factors
+follow the scene's back end ("auto", "osl", "svm", "fit"; `set_backend`, `_resolve`): auto
+renders OSL where Cycles runs it, else the SVM graph, else (lamps would go unlit, or not
+Cycles) the fit; the node's status says which and why (`node_status`). They are set before
+every render (render_pre), on every scene and frame change (depsgraph_update_post,
+frame_change_post: the viewport follows) and after loading a file (load_post), with the
+lamps, film settings and world inputs; before saving (save_pre) they are set to what
+renders without the add-on anywhere (SVM, or the fit where lamps render).
 Binding data sits in the tree's custom property "flowbsdf".
 
 Blenders without numpy or OSL (Debian's 3.4 for the batch path): nothing here imports
 numpy at module load. The fit is read from its JSON file (<name>.fit.json, written by the
 bake) with the json module, and the OSL texture is found by its content-hashed name; only
 missing or stale fits/textures need `bake` (numpy), imported on first use. Where Cycles
-cannot compile OSL (`_cycles.with_osl` false, as in Debian's 3.4), the group holds the fit
-alone, wired straight to its output (no Script node: an uncompiled Script node has no
-sockets to wire and points at an add-on path that differs per machine). Opening such a file
-with the add-on in a Blender that compiles OSL rebuilds the group with both back ends
-(load_post, `upgrade`), as it does a group whose shader an older add-on compiled. The group's socket is made with `tree.interface` (4.0+) or the
-legacy `tree.outputs` (3.x).
+cannot compile OSL (`_cycles.with_osl` false, as in Debian's 3.4) there is no Script node
+(an uncompiled one has no sockets and points at an add-on path that differs per machine),
+and without the Ray Portal BSDF (before 4.2) no SVM graph: the group holds the fit alone.
+Opening such a file with the add-on where more back ends build rebuilds the group
+(load_post, `upgrade`), as it does a group whose shader an older add-on compiled. The
+group's socket is made with `tree.interface` (4.0+) or the legacy `tree.outputs` (3.x).
 
 API (used by the add-on's UI and operators): register, unregister, assign_learned_bsdf,
 set_backend, backend_of, node_status, sync, update_world, film_settings.
@@ -49,14 +57,15 @@ from bpy.app.handlers import persistent
 
 from . import lamps
 
-BACKENDS = ("osl", "fit", "auto")
-ENUM_ORDER = ("auto", "osl", "fit")     # the scene enum's items, as stored in files
+BACKENDS = ("osl", "svm", "fit", "auto")
+ENUM_ORDER = ("auto", "osl", "fit", "svm")     # the scene enum's items, as stored in files (append only)
 SCENE_PROP = "flowbsdf_backend"
 TREE_PREFIX = "Learned BSDF: "
 TREE_KEY = "flowbsdf"
 NODE_LABEL = "Learned BSDF"
 TEXT_NAME = "flowbsdf_learned_bsdf.osl"
-SWITCH = "FlowBSDF backend"
+SWITCH = "FlowBSDF backend"           # 1: OSL, else the SVM / fit switch below
+SWITCH_SVM = "FlowBSDF SVM backend"     # 1: the SVM graph, 0: the fit
 SCRIPT = "FlowBSDF OSL"
 OSL_SOURCE = Path(__file__).resolve().parent / "osl" / "learned_bsdf.osl"
 # The grey diffuse used when a material has neither a fit nor tables.
@@ -142,6 +151,17 @@ def _osl_texture(tables_path):
 def _texture_path(tables_path, digest):
     """The OSL texture's name beside the tables (bake/osl_export.export_path, without numpy)."""
     return tables_path.with_name(f"{tables_path.stem}.osl{OSL_LAYOUT}-{digest[:12]}.exr")
+
+
+def svm_available():
+    """Whether this Blender has the Ray Portal BSDF (4.2+) and a `bake` that imports (numpy):
+    what the SVM back end needs."""
+    return hasattr(bpy.types, "ShaderNodeBsdfRayPortal") and _bake_mod("svm_export") is not None
+
+
+def _svm_texture(tables_path):
+    """The SVM texture of a table file, made or refreshed by `bake` (bake/svm_export.py)."""
+    return str(_bake_mod("svm_export").ensure_svm_export(tables_path))
 
 
 def derived_current(tables_path):
@@ -351,13 +371,19 @@ def _build_tree(tree, name, tables_path, fit_path):
     """(Re)build the group's nodes for a material; records the binding in tree["flowbsdf"]."""
     problems = []
     fit = None
-    osl_texture = ""
-    with_osl = osl_compiler_available()
+    osl_texture = svm_texture = ""
+    with_osl, with_svm = osl_compiler_available(), svm_available()
     if tables_path.is_file():
-        try:
-            osl_texture = _osl_texture(tables_path)
-        except Exception as e:      # noqa: BLE001  (a broken table file must not break the material)
-            problems.append(f"no OSL texture: {e}")
+        for wanted, make, label in ((with_osl, _osl_texture, "OSL"), (with_svm, _svm_texture, "SVM")):
+            if not wanted:
+                continue
+            try:
+                if label == "OSL":
+                    osl_texture = make(tables_path)
+                else:
+                    svm_texture = make(tables_path)
+            except Exception as e:      # noqa: BLE001  (a broken table file must not break the material)
+                problems.append(f"no {label} texture: {e}")
     else:
         problems.append(f"tables missing: {tables_path}")
     try:
@@ -377,49 +403,65 @@ def _build_tree(tree, name, tables_path, fit_path):
     nodes, links = tree.nodes, tree.links
     out = nodes.new("NodeGroupOutput")
     out.location = (2600, 0)
-    fit_out = _build_fit(tree, fit)
-    info = {"material": name, "tables": str(tables_path), "fit": str(fit_path or ""),
-            "osl_texture": osl_texture, "has_fit": fit is not None, "has_osl": with_osl,
-            "fit_error": float(max(fit["rel_error"])) if fit else -1.0,
-            "problems": "; ".join(problems)}
-    if not with_osl:            # the fit alone (see the module docstring); `upgrade` adds OSL later
-        links.new(fit_out, out.inputs[0])
-        tree[TREE_KEY] = info
-        return
-    script = make_script_node(tree)
-    script.name = script.label = SCRIPT
-    script.location = (2200, 300)
-    script.inputs["Tables"].default_value = osl_texture
-    links.new(fit_out, script.inputs["Fallback"])
     group_in = nodes.new("NodeGroupInput")
     group_in.location = (1900, 600)
-    links.new(group_in.outputs["Tangent"], script.inputs["Tangent"])
-    switch = nodes.new("ShaderNodeValue")
-    switch.name = switch.label = SWITCH
-    switch.outputs[0].default_value = 0.0
-    switch.location = (2200, 500)
-    mix = nodes.new("ShaderNodeMixShader")
-    mix.location = (2400, 0)
-    links.new(switch.outputs[0], mix.inputs["Fac"])
-    links.new(fit_out, mix.inputs[1])
-    links.new(script.outputs["BSDF"], mix.inputs[2])
-    links.new(mix.outputs[0], out.inputs[0])
-    script["flowbsdf_src"] = _source_hash()
+    fit_out = _build_fit(tree, fit)
+    info = {"material": name, "tables": str(tables_path), "fit": str(fit_path or ""),
+            "osl_texture": osl_texture, "svm_texture": svm_texture, "has_fit": fit is not None,
+            "has_osl": with_osl, "fit_error": float(max(fit["rel_error"])) if fit else -1.0,
+            "problems": "; ".join(problems)}
+    shader = fit_out
+    if svm_texture:
+        from . import svm
+        svm_out = svm.build_svm_sampler(tree, svm_texture, group_in.outputs["Tangent"], location=(-1400, -3000))
+        shader = _switched(tree, SWITCH_SVM, shader, svm_out, (2200, -300))
+    if with_osl:                # else no Script node at all (see the module docstring); `upgrade` adds it
+        script = make_script_node(tree)
+        script.name = script.label = SCRIPT
+        script.location = (2200, 300)
+        script.inputs["Tables"].default_value = osl_texture
+        links.new(fit_out, script.inputs["Fallback"])
+        links.new(group_in.outputs["Tangent"], script.inputs["Tangent"])
+        script["flowbsdf_src"] = _source_hash()
+        shader = _switched(tree, SWITCH, shader, script.outputs["BSDF"], (2400, 0))
+    links.new(shader, out.inputs[0])
     tree[TREE_KEY] = info
 
 
+def _switched(tree, name, off, on, location):
+    """A Mix Shader between two shaders whose factor is a Value node named `name` (0: off,
+    1: on). With a constant factor Cycles compiles only the chosen side."""
+    switch = tree.nodes.new("ShaderNodeValue")
+    switch.name = switch.label = name
+    switch.outputs[0].default_value = 0.0
+    switch.location = (location[0], location[1] + 200)
+    mix = tree.nodes.new("ShaderNodeMixShader")
+    mix.location = location
+    tree.links.new(switch.outputs[0], mix.inputs["Fac"])
+    tree.links.new(off, mix.inputs[1])
+    tree.links.new(on, mix.inputs[2])
+    return mix.outputs[0]
+
+
+def _has_svm(tree):
+    from . import svm
+    return any(n.name.startswith(svm.FILM) for n in tree.nodes)
+
+
 def upgrade(tree):
-    """Rebuild a group, when this Blender compiles OSL, that was made where OSL could not
-    compile (it holds the fit only) or by an add-on whose shader differs (its bytecode would
-    not read the current texture layout and would render the fallback). Returns True when it
-    rebuilt the group."""
-    if tree.library is not None or not osl_compiler_available():
-        return False
-    script = tree.nodes.get(SCRIPT)
-    if script is not None and script.get("flowbsdf_src") == _source_hash():
+    """Rebuild a group made where a back end could not be built and can be here (OSL where
+    Cycles compiles it, the SVM graph where Blender has the Ray Portal BSDF), or by an add-on
+    whose OSL shader differs (its bytecode would not read the current texture layout and
+    would render the fallback). Returns True when it rebuilt the group."""
+    if tree.library is not None:
         return False
     info = _info(tree)
     if not info.get("material") or not info.get("tables"):
+        return False
+    script = tree.nodes.get(SCRIPT)
+    stale_osl = osl_compiler_available() and (script is None or script.get("flowbsdf_src") != _source_hash())
+    missing_svm = svm_available() and not _has_svm(tree) and Path(info["tables"]).is_file()
+    if not (stale_osl or missing_svm):
         return False
     _build_tree(tree, info["material"], Path(info["tables"]), Path(info["fit"]) if info.get("fit") else None)
     return True
@@ -506,33 +548,65 @@ def osl_available(scene):
 
 
 def _resolve(scene, tree, limits=None):
-    """(use OSL?, status text) for one group in one scene (`limits`: lamps.limits(scene),
-    computed here when not given)."""
+    """(back end that renders: "osl", "svm" or "fit", status text) for one group in one scene
+    (`limits`: lamps.limits(scene), computed here when not given)."""
     info = _info(tree)
     backend = backend_of(scene)
-    texture = info.get("osl_texture", "")
     fit = "fit" if info.get("has_fit") else "neutral grey (no fit)"
+    if info.get("has_fit") and info.get("fit_error", -1.0) >= 0:
+        fit_note = f"; the fit is off by up to {100 * info['fit_error']:.0f} %"
+    else:
+        fit_note = ""
+
+    def fallback(why):
+        return "fit", f"{fit} ({why}{fit_note})"
     if backend == "fit":
-        return False, f"{fit} (scene back end: fit)"
-    if tree.nodes.get(SCRIPT) is None:
-        return False, f"{fit} (no OSL shader in the node: built in a Blender that cannot compile OSL)"
-    ok, why = osl_available(scene)
-    if not ok:
-        return False, f"{fit} ({why})"
+        return fallback("scene back end: fit")
+    if scene.render.engine != 'CYCLES':
+        return fallback(f"render engine is {scene.render.engine}: the baked tables render in Cycles")
     tables = info.get("tables", "")
     if not tables or not os.path.isfile(tables):
-        return False, f"{fit} (tables missing: {tables})"
-    if not texture or not os.path.isfile(texture):
-        return False, f"{fit} (OSL texture missing: {texture or 'not exported'})"
+        return fallback(f"tables missing: {tables}")
+    osl_ok, osl_why = osl_available(scene)
+    if tree.nodes.get(SCRIPT) is None:
+        osl_ok, osl_why = False, "no OSL shader in the node: built in a Blender that cannot compile OSL"
+    elif osl_ok and not os.path.isfile(info.get("osl_texture", "")):
+        osl_ok, osl_why = False, f"OSL texture missing: {info.get('osl_texture') or 'not exported'}"
+    svm_ok = _has_svm(tree) and os.path.isfile(info.get("svm_texture", ""))
     notes = lamps.limits(scene) if limits is None else limits
-    return True, "OSL" + (f" (warning: {'; '.join(notes)})" if notes else "")
+    if osl_ok and backend in ("osl", "auto"):
+        return "osl", "OSL" + (f" (warning: {'; '.join(notes)})" if notes else "")
+    lit = lamps.scene_lamps(scene)
+    unlit = (f"lamps ({', '.join(ob.name for ob in lit[:3])}{', ...' if len(lit) > 3 else ''}) are lit "
+             f"only by the OSL back end ({osl_why})") if lit else ""
+    if svm_ok and (backend == "svm" or not lit):
+        return "svm", "SVM" + (f" (warning: {unlit})" if unlit else "")
+    if backend == "osl":
+        return fallback(osl_why)
+    if not svm_ok:
+        return fallback(osl_why if backend != "svm" else "no SVM graph in the node")
+    return fallback(unlit)
 
 
 def _refresh_export(tree):
-    """Re-export the OSL texture when the tables exist but their texture is missing or stale."""
+    """Re-export the textures when the tables exist but a texture is missing or stale: the
+    OSL shader takes the new file's name; the SVM graph, whose constants come from its
+    texture's layout, is rebuilt (with the whole group)."""
     info = _info(tree)
     tables = Path(info.get("tables", ""))
-    if not tables.is_file() or tree.nodes.get(SCRIPT) is None:
+    if not tables.is_file():
+        return
+    if _has_svm(tree):
+        try:
+            current = _svm_texture(tables)
+        except Exception as e:      # noqa: BLE001
+            current = info.get("svm_texture")
+            print(f"FlowBSDF: no SVM texture for {tables}: {e}")
+        if current != info.get("svm_texture"):
+            _build_tree(tree, info["material"], tables, Path(info["fit"]) if info.get("fit") else None)
+            return
+    script = tree.nodes.get(SCRIPT)
+    if script is None:
         return
     try:
         texture = _osl_texture(tables)
@@ -540,8 +614,7 @@ def _refresh_export(tree):
         info["problems"] = f"no OSL texture: {e}"
         tree[TREE_KEY] = info
         return
-    script = tree.nodes.get(SCRIPT)
-    if script is not None and texture != info.get("osl_texture"):
+    if texture != info.get("osl_texture"):
         script.inputs["Tables"].default_value = texture
         info["osl_texture"] = texture
         tree[TREE_KEY] = info
@@ -586,12 +659,11 @@ def sync(scene, refresh=False, bake_world=False):
             _refresh_export(tree)
         if limits is None:
             limits = lamps.limits(scene)        # once per sync: it runs on every scene change
-        use_osl, _ = _resolve(scene, tree, limits)
-        switch = tree.nodes.get(SWITCH)
-        if switch is not None:
-            value = 1.0 if use_osl else 0.0
-            if switch.outputs[0].default_value != value:
-                switch.outputs[0].default_value = value
+        backend, _ = _resolve(scene, tree, limits)
+        _set_switches(tree, backend)
+        if film is not None and _has_svm(tree):
+            from . import svm
+            svm.set_film(tree, scene)
         script = tree.nodes.get(SCRIPT)
         if script is not None and film is not None:
             _set_inputs(script, film)
@@ -600,6 +672,13 @@ def sync(scene, refresh=False, bake_world=False):
             if folder not in worlds:
                 worlds[folder] = _world_inputs(scene, folder, bake_world)
             _set_inputs(script, worlds[folder])
+
+
+def _set_switches(tree, backend):
+    for name, on in ((SWITCH, backend == "osl"), (SWITCH_SVM, backend == "svm")):
+        switch = tree.nodes.get(name)
+        if switch is not None and switch.outputs[0].default_value != float(on):
+            switch.outputs[0].default_value = float(on)
 
 
 def _world_inputs(scene, folder, bake):
@@ -625,9 +704,9 @@ def node_status(node, scene=None):
     if tree is None or TREE_KEY not in tree.keys():
         return "not a Learned BSDF node"
     scene = scene or bpy.context.scene
-    status = _resolve(scene, tree)[1]
+    backend, status = _resolve(scene, tree)
     problems = _info(tree).get("problems")
-    return f"{status} [{problems}]" if problems and status.startswith("OSL") else status
+    return f"{status} [{problems}]" if problems and backend != "fit" else status
 
 
 # ------------------------------------------------------------------------------ handlers
@@ -682,19 +761,43 @@ def _on_load_post(*_):
         sync(scene, refresh=True, bake_world=scene.render.engine == 'CYCLES' and any(_trees()))
 
 
+@persistent
+def _on_save_pre(*_):
+    """The file is saved rendering what works without the add-on, in any Blender: the SVM
+    graph (no OSL needed) where no lamp renders, else the fit (a Script node would render
+    black where OSL is off, and the SVM graph does not light lamps). load_post and the next
+    scene update choose again."""
+    scene = bpy.context.scene
+    lit = bool(lamps.scene_lamps(scene)) if scene is not None else True
+    for tree in _trees():
+        if tree.library is None:
+            _set_switches(tree, "svm" if _has_svm(tree) and not lit else "fit")
+
+
+@persistent
+def _on_save_post(*_):
+    for scene in bpy.data.scenes:
+        sync(scene)
+
+
 def _handlers():
     h = bpy.app.handlers
     return ((h.render_pre, _on_render_pre), (h.load_post, _on_load_post),
-            (h.depsgraph_update_post, _on_scene_change), (h.frame_change_post, _on_scene_change))
+            (h.depsgraph_update_post, _on_scene_change), (h.frame_change_post, _on_scene_change),
+            (h.save_pre, _on_save_pre), (h.save_post, _on_save_post))
 
 
 def register():
     bpy.types.Scene.flowbsdf_backend = bpy.props.EnumProperty(
         name="FlowBSDF back end",
         description="How Learned BSDF nodes render",
-        items=[("auto", "Auto", "OSL on Cycles CPU with Open Shading Language, else the closure fit"),
-               ("osl", "OSL", "Sample the baked tables exactly (Cycles CPU, Open Shading Language)"),
-               ("fit", "Closure fit", "Cycles closures fitted at bake time (GPU, viewport)")],
+        items=[("auto", "Auto", "OSL where Cycles runs it (CPU, Open Shading Language on), else the SVM "
+                                "graph (any device; the fit where lamps would need OSL), else the closure fit"),
+               ("osl", "OSL", "Sample the baked tables exactly and light-sample lamps and the world "
+                              "(Cycles CPU, Open Shading Language)"),
+               ("fit", "Closure fit", "Cycles closures fitted at bake time (Eevee, previews): approximate"),
+               ("svm", "SVM graph", "Sample the baked tables exactly with shader nodes (every Cycles device; "
+                                    "lamps are not light-sampled)")],
         default="auto", update=lambda self, _ctx: sync(self))
     for handlers, fn in _handlers():
         if fn not in handlers:

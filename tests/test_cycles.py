@@ -260,8 +260,12 @@ def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):
     cs.add_sphere(sc, mat, segments=32, rings=16)
     assert lb.backend_of(sc) == "auto" and lb.node_status(node, sc) == "OSL"
     sc.cycles.shading_system = False
-    assert lb.node_status(node, sc).startswith("fit (Open Shading Language is off")
+    bpy.context.view_layer.update()     # the scene-change handler follows
+    assert lb.node_status(node, sc) == "SVM" and switch_of(node) == 0.0 and switch_of(node, lb.SWITCH_SVM) == 1.0
     sc.cycles.shading_system = True
+    sc.cycles.device = 'GPU'
+    assert lb.node_status(node, sc) == "SVM"
+    sc.cycles.device = 'CPU'
     lb.set_backend(sc, "fit")
     assert lb.backend_of(sc) == "fit" and lb.node_status(node, sc).startswith("fit")
     with pytest.raises(ValueError, match="back end"):
@@ -282,15 +286,29 @@ def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):
     assert lb.node_status(node, sc) == "OSL"
     np.testing.assert_allclose(cs.render(sc), osl_img, rtol=1e-6)   # same seed, same image
 
+    # Saved as it renders without the add-on (no lamps: the SVM graph), opened without it and
+    # with OSL off (as a GPU would): the sphere renders, not black.
+    lb.unregister()
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    sc = bpy.context.scene
+    sc.cycles.shading_system = False
+    node = next(n for n in bpy.data.materials["gold"].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
+    assert switch_of(node) == 0.0 and switch_of(node, lb.SWITCH_SVM) == 1.0
+    normal, hit = cs.sphere_view(16, 16, scale=2.2)
+    inner = hit & (normal[..., 2] > 0.5)
+    bare = cs.render(sc)[inner].mean(0)
+    assert np.all(np.abs(bare - osl_img[inner].mean(0)) < 0.1 * osl_img[inner].mean(0) + 0.02), bare
+    lb.register()
+    sc.cycles.shading_system = True
+    lb.sync(sc)
+
     # Tables (and their OSL texture) gone: a clear status and the fit, not black or pink.
     for p in tmp_path.glob("gold*.exr"):
         p.unlink()
     status = lb.node_status(node, sc)
     assert status.startswith("fit (tables missing: ") and str(path) in status, status
     img = cs.render(sc)                 # render_pre switches the group to the fit
-    assert switch_of(node) == 0.0
-    normal, hit = cs.sphere_view(16, 16, scale=2.2)
-    inner = hit & (normal[..., 2] > 0.5)
+    assert switch_of(node) == 0.0 and switch_of(node, lb.SWITCH_SVM) == 0.0
     sphere = img[inner].mean(0)
     assert np.all(sphere > 0.2) and np.all(np.abs(sphere - osl_img[inner].mean(0)) < 0.15), sphere
     # Even with the switch forced to OSL, the shader itself falls back to the fit.
@@ -300,8 +318,8 @@ def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):
     assert np.all(forced[inner].mean(0) > 0.2), forced[inner].mean(0)
 
 
-def switch_of(node):
-    return node.node_tree.nodes[lb.SWITCH].outputs[0].default_value
+def switch_of(node, name=None):
+    return node.node_tree.nodes[name or lb.SWITCH].outputs[0].default_value
 
 
 def test_assign_twice_reuses_the_group(baked):
