@@ -225,7 +225,8 @@ class FLOWBSDF_OT_set_backend(bpy.types.Operator):
     bl_idname = "flowbsdf.set_backend"
     bl_label = "Set Back End"
 
-    backend: bpy.props.EnumProperty(items=[("osl", "OSL", ""), ("fit", "Closure fit", ""), ("auto", "Auto", "")])
+    backend: bpy.props.EnumProperty(items=[("osl", "OSL", ""), ("svm", "SVM graph", ""), ("fit", "Closure fit", ""),
+                                           ("auto", "Auto", "")])
 
     def execute(self, context):
         try:

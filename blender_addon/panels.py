@@ -31,11 +31,33 @@ def draw_job(layout, context):
         row.operator("flowbsdf.cancel", text="", icon="CANCEL")
 
 
-def draw_material(layout, mat):
+def _wrapped(layout, text, icon, width=38):
+    """A long text as several labels (Blender cuts a label at the panel's edge)."""
+    import textwrap
+    for k, line in enumerate(textwrap.wrap(text, width) or [""]):
+        layout.label(text=line, icon=icon if k == 0 else "BLANK1")
+
+
+def draw_renders(layout, mat, scene):
+    """What the material's Learned BSDF node renders in this scene, and why (node.node_status)."""
+    from . import node
+    tree = mat.node_tree
+    group = next((n for n in tree.nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree is not None
+                  and node.TREE_KEY in n.node_tree.keys()), None) if tree is not None else None
+    if group is None:
+        return
+    status = node.node_status(group, scene)
+    exact = status.startswith(("OSL", "SVM"))
+    _wrapped(layout.box(), f"Renders: {status}", "CHECKMARK" if exact and "warning" not in status else "ERROR")
+
+
+def draw_material(layout, mat, scene=None):
     s = mat.flowbsdf
     if not s.enabled:
         layout.operator("flowbsdf.enable", icon="NODE_MATERIAL")
         return
+    if scene is not None:
+        draw_renders(layout, mat, scene)
     col = layout.column()
     col.prop(s, "enabled")
     col.prop(s, "name")
@@ -77,7 +99,7 @@ def draw_scene(layout, context):
     if backend is not None:
         row = col.row(align=True)
         row.label(text=f"Back end: {backend}")
-        for key, label in (("auto", "Auto"), ("osl", "OSL"), ("fit", "Fit")):
+        for key, label in (("auto", "Auto"), ("osl", "OSL"), ("svm", "SVM"), ("fit", "Fit")):
             row.operator("flowbsdf.set_backend", text=label, depress=(backend == key)).backend = key
     for item in s.scan_items:
         box = col.box()
@@ -99,7 +121,7 @@ class _Panel:
         draw_job(layout, context)
         mat = _material(context)
         if mat is not None:
-            draw_material(layout.box(), mat)
+            draw_material(layout.box(), mat, context.scene)
         draw_scene(layout, context)
 
 
