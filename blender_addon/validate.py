@@ -3,7 +3,8 @@
 Export (here, pure bpy): the scene camera (perspective), every rendered mesh object as
 world-space OBJ files (one per material slot), learned materials as manifest materials
 (sampled from their baked tables), other materials as a Lambertian of their base colour
-(said in the report), the world as a constant colour or its environment image, and every
+(said in the report), the world as a constant colour or its environment image (any other
+world, e.g. a Sky Texture, rendered by Cycles to an equirectangular image), and every
 point, spot, sun and area lamp with Cycles' radiometry (bake/tracer/lights.py): world-space
 position and frame, strength = color * temperature colour * energy * 2^exposure (Normalize
 off folded in), radius, soft falloff, spot size and blend, sun angle, area shape, size times
@@ -11,8 +12,9 @@ object scale and spread, camera visibility. A lamp the tracer cannot render as C
 (light nodes, light linking, per-lobe factors or visibility, no shadow, a square spot,
 spread 0, sheared frames, Normalize off on a point/spot with a radius) is an ExportError,
 never dropped; a portal (no emitter) is left out with a note.
-Then Cycles renders the same view here (small, OSL back end), and the worker renders the
-reference and writes MSE / SSIM and a side-by-side image (validate/compare.png).
+Then Cycles renders the same view here (small, OSL back end: it light-samples lamps and the
+world as the reference does), and the worker renders the reference (MIS) and writes MSE /
+SSIM and a side-by-side image (validate/compare.png).
 """
 import json
 import math
@@ -24,6 +26,7 @@ from . import jobs, scan, worker
 from .operators import _JobOperator
 
 VALIDATE_DIR = "validate"
+WORLD_SIZE, WORLD_SPP = (1024, 512), 64      # a world other than a colour or an image, for the tracer
 
 
 class ExportError(ValueError):
@@ -67,25 +70,29 @@ def _base_colour(mat):
     return [0.8, 0.8, 0.8], "no material"
 
 
-def _world(scene):
+def _world(scene, folder):
+    """The tracer's environment: the world's constant colour or Environment Texture image as
+    they are, any other world (a Sky Texture, mixes, ...) rendered by Cycles to an
+    equirectangular image (world.render_world) in `folder`; (light table, note or None)."""
     world = scene.world
     if world is None or world.node_tree is None:
         raise ExportError("the scene has no world with nodes (the environment lights the comparison)")
     bg = next((n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeBackground"), None)
-    if bg is None:
-        raise ExportError("the world has no Background node")
-    strength = float(bg.inputs["Strength"].default_value)
-    col = bg.inputs["Color"]
-    if not col.is_linked:
-        return {"type": "environment", "constant": _vec(c * strength for c in col.default_value[:3])}
-    src = col.links[0].from_node
-    if src.bl_idname == "ShaderNodeTexEnvironment" and src.image is not None:
-        path = bpy.path.abspath(src.image.filepath, library=src.image.library)
-        if not os.path.isfile(path):
-            raise ExportError(f"the world image {path} is not a file (packed images are not exported)")
-        return {"type": "environment", "file": path, "strength": strength}
-    raise ExportError(f"the world colour comes from a {src.bl_idname} node: only a constant colour or an "
-                      "Environment Texture can be exported")
+    if bg is not None and not bg.inputs["Strength"].is_linked:
+        strength = float(bg.inputs["Strength"].default_value)
+        col = bg.inputs["Color"]
+        if not col.is_linked:
+            return {"type": "environment", "constant": _vec(c * strength for c in col.default_value[:3])}, None
+        src = col.links[0].from_node
+        if src.bl_idname == "ShaderNodeTexEnvironment" and src.image is not None:
+            path = bpy.path.abspath(src.image.filepath, library=src.image.library)
+            if os.path.isfile(path) and not src.inputs["Vector"].is_linked:
+                return {"type": "environment", "file": path, "strength": strength}, None
+    from . import world as world_map
+    path = os.path.join(folder, "world.exr")
+    world_map.render_world(scene, WORLD_SIZE[0], WORLD_SIZE[1], WORLD_SPP, path=path)
+    return ({"type": "environment", "file": path, "strength": 1.0},
+            f"world rendered to a {WORLD_SIZE[0]}x{WORLD_SIZE[1]} equirectangular image for the reference")
 
 
 def _lamp(obj):
@@ -156,7 +163,7 @@ def _lamp(obj):
         strength = [s * area for s in strength]
     entry.update(position=_vec(m.translation), axis_u=_vec(u * sx), axis_v=_vec(v * sy),
                  shape="ellipse" if ellipse else "rectangle", strength=_vec(strength),
-                 spread=round(math.degrees(light.spread), 6))
+                 spread=min(round(math.degrees(light.spread), 6), 180.0))     # float32 pi is a hair over 180 deg
     return entry
 
 
@@ -253,7 +260,10 @@ def export_scene(scene, folder, rows, width, height, manifest_path):
         lines += ["", f"[materials.{key}]"] + [f"{k} = {scan._toml_value(v)}" for k, v in spec.items()]
     for shape in shapes:
         lines += ["", "[[shape]]"] + [f"{k} = {scan._toml_value(v)}" for k, v in shape.items()]
-    for light in [_world(scene)] + lamps:
+    env, note = _world(scene, folder)
+    if note:
+        notes.append(note)
+    for light in [env] + lamps:
         lines += ["", "[[light]]"] + [f"{k} = {scan._toml_value(v)}" for k, v in light.items()]
     lines += ["", "[render]", "max_depth = 12", ""]
     path = os.path.join(folder, "scene.toml")
@@ -263,8 +273,8 @@ def export_scene(scene, folder, rows, width, height, manifest_path):
 
 
 def render_cycles(scene, path, width, height, spp):
-    """Render the scene with Cycles (CPU, OSL back end, BSDF sampling of the world) into a
-    32-bit EXR; every setting touched is restored afterwards."""
+    """Render the scene with Cycles (CPU, OSL back end: lamps and world light-sampled by the
+    shader) into a 32-bit EXR; every setting touched is restored afterwards."""
     from . import node
     saved = []
 
@@ -282,8 +292,6 @@ def render_cycles(scene, path, width, height, spp):
                                (r, "film_transparent", False),
                                (img, "file_format", "OPEN_EXR"), (img, "color_depth", "32")):
         setv(owner, attr, value)
-    if scene.world is not None and hasattr(scene.world, "cycles"):
-        setv(scene.world.cycles, "sampling_method", "NONE")
     try:
         node.sync(scene, refresh=True)
         bpy.ops.render.render(write_still=True, scene=scene.name)

@@ -143,7 +143,8 @@ def cmd_bake(args):
 
 
 def cmd_validate(args):
-    """Reference render of an exported scene (tables sampler, BSDF sampling only) vs Cycles' image."""
+    """Reference render of an exported scene (tables sampler; lamps and environment sampled with
+    MIS, as the OSL back end does) vs Cycles' image."""
     import numpy as np
     from bake.errors import FlowBSDFError
     from bake.manifest import load_manifest
@@ -159,7 +160,7 @@ def cmd_validate(args):
         raise FlowBSDFError(f"Cycles image is {cycles.shape[1]}x{cycles.shape[0]}, the scene "
                             f"{cam.width}x{cam.height}", args.cycles)
     spp = args.reference_spp or 4 * args.spp
-    emit(f"[progress 1/2] reference render {cam.width}x{cam.height}, {spp} spp (tables, BSDF sampling)")
+    emit(f"[progress 1/2] reference render {cam.width}x{cam.height}, {spp} spp (tables, MIS)")
     samplers = scene_samplers(scene, "tables", args.out, log=emit)
     last = [0.0]
 
@@ -167,7 +168,7 @@ def cmd_validate(args):
         if elapsed - last[0] >= 2.0 or k == spp:
             last[0] = elapsed
             emit(f"[reference] {k}/{spp} spp, {elapsed:.1f}s")
-    ref, var, _ = render(scene, samplers, spp=spp, mis=False, seed=0, progress=progress)
+    ref, var, _ = render(scene, samplers, spp=spp, mis=True, seed=0, progress=progress)
     emit("[progress 2/2] compare")
     folder = Path(args.cycles).parent
     write_exr(folder / "reference.exr", ref)

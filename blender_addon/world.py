@@ -110,14 +110,18 @@ def map_path(folder, key):
     return Path(folder) / f"world-{key[:16]}.exr"
 
 
-def render_world(scene, width=WIDTH, height=HEIGHT, spp=SPP):
+def render_world(scene, width=WIDTH, height=HEIGHT, spp=SPP, path=None):
     """The scene's world as an equirectangular radiance image (height, width, 3), row 0 the
-    zenith, column u = 0.5 - atan2(y, x) / 2 pi (bake/world_map.py)."""
+    zenith, column u = 0.5 - atan2(y, x) / 2 pi (bake/world_map.py); with `path`, the 32-bit
+    OpenEXR Cycles wrote is kept there too (the reference tracer reads it as its environment)."""
     tmp = bpy.data.scenes.new("FlowBSDF world map")
     cam_data = bpy.data.cameras.new("FlowBSDF world map")
     cam = bpy.data.objects.new("FlowBSDF world map", cam_data)
-    fd, path = tempfile.mkstemp(suffix=".exr", prefix="flowbsdf_world_")
-    os.close(fd)
+    if path is None:
+        fd, out = tempfile.mkstemp(suffix=".exr", prefix="flowbsdf_world_")
+        os.close(fd)
+    else:
+        out = str(path)
     try:
         tmp.world = scene.world
         tmp.frame_current = scene.frame_current
@@ -134,7 +138,7 @@ def render_world(scene, width=WIDTH, height=HEIGHT, spp=SPP):
         r.resolution_x, r.resolution_y, r.resolution_percentage = width, height, 100
         r.image_settings.file_format = 'OPEN_EXR'
         r.image_settings.color_depth = '32'
-        r.filepath = path
+        r.filepath = out
         tmp.cycles.device = 'CPU'
         tmp.cycles.samples = spp
         tmp.cycles.use_adaptive_sampling = False
@@ -142,7 +146,7 @@ def render_world(scene, width=WIDTH, height=HEIGHT, spp=SPP):
         tmp.cycles.pixel_filter_type = 'BOX'
         tmp.view_settings.view_transform = 'Standard'
         bpy.ops.render.render(write_still=True, scene=tmp.name)
-        image = bpy.data.images.load(path)
+        image = bpy.data.images.load(out)
         try:
             import numpy as np
             px = np.array(image.pixels[:], np.float32).reshape(height, width, image.channels)
@@ -153,7 +157,8 @@ def render_world(scene, width=WIDTH, height=HEIGHT, spp=SPP):
         bpy.data.scenes.remove(tmp)
         bpy.data.objects.remove(cam)
         bpy.data.cameras.remove(cam_data)
-        Path(path).unlink(missing_ok=True)
+        if path is None:
+            Path(out).unlink(missing_ok=True)
 
 
 def bake_world_map(scene, folder):

@@ -316,6 +316,41 @@ def test_validate_reference_vs_cycles(addon, tmp_path):
     assert 'manifest = "red"' in text and 'albedo = [0.8, 0.8, 0.8]' in text
 
 
+def test_validate_compares_like_with_like_under_a_sky_and_a_lamp(addon, tmp_path):
+    """A Sky Texture world (rendered to an image for the reference) and an area lamp (exported
+    with Cycles' radiometry): the OSL back end lights the material with both, the reference
+    too, so the two renders agree."""
+    import json
+    import math
+    cs.bpy_or_skip()
+    scene = cs.reset(width=24, height=24, spp=16)
+    world = bpy.data.worlds.new("sky")
+    scene.world = world
+    tree = world.node_tree
+    bg = next(n for n in tree.nodes if n.type == 'BACKGROUND')
+    sky = tree.nodes.new("ShaderNodeTexSky")
+    sky.sun_elevation, sky.sun_rotation = 0.6, 0.8
+    tree.links.new(sky.outputs[0], bg.inputs["Color"])
+    bg.inputs["Strength"].default_value = 0.05
+    cs.add_sphere(scene, learned("red", "PLASTIC"), radius=1.0, segments=32, rings=16)
+    lamp = bpy.data.objects.new("lamp", bpy.data.lights.new("lamp", 'AREA'))
+    lamp.data.energy, lamp.data.size = 60.0, 1.0
+    lamp.location, lamp.rotation_euler = (1.5, -2.0, 2.5), (math.radians(40), 0, math.radians(30))
+    scene.collection.objects.link(lamp)
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    scene.collection.objects.link(cam)
+    cam.location, cam.rotation_euler = (0, -5, 0), (math.radians(90), 0, 0)
+    scene.camera = cam
+    scene.flowbsdf.out_dir = str(tmp_path / "out")
+    scene.flowbsdf.validate_spp, scene.flowbsdf.validate_size = 16, 24
+    assert bpy.ops.flowbsdf.bake(train="NEVER") == {"FINISHED"}
+    assert bpy.ops.flowbsdf.validate() == {"FINISHED"}
+    result = json.loads((tmp_path / "out" / "validate" / "metrics.json").read_text())
+    assert abs(result["mean_cycles"] - result["mean_reference"]) < 0.05 * result["mean_reference"], result
+    text = (tmp_path / "out" / "validate" / "scene.toml").read_text()
+    assert "world.exr" in text and 'type = "area"' in text
+
+
 class _Recorder:
     """A stand-in for UILayout that checks every property and operator the panel names."""
 
