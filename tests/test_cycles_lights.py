@@ -152,3 +152,51 @@ def test_second_bounce_off_the_learned_floor(lambert):
     sc.camera.location.z = 1.0                           # between lamp and wall...
     sc.camera.rotation_euler = (np.pi, 0.0, 0.0)         # ...turned to look up at the wall
     _assert_same(_renders(sc, floor, learned), _renders(sc, floor, diffuse))
+
+
+def _sky_world(sc, elevation=0.5, rotation=1.0, strength=0.2):
+    """Blender's default Sky Texture with its sun; world importance sampling at Blender's default."""
+    world = bpy.data.worlds.new("sky")
+    sc.world = world
+    tree = world.node_tree
+    bg = next(n for n in tree.nodes if n.type == 'BACKGROUND')
+    sky = tree.nodes.new("ShaderNodeTexSky")
+    sky.sun_elevation, sky.sun_rotation = elevation, rotation
+    tree.links.new(sky.outputs[0], bg.inputs["Color"])
+    bg.inputs["Strength"].default_value = strength
+    return sky
+
+
+@pytest.mark.parametrize("rotation", [1.0, -2.2])
+def test_sky_sun_direction_is_where_the_world_map_is_brightest(lambert, rotation):
+    """world.sun_of's direction (the shader's sun technique) points at the rendered map's
+    brightest pixel: the map's convention and the sun's agree."""
+    from blender_addon import world
+    sc = cs.reset(8, 8, spp=1)
+    _sky_world(sc, elevation=0.4, rotation=rotation)
+    img = world.render_world(sc, 256, 128, 256)      # enough samples to find the sub-pixel disc
+    row, col = np.unravel_index(np.argmax(img.sum(-1)), img.shape[:2])
+    theta, phi = (row + 0.5) / 128 * np.pi, (0.5 - (col + 0.5) / 256) * 2 * np.pi
+    brightest = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
+    direction, cos_half = world.sun_of(sc)
+    assert np.degrees(np.arccos(np.clip(brightest @ np.array(direction), -1, 1))) < 2.0
+    assert 0.9999 < cos_half < 1.0
+
+
+def test_sun_in_a_sky_without_fireflies(lambert):
+    """A learned Lambertian sphere under a Sky Texture with its sun: the image is Cycles' Diffuse
+    BSDF's within MC error, and the portal's mixture (the sun's disc, the world map, the tables)
+    keeps the noise near Cycles' own light sampling's (measured at 64 spp, 24^2: per-pixel
+    variance 0.077 against Diffuse's 0.0036 and tables alone 16760)."""
+    sc = cs.reset(N, N, spp=SPP)
+    cs.ortho_camera(sc, scale=2.2)
+    _sky_world(sc)
+    learned = bpy.data.materials.new("learned")
+    lb.assign_learned_bsdf(learned, "lambert", lambert)
+    sphere = cs.add_sphere(sc, learned, segments=64, rings=32)
+    script = bpy.data.node_groups["Learned BSDF: lambert"].nodes[lb.SCRIPT]
+    assert script.inputs["SunShare"].default_value > 0 and script.inputs["WorldShare"].default_value > 0
+    mine, diffuse = _renders(sc, sphere, learned), _renders(sc, sphere, cs.material_with(_diffuse, "diffuse"))
+    _assert_same(mine, diffuse)
+    assert mine.var(0, ddof=1).mean() < 100 * diffuse.var(0, ddof=1).mean()
+    assert mine.max() < 3 * diffuse.max()
