@@ -9,7 +9,7 @@
 // the box for disk and ellipse), times the spread factor below 180 degrees.
 //
 // Per lamp: lamp_sample (next-event estimation: a direction toward the lamp and its solid-angle
-// pdf, 0 for delta lamps) and lamp_hit (does a direction from P reach the lamp, its radiance
+// pdf, 0 for delta lamps; rectangles uniformly in solid angle, disks and ellipses by area) and lamp_hit (does a direction from P reach the lamp, its radiance
 // and the pdf lamp_sample would have given it), consistent with each other.
 
 #define LAMP_POINT 1
@@ -126,6 +126,52 @@ color area_radiance(Lamp L, vector dir, vector ng, float area)
     return Le * spread_attenuation(L, dir, ng);
 }
 
+// A rectangle as seen from Pp, for sampling it uniformly in solid angle (the spherical
+// rectangle of Urena, Fajardo and King 2013, as Cycles samples its rectangular lamps): the
+// corner's coordinates in the rectangle's frame (x0, y0 to x1, y1, depth z0 < 0), the frame
+// (ex, ey, ez toward Pp's far side), and what the warp needs (b0, b1, k); returns the solid angle.
+float rect_solid_angle(point Pp, point corner, vector ex, vector ey, float lx, float ly,
+                       output float x0, output float y0, output float x1, output float y1,
+                       output float z0, output vector ez, output float b0, output float b1, output float k)
+{
+    ez = cross(ex, ey);
+    vector d = corner - Pp;
+    z0 = dot(d, ez);
+    if (z0 > 0.0) {
+        ez = -ez;
+        z0 = -z0;
+    }
+    x0 = dot(d, ex);
+    y0 = dot(d, ey);
+    x1 = x0 + lx;
+    y1 = y0 + ly;
+    vector v00 = vector(x0, y0, z0), v01 = vector(x0, y1, z0), v10 = vector(x1, y0, z0), v11 = vector(x1, y1, z0);
+    vector n0 = normalize(cross(v00, v10)), n1 = normalize(cross(v10, v11));
+    vector n2 = normalize(cross(v11, v01)), n3 = normalize(cross(v01, v00));
+    float g0 = acos(clamp(-dot(n0, n1), -1.0, 1.0)), g1 = acos(clamp(-dot(n1, n2), -1.0, 1.0));
+    float g2 = acos(clamp(-dot(n2, n3), -1.0, 1.0)), g3 = acos(clamp(-dot(n3, n0), -1.0, 1.0));
+    b0 = n0[2];
+    b1 = n2[2];
+    k = 2.0 * M_PI - g2 - g3;
+    return g0 + g1 - k;
+}
+
+// The point of the spherical rectangle (rect_solid_angle's outputs) for (u0, u1), uniform in
+// its solid angle S, relative to Pp in the frame (ex, ey, ez).
+vector rect_solid_angle_offset(float S, float x0, float y0, float x1, float y1, float z0,
+                               float b0, float b1, float k, float u0, float u1)
+{
+    float au = u0 * S + k;
+    float fu = (cos(au) * b0 - b1) / sin(au);
+    float cu = clamp(((fu > 0.0) ? 1.0 : -1.0) / sqrt(fu * fu + b0 * b0), -1.0, 1.0);
+    float xu = clamp(-(cu * z0) / max(sqrt(1.0 - cu * cu), 1e-7), x0, x1);
+    float d = sqrt(xu * xu + z0 * z0);
+    float h0 = y0 / sqrt(d * d + y0 * y0), h1 = y1 / sqrt(d * d + y1 * y1);
+    float hv = h0 + u1 * (h1 - h0);
+    float yv = (hv * hv < 1.0 - 1e-6) ? hv * d / sqrt(1.0 - hv * hv) : y1;
+    return vector(xu, clamp(yv, y0, y1), z0);
+}
+
 // Whether the ray P + t dir (t > 0) reaches lamp L: distance, radiance arriving along it, the
 // solid-angle pdf lamp_sample gives that direction, and where the ray leaves the lamp again
 // (a sphere's far side: a ray started between the two would still hit it).
@@ -191,7 +237,15 @@ int lamp_hit(Lamp L, point Pp, vector dir, output float t, output color Le, outp
     if (L.kind == LAMP_ELLIPSE ? x * x + y * y > 0.25 : (abs(x) > 0.5 || abs(y) > 0.5))
         return 0;
     Le = area_radiance(L, dir, ng, area);
-    pdf = t * t / (cos_l * area);
+    if (L.kind == LAMP_RECT) {
+        float x0, y0, x1, y1, z0, b0, b1, k;
+        vector ez;
+        point corner = L.co - 0.5 * lu * au - 0.5 * lv * av;
+        float S = rect_solid_angle(Pp, corner, au, av, lu, lv, x0, y0, x1, y1, z0, ez, b0, b1, k);
+        pdf = (S > 1e-12) ? 1.0 / S : t * t / (cos_l * area);    // a vanishing sliver: by area
+    } else {
+        pdf = t * t / (cos_l * area);
+    }
     t_exit = t;
     return 1;
 }
@@ -267,13 +321,23 @@ int lamp_sample(Lamp L, point Pp, float u0, float u1, output vector dir, output 
     vector au, av, ng;
     float lu, lv, area;
     area_frame(L, au, av, lu, lv, ng, area);
-    float x = u0 - 0.5, y = u1 - 0.5;
-    if (L.kind == LAMP_ELLIPSE) {
+    vector to;
+    if (L.kind == LAMP_RECT) {
+        float x0, y0, x1, y1, z0, b0, b1, k;
+        vector ez;
+        point corner = L.co - 0.5 * lu * au - 0.5 * lv * av;
+        float S = rect_solid_angle(Pp, corner, au, av, lu, lv, x0, y0, x1, y1, z0, ez, b0, b1, k);
+        if (S > 1e-12) {
+            vector o = rect_solid_angle_offset(S, x0, y0, x1, y1, z0, b0, b1, k, u0, u1);
+            to = o[0] * au + o[1] * av + o[2] * ez;
+        } else {
+            to = L.co + (u0 - 0.5) * lu * au + (u1 - 0.5) * lv * av - Pp;
+        }
+    } else {
+        float x, y;
         disk_point(u0, u1, x, y);
-        x *= 0.5;
-        y *= 0.5;
+        to = L.co + 0.5 * x * lu * au + 0.5 * y * lv * av - Pp;
     }
-    vector to = L.co + x * lu * au + y * lv * av - Pp;
     dir = normalize(to);
     float t_exit;
     return lamp_hit(L, Pp, dir, dist, Le, pdf, t_exit);
