@@ -1,27 +1,27 @@
 """Baked conditional tables: an exact, table-speed sampler per material.
 
-Per incident bin, the table is an adaptive piecewise-constant density on the
-hemisphere: R rows in a = 1 - cos(theta_o) and, in each row, C columns in
-b = phi_o - phi_mirror + pi (the azimuth relative to the mirror plane of wi, so the
-specular lobe sits at b = pi and never straddles the seam); da db = d omega. Cell (i, j)
-holds mass m_ij, spread over it with a separable linear density: in local coordinates
-x, y in [0, 1], q(x, y) = (1 + alpha (x - 1/2)) (1 + beta (y - 1/2)), |alpha|, |beta| <= 2
-(the slopes capture the gradient of f·cos across the cell), so
+Per incident bin, the table is an adaptive piecewise density on the hemisphere: R rows in
+a = 1 - cos(theta_o) and, in each row, C columns in b = phi_o - phi_i (the azimuth relative
+to wi's plane; the mirror direction sits at b = pi, so the specular lobe never straddles
+the seam); da db = d omega. Cell (i, j) holds mass m_ij, spread over it with a separable
+exponential density: in local coordinates x, y in [0, 1],
+q(x, y) = e_alpha(x) e_beta(y), e_k(x) = k e^(k x) / (e^k - 1) (uniform at k = 0), |k| <= K_MAX,
+so that an exponential follows a lobe's flank across a cell where a linear slope cannot:
 
-    sample:  u1 -> row by the row CDF, u2 -> column by the row's CDF, the two remainders
-             -> x, y by the inverse linear CDFs (a stable quadratic root),
-    pdf:     m_ij q(x, y) / ((a_{i+1} - a_i)(b_{i,j+1} - b_{i,j})),
+    sample:  u0 -> row by the row CDF, u1 -> column by the row's CDF, the two remainders
+             -> x, y by the exponentials' inverse CDFs (exp_inverse_cdf),
+    pdf:     m_ij e_alpha(x) e_beta(y) / ((a_{i+1} - a_i)(b_{i,j+1} - b_{i,j})),
     invert:  find the cell (binary search), evaluate the CDFs,
 
-are exact and mutually consistent to float precision. The cells tile the whole
-hemisphere and every mass has a small floor, so no direction has pdf 0 and no sample is
-lost below the horizon.
+are exact and mutually consistent to float precision. The cells tile the whole hemisphere
+and every mass is positive, so no direction has pdf 0 and no sample is lost below the
+horizon.
 
-Edges are weighted quantiles of a stratified set of directions drawn from a source
-sampler (the trained flow, or the ideal tabulation): quantiles of the target mixed with
-a share of uniform density, so cells are small where f·cos is large and never huge in
-the tails. Masses are the target's exact share per cell, estimated with the weights
-target / source pdf: the correction toward the true f·cos, whatever the source's quality.
+How the cells are chosen and filled is tabulate.py's job: edges are quantiles of a
+stratified set of directions from a source sampler (the trained flow, or the ideal
+tabulation), anchored to the specular direction; masses, rates and RGB weights are
+integrated from the true f·cos per cell by refined quadrature, so the tables follow the
+material whatever the source's quality.
 
 Between incident bins edges and masses are interpolated linearly. Interpolated edges
 stay increasing (a convex combination of increasing lists), interpolated masses stay a
@@ -31,14 +31,14 @@ fading between two positions (a displacement interpolation).
 Anisotropic materials (`phi_bins`): bins over theta_i x phi_i, the phi_i bins increasing
 azimuths within one period P of the material's rotational symmetry (`phi_period`, 2 pi
 unless the material says otherwise; pi for elliptic microfacet lobes), wrapping around.
-Each bin is built at its own wi (b stays relative to phi_i's mirror plane) and the four
+Each bin is built at its own wi (b stays relative to phi_i's plane) and the four
 neighbouring bins are blended bilinearly: weights linear in cos(theta_i) times linear in
 phi_i, still a convex combination, so everything above holds. The C fast path serves
 isotropic tables only; anisotropic ones use the numpy code.
 
 Per cell the table also keeps the RGB estimator weight W = integral of f·cos over the
-cell / its share of the target; `eval` returns W·pdf/cos, the baked BSDF the Cycles OSL
-back end renders.
+cell / its share of the target; `eval` returns W·pdf/cos, the baked BSDF the Cycles back
+ends render (their weight f·cos / pdf is W exactly).
 """
 import numpy as np
 
@@ -129,8 +129,8 @@ class Tables:
         self.a_edges = np.asarray(a_edges, np.float32)     # (K, [P,] R+1)
         self.b_edges = np.asarray(b_edges, np.float32)     # (K, [P,] R, C+1)
         self.mass = np.asarray(mass, np.float32)           # (K, [P,] R, C)
-        self.alpha = np.asarray(alpha, np.float32)         # (K, [P,] R, C) slope along a
-        self.beta = np.asarray(beta, np.float32)           # (K, [P,] R, C) slope along b
+        self.alpha = np.asarray(alpha, np.float32)         # (K, [P,] R, C) exponential rate along a
+        self.beta = np.asarray(beta, np.float32)           # (K, [P,] R, C) exponential rate along b
         self.weights = np.asarray(weights, np.float32)     # (K, [P,] R, C, 3)
         self.meta = dict(meta or {})
         self.backend = backend      # "auto" (C when available, see _fast), "numpy", "c"

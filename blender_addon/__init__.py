@@ -6,7 +6,9 @@ scripts/build_extension.py) and a legacy add-on for Blender 3.4+ (bl_info below)
     prefs      the Python that trains                worker    subprocess jobs, progress, cancel
     operators  the panel's operators                 jobs      scan -> worker -> bind nodes
     panels     Shader Editor sidebar + Material tab  batch     blender --background / -c flowbsdf
-    node       the Learned BSDF node (issue 6)       validate  reference tracer vs Cycles
+    node       the Learned BSDF node: its back ends  validate  reference tracer vs Cycles
+    osl/       the OSL back end (tables, lamps, world) svm      the SVM back end (shader nodes)
+    lamps      the scene's lamps -> the OSL shader   world     the world's importance map
 """
 bl_info = {
     "name": "FlowBSDF",
@@ -21,26 +23,14 @@ bl_info = {
 _cli_handle = None
 
 
-def _node_module():
-    """The Learned BSDF node module (issue 6), or None while it is not there."""
-    try:
-        from . import node
-    except ImportError as e:
-        print(f"FlowBSDF: the Learned BSDF node is not available ({e})")
-        return None
-    return node
-
-
 def register():
     global _cli_handle
     import bpy
-    from . import operators, panels, prefs, props, validate
+    from . import node, operators, panels, prefs, props, validate
     props.register()
     for cls in prefs.classes + operators.classes + validate.classes + panels.classes:
         bpy.utils.register_class(cls)
-    node = _node_module()
-    if node is not None:
-        node.register()
+    node.register()
     if hasattr(bpy.utils, "register_cli_command"):          # Blender 4.2+: blender -c flowbsdf ...
         from . import batch
         _cli_handle = bpy.utils.register_cli_command("flowbsdf", batch.cli_command)
@@ -49,14 +39,12 @@ def register():
 def unregister():
     global _cli_handle
     import bpy
-    from . import operators, panels, prefs, props, validate, worker
+    from . import node, operators, panels, prefs, props, validate, worker
     worker.clear()
     if _cli_handle is not None:
         bpy.utils.unregister_cli_command(_cli_handle)
         _cli_handle = None
-    node = _node_module()
-    if node is not None:
-        node.unregister()
+    node.unregister()
     for cls in reversed(prefs.classes + operators.classes + validate.classes + panels.classes):
         bpy.utils.unregister_class(cls)
     props.unregister()
