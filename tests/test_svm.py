@@ -435,3 +435,166 @@ def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, capfd):
     overflow = _svm_furnace(svm, texture, 1, n=8, ballast=250)[0]
     out, err = capfd.readouterr()
     assert "out of SVM stack space" in out + err and np.all(overflow[sphere] == 0)
+
+
+# ------------------------------------------------------------------------------ the world
+
+def _world_map(folder, name="world.exr"):
+    """A small synthetic world map (bake/world_map.py) with a bright spot (a sun) and a black
+    region (below: never drawn, pdf 0), as tests/test_cycles.py's OSL probe; its CDF wraps
+    over two texture rows."""
+    from bake.world_map import WorldMap, write_world_texture
+    rng = np.random.default_rng(3)
+    img = rng.random((24, 48, 3)) ** 4
+    img[3, 40] = 300.0
+    img[20:, :] = 0.0
+    wm = WorldMap(img)
+    return wm, write_world_texture(folder / name, wm)
+
+
+def _render_probe(svm, build, inputs, folder, width=32):
+    """Render a probe graph build(tree, probe_path) on probe inputs (n, 4): its three thirds (n, 3)."""
+    import OpenEXR
+    n = len(inputs)
+    height = -(-n // width)
+    grid = np.concatenate([inputs, np.repeat(inputs[-1:], height * width - n, 0)]).astype(np.float32)
+    path = folder / "probe.exr"
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                 {"RGBA": grid.reshape(height, width, 4)}).write(str(path))
+    sc = cs.reset(3 * width, height, spp=1, osl=False, threads=1)
+    sc.cycles.filter_width = 0.01
+    cs.ortho_camera(sc)
+    cs.add_plane(sc, cs.material_with(lambda tree: build(tree, path)), size=20.0)
+    img = cs.render(sc)
+    return [img[:, k * width:(k + 1) * width].reshape(-1, 3)[:n] for k in range(3)]
+
+
+def test_svm_world_map_sample_is_numpy(svm, tmp_path):
+    """The graph's world-map sampling (direction, pdf) is bake.world_map.WorldMap's on a 40 x 40
+    grid of u, and its pdf graph reads the sampled pixel's density back."""
+    wm, path = _world_map(tmp_path)
+    wl = svm.world_layout(str(path))
+    assert (wl["W"], wl["H"], wl["Wt"]) == (48, 24, 1024) and wl["steps"] >= 1
+    n = 40
+    iy, ix = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    u = np.stack([(ix.ravel() + 0.5) / n, (iy.ravel() + 0.5) / n], 1)
+    d, pdf = wm.sample(u)
+    inputs = np.concatenate([u, np.zeros((len(u), 2))], 1)
+    shown, pdfs, _ = _render_probe(svm, lambda tree, probe: svm.build_world_probe(tree, path, probe), inputs, tmp_path)
+    assert np.abs(2.0 * shown - 1.0 - d).max() < 2e-4
+    np.testing.assert_allclose(pdfs[:, 0], pdf, rtol=1e-5)
+    np.testing.assert_allclose(pdfs[:, 1], pdf, rtol=1e-5)
+    assert pdf.min() > 0 and np.all(d[:, 2] > np.cos(np.pi * 20 / 24) - 1e-6)
+
+
+def _frame_np(n, reference):
+    """The graph's _frame: x from `reference` projected onto the plane of n, else a perpendicular."""
+    along = reference - reference @ n * n
+    if np.linalg.norm(along) <= 1e-7:
+        along = np.cross(n, [1.0, float(abs(n[0]) > 0.9), 0.0])
+    tx = along / np.linalg.norm(along)
+    return tx, np.cross(n, tx)
+
+
+def _cone_np(axis, omc, u0, u1):
+    """lamps.h cone_direction (float64)."""
+    tx = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    tx /= np.linalg.norm(tx)
+    ty = np.cross(axis, tx)
+    t = u0 * omc
+    s, phi = np.sqrt(t * (2.0 - t)), 2.0 * np.pi * u1
+    d = s[:, None] * (np.cos(phi)[:, None] * tx + np.sin(phi)[:, None] * ty) + (1.0 - t)[:, None] * axis
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _numpy_mixture(tab, wm, world, theta_i, phi_i, u):
+    """The portal direction's mixture (learned_bsdf.osl, build_svm_sampler with `world`) at a
+    shading point of normal z (also the geometric normal) and wi at (theta_i, phi_i), isotropic
+    tables, in float64: (direction, weight, q, technique, ok) per u. Each technique's own
+    sample uses its own density in q (a direction on a pixel or cone edge may round out of it)."""
+    c_world = world["WorldShare"] if wm is not None else 0.0
+    c_sun = world["SunShare"] if world["SunCos"] < 1.0 else 0.0
+    c_tables = 1.0 - c_world - c_sun
+    axis = np.asarray(world["SunDirection"], np.float64)
+    axis /= np.linalg.norm(axis)
+    omc = 1.0 - world["SunCos"]
+    cone = c_sun / (2.0 * np.pi * omc) if c_sun > 0 else 0.0
+    n = np.array([0.0, 0.0, 1.0])
+    wi = np.array([np.sin(theta_i) * np.cos(phi_i), np.sin(theta_i) * np.sin(phi_i), np.cos(theta_i)])
+    tx, ty = _frame_np(n, wi)
+    wi_local = np.array([wi @ tx, wi @ ty, wi @ n])
+    u0, u1 = u[:, 0], u[:, 1]
+    technique = np.where(u1 < c_sun, 2, np.where(u1 < c_sun + c_world, 1, 0))
+    d = np.zeros((len(u), 3))
+    own = np.zeros(len(u))
+    sun, drawn, rest = technique == 2, technique == 1, technique == 0
+    if sun.any():
+        d[sun], own[sun] = _cone_np(axis, omc, u0[sun], u1[sun] / c_sun), cone
+    if drawn.any():
+        d[drawn], p = wm.sample(np.stack([u0[drawn], (u1[drawn] - c_sun) / c_world], 1))
+        own[drawn] = c_world * p
+    if rest.any():
+        t1 = np.minimum((u1[rest] - c_sun - c_world) / c_tables, 1.0 - 2.0 ** -24)
+        wo, _ = tab.sample(np.tile(wi_local, (rest.sum(), 1)), np.stack([u0[rest], t1], 1))
+        d[rest] = wo[:, :1] * tx + wo[:, 1:2] * ty + wo[:, 2:] * n
+    wo = np.stack([d @ tx, d @ ty, d @ n], 1)
+    wis = np.tile(wi_local, (len(u), 1))
+    p_tables = tab.pdf(wis, wo)
+    fcos = tab.eval(wis, wo) * wo[:, 2:3]
+    q = c_tables * p_tables + own
+    if wm is not None:
+        q += np.where(drawn, 0.0, c_world * wm.pdf(d))
+    if c_sun > 0:
+        q += np.where(sun, 0.0, cone * (d @ axis >= world["SunCos"]))
+    ok = (wo[:, 2] > 0) & (d[:, 2] > 0)
+    return d, np.where(ok[:, None], fcos / q[:, None], 0.0), q, technique, ok
+
+
+def _on_pixel_edge(wm, d, within=1e-4):
+    """Directions within `within` pixels of a pixel edge of the world map."""
+    rows = np.arccos(np.clip(d[:, 2], -1.0, 1.0)) / np.pi * wm.H
+    cols = (0.5 - np.arctan2(d[:, 1], d[:, 0]) / (2.0 * np.pi)) % 1.0 * wm.W
+    return (np.abs(rows - np.round(rows)) < within) | (np.abs(cols - np.round(cols)) < within)
+
+
+@pytest.mark.parametrize("which", ["map and sun", "sun", "map"])
+def test_svm_mixture_is_numpy(svm, plastic, tmp_path, which):
+    """The mixture's direction, weight, pdf q and technique on u over (theta_i, phi_i) equal a
+    numpy re-implementation's (the tables', the world map's and the sun cone's numpy
+    references): the techniques picked by u1 (rescaled), each technique's direction, the
+    tables' pdf and f·cos at the world and sun directions, every technique's density in q.
+    The sun sits on the map's bright spot (so that some map and table samples fall in its
+    cone)."""
+    tab = open_tables(plastic)
+    tab.backend = "numpy"
+    wm, path = _world_map(tmp_path)
+    spot = np.radians(3.5 / 24 * 180.0), (0.5 - 40.5 / 48) * 2.0 * np.pi
+    world = {"World": str(path) if "map" in which else "", "WorldShare": 0.3 if "map" in which else 0.0,
+             "SunDirection": (np.sin(spot[0]) * np.cos(spot[1]), np.sin(spot[0]) * np.sin(spot[1]), np.cos(spot[0])),
+             "SunCos": np.cos(0.1) if "sun" in which else 1.0, "SunShare": 0.25 if "sun" in which else 0.0}
+    side = 12
+    grid = (np.arange(side) + 0.5) / side
+    u = np.concatenate([np.stack(np.meshgrid(grid, grid), -1).reshape(-1, 2), np.random.default_rng(2).random((60, 2))])
+    bounds = np.array([world["SunShare"], world["SunShare"] + world["WorldShare"]])
+    u = u[np.abs(u[:, 1:2] - bounds).min(1) > 1e-3].astype(np.float32).astype(np.float64)
+    angles = [(0.0, 0.0), (30.0, 40.0), (60.0, 200.0), (85.0, -100.0)]
+    inputs = np.concatenate([np.column_stack([u, np.full(len(u), np.cos(np.radians(t))), np.full(len(u), np.radians(p))])
+                             for t, p in angles]).astype(np.float32)
+    shown, weight, extra = _render_probe(
+        svm, lambda tree, probe: svm.build_svm_probe(tree, svm_export.ensure_svm_export(plastic), probe, world=world),
+        inputs, tmp_path)
+    x = inputs.astype(np.float64)
+    ref = [_numpy_mixture(tab, wm if "map" in which else None, world, np.arccos(x[i * len(u), 2]), x[i * len(u), 3], u)
+           for i in range(len(angles))]
+    d, ref_weight, q, technique, ok = (np.concatenate(r) for r in zip(*ref))
+    assert np.array_equal(extra[:, 1], technique) and np.array_equal(extra[:, 2], ok)
+    assert set(technique) == ({0, 1, 2} if which == "map and sun" else {0, 1 if which == "map" else 2})
+    assert ok.mean() > 0.5
+    assert np.abs(2.0 * shown - 1.0 - d).max() < 3e-4
+    # directions on a map pixel's edge may read either pixel's density (float32 vs float64)
+    edge = _on_pixel_edge(wm, d) if "map" in which else np.zeros(len(d), bool)
+    assert edge.mean() < 0.02
+    np.testing.assert_allclose(extra[~edge, 0], q[~edge], rtol=2e-3)
+    np.testing.assert_allclose(weight[~edge], ref_weight[~edge], rtol=2e-3, atol=1e-7)
+    if "sun" in which:      # some table or map directions fall in the sun's cone
+        assert np.sum((technique != 2) & (d @ np.asarray(world["SunDirection"]) >= world["SunCos"])) >= 3
