@@ -692,7 +692,11 @@ class _Mixture:
                           U1=g.math('DIVIDE', g.math('SUBTRACT', u1, self.c_sun), self.c_world))
             d, own = out["Direction"], g.math('MULTIPLY', self.c_world, out["Pdf"])
         wo = tuple(g.dot(d, axis) for axis in (at["tx"], at["ty"], at["n"]))
-        pdf, fcos = _inverse(g, sampler, at["cos_i"], at["phi_i"], wo)
+        # its own incident nodes (cos theta_i through a no-op unlike the other branches'): Cycles
+        # would merge identical ones into nodes run before the branches, their results held
+        # on the stack through every branch
+        cos_i = g.math('MAXIMUM', at["cos_i"], -2.0 if kind == "sun" else -1.0)
+        pdf, fcos = _inverse(g, sampler, cos_i, at["phi_i"], wo)
         q = g.math('MULTIPLY_ADD', self.c_tables, pdf, g.math('ADD', own, self.light_pdf(g, d, kind)))
         ok = _valid(g, at, wo[2], d)
         return closure({"direction": d, "weight": g.scale(fcos, g.math('DIVIDE', ok, q)), "q": q,
@@ -804,18 +808,22 @@ def _shading(g, sampler, tangent):
 
 
 def film_settings(scene):
-    """(raster width, raster height, 1 if camera rays may take u from their place in the pixel
-    else 0) of a scene: only Cycles' box filter places a pixel's samples uniformly in it (1 px
-    whatever its width setting; other filters spread them by their weight)."""
+    """(raster width, raster height, film) of a scene, film = 0 where camera rays must hash
+    their u, else 1 + the render's seed (mod 2^20): only Cycles' box filter places a pixel's
+    samples uniformly in it (1 px whatever its width setting; other filters spread them by
+    their weight), and the seed rotates a pixel's u per render (as learned_bsdf.osl's)."""
     r = scene.render
     box = scene.render.engine == 'CYCLES' and scene.cycles.pixel_filter_type == 'BOX'
+    cy = scene.cycles
+    seed = cy.seed + (scene.frame_current if getattr(cy, "use_animated_seed", False) else 0)
     return (r.resolution_x * r.resolution_percentage / 100.0, r.resolution_y * r.resolution_percentage / 100.0,
-            1.0 if box else 0.0)
+            1.0 + (int(seed) & 0xFFFFF) if box else 0.0)
 
 
 def set_film(tree, scene):
     """Write the scene's film_settings into the sampler graphs in `tree` (their "FlowBSDF SVM
-    film" nodes); call it when the scene's resolution or pixel filter changes."""
+    film" nodes); call it when the scene's resolution, pixel filter or seed (or, with an
+    animated seed, the frame) changes."""
     values = film_settings(scene)
     for node in tree.nodes:
         if node.name.startswith(FILM):
@@ -826,19 +834,20 @@ def set_film(tree, scene):
 
 def _film_u(g, light_path, hashed):
     """(u0, u1): on camera rays before any portal, the sample's place in its pixel (raster
-    position from the Window coordinate, Cranley-Patterson rotated by a hash of the pixel), when
-    the film node says so (set_film); else the hashed u0, u1. Cycles places a pixel's samples
-    by its stratified sequence, so a pixel's u are stratified too."""
+    position from the Window coordinate, Cranley-Patterson rotated by a hash of the pixel and
+    the seed), when the film node says so (set_film); else the hashed u0, u1. Cycles places a
+    pixel's samples by its stratified sequence, so a pixel's u are stratified too."""
     film = g.node("ShaderNodeCombineXYZ", name=FILM, label=FILM)
     for socket, value in zip(film.inputs, film_settings(bpy.context.scene)):
         socket.default_value = value
     raster = g.vmath('MULTIPLY', g.node("ShaderNodeTexCoord").outputs["Window"], film.outputs[0])
-    rotation = g.node("ShaderNodeTexWhiteNoise", noise_dimensions='3D')
+    rotation = g.node("ShaderNodeTexWhiteNoise", noise_dimensions='4D')
     g.set(rotation.inputs["Vector"], g.vmath('FLOOR', raster))
+    g.set(rotation.inputs["W"], g.dot(film.outputs[0], Z))
     u = g.vmath('FRACTION', g.vmath('ADD', g.vmath('FRACTION', raster), rotation.outputs["Color"]))
     first = g.math('MULTIPLY', light_path.outputs["Is Camera Ray"],
                    g.math('LESS_THAN', light_path.outputs["Portal Depth"], 0.5))
-    use = g.math('MULTIPLY', first, g.dot(film.outputs[0], Z))
+    use = g.math('MULTIPLY', first, g.math('GREATER_THAN', g.dot(film.outputs[0], Z), 0.5))
     return tuple(g.select(use, g.dot(u, axis), h) for axis, h in zip((X, Y), hashed))
 
 
