@@ -217,10 +217,6 @@ class _Sampler:
         self.rpt = 4 // self.lay["NB"]          # records per texel: record q at texel q // rpt, slot q % rpt
         self.offsets = {}
 
-    def copy(self):
-        """A sampler on the same texture with nodes of its own (another branch of a mixture)."""
-        return _Sampler(self.g, self.path, self.lay)
-
     def fetch(self, uv):
         tex = self.g.node("ShaderNodeTexImage", image=self.image, interpolation='Closest', extension='EXTEND')
         self.g.set(tex.inputs["Vector"], uv)
@@ -589,6 +585,27 @@ def _world_pdf_group(wl, image):
 _WORLD_GROUPS = {"sample": _world_sample_group, "pdf": _world_pdf_group}
 
 
+def _tables_pdf_group(sampler):
+    """Group "tables pdf" of a sampler's texture: _inverse's pdf and f·cos ("F cos") at the
+    local direction (X, Y, Z) for Cos I (clamped to >= 0) and, anisotropic tables, Phi I. (A
+    group: Blender's node trees slow down with their node count, a mixture's branches
+    would double the tree's.)"""
+    phi = [("Phi I", "Float")] if sampler.lay["P"] > 1 else []
+    done, tree = _group(f"{GROUP_PREFIX}tables pdf: {sampler.image.name}",
+                        [("Cos I", "Float")] + phi + [("X", "Float"), ("Y", "Float"), ("Z", "Float")],
+                        [("Pdf", "Float"), ("F cos", "Vector")])
+    if done:
+        return done
+    g = _Graph(tree)
+    inp = g.node("NodeGroupInput").outputs
+    pdf, fcos = _inverse(g, _Sampler(g, sampler.path, sampler.lay), inp["Cos I"], inp["Phi I"] if phi else None,
+                         (inp["X"], inp["Y"], inp["Z"]))
+    out = g.node("NodeGroupOutput")
+    g.set(out.inputs["Pdf"], pdf)
+    g.set(out.inputs["F cos"], fcos)
+    return tree
+
+
 class _Mixture:
     """The portal direction's mixture (module docstring) for the world inputs `world`
     (blender_addon/world.shader_inputs): which techniques the graph has, its value nodes, and
@@ -664,7 +681,7 @@ class _Mixture:
         self.values(g)
         u1 = at["u1"]
         tables = self.tables_branch(g, sampler, at, closure)
-        light = [self.light_branch(g, sampler.copy(), at, kind, closure)
+        light = [self.light_branch(g, sampler, at, kind, closure)
                  for kind, on in (("world", self.map is not None), ("sun", self.sun)) if on]
         if len(light) == 2:
             light = [_mix_shader(g, g.math('LESS_THAN', u1, self.c_sun), *light)]
@@ -695,8 +712,12 @@ class _Mixture:
         # its own incident nodes (cos theta_i through a no-op unlike the other branches'): Cycles
         # would merge identical ones into nodes run before the branches, their results held
         # on the stack through every branch
-        cos_i = g.math('MAXIMUM', at["cos_i"], -2.0 if kind == "sun" else -1.0)
-        pdf, fcos = _inverse(g, sampler, cos_i, at["phi_i"], wo)
+        inputs = {"Cos I": g.math('MAXIMUM', at["cos_i"], -2.0 if kind == "sun" else -1.0), "X": wo[0], "Y": wo[1],
+                  "Z": wo[2]}
+        if at["phi_i"] is not None:
+            inputs["Phi I"] = at["phi_i"]
+        out = g.group(_tables_pdf_group(sampler), **inputs)
+        pdf, fcos = out["Pdf"], out["F cos"]
         q = g.math('MULTIPLY_ADD', self.c_tables, pdf, g.math('ADD', own, self.light_pdf(g, d, kind)))
         ok = _valid(g, at, wo[2], d)
         return closure({"direction": d, "weight": g.scale(fcos, g.math('DIVIDE', ok, q)), "q": q,
