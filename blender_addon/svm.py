@@ -17,9 +17,14 @@ Per shading point:
   (Incoming, r + Portal Depth + 64 Ray Depth) -> its colour (Cycles gives a node graph no
   sampler state: every path vertex hashes its own numbers). On camera rays before any
   portal, with Cycles' box pixel filter (`film_settings`, `set_film`), u0, u1 come from
-  the sample's place in its pixel instead, rotated per pixel by a hash: Cycles places a
-  pixel's samples by its stratified sequence, so their u are stratified too (much less
-  noise where the camera sees the material directly; unbiased: each u stays uniform).
+  the sample's place in its pixel instead, rotated by a hash of the pixel and the render's
+  seed: Cycles places a pixel's samples by its stratified sequence, so their u are
+  stratified too (much less noise where the camera sees the material directly). Each u
+  is uniform, so a pixel is unbiased over renders; but its u are tied to where its samples
+  fall in it, so where the shading varies within a pixel (a silhouette, a sun's
+  terminator) one render's pixel converges, as its samples grow, to a value off by an
+  error that changes with the seed, not with the sample count (measured on a sky+sun
+  sphere, 24 px across, 1024 spp: 8 % rms per pixel, up to 67 % on the silhouette).
 - theta_i and phi_i bins through the texture's bin guides, the corner block's header
   gives the blend weights; the row search on u0 and the column search on u1 (v = u1 x the
   row's mass) run a fixed number of branchless steps from their guide's bracket; the
@@ -30,26 +35,54 @@ Per shading point:
   (the path ends). Cycles drops a closure whose mean weight is below 1e-5 (bsdf_ray_portal
   _setup): a weight below 2e-5 is Russian-rouletted up to 2e-5 with u2 instead (unbiased).
 
+The world (`build_svm_sampler(..., world=...)`, the inputs blender_addon/world.py gives the
+OSL shader): the portal direction is drawn from a mixture, as learned_bsdf.osl's. With
+probability c_sun = SunShare (when SunCos < 1) uniform in the cone of the sky's sun (axis
+SunDirection, cos of its half angle SunCos; lamps.h cone_direction), with c_world =
+WorldShare from the world's importance map, else (c_tables) from the tables. The map
+(bake/world_map.py's texture, WorldMap the numpy reference): the pixel by a branchless
+binary search of the flattened CDF from its guide's bracket (the step count fixed when the
+graph is built, from the widest bracket), the direction uniform in the pixel's solid
+angle; its pdf at a direction read back from the pixel's density. The technique is picked
+by u1, rescaled within it (film-stratified u stay stratified per technique); u0 passes
+through. Weight = baked f·cos / q, q = c_tables p_tables + c_world p_world + c_sun p_cone:
+a table sample's W and pdf are the sampler's own, at a map or sun direction the tables'
+inverse gives f·cos and p_tables; a technique's own sample counts its own density (the
+others' are read at the direction: a direction on a pixel's or the cone's edge may round
+out of its own). Zero below the shading or the geometric surface (the path ends; the
+portal ray finds the true world where it escapes: the map only decides where samples go).
+Each technique is a branch ending in its own Ray Portal, chosen by Mix Shaders whose
+factor is exactly 0 or 1: Cycles runs only the chosen branch's nodes (svm.cpp
+generate_multi_closure jumps over the other). The shares and the sun are values of two
+named nodes ("FlowBSDF SVM world": WorldShare, SunShare, SunCos; "FlowBSDF SVM sun": the
+direction), the map's numbers constants of its node groups (named after its image):
+`update_world` changes both without a rebuild, unless the graph lacks a technique the new
+inputs use. Without a map or a sun the graph is the tables' alone, as above.
+
 Cycles compiles the graph into SVM instructions in node creation order wherever that
 order is topological (svm.cpp generate_svm_nodes sweeps the nodes by id and emits every
 node whose inputs are done), and frees a value's stack slots after its last user. The
 builder creates every node just before its first use, so few values are alive at once:
 the stack (255 floats; past it Cycles prints "out of SVM stack space" and renders the
-material black) holds the graph with wide margin (tests/test_svm.py measures the margin
-with Cycles' own message). Channels are read with a dot product against a vector, never a
-Separate node (its unlinked outputs keep stack slots for the whole shader).
+material black) holds the graph with a wide margin (tests/test_svm.py measures it with
+Cycles' own message: the anisotropic tables' graph needs ~80 floats, with the world
+mixture ~90). Nodes that branches would share are kept apart (Cycles merges identical
+nodes and runs shared ones before the branches, holding their results through all).
+Channels are read with a dot product against a vector, never a Separate node (its unlinked
+outputs keep stack slots for the whole shader).
 
 `tables_pdf_graph` adds the sampler's inverse (Tables._locate): at a given direction, the
 pdf and the baked f·cos, from branchless searches of the blended a edges (the row) and b
 edges (the column) and the cell's exponential densities: what one-sample MIS with another
 sampling strategy (e.g. the world map) needs.
 
-`build_svm_probe` builds the sampler (or its inverse) on inputs read from a probe image
-(per pixel u0, u1, cos theta_i, phi_i) and returns an Emission that encodes wo (0.5 +
-0.5 wo), the weight and the pdf side by side: for tests against numpy.
+`build_svm_probe` builds the sampler (or its inverse, or the world mixture) on inputs read
+from a probe image (per pixel u0, u1, cos theta_i, phi_i) and returns an Emission that
+encodes wo (0.5 + 0.5 wo), the weight and the pdf side by side, `build_world_probe` the
+map's sampling and pdf: for tests against numpy.
 
-API: build_svm_sampler, sample_graph, tables_pdf_graph, build_svm_probe, graph_counts,
-film_settings, set_film.
+API: build_svm_sampler, update_world, world_layout, sample_graph, tables_pdf_graph,
+build_svm_probe, build_world_probe, graph_counts, film_settings, set_film.
 """
 import math
 import os
@@ -561,7 +594,8 @@ def _world_sample_group(wl, image):
         t = g.math('DIVIDE', g.math('SUBTRACT', u0, c0), g.math('SUBTRACT', c1, c0), clamp=True)
         phi = g.math('MULTIPLY_ADD', g.math('ADD', col, t), -2.0 * math.pi / w, math.pi)
         s = g.math('SQRT', g.math('MAXIMUM', g.math('SUBTRACT', 1.0, g.math('MULTIPLY', z, z)), 0.0))
-        direction = g.combine(g.math('MULTIPLY', s, g.math('COSINE', phi)), g.math('MULTIPLY', s, g.math('SINE', phi)), z)
+        direction = g.combine(g.math('MULTIPLY', s, g.math('COSINE', phi)), g.math('MULTIPLY', s, g.math('SINE', phi)),
+                              z)
         return {"Direction": direction, "Pdf": g.dot(_world_texel(g, wl, image, col, row, wl["pdf"]), X)}
     return _world_group("sample", wl, image, [("U0", "Float"), ("U1", "Float")],
                         [("Direction", "Vector"), ("Pdf", "Float")], build)
@@ -993,8 +1027,8 @@ def build_svm_probe(tree, texture_path, probe_path, inverse=False, location=(0.0
     phi_i = alpha if sampler.lay["P"] > 1 else None
     if world is not None:
         sin_i = g.math('SQRT', g.math('SUBTRACT', 1.0, g.math('MULTIPLY', cos_i, cos_i)))
-        wi = g.combine(g.math('MULTIPLY', sin_i, g.math('COSINE', alpha)), g.math('MULTIPLY', sin_i, g.math('SINE', alpha)),
-                       cos_i)
+        wi = g.combine(g.math('MULTIPLY', sin_i, g.math('COSINE', alpha)),
+                       g.math('MULTIPLY', sin_i, g.math('SINE', alpha)), cos_i)
         tx, ty = _frame(g, Z, wi if phi_i is None else TANGENT)
         if phi_i is not None:
             phi_i = g.math('ARCTAN2', g.dot(wi, ty), g.dot(wi, tx))
