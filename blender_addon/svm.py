@@ -650,7 +650,7 @@ class _Mixture:
         self.inputs = world
         self.path = str(world.get("World") or "")
         self.map = world_layout(self.path) if world.get("WorldShare", 0.0) > 0.0 else None
-        self.sun = world.get("SunShare", 0.0) > 0.0 and world.get("SunCos", 1.0) < 1.0
+        self.sun = bool(world.get("SunShare", 0.0) > 0.0 and world.get("SunCos", 1.0) < 1.0)
 
     def __bool__(self):
         return self.map is not None or self.sun

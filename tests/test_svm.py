@@ -604,21 +604,20 @@ def _on_pixel_edge(wm, d, within=1e-4):
     return (np.abs(rows - np.round(rows)) < within) | (np.abs(cols - np.round(cols)) < within)
 
 
-@pytest.mark.parametrize("which", ["map and sun", "sun", "map"])
-def test_svm_mixture_is_numpy(svm, plastic, tmp_path, which):
-    """The mixture's direction, weight, pdf q and technique on u over (theta_i, phi_i) equal a
-    numpy re-implementation's (the tables', the world map's and the sun cone's numpy
-    references): the techniques picked by u1 (rescaled), each technique's direction, the
-    tables' pdf and f·cos at the world and sun directions, every technique's density in q.
-    The sun sits on the map's bright spot (so that some map and table samples fall in its
-    cone)."""
-    tab = open_tables(plastic)
+def _sun_world(path, which, spot=(3.5 / 24 * np.pi, (0.5 - 40.5 / 48) * 2.0 * np.pi), shares=(0.3, 0.25),
+               angle=0.1):
+    """World inputs with a map (`path`) and/or a sun (`which`), the sun at (theta, phi) `spot`
+    (by default on _world_map's bright spot: some map and table samples fall in its cone)."""
+    return {"World": str(path) if "map" in which else "", "WorldShare": shares[0] if "map" in which else 0.0,
+            "SunDirection": (np.sin(spot[0]) * np.cos(spot[1]), np.sin(spot[0]) * np.sin(spot[1]), np.cos(spot[0])),
+            "SunCos": np.cos(angle) if "sun" in which else 1.0, "SunShare": shares[1] if "sun" in which else 0.0}
+
+
+def _assert_mixture_is_numpy(svm, tables_path, folder, world, wm, build):
+    """The probe graph build(tree, texture, probe) on u over (theta_i, phi_i) gives the
+    direction, weight, q and technique of _numpy_mixture for `world` (its map `wm` or None)."""
+    tab = open_tables(tables_path)
     tab.backend = "numpy"
-    wm, path = _world_map(tmp_path)
-    spot = np.radians(3.5 / 24 * 180.0), (0.5 - 40.5 / 48) * 2.0 * np.pi
-    world = {"World": str(path) if "map" in which else "", "WorldShare": 0.3 if "map" in which else 0.0,
-             "SunDirection": (np.sin(spot[0]) * np.cos(spot[1]), np.sin(spot[0]) * np.sin(spot[1]), np.cos(spot[0])),
-             "SunCos": np.cos(0.1) if "sun" in which else 1.0, "SunShare": 0.25 if "sun" in which else 0.0}
     side = 12
     grid = (np.arange(side) + 0.5) / side
     u = np.concatenate([np.stack(np.meshgrid(grid, grid), -1).reshape(-1, 2), np.random.default_rng(2).random((60, 2))])
@@ -627,24 +626,78 @@ def test_svm_mixture_is_numpy(svm, plastic, tmp_path, which):
     angles = [(0.0, 0.0), (30.0, 40.0), (60.0, 200.0), (85.0, -100.0)]
     inputs = np.concatenate([np.column_stack([u, np.full(len(u), np.cos(np.radians(t))),
                                               np.full(len(u), np.radians(p))]) for t, p in angles]).astype(np.float32)
-    shown, weight, extra = _render_probe(
-        svm, lambda tree, probe: svm.build_svm_probe(tree, svm_export.ensure_svm_export(plastic), probe, world=world),
-        inputs, tmp_path)
+    texture = svm_export.ensure_svm_export(tables_path)
+    shown, weight, extra = _render_probe(svm, lambda tree, probe: build(tree, texture, probe), inputs, folder)
     x = inputs.astype(np.float64)
-    ref = [_numpy_mixture(tab, wm if "map" in which else None, world, np.arccos(x[i * len(u), 2]), x[i * len(u), 3], u)
-           for i in range(len(angles))]
+    ref = [_numpy_mixture(tab, wm, world, np.arccos(x[i * len(u), 2]), x[i * len(u), 3], u) for i in range(len(angles))]
     d, ref_weight, q, technique, ok = (np.concatenate(r) for r in zip(*ref))
     assert np.array_equal(extra[:, 1], technique) and np.array_equal(extra[:, 2], ok)
-    assert set(technique) == ({0, 1, 2} if which == "map and sun" else {0, 1 if which == "map" else 2})
+    techniques = {0} | ({1} if wm is not None else set()) | ({2} if world["SunShare"] > 0 else set())
+    assert set(technique) == techniques
     assert ok.mean() > 0.5
     assert np.abs(2.0 * shown - 1.0 - d).max() < 3e-4
     # directions on a map pixel's edge may read either pixel's density (float32 vs float64)
-    edge = _on_pixel_edge(wm, d) if "map" in which else np.zeros(len(d), bool)
+    edge = _on_pixel_edge(wm, d) if wm is not None else np.zeros(len(d), bool)
     assert edge.mean() < 0.02
     np.testing.assert_allclose(extra[~edge, 0], q[~edge], rtol=2e-3)
     np.testing.assert_allclose(weight[~edge], ref_weight[~edge], rtol=2e-3, atol=1e-7)
+    return d, technique
+
+
+@pytest.mark.parametrize("which", ["map and sun", "sun", "map"])
+def test_svm_mixture_is_numpy(svm, plastic, tmp_path, which):
+    """The mixture's direction, weight, pdf q and technique on u over (theta_i, phi_i) equal a
+    numpy re-implementation's (the tables', the world map's and the sun cone's numpy
+    references): the techniques picked by u1 (rescaled), each technique's direction, the
+    tables' pdf and f·cos at the world and sun directions, every technique's density in q.
+    The sun sits on the map's bright spot (so that some map and table samples fall in its
+    cone)."""
+    wm, path = _world_map(tmp_path)
+    world = _sun_world(path, which)
+    d, technique = _assert_mixture_is_numpy(
+        svm, plastic, tmp_path, world, wm if "map" in which else None,
+        lambda tree, texture, probe: svm.build_svm_probe(tree, texture, probe, world=world))
     if "sun" in which:      # some table or map directions fall in the sun's cone
         assert np.sum((technique != 2) & (d @ np.asarray(world["SunDirection"]) >= world["SunCos"])) >= 3
+
+
+def test_svm_update_world(svm, plastic, tmp_path):
+    """update_world hands a graph new shares, a new sun and a new map (its node groups swapped)
+    without a rebuild: the graph then samples the new mixture (probe vs numpy). It asks for a
+    rebuild (False) where the graph lacks a technique the new inputs use, and a world's
+    values never reach a graph built without one."""
+    import bpy
+    wm, path = _world_map(tmp_path)
+    rng = np.random.default_rng(5)
+    img = rng.random((24, 48, 3)) ** 2
+    img[8, 10] = 500.0
+    from bake.world_map import WorldMap, write_world_texture
+    wm2 = WorldMap(img)
+    path2 = write_world_texture(tmp_path / "world2.exr", wm2)
+    before = _sun_world(path, "map and sun")
+    after = _sun_world(path2, "map and sun", spot=(np.radians(50.0), np.radians(120.0)), shares=(0.2, 0.35),
+                       angle=0.2)
+
+    def build(tree, texture, probe):
+        out = svm.build_svm_probe(tree, texture, probe, world=before)
+        assert svm.update_world(tree, after)
+        groups = {n.node_tree.name for n in tree.nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree}
+        assert any(name.endswith(": world2.exr") for name in groups)
+        assert not any(name.endswith(": world.exr") for name in groups)
+        return out
+    _assert_mixture_is_numpy(svm, plastic, tmp_path, after, wm2, build)
+
+    texture = svm_export.ensure_svm_export(plastic)
+    sun_only = bpy.data.node_groups.new("sun only", "ShaderNodeTree")
+    svm.build_svm_sampler(sun_only, texture, world=_sun_world(path, "sun"))
+    assert not svm.update_world(sun_only, after)                    # no map branch
+    assert svm.update_world(sun_only, _sun_world(path2, "sun", shares=(0.0, 0.4)))
+    node = sun_only.nodes[svm.WORLD]
+    assert tuple(node.inputs[i].default_value for i in range(3)) == pytest.approx((0.0, 0.4, np.cos(0.1)))
+    alone = bpy.data.node_groups.new("alone", "ShaderNodeTree")
+    svm.build_svm_sampler(alone, texture, world=_sun_world(path, "neither"))
+    assert not any(n.name.startswith((svm.WORLD, svm.SUN)) for n in alone.nodes)
+    assert svm.update_world(alone, _sun_world(path, "neither")) and not svm.update_world(alone, after)
 
 
 @pytest.fixture(scope="module")
