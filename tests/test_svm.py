@@ -305,6 +305,7 @@ def _keep_alive(tree, count, build):
     of the graph runs. (Consumed by the portal alone, they would be freed as soon as Cycles
     runs their sum: it emits every node whose inputs are ready, so their sum, made last, may
     run before the graph's later nodes.)"""
+    import bpy
     if not count:
         return build()
     nodes, links = tree.nodes, tree.links
@@ -314,7 +315,7 @@ def _keep_alive(tree, count, build):
         new = nodes.new(kind)
         new.operation = operation
         for socket, value in zip(new.inputs, inputs):
-            if isinstance(value, bpy_types().NodeSocket):
+            if isinstance(value, bpy.types.NodeSocket):
                 links.new(value, socket)
             else:
                 socket.default_value = value
@@ -345,11 +346,6 @@ def _keep_alive(tree, count, build):
     links.new(out, both.inputs[0])
     links.new(emission.outputs[0], both.inputs[1])
     return both.outputs[0]
-
-
-def bpy_types():
-    import bpy
-    return bpy.types
 
 
 def test_svm_furnace_gives_the_baked_albedo(svm, plastic):
