@@ -777,11 +777,11 @@ def test_svm_world_mixture_is_unbiased_under_sky_and_sun(svm, lambert, tmp_path)
 def test_svm_world_mixture_cuts_the_tables_noise(svm, lambert, tmp_path):
     """Under a sky whose sun is 0.1 rad wide (so that the tables alone find it often enough for
     their variance to be measured: ~1e-3 per sample), the mixture's per-pixel variance is far
-    below the tables' alone (measured ratio ~5e-4), both estimating the same image."""
-    n = 16
+    below the tables' alone (measured ratio ~6e-4), both estimating the same image."""
+    n = 12
     sc, sphere, materials = _sky_sphere(svm, lambert, tmp_path, n, sun_size=0.1)
-    mixture = _sky_renders(svm, sc, sphere, materials["mixture"])
-    tables = _sky_renders(svm, sc, sphere, materials["tables"])
+    mixture = _sky_renders(svm, sc, sphere, materials["mixture"], seeds=4)
+    tables = _sky_renders(svm, sc, sphere, materials["tables"], seeds=4)
     _, hit = cs.sphere_view(n, n, scale=2.2)
     ratio = mixture.var(0, ddof=1)[hit].mean() / tables.var(0, ddof=1)[hit].mean()
     assert ratio < 0.01, ratio
