@@ -20,9 +20,9 @@ Python and to compile them (an 8 x 8 px, 1 spp render).
 box pixel filter (the SVM's film-stratified u), 24 x 24 px; the reference a Diffuse BSDF 0.8
 render at --ref-spp; each method ("svm world", "svm" the tables alone, "diffuse") at the
 spp that costs what the Diffuse's --spp costs (from per-sample CPU costs measured at 64 and
-256 spp), over --seeds seeds: the MSE over the sphere's pixels against the reference (and
-its standard error), and the per-pixel variance over the seeds. The tables are a learned
-Lambertian (albedo 0.8) when TABLES is "lambert".
+512 spp, the fastest of 3), over --seeds seeds: the MSE over the sphere's pixels against
+the reference (and its standard error), and the per-pixel variance over the seeds. The
+tables are a learned Lambertian (albedo 0.8) when TABLES is "lambert".
 
     .venv/bin/python scripts/svm_bench.py TABLES.exr [--spp 512] [--size 48] [--repeats 3] [--sky]
     .venv/bin/python scripts/svm_bench.py lambert --mse [--spp 256] [--ref-spp 8192] [--seeds 8]
@@ -166,9 +166,9 @@ def _mse(args, tables, world):
           f"sphere mean (red, as below) {reference[hit][:, 0].mean():.4f}")
     cost = {}
     for name in methods:
-        t = {spp: min(_render(*materials[name], size, spp, sky=True, box=True)[0] for _ in range(2))
-             for spp in (64, 256)}
-        cost[name] = (t[256] - t[64]) / 192
+        t = {spp: min(_render(*materials[name], size, spp, sky=True, box=True)[0] for _ in range(3))
+             for spp in (64, 512)}
+        cost[name] = (t[512] - t[64]) / 448
     print("CPU s per spp (24 x 24 px): " + ", ".join(f"{name} {cost[name] * 1e3:.2f} ms" for name in methods))
     for name in methods:
         spp = max(1, round(args.spp * cost["diffuse"] / cost[name]))
