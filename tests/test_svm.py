@@ -693,6 +693,9 @@ def test_svm_update_world(svm, plastic, tmp_path):
     alone = bpy.data.node_groups.new("alone", "ShaderNodeTree")
     svm.build_svm_sampler(alone, texture, world=_sun_world(path, "neither"))
     assert not any(n.name.startswith((svm.WORLD, svm.SUN)) for n in alone.nodes)
+    plain = bpy.data.node_groups.new("plain", "ShaderNodeTree")
+    svm.build_svm_sampler(plain, texture)
+    assert svm.graph_counts(alone) == svm.graph_counts(plain)      # shares 0: the tables' graph, no cost
     assert svm.update_world(alone, _sun_world(path, "neither")) and not svm.update_world(alone, after)
 
 
