@@ -17,9 +17,14 @@ Per shading point:
   (Incoming, r + Portal Depth + 64 Ray Depth) -> its colour (Cycles gives a node graph no
   sampler state: every path vertex hashes its own numbers). On camera rays before any
   portal, with Cycles' box pixel filter (`film_settings`, `set_film`), u0, u1 come from
-  the sample's place in its pixel instead, rotated per pixel by a hash: Cycles places a
-  pixel's samples by its stratified sequence, so their u are stratified too (much less
-  noise where the camera sees the material directly; unbiased: each u stays uniform).
+  the sample's place in its pixel instead, rotated by a hash of the pixel and the render's
+  seed: Cycles places a pixel's samples by its stratified sequence, so their u are
+  stratified too (much less noise where the camera sees the material directly). Each u
+  is uniform, so a pixel is unbiased over renders; but its u are tied to where its samples
+  fall in it, so where the shading varies within a pixel (a silhouette, a sun's
+  terminator) one render's pixel converges, as its samples grow, to a value off by an
+  error that changes with the seed, not with the sample count (measured on a sky+sun
+  sphere, 24 px across, 1024 spp: 8 % rms per pixel, up to 67 % on the silhouette).
 - theta_i and phi_i bins through the texture's bin guides, the corner block's header
   gives the blend weights; the row search on u0 and the column search on u1 (v = u1 x the
   row's mass) run a fixed number of branchless steps from their guide's bracket; the
@@ -30,28 +35,57 @@ Per shading point:
   (the path ends). Cycles drops a closure whose mean weight is below 1e-5 (bsdf_ray_portal
   _setup): a weight below 2e-5 is Russian-rouletted up to 2e-5 with u2 instead (unbiased).
 
+The world (`build_svm_sampler(..., world=...)`, the inputs blender_addon/world.py gives the
+OSL shader): the portal direction is drawn from a mixture, as learned_bsdf.osl's. With
+probability c_sun = SunShare (when SunCos < 1) uniform in the cone of the sky's sun (axis
+SunDirection, cos of its half angle SunCos; lamps.h cone_direction), with c_world =
+WorldShare from the world's importance map, else (c_tables) from the tables. The map
+(bake/world_map.py's texture, WorldMap the numpy reference): the pixel by a branchless
+binary search of the flattened CDF from its guide's bracket (the step count fixed when the
+graph is built, from the widest bracket), the direction uniform in the pixel's solid
+angle; its pdf at a direction read back from the pixel's density. The technique is picked
+by u1, rescaled within it (film-stratified u stay stratified per technique); u0 passes
+through. Weight = baked f·cos / q, q = c_tables p_tables + c_world p_world + c_sun p_cone:
+a table sample's W and pdf are the sampler's own, at a map or sun direction the tables'
+inverse gives f·cos and p_tables; a technique's own sample counts its own density (the
+others' are read at the direction: a direction on a pixel's or the cone's edge may round
+out of its own). Zero below the shading or the geometric surface (the path ends; the
+portal ray finds the true world where it escapes: the map only decides where samples go).
+Each technique is a branch ending in its own Ray Portal, chosen by Mix Shaders whose
+factor is exactly 0 or 1: Cycles runs only the chosen branch's nodes (svm.cpp
+generate_multi_closure jumps over the other). The shares and the sun are values of two
+named nodes ("FlowBSDF SVM world": WorldShare, SunShare, SunCos; "FlowBSDF SVM sun": the
+direction), the map's numbers constants of its node groups (named after its image):
+`update_world` changes both without a rebuild, unless the graph lacks a technique the new
+inputs use. Without a map or a sun the graph is the tables' alone, as above.
+
 Cycles compiles the graph into SVM instructions in node creation order wherever that
 order is topological (svm.cpp generate_svm_nodes sweeps the nodes by id and emits every
 node whose inputs are done), and frees a value's stack slots after its last user. The
 builder creates every node just before its first use, so few values are alive at once:
 the stack (255 floats; past it Cycles prints "out of SVM stack space" and renders the
-material black) holds the graph with wide margin (tests/test_svm.py measures the margin
-with Cycles' own message). Channels are read with a dot product against a vector, never a
-Separate node (its unlinked outputs keep stack slots for the whole shader).
+material black) holds the graph with a wide margin (tests/test_svm.py measures it with
+Cycles' own message: the anisotropic tables' graph needs ~80 floats, with the world
+mixture ~90). Nodes that branches would share are kept apart (Cycles merges identical
+nodes and runs shared ones before the branches, holding their results through all).
+Channels are read with a dot product against a vector, never a Separate node (its unlinked
+outputs keep stack slots for the whole shader).
 
 `tables_pdf_graph` adds the sampler's inverse (Tables._locate): at a given direction, the
 pdf and the baked f·cos, from branchless searches of the blended a edges (the row) and b
 edges (the column) and the cell's exponential densities: what one-sample MIS with another
 sampling strategy (e.g. the world map) needs.
 
-`build_svm_probe` builds the sampler (or its inverse) on inputs read from a probe image
-(per pixel u0, u1, cos theta_i, phi_i) and returns an Emission that encodes wo (0.5 +
-0.5 wo), the weight and the pdf side by side: for tests against numpy.
+`build_svm_probe` builds the sampler (or its inverse, or the world mixture) on inputs read
+from a probe image (per pixel u0, u1, cos theta_i, phi_i) and returns an Emission that
+encodes wo (0.5 + 0.5 wo), the weight and the pdf side by side, `build_world_probe` the
+map's sampling and pdf: for tests against numpy.
 
-API: build_svm_sampler, sample_graph, tables_pdf_graph, build_svm_probe, graph_counts,
-film_settings, set_film.
+API: build_svm_sampler, update_world, world_layout, sample_graph, tables_pdf_graph,
+build_svm_probe, build_world_probe, graph_counts, film_settings, set_film.
 """
 import math
+import os
 
 import bpy
 
@@ -61,6 +95,8 @@ TANGENT = (1.0, 0.0, 0.0)
 GRAPH_VERSION = 1       # in the node groups' names: a graph built by other code gets new groups
 GROUP_PREFIX = f"FlowBSDF SVM{GRAPH_VERSION} "
 FILM = "FlowBSDF SVM film"      # a Combine XYZ node per sampler: film_settings
+WORLD = "FlowBSDF SVM world"    # a Combine XYZ node per mixture: (WorldShare, SunShare, SunCos)
+SUN = "FlowBSDF SVM sun"        # a Combine XYZ node per mixture with a sun: SunDirection
 X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
 
 
@@ -205,9 +241,9 @@ class _Sampler:
     the bin lookup and blend weights (once per graph), then `sample` and `locate` add the
     sampler and its inverse (the pdf at a direction)."""
 
-    def __init__(self, g, texture_path):
-        self.g = g
-        self.lay = _svm_export().read_layout(texture_path)
+    def __init__(self, g, texture_path, lay=None):
+        self.g, self.path = g, texture_path
+        self.lay = lay or _svm_export().read_layout(texture_path)
         self.image = _image(texture_path)
         self.du = 1.0 / self.lay["width"]
         self.dv = 1.0 / self.lay["height"]
@@ -437,6 +473,354 @@ def _exp_density(g, x, k, ex=None):
     return g.select(_small(g, k), series, exact)
 
 
+# ------------------------------------------------------------------------------ the world
+
+def _world_map_module():
+    import importlib
+    from . import deps
+    return importlib.import_module(f"{deps.bake.__name__}.world_map")
+
+
+_world_layouts = {}
+
+
+def world_layout(path):
+    """The numbers the graph needs of a world importance map (bake/world_map.py's texture): W,
+    H (map pixels), Wt, Ht (texture texels), G (guides), cdf, pdf, guide (their first rows)
+    and steps (the binary search's, from the widest guide bracket); None when `path` is empty
+    or not a current world map (then the graph draws no world-map samples). Read once per
+    file version from the image's pixels (numpy; no OpenEXR module needed)."""
+    if not path or not os.path.isfile(path):
+        return None
+    stat = os.stat(path)
+    key = (os.path.abspath(path), stat.st_mtime_ns, stat.st_size)
+    if key not in _world_layouts:
+        _world_layouts[key] = _read_world_layout(path)
+    return _world_layouts[key]
+
+
+def _read_world_layout(path):
+    try:
+        import numpy as np
+        layout = _world_map_module().LAYOUT
+        image = _image(path)
+        wt, ht = image.size
+        px = np.empty(wt * ht * 4, np.float32)
+        image.pixels.foreach_get(px)
+    except (ImportError, RuntimeError, ValueError):
+        return None
+    if wt < 3 or ht < 2:
+        return None
+    px = px.reshape(ht, wt, 4)[::-1]        # Blender's pixels start at the bottom row
+    (version, w, h), (count, cdf, pdf), guide = px[0, 0, :3], px[0, 1, :3], px[0, 2, 0]
+    if version != layout or min(w, h, count) < 1:
+        return None
+    g = np.arange(int(count))
+    brackets = px[int(guide) + g // wt, g % wt, :2]
+    widest = int((brackets[:, 1] - brackets[:, 0]).max())
+    return {"W": int(w), "H": int(h), "Wt": wt, "Ht": ht, "G": int(count), "cdf": int(cdf), "pdf": int(pdf),
+            "guide": int(guide), "steps": max(widest - 1, 0).bit_length()}
+
+
+def _world_texel(g, wl, image, x, row, first_row):
+    """The colour of the world texture's texel (x, first_row + row)."""
+    tex = g.node("ShaderNodeTexImage", image=image, interpolation='Closest', extension='EXTEND')
+    wt, ht = float(wl["Wt"]), float(wl["Ht"])
+    g.set(tex.inputs["Vector"], g.combine(g.math('MULTIPLY_ADD', x, 1.0 / wt, 0.5 / wt),
+                                          g.math('MULTIPLY_ADD', row, -1.0 / ht, 1.0 - (first_row + 0.5) / ht)))
+    return tex.outputs["Color"]
+
+
+def _world_entry(g, wl, image, k, first_row):
+    """Entry k of a flattened block of the world texture (x = k mod Wt, row first_row + k div
+    Wt; exact in float32 for k < 2^24): its red channel."""
+    row = g.math('FLOOR', g.math('DIVIDE', k, float(wl["Wt"])))
+    return g.dot(_world_texel(g, wl, image, g.math('MULTIPLY_ADD', row, -float(wl["Wt"]), k), row, first_row), X)
+
+
+def _world_group(kind, wl, image, inputs, outputs, build):
+    """The node group `kind` of a world texture (its numbers are constants of the group): a new
+    map gets new groups, which update_world swaps in."""
+    done, tree = _group(f"{GROUP_PREFIX}world {kind}: {image.name}", inputs, outputs)
+    if done:
+        return done
+    g = _Graph(tree)
+    results = build(g, g.node("NodeGroupInput").outputs)
+    out = g.node("NodeGroupOutput")
+    for name, value in results.items():
+        g.set(out.inputs[name], value)
+    return tree
+
+
+def _world_cdf_group(wl, image):
+    """Group "world cdf": CDF entry min(Index, W H) (past the end: the total, 1)."""
+    def build(g, inp):
+        return {"Value": _world_entry(g, wl, image, g.math('MINIMUM', inp["Index"], float(wl["W"] * wl["H"])),
+                                      wl["cdf"])}
+    return _world_group("cdf", wl, image, [("Index", "Float")], [("Value", "Float")], build)
+
+
+def _world_step_group(wl, image):
+    """Group "world search step": index = Lo + Half; Lo moves there when its CDF entry is <= Target."""
+    def build(g, inp):
+        index = g.math('ADD', inp["Lo"], inp["Half"])
+        above = g.math('GREATER_THAN', g.group(_world_cdf_group(wl, image), Index=index)[0], inp["Target"])
+        return {"Lo": g.math('MULTIPLY_ADD', above, g.math('MULTIPLY', inp["Half"], -1.0), index)}
+    return _world_group("search step", wl, image, [("Lo", "Float"), ("Target", "Float"), ("Half", "Float")],
+                        [("Lo", "Float")], build)
+
+
+def _world_sample_group(wl, image):
+    """Group "world sample": world.h sample_world / WorldMap.sample. The pixel k is the last
+    with cdf_k <= U0, searched branchlessly from its guide's lo over 2^steps entries (entries
+    past the bracket are > U0, past the end the total); the direction is uniform in the
+    pixel's solid angle (z from U1, azimuth from U0's place between cdf_k and cdf_k+1); Pdf
+    is the pixel's density per steradian."""
+    def build(g, inp):
+        u0, u1 = inp["U0"], inp["U1"]
+        w, h, count = float(wl["W"]), float(wl["H"]), float(wl["G"])
+        lo = _world_entry(g, wl, image, g.math('MINIMUM', g.math('FLOOR', g.math('MULTIPLY', u0, count)), count - 1.0),
+                          wl["guide"])
+        for s in reversed(range(wl["steps"])):
+            lo = g.group(_world_step_group(wl, image), Lo=lo, Target=u0, Half=float(2 ** s))[0]
+        k = g.math('MINIMUM', lo, w * h - 1.0)
+        c0 = g.group(_world_cdf_group(wl, image), Index=k)[0]
+        c1 = g.group(_world_cdf_group(wl, image), Index=g.math('ADD', k, 1.0))[0]
+        row = g.math('FLOOR', g.math('DIVIDE', k, w))
+        col = g.math('MULTIPLY_ADD', row, -w, k)
+        z0 = g.math('COSINE', g.math('MULTIPLY', row, math.pi / h))
+        z1 = g.math('COSINE', g.math('MULTIPLY_ADD', row, math.pi / h, math.pi / h))
+        z = g.math('MULTIPLY_ADD', u1, g.math('SUBTRACT', z1, z0), z0)
+        t = g.math('DIVIDE', g.math('SUBTRACT', u0, c0), g.math('SUBTRACT', c1, c0), clamp=True)
+        phi = g.math('MULTIPLY_ADD', g.math('ADD', col, t), -2.0 * math.pi / w, math.pi)
+        s = g.math('SQRT', g.math('MAXIMUM', g.math('SUBTRACT', 1.0, g.math('MULTIPLY', z, z)), 0.0))
+        direction = g.combine(g.math('MULTIPLY', s, g.math('COSINE', phi)), g.math('MULTIPLY', s, g.math('SINE', phi)),
+                              z)
+        return {"Direction": direction, "Pdf": g.dot(_world_texel(g, wl, image, col, row, wl["pdf"]), X)}
+    return _world_group("sample", wl, image, [("U0", "Float"), ("U1", "Float")],
+                        [("Direction", "Vector"), ("Pdf", "Float")], build)
+
+
+def _world_pdf_group(wl, image):
+    """Group "world pdf": world.h pdf_world / WorldMap.pdf, the density per steradian of the
+    map's sampling at a unit Direction (its pixel's)."""
+    def build(g, inp):
+        d = inp["Direction"]
+        w, h = float(wl["W"]), float(wl["H"])
+        theta = g.math('ARCCOSINE', g.dot(d, Z))            # (Cycles' acos clamps its argument)
+        row = g.math('MINIMUM', g.math('FLOOR', g.math('MULTIPLY', theta, h / math.pi)), h - 1.0)
+        u = g.math('FLOORED_MODULO', g.math('MULTIPLY_ADD', g.math('ARCTAN2', g.dot(d, Y), g.dot(d, X)),
+                                            -0.5 / math.pi, 0.5), 1.0)
+        col = g.math('MINIMUM', g.math('FLOOR', g.math('MULTIPLY', u, w)), w - 1.0)
+        return {"Pdf": g.dot(_world_texel(g, wl, image, col, row, wl["pdf"]), X)}
+    return _world_group("pdf", wl, image, [("Direction", "Vector")], [("Pdf", "Float")], build)
+
+
+_WORLD_GROUPS = {"sample": _world_sample_group, "pdf": _world_pdf_group}
+
+
+def _tables_pdf_group(sampler):
+    """Group "tables pdf" of a sampler's texture: _inverse's pdf and f·cos ("F cos") at the
+    local direction (X, Y, Z) for Cos I (clamped to >= 0) and, anisotropic tables, Phi I. (A
+    group: Blender's node trees slow down with their node count, a mixture's branches
+    would double the tree's.)"""
+    phi = [("Phi I", "Float")] if sampler.lay["P"] > 1 else []
+    done, tree = _group(f"{GROUP_PREFIX}tables pdf: {sampler.image.name}",
+                        [("Cos I", "Float")] + phi + [("X", "Float"), ("Y", "Float"), ("Z", "Float")],
+                        [("Pdf", "Float"), ("F cos", "Vector")])
+    if done:
+        return done
+    g = _Graph(tree)
+    inp = g.node("NodeGroupInput").outputs
+    pdf, fcos = _inverse(g, _Sampler(g, sampler.path, sampler.lay), inp["Cos I"], inp["Phi I"] if phi else None,
+                         (inp["X"], inp["Y"], inp["Z"]))
+    out = g.node("NodeGroupOutput")
+    g.set(out.inputs["Pdf"], pdf)
+    g.set(out.inputs["F cos"], fcos)
+    return tree
+
+
+class _Mixture:
+    """The portal direction's mixture (module docstring) for the world inputs `world`
+    (blender_addon/world.shader_inputs): which techniques the graph has, its value nodes, and
+    its branches. False when it has none (then the graph is the tables' alone)."""
+
+    def __init__(self, world):
+        world = dict(world or {})
+        self.inputs = world
+        self.path = str(world.get("World") or "")
+        self.map = world_layout(self.path) if world.get("WorldShare", 0.0) > 0.0 else None
+        self.sun = bool(world.get("SunShare", 0.0) > 0.0 and world.get("SunCos", 1.0) < 1.0)
+
+    def __bool__(self):
+        return self.map is not None or self.sun
+
+    def values(self, g):
+        """The named nodes the add-on changes (update_world) and the shares, sun axis and cone
+        from them (constants to Cycles: it folds them)."""
+        node = g.node("ShaderNodeCombineXYZ", name=WORLD, label=WORLD)
+        node["flowbsdf_map"] = self.path if self.map else ""
+        node["flowbsdf_sun"] = int(self.sun)
+        for socket, value in zip(node.inputs, _world_values(self.inputs, self.map is not None, self.sun)):
+            socket.default_value = value
+        shares = node.outputs[0]
+        self.c_world = g.dot(shares, X) if self.map else 0.0
+        self.c_sun = 0.0
+        if self.sun:
+            sun = g.node("ShaderNodeCombineXYZ", name=SUN, label=SUN)
+            for socket, value in zip(sun.inputs, self.inputs["SunDirection"]):
+                socket.default_value = value
+            self.sun_cos = g.dot(shares, Z)
+            self.c_sun = g.math('MULTIPLY', g.dot(shares, Y), g.math('LESS_THAN', self.sun_cos, 1.0))
+            self.axis = g.vmath('NORMALIZE', sun.outputs[0])
+            self.omc = g.math('SUBTRACT', 1.0, self.sun_cos)
+            # c_sun p_cone inside the cone (0 for c_sun = 0: Cycles' divide by 0 gives 0)
+            self.cone = g.math('DIVIDE', self.c_sun, g.math('MULTIPLY', self.omc, 2.0 * math.pi))
+        self.c_light = g.math('ADD', self.c_sun, self.c_world)
+        self.c_tables = g.math('SUBTRACT', 1.0, self.c_light)
+
+    def sample_sun(self, g, u0, u1):
+        """lamps.h cone_direction: uniform in the sun's cone (1 - cos computed as t (2 - t))."""
+        axis = self.axis
+        near_x = g.math('SUBTRACT', 1.0, g.math('LESS_THAN', g.math('ABSOLUTE', g.dot(axis, X)), 0.9))
+        tx = g.vmath('NORMALIZE', g.vmath('CROSS_PRODUCT', axis, g.combine(g.math('SUBTRACT', 1.0, near_x), near_x)))
+        ty = g.vmath('CROSS_PRODUCT', axis, tx)
+        t = g.math('MULTIPLY', u0, self.omc)
+        s = g.math('SQRT', g.math('MULTIPLY', t, g.math('SUBTRACT', 2.0, t)))
+        phi = g.math('MULTIPLY', u1, 2.0 * math.pi)
+        d = g.vmath('ADD', g.vmath('ADD', g.scale(tx, g.math('MULTIPLY', s, g.math('COSINE', phi))),
+                                   g.scale(ty, g.math('MULTIPLY', s, g.math('SINE', phi)))),
+                    g.scale(axis, g.math('SUBTRACT', 1.0, t)))
+        return g.vmath('NORMALIZE', d)
+
+    def light_pdf(self, g, d, own):
+        """c_world p_world(d) + c_sun p_cone(d), the technique `own` left out (its caller adds
+        its own sample's density)."""
+        terms = []
+        if self.map and own != "world":
+            terms.append(g.math('MULTIPLY', self.c_world, g.group(self.pdf_group(), Direction=d)[0]))
+        if self.sun and own != "sun":
+            inside = g.math('SUBTRACT', 1.0, g.math('LESS_THAN', g.dot(d, self.axis), self.sun_cos))
+            terms.append(g.math('MULTIPLY', self.cone, inside))
+        return terms[0] if len(terms) == 1 else g.math('ADD', *terms) if terms else 0.0
+
+    def pdf_group(self):
+        return _world_pdf_group(self.map, _image(self.path))
+
+    def graph(self, g, sampler, at, closure):
+        """The mixture's shader: a branch per technique ending in closure(dict of direction,
+        weight, q (the mixture's pdf), technique (0 tables, 1 map, 2 sun), ok (1 when the
+        direction counts)), chosen by Mix Shaders whose factor is exactly 0 or 1 (Cycles skips the
+        nodes of the branch not taken: svm.cpp generate_multi_closure)."""
+        self.values(g)
+        u1 = at["u1"]
+        tables = self.tables_branch(g, sampler, at, closure)
+        light = [self.light_branch(g, sampler, at, kind, closure)
+                 for kind, on in (("world", self.map is not None), ("sun", self.sun)) if on]
+        if len(light) == 2:
+            light = [_mix_shader(g, g.math('LESS_THAN', u1, self.c_sun), *light)]
+        return _mix_shader(g, g.math('LESS_THAN', u1, self.c_light), tables, light[0])
+
+    def tables_branch(self, g, sampler, at, closure):
+        sampler.incident(at["cos_i"], at["phi_i"])
+        t1 = g.math('MINIMUM', g.math('DIVIDE', g.math('SUBTRACT', at["u1"], self.c_light), self.c_tables),
+                    1.0 - 2.0 ** -24)
+        a, b, weight, pdf = sampler.sample(at["u0"], t1)
+        wo = _from_ab(g, a, b, at["phi_i"])
+        d = _to_world(g, at, wo)
+        q = g.math('MULTIPLY_ADD', self.c_tables, pdf, self.light_pdf(g, d, "tables"))
+        ok = _valid(g, at, wo[2], d)
+        return closure({"direction": d, "weight": g.scale(weight, g.math('DIVIDE', g.math('MULTIPLY', pdf, ok), q)),
+                        "q": q, "technique": 0.0, "ok": ok})
+
+    def light_branch(self, g, sampler, at, kind, closure):
+        u0, u1 = at["u0"], at["u1"]
+        if kind == "sun":
+            d = self.sample_sun(g, u0, g.math('DIVIDE', u1, self.c_sun))
+            own = self.cone
+        else:
+            out = g.group(_world_sample_group(self.map, _image(self.path)), U0=u0,
+                          U1=g.math('DIVIDE', g.math('SUBTRACT', u1, self.c_sun), self.c_world))
+            d, own = out["Direction"], g.math('MULTIPLY', self.c_world, out["Pdf"])
+        wo = tuple(g.dot(d, axis) for axis in (at["tx"], at["ty"], at["n"]))
+        # its own incident nodes (cos theta_i through a no-op unlike the other branches'): Cycles
+        # would merge identical ones into nodes run before the branches, their results held
+        # on the stack through every branch
+        inputs = {"Cos I": g.math('MAXIMUM', at["cos_i"], -2.0 if kind == "sun" else -1.0), "X": wo[0], "Y": wo[1],
+                  "Z": wo[2]}
+        if at["phi_i"] is not None:
+            inputs["Phi I"] = at["phi_i"]
+        out = g.group(_tables_pdf_group(sampler), **inputs)
+        pdf, fcos = out["Pdf"], out["F cos"]
+        q = g.math('MULTIPLY_ADD', self.c_tables, pdf, g.math('ADD', own, self.light_pdf(g, d, kind)))
+        ok = _valid(g, at, wo[2], d)
+        return closure({"direction": d, "weight": g.scale(fcos, g.math('DIVIDE', ok, q)), "q": q,
+                        "technique": 2.0 if kind == "sun" else 1.0, "ok": ok})
+
+
+def _world_values(world, has_map, has_sun):
+    """(WorldShare, SunShare, SunCos) of the world node: 0 for a technique the graph lacks."""
+    return (float(world.get("WorldShare", 0.0)) if has_map else 0.0,
+            float(world.get("SunShare", 0.0)) if has_sun else 0.0,
+            float(world.get("SunCos", 1.0)) if has_sun else 1.0)
+
+
+def _mix_shader(g, fac, first, second):
+    """first where fac is 0, second where it is 1 (a Mix Shader: the other branch is skipped)."""
+    node = g.node("ShaderNodeMixShader")
+    g.set(node.inputs[0], fac)
+    g.set(node.inputs[1], first)
+    g.set(node.inputs[2], second)
+    return node.outputs[0]
+
+
+def _to_world(g, at, wo):
+    return g.vmath('ADD', g.vmath('ADD', g.scale(at["tx"], wo[0]), g.scale(at["ty"], wo[1])), g.scale(at["n"], wo[2]))
+
+
+def _valid(g, at, cos_o, d):
+    """1 when wi and wo are above the shading surface and d above the geometric one, else 0."""
+    return g.math('MULTIPLY', g.math('GREATER_THAN', at["cos_raw"], 0.0),
+                  g.math('MULTIPLY', g.math('GREATER_THAN', cos_o, 0.0),
+                         g.math('GREATER_THAN', g.dot(d, at["ng"]), 0.0)))
+
+
+def update_world(tree, world):
+    """Hand new world inputs (blender_addon/world.shader_inputs) to the sampler graphs in `tree`
+    built with a world: their shares and sun (the named value nodes) and, for a new map, its
+    node groups. Returns False when a graph lacks a technique the new inputs use (the map or
+    the sun; or `tree` has no world graph and the inputs have a technique): rebuild it then."""
+    mix = _Mixture(world)
+    nodes = [node for node in tree.nodes if node.name.startswith(WORLD)]
+    if not nodes:
+        return not mix
+    for node in nodes:
+        if (mix.map and not node.get("flowbsdf_map")) or (mix.sun and not node.get("flowbsdf_sun")):
+            return False
+    for node in nodes:
+        has_map, has_sun = bool(node.get("flowbsdf_map")), bool(node.get("flowbsdf_sun"))
+        for socket, value in zip(node.inputs, _world_values(mix.inputs, has_map and mix.map, has_sun)):
+            if socket.default_value != value:
+                socket.default_value = value
+        if mix.map and node["flowbsdf_map"] != mix.path:
+            node["flowbsdf_map"] = mix.path
+    if mix.sun:
+        for node in tree.nodes:
+            if node.name.startswith(SUN):
+                for socket, value in zip(node.inputs, mix.inputs["SunDirection"]):
+                    if socket.default_value != value:
+                        socket.default_value = value
+    if mix.map:
+        image = _image(mix.path)
+        for node in tree.nodes:
+            if node.bl_idname == "ShaderNodeGroup" and node.node_tree is not None:
+                for kind, build in _WORLD_GROUPS.items():
+                    prefix = f"{GROUP_PREFIX}world {kind}: "
+                    if node.node_tree.name.startswith(prefix) and node.node_tree.name != prefix + image.name:
+                        node.node_tree = build(mix.map, image)
+    return True
+
+
 # ------------------------------------------------------------------------------ public
 
 def _frame(g, n, reference):
@@ -479,18 +863,22 @@ def _shading(g, sampler, tangent):
 
 
 def film_settings(scene):
-    """(raster width, raster height, 1 if camera rays may take u from their place in the pixel
-    else 0) of a scene: only Cycles' box filter places a pixel's samples uniformly in it (1 px
-    whatever its width setting; other filters spread them by their weight)."""
+    """(raster width, raster height, film) of a scene, film = 0 where camera rays must hash
+    their u, else 1 + the render's seed (mod 2^20): only Cycles' box filter places a pixel's
+    samples uniformly in it (1 px whatever its width setting; other filters spread them by
+    their weight), and the seed rotates a pixel's u per render (as learned_bsdf.osl's)."""
     r = scene.render
     box = scene.render.engine == 'CYCLES' and scene.cycles.pixel_filter_type == 'BOX'
+    cy = scene.cycles
+    seed = cy.seed + (scene.frame_current if getattr(cy, "use_animated_seed", False) else 0)
     return (r.resolution_x * r.resolution_percentage / 100.0, r.resolution_y * r.resolution_percentage / 100.0,
-            1.0 if box else 0.0)
+            1.0 + (int(seed) & 0xFFFFF) if box else 0.0)
 
 
 def set_film(tree, scene):
     """Write the scene's film_settings into the sampler graphs in `tree` (their "FlowBSDF SVM
-    film" nodes); call it when the scene's resolution or pixel filter changes."""
+    film" nodes); call it when the scene's resolution, pixel filter or seed (or, with an
+    animated seed, the frame) changes."""
     values = film_settings(scene)
     for node in tree.nodes:
         if node.name.startswith(FILM):
@@ -501,19 +889,20 @@ def set_film(tree, scene):
 
 def _film_u(g, light_path, hashed):
     """(u0, u1): on camera rays before any portal, the sample's place in its pixel (raster
-    position from the Window coordinate, Cranley-Patterson rotated by a hash of the pixel), when
-    the film node says so (set_film); else the hashed u0, u1. Cycles places a pixel's samples
-    by its stratified sequence, so a pixel's u are stratified too."""
+    position from the Window coordinate, Cranley-Patterson rotated by a hash of the pixel and
+    the seed), when the film node says so (set_film); else the hashed u0, u1. Cycles places a
+    pixel's samples by its stratified sequence, so a pixel's u are stratified too."""
     film = g.node("ShaderNodeCombineXYZ", name=FILM, label=FILM)
     for socket, value in zip(film.inputs, film_settings(bpy.context.scene)):
         socket.default_value = value
     raster = g.vmath('MULTIPLY', g.node("ShaderNodeTexCoord").outputs["Window"], film.outputs[0])
-    rotation = g.node("ShaderNodeTexWhiteNoise", noise_dimensions='3D')
+    rotation = g.node("ShaderNodeTexWhiteNoise", noise_dimensions='4D')
     g.set(rotation.inputs["Vector"], g.vmath('FLOOR', raster))
+    g.set(rotation.inputs["W"], g.dot(film.outputs[0], Z))
     u = g.vmath('FRACTION', g.vmath('ADD', g.vmath('FRACTION', raster), rotation.outputs["Color"]))
     first = g.math('MULTIPLY', light_path.outputs["Is Camera Ray"],
                    g.math('LESS_THAN', light_path.outputs["Portal Depth"], 0.5))
-    use = g.math('MULTIPLY', first, g.dot(film.outputs[0], Z))
+    use = g.math('MULTIPLY', first, g.math('GREATER_THAN', g.dot(film.outputs[0], Z), 0.5))
     return tuple(g.select(use, g.dot(u, axis), h) for axis, h in zip((X, Y), hashed))
 
 
@@ -547,25 +936,52 @@ def _sample(g, texture_path, group_input_tangent_socket):
             "position": geometry.outputs["Position"], "u2": u2}
 
 
-def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, location=(0.0, 0.0)):
+def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, location=(0.0, 0.0), world=None):
     """Add to the shader node tree `tree` the sampler of the SVM texture `texture_path`
     (bake/svm_export.ensure_svm_export) ending in a Ray Portal BSDF; returns its shader output
     socket. Anisotropic tables take their frame's x from `group_input_tangent_socket` (a
     vector socket, e.g. the Learned BSDF group's Tangent input), world x when None. Camera
-    rays stratify u by the film when the current scene allows it (set_film updates that)."""
+    rays stratify u by the film when the current scene allows it (set_film updates that).
+    `world`: the world inputs (blender_addon/world.shader_inputs: World, WorldShare,
+    SunDirection, SunCos, SunShare): the portal direction is then drawn from the mixture of
+    the tables, the world map and the sun (module docstring); update_world changes them.
+    Without a world map or sun to draw from (None, shares 0, no readable map), the graph is
+    the tables' alone."""
     g = _Graph(tree, location)
+    mix = _Mixture(world)
+    if mix:
+        return _mixture(g, texture_path, group_input_tangent_socket, mix)
     out = _sample(g, texture_path, group_input_tangent_socket)
     # zero (the path ends) for light from below the surface or a direction below the geometry
-    weight = g.scale(out["weight"], out["valid"])
-    # Cycles drops a closure of mean weight < CUTOFF: roulette those below 2 CUTOFF up to it
+    return _portal(g, g.scale(out["weight"], out["valid"]), out["position"], out["direction"], out["u2"])
+
+
+def _portal(g, weight, position, direction, u2):
+    """A Ray Portal BSDF continuing the path along `direction` with colour `weight`. Cycles
+    drops a closure of mean weight < CUTOFF: those below 2 CUTOFF are rouletted up to it."""
     keep = g.math('MULTIPLY', g.dot(weight, (1.0 / 3, 1.0 / 3, 1.0 / 3)), 0.5 / CUTOFF, clamp=True)
-    survive = g.math('LESS_THAN', g.math('MULTIPLY', out["u2"], 1.0 - 2.0 ** -24), keep)
+    survive = g.math('LESS_THAN', g.math('MULTIPLY', u2, 1.0 - 2.0 ** -24), keep)
     weight = g.scale(weight, g.math('DIVIDE', survive, keep))
     portal = g.node("ShaderNodeBsdfRayPortal")
     g.set(portal.inputs["Color"], weight)
-    g.set(portal.inputs["Position"], out["position"])
-    g.set(portal.inputs["Direction"], out["direction"])
+    g.set(portal.inputs["Position"], position)
+    g.set(portal.inputs["Direction"], direction)
     return portal.outputs["BSDF"]
+
+
+def _mixture(g, texture_path, group_input_tangent_socket, mix):
+    """The shading point and its u (as _sample), then the mixture's branches, each ending in a portal."""
+    sampler = _Sampler(g, texture_path)
+    geometry, n, wi, cos_raw, cos_i, (tx, ty, phi_i) = _shading(g, sampler, group_input_tangent_socket)
+    light_path = g.node("ShaderNodeLightPath")
+    u0, u1, u2 = _random(g, geometry, light_path)
+    u0, u1 = _film_u(g, light_path, (u0, u1))
+    if phi_i is None:
+        tx, ty = _frame(g, n, wi)
+    at = {"n": n, "ng": geometry.outputs["True Normal"], "cos_raw": cos_raw, "cos_i": cos_i, "tx": tx, "ty": ty,
+          "phi_i": phi_i, "u0": u0, "u1": u1}
+    position = geometry.outputs["Position"]
+    return mix.graph(g, sampler, at, lambda out: _portal(g, out["weight"], position, out["direction"], u2))
 
 
 def tables_pdf_graph(tree, texture_path, wo_socket, group_input_tangent_socket=None, location=(0.0, 0.0)):
@@ -592,24 +1008,35 @@ def _inverse(g, sampler, cos_i, phi_i, wo):
     return pdf, g.scale(weight, pdf)
 
 
-def build_svm_probe(tree, texture_path, probe_path, inverse=False, location=(0.0, 0.0)):
+def build_svm_probe(tree, texture_path, probe_path, inverse=False, location=(0.0, 0.0), world=None):
     """The sampler (or with `inverse`, tables_pdf_graph's inverse) on inputs from the probe image
     `probe_path` (w x h float32 RGBA texels: u0, u1, cos theta_i, phi_i; with `inverse`,
     cos theta_o, phi_o, cos theta_i, phi_i, in the frame whose x is the tangent: wi at phi_i)
     for a camera whose window spans 3 w x h pixels (orthographic, pixel centres): pixel
     column x shows texel x mod w of the probe, as 0.5 + 0.5 wo, the weight W and the pdf
     (thirds of the image; with `inverse`: the pdf, f·cos and 0), through an Emission of
-    strength 1. Returns the Emission's output socket."""
+    strength 1. Returns the Emission's output socket.
+    With `world` (build_svm_sampler's), the mixture at a shading point of normal world z and
+    wi = (sin theta_i cos phi_i, sin theta_i sin phi_i, cos theta_i) (the frame's x from wi, or
+    for anisotropic tables world x): 0.5 + 0.5 the world direction, the weight, and (q, the
+    technique (0 tables, 1 map, 2 sun), 1 if the direction counts else 0)."""
     g = _Graph(tree, location)
     sampler = _Sampler(g, texture_path)
-    window = g.node("ShaderNodeTexCoord").outputs["Window"]
-    wx = g.math('MULTIPLY', g.dot(window, X), 3.0)
-    third = g.math('FLOOR', wx)
-    probe = g.node("ShaderNodeTexImage", image=_image(probe_path), interpolation='Closest', extension='EXTEND')
-    g.set(probe.inputs["Vector"], g.combine(g.math('FRACT', wx), g.dot(window, Y)))
-    values = probe.outputs["Color"]
+    thirds, values, alpha = _probe_input(g, probe_path)
     first, second, cos_i = (g.dot(values, axis) for axis in (X, Y, Z))
-    phi_i = probe.outputs["Alpha"] if sampler.lay["P"] > 1 else None
+    phi_i = alpha if sampler.lay["P"] > 1 else None
+    if world is not None:
+        sin_i = g.math('SQRT', g.math('SUBTRACT', 1.0, g.math('MULTIPLY', cos_i, cos_i)))
+        wi = g.combine(g.math('MULTIPLY', sin_i, g.math('COSINE', alpha)),
+                       g.math('MULTIPLY', sin_i, g.math('SINE', alpha)), cos_i)
+        tx, ty = _frame(g, Z, wi if phi_i is None else TANGENT)
+        if phi_i is not None:
+            phi_i = g.math('ARCTAN2', g.dot(wi, ty), g.dot(wi, tx))
+        at = {"n": Z, "ng": Z, "cos_raw": cos_i, "cos_i": cos_i, "tx": tx, "ty": ty, "phi_i": phi_i,
+              "u0": first, "u1": second}
+        return _Mixture(world).graph(g, sampler, at, lambda out: _probe_output(
+            g, thirds, (g.vmath('MULTIPLY_ADD', out["direction"], (0.5, 0.5, 0.5), (0.5, 0.5, 0.5)), out["weight"],
+                        g.combine(out["q"], out["technique"], out["ok"]))))
     if inverse:
         sin_o = g.math('SQRT', g.math('SUBTRACT', 1.0, g.math('MULTIPLY', first, first)))
         wo = (g.math('MULTIPLY', sin_o, g.math('COSINE', second)), g.math('MULTIPLY', sin_o, g.math('SINE', second)),
@@ -621,11 +1048,38 @@ def build_svm_probe(tree, texture_path, probe_path, inverse=False, location=(0.0
         a, b, weight, pdf = sampler.sample(first, second)
         wo = g.vmath('MULTIPLY_ADD', g.combine(*_from_ab(g, a, b, phi_i)), (0.5, 0.5, 0.5), (0.5, 0.5, 0.5))
         shown = (wo, weight, pdf)
+    return _probe_output(g, thirds, shown)
+
+
+def build_world_probe(tree, world_path, probe_path, location=(0.0, 0.0)):
+    """The world map's sampling on u0, u1 from the probe image (build_svm_probe's layout): 0.5
+    + 0.5 the direction, (its pdf, the pdf graph's density at it, 0), and 0."""
+    g = _Graph(tree, location)
+    wl, image = world_layout(str(world_path)), _image(world_path)
+    thirds, values, _ = _probe_input(g, probe_path)
+    out = g.group(_world_sample_group(wl, image), U0=g.dot(values, X), U1=g.dot(values, Y))
+    again = g.group(_world_pdf_group(wl, image), Direction=out["Direction"])[0]
+    return _probe_output(g, thirds, (g.vmath('MULTIPLY_ADD', out["Direction"], (0.5, 0.5, 0.5), (0.5, 0.5, 0.5)),
+                                     g.combine(out["Pdf"], again), (0.0, 0.0, 0.0)))
+
+
+def _probe_input(g, probe_path):
+    """(the thirds' flags: left, middle, right; the probe texel's colour, its alpha) of this pixel."""
+    window = g.node("ShaderNodeTexCoord").outputs["Window"]
+    wx = g.math('MULTIPLY', g.dot(window, X), 3.0)
+    third = g.math('FLOOR', wx)
     # one of the three by its third of the image: x 1 and x 0 (exact)
     left, right = g.math('LESS_THAN', third, 0.5), g.math('GREATER_THAN', third, 1.5)
     middle = g.math('SUBTRACT', g.math('SUBTRACT', 1.0, left), right)
-    color = g.vmath('ADD', g.vmath('ADD', g.scale(shown[0], left), g.scale(shown[1], middle)),
-                    g.scale(shown[2], right))
+    probe = g.node("ShaderNodeTexImage", image=_image(probe_path), interpolation='Closest', extension='EXTEND')
+    g.set(probe.inputs["Vector"], g.combine(g.math('FRACT', wx), g.dot(window, Y)))
+    return (left, middle, right), probe.outputs["Color"], probe.outputs["Alpha"]
+
+
+def _probe_output(g, thirds, shown):
+    """An Emission of shown[k] in third k of the image."""
+    color = g.vmath('ADD', g.vmath('ADD', g.scale(shown[0], thirds[0]), g.scale(shown[1], thirds[1])),
+                    g.scale(shown[2], thirds[2]))
     emission = g.node("ShaderNodeEmission")
     g.set(emission.inputs["Color"], color)
     emission.inputs["Strength"].default_value = 1.0

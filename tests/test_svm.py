@@ -1,7 +1,9 @@
 """The SVM back end (bake/svm_export.py, blender_addon/svm.py): its texture fits GPU texture
 limits for the largest tables the baker writes; the node graph samples exactly what numpy's
-Tables.sample does (probe); it renders the baked albedo in a white furnace with OSL off; and
-it leaves the SVM stack a wide margin, measured with Cycles' own overflow message.
+Tables.sample does (probe); it renders the baked albedo in a white furnace with OSL off; it
+leaves the SVM stack a wide margin, measured with Cycles' own overflow message; the world
+mixture (map, sun cone, tables) is numpy's (probes) and renders a sphere under a sky with
+its sun as Cycles' Diffuse BSDF does, with far less noise than the tables alone.
 Cycles tests need bpy (skipped with the reason without it), not OSL."""
 import sys
 from pathlib import Path
@@ -275,10 +277,11 @@ def test_svm_pdf_graph_inverts_the_sampler(svm, which, tangent, request):
     np.testing.assert_allclose(ratio[valid], 1.0, rtol=1e-3)
 
 
-def _svm_furnace(svm, texture, spp, n=32, tangent=None, ballast=0):
+def _svm_furnace(svm, texture, spp, n=32, tangent=None, ballast=0, world=None):
     """A sphere in a white furnace with the SVM sampler (OSL off), optionally its Tangent input
-    linked to a constant and `ballast` extra floats kept alive across the whole graph (see
-    _keep_alive). Returns (image, normals, mask of the inner pixels)."""
+    linked to a constant, `ballast` extra floats kept alive across the whole graph (see
+    _keep_alive) and the world mixture's inputs. Returns (image, normals, mask of the inner
+    pixels)."""
     sc = cs.reset(n, n, spp=spp, osl=False, threads=1)
     sc.cycles.filter_width = 0.01
     cs.ortho_camera(sc, scale=2.2)
@@ -286,7 +289,7 @@ def _svm_furnace(svm, texture, spp, n=32, tangent=None, ballast=0):
 
     def nodes(tree):
         socket = _tangent_socket(tree, tangent)
-        return _keep_alive(tree, ballast, lambda: svm.build_svm_sampler(tree, texture, socket))
+        return _keep_alive(tree, ballast, lambda: svm.build_svm_sampler(tree, texture, socket, world=world))
     cs.add_sphere(sc, cs.material_with(nodes))
     img = cs.render(sc)
     normal, hit = cs.sphere_view(n, n, scale=2.2)
@@ -294,34 +297,55 @@ def _svm_furnace(svm, texture, spp, n=32, tangent=None, ballast=0):
 
 
 def _keep_alive(tree, count, build):
-    """build() -> a Ray Portal's output, with `count` floats computed before the graph (lowest
-    node ids: Cycles emits them first) and consumed after it (added to the portal's Color
-    times a runtime zero): they hold `count` SVM stack slots while the graph runs."""
+    """build() -> a shader output, and `count` floats (as ceil(count / 3) vectors) computed
+    before the graph (lowest node ids: Cycles emits them first) and consumed after all of it:
+    by an Emission of strength zero (at run time) added to the graph's shader, which Cycles
+    compiles last, and by the first Ray Portal's Color (times a runtime zero: then Cycles runs
+    them before a mixture's branches). They hold that many SVM stack slots while every part
+    of the graph runs. (Consumed by the portal alone, they would be freed as soon as Cycles
+    runs their sum: it emits every node whose inputs are ready, so their sum, made last, may
+    run before the graph's later nodes.)"""
+    import bpy
     if not count:
         return build()
     nodes, links = tree.nodes, tree.links
     length = nodes.new("ShaderNodeLightPath").outputs["Ray Length"]
 
-    def math(op, a, b):
-        node = nodes.new("ShaderNodeMath")
-        node.operation = op
-        for socket, value in zip(node.inputs, (a, b)):
-            if isinstance(value, float):
-                socket.default_value = value
-            else:
+    def node(kind, operation, *inputs):
+        new = nodes.new(kind)
+        new.operation = operation
+        for socket, value in zip(new.inputs, inputs):
+            if isinstance(value, bpy.types.NodeSocket):
                 links.new(value, socket)
-        return node.outputs[0]
-    held = [math('MULTIPLY', length, 1.0 + i) for i in range(count)]
+            else:
+                socket.default_value = value
+        return new.outputs[1 if operation == 'DOT_PRODUCT' else 0]
+
+    def zero_sum(k):
+        """The held vectors' sum (from the k-th: Cycles would merge equal sums) times a runtime zero."""
+        order = held[k:] + held[:k]
+        total = order[0]
+        for h in order[1:]:
+            total = node("ShaderNodeVectorMath", 'ADD', total, h)
+        return node("ShaderNodeMath", 'MULTIPLY', node("ShaderNodeVectorMath", 'DOT_PRODUCT', total, (1.0, 1.0, 1.0)),
+                    node("ShaderNodeMath", 'LESS_THAN', length, -1.0))
+    base = nodes.new("ShaderNodeCombineXYZ")
+    for socket in base.inputs:
+        links.new(length, socket)
+    held = [node("ShaderNodeVectorMath", 'MULTIPLY', base.outputs[0], (1.0 + 3 * i, 2.0 + 3 * i, 3.0 + 3 * i))
+            for i in range(-(-count // 3))]
     out = build()
-    total = held[0]
-    for h in held[1:]:
-        total = math('ADD', total, h)
-    color = out.node.inputs["Color"]
+    color = next(n for n in nodes if n.bl_idname == "ShaderNodeBsdfRayPortal").inputs["Color"]
     add = nodes.new("ShaderNodeVectorMath")
     links.new(color.links[0].from_socket, add.inputs[0])
-    links.new(math('MULTIPLY', total, math('LESS_THAN', length, -1.0)), add.inputs[1])
+    links.new(zero_sum(0), add.inputs[1])
     links.new(add.outputs[0], color)
-    return out
+    emission = nodes.new("ShaderNodeEmission")
+    links.new(zero_sum(1), emission.inputs["Strength"])
+    both = nodes.new("ShaderNodeAddShader")
+    links.new(out, both.inputs[0])
+    links.new(emission.outputs[0], both.inputs[1])
+    return both.outputs[0]
 
 
 def test_svm_furnace_gives_the_baked_albedo(svm, plastic):
@@ -390,6 +414,18 @@ def test_svm_directions_are_in_world_space(svm, which, tangent, request):
     assert np.any(np.abs(got - turned) > 3 * tol), (got, turned, tol)
 
 
+def _render_seeds(svm, sc, materials, seeds):
+    """Renders with Cycles seeds 0..seeds-1, each with the seed handed to the materials' graphs
+    (set_film: it rotates the film-stratified u per render): (seeds, H, W, 3)."""
+    imgs = []
+    for seed in range(seeds):
+        sc.cycles.seed = seed
+        for mat in materials:
+            svm.set_film(mat.node_tree, sc)
+        imgs.append(cs.render(sc))
+    return np.array(imgs)
+
+
 def test_svm_film_stratified_u_is_unbiased_and_cuts_noise(svm, plastic):
     """Camera rays take u from their place in the pixel under Cycles' box filter (per-pixel
     rotation); set_film turns that off for a wider filter (hashed u). A plane tilted 60 deg
@@ -405,13 +441,13 @@ def test_svm_film_stratified_u_is_unbiased_and_cuts_noise(svm, plastic):
     texture = svm_export.ensure_svm_export(plastic)
     mat = cs.material_with(lambda tree: svm.build_svm_sampler(tree, texture))
     film = next(n for n in mat.node_tree.nodes if n.name.startswith(svm.FILM))
-    assert [s.default_value for s in film.inputs] == [16.0, 16.0, 1.0]
+    assert [s.default_value for s in film.inputs] == [16.0, 16.0, 1.0 + sc.cycles.seed]
     cs.add_plane(sc, mat, size=4.0).rotation_euler = (np.radians(60.0), 0.0, 0.0)
-    stratified = cs.render_seeds(sc, 8)
+    stratified = _render_seeds(svm, sc, [mat], 8)
     sc.cycles.pixel_filter_type = 'BLACKMAN_HARRIS'
     svm.set_film(mat.node_tree, sc)
     assert film.inputs[2].default_value == 0.0
-    hashed = cs.render_seeds(sc, 8)
+    hashed = _render_seeds(svm, sc, [mat], 8)
     for imgs in (stratified, hashed):
         means = imgs.reshape(len(imgs), -1, 3).mean(1)
         se = means.std(0, ddof=1) / np.sqrt(len(imgs))
@@ -420,18 +456,339 @@ def test_svm_film_stratified_u_is_unbiased_and_cuts_noise(svm, plastic):
     assert ratio < 0.2, ratio
 
 
-def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, capfd):
-    """The anisotropic graph (the larger one) with 200 of the stack's 255 floats held by other
-    values renders the image it renders alone; with 250 held, Cycles reports the
-    overflow and renders the material black (so the check can fail)."""
+@pytest.mark.parametrize("mixture", [False, True])
+def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, capfd, tmp_path, mixture):
+    """The anisotropic graph (the larger one), alone or with the world mixture (map and sun),
+    with 150 of the stack's 255 floats held by other values through all of it renders the
+    image it renders alone; with 250 held, Cycles reports the overflow and renders the
+    material black (so the check can fail). (Measured: at most 177 held floats fit beside the
+    tables' graph, 168 beside the mixture's.)"""
     texture = svm_export.ensure_svm_export(brushed)
-    alone, _, sphere = _svm_furnace(svm, texture, 1, n=8)
+    world = None
+    if mixture:
+        world = {"World": str(_world_map(tmp_path)[1]), "WorldShare": 0.2, "SunDirection": (0.3, 0.4, 0.8),
+                 "SunCos": 0.999, "SunShare": 0.3}
+    alone, _, sphere = _svm_furnace(svm, texture, 1, n=8, world=world)
     assert sphere.sum() >= 16 and np.all(alone[sphere].mean(0) > 0.1)
     capfd.readouterr()
-    held = _svm_furnace(svm, texture, 1, n=8, ballast=200)[0]
+    held = _svm_furnace(svm, texture, 1, n=8, ballast=150, world=world)[0]
     out, err = capfd.readouterr()
     assert "out of SVM stack space" not in out + err
-    np.testing.assert_allclose(held, alone, rtol=1e-6)     # (two renders alone differ by an ulp too)
-    overflow = _svm_furnace(svm, texture, 1, n=8, ballast=250)[0]
+    np.testing.assert_allclose(held, alone, rtol=1e-5)     # (two renders alone differ by an ulp too)
+    overflow = _svm_furnace(svm, texture, 1, n=8, ballast=250, world=world)[0]
     out, err = capfd.readouterr()
     assert "out of SVM stack space" in out + err and np.all(overflow[sphere] == 0)
+
+
+# ------------------------------------------------------------------------------ the world
+
+def _world_map(folder, name="world.exr"):
+    """A small synthetic world map (bake/world_map.py) with a bright spot (a sun) and a black
+    region (below: never drawn, pdf 0), as tests/test_cycles.py's OSL probe; its CDF wraps
+    over two texture rows."""
+    from bake.world_map import WorldMap, write_world_texture
+    rng = np.random.default_rng(3)
+    img = rng.random((24, 48, 3)) ** 4
+    img[3, 40] = 300.0
+    img[20:, :] = 0.0
+    wm = WorldMap(img)
+    return wm, write_world_texture(folder / name, wm)
+
+
+def _render_probe(svm, build, inputs, folder, width=32):
+    """Render a probe graph build(tree, probe_path) on probe inputs (n, 4): its three thirds (n, 3)."""
+    import OpenEXR
+    n = len(inputs)
+    height = -(-n // width)
+    grid = np.concatenate([inputs, np.repeat(inputs[-1:], height * width - n, 0)]).astype(np.float32)
+    path = folder / "probe.exr"
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                 {"RGBA": grid.reshape(height, width, 4)}).write(str(path))
+    sc = cs.reset(3 * width, height, spp=1, osl=False, threads=1)
+    sc.cycles.filter_width = 0.01
+    cs.ortho_camera(sc)
+    cs.add_plane(sc, cs.material_with(lambda tree: build(tree, path)), size=20.0)
+    img = cs.render(sc)
+    return [img[:, k * width:(k + 1) * width].reshape(-1, 3)[:n] for k in range(3)]
+
+
+def test_svm_world_map_sample_is_numpy(svm, tmp_path):
+    """The graph's world-map sampling (direction, pdf) is bake.world_map.WorldMap's on a 40 x 40
+    grid of u, and its pdf graph reads the sampled pixel's density back."""
+    wm, path = _world_map(tmp_path)
+    wl = svm.world_layout(str(path))
+    assert (wl["W"], wl["H"], wl["Wt"]) == (48, 24, 1024) and wl["steps"] >= 1
+    n = 40
+    iy, ix = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    u = np.stack([(ix.ravel() + 0.5) / n, (iy.ravel() + 0.5) / n], 1)
+    d, pdf = wm.sample(u)
+    inputs = np.concatenate([u, np.zeros((len(u), 2))], 1)
+    shown, pdfs, _ = _render_probe(svm, lambda tree, probe: svm.build_world_probe(tree, path, probe), inputs, tmp_path)
+    assert np.abs(2.0 * shown - 1.0 - d).max() < 2e-4
+    np.testing.assert_allclose(pdfs[:, 0], pdf, rtol=1e-5)
+    np.testing.assert_allclose(pdfs[:, 1], pdf, rtol=1e-5)
+    assert pdf.min() > 0 and np.all(d[:, 2] > np.cos(np.pi * 20 / 24) - 1e-6)
+
+
+def _frame_np(n, reference):
+    """The graph's _frame: x from `reference` projected onto the plane of n, else a perpendicular."""
+    along = reference - reference @ n * n
+    if np.linalg.norm(along) <= 1e-7:
+        along = np.cross(n, [1.0, float(abs(n[0]) > 0.9), 0.0])
+    tx = along / np.linalg.norm(along)
+    return tx, np.cross(n, tx)
+
+
+def _cone_np(axis, omc, u0, u1):
+    """lamps.h cone_direction (float64)."""
+    tx = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    tx /= np.linalg.norm(tx)
+    ty = np.cross(axis, tx)
+    t = u0 * omc
+    s, phi = np.sqrt(t * (2.0 - t)), 2.0 * np.pi * u1
+    d = s[:, None] * (np.cos(phi)[:, None] * tx + np.sin(phi)[:, None] * ty) + (1.0 - t)[:, None] * axis
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _numpy_mixture(tab, wm, world, theta_i, phi_i, u):
+    """The portal direction's mixture (learned_bsdf.osl, build_svm_sampler with `world`) at a
+    shading point of normal z (also the geometric normal) and wi at (theta_i, phi_i), isotropic
+    tables, in float64: (direction, weight, q, technique, ok) per u. Each technique's own
+    sample uses its own density in q (a direction on a pixel or cone edge may round out of it)."""
+    c_world = world["WorldShare"] if wm is not None else 0.0
+    c_sun = world["SunShare"] if world["SunCos"] < 1.0 else 0.0
+    c_tables = 1.0 - c_world - c_sun
+    axis = np.asarray(world["SunDirection"], np.float64)
+    axis /= np.linalg.norm(axis)
+    omc = 1.0 - world["SunCos"]
+    cone = c_sun / (2.0 * np.pi * omc) if c_sun > 0 else 0.0
+    n = np.array([0.0, 0.0, 1.0])
+    wi = np.array([np.sin(theta_i) * np.cos(phi_i), np.sin(theta_i) * np.sin(phi_i), np.cos(theta_i)])
+    tx, ty = _frame_np(n, wi)
+    wi_local = np.array([wi @ tx, wi @ ty, wi @ n])
+    u0, u1 = u[:, 0], u[:, 1]
+    technique = np.where(u1 < c_sun, 2, np.where(u1 < c_sun + c_world, 1, 0))
+    d = np.zeros((len(u), 3))
+    own = np.zeros(len(u))
+    sun, drawn, rest = technique == 2, technique == 1, technique == 0
+    if sun.any():
+        d[sun], own[sun] = _cone_np(axis, omc, u0[sun], u1[sun] / c_sun), cone
+    if drawn.any():
+        d[drawn], p = wm.sample(np.stack([u0[drawn], (u1[drawn] - c_sun) / c_world], 1))
+        own[drawn] = c_world * p
+    if rest.any():
+        t1 = np.minimum((u1[rest] - c_sun - c_world) / c_tables, 1.0 - 2.0 ** -24)
+        wo, _ = tab.sample(np.tile(wi_local, (rest.sum(), 1)), np.stack([u0[rest], t1], 1))
+        d[rest] = wo[:, :1] * tx + wo[:, 1:2] * ty + wo[:, 2:] * n
+    wo = np.stack([d @ tx, d @ ty, d @ n], 1)
+    wis = np.tile(wi_local, (len(u), 1))
+    p_tables = tab.pdf(wis, wo)
+    fcos = tab.eval(wis, wo) * wo[:, 2:3]
+    q = c_tables * p_tables + own
+    if wm is not None:
+        q += np.where(drawn, 0.0, c_world * wm.pdf(d))
+    if c_sun > 0:
+        q += np.where(sun, 0.0, cone * (d @ axis >= world["SunCos"]))
+    ok = (wo[:, 2] > 0) & (d[:, 2] > 0)
+    return d, np.where(ok[:, None], fcos / q[:, None], 0.0), q, technique, ok
+
+
+def _on_pixel_edge(wm, d, within=1e-4):
+    """Directions within `within` pixels of a pixel edge of the world map."""
+    rows = np.arccos(np.clip(d[:, 2], -1.0, 1.0)) / np.pi * wm.H
+    cols = (0.5 - np.arctan2(d[:, 1], d[:, 0]) / (2.0 * np.pi)) % 1.0 * wm.W
+    return (np.abs(rows - np.round(rows)) < within) | (np.abs(cols - np.round(cols)) < within)
+
+
+def _sun_world(path, which, spot=(3.5 / 24 * np.pi, (0.5 - 40.5 / 48) * 2.0 * np.pi), shares=(0.3, 0.25),
+               angle=0.1):
+    """World inputs with a map (`path`) and/or a sun (`which`), the sun at (theta, phi) `spot`
+    (by default on _world_map's bright spot: some map and table samples fall in its cone)."""
+    return {"World": str(path) if "map" in which else "", "WorldShare": shares[0] if "map" in which else 0.0,
+            "SunDirection": (np.sin(spot[0]) * np.cos(spot[1]), np.sin(spot[0]) * np.sin(spot[1]), np.cos(spot[0])),
+            "SunCos": np.cos(angle) if "sun" in which else 1.0, "SunShare": shares[1] if "sun" in which else 0.0}
+
+
+def _assert_mixture_is_numpy(svm, tables_path, folder, world, wm, build):
+    """The probe graph build(tree, texture, probe) on u over (theta_i, phi_i) gives the
+    direction, weight, q and technique of _numpy_mixture for `world` (its map `wm` or None)."""
+    tab = open_tables(tables_path)
+    tab.backend = "numpy"
+    side = 12
+    grid = (np.arange(side) + 0.5) / side
+    u = np.concatenate([np.stack(np.meshgrid(grid, grid), -1).reshape(-1, 2), np.random.default_rng(2).random((60, 2))])
+    bounds = np.array([world["SunShare"], world["SunShare"] + world["WorldShare"]])
+    u = u[np.abs(u[:, 1:2] - bounds).min(1) > 1e-3].astype(np.float32).astype(np.float64)
+    angles = [(0.0, 0.0), (30.0, 40.0), (60.0, 200.0), (85.0, -100.0)]
+    inputs = np.concatenate([np.column_stack([u, np.full(len(u), np.cos(np.radians(t))),
+                                              np.full(len(u), np.radians(p))]) for t, p in angles]).astype(np.float32)
+    texture = svm_export.ensure_svm_export(tables_path)
+    shown, weight, extra = _render_probe(svm, lambda tree, probe: build(tree, texture, probe), inputs, folder)
+    x = inputs.astype(np.float64)
+    ref = [_numpy_mixture(tab, wm, world, np.arccos(x[i * len(u), 2]), x[i * len(u), 3], u) for i in range(len(angles))]
+    d, ref_weight, q, technique, ok = (np.concatenate(r) for r in zip(*ref))
+    assert np.array_equal(extra[:, 1], technique) and np.array_equal(extra[:, 2], ok)
+    techniques = {0} | ({1} if wm is not None else set()) | ({2} if world["SunShare"] > 0 else set())
+    assert set(technique) == techniques
+    assert ok.mean() > 0.5
+    assert np.abs(2.0 * shown - 1.0 - d).max() < 3e-4
+    # directions on a map pixel's edge may read either pixel's density (float32 vs float64)
+    edge = _on_pixel_edge(wm, d) if wm is not None else np.zeros(len(d), bool)
+    assert edge.mean() < 0.02
+    np.testing.assert_allclose(extra[~edge, 0], q[~edge], rtol=2e-3)
+    np.testing.assert_allclose(weight[~edge], ref_weight[~edge], rtol=2e-3, atol=1e-7)
+    return d, technique
+
+
+@pytest.mark.parametrize("which", ["map and sun", "sun", "map"])
+def test_svm_mixture_is_numpy(svm, plastic, tmp_path, which):
+    """The mixture's direction, weight, pdf q and technique on u over (theta_i, phi_i) equal a
+    numpy re-implementation's (the tables', the world map's and the sun cone's numpy
+    references): the techniques picked by u1 (rescaled), each technique's direction, the
+    tables' pdf and f·cos at the world and sun directions, every technique's density in q.
+    The sun sits on the map's bright spot (so that some map and table samples fall in its
+    cone)."""
+    wm, path = _world_map(tmp_path)
+    world = _sun_world(path, which)
+    d, technique = _assert_mixture_is_numpy(
+        svm, plastic, tmp_path, world, wm if "map" in which else None,
+        lambda tree, texture, probe: svm.build_svm_probe(tree, texture, probe, world=world))
+    if "sun" in which:      # some table or map directions fall in the sun's cone
+        assert np.sum((technique != 2) & (d @ np.asarray(world["SunDirection"]) >= world["SunCos"])) >= 3
+
+
+def test_svm_update_world(svm, plastic, tmp_path):
+    """update_world hands a graph new shares, a new sun and a new map (its node groups swapped)
+    without a rebuild: the graph then samples the new mixture (probe vs numpy). It asks for a
+    rebuild (False) where the graph lacks a technique the new inputs use, and a world's
+    values never reach a graph built without one."""
+    import bpy
+    wm, path = _world_map(tmp_path)
+    rng = np.random.default_rng(5)
+    img = rng.random((24, 48, 3)) ** 2
+    img[8, 10] = 500.0
+    from bake.world_map import WorldMap, write_world_texture
+    wm2 = WorldMap(img)
+    path2 = write_world_texture(tmp_path / "world2.exr", wm2)
+    before = _sun_world(path, "map and sun")
+    after = _sun_world(path2, "map and sun", spot=(np.radians(50.0), np.radians(120.0)), shares=(0.2, 0.35),
+                       angle=0.2)
+
+    def build(tree, texture, probe):
+        out = svm.build_svm_probe(tree, texture, probe, world=before)
+        assert svm.update_world(tree, after)
+        groups = {n.node_tree.name for n in tree.nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree}
+        assert any(name.endswith(": world2.exr") for name in groups)
+        assert not any(name.endswith(": world.exr") for name in groups)
+        return out
+    _assert_mixture_is_numpy(svm, plastic, tmp_path, after, wm2, build)
+
+    texture = svm_export.ensure_svm_export(plastic)
+    sun_only = bpy.data.node_groups.new("sun only", "ShaderNodeTree")
+    svm.build_svm_sampler(sun_only, texture, world=_sun_world(path, "sun"))
+    assert not svm.update_world(sun_only, after)                    # no map branch
+    assert svm.update_world(sun_only, _sun_world(path2, "sun", shares=(0.0, 0.4)))
+    node = sun_only.nodes[svm.WORLD]
+    assert tuple(node.inputs[i].default_value for i in range(3)) == pytest.approx((0.0, 0.4, np.cos(0.1)))
+    alone = bpy.data.node_groups.new("alone", "ShaderNodeTree")
+    svm.build_svm_sampler(alone, texture, world=_sun_world(path, "neither"))
+    assert not any(n.name.startswith((svm.WORLD, svm.SUN)) for n in alone.nodes)
+    plain = bpy.data.node_groups.new("plain", "ShaderNodeTree")
+    svm.build_svm_sampler(plain, texture)
+    assert svm.graph_counts(alone) == svm.graph_counts(plain)      # shares 0: the tables' graph, no cost
+    assert svm.update_world(alone, _sun_world(path, "neither")) and not svm.update_world(alone, after)
+
+
+@pytest.fixture(scope="module")
+def lambert(tmp_path_factory):
+    """Tables of a Lambertian of albedo 0.8 (as tests/test_cycles_lights.py's)."""
+    from bake.ideal import IdealSampler
+    from bake.materials import open_material
+    from bake.tabulate import build_tables
+    mat = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.8})
+    tab = build_tables(mat, IdealSampler(mat, resolution=64), np.radians([0.0, 30.0, 60.0, 80.0, 89.5]),
+                       rows=24, cols=24, grid=96)
+    tab.meta["material"] = "lambert"
+    path = tmp_path_factory.mktemp("svm_lambert") / "lambert.exr"
+    tab.save(path)
+    return path
+
+
+def _sky_sphere(svm, lambert, folder, n, sun_size=None):
+    """A sphere under a Sky Texture with its sun (strength 0.2, sun elevation 0.5, rotation 1.0;
+    the world's importance sampling left on, as Blender's default), box pixel filter (film-
+    stratified u), 64 spp; its world inputs from blender_addon.world.bake_world_map, and
+    materials {"mixture", "tables" (the tables alone), "diffuse" (Cycles' Diffuse BSDF 0.8)}."""
+    from blender_addon import world as bw
+    sc = cs.reset(n, n, spp=64, osl=False, threads=1)
+    sc.cycles.pixel_filter_type = 'BOX'
+    cs.ortho_camera(sc, scale=2.2)
+    sky_world = cs.set_world(sc)
+    sky_world.cycles.sampling_method = 'AUTOMATIC'
+    tree = sky_world.node_tree
+    sky = tree.nodes.new("ShaderNodeTexSky")
+    sky.sun_elevation, sky.sun_rotation = 0.5, 1.0
+    if sun_size is not None:
+        sky.sun_size = sun_size
+    background = next(node for node in tree.nodes if node.type == 'BACKGROUND')
+    tree.links.new(sky.outputs[0], background.inputs["Color"])
+    background.inputs["Strength"].default_value = 0.2
+    world = bw.bake_world_map(sc, folder)
+    assert world["WorldShare"] > 0 and world["SunShare"] > 0, world
+    texture = svm_export.ensure_svm_export(lambert)
+
+    def diffuse(tree):
+        node = tree.nodes.new("ShaderNodeBsdfDiffuse")
+        node.inputs["Color"].default_value = (0.8, 0.8, 0.8, 1.0)
+        return node.outputs[0]
+    materials = {"mixture": cs.material_with(lambda tree: svm.build_svm_sampler(tree, texture, world=world), "mixture"),
+                 "tables": cs.material_with(lambda tree: svm.build_svm_sampler(tree, texture), "tables"),
+                 "diffuse": cs.material_with(diffuse, "diffuse")}
+    return sc, cs.add_sphere(sc), materials
+
+
+def _sky_renders(svm, sc, sphere, material, seeds=6):
+    """Red channel of `seeds` renders of the sphere in `material`."""
+    sphere.data.materials.clear()
+    sphere.data.materials.append(material)
+    return _render_seeds(svm, sc, [material], seeds)[..., 0]
+
+
+def test_svm_world_mixture_is_unbiased_under_sky_and_sun(svm, lambert, tmp_path):
+    """A learned Lambertian sphere with the world mixture renders what Cycles' Diffuse BSDF
+    (with its light sampling of the world) renders, per pixel (z-scores over 6 seeds) and over
+    the sphere (4 standard errors + 0.2 %: the baked Lambertian's own error); its per-pixel
+    variance is within 100 x the Diffuse's (measured ~30 x: Cycles samples the sun as a light
+    with MIS, the portal by the mixture alone). The tables alone find the sun with probability
+    ~1e-5 per sample: at these sample counts their image lacks it (not asserted)."""
+    n = 24
+    sc, sphere, materials = _sky_sphere(svm, lambert, tmp_path, n)
+    mixture = _sky_renders(svm, sc, sphere, materials["mixture"])
+    diffuse = _sky_renders(svm, sc, sphere, materials["diffuse"])
+    _, hit = cs.sphere_view(n, n, scale=2.2)
+    seeds = len(mixture)
+    ma, mb = mixture.mean(0), diffuse.mean(0)
+    va, vb = mixture.var(0, ddof=1) / seeds, diffuse.var(0, ddof=1) / seeds
+    z = ((ma - mb) / np.sqrt(va + vb + (1e-4 * mb) ** 2))[hit]
+    assert np.sqrt(np.mean(z ** 2)) < 2.0, np.sqrt(np.mean(z ** 2))
+    se = np.sqrt(mixture[:, hit].mean(1).var(ddof=1) / seeds + diffuse[:, hit].mean(1).var(ddof=1) / seeds)
+    assert abs(ma[hit].mean() - mb[hit].mean()) < 4 * se + 2e-3 * mb[hit].mean(), (ma[hit].mean(), mb[hit].mean(), se)
+    ratio = mixture.var(0, ddof=1)[hit].mean() / diffuse.var(0, ddof=1)[hit].mean()
+    assert ratio < 100.0, ratio
+
+
+def test_svm_world_mixture_cuts_the_tables_noise(svm, lambert, tmp_path):
+    """Under a sky whose sun is 0.1 rad wide (so that the tables alone find it often enough for
+    their variance to be measured: ~1e-3 per sample), the mixture's per-pixel variance is far
+    below the tables' alone (measured ratio ~6e-4), both estimating the same image."""
+    n = 12
+    sc, sphere, materials = _sky_sphere(svm, lambert, tmp_path, n, sun_size=0.1)
+    mixture = _sky_renders(svm, sc, sphere, materials["mixture"], seeds=4)
+    tables = _sky_renders(svm, sc, sphere, materials["tables"], seeds=4)
+    _, hit = cs.sphere_view(n, n, scale=2.2)
+    ratio = mixture.var(0, ddof=1)[hit].mean() / tables.var(0, ddof=1)[hit].mean()
+    assert ratio < 0.01, ratio
+    seeds = len(mixture)
+    se = np.sqrt(mixture[:, hit].mean(1).var(ddof=1) / seeds + tables[:, hit].mean(1).var(ddof=1) / seeds)
+    means = mixture[:, hit].mean(), tables[:, hit].mean()
+    assert abs(means[0] - means[1]) < 4 * se, (means, se)
