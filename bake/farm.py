@@ -152,7 +152,7 @@ def write_openjd(manifest_path, job_dir, shared=None, python=None, train="auto",
     names = [e.name for e in manifest.select(log=log)]
     job_dir = Path(job_dir).absolute()
     shared = shared or Path(manifest_path).absolute().parent / "out"
-    absolute = lambda p: None if p is None else str(Path(p).absolute())  # noqa: E731
+    absolute = lambda p: str(Path(p).absolute()) if p else None  # noqa: E731
     template, values = job_template(
         names, str(job_dir), absolute(manifest_path), absolute(shared), python or sys.executable, train,
         scene=absolute(scene), save_as=absolute(save_as), blender=blender, addon_dir=absolute(addon_dir) or "")

@@ -140,7 +140,10 @@ def test_openjd_check_passes_and_more_than_1024_materials_split_over_steps(tmp_p
                       "--job-param", f"file://{tmp_path / 'job' / 'params.json'}"])
     assert code == 0 and "Total tasks: 2501" in out, out
     values = json.loads((tmp_path / "job" / "parameter_values.json").read_text())["parameterValues"]
-    assert {v["name"]: v["value"] for v in values} == json.loads((tmp_path / "job" / "params.json").read_text())
+    params = json.loads((tmp_path / "job" / "params.json").read_text())
+    assert {v["name"]: v["value"] for v in values} == params
+    assert params["AddonDir"] == "" and params["SaveAs"] == str(tmp_path / "shot.flowbsdf.blend")
+    assert params["SharedOut"] == str(tmp_path / "out") and params["Blender"] == "blender"
 
 
 # -- the real OpenJD runtime ------------------------------------------------------------------------
