@@ -185,6 +185,8 @@ def test_openjd_runs_each_bake_task_for_real_with_path_mapping(tmp_path):
     if farm.can_train(sys.executable):
         assert "openjd_status: rough: training stage reflow done" in runs["rough"][1]
         assert (mnt / "shot" / "out" / "models" / "rough.flow.npz").is_file()
+        from bake.tables import open_tables
+        assert open_tables(tables / "rough.exr").meta["source"] == "flow"        # baked from the trained model
     assert not (mnt / "shot" / "out" / "models" / "matte.flow.npz").exists()      # source = ideal: no training
     code, out = runs["broken"]
     assert code == 1 and "Session ended with errors" in out
