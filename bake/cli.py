@@ -107,6 +107,8 @@ def build_parser():
     sub.add_parser("train", help="train flow models (python -m trainer train --help)", add_help=False)
     from .stress import add_parser as add_stress
     add_stress(sub)
+    from .farm import add_parser as add_farm        # farm openjd, farm task
+    add_farm(sub)
     from .tracer.commands import add_commands as add_tracer_commands   # render, compare
     add_tracer_commands(sub)
     return p

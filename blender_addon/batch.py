@@ -6,8 +6,11 @@
          sys.path and import blender_addon.batch instead)
 
 Commands: `scan` (write the manifest, print what each material needs and whether its
-tables are current), `bake` (the whole job) and `validate` (reference tracer vs Cycles:
-MSE, SSIM and a side-by-side image in <out>/validate/). Options:
+tables are current), `bake` (the whole job), `validate` (reference tracer vs Cycles:
+MSE, SSIM and a side-by-side image in <out>/validate/) and `farm openjd --job-dir DIR`
+(scan, then write an Open Job Description job bundle that trains/bakes each material on a
+farm and assembles this file: `flowbsdf farm openjd` in the worker Python, bake/farm.py;
+--blender, --addon-dir: Blender and the add-on's folder on the farm). Options:
     --python PY        the Python that bakes/trains (else FLOWBSDF_PYTHON, the preference,
                        Blender's own)
     --train MODE       auto (default: train when that Python has torch), always, never
@@ -27,6 +30,7 @@ back end when it opens the saved file. Each bound material's back end is logged.
 """
 import argparse
 import os
+import subprocess
 import sys
 
 import bpy
@@ -41,7 +45,8 @@ def log(message):
 def _parser():
     p = argparse.ArgumentParser(prog="blender -b FILE -c flowbsdf", add_help=True,
                                 description="Scan, train, bake and bind FlowBSDF materials.")
-    p.add_argument("command", choices=["scan", "bake", "validate"])
+    p.add_argument("command", choices=["scan", "bake", "validate", "farm"])
+    p.add_argument("engine", nargs="?", choices=["openjd"], help="farm: the job format")
     p.add_argument("--python", default=None)
     p.add_argument("--train", choices=["auto", "always", "never"], default=None)
     p.add_argument("--out", default=None)
@@ -52,6 +57,10 @@ def _parser():
     p.add_argument("--size", type=int, default=None, help="validate: image width in pixels")
     p.add_argument("--no-bind", action="store_true",
                    help="bake only: nodes not bound, file not saved")
+    p.add_argument("--job-dir", default=None, help="farm openjd: the job folder to write")
+    p.add_argument("--blender", default=None, help="farm openjd: Blender on the farm (default: this one)")
+    p.add_argument("--addon-dir", default="", help="farm openjd: folder holding the `flowbsdf` add-on on the "
+                                                  "farm (default: the installed one)")
     return p
 
 
@@ -95,6 +104,8 @@ def _run(args):
     scene = bpy.context.scene
     if args.command == "validate":
         return _validate(scene, args)
+    if args.command == "farm":
+        return _farm(scene, args)
     try:
         if args.out:
             scene.flowbsdf.out_dir = os.path.abspath(args.out)
@@ -162,6 +173,41 @@ def _validate(scene, args):
         print(f"[flowbsdf] error: {e}", file=sys.stderr, flush=True)
         return 1
     log(f"validate: MSE {result['mse']:.4g}, SSIM {result['ssim']:.4f}; side by side: {result['image']}")
+    return 0
+
+
+def _farm(scene, args):
+    """`farm openjd --job-dir DIR`: scan the scene (its manifest), then the CLI's `farm openjd`
+    (bake/farm.py) in the worker Python writes the job bundle with an Assemble step for this file."""
+    try:
+        if args.engine != "openjd" or not args.job_dir:
+            raise BatchError("usage: farm openjd --job-dir DIR [--out DIR] [--train MODE] [--save-as PATH]")
+        if not bpy.data.filepath:
+            raise BatchError("save the .blend first: the farm opens it from shared storage")
+        if args.out:
+            scene.flowbsdf.out_dir = os.path.abspath(args.out)
+        rows, manifest, out = jobs.prepare(scene)
+        log(f"{len(rows)} learned material(s) in use; manifest {manifest}")
+        from . import prefs
+        p = prefs.get()
+        python = worker.python_for(p)
+        cmd = [str(python), "-m", "bake.cli", "farm", "openjd", manifest, "--scene", bpy.data.filepath,
+               "--out", os.path.abspath(args.job_dir), "--shared", out, "--python", str(python),
+               "--train", args.train or scene.flowbsdf.train.lower(),
+               "--blender", args.blender or bpy.app.binary_path or "blender", "--addon-dir", args.addon_dir]
+        if args.save_as:
+            cmd += ["--save-as", os.path.abspath(args.save_as)]
+        proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                              text=True, env=deps.worker_env(python, worker.extra_paths(p)))
+        print(proc.stdout, end="", flush=True)
+        if proc.returncode != 0:
+            tail = [ln for ln in proc.stdout.splitlines() if ln.strip()][-1:] or ["no output"]
+            raise BatchError(f"the job was not written (exit code {proc.returncode}): {tail[0]}")
+    except (BatchError, worker.JobError, scan.ScanError, OSError, RuntimeError) as e:
+        print(f"[flowbsdf] error: {e}", flush=True)
+        print(f"[flowbsdf] error: {e}", file=sys.stderr, flush=True)
+        return 1
+    log("done")
     return 0
 
 
