@@ -269,6 +269,20 @@ def inner_mask(size):
     return cs.sphere_view_persp(size, size, ca.DISTANCE, ca.FOV)[2]
 
 
+def block_z(img, ref, var_img, var_ref, inner, b=4):
+    """rms z of b x b pixel block means (blocks wholly inside `inner`): per-pixel z-scores with
+    variances from a few seeds break down where the noise is heavy-tailed (a sun's rare large
+    samples: a pixel none of whose seeds drew one looks 30 sigma dark); a block pools b^2
+    pixels' samples."""
+    H, W = inner.shape
+    h, w = H // b, W // b
+    blk = lambda a: a[:h * b, :w * b].reshape(h, b, w, b, -1).sum((1, 3))      # noqa: E731
+    full = blk(inner[..., None].astype(float))[..., 0] == b * b
+    d = (blk(img) - blk(ref))[full]
+    v = (blk(var_img) + blk(var_ref))[full]
+    return float(np.sqrt(np.mean(d * d / np.where(v > 0, v, np.inf))))
+
+
 def errors(imgs, ref, ref_var, inner):
     """MSE of one render (mean over the renders, net of the reference's noise), its split into
     noise + bias^2, and the z statistics of the renders' mean against the reference."""
@@ -281,6 +295,7 @@ def errors(imgs, ref, ref_var, inner):
     rms_z, frac3, mean_d, se = ca.z_stats(imgs.mean(0), ref, var / k, ref_var, inner)
     m = float(ref[inner].mean())
     return {"mse": mse, "noise": noise, "bias2": bias2, "rms_z": rms_z, "frac3": frac3,
+            "block_z": block_z(imgs.mean(0), ref, var / k, ref_var, inner),
             "rel": float(mean_d.mean() / m), "rel_se": float(np.sqrt(np.mean(se ** 2)) / m),
             "max_abs_z_mean": float(np.max(np.abs(mean_d / se))), "seeds": k}
 
@@ -295,6 +310,7 @@ def run_case(case):
     row = {"scene": case.scene, "name": case.name, "mean": float(ref[inner].mean()),
            "ref_noise": float(np.mean(ref_var[inner])),
            "ref_spp": int(round(float(np.median(var1[ref_var > 0] / ref_var[ref_var > 0])))),
+           "ref_per_sample_var": float(np.mean(var1[inner])),
            "per_spp": per, "wall_per_spp": t["wall_per_spp"], "spp": spp, "load": t["load"]}
     for kind in KINDS:
         seeds = a.osl_seeds if kind == "osl" else a.seeds
@@ -306,6 +322,7 @@ def run_case(case):
             return imgs
         imgs = case.saved(f"{kind}_{spp[kind]}", make)
         row[kind] = errors(imgs, ref, ref_var, inner)
+        row[kind]["per_sample_var"] = row[kind]["noise"] * spp[kind]
         row[kind]["render_s"] = float(np.mean([w for w, _ in secs])) if secs else None
         e = row[kind]
         log(f"{case.tag()} {kind} {spp[kind]} spp x {seeds}: MSE {e['mse']:.3e} (noise {e['noise']:.2e} + bias2 "
@@ -352,8 +369,10 @@ def write(rows, ff_rows, geom, args, started):
         f"{args.size}x{args.size} px, box filter, perspective camera (scripts/cycles_acceptance.py's sphere, "
         f"256 x 128 UV mesh); bpy 5.0.1 Cycles CPU, 2 threads, world importance sampling 'AUTOMATIC'. "
         f"Tables: {'draft (32 x 32 cells, 8 theta bins, ideal tabulation)' if not args.tables_dir else args.tables_dir}. "
-        f"Run {time.strftime('%Y-%m-%d %H:%M', time.localtime(started))}, {(time.time() - started) / 60:.0f} min, "
-        "2 shared cores (load per row).", "",
+        (f"Analysis {time.strftime('%Y-%m-%d %H:%M', time.localtime(started))} of the renders, references and "
+         "timings saved by an earlier run (--reuse), " if args.reuse else
+         f"Run {time.strftime('%Y-%m-%d %H:%M', time.localtime(started))}, {(time.time() - started) / 60:.0f} min, ")
+        + "2 shared cores (load per row).", "",
         "- Scenes: **hdri** = cycles_acceptance's 'sunny' image; **sky** = Blender's default Sky Texture "
         f"(sun elevation {SKY['sun_elevation']}, rotation {SKY['sun_rotation']}, strength {SKY['strength']}) "
         f"rendered to a {args.sky_res[0]}x{args.sky_res[1]} image ({args.sky_spp} spp) by world.render_world, "
@@ -374,22 +393,35 @@ def write(rows, ff_rows, geom, args, started):
         "rms z ~ sqrt((K-1)/(K-3)) if within MC error: 1.18 for 8, 1.73 for 4); sphere mean rel. diff +- SE.",
         "",
         "| scene | material | mean | ref spp (noise) | spp Pr/OSL/SVM/fit | CPU time per spp vs Pr: OSL / SVM / fit / Pr(OSL) | "
-        "OSL rms z (\\|z\\|>3) | OSL mean rel +- SE | SVM rms z | SVM mean rel +- SE | "
-        "MSE equal time: OSL | SVM | fit (bias^2 + noise) | Principled (bias^2 + noise) | OSL < fit, Pr | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        "OSL rms z (\\|z\\|>3) [4x4 blocks] | OSL mean rel +- SE | SVM rms z [blocks] | SVM mean rel +- SE | "
+        "MSE equal time: OSL | SVM | fit (bias^2 + noise) | Principled (bias^2 + noise) | OSL < fit, Pr | SVM < fit | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         p = r["per_spp"]
         o, s, ft, pr = r["osl"], r["svm"], r["fit"], r["principled"]
         ok = ("yes" if o["mse"] < ft["mse"] else "NO") + " / " + ("yes" if o["mse"] < pr["mse"] else "NO")
+        ok_svm = "yes" if s["mse"] < ft["mse"] else "NO"
         lines.append(
             f"| {r['scene']} | {r['name']} | {r['mean']:.3f} | {r['ref_spp']} ({r['ref_noise']:.1e}) | "
             f"{r['spp']['principled']}/{r['spp']['osl']}/{r['spp']['svm']}/{r['spp']['fit']} | "
             f"{p['osl'] / p['principled']:.2f} (wall {r['wall_per_spp']['osl'] / r['wall_per_spp']['principled']:.2f}) / "
             f"{p['svm'] / p['principled']:.2f} / {p['fit'] / p['principled']:.2f} / "
-            f"{p['principled_osl'] / p['principled']:.2f} | {o['rms_z']:.2f} ({o['frac3']:.3f}) | "
-            f"{o['rel']:+.4f} +- {o['rel_se']:.4f} | {s['rms_z']:.2f} | {s['rel']:+.4f} +- {s['rel_se']:.4f} | "
+            f"{p['principled_osl'] / p['principled']:.2f} | {o['rms_z']:.2f} ({o['frac3']:.3f}) [{o.get('block_z', float('nan')):.2f}] | "
+            f"{o['rel']:+.4f} +- {o['rel_se']:.4f} | {s['rms_z']:.2f} [{s.get('block_z', float('nan')):.2f}] | "
+            f"{s['rel']:+.4f} +- {s['rel_se']:.4f} | "
             f"{f(o['mse'])} | {f(s['mse'])} | {f(ft['mse'])} ({f(ft['bias2'])} + {f(ft['noise'])}) | "
-            f"{f(pr['mse'])} ({f(pr['bias2'])} + {f(pr['noise'])}) | {ok} | {r['load'][0]:.1f}-{r['load'][1]:.1f} |")
+            f"{f(pr['mse'])} ({f(pr['bias2'])} + {f(pr['noise'])}) | {ok} | {ok_svm} | "
+            f"{r['load'][0]:.1f}-{r['load'][1]:.1f} |")
+    lines += ["", "Noise per sample (per-pixel variance over the seeds x spp, mean over the sphere): what the "
+              "equal-time MSEs come from. Tracer: plain Monte Carlo, one BSDF + one light sample per vertex "
+              "(MIS); OSL/SVM: film-stratified u on camera rays; fit/Principled: Cycles' own QMC, NEE + BSDF.", "",
+              "| scene | material | tracer (MIS) | OSL | SVM | fit | Principled | OSL / fit |",
+              "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        v = {k: r[k].get("per_sample_var", r[k]["noise"] * r["spp"][k]) for k in KINDS}
+        lines.append(f"| {r['scene']} | {r['name']} | {f(r.get('ref_per_sample_var', float('nan')))} | "
+                     f"{f(v['osl'])} | {f(v['svm'])} | {f(v['fit'])} | {f(v['principled'])} | "
+                     f"{v['osl'] / v['fit']:.1f} |")
     if ff_rows:
         lines += ["", f"## Sun + sky with the real Sky Texture: fireflies ({args.ff_spp} spp, {args.ff_seeds} seeds, "
                   "equal spp)", "",
