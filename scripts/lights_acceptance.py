@@ -369,7 +369,7 @@ def write(rows, ff_rows, geom, args, started):
         f"{args.size}x{args.size} px, box filter, perspective camera (scripts/cycles_acceptance.py's sphere, "
         f"256 x 128 UV mesh); bpy 5.0.1 Cycles CPU, 2 threads, world importance sampling 'AUTOMATIC'. "
         f"Tables: {'draft (32 x 32 cells, 8 theta bins, ideal tabulation)' if not args.tables_dir else args.tables_dir}. "
-        (f"Analysis {time.strftime('%Y-%m-%d %H:%M', time.localtime(started))} of the renders, references and "
+        + (f"Analysis {time.strftime('%Y-%m-%d %H:%M', time.localtime(started))} of the renders, references and "
          "timings saved by an earlier run (--reuse), " if args.reuse else
          f"Run {time.strftime('%Y-%m-%d %H:%M', time.localtime(started))}, {(time.time() - started) / 60:.0f} min, ")
         + "2 shared cores (load per row).", "",
