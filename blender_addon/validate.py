@@ -163,7 +163,8 @@ def _lamp(obj):
         strength = [s * area for s in strength]
     entry.update(position=_vec(m.translation), axis_u=_vec(u * sx), axis_v=_vec(v * sy),
                  shape="ellipse" if ellipse else "rectangle", strength=_vec(strength),
-                 spread=min(round(math.degrees(light.spread), 6), 180.0))     # float32 pi is a hair over 180 deg
+                 # Blender's default spread is float32(pi): 180.000005 degrees, which the tracer refuses
+                 spread=round(min(math.degrees(light.spread), 180.0), 6))
     return entry
 
 

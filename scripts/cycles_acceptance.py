@@ -88,23 +88,34 @@ class BakedBSDF:
 
 
 def cycles_scene(kind, name, tables_path, env_path, size, spp, fit=None, seed=0,
-                 segments=256, rings=128, distance=DISTANCE, fov=FOV, world_mis=False):
+                 segments=256, rings=128, distance=DISTANCE, fov=FOV, world_mis=False, setup=None, native=False):
     """The Blender scene (current scene reset) with the sphere's material for `kind`:
-    osl | fit (the Learned BSDF node's back ends) | oslhash (OSL, u hashed on camera rays too) |
-    principled. Returns (scene, material)."""
+    osl | fit | svm (the Learned BSDF node's back ends) | oslhash (OSL, u hashed on camera rays
+    too) | principled | diffuse (a Diffuse BSDF of the Principled fit's base colour).
+    `setup(scene)`, when given, makes the world and lamps instead of the environment image
+    `env_path` (and decides the world's sampling itself). Open Shading Language is on for
+    every kind, or with `native` only for the OSL kinds (the others render as Blender's
+    default, SVM). Returns (scene, material)."""
     import bpy
     from blender_addon import node as lb
-    sc = cs.reset(size, size, spp=spp, seed=seed)
+    sc = cs.reset(size, size, spp=spp, seed=seed, osl=not native or kind in ("osl", "oslhash"))
     sc.cycles.pixel_filter_type = 'BOX'
     sc.cycles.filter_width = 1.0
     cs.persp_camera(sc, distance=distance, fov_deg=fov)
-    world = cs.set_world(sc, image=env_path)
-    if world_mis:           # Blender's default: the world importance-sampled (Cycles' closures only)
-        world.cycles.sampling_method = 'AUTOMATIC'
-    if kind == "principled":
+    if setup is not None:
+        setup(sc)
+    else:
+        world = cs.set_world(sc, image=env_path)
+        if world_mis:           # Blender's default: the world importance-sampled (Cycles' closures only)
+            world.cycles.sampling_method = 'AUTOMATIC'
+    if kind in ("principled", "diffuse"):
         params = principled_params(fit)
 
         def nodes(tree):
+            if kind == "diffuse":
+                d = tree.nodes.new("ShaderNodeBsdfDiffuse")
+                d.inputs["Color"].default_value = (*params["Base Color"], 1.0)
+                return d.outputs[0]
             p = tree.nodes.new("ShaderNodeBsdfPrincipled")
             for k, v in params.items():
                 p.inputs[k].default_value = (*v, 1.0) if isinstance(v, list) else v
@@ -140,9 +151,10 @@ def export_for_tracer(name, tables_path, env_path, size, folder, manifest_path, 
     return path
 
 
-def trace(scene_path, manifest, tables, which, spp, seed=1, workers=1):
-    """Tracer render (BSDF-only, tables sampling) with the scene's learned material evaluated as
-    the baked tables (which="baked") or the true material (which="true").
+def trace(scene_path, manifest, tables, which, spp, seed=1, workers=1, mis=False, seconds=None):
+    """Tracer render (BSDF-only, or with `mis` next-event estimation of the lamps and the
+    world; tables sampling) with the scene's learned material evaluated as the baked tables
+    (which="baked") or the true material (which="true"); `seconds`: as many passes as fit.
     Returns (image, per-pixel variance of the mean, per-sample variance, seconds)."""
     from bake.tracer import load_scene, render
     scene = load_scene(scene_path, manifest=manifest)
@@ -151,7 +163,7 @@ def trace(scene_path, manifest, tables, which, spp, seed=1, workers=1):
                            for m in scene.materials]
     samplers = [tables if m.learned else None for m in scene.materials]
     t0 = time.perf_counter()
-    img, var, st = render(scene, samplers, spp=spp, mis=False, seed=seed, workers=workers)
+    img, var, st = render(scene, samplers, spp=spp, seconds=seconds, mis=mis, seed=seed, workers=workers)
     return img, var, var * st.extra["spp"], time.perf_counter() - t0
 
 

@@ -80,6 +80,43 @@ def set_world(scene, color=(1.0, 1.0, 1.0), image=None, strength=1.0):
     return world
 
 
+def set_sky_world(scene, sun_elevation=0.5, sun_rotation=0.0, strength=1.0, sky_type=None):
+    """A Sky Texture world (Blender's default sky type unless `sky_type`, its sun disc on),
+    importance-sampled by Cycles as Blender's default ('AUTOMATIC')."""
+    import bpy
+    world = bpy.data.worlds.new("flowbsdf sky")
+    scene.world = world
+    if world.node_tree is None:
+        world.use_nodes = True
+    nt = world.node_tree
+    bg = next(n for n in nt.nodes if n.type == 'BACKGROUND')
+    bg.inputs["Strength"].default_value = strength
+    sky = nt.nodes.new("ShaderNodeTexSky")
+    if sky_type is not None:
+        sky.sky_type = sky_type
+    sky.sun_elevation, sky.sun_rotation = sun_elevation, sun_rotation
+    nt.links.new(sky.outputs["Color"], bg.inputs["Color"])
+    world.cycles.sampling_method = 'AUTOMATIC'
+    return world
+
+
+def add_lamp(scene, lamp_type, location, target=(0.0, 0.0, 0.0), visible_camera=True, **settings):
+    """A lamp at `location` whose -Z (where spot, sun and area lamps shine) points at `target`;
+    `settings` are the light data's attributes. Visible to the camera as lamps made in the UI
+    are (bpy.data lamps start hidden from it)."""
+    import bpy
+    from mathutils import Vector
+    light = bpy.data.lights.new(f"{lamp_type.lower()} lamp", lamp_type)
+    for key, value in settings.items():
+        setattr(light, key, value)
+    ob = bpy.data.objects.new(light.name, light)
+    ob.visible_camera = visible_camera
+    scene.collection.objects.link(ob)
+    ob.location = location
+    ob.rotation_euler = (Vector(target) - Vector(location)).to_track_quat('-Z', 'Y').to_euler()
+    return ob
+
+
 def add_sphere(scene, material=None, radius=1.0, segments=128, rings=64):
     import bpy
     import bmesh

@@ -341,3 +341,16 @@ def test_validate_exports_every_lamp_as_cycles_renders_it(tmp_path):
     lamp.light_linking.receiver_collection = bpy.data.collections.new("lit")
     with pytest.raises(validate.ExportError, match="light or shadow linking"):
         validate.export_scene(sc, str(tmp_path / "v"), [], N, N, "unused.toml")
+
+
+def test_validate_exports_a_default_area_lamp(tmp_path):
+    """Blender's default spread (180 deg, stored as float32 pi = 180.000005 deg) exports as
+    180, which the tracer accepts (it refused the scene of any default area lamp)."""
+    cs.bpy_or_skip()
+    from blender_addon import validate
+    from bake.tracer.scene import load_scene
+    sc = cycles_scene([("AREA", {"location": LOC, "rotation_euler": ROT}, {"energy": 10.0})])
+    cs.persp_camera(sc, distance=6.0, fov_deg=22.0)
+    assert math.degrees(next(o for o in sc.objects if o.type == "LIGHT").data.spread) > 180.0
+    path, _ = validate.export_scene(sc, str(tmp_path / "v"), [], N, N, "unused.toml")
+    assert [type(lamp).__name__ for lamp in load_scene(path).lamps] == ["AreaLight"]
