@@ -1,0 +1,155 @@
+"""The main job's page, OUT/index.html: what FlowBSDF did to each material and how well it
+does, at a glance. Built from what the job's stages left on disk (bake/job.py): per material
+the equal-time renders of the shader ball with their error maps and MSE (render/<name>/,
+tracer.compare), the speed-vs-error summary with its Pareto plot, and the pdf slices (ideal /
+flow / tables) (report/<name>/, report.write_report). Images are linked by relative paths,
+so the folder can be moved or shared whole."""
+import html
+import math
+import time
+from pathlib import Path
+
+from .progress import fmt_seconds
+
+STYLE = """
+body { font: 15px/1.45 system-ui, sans-serif; margin: 2em auto; max-width: 1100px; padding: 0 1em; color: #222 }
+h1 { margin-bottom: 0.2em } h2 { margin-top: 2.2em; border-bottom: 1px solid #ccc }
+.lead { color: #555 } .headline { font-size: 1.1em; background: #f3f6ee; padding: 0.6em 0.9em; border-radius: 6px }
+table { border-collapse: collapse; margin: 0.6em 0 } td, th { padding: 0.2em 0.7em; border-bottom: 1px solid #e4e4e4 }
+th { text-align: left; background: #fafafa } td.n { text-align: right; font-variant-numeric: tabular-nums }
+.row { display: flex; flex-wrap: wrap; gap: 10px; align-items: flex-start }
+figure { margin: 0; text-align: center; font-size: 0.9em }
+figure img.px { width: 192px; image-rendering: pixelated } figure img.plot { max-width: 100% }
+.scale { display: inline-block; width: 160px; height: 10px; vertical-align: middle;
+         background: linear-gradient(to right, #440154, #3b528b, #21918c, #5ec962, #fde725) }
+.files, .small { font-size: 0.88em; color: #555 }
+"""
+SAMPLER_NAMES = {"tables": "learned tables", "ggx": "GGX fit", "cosine": "cosine", "ideal": "ideal",
+                 "flow": "flow"}
+
+
+def _e(x):
+    return html.escape(str(x))
+
+
+def _num(x, digits=3):
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "-" if x is None or math.isnan(x) else ("inf" if x > 0 else "-inf")
+    return f"{x:.{digits}g}"
+
+
+def _table(header, rows, numeric_from=1):
+    head = "".join(f"<th>{_e(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td{' class=n' if i >= numeric_from else ''}>{c}</td>"
+                                    for i, c in enumerate(r)) + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _figure(src, caption, cls="px"):
+    return f'<figure><img class="{cls}" src="{_e(src)}" alt="{_e(caption)}"><figcaption>{caption}</figcaption></figure>'
+
+
+def _ns(rate):
+    return 1e9 / rate if rate and math.isfinite(rate) and rate > 0 else math.nan
+
+
+def render_section(name, stamp):
+    """Equal-time pictures with error maps, the headline ratio, and every render's numbers."""
+    rows = [r for r in stamp["rows"] if r["mode"] != "unavailable"]
+    base = f"render/{name}/"
+    timed = [r for r in rows if r["mode"] == "equal time"]
+    first = timed[0] if timed else None
+    out = []
+    if first:
+        ratios = ", ".join(f"{SAMPLER_NAMES.get(r['sampler'], r['sampler'])} {_num(r['mse'])} "
+                           f"(<b>{r['mse'] / first['mse']:.2g}×</b>)" for r in timed[1:] if first["mse"] > 0)
+        out.append(f'<p class="headline">Equal time ({first["seconds"]:.1f} s each), image error (MSE against '
+                   f'the reference): {SAMPLER_NAMES.get(first["sampler"], first["sampler"])} {_num(first["mse"])}'
+                   f'{"; " + ratios if ratios else ""}.</p>')
+    figs = [_figure(base + "reference.png", f"reference<br>{_e(stamp['settings']['reference_sampler'])}, "
+                                            f"{stamp['settings']['reference_spp']} spp")]
+    errs = []
+    for r in timed:
+        label = SAMPLER_NAMES.get(r["sampler"], r["sampler"])
+        figs.append(_figure(f"{base}{r['sampler']}_time.png", f"{_e(label)}<br>{r['spp']} spp in {r['seconds']:.1f} s"))
+        errs.append(_figure(f"{base}{r['sampler']}_time_error.png", f"error, MSE {_num(r['mse'])}"))
+    out.append('<div class="row">' + "".join(figs) + "</div>")
+    if errs:
+        scale = rows[0].get("error_scale")
+        out.append('<div class="row">' + f'<figure style="width:192px"><figcaption>|luminance error|<br>'
+                   f'0 <span class="scale"></span> {_num(scale, 2)}</figcaption></figure>' + "".join(errs) + "</div>")
+    out.append(_table(["sampler", "mode", "spp", "seconds", "MSE", "MAE", "SSIM", "paths/s"],
+                      [[_e(SAMPLER_NAMES.get(r["sampler"], r["sampler"])), _e(r["mode"]), r["spp"],
+                        f"{r['seconds']:.2f}", _num(r["mse"]), _num(r["mae"]), f"{r['ssim']:.3f}",
+                        f"{r['paths_per_s']:,}"] for r in rows], numeric_from=2))
+    ref_noise = rows[0]["reference_noise"] if rows else math.nan
+    s = stamp["settings"]
+    out.append(f'<p class="small">builtin:{_e(s["scene"])}, {s["size"]}×{s["size"]} pixels, '
+               f'{"MIS (light and BSDF sampling)" if s["mis"] else "BSDF sampling only"}. The reference\'s own '
+               f'noise (mean variance of its pixel means) is {_num(ref_noise)}: MSEs near it are not resolved. '
+               f'Equal time is wall clock on a shared machine (load average {stamp.get("load", math.nan):.1f} '
+               f'when rendered). Full numbers: <a href="{base}metrics.md">metrics.md</a>, images as EXR in '
+               f'<a href="{base}">{base}</a>.</p>')
+    return "\n".join(out)
+
+
+def report_section(name, stamp):
+    """The speed-vs-error summary, its Pareto plot and the pdf slices."""
+    from .report import summary_rows
+    base = f"report/{name}/"
+    figs = []
+    if stamp.get("pareto"):
+        figs.append(_figure(base + stamp["pareto"], "error vs time per sample", "plot"))
+    figs.append(_figure(base + stamp["pdf_slice"], "pdf over the hemisphere (disk projection, log scale)", "plot"))
+    rows = [[_e(s["sampler"]), _num(s["median_rv"]), _num(s["max_rv"]), _num(s["max_lost"], 2),
+             _num(s["ns_per_sample"]), _num(_ns(s["both_rwi_per_s"])),
+             "-" if s["nbytes"] is None else f"{s['nbytes'] / 1024:,.0f} KiB"]
+            for s in summary_rows(stamp["rows"])]
+    thetas = sorted({r["theta_i"] for r in stamp["rows"]})
+    return "\n".join([
+        _table(["sampler", "median rv", "max rv", "lost", "ns/sample", "ns/sample, new wi", "memory"], rows),
+        f'<p class="small">rv: relative variance of the one-sample albedo estimator, 0 is perfect '
+        f'(θi = {", ".join(f"{t:g}°" for t in thetas)}); lost: share of samples with pdf 0; ns/sample: '
+        f'sample() + pdf() on one thread, one incident direction per call or a new one per sample. '
+        f'Every number: <a href="{base}speed_error.md">speed_error.md</a>.</p>',
+        '<div class="row">' + "".join(figs) + "</div>"])
+
+
+def write_page(out_dir, manifest, entries, timings):
+    """Write OUT/index.html from the report and render folders of `entries`; returns its path."""
+    from .job import read_stamp
+    out = Path(out_dir)
+    parts = [f"<!doctype html><meta charset=utf-8><title>FlowBSDF: {_e(Path(manifest.path).name)}</title>",
+             f"<style>{STYLE}</style>",
+             f"<h1>FlowBSDF on {_e(Path(manifest.path).name)}</h1>",
+             '<p class="lead">Per material, a small flow learns to sample the measured BSDF (f·cos); it is baked '
+             'into exact tables that Blender and the reference path tracer sample from. Below: the shader ball '
+             'rendered with those tables, with the GGX lobe fitted to the material (what a renderer would '
+             'otherwise use) and with cosine sampling, <b>for the same time</b>; then how each sampler trades '
+             'error for time, and what its pdf looks like.</p>']
+    done = {(m, k): (s, st) for m, k, s, st in timings}
+    for entry in entries:
+        parts.append(f"<h2 id='{_e(entry.name)}'>{_e(entry.name)}</h2>")
+        render = read_stamp(out / "render" / entry.name)
+        report = read_stamp(out / "report" / entry.name)
+        if render:
+            parts.append(render_section(entry.name, render))
+        if report:
+            parts.append("<h3>Speed vs error of the samplers</h3>")
+            parts.append(report_section(entry.name, report))
+        if not (render or report):
+            parts.append("<p>Not reported yet.</p>")
+        stages = [f"{k} {fmt_seconds(done[(entry.name, k)][0])}"
+                  + (" (current, skipped)" if done[(entry.name, k)][1] == "current" else "")
+                  for k in ("train", "bake", "report", "render") if (entry.name, k) in done]
+        if stages:
+            parts.append(f'<p class="files">This run: {", ".join(stages)}. Model: models/{_e(entry.name)}.flow.npz, '
+                         f'tables: tables/{_e(entry.name)}.exr.</p>')
+    total = sum(s for _, _, s, _ in timings)
+    parts.append(f'<p class="files">Written {time.strftime("%Y-%m-%d %H:%M")}; stages of this run took '
+                 f'{fmt_seconds(total)}.</p>')
+    path = out / "index.html"
+    from .files import atomic_path
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text("\n".join(parts) + "\n", encoding="utf-8")
+    return path
