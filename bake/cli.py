@@ -87,9 +87,10 @@ def build_parser():
     r.add_argument("--steps", default="2,4,8", help="Euler step counts of the flow to compare (its trained N is always added)")
     m = command("run", cmd_run, "the main job: train -> bake -> report -> render, one page (OUT/index.html)")
     m.add_argument("--preset", default="fast", choices=["fast", "balanced", "paper"])
-    m.add_argument("--no-train", action="store_true", help="bake from the ideal tabulation only")
+    m.add_argument("--no-train", action="store_true", help="no training: bake from a model already there, else from the ideal tabulation")
     m.add_argument("--no-render", action="store_true", help="no shader-ball renders")
-    m.add_argument("--samples", type=int, default=None, help="samples per rv cell of the report (default: the manifest's [run.report], else 32768)")
+    m.add_argument("--samples", type=int, default=None,
+                   help="samples per rv cell of the report (default: the manifest's [run.report], else 16384)")
 
     sub.add_parser("train", help="train flow models (python -m trainer train --help)", add_help=False)
     from .stress import add_parser as add_stress

@@ -11,12 +11,12 @@ Each stage of each material is skipped when its product is current:
   render  OUT/render/<name>/: the shader ball in the reference tracer with the tables, the GGX
           fit and cosine sampling at equal spp and at equal time against a converged reference
           (tracer.compare); the reference (reference.npz) is reused while the material and the
-          render settings stay the same
+          reference's settings stay the same
 report and render write the hash of their inputs to <folder>/job.json last: a folder without
 a matching one (changed inputs, or a stage interrupted) is redone.
 
 The manifest's optional [run] table sets the job: `max_materials` (the first N selected
-materials whose source is present) and `render` (RENDER_DEFAULTS).
+materials whose source is present), `report` (REPORT_DEFAULTS) and `render` (RENDER_DEFAULTS).
 """
 import hashlib
 import json
@@ -35,17 +35,20 @@ REPORT_VERSION = 1
 RENDER_VERSION = 1
 # The manifest's [run.report] and [run.render] tables override these.
 REPORT_DEFAULTS = {
-    "samples": 1 << 15,             # samples per rv cell
+    "samples": 1 << 14,             # samples per rv cell
     "thetas": [0, 30, 60, 75, 85],  # incident elevations, degrees
+    "speed_samples": 1 << 13,       # per timing of sample() / pdf() (the flow's numpy pdf takes ~50 us each)
+    "speed_repeat": 2,              # timings per number (the best is kept)
 }
 RENDER_DEFAULTS = {
     "scene": "shaderball-env",      # a built-in scene of the reference tracer (bake/tracer/scene.py)
     "size": 96,                     # image width and height, pixels
     "samplers": ["tables", "ggx", "cosine"],   # the first one sets the equal-time budget
-    "spp": 32,                      # samples per pixel of the equal-spp renders
-    "reference_spp": 512,
+    "spp": 64,                      # samples per pixel of the equal-spp renders
+    "reference_spp": 512,           # the reference: MIS (light and BSDF sampling) whatever `mis` says
     "reference_sampler": "ggx",     # independent of the learned tables
-    "mis": True,
+    "mis": False,                   # BSDF sampling only, as the Blender node's portal path (no light
+                                    # sampling there): shows the samplers' own quality
     "seed": 1,
     "workers": 1,                   # processes per render (the image does not depend on it)
 }
@@ -80,13 +83,25 @@ def write_stamp(folder, inputs_hash, **data):
 
 
 def run_settings(manifest, key, defaults):
-    """The manifest's [run.<key>] over `defaults` (unknown keys are an error)."""
+    """The manifest's [run.<key>] over `defaults`: unknown keys, values of another type than the
+    default's and unknown sampler or scene names are errors."""
+    from .tracer.samplers import SAMPLERS
+    from .tracer.scene import BUILTINS
     given = manifest.run.get(key, {})
     unknown = sorted(set(given) - set(defaults))
     if unknown:
         raise FlowBSDFError(f"[run.{key}]: unknown key(s) {', '.join(unknown)} (allowed: {', '.join(defaults)})",
                             manifest.path)
-    return {**defaults, **given}
+    for k, v in given.items():
+        if type(v) is not type(defaults[k]):
+            raise FlowBSDFError(f"[run.{key}]: {k} = {v!r} should be like {defaults[k]!r}", manifest.path)
+    settings = {**defaults, **given}
+    if key == "render":
+        bad = sorted(set(settings["samplers"] + [settings["reference_sampler"]]) - set(SAMPLERS))
+        if bad or settings["scene"] not in BUILTINS:
+            raise FlowBSDFError(f"[run.render]: samplers are {', '.join(SAMPLERS)}; scenes {', '.join(BUILTINS)}",
+                                manifest.path)
+    return settings
 
 
 def selected(manifest, name=None, log=print):
@@ -172,8 +187,9 @@ class Job:
         folder = self.out / "report" / entry.name
         digest = self.report_inputs(entry, material)
         t0 = time.perf_counter()
-        rows, slice_ = entry_report(entry, self.out, self.manifest.path, thetas=self.report_settings["thetas"],
-                                    n=self.report_settings["samples"], steps=(), log=self.say)
+        r = self.report_settings
+        rows, slice_ = entry_report(entry, self.out, self.manifest.path, thetas=r["thetas"], n=r["samples"], steps=(),
+                                    log=self.say, speed_n=r["speed_samples"], speed_repeat=r["speed_repeat"])
         written = write_report(rows, folder, slices=[slice_], title=f"{entry.name}: speed vs error")
         pareto = written.get(f"pareto:{entry.name}")
         write_stamp(folder, digest, rows=rows, seconds=time.perf_counter() - t0,

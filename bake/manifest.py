@@ -14,7 +14,7 @@
 
     [run]                           # optional: the main job (`flowbsdf run`, bake/job.py)
     max_materials = 3               # only the first 3 materials whose source is present
-    report = { samples = 32768 }    # the speed-vs-error report (bake.job.REPORT_DEFAULTS)
+    report = { samples = 16384 }    # the speed-vs-error report (bake.job.REPORT_DEFAULTS)
     render = { size = 96, spp = 32 }    # the shader-ball renders (bake.job.RENDER_DEFAULTS)
 
 Relative paths resolve against the manifest's folder. Source paths may name environment

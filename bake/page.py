@@ -24,8 +24,11 @@ figure img.px { width: 192px; image-rendering: pixelated } figure img.plot { max
          background: linear-gradient(to right, #440154, #3b528b, #21918c, #5ec962, #fde725) }
 .files, .small { font-size: 0.88em; color: #555 }
 """
-SAMPLER_NAMES = {"tables": "learned tables", "ggx": "GGX fit", "cosine": "cosine", "ideal": "ideal",
-                 "flow": "flow"}
+SAMPLER_NAMES = {"tables": "learned tables", "ggx": "GGX fit", "ggx-fit": "GGX fit"}
+
+
+def _label(sampler):
+    return SAMPLER_NAMES.get(sampler, sampler)
 
 
 def _e(x):
@@ -61,31 +64,32 @@ def render_section(name, stamp):
     first = timed[0] if timed else None
     out = []
     if first:
-        ratios = ", ".join(f"{SAMPLER_NAMES.get(r['sampler'], r['sampler'])} {_num(r['mse'])} "
-                           f"(<b>{r['mse'] / first['mse']:.2g}×</b>)" for r in timed[1:] if first["mse"] > 0)
-        out.append(f'<p class="headline">Equal time ({first["seconds"]:.1f} s each), image error (MSE against '
-                   f'the reference): {SAMPLER_NAMES.get(first["sampler"], first["sampler"])} {_num(first["mse"])}'
-                   f'{"; " + ratios if ratios else ""}.</p>')
-    figs = [_figure(base + "reference.png", f"reference<br>{_e(stamp['settings']['reference_sampler'])}, "
-                                            f"{stamp['settings']['reference_spp']} spp")]
+        others = "".join(f"; {_label(r['sampler'])} {_num(r['mse'])} (<b>{_times(r['mse'], first['mse'])}</b>)"
+                         for r in timed[1:])
+        out.append(f'<p class="headline">Same time for each ({first["seconds"]:.1f} s), image error (MSE against '
+                   f'the reference): {_label(first["sampler"])} {_num(first["mse"])}{others}.</p>')
+    figs = [_figure(base + "reference.png", f"reference<br>{_e(_label(stamp['settings']['reference_sampler']))}, "
+                                            f"{stamp['settings']['reference_spp']} spp, MIS")]
     errs = []
     for r in timed:
-        label = SAMPLER_NAMES.get(r["sampler"], r["sampler"])
+        label = _label(r["sampler"])
         figs.append(_figure(f"{base}{r['sampler']}_time.png", f"{_e(label)}<br>{r['spp']} spp in {r['seconds']:.1f} s"))
         errs.append(_figure(f"{base}{r['sampler']}_time_error.png", f"error, MSE {_num(r['mse'])}"))
     out.append('<div class="row">' + "".join(figs) + "</div>")
     if errs:
         scale = rows[0].get("error_scale")
         out.append('<div class="row">' + f'<figure style="width:192px"><figcaption>|luminance error|<br>'
-                   f'0 <span class="scale"></span> {_num(scale, 2)}</figcaption></figure>' + "".join(errs) + "</div>")
+                   f'0 <span class="scale"></span> {_num(scale, 2)}<br>(brighter: clipped)</figcaption></figure>'
+                   + "".join(errs) + "</div>")
     out.append(_table(["sampler", "mode", "spp", "seconds", "MSE", "MAE", "SSIM", "paths/s"],
-                      [[_e(SAMPLER_NAMES.get(r["sampler"], r["sampler"])), _e(r["mode"]), r["spp"],
+                      [[_e(_label(r["sampler"])), _e(r["mode"]), r["spp"],
                         f"{r['seconds']:.2f}", _num(r["mse"]), _num(r["mae"]), f"{r['ssim']:.3f}",
                         f"{r['paths_per_s']:,}"] for r in rows], numeric_from=2))
     ref_noise = rows[0]["reference_noise"] if rows else math.nan
     s = stamp["settings"]
-    out.append(f'<p class="small">builtin:{_e(s["scene"])}, {s["size"]}×{s["size"]} pixels, '
-               f'{"MIS (light and BSDF sampling)" if s["mis"] else "BSDF sampling only"}. The reference\'s own '
+    out.append(f'<p class="small">builtin:{_e(s["scene"])}, {s["size"]}×{s["size"]} pixels, ' + (
+               "MIS (light and BSDF sampling)" if s["mis"] else "BSDF sampling only (as the Blender node samples: "
+               "its portal path gets no light sampling)") + f'; the reference with MIS. The reference\'s own '
                f'noise (mean variance of its pixel means) is {_num(ref_noise)}: MSEs near it are not resolved. '
                f'Equal time is wall clock on a shared machine (load average {stamp.get("load", math.nan):.1f} '
                f'when rendered). Full numbers: <a href="{base}metrics.md">metrics.md</a>, images as EXR in '
@@ -95,7 +99,6 @@ def render_section(name, stamp):
 
 def report_section(name, stamp):
     """The speed-vs-error summary, its Pareto plot and the pdf slices."""
-    from .report import summary_rows
     base = f"report/{name}/"
     figs = []
     if stamp.get("pareto"):
@@ -104,7 +107,7 @@ def report_section(name, stamp):
     rows = [[_e(s["sampler"]), _num(s["median_rv"]), _num(s["max_rv"]), _num(s["max_lost"], 2),
              _num(s["ns_per_sample"]), _num(_ns(s["both_rwi_per_s"])),
              "-" if s["nbytes"] is None else f"{s['nbytes'] / 1024:,.0f} KiB"]
-            for s in summary_rows(stamp["rows"])]
+            for s in summary_rows_of(stamp)]
     thetas = sorted({r["theta_i"] for r in stamp["rows"]})
     return "\n".join([
         _table(["sampler", "median rv", "max rv", "lost", "ns/sample", "ns/sample, new wi", "memory"], rows),
@@ -115,41 +118,78 @@ def report_section(name, stamp):
         '<div class="row">' + "".join(figs) + "</div>"])
 
 
+def _source(entry):
+    path = entry.source_path()
+    if path is not None:
+        return f"measured, {_e(path.name)}"
+    spec = entry.source if isinstance(entry.source, dict) else {}
+    return _e(", ".join(f"{k} {v}" for k, v in spec.items() if k != "kind"))
+
+
+def overview(rows):
+    """One line per material: equal-time MSE and median rv of the tables, and how many times
+    larger the GGX fit's and cosine's are. rows: (name, render stamp, report stamp)."""
+    lines = []
+    for name, render, report in rows:
+        mse = {r["sampler"]: r["mse"] for r in (render or {}).get("rows", ()) if r["mode"] == "equal time"}
+        rv = {s["sampler"]: s["median_rv"] for s in summary_rows_of(report)}
+        cells = [f'<a href="#{_e(name)}">{_e(name)}</a>']
+        for values, names in ((mse, ("tables", "ggx", "cosine")), (rv, ("tables", "ggx-fit", "cosine"))):
+            ref = values.get(names[0])
+            cells.append(_num(ref))
+            cells += [_times(values.get(n), ref) for n in names[1:]]
+        lines.append(cells)
+    return _table(["material", "MSE, tables", "GGX fit", "cosine", "rv, tables", "GGX fit", "cosine"], lines)
+
+
+def summary_rows_of(report):
+    from .report import summary_rows
+    return summary_rows(report["rows"]) if report else []
+
+
+def _times(x, ref):
+    """x as a multiple of ref ("4.2×"), or "-"."""
+    if x is None or ref is None or not (ref > 0) or not math.isfinite(x):
+        return "-" if x is None or math.isnan(x) else "inf"
+    return f"{x / ref:.2g}×"
+
+
 def write_page(out_dir, manifest, entries, timings):
     """Write OUT/index.html from the report and render folders of `entries`; returns its path."""
+    from .files import atomic_path
     from .job import read_stamp
     out = Path(out_dir)
+    stamps = [(e.name, read_stamp(out / "render" / e.name), read_stamp(out / "report" / e.name)) for e in entries]
     parts = [f"<!doctype html><meta charset=utf-8><title>FlowBSDF: {_e(Path(manifest.path).name)}</title>",
              f"<style>{STYLE}</style>",
              f"<h1>FlowBSDF on {_e(Path(manifest.path).name)}</h1>",
-             '<p class="lead">Per material, a small flow learns to sample the measured BSDF (f·cos); it is baked '
-             'into exact tables that Blender and the reference path tracer sample from. Below: the shader ball '
+             '<p class="lead">Per material, a small flow learns to sample the BSDF (f·cos); it is baked into '
+             'exact tables that Blender and the reference path tracer sample from. Below: the shader ball '
              'rendered with those tables, with the GGX lobe fitted to the material (what a renderer would '
-             'otherwise use) and with cosine sampling, <b>for the same time</b>; then how each sampler trades '
-             'error for time, and what its pdf looks like.</p>']
-    done = {(m, k): (s, st) for m, k, s, st in timings}
-    for entry in entries:
-        parts.append(f"<h2 id='{_e(entry.name)}'>{_e(entry.name)}</h2>")
-        render = read_stamp(out / "render" / entry.name)
-        report = read_stamp(out / "report" / entry.name)
+             'otherwise use) and with cosine sampling, <b>for the same time</b>, against a converged reference; '
+             'then how each sampler trades error for time, and what its pdf looks like.</p>',
+             "<h3>At a glance</h3>", overview(stamps),
+             '<p class="small">MSE of the equal-time renders against the reference, and the median rv (relative '
+             'variance of the one-sample albedo estimator, 0 is perfect) over the incident angles; for the GGX '
+             'fit and cosine, how many times the tables\' value.</p>']
+    done = {(m, k): (sec, status) for m, k, sec, status in timings}
+    for entry, (name, render, report) in zip(entries, stamps):
+        parts.append(f"<h2 id='{_e(name)}'>{_e(name)} <small>({_source(entry)})</small></h2>")
         if render:
-            parts.append(render_section(entry.name, render))
+            parts.append(render_section(name, render))
         if report:
             parts.append("<h3>Speed vs error of the samplers</h3>")
-            parts.append(report_section(entry.name, report))
+            parts.append(report_section(name, report))
         if not (render or report):
             parts.append("<p>Not reported yet.</p>")
-        stages = [f"{k} {fmt_seconds(done[(entry.name, k)][0])}"
-                  + (" (current, skipped)" if done[(entry.name, k)][1] == "current" else "")
-                  for k in ("train", "bake", "report", "render") if (entry.name, k) in done]
+        stages = [f"{k} {fmt_seconds(done[(name, k)][0])}" + (" (current, skipped)" if done[(name, k)][1] == "current" else "")
+                  for k in ("train", "bake", "report", "render") if (name, k) in done]
         if stages:
-            parts.append(f'<p class="files">This run: {", ".join(stages)}. Model: models/{_e(entry.name)}.flow.npz, '
-                         f'tables: tables/{_e(entry.name)}.exr.</p>')
-    total = sum(s for _, _, s, _ in timings)
-    parts.append(f'<p class="files">Written {time.strftime("%Y-%m-%d %H:%M")}; stages of this run took '
-                 f'{fmt_seconds(total)}.</p>')
+            parts.append(f'<p class="files">This run: {", ".join(stages)}. Model: models/{_e(name)}.flow.npz, '
+                         f'tables: tables/{_e(name)}.exr.</p>')
+    parts.append(f'<p class="files">Written {time.strftime("%Y-%m-%d %H:%M")}; the stages of this run took '
+                 f'{fmt_seconds(sum(sec for _, _, sec, _ in timings))}.</p>')
     path = out / "index.html"
-    from .files import atomic_path
     with atomic_path(path) as tmp:
         Path(tmp).write_text("\n".join(parts) + "\n", encoding="utf-8")
     return path

@@ -12,8 +12,11 @@ line whenever nothing was printed for `heartbeat` seconds. Estimates: a stage un
 its own rate once it reports a fraction, else its kind's estimate minus its elapsed time; the
 stages still to run, from the mean duration of the finished stages of their kind, else their
 prior times the ratio actual / prior of every stage finished so far (a busy machine scales
-them all).
+them all). A stage's closing line gives its wall time and the CPU time of this process and its
+children (on a shared machine the two differ).
 """
+import dataclasses
+import os
 import sys
 import threading
 import time
@@ -29,23 +32,30 @@ def fmt_seconds(s):
     return f"{int(s // 3600)}h{int(s % 3600 // 60):02d}m"
 
 
+def cpu_seconds():
+    """User + system CPU time of this process and its finished children."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
 @dataclass(frozen=True)
 class _Stage:
     kind: str
     label: str
     todo: bool
     start: float
+    cpu: float
     fraction: float = None
     note: str = ""
 
 
 class Progress:
-    def __init__(self, plan, priors, out=None, heartbeat=20.0, clock=time.monotonic):
+    def __init__(self, plan, priors, out=None, heartbeat=20.0, clock=time.monotonic, cpu=cpu_seconds):
         """plan: (kind, to run?) of every stage, in order; priors: {kind: seconds}."""
         self.plan = list(plan)
         self.priors = dict(priors)
         self.out = out or (lambda line: print(line, file=sys.stdout, flush=True))
-        self.clock = clock
+        self.clock, self.cpu = clock, cpu
         self.t0 = clock()
         self.finished = []          # (kind, seconds, prior) of the stages that ran
         self.index = 0              # stages opened so far
@@ -104,15 +114,14 @@ class Progress:
         todo = self.plan[self.index][1]
         self.index += 1
         now = self.clock()
-        self.current = stage = _Stage(kind, label, todo, now)
+        self.current = stage = _Stage(kind, label, todo, now, self.cpu())
         self.say(f"[{self.index}/{len(self.plan)} {kind} {label}] · job: ~{fmt_seconds(self.job_left(stage, now))} left")
 
     def update(self, fraction=None, note="", every=10.0):
         """Progress inside the current stage (fraction done, or None); printed at most every `every` s."""
         if self.current is None:
             return
-        self.current = stage = _Stage(self.current.kind, self.current.label, self.current.todo, self.current.start,
-                                      fraction, note)
+        self.current = stage = dataclasses.replace(self.current, fraction=fraction, note=note)
         now = self.clock()
         if now - self.last_print >= every:
             self.say(self._status(stage, now))
@@ -126,7 +135,8 @@ class Progress:
         if not skipped:
             self.finished.append((stage.kind, seconds, self.priors.get(stage.kind, 0.0)))
         if note:
-            self.say(f"[{stage.kind} {stage.label}] {note} ({fmt_seconds(seconds)})")
+            cpu = "" if skipped else f", CPU {fmt_seconds(self.cpu() - stage.cpu)}"
+            self.say(f"[{stage.kind} {stage.label}] {note} ({fmt_seconds(seconds)}{cpu})")
 
     def _beat(self, every):
         while not self.stopped.wait(min(every, 5.0)):

@@ -5,7 +5,7 @@ each sampler then renders at equal spp and at equal time (the wall-clock time th
 sampler took for its spp; the others render whole passes until that time has passed). Sampler set-up (tables
 loading, GGX fit, ideal tabulation) is not counted. Outputs in `out_dir`:
 reference.exr, <sampler>_spp.exr, <sampler>_time.exr, compare.png (images and
-false-colour error maps |lum(img - ref)|, all on one scale), the same pictures one per file
+false-colour error maps |lum(img - ref)|, all on one scale: see error_maps), the same pictures one per file
 (reference.png, <sampler>_<mode>.png, <sampler>_<mode>_error.png), metrics.md and metrics.csv
 (MSE, MAE, SSIM, and `error_scale`: the error maps' full-scale value).
 The reference's own noise (mean variance of its pixel means) is reported with it:
@@ -121,9 +121,11 @@ def _reporter(what, spp, seconds, progress):
 
 
 def error_maps(ref, images):
-    """|lum(image - ref)| per image, and their common full-scale value (the largest 99th percentile)."""
+    """|lum(image - ref)| per image, and their common full-scale value: the median over the
+    images of their 99th percentiles (the worse images saturate rather than the better ones
+    going black)."""
     errs = {k: np.abs((v - ref) @ LUMINANCE) for k, v in images.items()}
-    return errs, (max(np.percentile(e, 99) for e in errs.values()) or 1.0) if errs else 1.0
+    return errs, (float(np.median([np.percentile(e, 99) for e in errs.values()])) or 1.0) if errs else 1.0
 
 
 def write_pictures(out, ref, images, scale):
