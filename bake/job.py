@@ -50,7 +50,8 @@ RENDER_DEFAULTS = {
     "mis": False,                   # BSDF sampling only, as the Blender node's portal path (no light
                                     # sampling there): shows the samplers' own quality
     "seed": 1,
-    "workers": 1,                   # processes per render (the image does not depend on it)
+    "workers": 2,                   # processes per render (the image does not depend on it; with more
+                                    # than one, progress comes once per render instead of per pass)
 }
 # Seconds per stage on 2 cores, measured with the demo's settings: the estimates before a stage
 # of that kind has run (then the stages that ran set them).

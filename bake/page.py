@@ -6,6 +6,7 @@ flow / tables) (report/<name>/, report.write_report). Images are linked by relat
 so the folder can be moved or shared whole."""
 import html
 import math
+import re
 import time
 from pathlib import Path
 
@@ -20,6 +21,7 @@ th { text-align: left; background: #fafafa } td.n { text-align: right; font-vari
 .row { display: flex; flex-wrap: wrap; gap: 10px; align-items: flex-start }
 figure { margin: 0; text-align: center; font-size: 0.9em }
 figure img.px { width: 192px; image-rendering: pixelated } figure img.plot { max-width: 100% }
+figure img.pareto { width: 380px }
 .scale { display: inline-block; width: 160px; height: 10px; vertical-align: middle;
          background: linear-gradient(to right, #440154, #3b528b, #21918c, #5ec962, #fde725) }
 .files, .small { font-size: 0.88em; color: #555 }
@@ -41,15 +43,20 @@ def _num(x, digits=3):
     return f"{x:.{digits}g}"
 
 
-def _table(header, rows, numeric_from=1):
+def _table(header, rows, numeric_from=1, groups=()):
+    """An HTML table; groups: (label, columns spanned) of a header row above `header`."""
     head = "".join(f"<th>{_e(h)}</th>" for h in header)
+    if groups:
+        head = "".join(f"<th colspan={n}>{_e(g)}</th>" for g, n in groups) + "</tr><tr>" + head
     body = "".join("<tr>" + "".join(f"<td{' class=n' if i >= numeric_from else ''}>{c}</td>"
                                     for i, c in enumerate(r)) + "</tr>" for r in rows)
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
 def _figure(src, caption, cls="px"):
-    return f'<figure><img class="{cls}" src="{_e(src)}" alt="{_e(caption)}"><figcaption>{caption}</figcaption></figure>'
+    """An image with its caption (HTML; its text is the image's alt text)."""
+    alt = re.sub(r"<[^>]+>", " ", caption)
+    return f'<figure><img class="{cls}" src="{_e(src)}" alt="{alt}"><figcaption>{caption}</figcaption></figure>'
 
 
 def _ns(rate):
@@ -79,7 +86,7 @@ def render_section(name, stamp):
     if errs:
         scale = rows[0].get("error_scale")
         out.append('<div class="row">' + f'<figure style="width:192px"><figcaption>|luminance error|<br>'
-                   f'0 <span class="scale"></span> {_num(scale, 2)}<br>(brighter: clipped)</figcaption></figure>'
+                   f'0 <span class="scale"></span> {_num(scale, 2)}<br>(and above)</figcaption></figure>'
                    + "".join(errs) + "</div>")
     out.append(_table(["sampler", "mode", "spp", "seconds", "MSE", "MAE", "SSIM", "paths/s"],
                       [[_e(_label(r["sampler"])), _e(r["mode"]), r["spp"],
@@ -102,20 +109,21 @@ def report_section(name, stamp):
     base = f"report/{name}/"
     figs = []
     if stamp.get("pareto"):
-        figs.append(_figure(base + stamp["pareto"], "error vs time per sample", "plot"))
+        figs.append(_figure(base + stamp["pareto"], "error vs time per sample", "pareto"))
     figs.append(_figure(base + stamp["pdf_slice"], "pdf over the hemisphere (disk projection, log scale)", "plot"))
     rows = [[_e(s["sampler"]), _num(s["median_rv"]), _num(s["max_rv"]), _num(s["max_lost"], 2),
              _num(s["ns_per_sample"]), _num(_ns(s["both_rwi_per_s"])),
              "-" if s["nbytes"] is None else f"{s['nbytes'] / 1024:,.0f} KiB"]
             for s in summary_rows_of(stamp)]
     thetas = sorted({r["theta_i"] for r in stamp["rows"]})
+    table = _table(["sampler", "median rv", "max rv", "lost", "ns/sample", "ns/sample, new wi", "memory"], rows)
     return "\n".join([
-        _table(["sampler", "median rv", "max rv", "lost", "ns/sample", "ns/sample, new wi", "memory"], rows),
+        f'<div class="row"><div>{table}</div>{figs[0] if len(figs) > 1 else ""}</div>',
         f'<p class="small">rv: relative variance of the one-sample albedo estimator, 0 is perfect '
         f'(θi = {", ".join(f"{t:g}°" for t in thetas)}); lost: share of samples with pdf 0; ns/sample: '
         f'sample() + pdf() on one thread, one incident direction per call or a new one per sample. '
         f'Every number: <a href="{base}speed_error.md">speed_error.md</a>.</p>',
-        '<div class="row">' + "".join(figs) + "</div>"])
+        figs[-1]])
 
 
 def _source(entry):
@@ -139,7 +147,8 @@ def overview(rows):
             cells.append(_num(ref))
             cells += [_times(values.get(n), ref) for n in names[1:]]
         lines.append(cells)
-    return _table(["material", "MSE, tables", "GGX fit", "cosine", "rv, tables", "GGX fit", "cosine"], lines)
+    return _table(["", "tables", "GGX fit", "cosine", "tables", "GGX fit", "cosine"], lines,
+                  groups=[("material", 1), ("image error (MSE), same time", 3), ("median rv", 3)])
 
 
 def summary_rows_of(report):
@@ -151,7 +160,8 @@ def _times(x, ref):
     """x as a multiple of ref ("4.2×"), or "-"."""
     if x is None or ref is None or not (ref > 0) or not math.isfinite(x):
         return "-" if x is None or math.isnan(x) else "inf"
-    return f"{x / ref:.2g}×"
+    r = x / ref
+    return f"{r:,.0f}×" if r >= 100 else f"{r:.2g}×"
 
 
 def write_page(out_dir, manifest, entries, timings):
@@ -169,10 +179,10 @@ def write_page(out_dir, manifest, entries, timings):
              'otherwise use) and with cosine sampling, <b>for the same time</b>, against a converged reference; '
              'then how each sampler trades error for time, and what its pdf looks like.</p>',
              "<h3>At a glance</h3>", overview(stamps),
-             '<p class="small">MSE of the equal-time renders against the reference, and the median rv (relative '
-             'variance of the one-sample albedo estimator, 0 is perfect) over the incident angles; for the GGX '
-             'fit and cosine, how many times the tables\' value.</p>']
-    done = {(m, k): (sec, status) for m, k, sec, status in timings}
+             '<p class="small">MSE of the shader ball rendered for the same time with each sampler, against a '
+             'converged reference; median rv (relative variance of the one-sample albedo estimator, 0 is perfect) '
+             'over the incident angles. For the GGX fit and cosine: how many times the tables\' value (above 1: '
+             'the tables do better).</p>']
     for entry, (name, render, report) in zip(entries, stamps):
         parts.append(f"<h2 id='{_e(name)}'>{_e(name)} <small>({_source(entry)})</small></h2>")
         if render:
@@ -182,13 +192,11 @@ def write_page(out_dir, manifest, entries, timings):
             parts.append(report_section(name, report))
         if not (render or report):
             parts.append("<p>Not reported yet.</p>")
-        stages = [f"{k} {fmt_seconds(done[(name, k)][0])}" + (" (current, skipped)" if done[(name, k)][1] == "current" else "")
-                  for k in ("train", "bake", "report", "render") if (name, k) in done]
-        if stages:
-            parts.append(f'<p class="files">This run: {", ".join(stages)}. Model: models/{_e(name)}.flow.npz, '
-                         f'tables: tables/{_e(name)}.exr.</p>')
-    parts.append(f'<p class="files">Written {time.strftime("%Y-%m-%d %H:%M")}; the stages of this run took '
-                 f'{fmt_seconds(sum(sec for _, _, sec, _ in timings))}.</p>')
+        parts.append(f'<p class="files">Model: models/{_e(name)}.flow.npz; tables: tables/{_e(name)}.exr '
+                     f'(and what the Blender node reads beside them).</p>')
+    ran = [sec for _, _, sec, status in timings if status == "done"]
+    parts.append(f'<p class="files">Written {time.strftime("%Y-%m-%d %H:%M")}; this run: {len(ran)} of '
+                 f'{len(timings)} stages had work to do, {fmt_seconds(sum(ran))}.</p>')
     path = out / "index.html"
     with atomic_path(path) as tmp:
         Path(tmp).write_text("\n".join(parts) + "\n", encoding="utf-8")

@@ -153,7 +153,7 @@ def test_progress_estimates():
 def test_demo_manifest_picks_three_materials():
     manifest = load_manifest(ROOT / "demo.toml")
     names = [e.name for e in selected(manifest, log=lambda *_: None)]
-    assert len(names) == 3 and names[0] == "gold_glossy"
+    assert len(names) == 3 and names[0] == "copper_glossy"
     everything = [e.name for e in manifest.materials]
     missing = [e.name for e in manifest.materials if e.missing()]
     assert names == [n for n in everything if n not in missing][:3]
