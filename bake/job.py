@@ -53,9 +53,10 @@ RENDER_DEFAULTS = {
     "workers": 2,                   # processes per render (the image does not depend on it; with more
                                     # than one, progress comes once per render instead of per pass)
 }
-# Seconds per stage on 2 cores, measured with the demo's settings: the estimates before a stage
-# of that kind has run (then the stages that ran set them).
-PRIORS = {"bake": 40.0, "report": 30.0, "render": 60.0}
+# Seconds per stage before one of its kind has run (then the stages that ran set the estimates):
+# the CPU time of the demo's stages (demo.toml), about their wall time on 2 idle cores; training
+# from the presets' descriptions (trainer/train.py).
+PRIORS = {"bake": 30.0, "report": 35.0, "render": 30.0}
 TRAIN_PRIORS = {"fast": 45.0, "balanced": 420.0, "paper": 3600.0}
 
 
