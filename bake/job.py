@@ -118,7 +118,7 @@ class Job:
     material)` (its product is there and matches its inputs) and `<kind>(entry, material)` (do the
     work); `run` plans with the first, for the estimates, and checks again before each stage."""
 
-    def __init__(self, manifest, out_dir, preset="fast", train=True, render=True, samples=None, log=print):
+    def __init__(self, manifest, out_dir, preset="fast", train=True, render=True, samples=None, log=None):
         """samples: per rv cell of the report, over the manifest's."""
         self.manifest, self.out = manifest, Path(out_dir)
         self.preset, self.train_on, self.render_on = preset, train, render
@@ -126,7 +126,7 @@ class Job:
         if samples:
             self.report_settings["samples"] = samples
         self.render_settings = run_settings(manifest, "render", RENDER_DEFAULTS)
-        self.log = log
+        self.log = log or (lambda line: print(line, flush=True))     # flushed: the lines show when piped too
         self.progress = None
         self.timings = []           # (material, stage, seconds, "done" | "current")
 

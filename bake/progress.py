@@ -17,7 +17,6 @@ children (on a shared machine the two differ).
 """
 import dataclasses
 import os
-import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -54,7 +53,7 @@ class Progress:
         """plan: (kind, to run?) of every stage, in order; priors: {kind: seconds}."""
         self.plan = list(plan)
         self.priors = dict(priors)
-        self.out = out or (lambda line: print(line, file=sys.stdout, flush=True))
+        self.out = out or (lambda line: print(line, flush=True))
         self.clock, self.cpu = clock, cpu
         self.t0 = clock()
         self.finished = []          # (kind, seconds, prior) of the stages that ran
