@@ -1,7 +1,5 @@
 """The `flowbsdf` command."""
 import argparse
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -45,7 +43,7 @@ def cmd_bake(args):
 def cmd_report(args):
     from .manifest import load_manifest
     from .report import report_manifest
-    steps = tuple(int(x) for x in getattr(args, "steps", "2,4,8").split(",") if x.strip())
+    steps = tuple(int(x) for x in args.steps.split(",") if x.strip())
     written = report_manifest(load_manifest(args.manifest), args.out, name=args.material, n=args.samples,
                               steps=steps)
     print(Path(written["markdown"]).read_text())
@@ -53,28 +51,16 @@ def cmd_report(args):
 
 
 def cmd_run(args):
-    """The main job: train what is missing, bake what changed, then the report."""
+    """The main job: train -> bake -> report -> render per material, then one page (bake/job.py)."""
+    from .job import Job
     from .manifest import load_manifest
-    from .pipeline import bake_manifest, model_path
-    manifest = load_manifest(args.manifest)
-    entries = manifest.select(args.material)
-    todo = [e.name for e in entries if e.open().isotropic and not model_path(args.out, e.name).is_file()]
-    if todo and not args.no_train:
-        train_args = [args.manifest, "--out", str(Path(args.out) / "models"), "--preset", args.preset]
-        for name in todo:
-            train_args += ["--material", name]
-        if cmd_train(None, train_args) != 0:
-            raise FlowBSDFError("training failed (see above); rerun to resume from the checkpoints")
-    bake_manifest(manifest, args.out, name=args.material)
-    args.samples = args.samples or 1 << 15
-    args.steps = ""         # only the flow at the step count it was trained for (the report command shows more)
-    cmd_report(args)
+    Job(load_manifest(args.manifest), args.out, preset=args.preset, train=not args.no_train,
+        render=not args.no_render, samples=args.samples).run(args.material)
 
 
 def cmd_train(args, rest):
-    """Training needs torch: run the trainer as a subprocess (as the Blender add-on does)."""
-    python = os.environ.get("FLOWBSDF_TRAIN_PYTHON", sys.executable)
-    return subprocess.call([python, "-m", "trainer", "train", *rest])
+    from .job import run_trainer
+    return run_trainer(rest)
 
 
 def build_parser():
@@ -99,10 +85,12 @@ def build_parser():
     r = command("report", cmd_report, "speed vs error of every sampler (OUT/report)")
     r.add_argument("--samples", type=int, default=1 << 17, help="samples per rv cell")
     r.add_argument("--steps", default="2,4,8", help="Euler step counts of the flow to compare (its trained N is always added)")
-    m = command("run", cmd_run, "the main job: train -> bake -> report")
+    m = command("run", cmd_run, "the main job: train -> bake -> report -> render, one page (OUT/index.html)")
     m.add_argument("--preset", default="fast", choices=["fast", "balanced", "paper"])
-    m.add_argument("--no-train", action="store_true", help="bake from the ideal tabulation only")
-    m.add_argument("--samples", type=int, default=None)
+    m.add_argument("--no-train", action="store_true", help="no training: bake from a model already there, else from the ideal tabulation")
+    m.add_argument("--no-render", action="store_true", help="no shader-ball renders")
+    m.add_argument("--samples", type=int, default=None,
+                   help="samples per rv cell of the report (default: the manifest's [run.report], else 16384)")
 
     sub.add_parser("train", help="train flow models (python -m trainer train --help)", add_help=False)
     from .stress import add_parser as add_stress

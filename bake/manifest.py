@@ -12,8 +12,16 @@
     domain = "spherical"            # overrides the default
     train = { preset = "fast" }     # merged over defaults.train
 
-Relative paths resolve against the manifest's folder.
+    [run]                           # optional: the main job (`flowbsdf run`, bake/job.py)
+    max_materials = 3               # only the first 3 materials whose source is present
+    report = { samples = 16384 }    # the speed-vs-error report (bake.job.REPORT_DEFAULTS)
+    render = { size = 96, spp = 32 }    # the shader-ball renders (bake.job.RENDER_DEFAULTS)
+
+Relative paths resolve against the manifest's folder. Source paths may name environment
+variables: `$NAME`, `${NAME}`, and `${NAME:-default}` (NAME when set and not empty, else the
+default), e.g. "${FLOWBSDF_RGL_DIR:-../shared/data/rgl}/chm_mint_rgb.bsdf".
 """
+import os
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -25,8 +33,24 @@ from .materials import open_material
 
 MATERIAL_KEYS = {"name", "source", "domain", "optional", "train", "bake"}
 DEFAULT_KEYS = {"domain", "train", "bake"}
-TOP_KEYS = {"material", "defaults"}
+TOP_KEYS = {"material", "defaults", "run"}
+RUN_KEYS = {"max_materials", "report", "render"}
 NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+ENV_DEFAULT_RE = re.compile(r"\$\{(\w+):-([^}]*)\}")
+
+
+def expand_env(path):
+    """A source path with its environment variables substituted (see the module's docstring)."""
+    path = ENV_DEFAULT_RE.sub(lambda m: os.environ.get(m.group(1)) or m.group(2), path)
+    return os.path.expandvars(path)
+
+
+def _expand_source(source):
+    if isinstance(source, str):
+        return expand_env(source)
+    if isinstance(source.get("path"), str):
+        return {**source, "path": expand_env(source["path"])}
+    return source
 
 
 @dataclass
@@ -61,6 +85,7 @@ class MaterialEntry:
 class Manifest:
     path: Path
     materials: list
+    run: dict = field(default_factory=dict)
 
     def select(self, name=None, skip_missing=True, log=print):
         """The entries to work on: one by name, or all; optional ones whose file is absent
@@ -119,6 +144,15 @@ def load_manifest(path):
     default_train = _check_table(defaults.get("train", {}), "train", "[defaults]", path)
     default_bake = _check_table(defaults.get("bake", {}), "bake", "[defaults]", path)
 
+    run = _check_table(data.get("run", {}), "run", "top level", path)
+    _check_keys(run, RUN_KEYS, "[run]", path)
+    limit = run.get("max_materials")
+    if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
+        raise FlowBSDFError(f"[run]: max_materials must be a positive integer, not {limit!r}", path)
+    for key in ("report", "render"):
+        if key in run:
+            run[key] = _check_table(run[key], key, "[run]", path)
+
     entries = data.get("material", [])
     if not isinstance(entries, list) or not entries:
         raise FlowBSDFError("no [[material]] entries", path)
@@ -141,10 +175,10 @@ def load_manifest(path):
         if not isinstance(optional, bool):
             raise FlowBSDFError(f"{where}: 'optional' must be true or false", path)
         materials.append(MaterialEntry(
-            name=name, source=source,
+            name=name, source=_expand_source(source),
             domain=_check_domain(entry.get("domain", default_domain), where, path),
             optional=optional,
             train={**default_train, **_check_table(entry.get("train", {}), "train", where, path)},
             bake={**default_bake, **_check_table(entry.get("bake", {}), "bake", where, path)},
             base_dir=path.resolve().parent))
-    return Manifest(path=path, materials=materials)
+    return Manifest(path=path, materials=materials, run=run)

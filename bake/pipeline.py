@@ -119,17 +119,22 @@ def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
     return path, "baked"
 
 
+def bake_with_derived(entry, out_dir, manifest_path, force=False, log=print):
+    """bake_entry, then what the Blender node needs beside the tables (OSL texture, closure fit)."""
+    from .osl_export import bake_derived
+    path, status = bake_entry(entry, out_dir, manifest_path, force=force, log=log)
+    bake_derived(path, log=log)
+    return path, status
+
+
 def bake_manifest(manifest, out_dir, name=None, force=False, log=print):
     """Bake every selected entry (tables, then their OSL texture and closure fit); returns the
     table paths written. Failures are reported per material and raised together at the end,
     so one bad material does not stop the rest."""
-    from .osl_export import bake_derived
     written, failures = [], []
     for entry in manifest.select(name, log=log):
         try:
-            path, status = bake_entry(entry, out_dir, manifest.path, force=force, log=log)
-            if path is not None:    # what the Blender node needs beside the tables
-                bake_derived(path, log=log)
+            path, status = bake_with_derived(entry, out_dir, manifest.path, force=force, log=log)
         except FlowBSDFError as e:
             failures.append(f"{entry.name}: {e}")
             log(f"[fail] {entry.name}: {e}")

@@ -439,14 +439,27 @@ def manifest_samplers(entry, material, out_dir, manifest_path, steps=(2, 4, 8), 
     return samplers
 
 
+SLICE_THETA = 60.0
+
+
+def entry_report(entry, out_dir, manifest_path, thetas=THETAS_DEG, n=1 << 17, steps=(2, 4, 8), log=print,
+                 speed_n=1 << 15, speed_repeat=3):
+    """One manifest material: its speed_error_rows and its pdf slice for write_report (the
+    ideal sampler, the trained flow and the tables at SLICE_THETA)."""
+    material = entry.open()
+    samplers = manifest_samplers(entry, material, out_dir, manifest_path, steps=steps, log=log)
+    rows = speed_error_rows(entry.name, material, samplers, thetas=thetas, n=n, speed_n=speed_n,
+                            speed_repeat=speed_repeat, log=log)
+    trained = next((f"flow N={m.meta['steps']}" for k, m in samplers.items() if k.startswith("flow N=")), None)
+    shown = {k: samplers[k] for k in ("ideal", trained, "tables") if k in samplers}
+    return rows, (entry.name, material, shown, SLICE_THETA)
+
+
 def report_manifest(manifest, out_dir, name=None, thetas=THETAS_DEG, n=1 << 17, steps=(2, 4, 8), log=print):
     """The speed-vs-error report of every selected material, written to <out_dir>/report."""
     rows, slices = [], []
     for entry in manifest.select(name, log=log):
-        material = entry.open()
-        samplers = manifest_samplers(entry, material, out_dir, manifest.path, steps=steps, log=log)
-        rows += speed_error_rows(entry.name, material, samplers, thetas=thetas, n=n, log=log)
-        trained = next((f"flow N={m.meta['steps']}" for k, m in samplers.items() if k.startswith("flow N=")), None)
-        shown = {k: samplers[k] for k in ("ideal", trained, "tables") if k in samplers}
-        slices.append((entry.name, material, shown, 60.0))
+        entry_rows, entry_slice = entry_report(entry, out_dir, manifest.path, thetas, n, steps, log)
+        rows += entry_rows
+        slices.append(entry_slice)
     return write_report(rows, Path(out_dir) / "report", slices=slices)

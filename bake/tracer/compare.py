@@ -5,7 +5,9 @@ each sampler then renders at equal spp and at equal time (the wall-clock time th
 sampler took for its spp; the others render whole passes until that time has passed). Sampler set-up (tables
 loading, GGX fit, ideal tabulation) is not counted. Outputs in `out_dir`:
 reference.exr, <sampler>_spp.exr, <sampler>_time.exr, compare.png (images and
-false-colour error maps |lum(img - ref)|), metrics.md and metrics.csv (MSE, MAE, SSIM).
+false-colour error maps |lum(img - ref)|, all on one scale: see error_maps), the same pictures one per file
+(reference.png, <sampler>_<mode>.png, <sampler>_<mode>_error.png), metrics.md and metrics.csv
+(MSE, MAE, SSIM, and `error_scale`: the error maps' full-scale value).
 The reference's own noise (mean variance of its pixel means) is reported with it:
 an MSE cannot be resolved below it.
 """
@@ -29,10 +31,11 @@ def _prepare(samplers):
 
 
 def render_with(scene, name, spp=None, seconds=None, mis=True, seed=0, tables_dir="out", log=print,
-                samplers=None, workers=1):
+                samplers=None, workers=1, progress=None):
     samplers = samplers or scene_samplers(scene, name, tables_dir, log=log)
     _prepare(samplers)
-    img, var, stats = render(scene, samplers, spp=spp, seconds=seconds, mis=mis, seed=seed, workers=workers)
+    img, var, stats = render(scene, samplers, spp=spp, seconds=seconds, mis=mis, seed=seed, workers=workers,
+                             progress=progress)
     return img, var, stats
 
 
@@ -41,9 +44,13 @@ def metrics(img, ref):
 
 
 def compare(scene, names, spp, reference_spp, out_dir, reference_sampler="ideal", mis=True,
-            equal_time=True, seed=1, tables_dir="out", log=print, reference=None, workers=1, dirs=None):
+            equal_time=True, seed=1, tables_dir="out", log=print, reference=None, workers=1, dirs=None,
+            progress=None):
     """Returns (rows, reference image). reference: a precomputed (image, variance) to reuse;
-    dirs: {sampler name: output folder} where a sampler's files are not under tables_dir."""
+    dirs: {sampler name: output folder} where a sampler's files are not under tables_dir;
+    progress(what, passes, fraction, seconds): after every pass of every render (once per render
+    when workers > 1), `what` = "reference" or "<sampler> (equal spp|time)", `fraction` = the
+    share of that render done (of its spp, or of its time budget)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     built = {}      # samplers by name, built (and tabulated) once
@@ -59,7 +66,8 @@ def compare(scene, names, spp, reference_spp, out_dir, reference_sampler="ideal"
         t0 = time.perf_counter()
         ref, ref_var, st = render_with(scene, reference_sampler, spp=reference_spp, mis=True,
                                        seed=10_000 + seed, tables_dir=tables_dir, log=log,
-                                       samplers=samplers_for(reference_sampler), workers=workers)
+                                       samplers=samplers_for(reference_sampler), workers=workers,
+                                       progress=_reporter("reference", reference_spp, None, progress))
         log(f"[compare] reference done in {time.perf_counter() - t0:.1f}s")
     else:
         ref, ref_var = reference
@@ -80,7 +88,9 @@ def compare(scene, names, spp, reference_spp, out_dir, reference_sampler="ideal"
         for mode, kw in runs:
             if mode == "time":
                 kw = dict(seconds=budget)
-            img, var, stats = render(scene, samplers, mis=mis, seed=seed, workers=workers, **kw)
+            img, var, stats = render(scene, samplers, mis=mis, seed=seed, workers=workers,
+                                     progress=_reporter(f"{name} (equal {mode})", kw.get("spp"), kw.get("seconds"),
+                                                        progress), **kw)
             if budget is None:
                 budget = stats.seconds      # the first sampler's time at equal spp
             write_exr(out / f"{name}_{mode}.exr", img)
@@ -93,21 +103,50 @@ def compare(scene, names, spp, reference_spp, out_dir, reference_sampler="ideal"
             rows.append(row)
             log(f"[compare] {name} ({row['mode']}): {row['spp']} spp in {row['seconds']}s, "
                 f"MSE {row['mse']:.4g}, MAE {row['mae']:.4g}, SSIM {row['ssim']:.4f}")
-    write_side_by_side(out / "compare.png", ref, images)
+    scale = write_side_by_side(out / "compare.png", ref, images)
+    write_pictures(out, ref, images, scale)
+    for row in rows:
+        row.setdefault("error_scale", scale)
     (out / "metrics.md").write_text(markdown(rows, ref_noise, reference_sampler, reference_spp) + "\n")
     write_csv(out / "metrics.csv", rows)
     return rows, (ref, ref_var)
 
 
+def _reporter(what, spp, seconds, progress):
+    """The integrator's progress callback for one render (of `spp` passes or `seconds`), reporting
+    to compare's `progress`."""
+    if progress is None:
+        return None
+    return lambda k, elapsed, stats: progress(what, k, min(1.0, k / spp if spp else elapsed / seconds), elapsed)
+
+
+def error_maps(ref, images):
+    """|lum(image - ref)| per image, and their common full-scale value: the median over the
+    images of their 99th percentiles (the worse images saturate rather than the better ones
+    going black)."""
+    errs = {k: np.abs((v - ref) @ LUMINANCE) for k, v in images.items()}
+    return errs, (float(np.median([np.percentile(e, 99) for e in errs.values()])) or 1.0) if errs else 1.0
+
+
+def write_pictures(out, ref, images, scale):
+    """reference.png, and per (sampler, mode) <sampler>_<mode>.png and its error map
+    <sampler>_<mode>_error.png (false colour, 0 to `scale`)."""
+    out = Path(out)
+    write_png(out / "reference.png", tonemap(ref))
+    for (name, mode), err in error_maps(ref, images)[0].items():
+        write_png(out / f"{name}_{mode}.png", tonemap(images[(name, mode)]))
+        write_png(out / f"{name}_{mode}_error.png", false_colour(err, scale))
+
+
 def write_side_by_side(path, ref, images):
-    """Row pairs per mode: images (reference first), then their error maps on one scale."""
+    """Row pairs per mode: images (reference first), then their error maps on one scale;
+    returns that scale (see error_maps)."""
     H, W = ref.shape[:2]
     modes = sorted({m for _, m in images}, key=lambda m: m != "spp")
     names = list(dict.fromkeys(n for n, _ in images))
+    errs, vmax = error_maps(ref, images)
     if not names:
-        return
-    errs = {k: np.abs((v - ref) @ LUMINANCE) for k, v in images.items()}
-    vmax = max(np.percentile(e, 99) for e in errs.values()) or 1.0
+        return vmax
     gap = 2
     canvas = np.full((2 * len(modes) * (H + gap), (len(names) + 1) * (W + gap), 3), 255, np.uint8)
     for r, mode in enumerate(modes):
@@ -120,10 +159,11 @@ def write_side_by_side(path, ref, images):
             canvas[y0:y0 + H, x0:x0 + W] = tonemap(images[(name, mode)])
             canvas[y0 + H + gap:y0 + 2 * H + gap, x0:x0 + W] = false_colour(errs[(name, mode)], vmax)
     write_png(path, canvas)
+    return vmax
 
 
 COLUMNS = ["sampler", "mode", "spp", "seconds", "mse", "mae", "ssim", "paths_per_s", "sampling_share", "lost",
-           "reference_noise", "note"]
+           "reference_noise", "error_scale", "note"]
 
 
 def write_csv(path, rows):
