@@ -2,8 +2,7 @@
 
 The add-on renders the scene's world, whatever its nodes, into an equirectangular radiance
 image (blender_addon/world.py) and hands it here. A pixel is chosen with probability
-proportional to its luminance (the brightest of its 3 x 3 neighbourhood: `dilate`) times its
-solid angle, the direction uniformly within the
+proportional to its luminance times its solid angle, the direction uniformly within the
 pixel's solid angle: the pdf per steradian is then constant over a pixel, and `pdf(d)` reads
 it back, so sampling and density are exactly consistent. Only the density matters for
 correctness: the shaders weight a world-map direction by the mixture's pdf and let Cycles
@@ -40,17 +39,6 @@ GUIDES = 4096
 META_KEY = "flowbsdf_world"
 
 
-def dilate(lum):
-    """Each pixel's brightest neighbour (3 x 3, wrapping in azimuth): a small bright source —
-    a sun disc a fraction of a pixel wide, which a few-sample render may have missed in the
-    pixels it only grazes — is drawn wherever its light may be (measured: without it, a
-    1024 x 512 sky's sun rendered 12 % dark at 256 spp, its light found only by rare, huge
-    weights)."""
-    padded = np.concatenate([lum[:1], lum, lum[-1:]], axis=0)
-    rows = np.maximum(np.maximum(padded[:-2], padded[1:-1]), padded[2:])
-    return np.maximum(np.maximum(np.roll(rows, 1, axis=1), rows), np.roll(rows, -1, axis=1))
-
-
 class WorldMap:
     """Importance sampling of an equirectangular radiance image (H, W, 3): sample(u) and pdf(d)."""
 
@@ -63,7 +51,7 @@ class WorldMap:
         self.H, self.W = radiance.shape[:2]
         self.z_edges = np.cos(np.linspace(0.0, np.pi, self.H + 1))
         omega = (self.z_edges[:-1] - self.z_edges[1:]) * (2.0 * np.pi / self.W)
-        power = (dilate(np.maximum(radiance[..., :3] @ LUMINANCE, 0.0)) * omega[:, None]).ravel()
+        power = (np.maximum(radiance[..., :3] @ LUMINANCE, 0.0) * omega[:, None]).ravel()
         total = power.sum()
         if total <= 0:
             raise FlowBSDFError("the world is black: nothing to importance-sample")

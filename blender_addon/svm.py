@@ -868,7 +868,8 @@ def film_settings(scene):
     samples uniformly in it (1 px whatever its width setting; other filters spread them by
     their weight), and the seed rotates a pixel's u per render (as learned_bsdf.osl's)."""
     r = scene.render
-    box = scene.render.engine == 'CYCLES' and scene.cycles.pixel_filter_type == 'BOX'
+    box = (scene.render.engine == 'CYCLES' and scene.cycles.pixel_filter_type == 'BOX'
+           and bool(getattr(scene, "flowbsdf_film_u", scene.get("flowbsdf_film_u", True))))  # see node.film_settings
     cy = scene.cycles
     seed = cy.seed + (scene.frame_current if getattr(cy, "use_animated_seed", False) else 0)
     return (r.resolution_x * r.resolution_percentage / 100.0, r.resolution_y * r.resolution_percentage / 100.0,

@@ -1,9 +1,10 @@
 """The world's importance map for the Learned BSDF's shaders (bake/world_map.py).
 
-`bake_world_map(scene, folder)` renders the scene's world — whatever its nodes: an HDRI, a
-Sky Texture with its sun — into a small equirectangular image with Cycles (a temporary
-scene holding only a panoramic camera, so nothing occludes the world), and writes the
-texture the shaders sample. The texture is named after the world's state (`world_key`):
+`bake_world_map(scene, folder)` makes the world's equirectangular radiance map and writes the
+texture the shaders sample: an Environment Texture world straight from its image's texels
+(box-averaged: nothing missed); any other world — a Sky Texture, mixes, procedurals — by
+rendering it with Cycles (a temporary scene holding only a panoramic camera, so nothing
+occludes the world). A Sky Texture's sun disc also gets a technique of its own (`sun_of`). The texture is named after the world's state (`world_key`):
 its node tree, their values and images, and the frame when the world is animated; an
 unchanged world reuses its file.
 
@@ -19,7 +20,7 @@ from pathlib import Path
 
 import bpy
 
-WIDTH, HEIGHT, SPP = 1024, 512, 4
+WIDTH, HEIGHT, SPP = 1024, 512, 16
 # The shares of portal directions drawn from the world map and from a Sky Texture's sun disc:
 # no map for a near-constant world, where the tables alone are the better choice.
 SHARE = 0.5
@@ -95,15 +96,41 @@ def sun_of(scene):
     return None
 
 
-def shader_inputs(path, meta, sun):
-    """The OSL shader's world inputs for a map (path, its metadata or None) and a sun (sun_of)."""
+def shader_inputs(path, meta, sun, env=None):
+    """The shaders' world inputs for a map (path, its metadata or None), a sun (sun_of) and an
+    image world the OSL shader can read exactly (exact_environment)."""
     flat = meta is None or meta.get("peak", 0.0) <= FLAT
     inputs = {"World": str(path) if meta else "", "WorldShare": 0.0 if flat else SHARE,
-              "SunDirection": (0.0, 0.0, 1.0), "SunCos": 1.0, "SunShare": 0.0}
+              "SunDirection": (0.0, 0.0, 1.0), "SunCos": 1.0, "SunShare": 0.0,
+              "EnvImage": "", "EnvStrength": 0.0, "EnvLinear": 1}
     if sun is not None:
         inputs.update(SunDirection=sun[0], SunCos=sun[1], SunShare=SUN_SHARE,
                       WorldShare=0.0 if flat else SUN_MAP_SHARE)
+    if env is not None and meta is not None and not flat:
+        inputs.update(EnvImage=env[0], EnvStrength=env[1], EnvLinear=env[2])
     return inputs
+
+
+# Colour spaces whose float values Cycles renders as they are in the file (what OSL's texture()
+# reads): only then is the shader's own lookup of the image the world's radiance.
+LINEAR_SPACES = {"Linear", "Linear Rec.709", "Linear CIE-XYZ E", "Non-Color", "Raw", "Scene Linear"}
+
+
+def exact_environment(scene):
+    """(file, strength, 1 for linear / 0 for closest interpolation) when the world is an
+    Environment Texture whose radiance the OSL shader can read itself exactly: a float image
+    file in a linear colour space, Linear or Closest interpolation, unmapped; else None."""
+    found = _environment_image(scene)
+    if found is None:
+        return None
+    image, strength = found
+    tree = scene.world.node_tree
+    env = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeTexEnvironment" and n.image == image)
+    path = bpy.path.abspath(image.filepath, library=image.library) if image.source == 'FILE' else ""
+    if (not path or image.packed_file is not None or not os.path.isfile(path) or not image.is_float
+            or image.colorspace_settings.name not in LINEAR_SPACES or env.interpolation not in ('Linear', 'Closest')):
+        return None
+    return os.path.abspath(path), strength, 1 if env.interpolation == 'Linear' else 0
 
 
 def map_path(folder, key):
@@ -161,6 +188,52 @@ def render_world(scene, width=WIDTH, height=HEIGHT, spp=SPP, path=None):
             Path(out).unlink(missing_ok=True)
 
 
+def _environment_image(scene):
+    """(image, strength) when the world is a Background lit by an equirectangular Environment
+    Texture as it is (no mapping, constant strength), else None."""
+    tree = scene.world.node_tree if scene.world is not None else None
+    bg = next((n for n in tree.nodes if n.bl_idname == "ShaderNodeBackground"), None) if tree else None
+    if bg is None or bg.inputs["Strength"].is_linked or not bg.inputs["Color"].is_linked:
+        return None
+    env = bg.inputs["Color"].links[0].from_node
+    if (env.bl_idname != "ShaderNodeTexEnvironment" or env.image is None or env.projection != 'EQUIRECTANGULAR'
+            or any(sock.is_linked for sock in env.inputs) or not env.image.has_data and not env.image.filepath):
+        return None
+    return env.image, float(bg.inputs["Strength"].default_value)
+
+
+def image_radiance(scene, width=WIDTH, height=HEIGHT):
+    """An Environment Texture world's radiance straight from its image, box-averaged down to at
+    most width x height (Blender's equirectangular convention, as the map's): every texel
+    counts, so a sun a fraction of a map pixel wide is never missed (a rendered map's few
+    samples per pixel can miss it). None for other worlds (render_world then)."""
+    found = _environment_image(scene)
+    if found is None:
+        return None
+    import numpy as np
+    image, strength = found
+    w, h = image.size
+    if w < 1 or h < 1:
+        return None
+    px = np.empty(w * h * image.channels, np.float32)
+    image.pixels.foreach_get(px)
+    px = px.reshape(h, w, image.channels)[::-1, :, :3]
+    if not image.is_float:
+        px = px ** 2.2          # display-encoded bytes, roughly linear: the map sets noise, not the image
+    env = next(n for n in scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeTexEnvironment" and n.image == image)
+    if env.interpolation != 'Closest':
+        # Interpolated, a texel's light spreads into its neighbours' cells: the mean of the
+        # bilinear interpolant over each texel's cell is (1/8, 3/4, 1/8) of the texels per axis
+        # (periodic in azimuth, clamped at the poles) (measured: without it a 2-texel sun, whose
+        # light bleeds half a texel outwards, rendered 14 % dark at 256 spp).
+        px = 0.75 * px + 0.125 * (np.roll(px, 1, axis=1) + np.roll(px, -1, axis=1))
+        px = 0.75 * px + 0.125 * (np.concatenate([px[:1], px[:-1]]) + np.concatenate([px[1:], px[-1:]]))
+    rows = np.linspace(0, h, min(h, height) + 1).astype(int)
+    cols = np.linspace(0, w, min(w, width) + 1).astype(int)
+    sums = np.add.reduceat(np.add.reduceat(px.astype(np.float64), rows[:-1], axis=0), cols[:-1], axis=1)
+    return strength * sums / (np.diff(rows)[:, None, None] * np.diff(cols)[None, :, None])
+
+
 def bake_world_map(scene, folder):
     """The shader's world inputs (shader_inputs) for the scene's world, its map rendered when
     missing; no map for no world, a black one, or where numpy/bake are missing."""
@@ -173,12 +246,13 @@ def bake_world_map(scene, folder):
     meta = world_map.read_world_meta(path)
     if meta is None:
         try:
-            wm = world_map.WorldMap(render_world(scene))
+            radiance = image_radiance(scene)
+            wm = world_map.WorldMap(render_world(scene) if radiance is None else radiance)
             meta = {"key": key, "peak": wm.peak}
             world_map.write_world_texture(path, wm, meta)
         except world_map.FlowBSDFError:         # black world: nothing to sample
             meta = None
-    return shader_inputs(path, meta, sun_of(scene))
+    return shader_inputs(path, meta, sun_of(scene), exact_environment(scene))
 
 
 def current_inputs(scene, folder):
@@ -189,4 +263,4 @@ def current_inputs(scene, folder):
     world_map = node._bake_mod("world_map")
     path = map_path(folder, key) if key else None
     meta = world_map.read_world_meta(path) if path is not None and world_map is not None else None
-    return shader_inputs(path, meta, sun_of(scene) if key else None)
+    return shader_inputs(path, meta, sun_of(scene) if key else None, exact_environment(scene) if key else None)

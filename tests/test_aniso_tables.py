@@ -134,8 +134,9 @@ def test_bake_an_anisotropic_manifest_entry(tmp_path):
     tab = open_tables(path)
     assert tab.anisotropic and len(tab.phi_bins) == 4 and len(tab.theta_bins) == 3
     names = sorted(p.name for p in path.parent.iterdir())
-    assert len(names) == 3 and names[0] == "brushed.exr" and names[1] == "brushed.fit.json", names
+    assert len(names) == 4 and names[0] == "brushed.exr" and names[1] == "brushed.fit.json", names
     assert names[2].startswith(f"brushed.osl{LAYOUT}-") and names[2].endswith(".exr"), names
+    assert names[3].startswith("brushed.svm") and names[3].endswith(".exr"), names
     wi = incident(50.0, 1.0)
     wo, pdf = tab.sample(wi, np.random.default_rng(4).random((1000, 2)))
     np.testing.assert_allclose(tab.pdf(wi, wo), pdf, rtol=1e-9)

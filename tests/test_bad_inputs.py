@@ -445,7 +445,8 @@ def test_cli_reports_bad_inputs_without_traceback(tmp_path):
     listing = _listing(out)
     # the good material's tables and what the Blender node reads beside them, nothing else
     assert listing[:3] == ["tables", "tables/good.exr", "tables/good.fit.json"], listing
-    assert len(listing) == 4 and re.fullmatch(r"tables/good\.osl\d+-[0-9a-f]{12}\.exr", listing[3]), listing
+    assert len(listing) == 5 and re.fullmatch(r"tables/good\.osl\d+-[0-9a-f]{12}\.exr", listing[3]), listing
+    assert re.fullmatch(r"tables/good\.svm\d+-[0-9a-f]{12}\.exr", listing[4]), listing
     open_tables(table_path(out, "good"))
 
 

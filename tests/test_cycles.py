@@ -393,6 +393,9 @@ def test_film_settings_follow_the_scene(baked):
     script = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"]).node_tree.nodes[lb.SCRIPT]
     got = lambda: {k: script.inputs[k].default_value for k in ("FilmFilter", "FilmWidth", "Seed")}  # noqa: E731
     assert got() == {"FilmFilter": 3, "FilmWidth": 2.0, "Seed": 5}
+    setattr(sc, lb.FILM_PROP, False)         # the scene's opt-out: hashed u
+    assert got() == {"FilmFilter": 0, "FilmWidth": 2.0, "Seed": 5}
+    setattr(sc, lb.FILM_PROP, True)
     sc.cycles.pixel_filter_type = 'BOX'
     sc.cycles.seed = 9
     bpy.context.view_layer.update()
@@ -445,7 +448,7 @@ def _seeded_renders(sc, seeds):
 
 
 def _check_osl_matches_tracer(tables_path, name, tmp_path, hashed=False, n=24, spp=32, seeds=8, ref_spp=256):
-    """Cycles (OSL back end; with `hashed`, its hashed u on camera rays too) against bake/tracer on the
+    """Cycles (OSL back end; film-stratified u on camera rays, or with `hashed` hashed u) against bake/tracer on the
     same exported scene, the tracer evaluating the baked BSDF (Tables.eval) with the same tables
     as sampler, BSDF-only: per-pixel z and the sphere's mean within MC error, the OSL noise
     measured over Cycles seeds. Returns (Cycles scene, reference image, sphere mask)."""
@@ -457,6 +460,8 @@ def _check_osl_matches_tracer(tables_path, name, tmp_path, hashed=False, n=24, s
     sc, node, path = _osl_vs_tracer_scene({name: tables_path}, name, n, spp, tmp_path)
     if hashed:
         cs.hashed_u(node)
+    else:
+        setattr(sc, lb.FILM_PROP, True)
     osl, var_osl = _seeded_renders(sc, seeds)
 
     data = tomllib.loads(Path(path).read_text())
@@ -494,7 +499,7 @@ def _check_osl_matches_tracer(tables_path, name, tmp_path, hashed=False, n=24, s
 def test_osl_matches_reference_tracer(baked, tmp_path, u):
     """The OSL back end against bake/tracer on the same scene (a sphere under a soft
     environment, box pixel filter): with camera rays' u from their position in the pixel (the
-    default), and with u hashed everywhere."""
+    default), and with u hashed everywhere (the scene's opt-out)."""
     _check_osl_matches_tracer(baked["plastic"], "plastic", tmp_path, hashed=u == "hashed")
 
 
@@ -534,6 +539,7 @@ def _tilted_plane_furnace(path, n, spp, seeds, pixel_filter, width, hashed=False
     converges to the baked albedo at cos theta_i = 0.5 whatever the pixel filter. Renders
     over Cycles seeds: (seeds, n, n, 3)."""
     sc = cs.reset(n, n, spp=spp)
+    setattr(sc, lb.FILM_PROP, True)
     sc.cycles.pixel_filter_type = pixel_filter
     sc.cycles.filter_width = width
     cs.ortho_camera(sc, scale=0.8)

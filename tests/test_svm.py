@@ -436,6 +436,7 @@ def test_svm_film_stratified_u_is_unbiased_and_cuts_noise(svm, plastic):
     ref = baked_albedo(open_tables(plastic), 0.5)
     sc = cs.reset(16, 16, spp=64, osl=False, threads=1)
     sc.cycles.pixel_filter_type = 'BOX'
+    sc["flowbsdf_film_u"] = True        # the default (blender_addon/node.film_settings)
     cs.ortho_camera(sc, scale=0.8)
     cs.set_world(sc, (1.0, 1.0, 1.0))
     texture = svm_export.ensure_svm_export(plastic)

@@ -343,15 +343,50 @@ int lamp_sample(Lamp L, point Pp, float u0, float u1, output vector dir, output 
     return lamp_hit(L, Pp, dir, dist, Le, pdf, t_exit);
 }
 
-// A rough share of the light lamp L sends to Pp (for choosing one lamp per shading point): its
-// irradiance at Pp, ignoring the surface; 0 where it cannot light Pp at all.
-float lamp_importance(Lamp L, point Pp)
+// The largest cosine to the normal n that a direction toward lamp L can have from Pp (0 when
+// the whole lamp is below Pp's tangent plane: it cannot light a reflecting surface there).
+float lamp_facing(Lamp L, point Pp, vector n)
+{
+    if (L.kind == LAMP_SUN) {
+        float h = is_shaped(L) ? sun_half_angle(L) : 0.0;
+        float a = acos(clamp(dot(normalize(L.Z), n), -1.0, 1.0));
+        return max(cos(max(a - h, 0.0)), 0.0);
+    }
+    vector oc = L.co - Pp;
+    float d = max(length(oc), 1e-8);
+    if (L.kind == LAMP_POINT || L.kind == LAMP_SPOT) {
+        float r = L.size[0];
+        if (r >= d)
+            return 1.0;
+        float a = acos(clamp(dot(oc / d, n), -1.0, 1.0));
+        return max(cos(max(a - asin(r / d), 0.0)), 0.0);
+    }
+    // area: the rectangle's corners (an ellipse's bounding box): convex, so below the plane
+    // when all of them are
+    vector au, av, ng;
+    float lu, lv, area;
+    area_frame(L, au, av, lu, lv, ng, area);
+    float best = dot(normalize(oc), n);
+    for (int i = 0; i < 4; i++) {
+        vector corner = oc + ((i & 1) ? 0.5 : -0.5) * lu * au + ((i & 2) ? 0.5 : -0.5) * lv * av;
+        best = max(best, dot(normalize(corner), n));
+    }
+    return max(best, 0.0);
+}
+
+// A rough share of the light lamp L sends to Pp, whose normal is n (for choosing one lamp per
+// shading point): its irradiance at Pp times the best cosine it can have there; 0 where it
+// cannot light Pp at all (behind an area lamp's emitting side, below the tangent plane).
+float lamp_importance(Lamp L, point Pp, vector n)
 {
     float lum = luminance(L.S);
     if (lum <= 0.0 || !(has_flag(L, LAMP_DIFFUSE) || has_flag(L, LAMP_GLOSSY)))
         return 0.0;
+    float facing = lamp_facing(L, Pp, n);
+    if (facing <= 0.0)
+        return 0.0;
     if (L.kind == LAMP_SUN)
-        return lum;
+        return lum * facing;
     vector oc = L.co - Pp;
     float d2 = max(dot(oc, oc), 1e-8);
     if (L.kind == LAMP_POINT || L.kind == LAMP_SPOT) {
@@ -359,7 +394,7 @@ float lamp_importance(Lamp L, point Pp)
         float e = lum / (4.0 * M_PI * max(d2, r * r));
         if (L.kind == LAMP_SPOT)
             e *= max(spot_attenuation(L, -oc), 0.02);
-        return e;
+        return e * facing;
     }
     vector au, av, ng;
     float lu, lv, area;
@@ -368,5 +403,5 @@ float lamp_importance(Lamp L, point Pp)
     if (toward <= 0.0)          // behind the emitting side: no point of the lamp reaches Pp
         return 0.0;
     float c = max(toward / sqrt(d2), 0.05);
-    return lum * c * area / (M_PI * max(d2, area));
+    return lum * c * area / (M_PI * max(d2, area)) * facing;
 }
