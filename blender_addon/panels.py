@@ -1,67 +1,135 @@
-"""The FlowBSDF panel, in the Shader Editor's sidebar and in Material Properties."""
+"""The FlowBSDF panel, in the Shader Editor's sidebar and in Material Properties.
+
+Laid out for Blender's default sidebar width (about 230 px at UI scale 1): one control per
+row with its label on the left (property split), buttons one to a row (the back-end
+switch four short ones), and every long text (what renders, job messages, scan results)
+wrapped to the region's width (`wrapped`, measured in the UI font), never cut.
+"""
 import bpy
 
 from . import worker
 
 STATE_ICONS = {"current": "CHECKMARK", "stale": "FILE_REFRESH", "missing": "ERROR", "error": "CANCEL",
                "unsupported": "INFO", "unknown": "QUESTION"}
+# Pixels a wrapped label loses to the panel's and a box's margins and its icon (at UI scale 1).
+MARGIN = 56
+FALLBACK_WIDTH = 230            # the default sidebar width, where there is no region (background)
 
 
 def _material(context):
     mat = getattr(context, "material", None)
-    if mat is None and context.active_object is not None:
+    if mat is None and getattr(context, "active_object", None) is not None:
         mat = context.active_object.active_material
     return mat
 
 
+def ui_scale(context):
+    system = context.preferences.system
+    return getattr(system, "ui_scale", None) or system.dpi / 72.0
+
+
+def text_width(text, context):
+    """The width in pixels of `text` in the UI's label font, or None where blf cannot tell."""
+    try:
+        import blf
+        points = context.preferences.ui_styles[0].widget.points
+        blf.size(0, points * ui_scale(context))
+        return blf.dimensions(0, text)[0]
+    except Exception:           # noqa: BLE001 - no font in this Blender (background): count characters
+        return None
+
+
+def line_width(context):
+    """The pixels a label line has in the current region (the default sidebar's without one)."""
+    region = getattr(context, "region", None)
+    scale = ui_scale(context)
+    width = region.width if region is not None and region.width > 1 else FALLBACK_WIDTH * scale
+    return max(width - MARGIN * scale, 60 * scale)
+
+
+def wrap(text, context):
+    """`text` as lines that fit the region, split at spaces (and at newlines)."""
+    avail = line_width(context)
+    lines = []
+    for paragraph in text.split("\n"):
+        line = ""
+        for word in paragraph.split():
+            candidate = f"{line} {word}" if line else word
+            width = text_width(candidate, context)
+            if width is None:                   # ~6.5 px per character at UI scale 1
+                width = len(candidate) * 6.5 * ui_scale(context)
+            if line and width > avail:
+                lines.append(line)
+                line = word
+            else:
+                line = candidate
+        lines.append(line)
+    return lines
+
+
+def wrapped(layout, text, icon, context):
+    """A long text as several labels (Blender cuts a label at the panel's edge)."""
+    col = layout.column(align=True)
+    for k, line in enumerate(wrap(text, context)):
+        col.label(text=line, icon=icon if k == 0 else "BLANK1")
+
+
 def draw_job(layout, context):
+    """The running job (what it does, a progress bar, Cancel), or the last one's result."""
     state = context.window_manager.flowbsdf_job
     job = worker.current
     running = job is not None and not job.done
     if not running and not state.message:
         return
     box = layout.box()
-    row = box.row(align=True)
-    text = f"{state.label}: {state.message}" if running else state.message
-    if running and hasattr(row, "progress"):             # Blender 4.0+
-        row.progress(factor=state.progress / 100.0, type="BAR", text=text[:80])
-    else:
-        row.label(text=text[:100], icon="TIME" if running else "INFO")
+    wrapped(box, state.message or "starting", "TIME" if running else "INFO", context)
     if running:
+        row = box.row(align=True)
+        if hasattr(row, "progress"):             # Blender 4.0+
+            row.progress(factor=state.progress / 100.0, type="BAR", text=f"{state.progress:.0f} %")
+        else:
+            row.prop(state, "progress", text="", slider=True)
         row.operator("flowbsdf.cancel", text="", icon="CANCEL")
 
 
-def _wrapped(layout, text, icon, width=38):
-    """A long text as several labels (Blender cuts a label at the panel's edge)."""
-    import textwrap
-    for k, line in enumerate(textwrap.wrap(text, width) or [""]):
-        layout.label(text=line, icon=icon if k == 0 else "BLANK1")
-
-
-def draw_renders(layout, mat, scene):
-    """What the material's Learned BSDF node renders in this scene, and why (node.node_status)."""
+def _learned_group(mat):
     from . import node
     tree = mat.node_tree
-    group = next((n for n in tree.nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree is not None
-                  and node.TREE_KEY in n.node_tree.keys()), None) if tree is not None else None
+    if tree is None:
+        return None
+    return next((n for n in tree.nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree is not None
+                 and node.TREE_KEY in n.node_tree.keys()), None)
+
+
+def draw_renders(layout, mat, scene, context):
+    """What the material's Learned BSDF node renders in this scene, and why (node.node_status)."""
+    from . import node
+    group = _learned_group(mat)
     if group is None:
         return
     status = node.node_status(group, scene)
     exact = status.startswith(("OSL", "SVM"))
-    _wrapped(layout.box(), f"Renders: {status}", "CHECKMARK" if exact and "warning" not in status else "ERROR")
+    wrapped(layout.box(), f"Renders: {status}", "CHECKMARK" if exact and "warning" not in status else "ERROR",
+            context)
 
 
-def draw_material(layout, mat, scene=None):
+def _split(layout):
+    col = layout.column()
+    col.use_property_split = True
+    col.use_property_decorate = False
+    return col
+
+
+def draw_material(layout, mat, context):
     s = mat.flowbsdf
     if not s.enabled:
         layout.operator("flowbsdf.enable", icon="NODE_MATERIAL")
         return
-    if scene is not None:
-        draw_renders(layout, mat, scene)
-    col = layout.column()
+    draw_renders(layout, mat, context.scene, context)
+    col = _split(layout)
     col.prop(s, "enabled")
     col.prop(s, "name")
-    col.prop(s, "source_kind", expand=True)
+    col.prop(s, "source_kind")
     if s.source_kind == "FILE":
         col.prop(s, "filepath")
     elif s.source_kind == "ANALYTIC":
@@ -71,46 +139,45 @@ def draw_material(layout, mat, scene=None):
         col.prop(s, "python_callable")
         col.prop(s, "python_isotropic")
     col.prop(s, "domain")
-    row = col.row(align=True)
-    row.prop(s, "preset")
-    row.prop(s, "bake_quality")
-    row = col.row(align=True)
-    op = row.operator("flowbsdf.bake", text="Train + Bake", icon="PLAY")
-    op.only_active, op.train = True, "ALWAYS"
-    row.operator("flowbsdf.load_model", text="Load Model", icon="FILEBROWSER")
-    op = row.operator("flowbsdf.bake", text="Bake", icon="RENDER_STILL")
-    op.only_active, op.train = True, "SCENE"
+    col.prop(s, "preset")
+    col.prop(s, "bake_quality")
+    col = layout.column(align=True)
+    col.operator("flowbsdf.bake", text="Bake", icon="RENDER_STILL").only_active = True
+    col.operator("flowbsdf.train_bake", text="Train + Bake", icon="PLAY").only_active = True
+    col.operator("flowbsdf.load_model", text="Load Model", icon="FILEBROWSER")
 
 
 def draw_scene(layout, context):
     s = context.scene.flowbsdf
-    col = layout.column()
+    col = _split(layout)
     col.prop(s, "out_dir")
-    col.prop(s, "train")
-    row = col.row(align=True)
-    row.operator("flowbsdf.scan", icon="VIEWZOOM")
-    op = row.operator("flowbsdf.bake", text="Bake Scene", icon="RENDER_STILL")
-    op.only_active, op.train = False, "SCENE"
+    from . import jobs
+    where = jobs.unsaved_problem(context.scene)
+    if where:
+        wrapped(layout, where, "ERROR", context)
+    col = layout.column(align=True)
+    col.operator("flowbsdf.scan", text="Scan Scene", icon="VIEWZOOM")
+    col.operator("flowbsdf.bake", text="Bake Scene", icon="RENDER_STILL").only_active = False
     try:
         from . import node
         backend = node.backend_of(context.scene)
     except (ImportError, AttributeError):
         backend = None
     if backend is not None:
-        row = col.row(align=True)
-        row.label(text=f"Back end: {backend}")
+        layout.label(text="Back end (all Learned BSDF nodes):")
+        row = layout.row(align=True)
         for key, label in (("auto", "Auto"), ("osl", "OSL"), ("svm", "SVM"), ("fit", "Fit")):
             row.operator("flowbsdf.set_backend", text=label, depress=(backend == key)).backend = key
     for item in s.scan_items:
-        box = col.box()
-        box.label(text=f"{item.material} -> {item.learned} ({item.users} object(s)): {item.state}",
-                  icon=STATE_ICONS.get(item.state, "QUESTION"))
-        if item.needs:
-            box.label(text=item.needs)
-        if item.detail:
-            box.label(text=item.detail)
+        box = layout.box()
+        name = item.material if item.learned in ("", item.material) else f"{item.material} ({item.learned})"
+        wrapped(box, f"{name}: {item.state}, {item.users} object(s)", STATE_ICONS.get(item.state, "QUESTION"),
+                context)
+        for text in (item.needs, item.detail):
+            if text:
+                wrapped(box, text, "BLANK1", context)
     if s.scan_items:
-        col.operator("flowbsdf.validate", icon="IMAGE_REFERENCE")
+        layout.operator("flowbsdf.validate", text="Validate", icon="IMAGE_REFERENCE")
 
 
 class _Panel:
@@ -121,7 +188,7 @@ class _Panel:
         draw_job(layout, context)
         mat = _material(context)
         if mat is not None:
-            draw_material(layout.box(), mat, context.scene)
+            draw_material(layout.box(), mat, context)
         draw_scene(layout, context)
 
 
@@ -138,11 +205,11 @@ class FLOWBSDF_PT_node_editor(_Panel, bpy.types.Panel):
 
 
 class FLOWBSDF_PT_material(_Panel, bpy.types.Panel):
+    """Open by default: an artist sees it without hunting for it."""
     bl_idname = "FLOWBSDF_PT_material"
     bl_space_type = "PROPERTIES"
     bl_region_type = "WINDOW"
     bl_context = "material"
-    bl_options = {"DEFAULT_CLOSED"}
 
 
 classes = (FLOWBSDF_PT_node_editor, FLOWBSDF_PT_material)

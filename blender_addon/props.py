@@ -106,11 +106,6 @@ class FlowBSDFScene(bpy.types.PropertyGroup):
     out_dir: bpy.props.StringProperty(
         name="Output", subtype="DIR_PATH", default="//flowbsdf",
         description="Folder for the manifest, models and tables (// = beside the .blend)")
-    train: bpy.props.EnumProperty(name="Train", default="AUTO", items=[
-        ("AUTO", "When possible", "Train missing models when the FlowBSDF Python has torch; "
-         "otherwise bake from the ideal tabulation"),
-        ("ALWAYS", "Always", "Fail when a model is missing and cannot be trained"),
-        ("NEVER", "Never", "Bake from existing models or the ideal tabulation")])
     scan_items: bpy.props.CollectionProperty(type=FlowBSDFScanItem)
     scan_index: bpy.props.IntProperty()
     last_manifest: bpy.props.StringProperty(name="Manifest", subtype="FILE_PATH")

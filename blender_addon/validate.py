@@ -308,7 +308,7 @@ def validate_args(folder, manifest, out, spp):
             "--cycles", os.path.join(folder, "cycles.exr"), "--spp", str(spp)]
 
 
-def prepare(scene, context=None, spp=None, size=None):
+def prepare(scene, context=None, spp=None, size=None, where="ui"):
     """Export + Cycles render; returns (job, folder, notes). The reference runs in the job."""
     from . import prefs
     spp = spp or scene.flowbsdf.validate_spp
@@ -321,7 +321,7 @@ def prepare(scene, context=None, spp=None, size=None):
     width, height = size, max(1, round(size * aspect))
     folder = os.path.join(out, VALIDATE_DIR)
     _, notes = export_scene(scene, folder, rows, width, height, manifest)
-    python = worker.python_for(prefs.get(context))
+    python = worker.python_for(prefs.get(context), where=where)
     render_cycles(scene, os.path.join(folder, "cycles.exr"), width, height, spp)
     job = worker.Job(python, validate_args(folder, manifest, out, spp), worker.extra_paths(prefs.get(context)),
                      label="Validate")

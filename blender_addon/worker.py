@@ -19,7 +19,22 @@ PROGRESS_RE = re.compile(r"^\[progress (\d+)/(\d+)\]\s*(.*)$")
 
 
 class JobError(Exception):
-    """A job that failed; the message is fit for the user."""
+    """A job that failed: str(e) is one line fit for Blender's report popup, `details` the rest
+    (shown in the panel and printed to the console)."""
+
+    def __init__(self, message, details=""):
+        super().__init__(message)
+        self.details = details
+
+
+def short(text, limit=100):
+    """The first line of a message, cut at a word boundary to at most `limit` characters."""
+    line = text.strip().splitlines()[0] if text.strip() else ""
+    if len(line) <= limit:
+        return line
+    cut = line[:limit - 1]
+    at_word = cut.rsplit(" ", 1)[0].rstrip(",;:")
+    return (at_word if len(at_word) > 0.7 * limit else cut) + "\u2026"
 
 
 class Job:
@@ -148,13 +163,14 @@ def clear():
     current = None
 
 
-def python_for(prefs, need_train=False):
-    """deps.choose_python with the add-on preferences; JobError with the hint on failure."""
+def python_for(prefs, need_train=False, where="ui"):
+    """deps.choose_python with the add-on preferences; JobError (short line + details) when
+    there is no Python for the job."""
     try:
         return deps.choose_python(prefs.python_path if prefs else "", need_train=need_train,
-                                  extra_paths=extra_paths(prefs))
+                                  extra_paths=extra_paths(prefs), where=where)
     except deps.PythonNotFound as e:
-        raise JobError(str(e)) from None
+        raise JobError(str(e), e.details) from None
 
 
 def extra_paths(prefs):

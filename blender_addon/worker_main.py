@@ -33,7 +33,8 @@ def cmd_probe(args):
     emit("[probe] " + json.dumps({
         "numpy": has["numpy"], "openexr": has["OpenEXR"], "torch": has["torch"], "trainer": has["trainer"],
         "bake": None if spec is None else str(Path(spec.origin).parent),
-        "python": sys.executable, "version": list(sys.version_info[:3])}))
+        "python": sys.executable, "executable": os.path.realpath(sys.executable), "base_prefix": sys.base_prefix,
+        "version": list(sys.version_info[:3])}))
     return 0
 
 
@@ -107,9 +108,8 @@ def cmd_bake(args):
                        and not model_path(args.out, entry.name).is_file())
         if wants_model and args.train == "always" and not trainer_here:
             raise FlowBSDFError(f"material {entry.name!r} needs training, but this Python ({sys.executable}) "
-                                "has no torch/trainer: point the add-on at a Python with FlowBSDF's trainer "
-                                "(pip install '<FlowBSDF checkout>[train]'), or bake from the ideal "
-                                "tabulation (train: never)")
+                                "has no torch/trainer: use one that has (the FlowBSDF checkout's "
+                                ".venv/bin/python), or bake without training")
         if wants_model and args.train != "never" and trainer_here:
             plan.append(("train", entry))
         elif wants_model:
@@ -122,6 +122,8 @@ def cmd_bake(args):
             if code != 0:
                 failures.append(f"{entry.name}: training failed (exit code {code}); rerun to resume")
                 emit(f"[fail] {failures[-1]}")
+            else:
+                emit(f"[trained] {entry.name}")
             continue
         try:
             path, status = bake_entry(entry, args.out, manifest.path, log=emit)
@@ -198,7 +200,7 @@ def main(argv=None):
         c.add_argument("--material", action="append")
         c.set_defaults(func=func)
         if name == "bake":
-            c.add_argument("--train", choices=["auto", "always", "never"], default="auto")
+            c.add_argument("--train", choices=["auto", "always", "never"], default="never")
     v = sub.add_parser("validate")
     v.add_argument("scene")
     v.add_argument("--manifest", required=True)

@@ -120,19 +120,90 @@ def test_operator_errors_are_messages(addon, tmp_path, monkeypatch):
         bpy.ops.flowbsdf.bake()
     mat.flowbsdf.analytic_params = ""
     monkeypatch.setenv("FLOWBSDF_PYTHON", str(tmp_path / "no_python"))
-    with pytest.raises(RuntimeError, match="does not exist.*Preferences > Add-ons > FlowBSDF > Python"):
+    with pytest.raises(RuntimeError) as err:
         bpy.ops.flowbsdf.bake()
+    # One short line for the report popup; what to do is in the panel (and the console).
+    report = str(err.value).strip().splitlines()
+    assert len(report) == 1 and len(report[0]) < 160, report
+    assert "FlowBSDF Python does not exist: " in report[0] and "(details in the FlowBSDF panel)" in report[0]
+    panel = bpy.context.window_manager.flowbsdf_job.message
+    assert "Preferences > Add-ons > FlowBSDF > Python" in panel and "numpy and OpenEXR" in panel, panel
+    assert "checkout" not in panel                      # baking needs no FlowBSDF checkout
+
+
+def _fake_probe(monkeypatch, **over):
+    from blender_addon import deps
+    info = {"ok": True, "numpy": True, "openexr": True, "torch": False, "trainer": False, "bake": "/x/bake",
+            "error": None, "executable": sys.executable, "base_prefix": sys.base_prefix,
+            "version": list(sys.version_info[:3]), **over}
+    monkeypatch.setattr(deps, "probe", lambda python, extra_paths=(): info)
+    monkeypatch.delenv("FLOWBSDF_PYTHON", raising=False)
+    return deps
 
 
 def test_training_without_torch_says_where_to_set_python(addon, monkeypatch):
-    from blender_addon import deps
-    fake = {"ok": True, "numpy": True, "openexr": True, "torch": False, "trainer": False,
-            "bake": "/x/bake", "error": None}
-    monkeypatch.setattr(deps, "probe", lambda python, extra_paths=(): fake)
-    monkeypatch.delenv("FLOWBSDF_PYTHON", raising=False)
+    deps = _fake_probe(monkeypatch)
     assert deps.choose_python("", need_train=False) == sys.executable
-    with pytest.raises(deps.PythonNotFound, match="lacks torch, trainer.*Preferences > Add-ons > FlowBSDF"):
+    with pytest.raises(deps.PythonNotFound) as err:
         deps.choose_python("", need_train=True)
+    assert str(err.value) == f"cannot train: Blender's Python ({sys.executable}) lacks torch, FlowBSDF's trainer"
+    assert "Preferences > Add-ons > FlowBSDF > Python" in err.value.details
+    assert ".venv/bin/python" in err.value.details          # the trainer only comes with a checkout
+    with pytest.raises(deps.PythonNotFound) as err:
+        deps.choose_python("", need_train=True, where="batch")
+    assert "--python PATH" in err.value.details
+    # The preferences tell the truth about the same Python.
+    text = " ".join(t for t, _ in deps.summary(""))
+    assert "Blender's Python" in text and "cannot train" in text and "lacks torch" in text, text
+
+
+def test_a_python_blender_only_reports_is_not_called_blenders_own(addon, monkeypatch):
+    """Debian's Blender 3.4 reports the python3.11 first on PATH (here a pyenv shim) as
+    sys.executable; messages must not call that "Blender's Python"."""
+    deps = _fake_probe(monkeypatch, openexr=False, executable="/opt/pyenv/versions/3.11.7/bin/python3.11",
+                       base_prefix="/opt/pyenv/versions/3.11.7")
+    with pytest.raises(deps.PythonNotFound) as err:
+        deps.choose_python("")
+    text = str(err.value) + " " + err.value.details + " ".join(t for t, _ in deps.summary(""))
+    assert "Blender's Python" not in text, text
+    assert "the Python Blender finds on PATH" in text and "/opt/pyenv/versions/3.11.7/bin/python3.11" in text
+    assert str(err.value) == "cannot bake: the default Python lacks OpenEXR"
+
+
+def test_preferences_say_which_python_trains(addon, monkeypatch):
+    """With torch and the trainer (this venv), the preferences say training happens there."""
+    from blender_addon import deps
+    monkeypatch.delenv("FLOWBSDF_PYTHON", raising=False)
+    deps.clear_probes()
+    info = deps.probe(sys.executable)
+    if not (info["torch"] and info["trainer"]):
+        pytest.skip("this Python has no torch/trainer")
+    text = " ".join(t for t, _ in deps.summary(""))
+    assert "has torch and the trainer: Train + Bake trains there; Bake never trains" in text, text
+    assert "training is off" not in text
+
+
+def test_bake_never_trains_and_the_two_buttons_say_what_they_do(addon, tmp_path, monkeypatch):
+    """"Bake" with a Python that could train (this venv has torch) bakes from the ideal
+    tabulation; only "Train + Bake" trains. Their tooltips differ and give the time."""
+    from blender_addon import operators
+    monkeypatch.delenv("FLOWBSDF_PYTHON", raising=False)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.flowbsdf.out_dir = str(tmp_path)
+    mat = learned("never_trained", "MATTE", preset="FAST")
+    mesh_object("o", mat)
+    with bpy.context.temp_override(material=mat):
+        assert bpy.ops.flowbsdf.bake(only_active=True) == {"FINISHED"}
+    assert (tmp_path / "tables" / "never_trained.exr").is_file()
+    assert not (tmp_path / "models").exists()
+    manifest = (tmp_path / "manifest.toml").read_text()
+    assert "state: current" in manifest and "no trained model" in manifest
+    tips = {cls.bl_idname: cls.TOOLTIPS for cls in (operators.FLOWBSDF_OT_bake, operators.FLOWBSDF_OT_train_bake)}
+    bake, train = tips["flowbsdf.bake"], tips["flowbsdf.train_bake"]
+    assert "Never trains" in bake[True] and "Final: a few minutes" in bake[True]
+    assert "Balanced: 5-8 min" in train[True] and "torch" in train[True]
+    assert bake[True] != train[True] and bake[False] != train[False] and bake[True] != bake[False]
 
 
 def test_job_progress_and_cancel(tmp_path):
@@ -177,7 +248,7 @@ def baked_scene(addon, tmp_path_factory):
         ob.location.x = 2.0 * (i - 1)
     assert bpy.ops.flowbsdf.scan() == {"FINISHED"}
     before = {i.material: i.state for i in scene.flowbsdf.scan_items}
-    assert bpy.ops.flowbsdf.bake(train="NEVER") == {"FINISHED"}
+    assert bpy.ops.flowbsdf.bake() == {"FINISHED"}
     return scene, out, before
 
 
@@ -196,7 +267,7 @@ def test_three_materials_scanned_baked_rendered(baked_scene):
         group = next(n for n in bpy.data.materials[name].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
         assert node.node_status(group, scene) == "OSL", node.node_status(group, scene)
     mtime = (out / "tables" / "gold.exr").stat().st_mtime_ns
-    assert bpy.ops.flowbsdf.bake(train="NEVER") == {"FINISHED"}       # current tables are kept
+    assert bpy.ops.flowbsdf.bake() == {"FINISHED"}       # current tables are kept
     assert (out / "tables" / "gold.exr").stat().st_mtime_ns == mtime
 
     img = cs.render(scene)
@@ -220,7 +291,8 @@ def test_cli_command_bakes_binds_and_saves(baked_scene, tmp_path, capsys):
     assert "[progress 3/3] done" in text and f"[flowbsdf] saved {blend}" in text
     assert all(line == line.strip("\r") for line in text.splitlines())
     assert batch.cli_command(["bake", "--python", str(tmp_path / "nope")]) == 1
-    assert "[flowbsdf] error: the FlowBSDF Python" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "[flowbsdf] error: the FlowBSDF Python does not exist" in text and "Pass one with --python PATH" in text
     assert batch.cli_command(["bake", "--material", "not_there"]) == 1
     assert "not_there" in capsys.readouterr().out
     assert "FLOWBSDF_PYTHON" not in os.environ
@@ -302,7 +374,7 @@ def test_validate_reference_vs_cycles(addon, tmp_path):
     scene.flowbsdf.validate_spp, scene.flowbsdf.validate_size = 8, 32
     with pytest.raises(RuntimeError, match="bake first: no tables for red"):
         bpy.ops.flowbsdf.validate()                  # nothing baked yet: a message, no traceback
-    assert bpy.ops.flowbsdf.bake(train="NEVER") == {"FINISHED"}
+    assert bpy.ops.flowbsdf.bake() == {"FINISHED"}
     assert bpy.ops.flowbsdf.validate() == {"FINISHED"}
     import json
     result = json.loads((tmp_path / "out" / "validate" / "metrics.json").read_text())
@@ -343,7 +415,7 @@ def test_validate_compares_like_with_like_under_a_sky_and_a_lamp(addon, tmp_path
     scene.camera = cam
     scene.flowbsdf.out_dir = str(tmp_path / "out")
     scene.flowbsdf.validate_spp, scene.flowbsdf.validate_size = 16, 24
-    assert bpy.ops.flowbsdf.bake(train="NEVER") == {"FINISHED"}
+    assert bpy.ops.flowbsdf.bake() == {"FINISHED"}
     assert bpy.ops.flowbsdf.validate() == {"FINISHED"}
     result = json.loads((tmp_path / "out" / "validate" / "metrics.json").read_text())
     assert abs(result["mean_cycles"] - result["mean_reference"]) < 0.05 * result["mean_reference"], result
@@ -395,8 +467,8 @@ def test_panel_draws_every_state(addon, tmp_path):
     mesh_object("o", mat)
     item = scene.flowbsdf.scan_items.add()
     item.material, item.state, item.needs = "m", "current", "theta_i only: 3 bins"
-    ctx = SimpleNamespace(material=mat, scene=scene, active_object=None,
-                          window_manager=bpy.context.window_manager)
+    ctx = SimpleNamespace(material=mat, scene=scene, active_object=None, region=None,
+                          window_manager=bpy.context.window_manager, preferences=bpy.context.preferences)
     seen = []
     for kind in ("off", "FILE", "ANALYTIC", "PYTHON"):
         mat.flowbsdf.enabled = kind != "off"
@@ -414,7 +486,7 @@ def test_panel_draws_every_state(addon, tmp_path):
         job.run(echo=False)
         worker.current = None
     ops = {name for kind, name in seen if kind == "operator"}
-    assert {"flowbsdf.enable", "flowbsdf.bake", "flowbsdf.scan", "flowbsdf.load_model",
+    assert {"flowbsdf.enable", "flowbsdf.bake", "flowbsdf.train_bake", "flowbsdf.scan", "flowbsdf.load_model",
             "flowbsdf.validate", "flowbsdf.set_backend"} <= ops
     assert {"filepath", "analytic_preset", "python_callable", "out_dir"} <= {n for k, n in seen if k == "prop"}
 
@@ -458,7 +530,7 @@ def test_modal_progress_and_cancel(addon, tmp_path):
         result = op.modal(ctx, timer)
         time.sleep(0.05)
     assert result == {"CANCELLED"} and not state.running
-    assert op.reports == [({"WARNING"}, "FlowBSDF bake: cancelled")]
+    assert op.reports == [({"WARNING"}, "FlowBSDF: Bake cancelled")]
     worker.current = None
 
 
@@ -474,7 +546,7 @@ def test_train_then_bake_from_the_panel(addon, tmp_path):
     mat = learned("trained", "MATTE", preset="FAST")
     mesh_object("o", mat)
     with bpy.context.temp_override(material=mat):
-        assert bpy.ops.flowbsdf.bake(only_active=True, train="ALWAYS") == {"FINISHED"}
+        assert bpy.ops.flowbsdf.train_bake(only_active=True) == {"FINISHED"}
     assert (tmp_path / "models" / "trained.flow.npz").is_file()
     job = worker.Job(sys.executable, ["status", str(tmp_path / "manifest.toml"), "--out", str(tmp_path)])
     info = scan.parse_status(job.run(echo=False))["trained"]

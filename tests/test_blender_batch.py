@@ -123,7 +123,29 @@ def test_batch_failure_exit_code(batch_scene):
     code, out = _blender([str(blend), "--python-expr", BATCH, "--", "bake", "--python",
                           str(tmp / "no_such_python")], user, tmp)
     assert code == 1
-    assert "[flowbsdf] error: the FlowBSDF Python" in out and "does not exist" in out
+    assert "[flowbsdf] error: the FlowBSDF Python does not exist" in out
+    assert "Pass one with --python PATH" in out, out[-2000:]
+    assert "checkout" not in out.split("[flowbsdf] error:", 1)[1]      # baking needs numpy + OpenEXR only
+
+
+def test_batch_names_the_python_blender_reports_honestly(batch_scene):
+    """Without --python the worker is the Python Blender reports as sys.executable; Debian's 3.4
+    reports the python3.11 first on PATH (e.g. a pyenv shim), which is not the interpreter
+    Blender runs: the batch must not call it "Blender's Python"."""
+    tmp, user, blend = batch_scene
+    code, out = _blender(["--python-expr", "import sys; print('EXE', sys.executable, '|', sys.base_prefix)"],
+                         user, tmp)
+    exe, blender_prefix = out.split("EXE ", 1)[1].splitlines()[0].split(" | ")
+    own = subprocess.run([exe, "-c", "import sys; print(sys.base_prefix)"], capture_output=True, text=True)
+    code, out = _blender([str(blend), "--python-expr", BATCH, "--", "scan"], user, tmp)
+    named = [ln for ln in out.splitlines() if ln.startswith("[flowbsdf] worker Python:")
+             or ln.startswith("[flowbsdf] error:")]
+    assert named, out[-3000:]
+    if own.returncode == 0 and own.stdout.strip() == blender_prefix:
+        assert "Blender's Python" in named[0], named
+    else:
+        assert "Blender's Python" not in out, out[-3000:]
+        assert f"python blender finds on path ({exe}".lower() in out.lower(), out[-3000:]
 
 
 def _blender_compiles_osl(user, tmp):
