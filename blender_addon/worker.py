@@ -16,6 +16,7 @@ import time
 from . import deps
 
 PROGRESS_RE = re.compile(r"^\[progress (\d+)/(\d+)\]\s*(.*)$")
+STEP_RE = re.compile(r"^\[step ([0-9.]+)\]\s*(.*)$")
 
 
 class JobError(Exception):
@@ -44,6 +45,7 @@ class Job:
         self.lines = []               # everything the worker printed
         self.fraction = 0.0
         self.message = "starting"
+        self._step = (0, 1, False)       # (steps done, steps planned, words came from [step] lines)
         self.error = None
         self.cancelled = False
         self.returncode = None
@@ -86,15 +88,23 @@ class Job:
         return self.returncode is not None
 
     def _take(self, line):
+        """Progress: `[progress K/N]` starts step K of N, `[step F]` says how far it is (F of it)
+        in an artist's words, which then stay the message; other lines are the log."""
         self.lines.append(line)
-        m = PROGRESS_RE.match(line)
+        m, step = PROGRESS_RE.match(line), STEP_RE.match(line)
         if m:
             k, n = int(m.group(1)), max(int(m.group(2)), 1)
             self.fraction = min((k - 1) / n if m.group(3) != "done" else 1.0, 1.0)
             self.message = m.group(3)
+            self._step = (k - 1, n, False)
+        elif step:
+            done, n, _ = self._step
+            self.fraction = max(self.fraction, min((done + float(step.group(1))) / n, 1.0))
+            self.message = step.group(2)
+            self._step = (done, n, True)
         elif line.startswith("[error] "):
             self.error = line[len("[error] "):]
-        elif line.strip() and not line.startswith("  "):
+        elif line.strip() and not line.startswith("  ") and not self._step[2]:
             self.message = line.strip()[:120]
 
     def _finish(self):

@@ -217,7 +217,7 @@ def test_job_progress_and_cancel(tmp_path):
     while not any(line.startswith("[progress 1/1]") for line in job.lines) and time.monotonic() < deadline:
         job.poll()
         time.sleep(0.05)
-    assert job.message == "bake slow" and job.fraction == 0.0
+    assert job.message in ("bake slow", "Baking slow: tabulating the material") and job.fraction < 0.05
     job.cancel()
     while not job.done and time.monotonic() < deadline:
         job.poll()
@@ -226,6 +226,85 @@ def test_job_progress_and_cancel(tmp_path):
     with pytest.raises(ProcessLookupError):
         os.killpg(job.proc.pid, 0)          # the whole group is gone
     assert not (tmp_path / "out" / "tables" / "slow.exr").exists()
+
+
+def _worker_main():
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("worker_main", ROOT / "blender_addon" / "worker_main.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bake_progress_in_words_from_the_planner_log(monkeypatch):
+    """The planner's log (resolution probe, one line per added angle) becomes a moving fraction
+    and words with the time left; between lines the time left counts down."""
+    wm = _worker_main()
+    lines = []
+    monkeypatch.setattr(wm, "emit", lines.append)
+    now = [0.0]
+    progress = wm.BakeProgress("MilitaryGreen", {}, clock=lambda: now[0])
+    steps = []
+
+    def feed(t, text):
+        now[0] = t
+        progress.log(text)
+        steps.append((progress.done, lines[-1]))
+    feed(8.0, "[bake] MilitaryGreen: resolution 16: single-bin rv 0.2005")
+    assert steps[-1][1] == "[step 0.050] Baking MilitaryGreen: choosing the table resolution (1 of 5)"
+    for t, r in ((9, 24), (10, 32), (13, 48), (18, 64)):
+        feed(float(t), f"[bake] MilitaryGreen: resolution {r}: single-bin rv 0.0081")
+    assert progress.resolution == 64 and progress.max_bins() == 34
+    scores = [0.457, 0.282, 0.208, 0.146, 0.110, 0.108, 0.0845, 0.0437, 0.031, 0.0198, 0.0182]
+    for k, score in enumerate(scores):
+        feed(30.0 + 10 * k, f"[bake] MilitaryGreen: bins {7 + k}: split 1.00-2.00 deg (midpoint rv {score})")
+    assert all(text.startswith("[bake] ") or text.startswith("[step ") for text in lines)
+    assert sum(text.startswith("[bake] MilitaryGreen: bins") for text in lines) == len(scores)  # the log keeps them
+    words = steps[-1][1]
+    import re
+    m = re.match(r"\[step ([0-9.]+)\] Baking MilitaryGreen: 17 of about (\d+) angles, about (\d+) min left$", words)
+    assert m, words
+    assert 17 < int(m.group(2)) <= 34 and 0.3 < float(m.group(1)) < 0.95
+    fractions = [f for f, _ in steps]
+    assert fractions == sorted(fractions) and 0 < fractions[-1] < 1
+    # The heartbeat: 60 s later the time left is a minute shorter, the bar has moved.
+    before = int(m.group(3))
+    now[0] += 60.0
+    progress.report()
+    m2 = re.match(r"\[step ([0-9.]+)\] .* about (\d+) (min|s) left$", lines[-1])
+    assert m2 and float(m2.group(1)) > float(m.group(1)), lines[-1]
+    assert (int(m2.group(2)) if m2.group(3) == "min" else 0) <= before - 1, (words, lines[-1])
+    feed(200.0, "[svm] wrote /x/MilitaryGreen.svm1-0.exr")
+    assert lines[-1].endswith("Baking MilitaryGreen: writing the node's textures and closure fit")
+    assert wm.time_left(5) == "a few seconds left" and wm.time_left(40) == "about 40 s left"
+    assert wm.time_left(75) == "about 1 min left" and wm.time_left(610) == "about 10 min left"
+
+
+def test_progress_moves_within_one_material(tmp_path):
+    """One material's bake: the job's fraction moves between 0 and 1 and its message is the
+    artist's words ("Baking plastic: 7 of about 12 angles, ..."), not the planner's."""
+    from blender_addon import worker
+    manifest = tmp_path / "m.toml"
+    manifest.write_text('[[material]]\nname = "plastic"\nsource = { kind = "analytic", model = "plastic", '
+                        'albedo = [0.7, 0.1, 0.08], alpha = 0.12 }\nbake = { resolution = 16, tol = 0.02, '
+                        'first_bins = 3, samples = 2048, grid = 96, ideal_resolution = 48 }\n')
+    job = worker.Job(sys.executable, ["bake", str(manifest), "--out", str(tmp_path / "out")])
+    seen = []
+    deadline = time.monotonic() + 300
+    while not job.done and time.monotonic() < deadline:
+        job.poll()
+        seen.append((job.fraction, job.message))
+        time.sleep(0.02)
+    assert job.done and not job.error, job.lines[-5:]
+    import re
+    inside = [(f, m) for f, m in seen if 0.0 < f < 1.0]
+    assert inside and len({f for f, _ in inside}) >= 3, seen[-10:]
+    assert any(re.match(r"Baking plastic: \d+ of about \d+ angles, (about \d+ s|a few seconds) left$", m)
+               for _, m in inside), sorted({m for _, m in seen})
+    assert not any(m.startswith("[bake]") for _, m in seen)
+    assert any(line.startswith("[bake] plastic: bins ") for line in job.lines)      # the log keeps them
+    fractions = [f for f, _ in seen]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
 
 
 THREE = (("matte", "MATTE"), ("red_plastic", "PLASTIC"), ("gold", "GOLD"))
@@ -520,10 +599,10 @@ def test_modal_progress_and_cancel(addon, tmp_path):
     timer = SimpleNamespace(type="TIMER")
     assert op.modal(ctx, SimpleNamespace(type="MOUSEMOVE")) == {"PASS_THROUGH"}
     deadline = time.monotonic() + 120
-    while state.message != "bake slow" and time.monotonic() < deadline:
+    while not state.message.startswith("Baking slow") and time.monotonic() < deadline:
         assert op.modal(ctx, timer) == {"PASS_THROUGH"}
         time.sleep(0.05)
-    assert state.message == "bake slow" and state.progress == 0.0
+    assert state.message == "Baking slow: tabulating the material" and state.progress < 5.0
     assert bpy.ops.flowbsdf.cancel() == {"FINISHED"}
     result = None
     while result in (None, {"PASS_THROUGH"}) and time.monotonic() < deadline:
