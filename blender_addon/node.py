@@ -275,8 +275,31 @@ def _trees():
             yield tree
 
 
+PATH_KEYS = ("tables", "fit", "osl_texture", "svm_texture")
+
+
 def _info(tree):
-    return dict(tree[TREE_KEY].to_dict()) if hasattr(tree[TREE_KEY], "to_dict") else dict(tree[TREE_KEY])
+    """The group's binding data, its file paths absolute (stored relative to the .blend: `_store`)."""
+    info = dict(tree[TREE_KEY].to_dict()) if hasattr(tree[TREE_KEY], "to_dict") else dict(tree[TREE_KEY])
+    for key in PATH_KEYS:
+        if info.get(key):
+            info[key] = os.path.normpath(bpy.path.abspath(info[key], library=tree.library))
+    return info
+
+
+def _relative(path):
+    """`path` relative to the saved .blend (//...), so the project folder can move; as it is
+    for an unsaved file (or another drive)."""
+    if not path or not bpy.data.filepath:
+        return path
+    try:
+        return bpy.path.relpath(path)
+    except ValueError:
+        return path
+
+
+def _store(tree, info):
+    tree[TREE_KEY] = {**info, **{key: _relative(info[key]) for key in PATH_KEYS if info.get(key)}}
 
 
 def _tree_for(name):
@@ -414,6 +437,9 @@ def _build_tree(tree, name, tables_path, fit_path):
     if svm_texture:
         from . import svm
         svm_out = svm.build_svm_sampler(tree, svm_texture, group_in.outputs["Tangent"], location=(-1400, -3000))
+        for image in bpy.data.images:       # the texture's image, relative to the .blend as the tables are
+            if image.filepath and bpy.path.abspath(image.filepath) == svm_texture:
+                image.filepath = _relative(svm_texture)
         shader = _switched(tree, SWITCH_SVM, shader, svm_out, (2200, -300))
     if with_osl:                # else no Script node at all (see the module docstring); `upgrade` adds it
         script = make_script_node(tree)
@@ -425,7 +451,7 @@ def _build_tree(tree, name, tables_path, fit_path):
         script["flowbsdf_src"] = _source_hash()
         shader = _switched(tree, SWITCH, shader, script.outputs["BSDF"], (2400, 0))
     links.new(shader, out.inputs[0])
-    tree[TREE_KEY] = info
+    _store(tree, info)
 
 
 def _switched(tree, name, off, on, location):
@@ -612,12 +638,12 @@ def _refresh_export(tree):
         texture = _osl_texture(tables)
     except Exception as e:      # noqa: BLE001
         info["problems"] = f"no OSL texture: {e}"
-        tree[TREE_KEY] = info
+        _store(tree, info)
         return
-    if texture != info.get("osl_texture"):
+    if texture != script.inputs["Tables"].default_value:     # OSL reads absolute paths only
         script.inputs["Tables"].default_value = texture
         info["osl_texture"] = texture
-        tree[TREE_KEY] = info
+        _store(tree, info)
 
 
 TANGENT = (1.0, 0.0, 0.0)       # the group's Tangent input when unlinked: world x (the tracer's default)

@@ -382,6 +382,78 @@ def test_cli_command_bakes_binds_and_saves(baked_scene, tmp_path, capsys):
         assert len(groups) == 1 and groups[0].node_tree.get("flowbsdf")["material"] == name
 
 
+def _learned_group(mat):
+    from blender_addon import panels
+    return panels._learned_group(mat)
+
+
+def test_paths_follow_the_project_folder(addon, tmp_path):
+    """Table paths are stored relative to the .blend: moving the project folder keeps the tables
+    rendering; moving the .blend alone, the node and Scan both say the tables are missing."""
+    import shutil
+    from blender_addon import node
+    cs.bpy_or_skip()
+    project = tmp_path / "A"
+    project.mkdir()
+    scene = cs.reset(width=8, height=8, spp=1)
+    cs.set_world(scene, (1.0, 1.0, 1.0))
+    mat = learned("moving", "MATTE")
+    cs.add_sphere(scene, mat, segments=16, rings=8)
+    cs.ortho_camera(scene, scale=2.0)
+    scene.flowbsdf.out_dir = "//flowbsdf"
+    bpy.ops.wm.save_as_mainfile(filepath=str(project / "shot.blend"))
+    assert bpy.ops.flowbsdf.bake() == {"FINISHED"}
+    raw = _learned_group(mat).node_tree[node.TREE_KEY]
+    assert raw["tables"] == "//flowbsdf/tables/moving.exr", raw["tables"]
+    assert all(raw[k].startswith("//flowbsdf/tables/moving.") for k in node.PATH_KEYS if raw.get(k)), raw.to_dict()
+    svm_images = [i for i in bpy.data.images if "svm" in i.filepath]
+    assert all(i.filepath.startswith("//flowbsdf/tables/") for i in svm_images), [i.filepath for i in svm_images]
+    bpy.ops.wm.save_mainfile()
+
+    moved = tmp_path / "B"
+    shutil.move(project, moved)
+    bpy.ops.wm.open_mainfile(filepath=str(moved / "shot.blend"))
+    scene, mat = bpy.context.scene, bpy.data.materials["moving"]
+    group = _learned_group(mat)
+    assert node.node_status(group, scene) == "OSL"
+    script = group.node_tree.nodes[node.SCRIPT]
+    assert Path(script.inputs["Tables"].default_value).parent == moved / "flowbsdf" / "tables"
+    assert all(Path(bpy.path.abspath(i.filepath)).is_file() for i in bpy.data.images if "svm" in i.filepath)
+    assert bpy.ops.flowbsdf.scan() == {"FINISHED"}
+    assert [i.state for i in scene.flowbsdf.scan_items] == ["current"]
+    img = cs.render(scene)
+    assert abs(img[3:5, 3:5].mean() - 0.8) < 0.15, img[3:5, 3:5]    # white world, albedo 0.8: not black
+
+    alone = tmp_path / "C"
+    alone.mkdir()
+    shutil.copy(moved / "shot.blend", alone / "shot.blend")
+    bpy.ops.wm.open_mainfile(filepath=str(alone / "shot.blend"))
+    scene, mat = bpy.context.scene, bpy.data.materials["moving"]
+    status = node.node_status(_learned_group(mat), scene)
+    assert status.startswith("fit (tables missing: ") and str(alone / "flowbsdf" / "tables" / "moving.exr") in status
+    assert bpy.ops.flowbsdf.scan() == {"FINISHED"}
+    assert [i.state for i in scene.flowbsdf.scan_items] == ["missing"]
+
+
+def test_an_unsaved_file_asks_to_save_first(addon, tmp_path, monkeypatch):
+    """The panel and the interactive operators ask to save first (the tables go beside the
+    .blend); a script's bake of an unsaved file says exactly where the tables went."""
+    from blender_addon import jobs, prefs
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    assert scene.flowbsdf.out_dir == "//flowbsdf"
+    assert jobs.unsaved_problem(scene) == "save the .blend first: FlowBSDF writes the tables beside it, in //flowbsdf"
+    monkeypatch.setattr(prefs, "user_dir", lambda *parts: str(tmp_path.joinpath("user", *parts)))
+    mesh_object("o", learned("unsaved", "MATTE"))
+    assert bpy.ops.flowbsdf.bake() == {"FINISHED"}
+    message = bpy.context.window_manager.flowbsdf_job.message
+    where = tmp_path / "user" / "unsaved" / "Scene"
+    assert message.endswith(f"(unsaved file: tables in {where})"), message
+    assert (where / "tables" / "unsaved.exr").is_file()
+    scene.flowbsdf.out_dir = str(tmp_path / "absolute")
+    assert jobs.unsaved_problem(scene) is None
+
+
 def test_extension_zip_builds_validates_installs(tmp_path):
     """One command builds the zip; Blender's tool validates it; bpy 5.0 installs and enables it."""
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "build_extension.py"), "--out",

@@ -184,7 +184,9 @@ for mat in bpy.data.materials:
     diffuse, glossy = nodes["ShaderNodeBsdfDiffuse"], nodes["ShaderNodeBsdfAnisotropic"]
     sep = glossy.inputs["Roughness"].links[0].from_node
     result[mat.name] = {
-        "group": tree.name, "label": g.label, "info": tree["flowbsdf"].to_dict(),
+        "group": tree.name, "label": g.label, "raw": tree["flowbsdf"].to_dict(),
+        "info": {k: bpy.path.abspath(v) if isinstance(v, str) and v.startswith("//") else v
+                 for k, v in tree["flowbsdf"].to_dict().items()},
         "surface_from": out.inputs["Surface"].links[0].from_node.name,
         "group_outputs": [s.name for s in g.outputs],
         "node_types": sorted(n.bl_idname for n in tree.nodes),
@@ -271,9 +273,17 @@ def test_saved_blend_reopens_in_blender_with_the_fit_and_renders(batch_scene, ba
         assert r["group"] == f"Learned BSDF: {name}" and r["label"] == "Learned BSDF"
         assert r["surface_from"] == "Learned BSDF" and r["group_outputs"] == ["BSDF"]
         info = r["info"]
+        # stored relative to the .blend, so the project folder can move
+        assert r["raw"]["tables"] == f"//flowbsdf/tables/{name}.exr" and r["raw"]["fit"].startswith("//"), r["raw"]
         assert info["material"] == name and info["has_fit"] and Path(info["fit"]) == tables / f"{name}.fit.json"
         assert info["fit_error"] == pytest.approx(max(fit["rel_error"]))
-        assert Path(info["osl_texture"]).is_file() and Path(info["osl_texture"]).parent == tables
+        # the worker wrote the OSL texture beside the tables; a group built where Cycles cannot
+        # compile OSL (Debian's 3.4) holds no Script node and names no texture (node.py)
+        assert len(list(tables.glob(f"{name}.osl*-*.exr"))) == 1
+        if info["has_osl"]:
+            assert Path(info["osl_texture"]).is_file() and Path(info["osl_texture"]).parent == tables
+        else:
+            assert info["osl_texture"] == "" and "ShaderNodeScript" not in r["node_types"]
         assert r["distribution"] == "GGX"
         for key in ("diffuse", "specular"):
             for x, want in zip(fit["x"], fit[key]):
