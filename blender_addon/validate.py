@@ -14,7 +14,8 @@ spread 0, sheared frames, Normalize off on a point/spot with a radius) is an Exp
 never dropped; a portal (no emitter) is left out with a note.
 Then Cycles renders the same view here (small, OSL back end: it light-samples lamps and the
 world as the reference does), and the worker renders the reference (MIS) and writes MSE /
-SSIM and a side-by-side image (validate/compare.png).
+SSIM and a labelled side-by-side image (validate/compare.png: Cycles, the reference and their
+difference, captioned, with MSE, SSIM and the means; compare.md beside it says the same).
 """
 import json
 import math

@@ -507,6 +507,52 @@ print("SCAN ok")
 """
 
 
+def _read_png(path):
+    """The RGB pixels of a PNG written by bake.tracer.images.write_png (8 bit, filter 0)."""
+    import struct
+    import zlib
+    data, pos, idat = Path(path).read_bytes(), 8, b""
+    while pos < len(data):
+        n, tag = struct.unpack(">I4s", data[pos:pos + 8])
+        if tag == b"IHDR":
+            w, h = struct.unpack(">II", data[pos + 8:pos + 16])
+        elif tag == b"IDAT":
+            idat += data[pos + 8:pos + 8 + n]
+        pos += 12 + n
+    raw = np.frombuffer(zlib.decompress(idat), np.uint8).reshape(h, 1 + 3 * w)
+    assert not raw[:, 0].any()
+    return raw[:, 1:].reshape(h, w, 3)
+
+
+def _check_compare_png(folder, result):
+    """compare.png: Cycles left, the reference in the middle (their pixels), captions saying so
+    and the numbers of metrics.json under them; compare.md says the same."""
+    from bake.tracer.images import read_exr, tonemap
+    from bake.tracer.label import text_mask
+    img = _read_png(folder / "compare.png")
+    cycles, ref = (np.asarray(read_exr(folder / f), np.float32)[..., :3] for f in ("cycles.exr", "reference.exr"))
+    h, w = cycles.shape[:2]
+    k, gap = -(-256 // w), 8
+
+    def panel(i):
+        x0 = gap + i * (k * w + gap)
+        return img[gap:gap + k * h, x0:x0 + k * w]
+
+    def text_at(x, y, text):
+        mask = text_mask(text)
+        return np.array_equal((img[y:y + mask.shape[0], x:x + mask.shape[1]] == 235).all(axis=2), mask)
+    assert np.array_equal(panel(0), np.kron(tonemap(cycles), np.ones((k, k, 1), np.uint8)))
+    assert np.array_equal(panel(1), np.kron(tonemap(ref), np.ones((k, k, 1), np.uint8)))
+    y = 2 * gap + k * h
+    assert text_at(gap, y, "Cycles") and text_at(gap, y + 20, f"{result['cycles_spp']} spp")
+    assert text_at(2 * gap + k * w, y, "Reference tracer")
+    assert text_at(2 * gap + k * w, y + 20, f"{result['reference_spp']} spp, MIS")
+    footer = f"MSE {result['mse']:.3g}   SSIM {result['ssim']:.3f}"
+    assert text_at(gap, y + 2 * 20 + gap, footer), footer
+    md = (folder / "compare.md").read_text()
+    assert md.count("Left: Cycles") == 1 and footer in md and f"{result['mean_cycles']:.4f}" in md
+
+
 def test_validate_reference_vs_cycles(addon, tmp_path):
     """The validate operator exports the scene, renders it with the reference tracer and Cycles
     (OSL back end) and reports MSE/SSIM with a side-by-side image."""
@@ -534,6 +580,7 @@ def test_validate_reference_vs_cycles(addon, tmp_path):
     assert abs(result["mean_cycles"] - result["mean_reference"]) < 0.03 * result["mean_reference"], result
     assert result["ssim"] > 0.7 and result["mse"] < 0.01, result
     assert Path(result["image"]).is_file() and "FlowBSDF validate" in bpy.data.images
+    _check_compare_png(tmp_path / "out" / "validate", result)
     assert scene.render.resolution_x == 32 and scene.cycles.samples == 8       # settings restored
     text = (tmp_path / "out" / "validate" / "scene.toml").read_text()
     assert 'manifest = "red"' in text and 'albedo = [0.8, 0.8, 0.8]' in text
