@@ -101,6 +101,49 @@ def _learned_group(mat):
                  and node.TREE_KEY in n.node_tree.keys()), None)
 
 
+_previews = None          # bpy.utils.previews collection of the bakes' preview images
+
+
+def preview_file(mat):
+    """The bake's preview image (<name>.preview.png beside the tables the node renders), or None."""
+    import os
+    from . import node
+    group = _learned_group(mat)
+    if group is None:
+        return None
+    info = node._info(group.node_tree)
+    path = os.path.join(os.path.dirname(info.get("tables", "")), f"{info.get('material')}.preview.png")
+    return path if os.path.isfile(path) else None
+
+
+def preview_icon(path):
+    """An icon id showing the image file (not stored in the .blend; reloaded when the file
+    changes); 0 where Blender has no icons (background)."""
+    import os
+    import bpy.utils.previews
+    global _previews
+    if _previews is None:
+        _previews = bpy.utils.previews.new()
+    key = f"{path}@{os.stat(path).st_mtime_ns}"
+    preview = _previews.get(key) or _previews.load(key, path, "IMAGE")
+    return preview.icon_id
+
+
+def close_previews():
+    global _previews
+    if _previews is not None:
+        import bpy.utils.previews
+        bpy.utils.previews.remove(_previews)
+        _previews = None
+
+
+def draw_preview(layout, mat):
+    path = preview_file(mat)
+    icon = preview_icon(path) if path else 0
+    if icon:
+        layout.template_icon(icon_value=icon, scale=5.0)
+
+
 def draw_renders(layout, mat, scene, context):
     """What the material's Learned BSDF node renders in this scene, and why (node.node_status)."""
     from . import node
@@ -126,6 +169,7 @@ def draw_material(layout, mat, context):
         layout.operator("flowbsdf.enable", icon="NODE_MATERIAL")
         return
     draw_renders(layout, mat, context.scene, context)
+    draw_preview(layout, mat)
     col = _split(layout)
     col.prop(s, "enabled")
     col.prop(s, "name")
@@ -210,6 +254,10 @@ class FLOWBSDF_PT_material(_Panel, bpy.types.Panel):
     bl_space_type = "PROPERTIES"
     bl_region_type = "WINDOW"
     bl_context = "material"
+
+    @classmethod
+    def unregister(cls):
+        close_previews()
 
 
 classes = (FLOWBSDF_PT_node_editor, FLOWBSDF_PT_material)

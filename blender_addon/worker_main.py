@@ -132,6 +132,8 @@ class BakeProgress(Step):
             self.events.append(self.clock())
         elif line.startswith(("[svm] ", "[osl] ", "[fit] ")):
             self.stage = "derive"
+        elif line.startswith("[preview] "):
+            self.stage = "preview"
         else:
             return
         self.report()
@@ -159,7 +161,9 @@ class BakeProgress(Step):
         if self.stage == "probe":
             return 0.05, f"{who}: choosing the table resolution ({self.probed} of {len(self.resolutions)})"
         if self.stage == "derive":
-            return 0.98, f"{who}: writing the node's textures and closure fit"
+            return 0.97, f"{who}: writing the node's textures and closure fit"
+        if self.stage == "preview":
+            return 0.98, f"{who}: rendering a preview"
         if len(self.scores) < 2:
             return 0.1, f"{who}: {self.bins} angles placed, estimating the time left"
         recent = self.events[-5:]
@@ -231,6 +235,8 @@ def material_status(entry, out_dir, manifest_path):
             info["tables"] = "stale" if tables is None else "current"
             if tables is not None:
                 import numpy as np
+                if preview_path(table_path(out_dir, entry.name)).is_file():
+                    info["preview"] = str(preview_path(table_path(out_dir, entry.name)))
                 info["theta_bins_deg"] = [round(float(np.degrees(t)), 3) for t in tables.theta_bins]
                 info["tables_source"] = tables.meta.get("source")      # "flow" or "ideal"
     except FlowBSDFError as e:
@@ -259,6 +265,34 @@ def train(entry, manifest_path, out_dir):
         for line in proc.stdout:
             progress.log(line.rstrip())
         return proc.wait()
+
+
+PREVIEW_SIZE, PREVIEW_SPP = 96, 32         # about 2 s with the tables sampler on one core
+
+
+def preview_path(tables_path):
+    return Path(tables_path).with_name(Path(tables_path).stem + ".preview.png")
+
+
+def write_preview(entry, manifest, out_dir, tables_path, log=emit):
+    """<name>.preview.png beside the tables: the material on the reference tracer's shader ball
+    under its soft sky (builtin:shaderball-env), sampled from the baked tables; remade when
+    older than the tables. Returns its path."""
+    path = preview_path(tables_path)
+    if path.is_file() and path.stat().st_mtime >= Path(tables_path).stat().st_mtime:
+        return path
+    from bake.tracer.images import tonemap, write_png
+    from bake.tracer.integrator import render
+    from bake.tracer.samplers import scene_samplers
+    from bake.tracer.scene import builtin_scene
+    log(f"[preview] {entry.name}: {PREVIEW_SIZE}x{PREVIEW_SIZE}, {PREVIEW_SPP} spp, shader ball under a soft sky")
+    scene = builtin_scene("shaderball-env", material=entry.name, manifest=manifest, width=PREVIEW_SIZE,
+                          height=PREVIEW_SIZE)
+    image, _, _ = render(scene, scene_samplers(scene, "tables", out_dir, log=log), spp=PREVIEW_SPP, mis=True,
+                         seed=0)
+    write_png(path, tonemap(image))
+    log(f"[preview] wrote {path}")
+    return path
 
 
 def cmd_bake(args):
@@ -307,6 +341,7 @@ def cmd_bake(args):
                 if path is not None:        # the node's OSL texture and closure fit, beside the tables
                     from bake.osl_export import bake_derived
                     bake_derived(path, log=progress.log)
+                    write_preview(entry, manifest, args.out, path, log=progress.log)
         except FlowBSDFError as e:
             failures.append(f"{entry.name}: {e}")
             emit(f"[fail] {failures[-1]}")

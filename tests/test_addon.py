@@ -358,6 +358,24 @@ def test_three_materials_scanned_baked_rendered(baked_scene):
     assert gold[0] > 1.5 * gold[2] and gold.mean() > 0.3, gold
 
 
+def test_bake_writes_a_preview_beside_the_tables(baked_scene):
+    """Each bake leaves <name>.preview.png beside its tables (the material on the reference
+    tracer's shader ball under a soft sky, 96x96) and the panel finds it."""
+    from blender_addon import panels
+    scene, out, _ = baked_scene
+    colours = {}
+    for name, _ in THREE:
+        path = panels.preview_file(bpy.data.materials[name])
+        assert path is not None and Path(path) == out / "tables" / f"{name}.preview.png"
+        img = _read_png(path).astype(float)
+        assert img.shape == (96, 96, 3)
+        colours[name] = img[36:60, 38:58].reshape(-1, 3).mean(0)      # the ball's body
+    red, gold, matte = colours["red_plastic"], colours["gold"], colours["matte"]
+    assert red[0] > 1.5 * red[1] and red[0] > 1.5 * red[2], colours
+    assert gold[0] > 1.3 * gold[2], colours
+    assert np.ptp(matte) < 0.2 * matte.mean() and matte.mean() > 60, colours
+
+
 def test_cli_command_bakes_binds_and_saves(baked_scene, tmp_path, capsys):
     from blender_addon import batch
     scene, out, _ = baked_scene
@@ -649,6 +667,10 @@ class _Recorder:
 
     def label(self, text="", **kw):
         self.log.append(("label", text))
+
+    def template_icon(self, icon_value=0, scale=1.0):
+        assert icon_value > 0
+        self.log.append(("icon", icon_value))
 
     def progress(self, factor=0.0, type="BAR", text=""):
         assert 0.0 <= factor <= 1.0
