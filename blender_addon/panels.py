@@ -11,8 +11,10 @@ from . import worker
 
 STATE_ICONS = {"current": "CHECKMARK", "stale": "FILE_REFRESH", "missing": "ERROR", "error": "CANCEL",
                "unsupported": "INFO", "unknown": "QUESTION"}
-# Pixels a wrapped label loses to the panel's and a box's margins and its icon (at UI scale 1).
-MARGIN = 56
+# Pixels (at UI scale 1) a label's text loses to the sidebar's tab strip, the panel's margins
+# and its icon, and to each box around it: measured on Blender 3.4's UI at the default sidebar
+# width (tests/test_ui_blender.py checks every text the panel draws there).
+LABEL_MARGIN, BOX_MARGIN = 80, 16
 FALLBACK_WIDTH = 230            # the default sidebar width, where there is no region (background)
 
 
@@ -39,26 +41,37 @@ def text_width(text, context):
         return None
 
 
-def line_width(context):
-    """The pixels a label line has in the current region (the default sidebar's without one)."""
+def line_width(context, boxes=0):
+    """The pixels a label's text has in the current region (the default sidebar's without one),
+    inside `boxes` boxes."""
     region = getattr(context, "region", None)
     scale = ui_scale(context)
     width = region.width if region is not None and region.width > 1 else FALLBACK_WIDTH * scale
-    return max(width - MARGIN * scale, 60 * scale)
+    return max(width - (LABEL_MARGIN + boxes * BOX_MARGIN) * scale, 60 * scale)
 
 
-def wrap(text, context):
+def wrap(text, context, boxes=0):
     """`text` as lines that fit the region, split at spaces (and at newlines)."""
-    avail = line_width(context)
+    avail = line_width(context, boxes)
+
+    def fits(candidate):
+        width = text_width(candidate, context)
+        if width is None:                       # ~6.5 px per character at UI scale 1
+            width = len(candidate) * 6.5 * ui_scale(context)
+        return width <= avail
     lines = []
     for paragraph in text.split("\n"):
         line = ""
         for word in paragraph.split():
+            while not fits(word):               # a word wider than a line (a file name): cut it
+                cut = max(k for k in range(1, len(word) + 1) if k == 1 or fits(word[:k]))
+                if line:
+                    lines.append(line)
+                    line = ""
+                lines.append(word[:cut])
+                word = word[cut:]
             candidate = f"{line} {word}" if line else word
-            width = text_width(candidate, context)
-            if width is None:                   # ~6.5 px per character at UI scale 1
-                width = len(candidate) * 6.5 * ui_scale(context)
-            if line and width > avail:
+            if line and not fits(candidate):
                 lines.append(line)
                 line = word
             else:
@@ -67,10 +80,11 @@ def wrap(text, context):
     return lines
 
 
-def wrapped(layout, text, icon, context):
-    """A long text as several labels (Blender cuts a label at the panel's edge)."""
+def wrapped(layout, text, icon, context, boxes=0):
+    """A long text as several labels (Blender cuts a label at the panel's edge); `boxes`: how
+    many boxes it is drawn in."""
     col = layout.column(align=True)
-    for k, line in enumerate(wrap(text, context)):
+    for k, line in enumerate(wrap(text, context, boxes)):
         col.label(text=line, icon=icon if k == 0 else "BLANK1")
 
 
@@ -82,7 +96,7 @@ def draw_job(layout, context):
     if not running and not state.message:
         return
     box = layout.box()
-    wrapped(box, state.message or "starting", "TIME" if running else "INFO", context)
+    wrapped(box, state.message or "starting", "TIME" if running else "INFO", context, boxes=1)
     if running:
         row = box.row(align=True)
         if hasattr(row, "progress"):             # Blender 4.0+
@@ -144,7 +158,7 @@ def draw_preview(layout, mat):
         layout.template_icon(icon_value=icon, scale=5.0)
 
 
-def draw_renders(layout, mat, scene, context):
+def draw_renders(layout, mat, scene, context, boxes=1):
     """What the material's Learned BSDF node renders in this scene, and why (node.node_status)."""
     from . import node
     group = _learned_group(mat)
@@ -152,8 +166,8 @@ def draw_renders(layout, mat, scene, context):
         return
     status = node.node_status(group, scene)
     exact = status.startswith(("OSL", "SVM"))
-    wrapped(layout.box(), f"Renders: {status}", "CHECKMARK" if exact and "warning" not in status else "ERROR",
-            context)
+    wrapped(layout, f"Renders: {status}", "CHECKMARK" if exact and "warning" not in status else "ERROR",
+            context, boxes)
 
 
 def _split(layout):
@@ -170,12 +184,15 @@ def draw_material(layout, mat, context):
         return
     draw_renders(layout, mat, context.scene, context)
     draw_preview(layout, mat)
+    layout.prop(s, "enabled")
     col = _split(layout)
-    col.prop(s, "enabled")
     col.prop(s, "name")
     col.prop(s, "source_kind")
     if s.source_kind == "FILE":
         col.prop(s, "filepath")
+        if s.filepath.strip():          # the field shows the path's start: say which file it is
+            wrapped(layout, bpy.path.basename(s.filepath), "FILE", context, boxes=1)
+            col = _split(layout)
     elif s.source_kind == "ANALYTIC":
         col.prop(s, "analytic_preset")
         col.prop(s, "analytic_params")
@@ -208,7 +225,7 @@ def draw_scene(layout, context):
     except (ImportError, AttributeError):
         backend = None
     if backend is not None:
-        layout.label(text="Back end (all Learned BSDF nodes):")
+        layout.label(text="Back end, all nodes:")
         row = layout.row(align=True)
         for key, label in (("auto", "Auto"), ("osl", "OSL"), ("svm", "SVM"), ("fit", "Fit")):
             row.operator("flowbsdf.set_backend", text=label, depress=(backend == key)).backend = key
@@ -216,10 +233,10 @@ def draw_scene(layout, context):
         box = layout.box()
         name = item.material if item.learned in ("", item.material) else f"{item.material} ({item.learned})"
         wrapped(box, f"{name}: {item.state}, {item.users} object(s)", STATE_ICONS.get(item.state, "QUESTION"),
-                context)
+                context, boxes=1)
         for text in (item.needs, item.detail):
             if text:
-                wrapped(box, text, "BLANK1", context)
+                wrapped(box, text, "BLANK1", context, boxes=1)
     if s.scan_items:
         layout.operator("flowbsdf.validate", text="Validate", icon="IMAGE_REFERENCE")
 

@@ -79,7 +79,7 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
     name: bpy.props.StringProperty(name="Name", description="Name in the manifest and of the table file "
                                    "(default: the material's name)")
     source_kind: bpy.props.EnumProperty(name="Source", items=[
-        ("FILE", "Measured file", "An RGL .bsdf or MERL .binary file"),
+        ("FILE", "Measured", "A measured file: RGL .bsdf or MERL .binary"),
         ("ANALYTIC", "Analytic", "A built-in analytic BSDF"),
         ("PYTHON", "Python", "A Python callable module:function returning f(wi, wo) as (N, 3)")])
     filepath: bpy.props.StringProperty(name="File", subtype="FILE_PATH", options=PATH_OPTIONS)

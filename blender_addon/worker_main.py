@@ -164,7 +164,7 @@ class BakeProgress(Step):
             return 0.97, f"{who}: writing the node's textures and closure fit"
         if self.stage == "preview":
             return 0.98, f"{who}: rendering a preview"
-        if len(self.scores) < 2:
+        if len(self.scores) < 3:
             return 0.1, f"{who}: {self.bins} angles placed, estimating the time left"
         recent = self.events[-5:]
         split = (recent[-1] - recent[0]) / (len(recent) - 1)
