@@ -147,7 +147,7 @@ def choose_python(configured="", need_train=False, extra_paths=(), where="ui"):
     fix = f"{WHERE[where]}, or set the {ENV_PYTHON} environment variable."
     if explicit and not Path(python).exists():
         raise PythonNotFound(f"the FlowBSDF Python does not exist: {python}",
-                             f"{python} does not exist. To {job}, FlowBSDF needs {INSTALL[job]}. {fix}")
+                             f"To {job}, FlowBSDF needs {INSTALL[job]}. {fix}")
     info = probe(python, extra_paths)
     name = describe(python, explicit, info)
     if not info["ok"]:

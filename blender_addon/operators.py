@@ -13,7 +13,7 @@ USER_ERRORS = (worker.JobError, scan.ScanError, jobs.BindError, OSError, ValueEr
 
 
 def _redraw(context):
-    for window in context.window_manager.windows:
+    for window in getattr(context.window_manager, "windows", ()):
         for area in window.screen.areas:
             area.tag_redraw()
 
@@ -31,8 +31,9 @@ class _JobOperator:
 
     def _fail(self, context, message, details="", cancelled=False):
         state = context.window_manager.flowbsdf_job
-        state.running = False
+        state.running, state.failed = False, not cancelled
         state.message = message + (f"\n{details}" if details else "")
+        _redraw(context)
         label = getattr(getattr(self, "_job", None), "label", None) or self.bl_label
         print(f"FlowBSDF {label}: {state.message}", flush=True)
         line = worker.short(message)
@@ -61,7 +62,7 @@ class _JobOperator:
             message = self.finish(context, job)
         except USER_ERRORS as e:
             return self._fail(context, str(e), getattr(e, "details", ""))
-        state.progress, state.message = 100.0, message
+        state.progress, state.message, state.failed = 100.0, message, False
         self.report({"INFO"}, message)
         return {"FINISHED"}
 
@@ -88,6 +89,7 @@ class _JobOperator:
         worker.current = self._job
         state = context.window_manager.flowbsdf_job
         state.running, state.progress, state.message, state.label = True, 0.0, "starting", self._job.label
+        state.failed = False
         self._timer = context.window_manager.event_timer_add(0.25, window=context.window)
         context.window_manager.modal_handler_add(self)
         return {"RUNNING_MODAL"}

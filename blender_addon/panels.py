@@ -96,7 +96,8 @@ def draw_job(layout, context):
     if not running and not state.message:
         return
     box = layout.box()
-    wrapped(box, state.message or "starting", "TIME" if running else "INFO", context, boxes=1)
+    icon = "TIME" if running else "ERROR" if state.failed else "INFO"
+    wrapped(box, state.message or "starting", icon, context, boxes=1)
     if running:
         row = box.row(align=True)
         if hasattr(row, "progress"):             # Blender 4.0+

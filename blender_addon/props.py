@@ -129,6 +129,7 @@ class FlowBSDFJob(bpy.types.PropertyGroup):
     running: bpy.props.BoolProperty()
     progress: bpy.props.FloatProperty(subtype="PERCENTAGE", min=0, max=100, precision=0)
     message: bpy.props.StringProperty()
+    failed: bpy.props.BoolProperty()
     label: bpy.props.StringProperty()
 
 

@@ -7,7 +7,7 @@ set. Steps (a timer drives them, the UI draws in between): the Shader Editor wit
 sidebar on the FlowBSDF tab and the Properties editor on the Material tab, both at Blender's
 default sizes; an unsaved file's Bake is refused; the file is saved, the material baked
 from the panel's Bake operator (modal, as a click does) and watched while it runs; after
-it, the preview icon. At each stage a screenshot (OUT_DIR/<stage>.png) and every text the
+it, the preview icon; then a Bake whose Python does not exist (the error report). At each stage a screenshot (OUT_DIR/<stage>.png) and every text the
 two panels draw, measured in the UI font against the width Blender gives it
 (OUT_DIR/<stage>.json). Writes OUT_DIR/result.json and quits.
 """
@@ -218,6 +218,15 @@ def steps():
     yield 1.0
     yield from stage("after")
     result["preview_file"] = panels.preview_file(bpy.data.materials["MilitaryGreen"])
+    saved, os.environ["FLOWBSDF_PYTHON"] = os.environ.get("FLOWBSDF_PYTHON"), "/nonexistent/bin/python3.11"
+    try:
+        result["error_bake"] = sorted(bake())
+    except RuntimeError as e:
+        result["error_bake"] = str(e)
+    finally:
+        os.environ["FLOWBSDF_PYTHON"] = saved
+    result["error_message"] = state.message
+    yield from stage("error")
 
 
 def run():

@@ -731,7 +731,7 @@ def test_modal_progress_and_cancel(addon, tmp_path):
             return worker.Job(sys.executable, ["bake", str(manifest), "--out", str(tmp_path), "--train", "never"],
                               label="Bake")
 
-    state = SimpleNamespace(running=True, progress=0.0, message="", label="")
+    state = SimpleNamespace(running=True, progress=0.0, message="", label="", failed=False)
     wm = SimpleNamespace(flowbsdf_job=state, windows=[], event_timer_remove=lambda timer: None)
     ctx = SimpleNamespace(window_manager=wm)
     op = Op()

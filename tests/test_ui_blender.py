@@ -45,7 +45,7 @@ def ui_run(tmp_path_factory):
     assert "UI SCRIPT DONE" in log, log[-3000:]
     result = json.loads((out / "result.json").read_text())
     assert not result["errors"], result["errors"]
-    print(f"screenshots: {out}/{{unsaved,before,baking,after}}.png")
+    print(f"screenshots: {out}/{{unsaved,before,baking,after,error}}.png")
     return out, result
 
 
@@ -53,7 +53,7 @@ def test_every_text_fits_the_default_sidebar_and_material_tab(ui_run):
     """No label, button or value is cut at the default widths, before, during and after a bake
     (each text measured in the UI font against the width the layout gives it)."""
     out, result = ui_run
-    assert set(result["stages"]) == {"unsaved", "before", "baking", "after"}
+    assert set(result["stages"]) == {"unsaved", "before", "baking", "after", "error"}
     cut = []
     for stage, panels in result["stages"].items():
         for panel, data in panels.items():
@@ -93,3 +93,16 @@ def test_bake_from_the_panel_shows_progress_then_a_preview(ui_run):
     assert result["after_message"] == "FlowBSDF: baked 1 table(s), 1 material(s) bound"
     assert result["icons"] and all(i > 0 for i in result["icons"])
     assert Path(result["preview_file"]) == out / "project" / "flowbsdf" / "tables" / "MilitaryGreen.preview.png"
+
+
+def test_a_bake_error_is_one_short_line_with_the_details_in_the_panel(ui_run):
+    """Blender's report popup is one line wide: the error is one short line; what to do (which
+    Python, what it needs, where to set it) is in the panel, wrapped."""
+    _, result = ui_run
+    report = result["error_bake"].strip().splitlines()
+    assert len(report) == 1 and len(report[0]) <= 140, report
+    assert "the FlowBSDF Python does not exist" in report[0] and "details in the FlowBSDF panel" in report[0]
+    details = result["error_message"]
+    assert details.startswith("the FlowBSDF Python does not exist: /nonexistent/bin/python3.11\n")
+    assert "numpy and OpenEXR" in details and "Preferences > Add-ons > FlowBSDF > Python" in details
+    assert "Blender's own" not in details and "checkout" not in details
