@@ -154,9 +154,10 @@ def _texture_path(tables_path, digest):
 
 
 def svm_available():
-    """Whether this Blender has the Ray Portal BSDF (4.2+) and a `bake` that imports (numpy):
-    what the SVM back end needs."""
-    return hasattr(bpy.types, "ShaderNodeBsdfRayPortal") and _bake_mod("svm_export") is not None
+    """Whether this Blender has the Ray Portal BSDF (4.2+), the Light Path node's Portal Depth
+    output (5.0+; svm.py reads it) and a `bake` that imports (numpy): what the SVM back end needs."""
+    return (hasattr(bpy.types, "ShaderNodeBsdfRayPortal") and bpy.app.version >= (5, 0, 0)
+            and _bake_mod("svm_export") is not None)
 
 
 def _svm_texture(tables_path):
@@ -176,7 +177,11 @@ def derived_current(tables_path):
 
 
 def osl_compiler_available():
-    """Whether this Blender's Cycles compiles OSL (Script nodes); Debian's 3.4 does not."""
+    """Whether this Blender's Cycles compiles and runs the OSL shader: Debian's 3.4 has no OSL;
+    Cycles before 4.4 crashes optimizing its gettextureinfo() of a constant file name
+    (OSLRenderServices::get_texture_info; seen with the bpy 4.2.23 wheel, 4.4 and 4.5 run it)."""
+    if bpy.app.version < (4, 4, 0):
+        return False
     try:
         import _cycles
     except ImportError:
@@ -198,7 +203,10 @@ def ensure_oslquery():
     for site in sorted(root.glob("python/lib/python3*/site-packages")):
         if str(site) not in sys.path:
             sys.path.append(str(site))
-    import oslquery  # noqa: F401
+    try:
+        import oslquery  # noqa: F401
+    except ImportError:         # Cycles before 4.5 queries the shader in C++ (_cycles.osl_update_node)
+        pass
 
 
 def shader_source(probe=False):
