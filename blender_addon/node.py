@@ -13,7 +13,7 @@ installed, and materials append and link like any other. Its node tree, "Learned
   input "Fallback" is the fit: with the OSL texture missing at render time it renders the
   fit instead of black. The scene's pixel filter and seed feed it (`film_settings`): on
   camera rays it stratifies its samples by their place in the pixel.
-- SVM (every Cycles device, GPU included; Blender 4.2+): the same table sampler as plain
+- SVM (every Cycles device, GPU included; Blender 5.0+): the same table sampler as plain
   shader nodes ending in a Ray Portal BSDF (svm.py, texture bake/svm_export.py): exact for
   the world and emissive surfaces; lamps are not light-sampled.
 - fit: Cycles closures (Diffuse BSDF + GGX Glossy BSDF) whose colours and roughness are
@@ -36,9 +36,9 @@ Blenders without numpy or OSL (Debian's 3.4 for the batch path): nothing here im
 numpy at module load. The fit is read from its JSON file (<name>.fit.json, written by the
 bake) with the json module, and the OSL texture is found by its content-hashed name; only
 missing or stale fits/textures need `bake` (numpy), imported on first use. Where Cycles
-cannot compile OSL (`_cycles.with_osl` false, as in Debian's 3.4) there is no Script node
+cannot run the OSL shader (`osl_compiler_available`: Debian's 3.4, Blender < 4.4) there is no Script node
 (an uncompiled one has no sockets and points at an add-on path that differs per machine),
-and without the Ray Portal BSDF (before 4.2) no SVM graph: the group holds the fit alone.
+and without the SVM graph's nodes (before 5.0) no SVM graph: the group holds the fit alone.
 Opening such a file with the add-on where more back ends build rebuilds the group
 (load_post, `upgrade`), as it does a group whose shader an older add-on compiled. The
 group's socket is made with `tree.interface` (4.0+) or the legacy `tree.outputs` (3.x).

@@ -1,4 +1,5 @@
-"""Add-on preferences: the Python that trains (torch lives there, never in Blender)."""
+"""Add-on preferences: the Python that bakes and trains (torch lives there, never in Blender),
+and what it can do (deps.summary)."""
 import bpy
 
 ADDON_ID = __package__        # "blender_addon", "flowbsdf" (legacy) or "bl_ext.<repo>.flowbsdf"

@@ -2,7 +2,8 @@
 
     python worker_main.py probe
     python worker_main.py status MANIFEST --out DIR
-    python worker_main.py bake MANIFEST --out DIR [--material NAME]... [--train auto|always|never]
+    python worker_main.py bake MANIFEST --out DIR [--material NAME]... [--train never|always|auto]
+        (tables, the node's textures and fit, and a preview beside them: <name>.preview.png)
     python worker_main.py validate SCENE.toml --manifest M --out DIR --cycles CYCLES.exr [--spp N]
 
 A standalone script (no bpy, no add-on imports): the add-on starts it as a subprocess with

@@ -64,6 +64,15 @@ def mesh_object(name, mat, coll=None):
     return ob
 
 
+def one_learned_object(out, name):
+    """An empty scene baking into `out` with one object of a learned matte (Fast training)."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.context.scene.flowbsdf.out_dir = str(out)
+    mat = learned(name, "MATTE", preset="FAST")
+    mesh_object("o", mat)
+    return mat
+
+
 def test_scan_lists_only_what_renders(addon, tmp_path):
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
@@ -188,11 +197,7 @@ def test_bake_never_trains_and_the_two_buttons_say_what_they_do(addon, tmp_path,
     tabulation; only "Train + Bake" trains. Their tooltips differ and give the time."""
     from blender_addon import operators
     monkeypatch.delenv("FLOWBSDF_PYTHON", raising=False)
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.flowbsdf.out_dir = str(tmp_path)
-    mat = learned("never_trained", "MATTE", preset="FAST")
-    mesh_object("o", mat)
+    mat = one_learned_object(tmp_path, "never_trained")
     with bpy.context.temp_override(material=mat):
         assert bpy.ops.flowbsdf.bake(only_active=True) == {"FINISHED"}
     assert (tmp_path / "tables" / "never_trained.exr").is_file()
@@ -811,11 +816,7 @@ def test_train_then_bake_from_the_panel(addon, tmp_path):
     the tables are then baked from the trained flow."""
     pytest.importorskip("torch")
     from blender_addon import scan, worker
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.flowbsdf.out_dir = str(tmp_path)
-    mat = learned("trained", "MATTE", preset="FAST")
-    mesh_object("o", mat)
+    mat = one_learned_object(tmp_path, "trained")
     with bpy.context.temp_override(material=mat):
         assert bpy.ops.flowbsdf.train_bake(only_active=True) == {"FINISHED"}
     assert (tmp_path / "models" / "trained.flow.npz").is_file()
