@@ -51,7 +51,8 @@ def line_width(context, boxes=0):
 
 
 def wrap(text, context, boxes=0):
-    """`text` as lines that fit the region, split at spaces (and at newlines)."""
+    """`text` as lines that fit the region, split at spaces and newlines (a word wider than a
+    line, e.g. a file name, is cut)."""
     avail = line_width(context, boxes)
 
     def fits(candidate):
