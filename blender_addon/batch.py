@@ -1,4 +1,4 @@
-"""Batch baking for farms: scan the open .blend, train what is missing, bake, bind, save.
+"""Batch baking for farms: scan the open .blend, bake (train only when asked), bind, save.
 
     blender -b scene.blend -c flowbsdf bake [options]                                   (4.2+)
     blender -b scene.blend --python-expr "import flowbsdf.batch as b; b.main()" -- bake [options]
@@ -11,9 +11,10 @@ MSE, SSIM and a side-by-side image in <out>/validate/) and `farm openjd --job-di
 (scan, then write an Open Job Description job bundle that trains/bakes each material on a
 farm and assembles this file: `flowbsdf farm openjd` in the worker Python, bake/farm.py;
 --blender, --addon-dir: Blender and the add-on's folder on the farm). Options:
-    --python PY        the Python that bakes/trains (else FLOWBSDF_PYTHON, the preference,
-                       Blender's own)
-    --train MODE       auto (default: train when that Python has torch), always, never
+    --python PY        the Python that bakes (numpy + OpenEXR) and trains (torch + FlowBSDF's
+                       trainer); else FLOWBSDF_PYTHON, the preference, the Python Blender reports
+    --train MODE       never (default: bake from trained models or the ideal tabulation),
+                       always (train materials without a model first), auto (when PY has torch)
     --out DIR          output folder (default: the scene's, //flowbsdf)
     --material NAME    only this Blender material (repeatable)
     --save-as PATH     save there instead of over the opened file;  --no-save: do not save
@@ -109,16 +110,18 @@ def _run(args):
     try:
         if args.out:
             scene.flowbsdf.out_dir = os.path.abspath(args.out)
-        train = args.train or scene.flowbsdf.train.lower()
+        train = args.train or "never"
         source = bpy.data.filepath or "(unsaved file)"
         log(f"{args.command} {source}")
         rows, manifest, out = jobs.prepare(scene)
         rows = _filter(rows, args.material)
         log(f"{len(rows)} learned material(s) in use; manifest {manifest}")
+        if jobs.unsaved_problem(scene):
+            log(f"unsaved file: the tables go to {out}")
         from . import prefs
         p = prefs.get()
-        python = worker.python_for(p, need_train=(train == "always"))
-        log(f"worker Python: {python}")
+        python = worker.python_for(p, need_train=(train == "always"), where="batch")
+        log(f"worker Python: {deps.describe(python, *_explicit(p))}")
         names = sorted({r["name"] for r in rows}) if args.material else ()
         if args.command == "scan":
             lines = _run_job(python, jobs.status_args(manifest, out), worker.extra_paths(p))
@@ -150,9 +153,7 @@ def _run(args):
         else:
             raise BatchError("nothing to save: open a .blend or pass --save-as PATH")
     except (BatchError, worker.JobError, scan.ScanError, jobs.BindError, OSError, RuntimeError) as e:
-        print(f"[flowbsdf] error: {e}", flush=True)
-        print(f"[flowbsdf] error: {e}", file=sys.stderr, flush=True)
-        return 1
+        return _error(e)
     log("done")
     return 0
 
@@ -163,15 +164,13 @@ def _validate(scene, args):
         if args.out:
             scene.flowbsdf.out_dir = os.path.abspath(args.out)
         log(f"validate {bpy.data.filepath or '(unsaved file)'}")
-        job, folder, notes = validate.prepare(scene, spp=args.spp, size=args.size)
+        job, folder, notes = validate.prepare(scene, spp=args.spp, size=args.size, where="batch")
         for note in notes:
             log(f"note: {note}")
         job.run(echo=True)
         result = validate.parse_result(job.lines)
     except (worker.JobError, scan.ScanError, validate.ExportError, OSError, RuntimeError) as e:
-        print(f"[flowbsdf] error: {e}", flush=True)
-        print(f"[flowbsdf] error: {e}", file=sys.stderr, flush=True)
-        return 1
+        return _error(e)
     log(f"validate: MSE {result['mse']:.4g}, SSIM {result['ssim']:.4f}; side by side: {result['image']}")
     return 0
 
@@ -204,11 +203,25 @@ def _farm(scene, args):
             tail = [ln for ln in proc.stdout.splitlines() if ln.strip()][-1:] or ["no output"]
             raise BatchError(f"the job was not written (exit code {proc.returncode}): {tail[0]}")
     except (BatchError, worker.JobError, scan.ScanError, OSError, RuntimeError) as e:
-        print(f"[flowbsdf] error: {e}", flush=True)
-        print(f"[flowbsdf] error: {e}", file=sys.stderr, flush=True)
-        return 1
+        return _error(e)
     log("done")
     return 0
+
+
+def _explicit(p):
+    """(explicit, probe) of the Python the batch chose, for deps.describe."""
+    python, explicit = deps.candidate(p.python_path if p else "")
+    return explicit, deps.probe(python, worker.extra_paths(p))
+
+
+def _error(e):
+    """Print the failure (and its details) on stdout and stderr; exit code 1."""
+    details = getattr(e, "details", "")
+    for stream in (sys.stdout, sys.stderr):
+        print(f"[flowbsdf] error: {e}", file=stream, flush=True)
+        if details:
+            print(f"[flowbsdf] {details}", file=stream, flush=True)
+    return 1
 
 
 def _node_report(scene, rows):

@@ -60,8 +60,8 @@ def worker_env(python, extra_paths=()):
 
 
 def probe(python, extra_paths=()):
-    """What a Python can do for FlowBSDF: {'ok', 'numpy', 'openexr', 'torch', 'trainer',
-    'bake', 'error'}; cached per interpreter path."""
+    """What a Python can do for FlowBSDF: {'ok', 'numpy', 'openexr', 'torch', 'trainer', 'bake',
+    'executable', 'version', 'base_prefix', 'error'}; cached per interpreter path."""
     key = (str(python), tuple(extra_paths))
     if key in _probes:
         return _probes[key]
@@ -90,35 +90,97 @@ def clear_probes():
     _probes.clear()
 
 
+# What each job needs in its Python (bake/ comes with the add-on; the trainer does not).
+NEEDS = {"bake": ("numpy", "openexr"), "train": ("numpy", "openexr", "torch", "trainer")}
+INSTALL = {"bake": "a Python 3.11 with numpy and OpenEXR (pip install 'numpy<2' OpenEXR)",
+           "train": "a Python 3.11 with torch and FlowBSDF's trainer, which the add-on does not ship: "
+                    "the FlowBSDF checkout's .venv/bin/python (made by scripts/venv.sh)"}
+WHERE = {"ui": "Set one in Preferences > Add-ons > FlowBSDF > Python", "batch": "Pass one with --python PATH"}
+
+
 class PythonNotFound(Exception):
-    """No usable Python for a job; the message says what to set."""
+    """No usable Python for a job: str(e) is one short line (fits Blender's report popup),
+    `details` says which Python was tried, what it needs and where to set one."""
+
+    def __init__(self, short, details):
+        super().__init__(short)
+        self.details = details
 
 
-HINT = ("set one in Preferences > Add-ons > FlowBSDF > Python (a Python 3.11 with FlowBSDF and its "
-        "trainer: `pip install '<FlowBSDF checkout>[train]'`), or the FLOWBSDF_PYTHON environment variable")
-
-
-def choose_python(configured="", need_train=False, extra_paths=()):
-    """The Python for a worker job: FLOWBSDF_PYTHON, else the preference, else Blender's own
-    (for baking only, when it has numpy and OpenEXR). Raises PythonNotFound saying why."""
+def candidate(configured=""):
+    """(python, explicit): FLOWBSDF_PYTHON, else the configured path, else sys.executable."""
     explicit = os.environ.get(ENV_PYTHON) or (configured or "").strip()
-    candidates = [explicit] if explicit else [sys.executable]
-    for python in candidates:
-        if explicit and not Path(python).exists():
-            raise PythonNotFound(f"the FlowBSDF Python {python} does not exist; {HINT}")
-        info = probe(python, extra_paths)
-        if not info["ok"]:
-            raise PythonNotFound(f"{info['error']}; {HINT}")
-        missing = [m for m in ("numpy", "openexr") if not info[m]]
-        if info["bake"] is None:
-            missing.append("bake (FlowBSDF)")
-        if need_train:
-            missing += [m for m in ("torch", "trainer") if not info[m]]
-        if missing:
-            what = "train" if need_train else "bake"
-            which = "the configured Python" if explicit else "Blender's own Python"
-            raise PythonNotFound(f"to {what}, {which} ({python}) lacks {', '.join(missing)}; "
-                                 + ("" if explicit or not need_train else "training never runs in Blender: ")
-                                 + HINT)
-        return python
-    raise PythonNotFound(f"no Python found; {HINT}")
+    return (explicit, True) if explicit else (sys.executable, False)
+
+
+def describe(python, explicit, info=None):
+    """How messages name a Python. "Blender's Python" only for the interpreter Blender runs:
+    Blender may report another as sys.executable (Debian's 3.4: the python3.11 first on PATH,
+    e.g. a pyenv shim)."""
+    if explicit:
+        return f"the FlowBSDF Python {python}"
+    info = info or {}
+    same = (info.get("base_prefix") in (None, sys.base_prefix)
+            and tuple(info.get("version") or sys.version_info[:3]) == tuple(sys.version_info[:3]))
+    if same:
+        return f"Blender's Python ({python})"
+    runs = info.get("executable") or python
+    version = ".".join(map(str, info.get("version") or ())) or "?"
+    return f"the Python Blender finds on PATH ({python}, which runs Python {version} at {runs})"
+
+
+def missing(info, job):
+    """What `info` (a probe) lacks for a job ("bake" or "train")."""
+    names = {"openexr": "OpenEXR", "trainer": "FlowBSDF's trainer"}
+    lacks = [names.get(m, m) for m in NEEDS[job] if not info.get(m)]
+    if info.get("bake") is None:
+        lacks.append("FlowBSDF's bake package")
+    return lacks
+
+
+def choose_python(configured="", need_train=False, extra_paths=(), where="ui"):
+    """The Python for a worker job: FLOWBSDF_PYTHON, else the preference, else the Python
+    Blender reports (sys.executable). PythonNotFound (short line + details) when it cannot do
+    the job; `where` names the place to set one ("ui" or "batch")."""
+    python, explicit = candidate(configured)
+    job = "train" if need_train else "bake"
+    fix = f"{WHERE[where]}, or set the {ENV_PYTHON} environment variable."
+    if explicit and not Path(python).exists():
+        raise PythonNotFound(f"the FlowBSDF Python does not exist: {python}",
+                             f"To {job}, FlowBSDF needs {INSTALL[job]}. {fix}")
+    info = probe(python, extra_paths)
+    name = describe(python, explicit, info)
+    if not info["ok"]:
+        raise PythonNotFound(f"{name} does not run the FlowBSDF worker",
+                             f"{info['error']}. To {job}, FlowBSDF needs {INSTALL[job]}. {fix}")
+    lacks = missing(info, job)
+    if lacks:
+        short = name if len(name) < 60 else ("the FlowBSDF Python" if explicit else "the default Python")
+        raise PythonNotFound(f"cannot {job}: {short} lacks {', '.join(lacks)}",
+                             f"{name[0].upper() + name[1:]} lacks {', '.join(lacks)}. To {job}, FlowBSDF "
+                             f"needs {INSTALL[job]}. {fix}")
+    return python
+
+
+def summary(configured="", extra_paths=()):
+    """The truth about the Python jobs use, for the preferences: [(text, icon)]."""
+    python, explicit = candidate(configured)
+    lines = []
+    if os.environ.get(ENV_PYTHON):
+        lines.append((f"{ENV_PYTHON} overrides this setting: {python}", "INFO"))
+    elif not explicit:
+        lines.append(("Empty: jobs use the Python Blender reports", "INFO"))
+    if explicit and not Path(python).exists():
+        return lines + [(f"{python} does not exist: nothing bakes or trains", "ERROR")]
+    info = probe(python, extra_paths)
+    name = describe(python, explicit, info)
+    if not info["ok"]:
+        return lines + [(f"{name} does not run the FlowBSDF worker: nothing bakes or trains", "ERROR")]
+    if not missing(info, "train"):
+        return lines + [(f"{name} has torch and the trainer: Train + Bake trains there; Bake never trains",
+                         "CHECKMARK")]
+    if not missing(info, "bake"):
+        return lines + [(f"{name} bakes (Bake) but cannot train: it lacks {', '.join(missing(info, 'train'))}. "
+                         "Train + Bake needs " + INSTALL["train"], "INFO")]
+    return lines + [(f"{name} cannot bake: it lacks {', '.join(missing(info, 'bake'))}. Bake needs "
+                     + INSTALL["bake"], "ERROR")]

@@ -32,11 +32,20 @@ def prepare(scene, only=None):
     return rows, path, out
 
 
+def unsaved_problem(scene):
+    """Why a job started from the UI would write where the artist does not expect, or None:
+    the file is not saved and the output folder is relative to it (//...)."""
+    raw = scene.flowbsdf.out_dir.strip() or "//flowbsdf"
+    if bpy.data.filepath or not raw.startswith("//"):
+        return None
+    return f"save the .blend first: FlowBSDF writes the tables beside it, in {raw}"
+
+
 def status_args(manifest, out):
     return ["status", manifest, "--out", out]
 
 
-def bake_args(manifest, out, train="auto", names=()):
+def bake_args(manifest, out, train="never", names=()):
     args = ["bake", manifest, "--out", out, "--train", train.lower()]
     for name in names:
         args += ["--material", name]
@@ -50,14 +59,15 @@ def start_status(scene, context=None):
                                            worker.extra_paths(prefs.get(context)), label="Scan")
 
 
-def start_bake(scene, context=None, only=None, train=None):
-    train = (train or scene.flowbsdf.train).lower()
+def start_bake(scene, context=None, only=None, train="never"):
+    """Start the bake job: `train` "never" (bake from trained models or the ideal tabulation),
+    "always" (train the materials without a model first; fails without torch) or "auto"."""
     rows, manifest, out = prepare(scene, only)
     p = prefs.get(context)
     python = worker.python_for(p, need_train=(train == "always"))
     names = sorted({r["name"] for r in rows}) if only else ()
     return rows, manifest, out, worker.Job(python, bake_args(manifest, out, train, names),
-                                           worker.extra_paths(p), label="Bake")
+                                           worker.extra_paths(p), label="Train + Bake" if train == "always" else "Bake")
 
 
 def after_status(scene, rows, manifest, lines):

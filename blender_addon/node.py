@@ -13,7 +13,7 @@ installed, and materials append and link like any other. Its node tree, "Learned
   input "Fallback" is the fit: with the OSL texture missing at render time it renders the
   fit instead of black. The scene's pixel filter and seed feed it (`film_settings`): on
   camera rays it stratifies its samples by their place in the pixel.
-- SVM (every Cycles device, GPU included; Blender 4.2+): the same table sampler as plain
+- SVM (every Cycles device, GPU included; Blender 5.0+): the same table sampler as plain
   shader nodes ending in a Ray Portal BSDF (svm.py, texture bake/svm_export.py): exact for
   the world and emissive surfaces; lamps are not light-sampled.
 - fit: Cycles closures (Diffuse BSDF + GGX Glossy BSDF) whose colours and roughness are
@@ -36,9 +36,9 @@ Blenders without numpy or OSL (Debian's 3.4 for the batch path): nothing here im
 numpy at module load. The fit is read from its JSON file (<name>.fit.json, written by the
 bake) with the json module, and the OSL texture is found by its content-hashed name; only
 missing or stale fits/textures need `bake` (numpy), imported on first use. Where Cycles
-cannot compile OSL (`_cycles.with_osl` false, as in Debian's 3.4) there is no Script node
+cannot run the OSL shader (`osl_compiler_available`: Debian's 3.4, Blender < 4.4) there is no Script node
 (an uncompiled one has no sockets and points at an add-on path that differs per machine),
-and without the Ray Portal BSDF (before 4.2) no SVM graph: the group holds the fit alone.
+and without the SVM graph's nodes (before 5.0) no SVM graph: the group holds the fit alone.
 Opening such a file with the add-on where more back ends build rebuilds the group
 (load_post, `upgrade`), as it does a group whose shader an older add-on compiled. The
 group's socket is made with `tree.interface` (4.0+) or the legacy `tree.outputs` (3.x).
@@ -154,9 +154,10 @@ def _texture_path(tables_path, digest):
 
 
 def svm_available():
-    """Whether this Blender has the Ray Portal BSDF (4.2+) and a `bake` that imports (numpy):
-    what the SVM back end needs."""
-    return hasattr(bpy.types, "ShaderNodeBsdfRayPortal") and _bake_mod("svm_export") is not None
+    """Whether this Blender has the Ray Portal BSDF (4.2+), the Light Path node's Portal Depth
+    output (5.0+; svm.py reads it) and a `bake` that imports (numpy): what the SVM back end needs."""
+    return (hasattr(bpy.types, "ShaderNodeBsdfRayPortal") and bpy.app.version >= (5, 0, 0)
+            and _bake_mod("svm_export") is not None)
 
 
 def _svm_texture(tables_path):
@@ -176,7 +177,11 @@ def derived_current(tables_path):
 
 
 def osl_compiler_available():
-    """Whether this Blender's Cycles compiles OSL (Script nodes); Debian's 3.4 does not."""
+    """Whether this Blender's Cycles compiles and runs the OSL shader: Debian's 3.4 has no OSL;
+    Cycles before 4.4 crashes optimizing its gettextureinfo() of a constant file name
+    (OSLRenderServices::get_texture_info; seen with the bpy 4.2.23 wheel, 4.4 and 4.5 run it)."""
+    if bpy.app.version < (4, 4, 0):
+        return False
     try:
         import _cycles
     except ImportError:
@@ -198,7 +203,10 @@ def ensure_oslquery():
     for site in sorted(root.glob("python/lib/python3*/site-packages")):
         if str(site) not in sys.path:
             sys.path.append(str(site))
-    import oslquery  # noqa: F401
+    try:
+        import oslquery  # noqa: F401
+    except ImportError:         # Cycles before 4.5 queries the shader in C++ (_cycles.osl_update_node)
+        pass
 
 
 def shader_source(probe=False):
@@ -275,8 +283,31 @@ def _trees():
             yield tree
 
 
+PATH_KEYS = ("tables", "fit", "osl_texture", "svm_texture")
+
+
 def _info(tree):
-    return dict(tree[TREE_KEY].to_dict()) if hasattr(tree[TREE_KEY], "to_dict") else dict(tree[TREE_KEY])
+    """The group's binding data, its file paths absolute (stored relative to the .blend: `_store`)."""
+    info = dict(tree[TREE_KEY].to_dict()) if hasattr(tree[TREE_KEY], "to_dict") else dict(tree[TREE_KEY])
+    for key in PATH_KEYS:
+        if info.get(key):
+            info[key] = os.path.normpath(bpy.path.abspath(info[key], library=tree.library))
+    return info
+
+
+def _relative(path):
+    """`path` relative to the saved .blend (//...), so the project folder can move; as it is
+    for an unsaved file (or another drive)."""
+    if not path or not bpy.data.filepath:
+        return path
+    try:
+        return bpy.path.relpath(path)
+    except ValueError:
+        return path
+
+
+def _store(tree, info):
+    tree[TREE_KEY] = {**info, **{key: _relative(info[key]) for key in PATH_KEYS if info.get(key)}}
 
 
 def _tree_for(name):
@@ -417,6 +448,9 @@ def _build_tree(tree, name, tables_path, fit_path):
         world_inputs = _world_inputs(bpy.context.scene, tables_path.parent, bake=False)
         svm_out = svm.build_svm_sampler(tree, svm_texture, group_in.outputs["Tangent"], location=(-1400, -3000),
                                         world=world_inputs)
+        for image in bpy.data.images:       # the texture's image, relative to the .blend as the tables are
+            if image.filepath and bpy.path.abspath(image.filepath) == svm_texture:
+                image.filepath = _relative(svm_texture)
         shader = _switched(tree, SWITCH_SVM, shader, svm_out, (2200, -300))
     if with_osl:                # else no Script node at all (see the module docstring); `upgrade` adds it
         script = make_script_node(tree)
@@ -428,7 +462,7 @@ def _build_tree(tree, name, tables_path, fit_path):
         script["flowbsdf_src"] = _source_hash()
         shader = _switched(tree, SWITCH, shader, script.outputs["BSDF"], (2400, 0))
     links.new(shader, out.inputs[0])
-    tree[TREE_KEY] = info
+    _store(tree, info)
 
 
 def _switched(tree, name, off, on, location):
@@ -615,12 +649,12 @@ def _refresh_export(tree):
         texture = _osl_texture(tables)
     except Exception as e:      # noqa: BLE001
         info["problems"] = f"no OSL texture: {e}"
-        tree[TREE_KEY] = info
+        _store(tree, info)
         return
-    if texture != info.get("osl_texture"):
+    if texture != script.inputs["Tables"].default_value:     # OSL reads absolute paths only
         script.inputs["Tables"].default_value = texture
         info["osl_texture"] = texture
-        tree[TREE_KEY] = info
+        _store(tree, info)
 
 
 TANGENT = (1.0, 0.0, 0.0)       # the group's Tangent input when unlinked: world x (the tracer's default)

@@ -13,13 +13,15 @@ USER_ERRORS = (worker.JobError, scan.ScanError, jobs.BindError, OSError, ValueEr
 
 
 def _redraw(context):
-    for window in context.window_manager.windows:
+    for window in getattr(context.window_manager, "windows", ()):
         for area in window.screen.areas:
             area.tag_redraw()
 
 
 class _JobOperator:
-    """Start a worker job, follow it (modal timer, or to the end in background), then finish()."""
+    """Start a worker job, follow it (modal timer, or to the end in background), then finish().
+    An error is reported as one short line (Blender's report popup is one line wide); the
+    whole message goes to the panel's job box and the console."""
 
     def start(self, context):          # -> worker.Job (may raise a USER_ERRORS)
         raise NotImplementedError
@@ -27,11 +29,25 @@ class _JobOperator:
     def finish(self, context, job):    # -> message for the info report
         return "done"
 
+    def _fail(self, context, message, details="", cancelled=False):
+        state = context.window_manager.flowbsdf_job
+        state.running, state.failed = False, not cancelled
+        state.message = message + (f"\n{details}" if details else "")
+        _redraw(context)
+        label = getattr(getattr(self, "_job", None), "label", None) or self.bl_label
+        print(f"FlowBSDF {label}: {state.message}", flush=True)
+        line = worker.short(message)
+        more = bool(details) or line != message.strip()
+        self.report({"WARNING"} if cancelled else {"ERROR"},
+                    f"FlowBSDF: {line}" + (" (details in the FlowBSDF panel)" if more else ""))
+        return {"CANCELLED"}
+
     def _start(self, context):
+        self._job = None
         try:
             self._job = self.start(context)
         except USER_ERRORS as e:
-            self.report({"ERROR"}, str(e))
+            self._fail(context, str(e), getattr(e, "details", ""))
             return False
         return True
 
@@ -40,16 +56,13 @@ class _JobOperator:
         state = context.window_manager.flowbsdf_job
         state.running = False
         if job.error:
-            state.message = job.error
-            self.report({"WARNING"} if job.cancelled else {"ERROR"}, f"FlowBSDF {job.label.lower()}: {job.error}")
-            return {"CANCELLED"}
+            return self._fail(context, f"{job.label} {'cancelled' if job.cancelled else 'failed: ' + job.error}",
+                              cancelled=job.cancelled)
         try:
             message = self.finish(context, job)
         except USER_ERRORS as e:
-            state.message = str(e)
-            self.report({"ERROR"}, str(e))
-            return {"CANCELLED"}
-        state.progress, state.message = 100.0, message
+            return self._fail(context, str(e), getattr(e, "details", ""))
+        state.progress, state.message, state.failed = 100.0, message, False
         self.report({"INFO"}, message)
         return {"FINISHED"}
 
@@ -65,6 +78,9 @@ class _JobOperator:
     def invoke(self, context, event):
         if bpy.app.background or context.window is None:
             return self.execute(context)
+        problem = jobs.unsaved_problem(context.scene)
+        if problem:
+            return self._fail(context, problem)
         if worker.current is not None and not worker.current.done:
             self.report({"ERROR"}, f"FlowBSDF: {worker.current.label} is still running (cancel it first)")
             return {"CANCELLED"}
@@ -73,6 +89,7 @@ class _JobOperator:
         worker.current = self._job
         state = context.window_manager.flowbsdf_job
         state.running, state.progress, state.message, state.label = True, 0.0, "starting", self._job.label
+        state.failed = False
         self._timer = context.window_manager.event_timer_add(0.25, window=context.window)
         context.window_manager.modal_handler_add(self)
         return {"RUNNING_MODAL"}
@@ -109,14 +126,11 @@ class FLOWBSDF_OT_scan(_JobOperator, bpy.types.Operator):
         return f"FlowBSDF: {len(statuses)} learned material(s), {current} baked and current; wrote {self._manifest}"
 
 
-class FLOWBSDF_OT_bake(_JobOperator, bpy.types.Operator):
-    """Train what is missing (when a FlowBSDF Python is set), bake the tables and bind the nodes"""
-    bl_idname = "flowbsdf.bake"
-    bl_label = "Bake"
+class _BakeOperator(_JobOperator):
+    """Bake the tables (training first when `TRAIN` is "always") and bind the nodes."""
+    TRAIN = "never"
 
     only_active: bpy.props.BoolProperty(name="Active material only", default=False)
-    train: bpy.props.EnumProperty(name="Train", items=[
-        ("SCENE", "Scene setting", ""), ("ALWAYS", "Always", ""), ("NEVER", "Never", "")], default="SCENE")
 
     def start(self, context):
         only = None
@@ -125,15 +139,47 @@ class FLOWBSDF_OT_bake(_JobOperator, bpy.types.Operator):
             if mat is None:
                 raise scan.ScanError("no active material")
             only = mat.name
-        train = None if self.train == "SCENE" else self.train
-        self._rows, self._manifest, _, job = jobs.start_bake(context.scene, context, only=only, train=train)
+        self._rows, self._manifest, self._out, job = jobs.start_bake(context.scene, context, only=only,
+                                                                     train=self.TRAIN)
         return job
 
     def finish(self, context, job):
         statuses = jobs.after_status(context.scene, self._rows, self._manifest, job.lines)
         bound = jobs.bind(self._rows, statuses)
         wrote = sum(line.startswith("[wrote] ") for line in job.lines)
-        return f"FlowBSDF: baked {wrote} table(s), {len(bound)} material(s) bound"
+        trained = sum(line.startswith("[trained] ") for line in job.lines)
+        where = f" (unsaved file: tables in {self._out})" if jobs.unsaved_problem(context.scene) else ""
+        return (f"FlowBSDF: {f'trained {trained} model(s), ' if trained else ''}baked {wrote} table(s), "
+                f"{len(bound)} material(s) bound{where}")
+
+    @classmethod
+    def description(cls, context, properties):
+        return cls.TOOLTIPS[bool(properties.only_active)]
+
+
+class FLOWBSDF_OT_bake(_BakeOperator, bpy.types.Operator):
+    """Bake tables and bind the Learned BSDF node, never training"""
+    bl_idname = "flowbsdf.bake"
+    bl_label = "Bake"
+    TRAIN = "never"
+    TOOLTIPS = {
+        True: "Bake this material's tables and bind its node. Never trains: uses its trained model if it has "
+              "one, else tabulates the material directly. Draft: seconds; Final: a few minutes on 2 cores",
+        False: "Bake the tables of every learned material the scene renders and bind their nodes. Never "
+               "trains (trained models are used where they exist). Draft: seconds; Final: minutes per material"}
+
+
+class FLOWBSDF_OT_train_bake(_BakeOperator, bpy.types.Operator):
+    """Train a flow model, then bake tables and bind the Learned BSDF node"""
+    bl_idname = "flowbsdf.train_bake"
+    bl_label = "Train + Bake"
+    TRAIN = "always"
+    TOOLTIPS = {
+        True: "Train a flow model for this material unless it has one (Fast: about 1 min, Balanced: 5-8 min, "
+              "Paper: hours without a GPU; resumes after Cancel), then bake its tables and bind its node. "
+              "Needs a Python with torch and FlowBSDF's trainer (add-on preferences)",
+        False: "Train a flow model for every learned material the scene renders that has none (minutes "
+               "each), then bake their tables and bind their nodes. Needs a Python with torch and the trainer"}
 
 
 class FLOWBSDF_OT_cancel(bpy.types.Operator):
@@ -203,21 +249,18 @@ class FLOWBSDF_OT_load_model(bpy.types.Operator):
 
 
 class FLOWBSDF_OT_check_python(bpy.types.Operator):
-    """Check what the FlowBSDF Python can do (bake: numpy + OpenEXR; train: torch + trainer)"""
+    """Check again what the Python that FlowBSDF's jobs use can do (bake: numpy + OpenEXR; train:
+    torch + FlowBSDF's trainer)"""
     bl_idname = "flowbsdf.check_python"
     bl_label = "Check Python"
 
     def execute(self, context):
         deps.clear_probes()
-        try:
-            python = worker.python_for(prefs.get(context))
-        except worker.JobError as e:
-            self.report({"ERROR"}, str(e))
-            return {"CANCELLED"}
-        info = deps.probe(python, worker.extra_paths(prefs.get(context)))
-        can = "bake and train" if info["torch"] and info["trainer"] else "bake (no torch/trainer: no training)"
-        self.report({"INFO"}, f"FlowBSDF: {python} can {can}")
-        return {"FINISHED"}
+        p = prefs.get(context)
+        text, icon = deps.summary(p.python_path if p else "", worker.extra_paths(p))[-1]
+        print(f"FlowBSDF: {text}", flush=True)
+        self.report({"ERROR"} if icon == "ERROR" else {"INFO"}, f"FlowBSDF: {worker.short(text, 160)}")
+        return {"FINISHED"} if icon != "ERROR" else {"CANCELLED"}
 
 
 class FLOWBSDF_OT_set_backend(bpy.types.Operator):
@@ -238,5 +281,5 @@ class FLOWBSDF_OT_set_backend(bpy.types.Operator):
         return {"FINISHED"}
 
 
-classes = (FLOWBSDF_OT_scan, FLOWBSDF_OT_bake, FLOWBSDF_OT_cancel, FLOWBSDF_OT_enable,
+classes = (FLOWBSDF_OT_scan, FLOWBSDF_OT_bake, FLOWBSDF_OT_train_bake, FLOWBSDF_OT_cancel, FLOWBSDF_OT_enable,
            FLOWBSDF_OT_load_model, FLOWBSDF_OT_check_python, FLOWBSDF_OT_set_backend)

@@ -1,69 +1,200 @@
-"""The FlowBSDF panel, in the Shader Editor's sidebar and in Material Properties."""
+"""The FlowBSDF panel, in the Shader Editor's sidebar and in Material Properties.
+
+Laid out for Blender's default sidebar width (about 230 px at UI scale 1): one control per
+row with its label on the left (property split), buttons one to a row (the back-end
+switch four short ones), and every long text (what renders, job messages, scan results)
+wrapped to the region's width (`wrapped`, measured in the UI font), never cut.
+"""
 import bpy
 
 from . import worker
 
 STATE_ICONS = {"current": "CHECKMARK", "stale": "FILE_REFRESH", "missing": "ERROR", "error": "CANCEL",
                "unsupported": "INFO", "unknown": "QUESTION"}
+# Pixels (at UI scale 1) a label's text loses to the sidebar's tab strip, the panel's margins
+# and its icon, and to each box around it: measured on Blender 3.4's UI at the default sidebar
+# width (tests/test_ui_blender.py checks every text the panel draws there).
+LABEL_MARGIN, BOX_MARGIN = 80, 16
+FALLBACK_WIDTH = 230            # the default sidebar width, where there is no region (background)
 
 
 def _material(context):
     mat = getattr(context, "material", None)
-    if mat is None and context.active_object is not None:
+    if mat is None and getattr(context, "active_object", None) is not None:
         mat = context.active_object.active_material
     return mat
 
 
+def ui_scale(context):
+    system = context.preferences.system
+    return getattr(system, "ui_scale", None) or system.dpi / 72.0
+
+
+def text_width(text, context):
+    """The width in pixels of `text` in the UI's label font, or None where blf cannot tell."""
+    try:
+        import blf
+        points = context.preferences.ui_styles[0].widget.points
+        blf.size(0, points * ui_scale(context))
+        return blf.dimensions(0, text)[0]
+    except Exception:           # noqa: BLE001 - no font in this Blender (background): count characters
+        return None
+
+
+def line_width(context, boxes=0):
+    """The pixels a label's text has in the current region (the default sidebar's without one),
+    inside `boxes` boxes."""
+    region = getattr(context, "region", None)
+    scale = ui_scale(context)
+    width = region.width if region is not None and region.width > 1 else FALLBACK_WIDTH * scale
+    return max(width - (LABEL_MARGIN + boxes * BOX_MARGIN) * scale, 60 * scale)
+
+
+def wrap(text, context, boxes=0):
+    """`text` as lines that fit the region, split at spaces and newlines (a word wider than a
+    line, e.g. a file name, is cut)."""
+    avail = line_width(context, boxes)
+
+    def fits(candidate):
+        width = text_width(candidate, context)
+        if width is None:                       # ~6.5 px per character at UI scale 1
+            width = len(candidate) * 6.5 * ui_scale(context)
+        return width <= avail
+    lines = []
+    for paragraph in text.split("\n"):
+        line = ""
+        for word in paragraph.split():
+            while not fits(word):               # a word wider than a line (a file name): cut it
+                cut = max(k for k in range(1, len(word) + 1) if k == 1 or fits(word[:k]))
+                if line:
+                    lines.append(line)
+                    line = ""
+                lines.append(word[:cut])
+                word = word[cut:]
+            candidate = f"{line} {word}" if line else word
+            if line and not fits(candidate):
+                lines.append(line)
+                line = word
+            else:
+                line = candidate
+        lines.append(line)
+    return lines
+
+
+def wrapped(layout, text, icon, context, boxes=0):
+    """A long text as several labels (Blender cuts a label at the panel's edge); `boxes`: how
+    many boxes it is drawn in."""
+    col = layout.column(align=True)
+    for k, line in enumerate(wrap(text, context, boxes)):
+        col.label(text=line, icon=icon if k == 0 else "BLANK1")
+
+
 def draw_job(layout, context):
+    """The running job (what it does, a progress bar, Cancel), or the last one's result."""
     state = context.window_manager.flowbsdf_job
     job = worker.current
     running = job is not None and not job.done
     if not running and not state.message:
         return
     box = layout.box()
-    row = box.row(align=True)
-    text = f"{state.label}: {state.message}" if running else state.message
-    if running and hasattr(row, "progress"):             # Blender 4.0+
-        row.progress(factor=state.progress / 100.0, type="BAR", text=text[:80])
-    else:
-        row.label(text=text[:100], icon="TIME" if running else "INFO")
+    icon = "TIME" if running else "ERROR" if state.failed else "INFO"
+    wrapped(box, state.message or "starting", icon, context, boxes=1)
     if running:
+        row = box.row(align=True)
+        if hasattr(row, "progress"):             # Blender 4.0+
+            row.progress(factor=state.progress / 100.0, type="BAR", text=f"{state.progress:.0f} %")
+        else:
+            row.prop(state, "progress", text="", slider=True)
         row.operator("flowbsdf.cancel", text="", icon="CANCEL")
 
 
-def _wrapped(layout, text, icon, width=38):
-    """A long text as several labels (Blender cuts a label at the panel's edge)."""
-    import textwrap
-    for k, line in enumerate(textwrap.wrap(text, width) or [""]):
-        layout.label(text=line, icon=icon if k == 0 else "BLANK1")
-
-
-def draw_renders(layout, mat, scene):
-    """What the material's Learned BSDF node renders in this scene, and why (node.node_status)."""
+def _learned_group(mat):
     from . import node
     tree = mat.node_tree
-    group = next((n for n in tree.nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree is not None
-                  and node.TREE_KEY in n.node_tree.keys()), None) if tree is not None else None
+    if tree is None:
+        return None
+    return next((n for n in tree.nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree is not None
+                 and node.TREE_KEY in n.node_tree.keys()), None)
+
+
+_previews = None          # bpy.utils.previews collection of the bakes' preview images
+
+
+def preview_file(mat):
+    """The bake's preview image (<name>.preview.png beside the tables the node renders), or None."""
+    import os
+    from . import node
+    group = _learned_group(mat)
+    if group is None:
+        return None
+    info = node._info(group.node_tree)
+    path = os.path.join(os.path.dirname(info.get("tables", "")), f"{info.get('material')}.preview.png")
+    return path if os.path.isfile(path) else None
+
+
+def preview_icon(path):
+    """An icon id showing the image file (not stored in the .blend; reloaded when the file
+    changes); 0 where Blender has no icons (background)."""
+    import os
+    import bpy.utils.previews
+    global _previews
+    if _previews is None:
+        _previews = bpy.utils.previews.new()
+    key = f"{path}@{os.stat(path).st_mtime_ns}"
+    preview = _previews.get(key) or _previews.load(key, path, "IMAGE")
+    return preview.icon_id
+
+
+def close_previews():
+    global _previews
+    if _previews is not None:
+        import bpy.utils.previews
+        bpy.utils.previews.remove(_previews)
+        _previews = None
+
+
+def draw_preview(layout, mat):
+    path = preview_file(mat)
+    icon = preview_icon(path) if path else 0
+    if icon:
+        layout.template_icon(icon_value=icon, scale=5.0)
+
+
+def draw_renders(layout, mat, scene, context, boxes=1):
+    """What the material's Learned BSDF node renders in this scene, and why (node.node_status)."""
+    from . import node
+    group = _learned_group(mat)
     if group is None:
         return
     status = node.node_status(group, scene)
     exact = status.startswith(("OSL", "SVM"))
-    _wrapped(layout.box(), f"Renders: {status}", "CHECKMARK" if exact and "warning" not in status else "ERROR")
+    wrapped(layout, f"Renders: {status}", "CHECKMARK" if exact and "warning" not in status else "ERROR",
+            context, boxes)
 
 
-def draw_material(layout, mat, scene=None):
+def _split(layout):
+    col = layout.column()
+    col.use_property_split = True
+    col.use_property_decorate = False
+    return col
+
+
+def draw_material(layout, mat, context):
     s = mat.flowbsdf
     if not s.enabled:
         layout.operator("flowbsdf.enable", icon="NODE_MATERIAL")
         return
-    if scene is not None:
-        draw_renders(layout, mat, scene)
-    col = layout.column()
-    col.prop(s, "enabled")
+    draw_renders(layout, mat, context.scene, context)
+    draw_preview(layout, mat)
+    layout.prop(s, "enabled")
+    col = _split(layout)
     col.prop(s, "name")
-    col.prop(s, "source_kind", expand=True)
+    col.prop(s, "source_kind")
     if s.source_kind == "FILE":
         col.prop(s, "filepath")
+        if s.filepath.strip():          # the field shows the path's start: say which file it is
+            wrapped(layout, bpy.path.basename(s.filepath), "FILE", context, boxes=1)
+            col = _split(layout)
     elif s.source_kind == "ANALYTIC":
         col.prop(s, "analytic_preset")
         col.prop(s, "analytic_params")
@@ -71,46 +202,45 @@ def draw_material(layout, mat, scene=None):
         col.prop(s, "python_callable")
         col.prop(s, "python_isotropic")
     col.prop(s, "domain")
-    row = col.row(align=True)
-    row.prop(s, "preset")
-    row.prop(s, "bake_quality")
-    row = col.row(align=True)
-    op = row.operator("flowbsdf.bake", text="Train + Bake", icon="PLAY")
-    op.only_active, op.train = True, "ALWAYS"
-    row.operator("flowbsdf.load_model", text="Load Model", icon="FILEBROWSER")
-    op = row.operator("flowbsdf.bake", text="Bake", icon="RENDER_STILL")
-    op.only_active, op.train = True, "SCENE"
+    col.prop(s, "preset")
+    col.prop(s, "bake_quality")
+    col = layout.column(align=True)
+    col.operator("flowbsdf.bake", text="Bake", icon="RENDER_STILL").only_active = True
+    col.operator("flowbsdf.train_bake", text="Train + Bake", icon="PLAY").only_active = True
+    col.operator("flowbsdf.load_model", text="Load Model", icon="FILEBROWSER")
 
 
 def draw_scene(layout, context):
     s = context.scene.flowbsdf
-    col = layout.column()
+    col = _split(layout)
     col.prop(s, "out_dir")
-    col.prop(s, "train")
-    row = col.row(align=True)
-    row.operator("flowbsdf.scan", icon="VIEWZOOM")
-    op = row.operator("flowbsdf.bake", text="Bake Scene", icon="RENDER_STILL")
-    op.only_active, op.train = False, "SCENE"
+    from . import jobs
+    where = jobs.unsaved_problem(context.scene)
+    if where:
+        wrapped(layout, where, "ERROR", context)
+    col = layout.column(align=True)
+    col.operator("flowbsdf.scan", text="Scan Scene", icon="VIEWZOOM")
+    col.operator("flowbsdf.bake", text="Bake Scene", icon="RENDER_STILL").only_active = False
     try:
         from . import node
         backend = node.backend_of(context.scene)
     except (ImportError, AttributeError):
         backend = None
     if backend is not None:
-        row = col.row(align=True)
-        row.label(text=f"Back end: {backend}")
+        layout.label(text="Back end, all nodes:")
+        row = layout.row(align=True)
         for key, label in (("auto", "Auto"), ("osl", "OSL"), ("svm", "SVM"), ("fit", "Fit")):
             row.operator("flowbsdf.set_backend", text=label, depress=(backend == key)).backend = key
     for item in s.scan_items:
-        box = col.box()
-        box.label(text=f"{item.material} -> {item.learned} ({item.users} object(s)): {item.state}",
-                  icon=STATE_ICONS.get(item.state, "QUESTION"))
-        if item.needs:
-            box.label(text=item.needs)
-        if item.detail:
-            box.label(text=item.detail)
+        box = layout.box()
+        name = item.material if item.learned in ("", item.material) else f"{item.material} ({item.learned})"
+        wrapped(box, f"{name}: {item.state}, {item.users} object(s)", STATE_ICONS.get(item.state, "QUESTION"),
+                context, boxes=1)
+        for text in (item.needs, item.detail):
+            if text:
+                wrapped(box, text, "BLANK1", context, boxes=1)
     if s.scan_items:
-        col.operator("flowbsdf.validate", icon="IMAGE_REFERENCE")
+        layout.operator("flowbsdf.validate", text="Validate", icon="IMAGE_REFERENCE")
 
 
 class _Panel:
@@ -121,7 +251,7 @@ class _Panel:
         draw_job(layout, context)
         mat = _material(context)
         if mat is not None:
-            draw_material(layout.box(), mat, context.scene)
+            draw_material(layout.box(), mat, context)
         draw_scene(layout, context)
 
 
@@ -138,11 +268,15 @@ class FLOWBSDF_PT_node_editor(_Panel, bpy.types.Panel):
 
 
 class FLOWBSDF_PT_material(_Panel, bpy.types.Panel):
+    """Open by default: an artist sees it without hunting for it."""
     bl_idname = "FLOWBSDF_PT_material"
     bl_space_type = "PROPERTIES"
     bl_region_type = "WINDOW"
     bl_context = "material"
-    bl_options = {"DEFAULT_CLOSED"}
+
+    @classmethod
+    def unregister(cls):
+        close_previews()
 
 
 classes = (FLOWBSDF_PT_node_editor, FLOWBSDF_PT_material)

@@ -1,4 +1,5 @@
-"""Add-on preferences: the Python that trains (torch lives there, never in Blender)."""
+"""Add-on preferences: the Python that bakes and trains (torch lives there, never in Blender),
+and what it can do (deps.summary)."""
 import bpy
 
 ADDON_ID = __package__        # "blender_addon", "flowbsdf" (legacy) or "bl_ext.<repo>.flowbsdf"
@@ -9,21 +10,20 @@ class FlowBSDFPreferences(bpy.types.AddonPreferences):
 
     python_path: bpy.props.StringProperty(
         name="Python", subtype="FILE_PATH",
-        description="A Python 3.11 with FlowBSDF's trainer (pip install '<FlowBSDF checkout>[train]'): it trains "
-                    "models and bakes tables in the background. Empty: Blender's own Python bakes, "
-                    "nothing is trained")
+        description="The Python that bakes (needs numpy + OpenEXR) and trains (needs torch + FlowBSDF's trainer, "
+                    "e.g. the FlowBSDF checkout's .venv/bin/python). Empty: the Python Blender reports; it "
+                    "trains only if it has torch and the trainer")
     module_path: bpy.props.StringProperty(
         name="Module folders", subtype="DIR_PATH",
         description="Folders added to the worker's PYTHONPATH (for materials given as a Python callable)")
 
     def draw(self, context):
+        from . import deps, panels, worker
         col = self.layout.column()
         col.prop(self, "python_path")
         col.prop(self, "module_path")
-        python = self.python_path.strip()
-        if not python:
-            col.label(text="No Python set: training is off; tables are baked from the ideal tabulation.",
-                      icon="INFO")
+        for text, icon in deps.summary(self.python_path, worker.extra_paths(self)):
+            panels.wrapped(col, text, icon, context)
         col.operator("flowbsdf.check_python", icon="CHECKMARK")
 
 

@@ -23,6 +23,17 @@ BAKE_QUALITY = {
 NAME_RE = re.compile(r"[^A-Za-z0-9_.-]+")
 
 
+def _path_options():
+    """Options of a path property that may be relative to the .blend (//...): Blender 4.5+
+    warns on a // path without PATH_SUPPORTS_BLEND_RELATIVE; older ones do not know it."""
+    if "is_path_supports_blend_relative" in bpy.types.Property.bl_rna.properties:
+        return {"PATH_SUPPORTS_BLEND_RELATIVE"}
+    return set()
+
+
+PATH_OPTIONS = _path_options()
+
+
 def manifest_name(material):
     """The material's name in the manifest (letters, digits, _ . -)."""
     s = material.flowbsdf
@@ -68,10 +79,10 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
     name: bpy.props.StringProperty(name="Name", description="Name in the manifest and of the table file "
                                    "(default: the material's name)")
     source_kind: bpy.props.EnumProperty(name="Source", items=[
-        ("FILE", "Measured file", "An RGL .bsdf or MERL .binary file"),
+        ("FILE", "Measured", "A measured file: RGL .bsdf or MERL .binary"),
         ("ANALYTIC", "Analytic", "A built-in analytic BSDF"),
         ("PYTHON", "Python", "A Python callable module:function returning f(wi, wo) as (N, 3)")])
-    filepath: bpy.props.StringProperty(name="File", subtype="FILE_PATH")
+    filepath: bpy.props.StringProperty(name="File", subtype="FILE_PATH", options=PATH_OPTIONS)
     analytic_preset: bpy.props.EnumProperty(
         name="Model", items=[(k, v[0], json.dumps(v[1])) for k, v in ANALYTIC_PRESETS.items()])
     analytic_params: bpy.props.StringProperty(name="Parameters",
@@ -104,16 +115,11 @@ class FlowBSDFScanItem(bpy.types.PropertyGroup):
 
 class FlowBSDFScene(bpy.types.PropertyGroup):
     out_dir: bpy.props.StringProperty(
-        name="Output", subtype="DIR_PATH", default="//flowbsdf",
+        name="Output", subtype="DIR_PATH", default="//flowbsdf", options=PATH_OPTIONS,
         description="Folder for the manifest, models and tables (// = beside the .blend)")
-    train: bpy.props.EnumProperty(name="Train", default="AUTO", items=[
-        ("AUTO", "When possible", "Train missing models when the FlowBSDF Python has torch; "
-         "otherwise bake from the ideal tabulation"),
-        ("ALWAYS", "Always", "Fail when a model is missing and cannot be trained"),
-        ("NEVER", "Never", "Bake from existing models or the ideal tabulation")])
     scan_items: bpy.props.CollectionProperty(type=FlowBSDFScanItem)
     scan_index: bpy.props.IntProperty()
-    last_manifest: bpy.props.StringProperty(name="Manifest", subtype="FILE_PATH")
+    last_manifest: bpy.props.StringProperty(name="Manifest", subtype="FILE_PATH", options=PATH_OPTIONS)
     validate_spp: bpy.props.IntProperty(name="Samples", default=16, min=1)
     validate_size: bpy.props.IntProperty(name="Size", default=64, min=8, max=1024)
 
@@ -123,6 +129,7 @@ class FlowBSDFJob(bpy.types.PropertyGroup):
     running: bpy.props.BoolProperty()
     progress: bpy.props.FloatProperty(subtype="PERCENTAGE", min=0, max=100, precision=0)
     message: bpy.props.StringProperty()
+    failed: bpy.props.BoolProperty()
     label: bpy.props.StringProperty()
 
 

@@ -14,7 +14,8 @@ spread 0, sheared frames, Normalize off on a point/spot with a radius) is an Exp
 never dropped; a portal (no emitter) is left out with a note.
 Then Cycles renders the same view here (small, OSL back end: it light-samples lamps and the
 world as the reference does), and the worker renders the reference (MIS) and writes MSE /
-SSIM and a side-by-side image (validate/compare.png).
+SSIM and a labelled side-by-side image (validate/compare.png: Cycles, the reference and their
+difference, captioned, with MSE, SSIM and the means; compare.md beside it says the same).
 """
 import json
 import math
@@ -120,13 +121,15 @@ def _lamp(obj):
         refuse("it casts no shadow")
     m = obj.matrix_world
     frame = m.to_3x3()
-    strength = [c * light.energy * 2.0 ** light.exposure for c in light.color]
-    if light.use_temperature:
+    # exposure, temperature and Normalize came in Blender 4.3; before, lamps behaved as their defaults
+    normalize = getattr(light, "normalize", True)
+    strength = [c * light.energy * 2.0 ** getattr(light, "exposure", 0.0) for c in light.color]
+    if getattr(light, "use_temperature", False):
         strength = [s * c for s, c in zip(strength, light.temperature_color)]
     entry = {"type": light.type.lower(), "camera": bool(obj.visible_camera)}
     if light.type in ("POINT", "SPOT"):
         radius = float(light.shadow_soft_size)           # not scaled by the object (Cycles)
-        if not light.normalize:
+        if not normalize:
             if radius > 0:
                 refuse("Normalize is off on a lamp with a radius")
             strength = [4.0 * s for s in strength]       # intensity S / pi instead of S / 4 pi
@@ -140,7 +143,7 @@ def _lamp(obj):
         return entry
     if light.type == "SUN":
         angle = float(light.angle)
-        if not light.normalize and angle > 0:            # radiance S instead of S / (pi sin^2(angle/2))
+        if not normalize and angle > 0:            # radiance S instead of S / (pi sin^2(angle/2))
             strength = [s * math.pi * math.sin(angle / 2) ** 2 for s in strength]
         entry.update(direction=_vec((frame @ _axis(0, 0, -1)).normalized()), strength=_vec(strength),
                      angle=round(math.degrees(angle), 6))
@@ -158,7 +161,7 @@ def _lamp(obj):
     if u.cross(v).dot(w) < 0:                            # mirrored: keep -(u x v) = the lamp's -Z
         u.negate()
     ellipse = light.shape in ("DISK", "ELLIPSE")
-    if not light.normalize:                              # radiance S / pi instead of S / (pi A)
+    if not normalize:                                    # radiance S / pi instead of S / (pi A)
         area = u.length * sx * v.length * sy * (math.pi / 4 if ellipse else 1.0)
         strength = [s * area for s in strength]
     entry.update(position=_vec(m.translation), axis_u=_vec(u * sx), axis_v=_vec(v * sy),
@@ -273,9 +276,25 @@ def export_scene(scene, folder, rows, width, height, manifest_path):
     return path, notes
 
 
-def render_cycles(scene, path, width, height, spp):
+def _not_osl(scene, rows):
+    """The learned materials whose node would not render the OSL back end now: "name: status"."""
+    from . import node
+    out = []
+    for row in rows:
+        tree = row["material"].node_tree
+        group = next((n for n in tree.nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree is not None
+                      and node.TREE_KEY in n.node_tree.keys()), None) if tree is not None else None
+        status = node.node_status(group, scene) if group is not None else "not bound (bake first)"
+        if not status.startswith("OSL"):
+            out.append(f"{row['material'].name}: {status}")
+    return out
+
+
+def render_cycles(scene, path, width, height, spp, rows=()):
     """Render the scene with Cycles (CPU, OSL back end: lamps and world light-sampled by the
-    shader) into a 32-bit EXR; every setting touched is restored afterwards."""
+    shader) into a 32-bit EXR; every setting touched is restored afterwards. ExportError when a
+    learned material of `rows` would not render the OSL back end (the comparison would not be
+    like with like)."""
     from . import node
     saved = []
 
@@ -295,6 +314,10 @@ def render_cycles(scene, path, width, height, spp):
         setv(owner, attr, value)
     try:
         node.sync(scene, refresh=True)
+        wrong = _not_osl(scene, rows)
+        if wrong:
+            raise ExportError("validate compares Cycles' OSL back end with the reference, but here "
+                              + "; ".join(wrong))
         bpy.ops.render.render(write_still=True, scene=scene.name)
     finally:
         for owner, attr, value in reversed(saved):
@@ -309,7 +332,7 @@ def validate_args(folder, manifest, out, spp):
             "--cycles", os.path.join(folder, "cycles.exr"), "--spp", str(spp)]
 
 
-def prepare(scene, context=None, spp=None, size=None):
+def prepare(scene, context=None, spp=None, size=None, where="ui"):
     """Export + Cycles render; returns (job, folder, notes). The reference runs in the job."""
     from . import prefs
     spp = spp or scene.flowbsdf.validate_spp
@@ -322,8 +345,8 @@ def prepare(scene, context=None, spp=None, size=None):
     width, height = size, max(1, round(size * aspect))
     folder = os.path.join(out, VALIDATE_DIR)
     _, notes = export_scene(scene, folder, rows, width, height, manifest)
-    python = worker.python_for(prefs.get(context))
-    render_cycles(scene, os.path.join(folder, "cycles.exr"), width, height, spp)
+    python = worker.python_for(prefs.get(context), where=where)
+    render_cycles(scene, os.path.join(folder, "cycles.exr"), width, height, spp, rows)
     job = worker.Job(python, validate_args(folder, manifest, out, spp), worker.extra_paths(prefs.get(context)),
                      label="Validate")
     return job, folder, notes

@@ -16,10 +16,26 @@ import time
 from . import deps
 
 PROGRESS_RE = re.compile(r"^\[progress (\d+)/(\d+)\]\s*(.*)$")
+STEP_RE = re.compile(r"^\[step ([0-9.]+)\]\s*(.*)$")
 
 
 class JobError(Exception):
-    """A job that failed; the message is fit for the user."""
+    """A job that failed: str(e) is one line fit for Blender's report popup, `details` the rest
+    (shown in the panel and printed to the console)."""
+
+    def __init__(self, message, details=""):
+        super().__init__(message)
+        self.details = details
+
+
+def short(text, limit=100):
+    """The first line of a message, cut at a word boundary to at most `limit` characters."""
+    line = text.strip().splitlines()[0] if text.strip() else ""
+    if len(line) <= limit:
+        return line
+    cut = line[:limit - 1]
+    at_word = cut.rsplit(" ", 1)[0].rstrip(",;:")
+    return (at_word if len(at_word) > 0.7 * limit else cut) + "\u2026"
 
 
 class Job:
@@ -29,6 +45,7 @@ class Job:
         self.lines = []               # everything the worker printed
         self.fraction = 0.0
         self.message = "starting"
+        self._step = (0, 1, False)       # (steps done, steps planned, words came from [step] lines)
         self.error = None
         self.cancelled = False
         self.returncode = None
@@ -71,15 +88,23 @@ class Job:
         return self.returncode is not None
 
     def _take(self, line):
+        """Progress: `[progress K/N]` starts step K of N, `[step F]` says how far it is (F of it)
+        in an artist's words, which then stay the message; other lines are the log."""
         self.lines.append(line)
-        m = PROGRESS_RE.match(line)
+        m, step = PROGRESS_RE.match(line), STEP_RE.match(line)
         if m:
             k, n = int(m.group(1)), max(int(m.group(2)), 1)
             self.fraction = min((k - 1) / n if m.group(3) != "done" else 1.0, 1.0)
             self.message = m.group(3)
+            self._step = (k - 1, n, False)
+        elif step:
+            done, n, _ = self._step
+            self.fraction = max(self.fraction, min((done + float(step.group(1))) / n, 1.0))
+            self.message = step.group(2)
+            self._step = (done, n, True)
         elif line.startswith("[error] "):
             self.error = line[len("[error] "):]
-        elif line.strip() and not line.startswith("  "):
+        elif line.strip() and not line.startswith("  ") and not self._step[2]:
             self.message = line.strip()[:120]
 
     def _finish(self):
@@ -148,13 +173,14 @@ def clear():
     current = None
 
 
-def python_for(prefs, need_train=False):
-    """deps.choose_python with the add-on preferences; JobError with the hint on failure."""
+def python_for(prefs, need_train=False, where="ui"):
+    """deps.choose_python with the add-on preferences; JobError (short line + details) when
+    there is no Python for the job."""
     try:
         return deps.choose_python(prefs.python_path if prefs else "", need_train=need_train,
-                                  extra_paths=extra_paths(prefs))
+                                  extra_paths=extra_paths(prefs), where=where)
     except deps.PythonNotFound as e:
-        raise JobError(str(e)) from None
+        raise JobError(str(e), e.details) from None
 
 
 def extra_paths(prefs):

@@ -64,6 +64,15 @@ def mesh_object(name, mat, coll=None):
     return ob
 
 
+def one_learned_object(out, name):
+    """An empty scene baking into `out` with one object of a learned matte (Fast training)."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.context.scene.flowbsdf.out_dir = str(out)
+    mat = learned(name, "MATTE", preset="FAST")
+    mesh_object("o", mat)
+    return mat
+
+
 def test_scan_lists_only_what_renders(addon, tmp_path):
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
@@ -120,19 +129,86 @@ def test_operator_errors_are_messages(addon, tmp_path, monkeypatch):
         bpy.ops.flowbsdf.bake()
     mat.flowbsdf.analytic_params = ""
     monkeypatch.setenv("FLOWBSDF_PYTHON", str(tmp_path / "no_python"))
-    with pytest.raises(RuntimeError, match="does not exist.*Preferences > Add-ons > FlowBSDF > Python"):
+    with pytest.raises(RuntimeError) as err:
         bpy.ops.flowbsdf.bake()
+    # One short line for the report popup; what to do is in the panel (and the console).
+    report = str(err.value).strip().splitlines()
+    assert len(report) == 1 and len(report[0]) < 160, report
+    assert "FlowBSDF Python does not exist: " in report[0] and "(details in the FlowBSDF panel)" in report[0]
+    panel = bpy.context.window_manager.flowbsdf_job.message
+    assert "Preferences > Add-ons > FlowBSDF > Python" in panel and "numpy and OpenEXR" in panel, panel
+    assert "checkout" not in panel                      # baking needs no FlowBSDF checkout
+
+
+def _fake_probe(monkeypatch, **over):
+    from blender_addon import deps
+    info = {"ok": True, "numpy": True, "openexr": True, "torch": False, "trainer": False, "bake": "/x/bake",
+            "error": None, "executable": sys.executable, "base_prefix": sys.base_prefix,
+            "version": list(sys.version_info[:3]), **over}
+    monkeypatch.setattr(deps, "probe", lambda python, extra_paths=(): info)
+    monkeypatch.delenv("FLOWBSDF_PYTHON", raising=False)
+    return deps
 
 
 def test_training_without_torch_says_where_to_set_python(addon, monkeypatch):
-    from blender_addon import deps
-    fake = {"ok": True, "numpy": True, "openexr": True, "torch": False, "trainer": False,
-            "bake": "/x/bake", "error": None}
-    monkeypatch.setattr(deps, "probe", lambda python, extra_paths=(): fake)
-    monkeypatch.delenv("FLOWBSDF_PYTHON", raising=False)
+    deps = _fake_probe(monkeypatch)
     assert deps.choose_python("", need_train=False) == sys.executable
-    with pytest.raises(deps.PythonNotFound, match="lacks torch, trainer.*Preferences > Add-ons > FlowBSDF"):
+    with pytest.raises(deps.PythonNotFound) as err:
         deps.choose_python("", need_train=True)
+    assert str(err.value) == f"cannot train: Blender's Python ({sys.executable}) lacks torch, FlowBSDF's trainer"
+    assert "Preferences > Add-ons > FlowBSDF > Python" in err.value.details
+    assert ".venv/bin/python" in err.value.details          # the trainer only comes with a checkout
+    with pytest.raises(deps.PythonNotFound) as err:
+        deps.choose_python("", need_train=True, where="batch")
+    assert "--python PATH" in err.value.details
+    # The preferences tell the truth about the same Python.
+    text = " ".join(t for t, _ in deps.summary(""))
+    assert "Blender's Python" in text and "cannot train" in text and "lacks torch" in text, text
+
+
+def test_a_python_blender_only_reports_is_not_called_blenders_own(addon, monkeypatch):
+    """Debian's Blender 3.4 reports the python3.11 first on PATH (here a pyenv shim) as
+    sys.executable; messages must not call that "Blender's Python"."""
+    deps = _fake_probe(monkeypatch, openexr=False, executable="/opt/pyenv/versions/3.11.7/bin/python3.11",
+                       base_prefix="/opt/pyenv/versions/3.11.7")
+    with pytest.raises(deps.PythonNotFound) as err:
+        deps.choose_python("")
+    text = str(err.value) + " " + err.value.details + " ".join(t for t, _ in deps.summary(""))
+    assert "Blender's Python" not in text, text
+    assert "the Python Blender finds on PATH" in text and "/opt/pyenv/versions/3.11.7/bin/python3.11" in text
+    assert str(err.value) == "cannot bake: the default Python lacks OpenEXR"
+
+
+def test_preferences_say_which_python_trains(addon, monkeypatch):
+    """With torch and the trainer (this venv), the preferences say training happens there."""
+    from blender_addon import deps
+    monkeypatch.delenv("FLOWBSDF_PYTHON", raising=False)
+    deps.clear_probes()
+    info = deps.probe(sys.executable)
+    if not (info["torch"] and info["trainer"]):
+        pytest.skip("this Python has no torch/trainer")
+    text = " ".join(t for t, _ in deps.summary(""))
+    assert "has torch and the trainer: Train + Bake trains there; Bake never trains" in text, text
+    assert "training is off" not in text
+
+
+def test_bake_never_trains_and_the_two_buttons_say_what_they_do(addon, tmp_path, monkeypatch):
+    """"Bake" with a Python that could train (this venv has torch) bakes from the ideal
+    tabulation; only "Train + Bake" trains. Their tooltips differ and give the time."""
+    from blender_addon import operators
+    monkeypatch.delenv("FLOWBSDF_PYTHON", raising=False)
+    mat = one_learned_object(tmp_path, "never_trained")
+    with bpy.context.temp_override(material=mat):
+        assert bpy.ops.flowbsdf.bake(only_active=True) == {"FINISHED"}
+    assert (tmp_path / "tables" / "never_trained.exr").is_file()
+    assert not (tmp_path / "models").exists()
+    manifest = (tmp_path / "manifest.toml").read_text()
+    assert "state: current" in manifest and "no trained model" in manifest
+    tips = {cls.bl_idname: cls.TOOLTIPS for cls in (operators.FLOWBSDF_OT_bake, operators.FLOWBSDF_OT_train_bake)}
+    bake, train = tips["flowbsdf.bake"], tips["flowbsdf.train_bake"]
+    assert "Never trains" in bake[True] and "Final: a few minutes" in bake[True]
+    assert "Balanced: 5-8 min" in train[True] and "torch" in train[True]
+    assert bake[True] != train[True] and bake[False] != train[False] and bake[True] != bake[False]
 
 
 def test_job_progress_and_cancel(tmp_path):
@@ -146,7 +222,7 @@ def test_job_progress_and_cancel(tmp_path):
     while not any(line.startswith("[progress 1/1]") for line in job.lines) and time.monotonic() < deadline:
         job.poll()
         time.sleep(0.05)
-    assert job.message == "bake slow" and job.fraction == 0.0
+    assert job.message in ("bake slow", "Baking slow: tabulating the material") and job.fraction < 0.05
     job.cancel()
     while not job.done and time.monotonic() < deadline:
         job.poll()
@@ -155,6 +231,94 @@ def test_job_progress_and_cancel(tmp_path):
     with pytest.raises(ProcessLookupError):
         os.killpg(job.proc.pid, 0)          # the whole group is gone
     assert not (tmp_path / "out" / "tables" / "slow.exr").exists()
+
+
+def _worker_main():
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("worker_main", ROOT / "blender_addon" / "worker_main.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bake_progress_in_words_from_the_planner_log(monkeypatch):
+    """The planner's log (resolution probe, one line per added angle) becomes a moving fraction
+    and words with the time left; between lines the time left counts down."""
+    wm = _worker_main()
+    lines = []
+    monkeypatch.setattr(wm, "emit", lines.append)
+    now = [0.0]
+    progress = wm.BakeProgress("MilitaryGreen", {}, clock=lambda: now[0])
+    steps = []
+
+    def feed(t, text):
+        now[0] = t
+        progress.log(text)
+        steps.append((progress.done, lines[-1]))
+    feed(8.0, "[bake] MilitaryGreen: resolution 16: single-bin rv 0.2005")
+    assert steps[-1][1] == "[step 0.050] Baking MilitaryGreen: choosing the table resolution (1 of 5)"
+    for t, r in ((9, 24), (10, 32), (13, 48), (18, 64)):
+        feed(float(t), f"[bake] MilitaryGreen: resolution {r}: single-bin rv 0.0081")
+    assert progress.resolution == 64 and progress.max_bins() == 34
+    scores = [0.457, 0.282, 0.208, 0.146, 0.110, 0.108, 0.0845, 0.0437, 0.031, 0.0198, 0.0182]
+    for k, score in enumerate(scores):
+        feed(30.0 + 10 * k, f"[bake] MilitaryGreen: bins {7 + k}: split 1.00-2.00 deg (midpoint rv {score})")
+    assert all(text.startswith("[bake] ") or text.startswith("[step ") for text in lines)
+    assert sum(text.startswith("[bake] MilitaryGreen: bins") for text in lines) == len(scores)  # the log keeps them
+    words = steps[-1][1]
+    import re
+    m = re.match(r"\[step ([0-9.]+)\] Baking MilitaryGreen: 17 of about (\d+) angles, about (\d+) min left$", words)
+    assert m, words
+    assert 17 < int(m.group(2)) <= 34 and 0.3 < float(m.group(1)) < 0.95
+    fractions = [f for f, _ in steps]
+    assert fractions == sorted(fractions) and 0 < fractions[-1] < 1
+    # The heartbeat: 60 s later the time left is a minute shorter, the bar has moved.
+    before = int(m.group(3))
+    now[0] += 60.0
+    progress.report()
+    m2 = re.match(r"\[step ([0-9.]+)\] .* about (\d+) (min|s) left$", lines[-1])
+    assert m2 and float(m2.group(1)) > float(m.group(1)), lines[-1]
+    assert (int(m2.group(2)) if m2.group(3) == "min" else 0) <= before - 1, (words, lines[-1])
+    feed(200.0, "[svm] wrote /x/MilitaryGreen.svm1-0.exr")
+    assert lines[-1].endswith("Baking MilitaryGreen: writing the node's textures and closure fit")
+    assert wm.time_left(5) == "a few seconds left" and wm.time_left(40) == "about 40 s left"
+    assert wm.time_left(75) == "about 1 min left" and wm.time_left(610) == "about 10 min left"
+
+
+def test_progress_moves_within_one_material(tmp_path):
+    """One material's bake: the job's fraction moves between 0 and 1 and its message is the
+    artist's words ("Baking plastic: 7 of about 12 angles, ..."), not the planner's."""
+    from blender_addon import worker
+    manifest = tmp_path / "m.toml"
+    manifest.write_text('[[material]]\nname = "plastic"\nsource = { kind = "analytic", model = "plastic", '
+                        'albedo = [0.7, 0.1, 0.08], alpha = 0.12 }\nbake = { resolution = 16, tol = 0.02, '
+                        'first_bins = 3, samples = 2048, grid = 96, ideal_resolution = 48 }\n')
+    job = worker.Job(sys.executable, ["bake", str(manifest), "--out", str(tmp_path / "out")])
+    seen = []
+    deadline = time.monotonic() + 300
+    while not job.done and time.monotonic() < deadline:
+        job.poll()
+        seen.append((job.fraction, job.message))
+        time.sleep(0.02)
+    assert job.done and not job.error, job.lines[-5:]
+    import re
+    inside = [(f, m) for f, m in seen if 0.0 < f < 1.0]
+    assert inside and len({f for f, _ in inside}) >= 3, seen[-10:]
+    assert any(re.match(r"Baking plastic: \d+ of about \d+ angles, (about \d+ s|a few seconds) left$", m)
+               for _, m in inside), sorted({m for _, m in seen})
+    assert not any(m.startswith("[bake]") for _, m in seen)
+    assert any(line.startswith("[bake] plastic: bins ") for line in job.lines)      # the log keeps them
+    fractions = [f for f, _ in seen]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+
+
+def EXACT():
+    """What a bound node renders in a Cycles CPU scene with OSL on and no lamps, in this Blender:
+    OSL where its Cycles runs our shader, else the SVM graph where it builds, else the fit."""
+    from blender_addon import node
+    if node.osl_compiler_available():
+        return "OSL"
+    return "SVM" if node.svm_available() else "fit"
 
 
 THREE = (("matte", "MATTE"), ("red_plastic", "PLASTIC"), ("gold", "GOLD"))
@@ -177,7 +341,7 @@ def baked_scene(addon, tmp_path_factory):
         ob.location.x = 2.0 * (i - 1)
     assert bpy.ops.flowbsdf.scan() == {"FINISHED"}
     before = {i.material: i.state for i in scene.flowbsdf.scan_items}
-    assert bpy.ops.flowbsdf.bake(train="NEVER") == {"FINISHED"}
+    assert bpy.ops.flowbsdf.bake() == {"FINISHED"}
     return scene, out, before
 
 
@@ -194,9 +358,10 @@ def test_three_materials_scanned_baked_rendered(baked_scene):
     from blender_addon import node
     for name, _ in THREE:
         group = next(n for n in bpy.data.materials[name].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
-        assert node.node_status(group, scene) == "OSL", node.node_status(group, scene)
+        status = node.node_status(group, scene)
+        assert status == "OSL" if EXACT() == "OSL" else status.startswith(EXACT() + " ("), status
     mtime = (out / "tables" / "gold.exr").stat().st_mtime_ns
-    assert bpy.ops.flowbsdf.bake(train="NEVER") == {"FINISHED"}       # current tables are kept
+    assert bpy.ops.flowbsdf.bake() == {"FINISHED"}       # current tables are kept
     assert (out / "tables" / "gold.exr").stat().st_mtime_ns == mtime
 
     img = cs.render(scene)
@@ -206,6 +371,46 @@ def test_three_materials_scanned_baked_rendered(baked_scene):
     assert abs(matte.mean() - 0.8) < 0.08 and np.ptp(matte) < 0.05, matte
     assert red[0] > 2 * red[1] and red[0] > 2 * red[2], red
     assert gold[0] > 1.5 * gold[2] and gold.mean() > 0.3, gold
+
+
+def test_the_svm_back_end_renders_what_osl_does(baked_scene):
+    """The same three spheres with the scene's back end on the SVM graph (every Cycles device):
+    each sphere's mean within noise of the OSL render (both sample the baked tables)."""
+    from blender_addon import node
+    scene, _, _ = baked_scene
+    if not node.svm_available():
+        pytest.skip("this Blender cannot build the SVM back end (Ray Portal BSDF and Light Path Portal Depth: 5.0+)")
+    means = {}
+    try:
+        for backend in ("osl", "svm"):
+            node.set_backend(scene, backend)
+            for name, _ in THREE:
+                group = next(n for n in bpy.data.materials[name].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
+                assert node.node_status(group, scene) == backend.upper(), node.node_status(group, scene)
+            img = cs.render(scene)
+            means[backend] = [img[5:11, c - 3:c + 3].reshape(-1, 3).mean(0) for c in (8, 24, 40)]
+    finally:
+        node.set_backend(scene, "auto")
+    for osl, svm in zip(means["osl"], means["svm"]):
+        assert np.allclose(osl, svm, rtol=0.1, atol=0.03), means
+
+
+def test_bake_writes_a_preview_beside_the_tables(baked_scene):
+    """Each bake leaves <name>.preview.png beside its tables (the material on the reference
+    tracer's shader ball under a soft sky, 96x96) and the panel finds it."""
+    from blender_addon import panels
+    scene, out, _ = baked_scene
+    colours = {}
+    for name, _ in THREE:
+        path = panels.preview_file(bpy.data.materials[name])
+        assert path is not None and Path(path) == out / "tables" / f"{name}.preview.png"
+        img = _read_png(path).astype(float)
+        assert img.shape == (96, 96, 3)
+        colours[name] = img[36:60, 38:58].reshape(-1, 3).mean(0)      # the ball's body
+    red, gold, matte = colours["red_plastic"], colours["gold"], colours["matte"]
+    assert red[0] > 1.5 * red[1] and red[0] > 1.5 * red[2], colours
+    assert gold[0] > 1.3 * gold[2], colours
+    assert np.ptp(matte) < 0.2 * matte.mean() and matte.mean() > 60, colours
 
 
 def test_cli_command_bakes_binds_and_saves(baked_scene, tmp_path, capsys):
@@ -220,7 +425,8 @@ def test_cli_command_bakes_binds_and_saves(baked_scene, tmp_path, capsys):
     assert "[progress 3/3] done" in text and f"[flowbsdf] saved {blend}" in text
     assert all(line == line.strip("\r") for line in text.splitlines())
     assert batch.cli_command(["bake", "--python", str(tmp_path / "nope")]) == 1
-    assert "[flowbsdf] error: the FlowBSDF Python" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "[flowbsdf] error: the FlowBSDF Python does not exist" in text and "Pass one with --python PATH" in text
     assert batch.cli_command(["bake", "--material", "not_there"]) == 1
     assert "not_there" in capsys.readouterr().out
     assert "FLOWBSDF_PYTHON" not in os.environ
@@ -229,6 +435,80 @@ def test_cli_command_bakes_binds_and_saves(baked_scene, tmp_path, capsys):
     for name, _ in THREE:
         groups = [n for n in bpy.data.materials[name].node_tree.nodes if n.bl_idname == "ShaderNodeGroup"]
         assert len(groups) == 1 and groups[0].node_tree.get("flowbsdf")["material"] == name
+
+
+def _learned_group(mat):
+    from blender_addon import panels
+    return panels._learned_group(mat)
+
+
+def test_paths_follow_the_project_folder(addon, tmp_path):
+    """Table paths are stored relative to the .blend: moving the project folder keeps the tables
+    rendering; moving the .blend alone, the node and Scan both say the tables are missing."""
+    import shutil
+    from blender_addon import node
+    cs.bpy_or_skip()
+    project = tmp_path / "A"
+    project.mkdir()
+    scene = cs.reset(width=8, height=8, spp=1)
+    cs.set_world(scene, (1.0, 1.0, 1.0))
+    mat = learned("moving", "MATTE")
+    cs.add_sphere(scene, mat, segments=16, rings=8)
+    cs.ortho_camera(scene, scale=2.0)
+    scene.flowbsdf.out_dir = "//flowbsdf"
+    bpy.ops.wm.save_as_mainfile(filepath=str(project / "shot.blend"))
+    assert bpy.ops.flowbsdf.bake() == {"FINISHED"}
+    raw = _learned_group(mat).node_tree[node.TREE_KEY]
+    assert raw["tables"] == "//flowbsdf/tables/moving.exr", raw["tables"]
+    assert all(raw[k].startswith("//flowbsdf/tables/moving.") for k in node.PATH_KEYS if raw.get(k)), raw.to_dict()
+    svm_images = [i for i in bpy.data.images if "svm" in i.filepath]
+    assert all(i.filepath.startswith("//flowbsdf/tables/") for i in svm_images), [i.filepath for i in svm_images]
+    bpy.ops.wm.save_mainfile()
+
+    moved = tmp_path / "B"
+    shutil.move(project, moved)
+    bpy.ops.wm.open_mainfile(filepath=str(moved / "shot.blend"))
+    scene, mat = bpy.context.scene, bpy.data.materials["moving"]
+    group = _learned_group(mat)
+    assert node.node_status(group, scene).startswith(EXACT())
+    assert "tables missing" not in node.node_status(group, scene)
+    script = group.node_tree.nodes.get(node.SCRIPT)
+    if script is not None:
+        assert Path(script.inputs["Tables"].default_value).parent == moved / "flowbsdf" / "tables"
+    assert all(Path(bpy.path.abspath(i.filepath)).is_file() for i in bpy.data.images if "svm" in i.filepath)
+    assert bpy.ops.flowbsdf.scan() == {"FINISHED"}
+    assert [i.state for i in scene.flowbsdf.scan_items] == ["current"]
+    img = cs.render(scene)
+    assert abs(img[3:5, 3:5].mean() - 0.8) < 0.15, img[3:5, 3:5]    # white world, albedo 0.8: not black
+
+    alone = tmp_path / "C"
+    alone.mkdir()
+    shutil.copy(moved / "shot.blend", alone / "shot.blend")
+    bpy.ops.wm.open_mainfile(filepath=str(alone / "shot.blend"))
+    scene, mat = bpy.context.scene, bpy.data.materials["moving"]
+    status = node.node_status(_learned_group(mat), scene)
+    assert status.startswith("fit (tables missing: ") and str(alone / "flowbsdf" / "tables" / "moving.exr") in status
+    assert bpy.ops.flowbsdf.scan() == {"FINISHED"}
+    assert [i.state for i in scene.flowbsdf.scan_items] == ["missing"]
+
+
+def test_an_unsaved_file_asks_to_save_first(addon, tmp_path, monkeypatch):
+    """The panel and the interactive operators ask to save first (the tables go beside the
+    .blend); a script's bake of an unsaved file says exactly where the tables went."""
+    from blender_addon import jobs, prefs
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    assert scene.flowbsdf.out_dir == "//flowbsdf"
+    assert jobs.unsaved_problem(scene) == "save the .blend first: FlowBSDF writes the tables beside it, in //flowbsdf"
+    monkeypatch.setattr(prefs, "user_dir", lambda *parts: str(tmp_path.joinpath("user", *parts)))
+    mesh_object("o", learned("unsaved", "MATTE"))
+    assert bpy.ops.flowbsdf.bake() == {"FINISHED"}
+    message = bpy.context.window_manager.flowbsdf_job.message
+    where = tmp_path / "user" / "unsaved" / "Scene"
+    assert message.endswith(f"(unsaved file: tables in {where})"), message
+    assert (where / "tables" / "unsaved.exr").is_file()
+    scene.flowbsdf.out_dir = str(tmp_path / "absolute")
+    assert jobs.unsaved_problem(scene) is None
 
 
 def test_extension_zip_builds_validates_installs(tmp_path):
@@ -284,6 +564,63 @@ print("SCAN ok")
 """
 
 
+def _read_png(path):
+    """The RGB pixels of a PNG written by bake.tracer.images.write_png (8 bit, filter 0)."""
+    import struct
+    import zlib
+    data, pos, idat = Path(path).read_bytes(), 8, b""
+    while pos < len(data):
+        n, tag = struct.unpack(">I4s", data[pos:pos + 8])
+        if tag == b"IHDR":
+            w, h = struct.unpack(">II", data[pos + 8:pos + 16])
+        elif tag == b"IDAT":
+            idat += data[pos + 8:pos + 8 + n]
+        pos += 12 + n
+    raw = np.frombuffer(zlib.decompress(idat), np.uint8).reshape(h, 1 + 3 * w)
+    assert not raw[:, 0].any()
+    return raw[:, 1:].reshape(h, w, 3)
+
+
+def _check_compare_png(folder, result):
+    """compare.png: Cycles left, the reference in the middle (their pixels), captions saying so
+    and the numbers of metrics.json under them; compare.md says the same."""
+    from bake.tracer.images import read_exr, tonemap
+    from bake.tracer.label import text_mask
+    img = _read_png(folder / "compare.png")
+    cycles, ref = (np.asarray(read_exr(folder / f), np.float32)[..., :3] for f in ("cycles.exr", "reference.exr"))
+    h, w = cycles.shape[:2]
+    k, gap = -(-256 // w), 8
+
+    def panel(i):
+        x0 = gap + i * (k * w + gap)
+        return img[gap:gap + k * h, x0:x0 + k * w]
+
+    def text_at(x, y, text):
+        mask = text_mask(text)
+        return np.array_equal((img[y:y + mask.shape[0], x:x + mask.shape[1]] == 235).all(axis=2), mask)
+    assert np.array_equal(panel(0), np.kron(tonemap(cycles), np.ones((k, k, 1), np.uint8)))
+    assert np.array_equal(panel(1), np.kron(tonemap(ref), np.ones((k, k, 1), np.uint8)))
+    y = 2 * gap + k * h
+    assert text_at(gap, y, "Cycles") and text_at(gap, y + 20, f"{result['cycles_spp']} spp")
+    assert text_at(2 * gap + k * w, y, "Reference tracer")
+    assert text_at(2 * gap + k * w, y + 20, f"{result['reference_spp']} spp, MIS")
+    footer = f"MSE {result['mse']:.3g}   SSIM {result['ssim']:.3f}"
+    assert text_at(gap, y + 2 * 20 + gap, footer), footer
+    md = (folder / "compare.md").read_text()
+    assert md.count("Left: Cycles") == 1 and footer in md and f"{result['mean_cycles']:.4f}" in md
+
+
+def _validate_refuses_without_osl():
+    """Where this Blender cannot render the OSL back end (the bpy 4.2 wheel), validate refuses,
+    saying what renders instead; True then."""
+    if EXACT() == "OSL":
+        return False
+    with pytest.raises(RuntimeError, match="validate compares Cycles' OSL back end with the reference, but here "
+                       r"\w+: (SVM|fit) "):
+        bpy.ops.flowbsdf.validate()
+    return True
+
+
 def test_validate_reference_vs_cycles(addon, tmp_path):
     """The validate operator exports the scene, renders it with the reference tracer and Cycles
     (OSL back end) and reports MSE/SSIM with a side-by-side image."""
@@ -302,7 +639,9 @@ def test_validate_reference_vs_cycles(addon, tmp_path):
     scene.flowbsdf.validate_spp, scene.flowbsdf.validate_size = 8, 32
     with pytest.raises(RuntimeError, match="bake first: no tables for red"):
         bpy.ops.flowbsdf.validate()                  # nothing baked yet: a message, no traceback
-    assert bpy.ops.flowbsdf.bake(train="NEVER") == {"FINISHED"}
+    assert bpy.ops.flowbsdf.bake() == {"FINISHED"}
+    if _validate_refuses_without_osl():
+        return
     assert bpy.ops.flowbsdf.validate() == {"FINISHED"}
     import json
     result = json.loads((tmp_path / "out" / "validate" / "metrics.json").read_text())
@@ -311,6 +650,7 @@ def test_validate_reference_vs_cycles(addon, tmp_path):
     assert abs(result["mean_cycles"] - result["mean_reference"]) < 0.03 * result["mean_reference"], result
     assert result["ssim"] > 0.7 and result["mse"] < 0.01, result
     assert Path(result["image"]).is_file() and "FlowBSDF validate" in bpy.data.images
+    _check_compare_png(tmp_path / "out" / "validate", result)
     assert scene.render.resolution_x == 32 and scene.cycles.samples == 8       # settings restored
     text = (tmp_path / "out" / "validate" / "scene.toml").read_text()
     assert 'manifest = "red"' in text and 'albedo = [0.8, 0.8, 0.8]' in text
@@ -326,6 +666,8 @@ def test_validate_compares_like_with_like_under_a_sky_and_a_lamp(addon, tmp_path
     scene = cs.reset(width=24, height=24, spp=16)
     world = bpy.data.worlds.new("sky")
     scene.world = world
+    if world.node_tree is None:             # a new world has no node tree before Blender 5.0
+        world.use_nodes = True
     tree = world.node_tree
     bg = next(n for n in tree.nodes if n.type == 'BACKGROUND')
     sky = tree.nodes.new("ShaderNodeTexSky")
@@ -343,7 +685,9 @@ def test_validate_compares_like_with_like_under_a_sky_and_a_lamp(addon, tmp_path
     scene.camera = cam
     scene.flowbsdf.out_dir = str(tmp_path / "out")
     scene.flowbsdf.validate_spp, scene.flowbsdf.validate_size = 16, 24
-    assert bpy.ops.flowbsdf.bake(train="NEVER") == {"FINISHED"}
+    assert bpy.ops.flowbsdf.bake() == {"FINISHED"}
+    if _validate_refuses_without_osl():
+        return
     assert bpy.ops.flowbsdf.validate() == {"FINISHED"}
     result = json.loads((tmp_path / "out" / "validate" / "metrics.json").read_text())
     assert abs(result["mean_cycles"] - result["mean_reference"]) < 0.05 * result["mean_reference"], result
@@ -380,6 +724,10 @@ class _Recorder:
     def label(self, text="", **kw):
         self.log.append(("label", text))
 
+    def template_icon(self, icon_value=0, scale=1.0):
+        assert icon_value > 0
+        self.log.append(("icon", icon_value))
+
     def progress(self, factor=0.0, type="BAR", text=""):
         assert 0.0 <= factor <= 1.0
         self.log.append(("progress", text))
@@ -395,8 +743,8 @@ def test_panel_draws_every_state(addon, tmp_path):
     mesh_object("o", mat)
     item = scene.flowbsdf.scan_items.add()
     item.material, item.state, item.needs = "m", "current", "theta_i only: 3 bins"
-    ctx = SimpleNamespace(material=mat, scene=scene, active_object=None,
-                          window_manager=bpy.context.window_manager)
+    ctx = SimpleNamespace(material=mat, scene=scene, active_object=None, region=None,
+                          window_manager=bpy.context.window_manager, preferences=bpy.context.preferences)
     seen = []
     for kind in ("off", "FILE", "ANALYTIC", "PYTHON"):
         mat.flowbsdf.enabled = kind != "off"
@@ -414,7 +762,7 @@ def test_panel_draws_every_state(addon, tmp_path):
         job.run(echo=False)
         worker.current = None
     ops = {name for kind, name in seen if kind == "operator"}
-    assert {"flowbsdf.enable", "flowbsdf.bake", "flowbsdf.scan", "flowbsdf.load_model",
+    assert {"flowbsdf.enable", "flowbsdf.bake", "flowbsdf.train_bake", "flowbsdf.scan", "flowbsdf.load_model",
             "flowbsdf.validate", "flowbsdf.set_backend"} <= ops
     assert {"filepath", "analytic_preset", "python_callable", "out_dir"} <= {n for k, n in seen if k == "prop"}
 
@@ -439,7 +787,7 @@ def test_modal_progress_and_cancel(addon, tmp_path):
             return worker.Job(sys.executable, ["bake", str(manifest), "--out", str(tmp_path), "--train", "never"],
                               label="Bake")
 
-    state = SimpleNamespace(running=True, progress=0.0, message="", label="")
+    state = SimpleNamespace(running=True, progress=0.0, message="", label="", failed=False)
     wm = SimpleNamespace(flowbsdf_job=state, windows=[], event_timer_remove=lambda timer: None)
     ctx = SimpleNamespace(window_manager=wm)
     op = Op()
@@ -448,17 +796,17 @@ def test_modal_progress_and_cancel(addon, tmp_path):
     timer = SimpleNamespace(type="TIMER")
     assert op.modal(ctx, SimpleNamespace(type="MOUSEMOVE")) == {"PASS_THROUGH"}
     deadline = time.monotonic() + 120
-    while state.message != "bake slow" and time.monotonic() < deadline:
+    while not state.message.startswith("Baking slow") and time.monotonic() < deadline:
         assert op.modal(ctx, timer) == {"PASS_THROUGH"}
         time.sleep(0.05)
-    assert state.message == "bake slow" and state.progress == 0.0
+    assert state.message == "Baking slow: tabulating the material" and state.progress < 5.0
     assert bpy.ops.flowbsdf.cancel() == {"FINISHED"}
     result = None
     while result in (None, {"PASS_THROUGH"}) and time.monotonic() < deadline:
         result = op.modal(ctx, timer)
         time.sleep(0.05)
     assert result == {"CANCELLED"} and not state.running
-    assert op.reports == [({"WARNING"}, "FlowBSDF bake: cancelled")]
+    assert op.reports == [({"WARNING"}, "FlowBSDF: Bake cancelled")]
     worker.current = None
 
 
@@ -468,13 +816,9 @@ def test_train_then_bake_from_the_panel(addon, tmp_path):
     the tables are then baked from the trained flow."""
     pytest.importorskip("torch")
     from blender_addon import scan, worker
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.flowbsdf.out_dir = str(tmp_path)
-    mat = learned("trained", "MATTE", preset="FAST")
-    mesh_object("o", mat)
+    mat = one_learned_object(tmp_path, "trained")
     with bpy.context.temp_override(material=mat):
-        assert bpy.ops.flowbsdf.bake(only_active=True, train="ALWAYS") == {"FINISHED"}
+        assert bpy.ops.flowbsdf.train_bake(only_active=True) == {"FINISHED"}
     assert (tmp_path / "models" / "trained.flow.npz").is_file()
     job = worker.Job(sys.executable, ["status", str(tmp_path / "manifest.toml"), "--out", str(tmp_path)])
     info = scan.parse_status(job.run(echo=False))["trained"]
