@@ -26,6 +26,9 @@ WIDTH, HEIGHT, SPP = 1024, 512, 16
 SHARE = 0.5
 SUN_SHARE, SUN_MAP_SHARE = 0.3, 0.2     # with a sun: its disc, and the map for the sky
 FLAT = 1.5          # the map's peak pdf over a uniform sphere's, below which the world is "flat"
+# The sun disc's radiance image (OSL's next-event estimation of a Sky Texture's sun): pixels a
+# side, samples per pixel, and its half width over the disc's.
+SUN_RES, SUN_SPP, SUN_MARGIN = 64, 64, 1.25
 
 
 _LAYOUT_PROPS = {"rna_type", "location", "location_absolute", "width", "height", "select", "dimensions",
@@ -96,16 +99,19 @@ def sun_of(scene):
     return None
 
 
-def shader_inputs(path, meta, sun, env=None):
-    """The shaders' world inputs for a map (path, its metadata or None), a sun (sun_of) and an
-    image world the OSL shader can read exactly (exact_environment)."""
+def shader_inputs(path, meta, sun, env=None, sun_image=None):
+    """The shaders' world inputs for a map (path, its metadata or None), a sun (sun_of), an
+    image world the OSL shader can read exactly (exact_environment) and the sun's radiance
+    image (render_sun: OSL samples the sun by next-event estimation)."""
     flat = meta is None or meta.get("peak", 0.0) <= FLAT
     inputs = {"World": str(path) if meta else "", "WorldShare": 0.0 if flat else SHARE,
               "SunDirection": (0.0, 0.0, 1.0), "SunCos": 1.0, "SunShare": 0.0,
-              "EnvImage": "", "EnvStrength": 0.0, "EnvLinear": 1}
+              "EnvImage": "", "EnvStrength": 0.0, "EnvLinear": 1, "SunImage": "", "SunTan": 0.0}
     if sun is not None:
         inputs.update(SunDirection=sun[0], SunCos=sun[1], SunShare=SUN_SHARE,
                       WorldShare=0.0 if flat else SUN_MAP_SHARE)
+        if sun_image is not None and Path(sun_image).is_file():
+            inputs.update(SunImage=str(sun_image), SunTan=sun_tan(sun[1]))
     if env is not None and meta is not None and not flat:
         inputs.update(EnvImage=env[0], EnvStrength=env[1], EnvLinear=env[2])
     return inputs
@@ -135,6 +141,114 @@ def exact_environment(scene):
 
 def map_path(folder, key):
     return Path(folder) / f"world-{key[:16]}.exr"
+
+
+def sun_path(folder, key):
+    return Path(folder) / f"world-{key[:16]}.sun.exr"
+
+
+def sun_tan(cos_half):
+    """The sun image's half width in the tangent plane: SUN_MARGIN times the disc's."""
+    import math
+    return SUN_MARGIN * math.tan(math.acos(cos_half))
+
+
+def sun_frame(direction):
+    """The sun image's (x, y) axes (world space), as the OSL shader's sun_frame (world.h)."""
+    import numpy as np
+    d = np.asarray(direction, float)
+    x = np.cross(d, (0.0, 0.0, 1.0) if abs(d[2]) < 0.999 else (0.0, 1.0, 0.0))
+    x /= np.linalg.norm(x)
+    return x, np.cross(x, d)
+
+
+def render_sun(scene, sun, path, res=SUN_RES, spp=SUN_SPP, fit=True):
+    """Render the world around its sun (sun_of) into `path`: a perspective camera at the origin
+    looking at the sun, sun_frame's x to the right and y up, half width sun_tan (an OpenEXR
+    whose first row is the top, as OSL's texture() reads it); with `fit`, the disc replaced by
+    its smooth fit (sun_model)."""
+    import math
+    from mathutils import Matrix
+    x, y = sun_frame(sun[0])
+    z = [-c for c in sun[0]]                # a camera looks along its -Z
+    tmp = bpy.data.scenes.new("FlowBSDF sun")
+    cam_data = bpy.data.cameras.new("FlowBSDF sun")
+    cam = bpy.data.objects.new("FlowBSDF sun", cam_data)
+    try:
+        tmp.world = scene.world
+        tmp.frame_current = scene.frame_current
+        tmp.collection.objects.link(cam)
+        tmp.camera = cam
+        cam_data.type = 'PERSP'
+        cam_data.sensor_fit = 'HORIZONTAL'
+        cam_data.angle = 2.0 * math.atan(sun_tan(sun[1]))
+        cam_data.clip_start = 1e-3
+        cam.matrix_world = Matrix(((x[0], y[0], z[0], 0.0), (x[1], y[1], z[1], 0.0),
+                                   (x[2], y[2], z[2], 0.0), (0.0, 0.0, 0.0, 1.0)))
+        r = tmp.render
+        r.engine = 'CYCLES'
+        r.resolution_x = r.resolution_y = res
+        r.resolution_percentage = 100
+        r.image_settings.file_format = 'OPEN_EXR'
+        r.image_settings.color_depth = '32'
+        r.filepath = str(path)
+        tmp.cycles.device = 'CPU'
+        tmp.cycles.samples = spp
+        tmp.cycles.use_adaptive_sampling = False
+        tmp.cycles.use_denoising = False
+        tmp.cycles.pixel_filter_type = 'BOX'
+        tmp.view_settings.view_transform = 'Standard'
+        bpy.ops.render.render(write_still=True, scene=tmp.name)
+        if not fit:
+            return
+        image = bpy.data.images.load(str(path))
+        try:
+            import numpy as np
+            px = np.array(image.pixels[:], np.float32).reshape(res, res, image.channels)[::-1, :, :3]
+            image.pixels.foreach_set(np.dstack([sun_model(px, sun), np.ones((res, res))])[::-1].astype(np.float32).ravel())
+            image.filepath_raw = str(path)
+            image.file_format = 'OPEN_EXR'
+            image.save()
+        finally:
+            bpy.data.images.remove(image)
+    finally:
+        bpy.data.scenes.remove(tmp)
+        bpy.data.objects.remove(cam)
+        bpy.data.cameras.remove(cam_data)
+
+
+def _sun_pixels(res, sun):
+    """Per pixel of the sun image (row 0 the top): its centre's angle from the sun over the
+    disc's half angle, and its height across the disc (0 the disc's bottom, 1 its top)."""
+    import numpy as np
+    t = sun_tan(sun[1])
+    c = (np.arange(res) + 0.5) / res * 2.0 - 1.0
+    a, b = np.meshgrid(c * t, -c * t)
+    x, y = sun_frame(sun[0])
+    d = np.asarray(sun[0], float) + a[..., None] * x + b[..., None] * y
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    half = np.arccos(sun[1])
+    r = np.arccos(np.clip(d @ np.asarray(sun[0], float), -1.0, 1.0)) / half
+    height = (np.arcsin(np.clip(d[..., 2], -1, 1)) - np.arcsin(np.clip(sun[0][2], -1, 1))) / (2.0 * half) + 0.5
+    return r, height
+
+
+def sun_model(px, sun):
+    """The sun image the shader reads: the rendered disc (px, rows from the top) replaced by a
+    smooth fit that holds up to the disc's edge — sky + (a + b height) x limb darkening (the
+    Sky Texture's law: 1 - 0.6 (1 - sqrt(1 - r^2))), per channel — and extended past the edge,
+    where bilinear lookups of directions just inside the disc reach (a rendered image blurs the
+    edge there: measured, a 1 % dark sphere). The sky is the ring just outside the disc."""
+    import numpy as np
+    r, height = _sun_pixels(px.shape[0], sun)
+    limb = 1.0 - 0.6 * (1.0 - np.sqrt(np.clip(1.0 - r * r, 0.0, 1.0)))
+    ring, inner = (r > 1.1) & (r < 1.2), r < 0.9
+    if not ring.any() or inner.sum() < 3:
+        return px
+    sky = px[ring].mean(0)
+    basis = np.stack([limb[inner], limb[inner] * height[inner]], -1)
+    coef, *_ = np.linalg.lstsq(basis, px[inner] - sky, rcond=None)
+    return sky + (limb[..., None] * coef[0] + (limb * height)[..., None] * coef[1])
 
 
 def render_world(scene, width=WIDTH, height=HEIGHT, spp=SPP, path=None):
@@ -234,6 +348,27 @@ def image_radiance(scene, width=WIDTH, height=HEIGHT):
     return strength * sums / (np.diff(rows)[:, None, None] * np.diff(cols)[None, :, None])
 
 
+def without_sun(radiance, sun):
+    """An equirectangular map (render_world's) with a sun's disc (sun_of) painted over by the sky
+    around it: the shaders sample the sun by a technique of its own, and the map's few pixels
+    holding it would draw most map samples into the disc."""
+    if sun is None:
+        return radiance
+    import numpy as np
+    h, w = radiance.shape[:2]
+    theta = (np.arange(h) + 0.5) / h * np.pi
+    phi = (0.5 - (np.arange(w) + 0.5) / w) * 2.0 * np.pi
+    st = np.sin(theta)[:, None]
+    dirs = np.stack([st * np.cos(phi), st * np.sin(phi), np.broadcast_to(np.cos(theta)[:, None], (h, w))], -1)
+    angle = np.arccos(np.clip(dirs @ np.asarray(sun[0], float), -1.0, 1.0))
+    disc = np.arccos(sun[1]) + 1.5 * np.pi / h          # the disc and the pixels it bleeds into
+    ring = (angle >= disc) & (angle < disc + 3.0 * np.pi / h)
+    out = radiance.copy()
+    if ring.any():
+        out[angle < disc] = radiance[ring].mean(0)
+    return out
+
+
 def bake_world_map(scene, folder):
     """The shader's world inputs (shader_inputs) for the scene's world, its map rendered when
     missing; no map for no world, a black one, or where numpy/bake are missing."""
@@ -247,12 +382,18 @@ def bake_world_map(scene, folder):
     if meta is None:
         try:
             radiance = image_radiance(scene)
-            wm = world_map.WorldMap(render_world(scene) if radiance is None else radiance)
+            if radiance is None:
+                radiance = without_sun(render_world(scene), sun_of(scene))
+            wm = world_map.WorldMap(radiance)
             meta = {"key": key, "peak": wm.peak}
             world_map.write_world_texture(path, wm, meta)
         except world_map.FlowBSDFError:         # black world: nothing to sample
             meta = None
-    return shader_inputs(path, meta, sun_of(scene), exact_environment(scene))
+    sun = sun_of(scene)
+    sun_file = sun_path(folder, key)
+    if sun is not None and not sun_file.is_file():
+        render_sun(scene, sun, sun_file)
+    return shader_inputs(path, meta, sun, exact_environment(scene), sun_file)
 
 
 def current_inputs(scene, folder):
@@ -263,4 +404,5 @@ def current_inputs(scene, folder):
     world_map = node._bake_mod("world_map")
     path = map_path(folder, key) if key else None
     meta = world_map.read_world_meta(path) if path is not None and world_map is not None else None
-    return shader_inputs(path, meta, sun_of(scene) if key else None, exact_environment(scene) if key else None)
+    return shader_inputs(path, meta, sun_of(scene) if key else None, exact_environment(scene) if key else None,
+                         sun_path(folder, key) if key else None)

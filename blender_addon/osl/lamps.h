@@ -261,8 +261,9 @@ void disk_point(float u0, float u1, output float x, output float y)
 // A direction of the cone around axis whose 1 - cos(half angle) is omc, uniform in solid angle.
 vector cone_direction(vector axis, float omc, float u0, float u1)
 {
-    float z = 1.0 - u0 * omc;
-    float s = sqrt(max(1.0 - z * z, 0.0));
+    float t = u0 * omc;
+    float z = 1.0 - t;
+    float s = sqrt(max(t * (2.0 - t), 0.0));     // not from z: 1 - z * z cancels in a sun's tiny cone
     vector tx = (abs(axis[0]) < 0.9) ? cross(axis, vector(1, 0, 0)) : cross(axis, vector(0, 1, 0));
     tx = normalize(tx);
     vector ty = cross(axis, tx);
