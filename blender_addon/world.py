@@ -4,7 +4,10 @@
 texture the shaders sample: an Environment Texture world straight from its image's texels
 (box-averaged: nothing missed); any other world — a Sky Texture, mixes, procedurals — by
 rendering it with Cycles (a temporary scene holding only a panoramic camera, so nothing
-occludes the world). A Sky Texture's sun disc also gets a technique of its own (`sun_of`). The texture is named after the world's state (`world_key`):
+occludes the world). A Sky Texture's sun disc gets techniques of its own (`sun_of`): the SVM
+graph draws portal directions in its cone; the OSL shader lights it by next-event estimation
+with the disc's radiance image (`render_sun`, a smooth fit: `sun_model`), and the map has the
+disc painted out (`without_sun`). The textures are named after the world's state (`world_key`):
 its node tree, their values and images, and the frame when the world is animated; an
 unchanged world reuses its file.
 
