@@ -144,6 +144,44 @@ def test_osl_world_map_is_numpy(tmp_path):
     assert pdf.min() > 0 and np.all(d[:, 2] > np.cos(np.pi * 20 / 24) - 1e-6)
 
 
+@pytest.mark.parametrize("linear", [1, 0])
+def test_osl_env_radiance_is_the_environment_textures(tmp_path, linear):
+    """The shader's reading of an image world (what its next-event estimation uses) is Cycles'
+    Environment Texture's: bilinear between texel centres (Linear) or the texel (Closest),
+    periodic in azimuth."""
+    import OpenEXR
+    h, w, n = 8, 16, 32
+    img = np.random.default_rng(1).random((h, w, 3)).astype(np.float32)
+    path = tmp_path / "env.exr"
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {"RGB": img}).write(str(path))
+    sc = cs.reset(n, n, spp=1)
+    sc.cycles.filter_width = 0.01
+    cs.ortho_camera(sc)
+
+    def nodes(tree):
+        s = lb.make_script_node(tree, probe=True)
+        s.inputs["EnvImage"].default_value = str(path)
+        s.inputs["EnvLinear"].default_value = linear
+        s.inputs["ProbeN"].default_value = n
+        s.inputs["ProbeMode"].default_value = 8
+        return s.outputs["BSDF"]
+    cs.add_plane(sc, cs.material_with(nodes))
+    got = cs.render(sc).reshape(n, n, 3)
+    iy, ix = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    x, y = (ix + 0.5) / n * w, (iy + 0.5) / n * h
+    if linear:
+        x0, y0 = np.floor(x - 0.5).astype(int), np.floor(y - 0.5).astype(int)
+        fx, fy = (x - 0.5 - x0)[..., None], (y - 0.5 - y0)[..., None]
+
+        def texel(r, c):
+            return img[np.clip(r, 0, h - 1), c % w]
+        want = ((1 - fx) * (1 - fy) * texel(y0, x0) + fx * (1 - fy) * texel(y0, x0 + 1)
+                + (1 - fx) * fy * texel(y0 + 1, x0) + fx * fy * texel(y0 + 1, x0 + 1))
+    else:
+        want = img[y.astype(int), x.astype(int)]
+    np.testing.assert_allclose(got, want, atol=2e-4)
+
+
 @pytest.fixture(scope="module")
 def aniso_tables(tmp_path_factory):
     """Small anisotropic tables (cycles_scenes.aniso_small_tables)."""

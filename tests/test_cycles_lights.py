@@ -237,10 +237,12 @@ def test_sun_image_fits_the_rendered_disc(tmp_path):
 @pytest.mark.parametrize("interpolation", ["Linear", "Closest"])
 def test_hdri_sun_by_next_event_estimation(lambert, tmp_path, interpolation):
     """An Environment Texture world with a tiny, very bright sun (2 x 2 texels): the shader reads
-    the image itself and lights the material by next-event estimation with MIS, so the sphere
-    is Cycles' Diffuse BSDF's within MC error and its noise stays near Cycles' own (measured at
-    64 spp, 24^2: 10-37x Diffuse's per-pixel variance; drawn through the portal from the map
-    instead: 8500x, with 1e3 fireflies)."""
+    the image itself and lights the material by next-event estimation with MIS (the image a
+    control variate for Cycles' own world along escaping portal directions), so the sphere is
+    Cycles' Diffuse BSDF's within MC error and its noise stays near Cycles' own (measured at
+    64 spp, 16^2: per-pixel variance 8.1x (Linear) and 1.5x (Closest) Diffuse's; with hashed
+    next-event u 10.7x (Linear); drawn through the portal from the map instead: 8500x at
+    24^2, with 1e3 fireflies)."""
     import OpenEXR
     h, w = 512, 1024
     img = np.full((h, w, 3), 0.5, np.float32)
@@ -260,5 +262,5 @@ def test_hdri_sun_by_next_event_estimation(lambert, tmp_path, interpolation):
     assert script.inputs["EnvImage"].default_value == str(path)
     mine, diffuse = _renders(sc, sphere, learned), _renders(sc, sphere, cs.material_with(_diffuse, "diffuse"))
     _assert_same(mine, diffuse)
-    assert mine.var(0, ddof=1).mean() < 100 * diffuse.var(0, ddof=1).mean()
+    assert mine.var(0, ddof=1).mean() < 25 * diffuse.var(0, ddof=1).mean()
     assert mine.max() < 3 * diffuse.max()

@@ -93,5 +93,5 @@ color sun_radiance(string image, vector sun, float tan_half, vector dir)
     // Zero derivatives: the same radiance wherever dir came from (filtered by dir's derivatives,
     // the next-event and the portal terms read differently blurred images: they no longer cancel).
     return texture(image, 0.5 + 0.5 * dot(dir, x) / c, 0.5 - 0.5 * dot(dir, y) / c, 0, 0, 0, 0,
-                   "interp", "bilinear", "wrap", "clamp");
+                   "interp", "linear", "wrap", "clamp");
 }
