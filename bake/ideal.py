@@ -3,8 +3,9 @@
 It is the "tabulation limit" every learned sampler is compared against, and a fast
 exact source of training samples. For each distinct wi it tabulates the target
 density max(lum f, 0)·cos(theta_o) over the half vector m, on a grid in the unit square
-u = (sqrt(2 theta_m / pi), (phi_m + pi) / 2 pi) (the RGL parameterization: the sqrt map
-puts resolution near the normal, where every microfacet lobe lives, at any theta_i).
+u = (sqrt(2 theta_m / pi), (phi_m + pi) / 2 pi) (the RGL parameterization, bake/warps.py's
+half_vector: the sqrt map puts resolution near the normal, where every microfacet lobe
+lives, at any theta_i).
 The density is piecewise constant in u, so sample() is a piecewise-linear bijection of
 [0,1)² and pdf() is its exact density:
 
@@ -16,31 +17,9 @@ with pdf 0 (lost, never re-weighted), and pdf() integrates to 1 minus that fract
 """
 import numpy as np
 
-from .geometry import luminance, normalize, reflect, rotate_z, theta_phi
+from .geometry import luminance, normalize, reflect, theta_phi
 from .materials.base import as_dirs
-
-HALF_PI, TWO_PI = 0.5 * np.pi, 2.0 * np.pi
-
-
-def _half_vector(u):
-    theta = HALF_PI * u[..., 0] ** 2
-    phi = TWO_PI * u[..., 1] - np.pi
-    s = np.sin(theta)
-    return np.stack([s * np.cos(phi), s * np.sin(phi), np.cos(theta)], axis=-1)
-
-
-def _u_of_half_vector(m):
-    theta, phi = theta_phi(m)
-    u1 = np.sqrt(np.clip(theta / HALF_PI, 0.0, 1.0))
-    u2 = (phi + np.pi) / TWO_PI
-    return np.stack([u1, u2 - np.floor(u2)], axis=-1)
-
-
-def _dwo_du(wi, m, u1):
-    """Solid angle of wo per unit area of u (zero where the reflection is invalid)."""
-    cos_im = np.sum(wi * m, axis=-1)
-    theta_m = HALF_PI * u1 * u1
-    return 4.0 * np.maximum(cos_im, 0.0) * np.sin(theta_m) * np.pi * u1 * TWO_PI
+from .warps import dwo_du, half_vector, rotate_z, u_of_half_vector
 
 
 class Table:
@@ -59,10 +38,10 @@ class Table:
         for r0 in range(0, n1, rows_per_chunk):
             r1 = min(n1, r0 + rows_per_chunk)
             u = np.stack(np.meshgrid(g1[r0 * s:r1 * s], g2, indexing="ij"), axis=-1).reshape(-1, 2)
-            m = _half_vector(u)
+            m = half_vector(u)
             wo = reflect(wi[None, :], m)
             value = material.eval(wi, wo)
-            jac = _dwo_du(wi[None, :], m, u[:, 0]) * (wo[:, 2] > 0)
+            jac = dwo_du(wi[None, :], m, u[:, 0]) * (wo[:, 2] > 0)
             cos_o = np.maximum(wo[:, 2], 0.0)
             dens = np.maximum(luminance(value), 0.0) * cos_o * jac
             rows = r1 - r0
@@ -112,15 +91,15 @@ class Table:
         The pdf is pdf_dir(wo): a sample on a cell boundary whose round trip wo -> v lands in
         the neighbouring cell gets that cell's density, as pdf() says (the stress suite found
         3 in 2.5e6 disagreeing by up to 7e-4 when the pdf came from the sampled cell)."""
-        m = _half_vector(self.sample_u(u))
+        m = half_vector(self.sample_u(u))
         w = reflect(self.wi[None, :], m)
         return w, self.pdf_dir(w)
 
     def pdf_dir(self, wo):
         """The solid-angle density of sample_dir at wo (this table's frame)."""
         m = normalize(self.wi[None, :] + wo)
-        v = _u_of_half_vector(m)
-        jac = _dwo_du(self.wi[None, :], m, v[:, 0])
+        v = u_of_half_vector(m)
+        jac = dwo_du(self.wi[None, :], m, v[:, 0])
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where((wo[:, 2] > 0) & (jac > 0), self.density_u(v) / jac, 0.0)
 

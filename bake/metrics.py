@@ -17,6 +17,7 @@ import numpy as np
 from .geometry import luminance, normalize, reflect
 
 
+from .warps import dwo_du, half_vector, u_of_half_vector
 
 def sample_weights(material, sampler, wi, n, seed=0):
     rng = np.random.default_rng(seed)
@@ -205,16 +206,14 @@ class HalfVectorBins:
         self.wi = np.asarray(wi, float).reshape(1, 3)
 
     def to_dir(self, a, b):
-        from .ideal import _dwo_du, _half_vector
         u = np.stack([a, b], axis=-1)
-        m = _half_vector(u)
+        m = half_vector(u)
         wo = reflect(self.wi, m)
-        jac = np.where(wo[:, 2] > 0, _dwo_du(self.wi, m, a), 0.0)
+        jac = np.where(wo[:, 2] > 0, dwo_du(self.wi, m, a), 0.0)
         return wo, jac
 
     def from_dir(self, wo):
-        from .ideal import _u_of_half_vector
-        return _u_of_half_vector(normalize(self.wi + wo))
+        return u_of_half_vector(normalize(self.wi + wo))
 
 
 BINNINGS = {"cosine": CosineBins, "halfvector": HalfVectorBins}

@@ -11,12 +11,13 @@ import math
 import numpy as np
 import pytest
 
-from bake.geometry import incident, rotate_z
+from bake.geometry import incident
 from bake.ideal import IdealSampler
 from bake.metrics import chi2_test, relative_variance
 from bake.osl_export import LAYOUT
 from bake.stress import hard_cases, make_tables
 from bake.tables import open_tables
+from bake.warps import rotate_z
 
 NAMES = ("aniso_1to50", "aniso_1to50_rotated")
 CASES = {c.name: c for c in hard_cases() if c.name in NAMES}

@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import FlowBSDFError
 from ..geometry import theta_phi
 from ..ideal import Table
+from ..warps import rotate_z
 
 SAMPLERS = ("tables", "flow", "ideal", "ggx", "cosine")
 
@@ -65,11 +66,6 @@ class FineIdeal:
                 for kp in range(self.n_phi):
                     self._table(kt * self.n_phi + kp)
 
-    @staticmethod
-    def _rot(w, a):
-        c, s = np.cos(a), np.sin(a)
-        return np.stack([c * w[:, 0] - s * w[:, 1], s * w[:, 0] + c * w[:, 1], w[:, 2]], axis=-1)
-
     def sample(self, wi, u):
         wi = np.atleast_2d(wi)
         keys, rot = self._bins(wi)
@@ -82,7 +78,7 @@ class FineIdeal:
             if tab.total <= 0.0:
                 continue
             w, pdf[idx] = tab.sample_dir(u[idx])
-            wo[idx] = self._rot(w, rot[idx])
+            wo[idx] = rotate_z(w, rot[idx])
         return wo, pdf
 
     def pdf(self, wi, wo):
@@ -94,7 +90,7 @@ class FineIdeal:
             tab = self._table(key)
             if tab.total <= 0.0:
                 continue
-            out[idx] = tab.pdf_dir(self._rot(wo[idx], -rot[idx]))
+            out[idx] = tab.pdf_dir(rotate_z(wo[idx], -rot[idx]))
         return out
 
 
