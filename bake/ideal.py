@@ -14,7 +14,15 @@ The density is piecewise constant in u, so sample() is a piecewise-linear biject
 Mass of a cell whose half vectors partly reflect below the horizon is spread over the
 whole cell, so a small fraction of samples can land below the surface: those come back
 with pdf 0 (lost, never re-weighted), and pdf() integrates to 1 minus that fraction.
+
+    Table           one wi's tabulation: sample_dir, pdf_dir
+    IdealSampler    a Table per distinct wi (isotropic materials: per theta_i), kept in a cache
+    training_pairs  exact (wi, x1) pairs for the trainer
+    BinnedIdeal     Tables at fixed theta_i bins, nearest bin: plain tabulation at a memory budget
+    FineIdeal       Tables 1 degree apart, built lazily: the ideal sampler of renders
 """
+import time
+
 import numpy as np
 
 from .geometry import luminance, normalize, reflect, theta_phi
@@ -223,3 +231,81 @@ class BinnedIdeal:
     def pdf(self, wi, wo):
         wi, wo = as_dirs(wi, wo)
         return self.ideal.pdf(self._snap(wi), wo)
+
+
+class FineIdeal:
+    """The ideal tabulation (`Table`, 256 x 512 half-vector cells) at incident elevations 1
+    degree apart (isotropic) or 3 x 6 degrees in (theta, phi) (anisotropic), each wi served
+    by its nearest bin: the stand-in for Mitsuba's tabulated sampling in renders, where every
+    pixel has its own wi. A bin's table is built when first needed (`prepare` builds them
+    all); sample() and pdf() are exactly consistent."""
+
+    name = "ideal"
+
+    def __init__(self, material, theta_step_deg=1.0, resolution=256, supersample=2, phi_step_deg=6.0):
+        self.material = material
+        self.iso = bool(material.isotropic)
+        self.step = np.radians(theta_step_deg if self.iso else 3.0)
+        self.phi_step = np.radians(phi_step_deg)
+        self.n_theta = int(np.ceil((np.pi / 2) / self.step)) + 1
+        self.n_phi = 1 if self.iso else int(round(2 * np.pi / self.phi_step))
+        self.resolution, self.supersample = resolution, supersample
+        self.tables = {}
+        self.build_seconds = 0.0
+
+    def _bins(self, wi):
+        theta, phi = theta_phi(wi)
+        kt = np.clip(np.rint(theta / self.step), 0, self.n_theta - 1).astype(np.int64)
+        if self.iso:
+            return kt, phi         # rotate by phi_i to the bin's canonical frame
+        kp = np.mod(np.rint(phi / self.phi_step), self.n_phi).astype(np.int64)
+        return kt * self.n_phi + kp, np.zeros_like(phi)
+
+    def _table(self, key):
+        tab = self.tables.get(key)
+        if tab is None:
+            t0 = time.perf_counter()
+            kt, kp = divmod(int(key), self.n_phi)
+            th = min(kt * self.step, np.radians(89.9))
+            ph = kp * self.phi_step
+            wi = np.array([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
+            tab = self.tables[key] = Table(self.material, wi, self.resolution, self.supersample)
+            self.build_seconds += time.perf_counter() - t0
+        return tab
+
+    def prepare(self, theta_max_deg=90.0):
+        """Build every bin up front (so timings exclude the tabulation); isotropic only
+        (the anisotropic grid has ~1900 bins: those are built when first needed)."""
+        if not self.iso:
+            return
+        for kt in range(self.n_theta):
+            if kt * self.step <= np.radians(theta_max_deg) + 1e-9:
+                for kp in range(self.n_phi):
+                    self._table(kt * self.n_phi + kp)
+
+    def _groups(self, keys):
+        """(table, rows) per bin among `keys` that has something to sample."""
+        for key in np.unique(keys):
+            tab = self._table(key)
+            if tab.total > 0.0:
+                yield tab, np.flatnonzero(keys == key)
+
+    def sample(self, wi, u):
+        u = np.atleast_2d(np.asarray(u, float))
+        wi, _ = as_dirs(wi, np.zeros((len(u), 3)))
+        keys, rot = self._bins(wi)
+        wo = np.zeros((len(u), 3))
+        wo[:, 2] = -1.0            # a bin with nothing to sample: an invalid direction with pdf 0
+        pdf = np.zeros(len(u))
+        for tab, idx in self._groups(keys):
+            w, pdf[idx] = tab.sample_dir(u[idx])
+            wo[idx] = rotate_z(w, rot[idx])
+        return wo, pdf
+
+    def pdf(self, wi, wo):
+        wi, wo = as_dirs(wi, wo)
+        keys, rot = self._bins(wi)
+        out = np.zeros(len(wo))
+        for tab, idx in self._groups(keys):
+            out[idx] = tab.pdf_dir(rotate_z(wo[idx], -rot[idx]))
+        return out

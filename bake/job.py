@@ -87,7 +87,7 @@ def write_stamp(folder, inputs_hash, **data):
 def run_settings(manifest, key, defaults):
     """The manifest's [run.<key>] over `defaults`: unknown keys, values of another type than the
     default's and unknown sampler or scene names are errors."""
-    from .tracer.samplers import SAMPLERS
+    from .sampler import RENDER_KINDS
     from .tracer.scene import BUILTINS
     given = manifest.run.get(key, {})
     unknown = sorted(set(given) - set(defaults))
@@ -99,9 +99,9 @@ def run_settings(manifest, key, defaults):
             raise FlowBSDFError(f"[run.{key}]: {k} = {v!r} should be like {defaults[k]!r}", manifest.path)
     settings = {**defaults, **given}
     if key == "render":
-        bad = sorted(set(settings["samplers"] + [settings["reference_sampler"]]) - set(SAMPLERS))
+        bad = sorted(set(settings["samplers"] + [settings["reference_sampler"]]) - set(RENDER_KINDS))
         if bad or settings["scene"] not in BUILTINS:
-            raise FlowBSDFError(f"[run.render]: samplers are {', '.join(SAMPLERS)}; scenes {', '.join(BUILTINS)}",
+            raise FlowBSDFError(f"[run.render]: samplers are {', '.join(RENDER_KINDS)}; scenes {', '.join(BUILTINS)}",
                                 manifest.path)
     return settings
 
