@@ -1,19 +1,10 @@
-import os
 from pathlib import Path
 
 import pytest
 
+from bake.materials.rgl import SHARED_FILES as RGL_FILES, shared_dir as rgl_dir  # noqa: F401 (tests import them from here)
+
 ROOT = Path(__file__).resolve().parents[1]
-RGL_FILES = [
-    "paper_white_rgb", "colodur_napoli_4f_rgb", "satin_rosaline_rgb", "cm_military_green_rgb",
-    "cc_nothern_aurora_rgb", "vch_golden_yellow_rgb", "irid_flake_paint1_rgb",
-    "cc_green_malachite_rgb", "ilm_solo_m_68_rgb", "chm_mint_rgb",
-]
-
-
-def rgl_dir():
-    """Where the shared RGL files live: $FLOWBSDF_RGL_DIR, else ../shared/data/rgl beside the repo."""
-    return Path(os.environ.get("FLOWBSDF_RGL_DIR", ROOT.parent / "shared" / "data" / "rgl"))
 
 
 def rgl_path(name):
@@ -27,3 +18,4 @@ def rgl_path(name):
 def rgl():
     """rgl(name) -> path of a shared RGL file, or skip the test with the reason."""
     return rgl_path
+

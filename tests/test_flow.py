@@ -632,6 +632,13 @@ optional = true
     assert "nope" in capsys.readouterr().err
 
 
+def test_the_preset_names_are_the_trainers():
+    """flowbsdf's parsers (bake/job.py, torch-free) list the presets trainer/train.py defines."""
+    from bake.job import TRAIN_PRESETS
+    from trainer.train import PRESETS
+    assert TRAIN_PRESETS == tuple(PRESETS)
+
+
 # --------------------------------------------------------------------------- slow: real presets
 
 @pytest.mark.slow

@@ -1,8 +1,11 @@
-"""python -m trainer train MANIFEST [--material NAME] [--preset fast|balanced|paper] [--device cpu|cuda] [--out DIR]
+"""python -m trainer train MANIFEST [--material NAME]... [--preset fast|balanced|paper] [--device cpu|cuda]
+[--out DIR] [--threads N] [--no-progress]; `flowbsdf train` takes the same arguments (the parser is
+bake.job.add_train_arguments) and runs this in a subprocess.
 
-Trains one flow per material of the manifest (or only --material NAME) and writes
-<out>/<name>.flow.npz (torch-free; load with bake.flow.load_model). Checkpoints go to
-<out>/<name>.train/ckpt/: rerunning the same command resumes an interrupted run.
+Trains one flow per material of the manifest (or only the --material ones) and writes
+<out>/<name>.flow.npz (default out/models; torch-free: load with bake.flow.load_model).
+Checkpoints go to <out>/<name>.train/ckpt/: rerunning the same command resumes an
+interrupted run.
 
 A material's `train` table in the manifest may set: preset, steps (Euler steps N),
 seed, theta_i (list of incident elevations in degrees to train on), resolution (of
@@ -14,6 +17,7 @@ import sys
 from pathlib import Path
 
 from bake.errors import FlowBSDFError
+from bake.job import add_train_arguments
 
 SOURCE_KEYS = {"theta_i", "resolution", "pool", "supersample", "phi_i_count"}
 
@@ -21,15 +25,7 @@ SOURCE_KEYS = {"theta_i", "resolution", "pool", "supersample", "phi_i_count"}
 def build_parser():
     p = argparse.ArgumentParser(prog="python -m trainer", description="FlowBSDF trainer (torch)")
     sub = p.add_subparsers(dest="command", required=True)
-    t = sub.add_parser("train", help="train flow samplers for a manifest's materials")
-    t.add_argument("manifest", help="manifest.toml")
-    t.add_argument("--material", action="append", help="only this material (repeatable)")
-    t.add_argument("--preset", choices=["fast", "balanced", "paper"], default=None,
-                   help="training preset (default: the manifest's, else balanced)")
-    t.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
-    t.add_argument("--out", default=None, help="output folder (default: <manifest folder>/models)")
-    t.add_argument("--no-progress", action="store_true", help="no progress bars")
-    t.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's choice)")
+    add_train_arguments(sub.add_parser("train", help="train flow samplers for a manifest's materials"))
     return p
 
 
@@ -68,7 +64,7 @@ def cmd_train(args):
                                 f"(have: {', '.join(sorted(names))})", manifest_path)
     log = lambda m: print(m, file=sys.stderr)  # noqa: E731
     materials = [m for m in manifest.select(None, log=log) if not args.material or m.name in args.material]
-    out = Path(args.out) if args.out else manifest_path.resolve().parent / "models"
+    out = Path(args.out)
     if args.threads:
         torch.set_num_threads(args.threads)
     written = []

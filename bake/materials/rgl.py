@@ -6,6 +6,7 @@ and, by default, checks that it holds a complete RGB RGL material.
 divided by cos(theta_o); see the class docstring for the algorithm.
 """
 import hashlib
+import os
 import struct
 from pathlib import Path
 
@@ -25,6 +26,19 @@ MAX_ELEMENTS = 2 ** 31
 # free-text description, which eval does not need).
 RGL_FIELDS = ("theta_i", "phi_i", "ndf", "sigma", "vndf", "luminance", "rgb", "jacobian")
 CHUNK = 1 << 14  # eval works in chunks of this many pairs (keeps temporaries in cache)
+# The shared RGL data set the manifest, the tests and the acceptance scripts use: <name>.bsdf
+# in shared_dir().
+SHARED_FILES = [
+    "paper_white_rgb", "colodur_napoli_4f_rgb", "satin_rosaline_rgb", "cm_military_green_rgb",
+    "cc_nothern_aurora_rgb", "vch_golden_yellow_rgb", "irid_flake_paint1_rgb",
+    "cc_green_malachite_rgb", "ilm_solo_m_68_rgb", "chm_mint_rgb",
+]
+
+
+def shared_dir():
+    """Where the shared RGL files live: $FLOWBSDF_RGL_DIR, else ../shared/data/rgl beside the
+    repository (as manifest.toml's sources say)."""
+    return Path(os.environ.get("FLOWBSDF_RGL_DIR", Path(__file__).resolve().parents[3] / "shared" / "data" / "rgl"))
 
 
 def write_tensor_file(path, fields):
