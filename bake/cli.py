@@ -4,7 +4,7 @@ import sys
 import time
 from pathlib import Path
 
-from .errors import FlowBSDFError
+from .errors import exit_code
 from .job import TRAIN_PRESETS, add_train_arguments, run_trainer
 
 
@@ -104,16 +104,10 @@ def main(argv=None):
     if args.command == "train":     # checked by the same parser here, run where torch is
         return run_trainer(argv[1:])
     t0 = time.perf_counter()
-    try:
-        args.func(args)
-    except FlowBSDFError as e:
-        print(f"flowbsdf: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("flowbsdf: interrupted", file=sys.stderr)
-        return 130
-    print(f"[done] {args.command} in {time.perf_counter() - t0:.1f}s")
-    return 0
+    code = exit_code(lambda: args.func(args), "flowbsdf")
+    if code == 0:
+        print(f"[done] {args.command} in {time.perf_counter() - t0:.1f}s")
+    return code
 
 
 if __name__ == "__main__":

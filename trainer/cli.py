@@ -16,7 +16,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from bake.errors import FlowBSDFError
+from bake.errors import FlowBSDFError, exit_code
 from bake.job import add_train_arguments
 
 SOURCE_KEYS = {"theta_i", "resolution", "pool", "supersample", "phi_i_count"}
@@ -30,17 +30,8 @@ def build_parser():
 
 
 def main(argv=None):
-    args = build_parser().parse_args(argv)
-    try:
-        if args.command == "train":
-            return cmd_train(args)
-    except FlowBSDFError as e:
-        print(f"flowbsdf train: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("flowbsdf train: interrupted (checkpoints kept; rerun to resume)", file=sys.stderr)
-        return 130
-    return 0
+    args = build_parser().parse_args(argv)      # its one command: train
+    return exit_code(lambda: cmd_train(args), "flowbsdf train", "interrupted (checkpoints kept; rerun to resume)")
 
 
 def cmd_train(args):
