@@ -1,4 +1,14 @@
-"""The `flowbsdf` command."""
+"""The `flowbsdf` command: one subcommand per job.
+
+    check, yardsticks, bake, report, run   here: a manifest, --material, --out (but check)
+    train                                  the trainer (torch) in a subprocess; its parser is
+                                           bake/job.py's add_train_arguments
+    stress                                 bake/stress.py
+    farm openjd, farm task                 bake/farm.py
+    render, compare                        bake/tracer/commands.py
+
+A FlowBSDFError ends it with its message and exit code 2; an interrupt with 130.
+"""
 import argparse
 import sys
 import time

@@ -5,7 +5,9 @@
   Samples the sampler loses (pdf 0 or below the horizon) count as w = 0.
   `relative_variance_ref` estimates the same rv as an integral sampled from a reference (the
   ideal sampler), which does not understate heavy tails.
-- `chi2_test`: goodness of fit of sample() against pdf(), binned on (cos theta, phi), with
+- `chi2_test`: goodness of fit of sample() against pdf(), binned on the half vector
+  (`HalfVectorBins`, bake/warps.py's map: fine near the specular direction; the default) or on
+  (cos theta, phi) (`CosineBins`), with
   expected counts integrated adaptively (a quadtree refined where the quadrature error
   estimate is large or where samples crowd, so sharp lobes are integrated, not missed),
   low-count bins pooled, and a Šidák-corrected significance level.
@@ -15,9 +17,9 @@ import math
 import numpy as np
 
 from .geometry import luminance, normalize, reflect
-
-
 from .warps import dwo_du, half_vector, u_of_half_vector
+
+
 
 def sample_weights(material, sampler, wi, n, seed=0):
     rng = np.random.default_rng(seed)

@@ -8,9 +8,10 @@ Checkpoints go to <out>/<name>.train/ckpt/: rerunning the same command resumes a
 interrupted run.
 
 A material's `train` table in the manifest may set: preset, steps (Euler steps N),
-seed, theta_i (list of incident elevations in degrees to train on), resolution (of
-the ideal sampler's tables), pool (training samples pre-drawn), and any trainer
-setting (see trainer.train.PRESETS / COMMON).
+seed, the training data's SOURCE_KEYS (theta_i: incident elevations in degrees to train on;
+resolution and supersample of the ideal sampler's tables; pool: training samples pre-drawn;
+phi_i_count: incident azimuths, anisotropic materials), and any trainer setting (see
+trainer.train.PRESETS / COMMON).
 """
 import argparse
 import sys

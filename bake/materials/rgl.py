@@ -1,7 +1,13 @@
 """RGL measured BSDFs (Dupuy & Jakob 2018) read from `.bsdf` tensor files, with numpy only.
 
-`read_tensor_file(path)` parses the file strictly (see DESIGN.md section 4 for the layout)
-and, by default, checks that it holds a complete RGB RGL material.
+`read_tensor_file(path)` parses the file strictly and, by default, checks that it holds a
+complete RGB RGL material. The layout (Mitsuba's tensor_file, little-endian):
+
+    b"tensor_file" and a NUL byte, version (2 bytes: 1, 0), uint32 number of fields,
+    then per field: uint16 name length, the name (UTF-8), uint16 ndim, uint8 dtype code
+    (DTYPES), uint64 offset of its data, ndim x uint64 shape; then each field's data
+    (C order) at its offset.
+
 `RGLMaterial(path).eval(wi, wo)` reproduces Mitsuba 3's `measured` plugin (RGB variant)
 divided by cos(theta_o); see the class docstring for the algorithm.
 """
@@ -42,8 +48,8 @@ def shared_dir():
 
 
 def write_tensor_file(path, fields):
-    """Write {name: array} in the tensor_file layout read above (data 8-byte aligned after the
-    table): synthetic files for tests and the stress suite."""
+    """Write {name: array} in the tensor_file layout (the module's docstring; data 8-byte aligned
+    after the table): synthetic files for tests and the stress suite."""
     codes = {np.dtype(v): k for k, v in DTYPES.items()}
     fields = {k: np.ascontiguousarray(v) for k, v in fields.items()}
     table_size = 18 + sum(2 + len(k.encode()) + 11 + 8 * v.ndim for k, v in fields.items())
