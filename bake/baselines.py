@@ -1,7 +1,8 @@
 """Baseline samplers every learned sampler must beat: uniform, cosine, and a fitted GGX lobe.
 
-All share the sampler protocol: `sample(wi, u) -> (wo, pdf)` and `pdf(wi, wo)`, pdf per
-steradian, zero below the horizon.
+They keep the sampler contract (bake/sampler.py): `sample(wi, u) -> (wo, pdf)` and
+`pdf(wi, wo)`, pdf per steradian, zero below the horizon; `open_sampler("uniform" | "cosine" |
+"ggx", material)` opens them by name.
 """
 import numpy as np
 
@@ -45,7 +46,7 @@ class GGXSampler:
     """What Cycles-style sampling gives: a diffuse lobe (probability `diffuse`) and GGX
     visible-normal sampling of a reflection lobe with roughness (alpha_x, alpha_y)."""
 
-    name = "ggx-fit"
+    name = "ggx"
 
     def __init__(self, alpha_x, alpha_y=None, diffuse=0.0):
         self.alpha_x = float(alpha_x)

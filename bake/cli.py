@@ -1,10 +1,21 @@
-"""The `flowbsdf` command."""
+"""The `flowbsdf` command: one subcommand per job.
+
+    check, yardsticks, bake, report, run   here: a manifest, --material, --out (but check)
+    train                                  the trainer (torch) in a subprocess; its parser is
+                                           bake/job.py's add_train_arguments
+    stress                                 bake/stress.py
+    farm openjd, farm task                 bake/farm.py
+    render, compare                        bake/tracer/commands.py
+
+A FlowBSDFError ends it with its message and exit code 2; an interrupt with 130.
+"""
 import argparse
 import sys
 import time
 from pathlib import Path
 
-from .errors import FlowBSDFError
+from .errors import exit_code
+from .job import TRAIN_PRESETS, add_train_arguments, run_trainer
 
 
 def cmd_check(args):
@@ -58,11 +69,6 @@ def cmd_run(args):
         render=not args.no_render, samples=args.samples).run(args.material)
 
 
-def cmd_train(args, rest):
-    from .job import run_trainer
-    return run_trainer(rest)
-
-
 def build_parser():
     p = argparse.ArgumentParser(prog="flowbsdf", description="Learned BSDF importance sampling.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -86,13 +92,13 @@ def build_parser():
     r.add_argument("--samples", type=int, default=1 << 17, help="samples per rv cell")
     r.add_argument("--steps", default="2,4,8", help="Euler step counts of the flow to compare (its trained N is always added)")
     m = command("run", cmd_run, "the main job: train -> bake -> report -> render, one page (OUT/index.html)")
-    m.add_argument("--preset", default="fast", choices=["fast", "balanced", "paper"])
+    m.add_argument("--preset", default="fast", choices=TRAIN_PRESETS)
     m.add_argument("--no-train", action="store_true", help="no training: bake from a model already there, else from the ideal tabulation")
     m.add_argument("--no-render", action="store_true", help="no shader-ball renders")
     m.add_argument("--samples", type=int, default=None,
                    help="samples per rv cell of the report (default: the manifest's [run.report], else 16384)")
 
-    sub.add_parser("train", help="train flow models (python -m trainer train --help)", add_help=False)
+    add_train_arguments(sub.add_parser("train", help="train flow models (torch, in a subprocess: python -m trainer)"))
     from .stress import add_parser as add_stress
     add_stress(sub)
     from .farm import add_parser as add_farm        # farm openjd, farm task
@@ -104,24 +110,14 @@ def build_parser():
 
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["train"]:
-        rest = argv[1:]
-        if "--out" not in rest and not any(a.startswith("--out=") for a in rest) and "-h" not in rest \
-                and "--help" not in rest:
-            rest += ["--out", str(Path("out") / "models")]
-        return cmd_train(None, rest)
     args = build_parser().parse_args(argv)
+    if args.command == "train":     # checked by the same parser here, run where torch is
+        return run_trainer(argv[1:])
     t0 = time.perf_counter()
-    try:
-        args.func(args)
-    except FlowBSDFError as e:
-        print(f"flowbsdf: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("flowbsdf: interrupted", file=sys.stderr)
-        return 130
-    print(f"[done] {args.command} in {time.perf_counter() - t0:.1f}s")
-    return 0
+    code = exit_code(lambda: args.func(args), "flowbsdf")
+    if code == 0:
+        print(f"[done] {args.command} in {time.perf_counter() - t0:.1f}s")
+    return code
 
 
 if __name__ == "__main__":

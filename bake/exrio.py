@@ -1,4 +1,5 @@
-"""Float32 OpenEXR files of named 2D arrays plus JSON metadata, written atomically."""
+"""Float32 OpenEXR files with JSON metadata, written atomically: the tables (named 2D arrays,
+`write_exr`/`read_exr`) and the RGBA textures the Blender back ends read (`write_rgba_exr`)."""
 import json
 from pathlib import Path
 
@@ -31,6 +32,15 @@ def write_exr(path, arrays, meta):
     except OSError as e:
         where = f" ({e.filename})" if getattr(e, "filename", None) else ""
         raise FlowBSDFError(f"cannot write the table file: {e.strerror or e}{where}", path) from None
+
+
+def write_rgba_exr(path, image, meta_key, meta):
+    """One RGBA float32 image (ZIP: lossless) with `meta` as JSON in the header attribute `meta_key`."""
+    import OpenEXR
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+              meta_key: json.dumps(meta, sort_keys=True)}
+    with atomic_path(path) as tmp:
+        OpenEXR.File(header, {"RGBA": np.ascontiguousarray(image)}).write(tmp)
 
 
 def read_exr(path):

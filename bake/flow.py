@@ -73,6 +73,7 @@ import numpy as np
 from .baselines import UniformSampler
 from .domains import Disk, get_domain
 from .errors import FlowBSDFError
+from .warps import rotate_z
 
 FORMAT = "flowbsdf-flow"
 VERSION = 2                      # 2 added `defensive`; version-1 files load with defensive = 0
@@ -909,7 +910,7 @@ class FlowModel:
         with np.errstate(over="ignore"):
             pdf = np.where(ok & self.map.valid(wo), np.exp(log_pdf), 0.0)
         if self.isotropic:
-            wo = _rotate_z(wo, phi_i)
+            wo = rotate_z(wo, phi_i)
         return (wo, pdf), {"folds": int(np.sum(min_det <= 0.0)),
                            "min_det": float(np.min(min_det)) if n else np.inf}
 
@@ -921,7 +922,7 @@ class FlowModel:
         n = len(wo)
         c, phi_i, ok = self._canonical(wi, n)
         if self.isotropic:
-            wo = _rotate_z(wo, -phi_i)
+            wo = rotate_z(wo, -phi_i)
         valid = ok & self.map.valid(wo)
         wo_safe = np.where(valid[:, None], wo, np.array([0.0, 0.0, 1.0]))
         wi_c = canonical_wi(c, self.isotropic)
@@ -950,11 +951,6 @@ class FlowModel:
 
 def _sigmoid(a):
     return 0.5 * (1.0 + np.tanh(0.5 * np.asarray(a, dtype=np.float64)))
-
-
-def _rotate_z(w, angle):
-    c, s = np.cos(angle), np.sin(angle)
-    return np.stack([c * w[:, 0] - s * w[:, 1], s * w[:, 0] + c * w[:, 1], w[:, 2]], axis=-1)
 
 
 # --------------------------------------------------------------------------- files

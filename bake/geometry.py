@@ -21,13 +21,6 @@ def theta_phi(w):
     return np.arctan2(np.hypot(w[..., 0], w[..., 1]), w[..., 2]), np.arctan2(w[..., 1], w[..., 0])
 
 
-def rotate_z(w, angle):
-    """Rotate directions about the normal by `angle` (broadcast per row)."""
-    w = np.asarray(w, float)
-    c, s = np.cos(angle), np.sin(angle)
-    return np.stack([c * w[..., 0] - s * w[..., 1], s * w[..., 0] + c * w[..., 1], w[..., 2]], axis=-1)
-
-
 def reflect(wi, m):
     return 2.0 * np.sum(wi * m, axis=-1, keepdims=True) * m - wi
 

@@ -3,8 +3,9 @@
 It is the "tabulation limit" every learned sampler is compared against, and a fast
 exact source of training samples. For each distinct wi it tabulates the target
 density max(lum f, 0)·cos(theta_o) over the half vector m, on a grid in the unit square
-u = (sqrt(2 theta_m / pi), (phi_m + pi) / 2 pi) (the RGL parameterization: the sqrt map
-puts resolution near the normal, where every microfacet lobe lives, at any theta_i).
+u = (sqrt(2 theta_m / pi), (phi_m + pi) / 2 pi) (the RGL parameterization, bake/warps.py's
+half_vector: the sqrt map puts resolution near the normal, where every microfacet lobe
+lives, at any theta_i).
 The density is piecewise constant in u, so sample() is a piecewise-linear bijection of
 [0,1)² and pdf() is its exact density:
 
@@ -13,34 +14,20 @@ The density is piecewise constant in u, so sample() is a piecewise-linear biject
 Mass of a cell whose half vectors partly reflect below the horizon is spread over the
 whole cell, so a small fraction of samples can land below the surface: those come back
 with pdf 0 (lost, never re-weighted), and pdf() integrates to 1 minus that fraction.
+
+    Table           one wi's tabulation: sample_dir, pdf_dir
+    IdealSampler    a Table per distinct wi (isotropic materials: per theta_i), kept in a cache
+    training_pairs  exact (wi, x1) pairs for the trainer
+    BinnedIdeal     Tables at fixed theta_i bins, nearest bin: plain tabulation at a memory budget
+    FineIdeal       Tables 1 degree apart, built lazily: the ideal sampler of renders
 """
+import time
+
 import numpy as np
 
-from .geometry import luminance, normalize, reflect, rotate_z, theta_phi
+from .geometry import luminance, normalize, reflect, theta_phi
 from .materials.base import as_dirs
-
-HALF_PI, TWO_PI = 0.5 * np.pi, 2.0 * np.pi
-
-
-def _half_vector(u):
-    theta = HALF_PI * u[..., 0] ** 2
-    phi = TWO_PI * u[..., 1] - np.pi
-    s = np.sin(theta)
-    return np.stack([s * np.cos(phi), s * np.sin(phi), np.cos(theta)], axis=-1)
-
-
-def _u_of_half_vector(m):
-    theta, phi = theta_phi(m)
-    u1 = np.sqrt(np.clip(theta / HALF_PI, 0.0, 1.0))
-    u2 = (phi + np.pi) / TWO_PI
-    return np.stack([u1, u2 - np.floor(u2)], axis=-1)
-
-
-def _dwo_du(wi, m, u1):
-    """Solid angle of wo per unit area of u (zero where the reflection is invalid)."""
-    cos_im = np.sum(wi * m, axis=-1)
-    theta_m = HALF_PI * u1 * u1
-    return 4.0 * np.maximum(cos_im, 0.0) * np.sin(theta_m) * np.pi * u1 * TWO_PI
+from .warps import dwo_du, half_vector, rotate_z, u_of_half_vector
 
 
 class Table:
@@ -59,10 +46,10 @@ class Table:
         for r0 in range(0, n1, rows_per_chunk):
             r1 = min(n1, r0 + rows_per_chunk)
             u = np.stack(np.meshgrid(g1[r0 * s:r1 * s], g2, indexing="ij"), axis=-1).reshape(-1, 2)
-            m = _half_vector(u)
+            m = half_vector(u)
             wo = reflect(wi[None, :], m)
             value = material.eval(wi, wo)
-            jac = _dwo_du(wi[None, :], m, u[:, 0]) * (wo[:, 2] > 0)
+            jac = dwo_du(wi[None, :], m, u[:, 0]) * (wo[:, 2] > 0)
             cos_o = np.maximum(wo[:, 2], 0.0)
             dens = np.maximum(luminance(value), 0.0) * cos_o * jac
             rows = r1 - r0
@@ -112,15 +99,15 @@ class Table:
         The pdf is pdf_dir(wo): a sample on a cell boundary whose round trip wo -> v lands in
         the neighbouring cell gets that cell's density, as pdf() says (the stress suite found
         3 in 2.5e6 disagreeing by up to 7e-4 when the pdf came from the sampled cell)."""
-        m = _half_vector(self.sample_u(u))
+        m = half_vector(self.sample_u(u))
         w = reflect(self.wi[None, :], m)
         return w, self.pdf_dir(w)
 
     def pdf_dir(self, wo):
         """The solid-angle density of sample_dir at wo (this table's frame)."""
         m = normalize(self.wi[None, :] + wo)
-        v = _u_of_half_vector(m)
-        jac = _dwo_du(self.wi[None, :], m, v[:, 0])
+        v = u_of_half_vector(m)
+        jac = dwo_du(self.wi[None, :], m, v[:, 0])
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where((wo[:, 2] > 0) & (jac > 0), self.density_u(v) / jac, 0.0)
 
@@ -244,3 +231,81 @@ class BinnedIdeal:
     def pdf(self, wi, wo):
         wi, wo = as_dirs(wi, wo)
         return self.ideal.pdf(self._snap(wi), wo)
+
+
+class FineIdeal:
+    """The ideal tabulation (`Table`, 256 x 512 half-vector cells) at incident elevations 1
+    degree apart (isotropic) or 3 x 6 degrees in (theta, phi) (anisotropic), each wi served
+    by its nearest bin: the stand-in for Mitsuba's tabulated sampling in renders, where every
+    pixel has its own wi. A bin's table is built when first needed (`prepare` builds them
+    all); sample() and pdf() are exactly consistent."""
+
+    name = "ideal"
+
+    def __init__(self, material, theta_step_deg=1.0, resolution=256, supersample=2, phi_step_deg=6.0):
+        self.material = material
+        self.iso = bool(material.isotropic)
+        self.step = np.radians(theta_step_deg if self.iso else 3.0)
+        self.phi_step = np.radians(phi_step_deg)
+        self.n_theta = int(np.ceil((np.pi / 2) / self.step)) + 1
+        self.n_phi = 1 if self.iso else int(round(2 * np.pi / self.phi_step))
+        self.resolution, self.supersample = resolution, supersample
+        self.tables = {}
+        self.build_seconds = 0.0
+
+    def _bins(self, wi):
+        theta, phi = theta_phi(wi)
+        kt = np.clip(np.rint(theta / self.step), 0, self.n_theta - 1).astype(np.int64)
+        if self.iso:
+            return kt, phi         # rotate by phi_i to the bin's canonical frame
+        kp = np.mod(np.rint(phi / self.phi_step), self.n_phi).astype(np.int64)
+        return kt * self.n_phi + kp, np.zeros_like(phi)
+
+    def _table(self, key):
+        tab = self.tables.get(key)
+        if tab is None:
+            t0 = time.perf_counter()
+            kt, kp = divmod(int(key), self.n_phi)
+            th = min(kt * self.step, np.radians(89.9))
+            ph = kp * self.phi_step
+            wi = np.array([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
+            tab = self.tables[key] = Table(self.material, wi, self.resolution, self.supersample)
+            self.build_seconds += time.perf_counter() - t0
+        return tab
+
+    def prepare(self, theta_max_deg=90.0):
+        """Build every bin up front (so timings exclude the tabulation); isotropic only
+        (the anisotropic grid has ~1900 bins: those are built when first needed)."""
+        if not self.iso:
+            return
+        for kt in range(self.n_theta):
+            if kt * self.step <= np.radians(theta_max_deg) + 1e-9:
+                for kp in range(self.n_phi):
+                    self._table(kt * self.n_phi + kp)
+
+    def _groups(self, keys):
+        """(table, rows) per bin among `keys` that has something to sample."""
+        for key in np.unique(keys):
+            tab = self._table(key)
+            if tab.total > 0.0:
+                yield tab, np.flatnonzero(keys == key)
+
+    def sample(self, wi, u):
+        u = np.atleast_2d(np.asarray(u, float))
+        wi, _ = as_dirs(wi, np.zeros((len(u), 3)))
+        keys, rot = self._bins(wi)
+        wo = np.zeros((len(u), 3))
+        wo[:, 2] = -1.0            # a bin with nothing to sample: an invalid direction with pdf 0
+        pdf = np.zeros(len(u))
+        for tab, idx in self._groups(keys):
+            w, pdf[idx] = tab.sample_dir(u[idx])
+            wo[idx] = rotate_z(w, rot[idx])
+        return wo, pdf
+
+    def pdf(self, wi, wo):
+        wi, wo = as_dirs(wi, wo)
+        keys, rot = self._bins(wi)
+        out = np.zeros(len(wo))
+        for tab, idx in self._groups(keys):
+            out[idx] = tab.pdf_dir(rotate_z(wo[idx], -rot[idx]))
+        return out

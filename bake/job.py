@@ -58,6 +58,21 @@ RENDER_DEFAULTS = {
 # from the presets' descriptions (trainer/train.py).
 PRIORS = {"bake": 30.0, "report": 35.0, "render": 30.0}
 TRAIN_PRIORS = {"fast": 45.0, "balanced": 420.0, "paper": 3600.0}
+# The trainer's presets by name (their settings: trainer/train.py PRESETS).
+TRAIN_PRESETS = tuple(TRAIN_PRIORS)
+
+
+def add_train_arguments(parser):
+    """The arguments of `flowbsdf train` and `python -m trainer train`: one parser for both."""
+    parser.add_argument("manifest", help="manifest.toml")
+    parser.add_argument("--material", action="append", help="only this material (repeatable)")
+    parser.add_argument("--preset", choices=TRAIN_PRESETS, default=None,
+                        help="training preset (default: the manifest's, else balanced)")
+    parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    parser.add_argument("--out", default=str(Path("out") / "models"),
+                        help="where the models go (default out/models)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's choice)")
 
 
 def run_trainer(args):
@@ -87,7 +102,7 @@ def write_stamp(folder, inputs_hash, **data):
 def run_settings(manifest, key, defaults):
     """The manifest's [run.<key>] over `defaults`: unknown keys, values of another type than the
     default's and unknown sampler or scene names are errors."""
-    from .tracer.samplers import SAMPLERS
+    from .sampler import RENDER_KINDS
     from .tracer.scene import BUILTINS
     given = manifest.run.get(key, {})
     unknown = sorted(set(given) - set(defaults))
@@ -99,9 +114,9 @@ def run_settings(manifest, key, defaults):
             raise FlowBSDFError(f"[run.{key}]: {k} = {v!r} should be like {defaults[k]!r}", manifest.path)
     settings = {**defaults, **given}
     if key == "render":
-        bad = sorted(set(settings["samplers"] + [settings["reference_sampler"]]) - set(SAMPLERS))
+        bad = sorted(set(settings["samplers"] + [settings["reference_sampler"]]) - set(RENDER_KINDS))
         if bad or settings["scene"] not in BUILTINS:
-            raise FlowBSDFError(f"[run.render]: samplers are {', '.join(SAMPLERS)}; scenes {', '.join(BUILTINS)}",
+            raise FlowBSDFError(f"[run.render]: samplers are {', '.join(RENDER_KINDS)}; scenes {', '.join(BUILTINS)}",
                                 manifest.path)
     return settings
 

@@ -6,7 +6,7 @@
     bake = { }                      # settings for the baker
 
     [[material]]
-    name = "paper_white"                                  # letters, digits, _ and -
+    name = "paper_white"                                  # letters, digits, _, - and . (not first)
     source = "../shared/data/rgl/paper_white_rgb.bsdf"    # a file, or a table (see open_material)
     optional = true                 # a missing source file skips the material with a note
     domain = "spherical"            # overrides the default

@@ -5,7 +5,9 @@
   Samples the sampler loses (pdf 0 or below the horizon) count as w = 0.
   `relative_variance_ref` estimates the same rv as an integral sampled from a reference (the
   ideal sampler), which does not understate heavy tails.
-- `chi2_test`: goodness of fit of sample() against pdf(), binned on (cos theta, phi), with
+- `chi2_test`: goodness of fit of sample() against pdf(), binned on the half vector
+  (`HalfVectorBins`, bake/warps.py's map: fine near the specular direction; the default) or on
+  (cos theta, phi) (`CosineBins`), with
   expected counts integrated adaptively (a quadtree refined where the quadrature error
   estimate is large or where samples crowd, so sharp lobes are integrated, not missed),
   low-count bins pooled, and a Šidák-corrected significance level.
@@ -15,6 +17,7 @@ import math
 import numpy as np
 
 from .geometry import luminance, normalize, reflect
+from .warps import dwo_du, half_vector, u_of_half_vector
 
 
 
@@ -205,16 +208,14 @@ class HalfVectorBins:
         self.wi = np.asarray(wi, float).reshape(1, 3)
 
     def to_dir(self, a, b):
-        from .ideal import _dwo_du, _half_vector
         u = np.stack([a, b], axis=-1)
-        m = _half_vector(u)
+        m = half_vector(u)
         wo = reflect(self.wi, m)
-        jac = np.where(wo[:, 2] > 0, _dwo_du(self.wi, m, a), 0.0)
+        jac = np.where(wo[:, 2] > 0, dwo_du(self.wi, m, a), 0.0)
         return wo, jac
 
     def from_dir(self, wo):
-        from .ideal import _u_of_half_vector
-        return _u_of_half_vector(normalize(self.wi + wo))
+        return u_of_half_vector(normalize(self.wi + wo))
 
 
 BINNINGS = {"cosine": CosineBins, "halfvector": HalfVectorBins}

@@ -42,7 +42,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import FlowBSDFError
-from .files import atomic_path, file_hash
+from .exrio import write_rgba_exr
+from .files import file_hash
 from .tables import open_tables
 
 LAYOUT = 3
@@ -121,14 +122,6 @@ def texture_image(tables):
     return img.astype(np.float32)
 
 
-def _write(path, img, meta):
-    import OpenEXR
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
-              META_KEY: json.dumps(meta, sort_keys=True)}
-    with atomic_path(path) as tmp:
-        OpenEXR.File(header, {"RGBA": np.ascontiguousarray(img)}).write(tmp)
-
-
 def read_export(path):
     """(image (H, W, 4) float32, metadata) of an export file; FlowBSDFError if it is not one."""
     path = Path(path)
@@ -155,24 +148,32 @@ def is_current(path, digest):
     return meta.get("tables_hash") == digest and meta.get("layout") == LAYOUT
 
 
-def ensure_osl_export(tables_path, log=None):
-    """The OSL texture of a table file, (re)built when missing, stale or broken; returns its path."""
+def ensure_export(tables_path, kind, export_path, is_current, write, log=None):
+    """The `kind` ("osl" | "svm") texture of a table file, <stem>.<kind>...-<hash12>.exr: built
+    by write(path, tables, digest) when missing, stale or broken; older exports of the same
+    tables are removed. Returns its path."""
     tables_path = Path(tables_path)
     if not tables_path.is_file():
         raise FlowBSDFError("table file not found", tables_path)
     digest = file_hash(tables_path)
     path = export_path(tables_path, digest)
     if not is_current(path, digest):
-        tables = open_tables(tables_path)
-        _write(path, texture_image(tables),
-               {"layout": LAYOUT, "tables_hash": digest, "tables": tables_path.name,
-                "material": tables.meta.get("material"), "anisotropic": tables.anisotropic})
+        write(path, open_tables(tables_path), digest)
         if log:
-            log(f"[osl] wrote {path}")
-    for old in tables_path.parent.glob(f"{tables_path.stem}.osl*-*.exr"):
+            log(f"[{kind}] wrote {path}")
+    for old in tables_path.parent.glob(f"{tables_path.stem}.{kind}*-*.exr"):
         if old.name != path.name:
             old.unlink(missing_ok=True)
     return path
+
+
+def ensure_osl_export(tables_path, log=None):
+    """The OSL texture of a table file, (re)built when missing, stale or broken; returns its path."""
+    def write(path, tables, digest):
+        write_rgba_exr(path, texture_image(tables), META_KEY,
+                       {"layout": LAYOUT, "tables_hash": digest, "tables": Path(tables_path).name,
+                        "material": tables.meta.get("material"), "anisotropic": tables.anisotropic})
+    return ensure_export(tables_path, "osl", export_path, is_current, write, log)
 
 
 def bake_derived(tables_path, log=None):

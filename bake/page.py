@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from .progress import fmt_seconds
+from .sampler import canonical_kind
 
 STYLE = """
 body { font: 15px/1.45 system-ui, sans-serif; margin: 2em auto; max-width: 1100px; padding: 0 1em; color: #222 }
@@ -26,11 +27,11 @@ figure img.pareto { width: 380px }
          background: linear-gradient(to right, #440154, #3b528b, #21918c, #5ec962, #fde725) }
 .files, .small { font-size: 0.88em; color: #555 }
 """
-SAMPLER_NAMES = {"tables": "learned tables", "ggx": "GGX fit", "ggx-fit": "GGX fit"}
+SAMPLER_LABELS = {"tables": "learned tables", "ggx": "GGX fit"}
 
 
 def _label(sampler):
-    return SAMPLER_NAMES.get(sampler, sampler)
+    return SAMPLER_LABELS.get(canonical_kind(sampler), sampler)
 
 
 def _e(x):
@@ -140,9 +141,9 @@ def overview(rows):
     lines = []
     for name, render, report in rows:
         mse = {r["sampler"]: r["mse"] for r in (render or {}).get("rows", ()) if r["mode"] == "equal time"}
-        rv = {s["sampler"]: s["median_rv"] for s in summary_rows_of(report)}
+        rv = {canonical_kind(s["sampler"]): s["median_rv"] for s in summary_rows_of(report)}  # ggx-fit: older reports
         cells = [f'<a href="#{_e(name)}">{_e(name)}</a>']
-        for values, names in ((mse, ("tables", "ggx", "cosine")), (rv, ("tables", "ggx-fit", "cosine"))):
+        for values, names in ((mse, ("tables", "ggx", "cosine")), (rv, ("tables", "ggx", "cosine"))):
             ref = values.get(names[0])
             cells.append(_num(ref))
             cells += [_times(values.get(n), ref) for n in names[1:]]

@@ -3,8 +3,9 @@
 Layout of an output folder:
     <out>/models/<name>.flow.npz     trained flows (flowbsdf train)
     <out>/tables/<name>.exr          baked tables (flowbsdf bake)
-    <out>/tables/<name>.osl<layout>-<hash>.exr, <name>.fit.json   what the Blender node reads beside
-                                     them (bake/osl_export.py, bake/closure_fit.py)
+    <out>/tables/<name>.osl<layout>-<hash>.exr, <name>.svm<layout>-<hash>.exr, <name>.fit.json
+                                     what the Blender node reads beside them (bake/osl_export.py,
+                                     bake/svm_export.py, bake/closure_fit.py)
 A table file records the hash of its inputs (material content, model file, bake settings,
 table format); a bake whose inputs hash matches the file on disk is skipped, any change
 rebuilds it, and a stale file is never used (`open_current_tables`).
@@ -120,7 +121,8 @@ def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
 
 
 def bake_with_derived(entry, out_dir, manifest_path, force=False, log=print):
-    """bake_entry, then what the Blender node needs beside the tables (OSL texture, closure fit)."""
+    """bake_entry, then what the Blender node needs beside the tables (OSL and SVM textures,
+    closure fit: osl_export.bake_derived)."""
     from .osl_export import bake_derived
     path, status = bake_entry(entry, out_dir, manifest_path, force=force, log=log)
     bake_derived(path, log=log)
@@ -128,7 +130,7 @@ def bake_with_derived(entry, out_dir, manifest_path, force=False, log=print):
 
 
 def bake_manifest(manifest, out_dir, name=None, force=False, log=print):
-    """Bake every selected entry (tables, then their OSL texture and closure fit); returns the
+    """Bake every selected entry (tables, then their OSL and SVM textures and closure fit); returns the
     table paths written. Failures are reported per material and raised together at the end,
     so one bad material does not stop the rest."""
     written, failures = [], []

@@ -407,19 +407,22 @@ def manifest_samplers(entry, material, out_dir, manifest_path, steps=(2, 4, 8), 
     """Every sampler the report compares for one material: baselines, the ideal tabulation,
     the flow at several step counts (always its trained N), the baked tables (and a half-resolution rebuild on the
     same bins), plain tabulation at the tables' memory, and Mitsuba's sampler for RGL files."""
-    from .baselines import UniformSampler
     from .ideal import BinnedIdeal
-    from .pipeline import model_path, open_current_tables
-    ideal = IdealSampler(material)
-    samplers = {"uniform": UniformSampler(), "cosine": CosineSampler(), "ggx-fit": fit_ggx(material, ideal),
-                "ideal": ideal}
-    model_file = model_path(out_dir, entry.name)
-    if model_file.is_file():
-        from .flow import load_model
-        model = load_model(model_file)
+    from .pipeline import model_path, table_path
+    from .sampler import StaleTables, open_sampler
+    ideal = open_sampler("ideal", material)
+    samplers = {kind: open_sampler(kind, material, ideal=ideal) for kind in ("uniform", "cosine", "ggx")}
+    samplers["ideal"] = ideal
+    if model_path(out_dir, entry.name).is_file():
+        model = open_sampler("flow", material, entry, out_dir)
         for n in sorted(set(steps) | {model.steps}):
             samplers[f"flow N={n}"] = model.with_steps(n)
-    tables = open_current_tables(entry, out_dir, manifest_path)
+    tables = None
+    if table_path(out_dir, entry.name).is_file():
+        try:
+            tables = open_sampler("tables", material, entry, out_dir, manifest_path=manifest_path)
+        except StaleTables:
+            log(f"[report] {entry.name}: tables are stale (material, model or settings changed): re-bake")
     if tables is not None:
         from .tabulate import build_tables
         samplers["tables"] = tables
@@ -427,8 +430,6 @@ def manifest_samplers(entry, material, out_dir, manifest_path, steps=(2, 4, 8), 
         samplers[f"tables {half}x{half}"] = build_tables(
             material, ideal, tables.theta_bins, half, half, lobe_width=tables.meta.get("lobe_width"))
         samplers["plain (equal memory)"] = BinnedIdeal.with_memory(material, tables.theta_bins, tables.nbytes)
-    elif (Path(out_dir) / "tables" / f"{entry.name}.exr").is_file():
-        log(f"[report] {entry.name}: tables are stale (material, model or settings changed): re-bake")
     path = entry.source_path()
     if path is not None and path.suffix.lower() == ".bsdf":
         try:

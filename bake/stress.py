@@ -210,9 +210,9 @@ def make_tables(material, ideal, size=32, grid=192, bins=TABLE_BINS, phi_count=8
 
 def make_samplers(case, workdir, ideal_resolution=128, table_size=32, grid=192, models=None):
     """{name: sampler} for a case: tables, ideal, flow (when a model is given)."""
-    from .ideal import IdealSampler
+    from .sampler import open_sampler
     mat = case.open(workdir)
-    ideal = IdealSampler(mat, resolution=ideal_resolution)
+    ideal = open_sampler("ideal", mat, resolution=ideal_resolution)
     out = {"ideal": ideal, "tables": make_tables(mat, ideal, table_size, grid)}
     model = (models or {}).get(case.name)
     if model is not None:

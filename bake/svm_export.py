@@ -74,9 +74,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import FlowBSDFError
-from .files import atomic_path, file_hash
-from .osl_export import _guide
-from .tables import open_tables
+from .exrio import write_rgba_exr
+from .osl_export import _guide, ensure_export
 
 LAYOUT = 1
 META_KEY = "flowbsdf_svm"
@@ -225,14 +224,6 @@ def texture_image(tables):
     return img, layout
 
 
-def _write(path, img, meta):
-    import OpenEXR
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
-              META_KEY: json.dumps(meta, sort_keys=True)}
-    with atomic_path(path) as tmp:
-        OpenEXR.File(header, {"RGBA": np.ascontiguousarray(img)}).write(tmp)
-
-
 def read_layout(path):
     """The metadata of an SVM texture (its layout dict plus tables_hash, tables, material),
     read from the OpenEXR header with the standard library only (Blender's Python may lack
@@ -273,19 +264,9 @@ def is_current(path, digest):
 
 def ensure_svm_export(tables_path, log=None):
     """The SVM texture of a table file, (re)built when missing, stale or broken; returns its path."""
-    tables_path = Path(tables_path)
-    if not tables_path.is_file():
-        raise FlowBSDFError("table file not found", tables_path)
-    digest = file_hash(tables_path)
-    path = export_path(tables_path, digest)
-    if not is_current(path, digest):
-        tables = open_tables(tables_path)
+    def write(path, tables, digest):
         img, layout = texture_image(tables)
-        _write(path, img, {**layout, "tables_hash": digest, "tables": tables_path.name,
-                           "material": tables.meta.get("material"), "anisotropic": tables.anisotropic})
-        if log:
-            log(f"[svm] wrote {path}")
-    for old in tables_path.parent.glob(f"{tables_path.stem}.svm*-*.exr"):
-        if old.name != path.name:
-            old.unlink(missing_ok=True)
-    return path
+        write_rgba_exr(path, img, META_KEY, {**layout, "tables_hash": digest, "tables": Path(tables_path).name,
+                                             "material": tables.meta.get("material"),
+                                             "anisotropic": tables.anisotropic})
+    return ensure_export(tables_path, "svm", export_path, is_current, write, log)

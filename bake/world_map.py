@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import FlowBSDFError
-from .files import atomic_path
+from .exrio import write_rgba_exr
 from .geometry import LUMINANCE
 
 LAYOUT = 1
@@ -118,11 +118,7 @@ class WorldMap:
 
 def write_world_texture(path, world_map, meta=None):
     """Write the world map's texture (atomically); returns the path."""
-    import OpenEXR
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
-              META_KEY: json.dumps({"layout": LAYOUT, **(meta or {})}, sort_keys=True)}
-    with atomic_path(path) as tmp:
-        OpenEXR.File(header, {"RGBA": np.ascontiguousarray(world_map.texture_image())}).write(tmp)
+    write_rgba_exr(path, world_map.texture_image(), META_KEY, {"layout": LAYOUT, **(meta or {})})
     return Path(path)
 
 

@@ -24,16 +24,13 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-from conftest import RGL_FILES, rgl_dir  # noqa: E402
-
-from bake.baselines import fit_ggx  # noqa: E402
-from bake.flow import load_model  # noqa: E402
-from bake.geometry import incident  # noqa: E402
-from bake.ideal import IdealSampler  # noqa: E402
-from bake.materials import open_material  # noqa: E402
-from bake.metrics import chi2_test, relative_variance_ref, sample_weights  # noqa: E402
+from bake.baselines import fit_ggx
+from bake.flow import load_model
+from bake.geometry import incident
+from bake.ideal import IdealSampler
+from bake.materials import open_material
+from bake.materials.rgl import SHARED_FILES, shared_dir
+from bake.metrics import chi2_test, relative_variance_ref, sample_weights
 
 THETAS = (0, 30, 60, 75, 85)
 
@@ -41,7 +38,7 @@ THETAS = (0, 30, 60, 75, 85)
 def train(name, models, preset, settings, domain):
     manifest = models / f"{name}.toml"
     train = ", ".join([f'preset = "{preset}"'] + [f"{k} = {v}" for k, v in settings])
-    manifest.write_text(f'[[material]]\nname = "{name}"\nsource = "{rgl_dir() / (name + ".bsdf")}"\n'
+    manifest.write_text(f'[[material]]\nname = "{name}"\nsource = "{shared_dir() / (name + ".bsdf")}"\n'
                         f'domain = "{domain}"\ntrain = {{ {train} }}\n')
     t0 = time.time()
     with open(models / f"{name}.log", "w") as log:
@@ -65,7 +62,7 @@ def rv_ref(material, sampler, wi, ideal):
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("--models", required=True)
-    p.add_argument("--materials", default=",".join(RGL_FILES))
+    p.add_argument("--materials", default=",".join(SHARED_FILES))
     p.add_argument("--train", action="store_true")
     p.add_argument("--preset", default="balanced")
     p.add_argument("--domain", default="auto", help="flow domain for --train: auto | disk | spherical | slope")
@@ -90,7 +87,7 @@ def main():
                 continue
             train(name, models, args.preset, settings, args.domain)
         model = load_model(path)
-        mat = open_material(rgl_dir() / f"{name}.bsdf")
+        mat = open_material(shared_dir() / f"{name}.bsdf")
         ideal = IdealSampler(mat)
         ggx = fit_ggx(mat, ideal)
         secs = (models / f"{name}.seconds").read_text().strip() if (models / f"{name}.seconds").is_file() else "?"

@@ -15,23 +15,19 @@ pdf and sample+pdf per second on one thread, one wi per call and a new wi per sa
 the tables and (with --mitsuba) Mitsuba, side by side. Prints Markdown tables and a summary.
 """
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-from conftest import RGL_FILES, rgl_dir  # noqa: E402
-
-from bake.geometry import incident  # noqa: E402
-from bake.ideal import IdealSampler  # noqa: E402
-from bake.materials import open_material  # noqa: E402
-from bake.metrics import chi2_test, relative_variance_ref, sample_weights  # noqa: E402
-from bake.tables import open_tables  # noqa: E402
-from bake.tabulate import plan_tables  # noqa: E402
-from bake.bench import random_incident, samples_per_second  # noqa: E402
+from bake.geometry import incident
+from bake.ideal import IdealSampler
+from bake.materials import open_material
+from bake.materials.rgl import SHARED_FILES, shared_dir
+from bake.metrics import chi2_test, relative_variance_ref, sample_weights
+from bake.tables import open_tables
+from bake.tabulate import plan_tables
+from bake.bench import random_incident, samples_per_second
 
 THETAS = (0, 30, 60, 75, 85)
 
@@ -39,7 +35,7 @@ THETAS = (0, 30, 60, 75, 85)
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("--out", default="/tmp/acc_tables")
-    p.add_argument("--materials", default=",".join(RGL_FILES))
+    p.add_argument("--materials", default=",".join(SHARED_FILES))
     p.add_argument("--reuse", action="store_true")
     p.add_argument("--models", help="bake from the trained flows in this folder (<name>.flow.npz)")
     p.add_argument("--mitsuba", action="store_true", help="Mitsuba's measured sampler beside ours")
@@ -51,7 +47,7 @@ def main():
     n_tests = len(names) * len(THETAS)
     rows, peer_rows, speed_lines = [], [], []
     for name in names:
-        mat = open_material(rgl_dir() / f"{name}.bsdf")
+        mat = open_material(shared_dir() / f"{name}.bsdf")
         path = out / f"{name}.exr"
         t0 = time.perf_counter()
         if args.reuse and path.is_file():
@@ -88,7 +84,7 @@ def main():
         peer = None
         if args.mitsuba:
             from bake.mitsuba_peer import MitsubaMeasuredSampler
-            peer = MitsubaMeasuredSampler(rgl_dir() / f"{name}.bsdf")
+            peer = MitsubaMeasuredSampler(shared_dir() / f"{name}.bsdf")
             for theta in THETAS:
                 w = sample_weights(mat, peer, incident(theta), 1 << 18, seed=7)
                 wo, pdf = peer.sample(incident(theta), np.random.default_rng(11).random((1 << 16, 2)))

@@ -1,19 +1,28 @@
-import os
+import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from bake.materials.rgl import SHARED_FILES as RGL_FILES, shared_dir as rgl_dir  # noqa: F401 (tests import them from here)
+
 ROOT = Path(__file__).resolve().parents[1]
-RGL_FILES = [
-    "paper_white_rgb", "colodur_napoli_4f_rgb", "satin_rosaline_rgb", "cm_military_green_rgb",
-    "cc_nothern_aurora_rgb", "vch_golden_yellow_rgb", "irid_flake_paint1_rgb",
-    "cc_green_malachite_rgb", "ilm_solo_m_68_rgb", "chm_mint_rgb",
-]
-
-
-def rgl_dir():
-    """Where the shared RGL files live: $FLOWBSDF_RGL_DIR, else ../shared/data/rgl beside the repo."""
-    return Path(os.environ.get("FLOWBSDF_RGL_DIR", ROOT.parent / "shared" / "data" / "rgl"))
+# A training run of seconds: the trainer's test settings, as lines of a manifest's train table.
+TINY_TRAIN_TOML = """theta_i = [10, 45, 70]
+resolution = 32
+pool = 20000
+batch = 256
+base_steps = 20
+flow_steps = 40
+flow_eval_every = 20
+reflow_pairs = 1024
+reflow_steps = 20
+reflow_eval_every = 10
+holdout = 128
+warmup = 5
+teacher = { vel_width = 16, vel_depth = 1 }
+student = { vel_width = 8, vel_depth = 2 }
+"""
 
 
 def rgl_path(name):
@@ -27,3 +36,14 @@ def rgl_path(name):
 def rgl():
     """rgl(name) -> path of a shared RGL file, or skip the test with the reason."""
     return rgl_path
+
+
+def write_npz(path, meta, arrays):
+    """A model file as bake.flow reads it: the arrays, and `meta` (a dict, or a string as it
+    is; None: left out) as the JSON string `meta`."""
+    payload = dict(arrays)
+    if meta is not None:
+        payload["meta"] = np.array(meta if isinstance(meta, str) else json.dumps(meta))
+    with open(path, "wb") as fh:
+        np.savez(fh, **payload)
+    return path

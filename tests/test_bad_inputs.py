@@ -25,6 +25,7 @@ from bake.materials import open_material
 from bake.materials.merl import DIMS, N_BINS
 from bake.pipeline import bake_manifest, model_path, table_path
 from bake.tables import open_tables
+from conftest import write_npz
 from test_rgl import synthetic_fields, write_tensor_file
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,15 +60,6 @@ def tiny_model_meta(**over):
             "velocity": {"width": 16, "depth": 2, "time_freq": 0, "activation": "silu"}}
     meta.update(over)
     return meta
-
-
-def write_npz(path, meta, arrays):
-    payload = dict(arrays)
-    if meta is not None:
-        payload["meta"] = np.array(meta if isinstance(meta, str) else json.dumps(meta))
-    with open(path, "wb") as fh:
-        np.savez(fh, **payload)
-    return path
 
 
 def npy_header_bytes(shape, dtype="<f4"):

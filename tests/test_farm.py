@@ -17,29 +17,13 @@ from pathlib import Path
 import pytest
 
 from bake import farm
-from conftest import ROOT
+from conftest import ROOT, TINY_TRAIN_TOML
 from test_blender_batch import MAKE_SCENE, _stage_addon
 
 DRAFT = '{ resolution = 16, tol = 0.5, grid = 96, samples = 2048, first_bins = 3, ideal_resolution = 48 }'
 # A training run of seconds (the trainer's own test settings); the other materials bake from
 # the ideal tabulation (no model wanted).
-TINY_TRAIN = """preset = "fast"
-theta_i = [10, 45, 70]
-resolution = 32
-pool = 20000
-batch = 256
-base_steps = 20
-flow_steps = 40
-flow_eval_every = 20
-reflow_pairs = 1024
-reflow_steps = 20
-reflow_eval_every = 10
-holdout = 128
-warmup = 5
-teacher = { vel_width = 16, vel_depth = 1 }
-student = { vel_width = 8, vel_depth = 2 }
-ema = 0.9
-"""
+TINY_TRAIN = f'preset = "fast"\n{TINY_TRAIN_TOML}ema = 0.9\n'
 MANIFEST = f"""[defaults]
 bake = {DRAFT}
 

@@ -3,7 +3,6 @@
 Everything here is fast (tiny networks, a few hundred steps); the full presets are in
 the slow-marked tests at the end.
 """
-import json
 import math
 
 import numpy as np
@@ -11,6 +10,7 @@ import pytest
 
 from bake import flow as F
 from bake.errors import FlowBSDFError
+from conftest import TINY_TRAIN_TOML, write_npz
 
 trainer = pytest.importorskip("trainer")   # sets OMP_WAIT_POLICY before torch loads
 torch = pytest.importorskip("torch")
@@ -342,15 +342,6 @@ def test_the_normal_direction_has_a_finite_pdf(domain):
     assert np.all(np.isfinite(pdf)) and np.all(pdf >= 0) and np.all(np.isfinite(u))
 
 
-def _write_npz(path, meta, arrays):
-    payload = dict(arrays)
-    if meta is not None:
-        payload["meta"] = np.array(meta if isinstance(meta, str) else json.dumps(meta))
-    with open(path, "wb") as f:
-        np.savez(f, **payload)
-    return path
-
-
 def test_bad_model_files_raise_flowbsdf_error(tmp_path):
     net = random_net("disk")
     good_meta, arrays = net.meta(4), net.arrays()
@@ -358,20 +349,20 @@ def test_bad_model_files_raise_flowbsdf_error(tmp_path):
     cases["missing"] = tmp_path / "nope.npz"
     (tmp_path / "garbage.npz").write_bytes(b"definitely not a zip file")
     cases["garbage"] = tmp_path / "garbage.npz"
-    cases["nometa"] = _write_npz(tmp_path / "nometa.npz", None, arrays)
-    cases["badjson"] = _write_npz(tmp_path / "badjson.npz", "{not json", arrays)
-    cases["foreign"] = _write_npz(tmp_path / "foreign.npz", dict(good_meta, format="something-else"), arrays)
-    cases["version"] = _write_npz(tmp_path / "version.npz", dict(good_meta, version=99), arrays)
-    cases["domain"] = _write_npz(tmp_path / "domain.npz", dict(good_meta, domain="cube"), arrays)
-    cases["steps"] = _write_npz(tmp_path / "steps.npz", dict(good_meta, steps=0), arrays)
-    cases["defensive"] = _write_npz(tmp_path / "defensive.npz", dict(good_meta, defensive=0.9), arrays)
+    cases["nometa"] = write_npz(tmp_path / "nometa.npz", None, arrays)
+    cases["badjson"] = write_npz(tmp_path / "badjson.npz", "{not json", arrays)
+    cases["foreign"] = write_npz(tmp_path / "foreign.npz", dict(good_meta, format="something-else"), arrays)
+    cases["version"] = write_npz(tmp_path / "version.npz", dict(good_meta, version=99), arrays)
+    cases["domain"] = write_npz(tmp_path / "domain.npz", dict(good_meta, domain="cube"), arrays)
+    cases["steps"] = write_npz(tmp_path / "steps.npz", dict(good_meta, steps=0), arrays)
+    cases["defensive"] = write_npz(tmp_path / "defensive.npz", dict(good_meta, defensive=0.9), arrays)
     no_vel = {k: v for k, v in arrays.items() if not k.startswith("vel.")}
-    cases["novel"] = _write_npz(tmp_path / "novel.npz", good_meta, no_vel)
+    cases["novel"] = write_npz(tmp_path / "novel.npz", good_meta, no_vel)
     bad_shape = dict(arrays)
     bad_shape["vel.W1"] = np.zeros((3, 3), np.float32)
-    cases["shape"] = _write_npz(tmp_path / "shape.npz", good_meta, bad_shape)
+    cases["shape"] = write_npz(tmp_path / "shape.npz", good_meta, bad_shape)
     wrong_in = dict(good_meta, isotropic=False)   # velocity input width no longer matches
-    cases["arch"] = _write_npz(tmp_path / "arch.npz", wrong_in, arrays)
+    cases["arch"] = write_npz(tmp_path / "arch.npz", wrong_in, arrays)
     for name, path in cases.items():
         with pytest.raises(FlowBSDFError) as info:
             F.load_model(path)
@@ -411,7 +402,7 @@ def test_defensive_mixture_keeps_sample_pdf_and_invert_consistent(domain, tmp_pa
     assert chi2_test(model, wi, n=100_000, res=(16, 16), seed=2, n_tests=2).passed
     v1 = {k: v for k, v in net.meta(4).items()}
     v1["version"] = 1
-    path = _write_npz(tmp_path / "v1.npz", v1, net.arrays())
+    path = write_npz(tmp_path / "v1.npz", v1, net.arrays())
     assert F.load_model(path).defensive == 0.0
 
 
@@ -593,21 +584,7 @@ name = "rough"
 source = { kind = "analytic", model = "ggx", alpha = 0.4 }
 [material.train]
 preset = "fast"
-theta_i = [10, 45, 70]
-resolution = 32
-pool = 20000
-batch = 256
-base_steps = 20
-flow_steps = 40
-flow_eval_every = 20
-reflow_pairs = 1024
-reflow_steps = 20
-reflow_eval_every = 10
-holdout = 128
-warmup = 5
-teacher = { vel_width = 16, vel_depth = 1 }
-student = { vel_width = 8, vel_depth = 2 }
-fold_penalty = 0.5
+""" + TINY_TRAIN_TOML + """fold_penalty = 0.5
 ema = 0.9
 
 [[material]]
@@ -630,6 +607,13 @@ optional = true
     assert np.all(pdf > 0)
     assert main(["train", str(manifest), "--material", "nope", "--no-progress"]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_the_preset_names_are_the_trainers():
+    """flowbsdf's parsers (bake/job.py, torch-free) list the presets trainer/train.py defines."""
+    from bake.job import TRAIN_PRESETS
+    from trainer.train import PRESETS
+    assert TRAIN_PRESETS == tuple(PRESETS)
 
 
 # --------------------------------------------------------------------------- slow: real presets

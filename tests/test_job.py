@@ -13,25 +13,9 @@ from bake.cli import main
 from bake.job import Job, selected
 from bake.manifest import load_manifest
 from bake.progress import Progress
-from conftest import ROOT
+from conftest import ROOT, TINY_TRAIN_TOML
 
-TINY_TRAIN = """
-[defaults.train]
-theta_i = [10, 45, 70]
-resolution = 32
-pool = 20000
-batch = 256
-base_steps = 20
-flow_steps = 40
-flow_eval_every = 20
-reflow_pairs = 1024
-reflow_steps = 20
-reflow_eval_every = 10
-holdout = 128
-warmup = 5
-teacher = { vel_width = 16, vel_depth = 1 }
-student = { vel_width = 8, vel_depth = 2 }
-"""
+TINY_TRAIN = "\n[defaults.train]\n" + TINY_TRAIN_TOML
 TINY = """
 [defaults]
 bake = { resolution = 16, tol = 0.5, grid = 96, samples = 2048, first_bins = 3, ideal_resolution = 48 }

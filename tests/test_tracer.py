@@ -9,11 +9,12 @@ import pytest
 from bake import FlowBSDFError
 from bake.baselines import CosineSampler, GGXSampler
 from bake.geometry import LUMINANCE
+from bake.ideal import FineIdeal
 from bake.materials import open_material
 from bake.tracer import accel
 from bake.tracer.integrator import PathTracer, render
 from bake.tracer.lights import Environment, read_hdr, sky_image
-from bake.tracer.samplers import FineIdeal, make_sampler
+from bake.tracer.samplers import make_sampler
 from bake.tracer.scene import (SHADERBALL, Camera, SceneMaterial, Scene, builtin_scene, load_obj, load_ply,
                                load_scene, shaderball_mesh)
 

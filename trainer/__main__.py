@@ -1,3 +1,4 @@
+"""`python -m trainer ...`: trainer/cli.py."""
 import sys
 
 from .cli import main

@@ -1,19 +1,24 @@
-"""python -m trainer train MANIFEST [--material NAME] [--preset fast|balanced|paper] [--device cpu|cuda] [--out DIR]
+"""python -m trainer train MANIFEST [--material NAME]... [--preset fast|balanced|paper] [--device cpu|cuda]
+[--out DIR] [--threads N] [--no-progress]; `flowbsdf train` takes the same arguments (the parser is
+bake.job.add_train_arguments) and runs this in a subprocess.
 
-Trains one flow per material of the manifest (or only --material NAME) and writes
-<out>/<name>.flow.npz (torch-free; load with bake.flow.load_model). Checkpoints go to
-<out>/<name>.train/ckpt/: rerunning the same command resumes an interrupted run.
+Trains one flow per material of the manifest (or only the --material ones) and writes
+<out>/<name>.flow.npz (default out/models; torch-free: load with bake.flow.load_model).
+Checkpoints go to <out>/<name>.train/ckpt/: rerunning the same command resumes an
+interrupted run.
 
 A material's `train` table in the manifest may set: preset, steps (Euler steps N),
-seed, theta_i (list of incident elevations in degrees to train on), resolution (of
-the ideal sampler's tables), pool (training samples pre-drawn), and any trainer
-setting (see trainer.train.PRESETS / COMMON).
+seed, the training data's SOURCE_KEYS (theta_i: incident elevations in degrees to train on;
+resolution and supersample of the ideal sampler's tables; pool: training samples pre-drawn;
+phi_i_count: incident azimuths, anisotropic materials), and any trainer setting (see
+trainer.train.PRESETS / COMMON).
 """
 import argparse
 import sys
 from pathlib import Path
 
-from bake.errors import FlowBSDFError
+from bake.errors import FlowBSDFError, exit_code
+from bake.job import add_train_arguments
 
 SOURCE_KEYS = {"theta_i", "resolution", "pool", "supersample", "phi_i_count"}
 
@@ -21,30 +26,13 @@ SOURCE_KEYS = {"theta_i", "resolution", "pool", "supersample", "phi_i_count"}
 def build_parser():
     p = argparse.ArgumentParser(prog="python -m trainer", description="FlowBSDF trainer (torch)")
     sub = p.add_subparsers(dest="command", required=True)
-    t = sub.add_parser("train", help="train flow samplers for a manifest's materials")
-    t.add_argument("manifest", help="manifest.toml")
-    t.add_argument("--material", action="append", help="only this material (repeatable)")
-    t.add_argument("--preset", choices=["fast", "balanced", "paper"], default=None,
-                   help="training preset (default: the manifest's, else balanced)")
-    t.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
-    t.add_argument("--out", default=None, help="output folder (default: <manifest folder>/models)")
-    t.add_argument("--no-progress", action="store_true", help="no progress bars")
-    t.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's choice)")
+    add_train_arguments(sub.add_parser("train", help="train flow samplers for a manifest's materials"))
     return p
 
 
 def main(argv=None):
-    args = build_parser().parse_args(argv)
-    try:
-        if args.command == "train":
-            return cmd_train(args)
-    except FlowBSDFError as e:
-        print(f"flowbsdf train: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("flowbsdf train: interrupted (checkpoints kept; rerun to resume)", file=sys.stderr)
-        return 130
-    return 0
+    args = build_parser().parse_args(argv)      # its one command: train
+    return exit_code(lambda: cmd_train(args), "flowbsdf train", "interrupted (checkpoints kept; rerun to resume)")
 
 
 def cmd_train(args):
@@ -68,7 +56,7 @@ def cmd_train(args):
                                 f"(have: {', '.join(sorted(names))})", manifest_path)
     log = lambda m: print(m, file=sys.stderr)  # noqa: E731
     materials = [m for m in manifest.select(None, log=log) if not args.material or m.name in args.material]
-    out = Path(args.out) if args.out else manifest_path.resolve().parent / "models"
+    out = Path(args.out)
     if args.threads:
         torch.set_num_threads(args.threads)
     written = []

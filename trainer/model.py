@@ -1,8 +1,10 @@
 """The flow's networks in torch, mirroring bake/flow.py (which runs the exported weights in numpy).
 
-Coordinates are bake.flow's flow coordinates y (disk: R²; spherical: (s, phi) on R x S¹).
-  BaseNet      c -> parameters of the base: disk, a diagonal Gaussian in y; spherical,
-               a Gaussian in s times a von Mises in phi. Fit by likelihood (stage 1).
+Coordinates are bake.flow's flow coordinates y (disk: R²; spherical and slope: (s, phi) on
+R x S¹).
+  BaseNet      c -> parameters of the base: disk, a diagonal Gaussian in y (or a scale
+               mixture of `components`); spherical and slope, a Gaussian in s times a von
+               Mises in phi. Fit by likelihood (stage 1).
   VelocityNet  D(y, t, c): SiLU MLP; input [y | (s, cos phi, sin phi)], time features, c.
   FlowNet      both, plus Euler sampling with exact log-dets and RK4 integration.
 c are conditioning features of wi (bake.flow.cond_features).

@@ -68,7 +68,7 @@ ay scalars or per-row arrays: `ggx_ndf`, `ggx_lambda`, `ggx_g1`, `ggx_sample_vnd
 (Heitz 2018), `ggx_vndf_pdf` (density of m in solid angle),
 `ggx_reflection_pdf` (= ggx_vndf_pdf / (4 |wi.m|) with m the half vector) and
 `ggx_sample_reflection`. For a rotated Microfacet material, rotate wi/wo by -angle
-(`geometry.rotate_z`) before calling them, and the results back by +angle.
+(`warps.rotate_z`) before calling them, and the results back by +angle.
 """
 import hashlib
 import math
@@ -77,7 +77,7 @@ import numbers
 import numpy as np
 
 from ..errors import FlowBSDFError
-from ..geometry import rotate_z
+from ..warps import rotate_z
 from .base import Material, as_dirs
 
 ALPHA_MIN, ALPHA_MAX = 1e-3, 1.0

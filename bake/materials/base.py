@@ -1,3 +1,5 @@
+"""What every material is (`Material`: eval, target, fingerprint) and `as_dirs`, the
+broadcasting of direction arguments every material and sampler shares."""
 import hashlib
 
 import numpy as np

@@ -1,11 +1,18 @@
 """RGL measured BSDFs (Dupuy & Jakob 2018) read from `.bsdf` tensor files, with numpy only.
 
-`read_tensor_file(path)` parses the file strictly (see DESIGN.md section 4 for the layout)
-and, by default, checks that it holds a complete RGB RGL material.
+`read_tensor_file(path)` parses the file strictly and, by default, checks that it holds a
+complete RGB RGL material. The layout (Mitsuba's tensor_file, little-endian):
+
+    b"tensor_file" and a NUL byte, version (2 bytes: 1, 0), uint32 number of fields,
+    then per field: uint16 name length, the name (UTF-8), uint16 ndim, uint8 dtype code
+    (DTYPES), uint64 offset of its data, ndim x uint64 shape; then each field's data
+    (C order) at its offset.
+
 `RGLMaterial(path).eval(wi, wo)` reproduces Mitsuba 3's `measured` plugin (RGB variant)
 divided by cos(theta_o); see the class docstring for the algorithm.
 """
 import hashlib
+import os
 import struct
 from pathlib import Path
 
@@ -25,11 +32,24 @@ MAX_ELEMENTS = 2 ** 31
 # free-text description, which eval does not need).
 RGL_FIELDS = ("theta_i", "phi_i", "ndf", "sigma", "vndf", "luminance", "rgb", "jacobian")
 CHUNK = 1 << 14  # eval works in chunks of this many pairs (keeps temporaries in cache)
+# The shared RGL data set the manifest, the tests and the acceptance scripts use: <name>.bsdf
+# in shared_dir().
+SHARED_FILES = [
+    "paper_white_rgb", "colodur_napoli_4f_rgb", "satin_rosaline_rgb", "cm_military_green_rgb",
+    "cc_nothern_aurora_rgb", "vch_golden_yellow_rgb", "irid_flake_paint1_rgb",
+    "cc_green_malachite_rgb", "ilm_solo_m_68_rgb", "chm_mint_rgb",
+]
+
+
+def shared_dir():
+    """Where the shared RGL files live: $FLOWBSDF_RGL_DIR, else ../shared/data/rgl beside the
+    repository (as manifest.toml's sources say)."""
+    return Path(os.environ.get("FLOWBSDF_RGL_DIR", Path(__file__).resolve().parents[3] / "shared" / "data" / "rgl"))
 
 
 def write_tensor_file(path, fields):
-    """Write {name: array} in the tensor_file layout read above (data 8-byte aligned after the
-    table): synthetic files for tests and the stress suite."""
+    """Write {name: array} in the tensor_file layout (the module's docstring; data 8-byte aligned
+    after the table): synthetic files for tests and the stress suite."""
     codes = {np.dtype(v): k for k, v in DTYPES.items()}
     fields = {k: np.ascontiguousarray(v) for k, v in fields.items()}
     table_size = 18 + sum(2 + len(k.encode()) + 11 + 8 * v.ndim for k, v in fields.items())

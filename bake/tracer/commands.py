@@ -2,7 +2,7 @@
 from pathlib import Path
 
 from ..errors import FlowBSDFError
-from .samplers import SAMPLERS
+from ..sampler import RENDER_KINDS, canonical_kind
 
 
 def _scene(args):
@@ -55,10 +55,10 @@ def cmd_render(args):
 def cmd_compare(args):
     from .compare import compare
     scene = _scene(args)
-    names = [s.strip() for s in args.samplers.split(",") if s.strip()]
-    bad = [s for s in names if s not in SAMPLERS]
+    names = [canonical_kind(s.strip()) for s in args.samplers.split(",") if s.strip()]
+    bad = [s for s in names if s not in RENDER_KINDS]
     if bad:
-        raise FlowBSDFError(f"unknown sampler(s) {', '.join(bad)} (choose from {', '.join(SAMPLERS)})")
+        raise FlowBSDFError(f"unknown sampler(s) {', '.join(bad)} (choose from {', '.join(RENDER_KINDS)})")
     compare(scene, names, args.spp, args.reference_spp, args.out, reference_sampler=args.reference_sampler,
             mis=args.mis, equal_time=not args.no_equal_time, seed=args.seed, tables_dir=args.tables_dir,
             workers=args.workers)
@@ -85,7 +85,7 @@ def add_commands(sub):
 
     r = sub.add_parser("render", help="render a scene with the reference path tracer")
     common(r)
-    r.add_argument("--sampler", default="tables", choices=SAMPLERS)
+    r.add_argument("--sampler", default="tables", type=canonical_kind, choices=RENDER_KINDS)
     r.add_argument("--time", type=float, help="render whole passes for this many seconds instead of --spp")
     r.add_argument("--out", required=True, help="output image (.exr)")
     r.set_defaults(func=cmd_render)
@@ -93,7 +93,7 @@ def add_commands(sub):
     common(c)
     c.add_argument("--samplers", default="tables,ggx,ideal,cosine", help="comma-separated")
     c.add_argument("--reference-spp", type=int, default=1024)
-    c.add_argument("--reference-sampler", default="ideal", choices=SAMPLERS)
+    c.add_argument("--reference-sampler", default="ideal", type=canonical_kind, choices=RENDER_KINDS)
     c.add_argument("--no-equal-time", action="store_true", help="skip the equal-time renders")
     c.add_argument("--out", default="out/compare", help="output folder")
     c.set_defaults(func=cmd_compare)

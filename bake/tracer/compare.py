@@ -19,9 +19,10 @@ import numpy as np
 
 from ..errors import FlowBSDFError
 from ..geometry import LUMINANCE
+from ..ideal import FineIdeal
 from .images import false_colour, mae, mse, ssim, tonemap, write_exr, write_png
 from .integrator import render
-from .samplers import FineIdeal, scene_samplers
+from .samplers import scene_samplers
 
 
 def _prepare(samplers):

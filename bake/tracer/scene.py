@@ -109,7 +109,6 @@ from ..errors import FlowBSDFError
 from .accel import TriangleBVH, intersect_lathe, intersect_planes, intersect_spheres
 from .lights import AreaLight, Environment, PointLight, SpotLight, SunLight, read_image, sky_image
 
-SAMPLER_NAMES = ("tables", "flow", "ideal", "ggx", "cosine")
 INLINE_SAMPLERS = ("cosine", "ggx", "ideal", "render")
 BUILTINS = ("shaderball-env", "shaderball-ambient", "shaderball-point")
 

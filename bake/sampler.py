@@ -1,0 +1,109 @@
+"""The sampler contract, and every sampler by name (`open_sampler`).
+
+A sampler draws outgoing directions for an incident one, Mitsuba style. Directions are
+(N, 3) arrays in the local frame (z = normal, wi pointing away from the surface); a single
+wi of shape (3,) serves every row; pdf is per steradian.
+
+    name                        what reports, plots and renders call it
+    sample(wi, u) -> (wo, pdf)  u uniform in [0,1)², shape (N, 2); a lost sample (below
+                                the horizon, or nothing to sample) has pdf 0
+    pdf(wi, wo) -> pdf          the density sample() draws from; 0 below the horizon
+    invert(wi, wo) -> u         optional (tables, flow): the u that sample() maps to wo
+    eval(wi, wo) -> f           optional (tables, Mitsuba's peer): the sampler's own BSDF
+                                value (RGB, without the cosine)
+
+tests/contract.py checks a sampler against this contract (assert_sampler_contract).
+
+The kinds `open_sampler` knows (`ggx-fit`, the report's old label, is an alias of `ggx`):
+
+    uniform         uniform hemisphere (bake/baselines.py)
+    cosine          cosine-weighted hemisphere
+    ggx             the GGX + diffuse lobe fitted to the material (baselines.fit_ggx)
+    ideal           the ideal tabulation, exact per distinct wi (bake/ideal.py IdealSampler)
+    ideal-binned    the ideal tabulation at fixed incident bins, 1 degree apart (FineIdeal): what
+                    renders use, where every pixel has its own wi
+    tables          the baked tables of a manifest entry (<out_dir>/tables/<name>.exr, current only)
+    flow            the trained flow of a manifest entry (<out_dir>/models/<name>.flow.npz)
+
+RENDER_KINDS are the names the reference tracer, `flowbsdf render/compare` and a manifest's
+[run.render] accept; the tracer's `ideal` is `ideal-binned`.
+"""
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+from .errors import FlowBSDFError
+
+KINDS = ("uniform", "cosine", "ggx", "ideal", "ideal-binned", "tables", "flow")
+ALIASES = {"ggx-fit": "ggx"}
+RENDER_KINDS = ("tables", "flow", "ideal", "ggx", "cosine")
+RENDER_KIND = {"ideal": "ideal-binned"}
+
+
+@runtime_checkable
+class Sampler(Protocol):
+    name: str
+
+    def sample(self, wi, u): ...
+
+    def pdf(self, wi, wo): ...
+
+
+@runtime_checkable
+class Invertible(Sampler, Protocol):
+    def invert(self, wi, wo): ...
+
+
+def canonical_kind(kind):
+    """`kind` with its alias resolved (ggx-fit -> ggx)."""
+    return ALIASES.get(kind, kind)
+
+
+class StaleTables(FlowBSDFError):
+    """The baked tables are there but were built from other inputs than the current ones."""
+
+
+def open_sampler(kind, material, entry=None, out_dir="out", ideal=None, manifest_path=None, **options):
+    """The sampler `kind` (see the module's docstring) for `material`. `entry` (a manifest
+    entry) is needed by tables and flow, which are read from `out_dir`; `ideal` is the ideal
+    sampler the GGX fit samples from (a small one by default); `options` go to the ideal
+    samplers' constructors (resolution, ...). FlowBSDFError when it cannot be built."""
+    from .baselines import CosineSampler, UniformSampler, fit_ggx
+    from .ideal import FineIdeal, IdealSampler
+    kind = canonical_kind(kind)
+    if kind == "uniform":
+        return UniformSampler()
+    if kind == "cosine":
+        return CosineSampler()
+    if kind == "ggx":
+        return fit_ggx(material, ideal or IdealSampler(material, max_tables=16))
+    if kind == "ideal":
+        return IdealSampler(material, **options)
+    if kind == "ideal-binned":
+        return FineIdeal(material, **options)
+    if kind == "tables":
+        return _current_tables(entry, out_dir, manifest_path)
+    if kind == "flow":
+        return _flow(entry, out_dir)
+    raise FlowBSDFError(f"unknown sampler {kind!r} (one of {', '.join(KINDS)})")
+
+
+def _current_tables(entry, out_dir, manifest_path):
+    from .pipeline import open_current_tables, table_path
+    path = table_path(out_dir, entry.name)
+    if not Path(path).is_file():
+        raise FlowBSDFError(f"no baked tables for {entry.name!r} (run flowbsdf bake)", path)
+    tables = open_current_tables(entry, out_dir, manifest_path)
+    if tables is None:
+        raise StaleTables(f"the tables of {entry.name!r} are stale (the material, model or "
+                            "bake settings changed): run flowbsdf bake", path)
+    return tables
+
+
+def _flow(entry, out_dir):
+    from .flow import load_model
+    from .pipeline import model_path
+    path = model_path(out_dir, entry.name)
+    if not path.is_file():
+        raise FlowBSDFError(f"no trained flow for {entry.name!r} (run flowbsdf train); "
+                            "the flow sampler is not available for it", path)
+    return load_model(path)
