@@ -202,10 +202,10 @@ FT_INLINE void bins(const ft_tables *T, const double *w, int64_t stride, ft_bin 
     /* searchsorted(side="right") as a count of the (increasing) bins at or below theta: in
      * vector lanes, where a scan per sample would mispredict its exit on every new wi. numpy
      * sorts NaN last, so a NaN theta lands past every bin. */
-    int64_t n[BLK] = {0};
+    double n[BLK] = {0};      /* whole numbers: double lanes vectorize on every x86 */
     for (int64_t q = 0; q < T->K; q++)
-        for (int k = 0; k < BLK; k++) n[k] += T->theta_bins[q] <= theta[k];
-    for (int k = 0; k < BLK; k++) bin_of(T, theta[k], phi[k], c[k], isnan(theta[k]) ? T->K : n[k], &B[k]);
+        for (int k = 0; k < BLK; k++) n[k] += T->theta_bins[q] <= theta[k] ? 1.0 : 0.0;
+    for (int k = 0; k < BLK; k++) bin_of(T, theta[k], phi[k], c[k], isnan(theta[k]) ? T->K : (int64_t)n[k], &B[k]);
 }
 
 /* Tables._lerp of one element: x[off] of bin k0 with x[off + d] of bin k1; in flat mode
