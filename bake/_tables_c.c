@@ -13,9 +13,8 @@
  *   search, the rest). The searches of a block run in lockstep, so the CPU overlaps the
  *   load latencies of independent samples instead of waiting on one chain per sample.
  * - No branch on a sample's data where the data decide it at random (the theta bin of a
- *   new wi, the sign in mod 2 pi): a mispredicted branch costs more than the search of a
- *   row (measured: with a new wi per sample, the theta bin scan and that sign alone made
- *   sample and pdf 1.3x slower).
+ *   new wi, the sign in mod 2 pi): with a new wi per sample, those mispredicted branches
+ *   alone made sample and pdf 1.3x slower (measured).
  * - One wi per call ("flat" mode): when every sample shares wi and there are many, the
  *   interpolated table of that wi (the same lerps numpy evaluates per sample) and expm1 of
  *   every cell's rates are computed once; the samples then read them. Same values, bit for
