@@ -14,7 +14,7 @@ from bake.errors import FlowBSDFError
 from bake.geometry import incident, spherical_dir
 from bake.ideal import IdealSampler
 from bake.materials import open_material
-from bake.tables import Tables
+from bake.tables import Tables, from_ab
 from bake.tabulate import build_tables
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -108,6 +108,66 @@ def test_c_matches_numpy_per_sample_wi(tables, name):
     wi = spherical_dir(theta, rng.uniform(-np.pi, np.pi, n))   # a few below the horizon
     wo_special = SPECIAL_WO[np.arange(n) % len(SPECIAL_WO)]
     check_all(tab, ref, wi, rng.random((n, 2)), [sphere(rng, n), wo_special])
+
+
+def near_edges(ref, rng, wi, rel=1e-9):
+    """Per wi, a wo a relative 1e-9 to either side of a row edge of its interpolated table
+    and of a column edge of that row: the first and last column's ends (b = 0 and 2 pi,
+    which wraps) and the last row's (a = 1) among them. 1e-9 is far above the few ulps by
+    which libm's and numpy's angles differ: the cell is unambiguous."""
+    n, R, C = len(wi), ref.rows, ref.cols
+    bins, phi_ref = ref._bins(wi)
+    side = lambda: rng.choice([-1.0, 1.0], n)    # noqa: E731
+    i = rng.integers(0, R + 1, n)
+    a = np.clip(Tables._lerp(ref._a, bins, i) + rel * side(), rel, 1.0 - rel)
+    j = rng.integers(0, C + 1, n)
+    j[::5], j[1::5] = C, 0
+    b = Tables._lerp(ref._b, bins, np.minimum(i, R - 1), j) + rel * side()
+    return from_ab(a, b, phi_ref)
+
+
+@needs_c
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_c_finds_numpys_cell_next_to_cell_and_bin_edges(tables, name):
+    """The C searches (theta bin, row, column) land in numpy's cell where it is closest to
+    ambiguous: wo next to the cell edges of each wi's table, wi on the theta bins and
+    between, a new wi per sample and one wi per call. A neighbouring cell has another
+    density, so a wrong cell shows in pdf and eval."""
+    tab = tables[name]
+    ref = reference(tab)
+    rng = np.random.default_rng(13)
+    n = 20000
+    theta = rng.uniform(0.0, 0.5 * np.pi, n)
+    theta[::3] = rng.choice(tab.theta_bins, len(theta[::3]))
+    wi = spherical_dir(theta, rng.uniform(-np.pi, np.pi, n))
+    wo = near_edges(ref, rng, wi)
+    np.testing.assert_allclose(fast("pdf", tab, wi, wo), ref.pdf(wi, wo), rtol=1e-10, atol=0)
+    np.testing.assert_allclose(fast("eval", tab, wi, wo), ref.eval(wi, wo), rtol=1e-10, atol=0)
+    for wi1 in wi[:3]:      # one wi per call (flat mode), on a bin and not
+        wo1 = near_edges(ref, rng, np.tile(wi1, (4000, 1)))
+        np.testing.assert_allclose(fast("pdf", tab, wi1, wo1), ref.pdf(wi1, wo1), rtol=1e-10, atol=0)
+
+
+@needs_c
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_c_breaks_ties_on_row_edges_as_numpy(tables, name):
+    """wo exactly on a row edge, a = edge(i), belongs to row i (edge(i) <= a < edge(i + 1)).
+    At the pole wi (theta, phi, cos theta exact in numpy and libm alike, so the same
+    interpolated edges) C and numpy compute the same a from wo, tie included."""
+    tab = tables[name]
+    ref = reference(tab)
+    rng = np.random.default_rng(14)
+    n = 5000
+    wi = np.tile([0.0, 0.0, 1.0], (n, 1))
+    bins, phi_ref = ref._bins(wi)
+    i = rng.integers(1, tab.rows, n)
+    a = Tables._lerp(ref._a, bins, i)
+    b = Tables._lerp(ref._b, bins, i, rng.integers(0, tab.cols, n)) + 1e-6    # inside a column
+    wo = from_ab(a, b, phi_ref)
+    _, a_back = ref._bins(wi)[1], (wo[:, 0] ** 2 + wo[:, 1] ** 2) / (1.0 + wo[:, 2])
+    assert np.mean(a_back == a) > 0.2, "the round trip should hit the edges exactly often"
+    for w in (wi, wi[0]):       # a new wi per sample, and one wi per call
+        np.testing.assert_allclose(fast("pdf", tab, w, wo), ref.pdf(w, wo), rtol=1e-10, atol=0)
 
 
 @needs_c
