@@ -4,7 +4,7 @@ import re
 
 import bpy
 
-# Built-in analytic materials (bake/materials/analytic.py); "Parameters" overrides any key.
+# Built-in analytic materials (bake/materials/analytic.py); "Values" overrides any key.
 ANALYTIC_PRESETS = {
     "MATTE": ("Matte", {"model": "lambert", "albedo": 0.8}),
     "PLASTIC": ("Red plastic", {"model": "plastic", "albedo": [0.7, 0.1, 0.08], "alpha": 0.12}),
@@ -85,8 +85,8 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
     filepath: bpy.props.StringProperty(name="File", subtype="FILE_PATH", options=PATH_OPTIONS)
     analytic_preset: bpy.props.EnumProperty(
         name="Model", items=[(k, v[0], json.dumps(v[1])) for k, v in ANALYTIC_PRESETS.items()])
-    analytic_params: bpy.props.StringProperty(name="Parameters",
-                                              description='JSON overrides, e.g. {"alpha": 0.2}')
+    analytic_params: bpy.props.StringProperty(name="Values",
+                                              description='JSON overrides of the model\'s values, e.g. {"alpha": 0.2}')
     python_callable: bpy.props.StringProperty(name="Callable", description="module:function")
     python_isotropic: bpy.props.BoolProperty(name="Isotropic", default=True)
     domain: bpy.props.EnumProperty(name="Domain", default="AUTO", items=[

@@ -47,3 +47,11 @@ def write_npz(path, meta, arrays):
     with open(path, "wb") as fh:
         np.savez(fh, **payload)
     return path
+
+
+def slow_unless(values, default, unpack=False):
+    """Parameters for pytest.mark.parametrize: those not in `default` run only with `-m slow`
+    (the default suite keeps one representative of each behaviour and stays short); with
+    `unpack`, each value is a tuple of several arguments."""
+    return [pytest.param(*(v if unpack else (v,)), marks=() if v in default else pytest.mark.slow)
+            for v in values]

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from bake.geometry import incident
+from conftest import slow_unless
 from bake.ideal import IdealSampler
 from bake.metrics import chi2_test, relative_variance
 from bake.osl_export import LAYOUT
@@ -77,7 +78,7 @@ def test_phi_blend_is_periodic(baked, name):
 
 
 @pytest.mark.parametrize("name", NAMES)
-@pytest.mark.parametrize("theta,phi", CHI2_WIS)
+@pytest.mark.parametrize("theta,phi", slow_unless(CHI2_WIS, default=[(57.3, 100.0)], unpack=True))
 def test_chi2_between_bins(baked, name, theta, phi):
     r = chi2_test(baked[name][2], incident(theta, math.radians(phi)), n=100_000, n_tests=N_CHI2, seed=11)
     assert r.passed, (name, theta, phi, r)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import cycles_scenes as cs
+from conftest import slow_unless
 from bake.closure_fit import baked_albedo, load_fit, params_at
 from bake.osl_export import ensure_osl_export
 
@@ -212,7 +213,7 @@ def test_osl_sampler_is_tables_sample_anisotropic(aniso_tables):
     _assert_osl_eval_is_numpy(tex, tab, [(0.0, 0.0), (30.0, 10.0), (70.0, 170.0), (60.0, 300.0)])
 
 
-@pytest.mark.parametrize("tangent", [None, (0.6, 0.8, 0.0)])
+@pytest.mark.parametrize("tangent", slow_unless([None, (0.6, 0.8, 0.0)], default=[(0.6, 0.8, 0.0)]))
 def test_osl_furnace_anisotropic(aniso_tables, tangent):
     """Anisotropic tables in the furnace: each pixel is the baked albedo at its wi in the
     tangent frame (x = the node's Tangent input, world x when unset, projected onto the
@@ -250,7 +251,7 @@ def _furnace(path, spp, backend, n=40, tangent=None):
     return img, normal, hit & (normal[..., 2] > 0.3), node, sc
 
 
-@pytest.mark.parametrize("name", sorted(SPECS))
+@pytest.mark.parametrize("name", slow_unless(sorted(SPECS), default=["plastic"]))
 def test_osl_furnace_gives_the_baked_albedo(baked, name):
     """Sphere under a constant white sky: each pixel is the baked albedo E[W] at its view angle,
     within Monte Carlo error (per-pixel variance Var[W] / spp from the tables: an upper bound,
@@ -533,7 +534,7 @@ def _check_osl_matches_tracer(tables_path, name, tmp_path, hashed=False, n=24, s
     return sc, ref, inner
 
 
-@pytest.mark.parametrize("u", ["film-stratified", "hashed"])
+@pytest.mark.parametrize("u", slow_unless(["film-stratified", "hashed"], default=["film-stratified"]))
 def test_osl_matches_reference_tracer(baked, tmp_path, u):
     """The OSL back end against bake/tracer on the same scene (a sphere under a soft
     environment, box pixel filter): with camera rays' u from their position in the pixel (the
@@ -554,7 +555,7 @@ def rgl_baked(tmp_path_factory):
             for name in RGL_THREE if (rgl_dir() / f"{name}.bsdf").is_file()}
 
 
-@pytest.mark.parametrize("name", RGL_THREE)
+@pytest.mark.parametrize("name", slow_unless(RGL_THREE, default=["chm_mint_rgb"]))
 def test_rgl_sphere_under_an_environment_both_back_ends(rgl_baked, name, tmp_path):
     """Shared RGL materials (diffuse paper, glossy paint, sharp lacquer) on a sphere under a soft
     environment: the OSL back end matches the reference tracer within MC error; the fit back
@@ -592,8 +593,9 @@ def _tilted_plane_furnace(path, n, spp, seeds, pixel_filter, width, hashed=False
     return cs.render_seeds(sc, seeds)
 
 
-@pytest.mark.parametrize("pixel_filter,width,max_ratio", [("BOX", 1.0, 0.2), ("BLACKMAN_HARRIS", 1.5, 0.35),
-                                                         ("GAUSSIAN", 1.5, 0.35), ("BLACKMAN_HARRIS", 0.5, 0.2)])
+@pytest.mark.parametrize("pixel_filter,width,max_ratio", slow_unless(
+    [("BOX", 1.0, 0.2), ("BLACKMAN_HARRIS", 1.5, 0.35), ("GAUSSIAN", 1.5, 0.35), ("BLACKMAN_HARRIS", 0.5, 0.2)],
+    default=[("BLACKMAN_HARRIS", 1.5, 0.35)], unpack=True))
 def test_film_stratified_u_is_unbiased_and_cuts_noise(baked, pixel_filter, width, max_ratio):
     """Camera rays take u from their position in the pixel (placed by Cycles' stratified
     sequence through the pixel filter), Cranley-Patterson rotated per pixel (box up to 1 px)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import cycles_scenes as cs
+from conftest import slow_unless
 from bake.ideal import IdealSampler
 from bake.materials import open_material
 from bake.tabulate import build_tables
@@ -102,7 +103,12 @@ LAMPS = {
 }
 
 
-@pytest.mark.parametrize("name", sorted(LAMPS))
+# the default suite: every lamp type and shape once, MIS on and off, spread and colour; the rest with -m slow
+DEFAULT_LAMPS = ["point", "point-sphere", "spot-blend", "sun-angle", "sun-angle-no-mis", "area-rect-coloured",
+                 "area-ellipse-spread", "area-disk-no-mis"]
+
+
+@pytest.mark.parametrize("name", slow_unless(sorted(LAMPS), default=DEFAULT_LAMPS))
 def test_learned_lambertian_is_diffuse_bsdf_under_each_lamp(lambert, name):
     """The area lamps face the floor and are visible to camera rays and MIS: Cycles' continued
     portal ray would add them again at full weight (measured: 2.87 against 1.44) unless the
@@ -234,7 +240,7 @@ def test_sun_image_fits_the_rendered_disc(tmp_path):
                                                              sky[sky.sum(-1) < 2 * np.median(sky.sum(-1))])
 
 
-@pytest.mark.parametrize("interpolation", ["Linear", "Closest"])
+@pytest.mark.parametrize("interpolation", slow_unless(["Linear", "Closest"], default=["Linear"]))
 def test_hdri_sun_by_next_event_estimation(lambert, tmp_path, interpolation):
     """An Environment Texture world with a tiny, very bright sun (2 x 2 texels): the shader reads
     the image itself and lights the material by next-event estimation with MIS (the image a

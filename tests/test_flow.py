@@ -10,7 +10,7 @@ import pytest
 
 from bake import flow as F
 from bake.errors import FlowBSDFError
-from conftest import TINY_TRAIN_TOML, write_npz
+from conftest import TINY_TRAIN_TOML, slow_unless, write_npz
 
 trainer = pytest.importorskip("trainer")   # sets OMP_WAIT_POLICY before torch loads
 torch = pytest.importorskip("torch")
@@ -372,7 +372,7 @@ def test_bad_model_files_raise_flowbsdf_error(tmp_path):
         F.load_model(tmp_path / "torch.pt")
 
 
-@pytest.mark.parametrize("domain", ["disk", "slope"])
+@pytest.mark.parametrize("domain", slow_unless(["disk", "slope"], default=["slope"]))
 def test_defensive_mixture_keeps_sample_pdf_and_invert_consistent(domain, tmp_path):
     """eps of the samples uniform over the hemisphere, the rest from the flow; one density for
     both, invert() gives the flow component's u, and a version-1 file is the bare flow."""
@@ -465,7 +465,7 @@ def _hemisphere_integral(model, wi, n_z=100, n_phi=100):
     return np.sum(pdf * 2 * V) / n_z * 2 * np.pi / n_phi
 
 
-@pytest.mark.parametrize("which", ["trained_disk", "trained_spherical", "trained_slope"])
+@pytest.mark.parametrize("which", slow_unless(["trained_disk", "trained_spherical", "trained_slope"], default=["trained_disk"]))
 def test_trained_pdf_integrates_to_one(which, request):
     """pdf() integrates to the share of samples that sample() keeps (1 but for half-vector maps)."""
     src, tr, model = request.getfixturevalue(which)
