@@ -6,8 +6,8 @@ texture the shaders sample: an Environment Texture world straight from its image
 rendering it with Cycles (a temporary scene holding only a panoramic camera, so nothing
 occludes the world). A Sky Texture's sun disc gets techniques of its own (`sun_of`): the SVM
 graph draws portal directions in its cone; the OSL shader lights it by next-event estimation
-with the disc's radiance image (`render_sun`, a smooth fit: `sun_model`), and the map has the
-disc painted out (`without_sun`). The textures are named after the world's state (`world_key`):
+with the disc's radiance fitted to a render of it (`bake_sun`: Cycles' own law, exact to 1e-4),
+and the map has the disc painted out (`without_sun`). The textures are named after the world's state (`world_key`):
 its node tree, their values and images, and the frame when the world is animated; an
 unchanged world reuses its file.
 
@@ -17,6 +17,7 @@ renders (a render cannot start another one): when a material is bound, when a fi
 shortly after the world changes (`schedule`), and before a render only if it is missing.
 """
 import hashlib
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -29,9 +30,9 @@ WIDTH, HEIGHT, SPP = 1024, 512, 16
 SHARE = 0.5
 SUN_SHARE, SUN_MAP_SHARE = 0.3, 0.2     # with a sun: its disc, and the map for the sky
 FLAT = 1.5          # the map's peak pdf over a uniform sphere's, below which the world is "flat"
-# The sun disc's radiance image (OSL's next-event estimation of a Sky Texture's sun): pixels a
-# side, samples per pixel, and its half width over the disc's.
-SUN_RES, SUN_SPP, SUN_MARGIN = 64, 64, 1.25
+# The image of the sun disc its radiance is fitted to (OSL's next-event estimation of a Sky
+# Texture's sun): pixels a side, samples per pixel, and its half width over the disc's.
+SUN_RES, SUN_SPP, SUN_MARGIN = 64, 4, 1.25
 
 
 _LAYOUT_PROPS = {"rna_type", "location", "location_absolute", "width", "height", "select", "dimensions",
@@ -102,19 +103,23 @@ def sun_of(scene):
     return None
 
 
-def shader_inputs(path, meta, sun, env=None, sun_image=None):
+def shader_inputs(path, meta, sun, env=None, sun_radiance=None):
     """The shaders' world inputs for a map (path, its metadata or None), a sun (sun_of), an
-    image world the OSL shader can read exactly (exact_environment) and the sun's radiance
-    image (render_sun: OSL samples the sun by next-event estimation)."""
+    image world the OSL shader can read exactly (exact_environment) and the sun disc's radiance
+    (sun_fit's: OSL samples the sun by next-event estimation)."""
     flat = meta is None or meta.get("peak", 0.0) <= FLAT
     inputs = {"World": str(path) if meta else "", "WorldShare": 0.0 if flat else SHARE,
-              "SunDirection": (0.0, 0.0, 1.0), "SunCos": 1.0, "SunShare": 0.0,
-              "EnvImage": "", "EnvStrength": 0.0, "EnvLinear": 1, "SunImage": "", "SunTan": 0.0}
+              "SunDirection": (0.0, 0.0, 1.0), "SunCos": 1.0, "SunAngle": 0.0, "SunShare": 0.0,
+              "EnvImage": "", "EnvStrength": 0.0, "EnvLinear": 1,
+              "SunNEE": 0, "SunSky": (0.0, 0.0, 0.0, 1.0), "SunBase": (0.0, 0.0, 0.0, 1.0),
+              "SunRise": (0.0, 0.0, 0.0, 1.0)}
     if sun is not None:
-        inputs.update(SunDirection=sun[0], SunCos=sun[1], SunShare=SUN_SHARE,
+        inputs.update(SunDirection=sun[0], SunCos=sun[1], SunAngle=math.acos(sun[1]), SunShare=SUN_SHARE,
                       WorldShare=0.0 if flat else SUN_MAP_SHARE)
-        if sun_image is not None and Path(sun_image).is_file():
-            inputs.update(SunImage=str(sun_image), SunTan=sun_tan(sun[1]))
+        if sun_radiance is not None:
+            # (colour sockets are RGBA)
+            inputs.update(SunNEE=1, **{key: (*sun_radiance[name], 1.0) for key, name in
+                                       (("SunSky", "sky"), ("SunBase", "base"), ("SunRise", "rise"))})
     if env is not None and meta is not None and not flat:
         inputs.update(EnvImage=env[0], EnvStrength=env[1], EnvLinear=env[2])
     return inputs
@@ -147,17 +152,22 @@ def map_path(folder, key):
 
 
 def sun_path(folder, key):
-    return Path(folder) / f"world-{key[:16]}.sun.exr"
+    return Path(folder) / f"world-{key[:16]}.sun.json"
 
 
-def sun_tan(cos_half):
-    """The sun image's half width in the tangent plane: SUN_MARGIN times the disc's."""
-    import math
-    return SUN_MARGIN * math.tan(math.acos(cos_half))
+def read_sun(path):
+    """The sun disc's radiance fit (sun_fit) saved at path, None when missing or unreadable."""
+    import json
+    try:
+        fit = json.loads(Path(path).read_text())
+        return fit if all(len(fit.get(k, ())) == 3 for k in ("sky", "base", "rise")) else None
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 def sun_frame(direction):
-    """The sun image's (x, y) axes (world space), as the OSL shader's sun_frame (world.h)."""
+    """(x, y) axes (world space) of the sun's image (render_sun): x horizontal unless the sun is
+    near the zenith."""
     import numpy as np
     d = np.asarray(direction, float)
     x = np.cross(d, (0.0, 0.0, 1.0) if abs(d[2]) < 0.999 else (0.0, 1.0, 0.0))
@@ -165,12 +175,11 @@ def sun_frame(direction):
     return x, np.cross(x, d)
 
 
-def render_sun(scene, sun, path, res=SUN_RES, spp=SUN_SPP, fit=True):
-    """Render the world around its sun (sun_of) into `path`: a perspective camera at the origin
-    looking at the sun, sun_frame's x to the right and y up, half width sun_tan (an OpenEXR
-    whose first row is the top, as OSL's texture() reads it); with `fit`, the disc replaced by
-    its smooth fit (sun_model)."""
-    import math
+def render_sun(scene, sun, path, res=SUN_RES, spp=SUN_SPP):
+    """Render the world around its sun (sun_of) into the OpenEXR `path`: a perspective camera at
+    the origin looking at the sun, sun_frame's x to the right and y up, SUN_MARGIN times the
+    disc's radius either side, every sample at its pixel's centre. Returns the pixels (rows from
+    the top, RGB)."""
     from mathutils import Matrix
     x, y = sun_frame(sun[0])
     z = [-c for c in sun[0]]                # a camera looks along its -Z
@@ -184,7 +193,7 @@ def render_sun(scene, sun, path, res=SUN_RES, spp=SUN_SPP, fit=True):
         tmp.camera = cam
         cam_data.type = 'PERSP'
         cam_data.sensor_fit = 'HORIZONTAL'
-        cam_data.angle = 2.0 * math.atan(sun_tan(sun[1]))
+        cam_data.angle = 2.0 * math.atan(SUN_MARGIN * math.tan(math.acos(sun[1])))
         cam_data.clip_start = 1e-3
         cam.matrix_world = Matrix(((x[0], y[0], z[0], 0.0), (x[1], y[1], z[1], 0.0),
                                    (x[2], y[2], z[2], 0.0), (0.0, 0.0, 0.0, 1.0)))
@@ -199,19 +208,16 @@ def render_sun(scene, sun, path, res=SUN_RES, spp=SUN_SPP, fit=True):
         tmp.cycles.samples = spp
         tmp.cycles.use_adaptive_sampling = False
         tmp.cycles.use_denoising = False
-        tmp.cycles.pixel_filter_type = 'BOX'
+        # every sample at the pixel's centre: the radiance there, exactly (Cycles' box filter is
+        # one pixel wide whatever its width)
+        tmp.cycles.pixel_filter_type = 'GAUSSIAN'
+        tmp.cycles.filter_width = 0.01
         tmp.view_settings.view_transform = 'Standard'
         bpy.ops.render.render(write_still=True, scene=tmp.name)
-        if not fit:
-            return
         image = bpy.data.images.load(str(path))
         try:
             import numpy as np
-            px = np.array(image.pixels[:], np.float32).reshape(res, res, image.channels)[::-1, :, :3]
-            image.pixels.foreach_set(np.dstack([sun_model(px, sun), np.ones((res, res))])[::-1].astype(np.float32).ravel())
-            image.filepath_raw = str(path)
-            image.file_format = 'OPEN_EXR'
-            image.save()
+            return np.array(image.pixels[:], np.float32).reshape(res, res, image.channels)[::-1, :, :3]
         finally:
             bpy.data.images.remove(image)
     finally:
@@ -220,38 +226,65 @@ def render_sun(scene, sun, path, res=SUN_RES, spp=SUN_SPP, fit=True):
         bpy.data.cameras.remove(cam_data)
 
 
-def _sun_pixels(res, sun):
-    """Per pixel of the sun image (row 0 the top): its centre's angle from the sun over the
-    disc's half angle, and its height across the disc (0 the disc's bottom, 1 its top)."""
+def sun_pixels(res, sun):
+    """Per pixel of render_sun's image: its centre's angle from the sun over the disc's half
+    angle (r), and its height across the disc (h: 0 the disc's bottom, 1 its top)."""
     import numpy as np
-    t = sun_tan(sun[1])
+    t = SUN_MARGIN * math.tan(math.acos(sun[1]))
     c = (np.arange(res) + 0.5) / res * 2.0 - 1.0
     a, b = np.meshgrid(c * t, -c * t)
     x, y = sun_frame(sun[0])
     d = np.asarray(sun[0], float) + a[..., None] * x + b[..., None] * y
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    half = np.arccos(sun[1])
+    half = math.acos(sun[1])
     r = np.arccos(np.clip(d @ np.asarray(sun[0], float), -1.0, 1.0)) / half
-    height = (np.arcsin(np.clip(d[..., 2], -1, 1)) - np.arcsin(np.clip(sun[0][2], -1, 1))) / (2.0 * half) + 0.5
+    height = (np.arcsin(np.clip(d[..., 2], -1, 1)) - math.asin(sun[0][2])) / (2.0 * half) + 0.5
     return r, height
 
 
-def sun_model(px, sun):
-    """The sun image the shader reads: the rendered disc (px, rows from the top) replaced by a
-    smooth fit that holds up to the disc's edge — sky + (a + b height) x limb darkening (the
-    Sky Texture's law: 1 - 0.6 (1 - sqrt(1 - r^2))), per channel — and extended past the edge,
-    where bilinear lookups of directions just inside the disc reach (a rendered image blurs the
-    edge there: measured, a 1 % dark sphere). The sky is the ring just outside the disc."""
+def limb(r):
+    """The Sky Texture's limb darkening of its sun disc at r (angle over the half angle)."""
     import numpy as np
-    r, height = _sun_pixels(px.shape[0], sun)
-    limb = 1.0 - 0.6 * (1.0 - np.sqrt(np.clip(1.0 - r * r, 0.0, 1.0)))
-    ring, inner = (r > 1.1) & (r < 1.2), r < 0.9
-    if not ring.any() or inner.sum() < 3:
-        return px
+    return 1.0 - 0.6 * (1.0 - np.sqrt(np.clip(1.0 - r * r, 0.0, 1.0)))
+
+
+def sun_fit(px, sun):
+    """The sun disc's radiance as the OSL shader models it, fitted to render_sun's pixels (px):
+    sky + (base + rise h) limb(r) per channel — the Sky Texture's disc: a colour linear in
+    height, limb-darkened, over the sky (here the mean of a ring just outside the disc). A dict
+    of RGB lists (sky, base, rise), or None when the disc is not in the image (below the
+    horizon)."""
+    import numpy as np
+    r, height = sun_pixels(px.shape[0], sun)
+    ring, inner = (r > 1.1) & (r < 1.2), r < 0.98
     sky = px[ring].mean(0)
-    basis = np.stack([limb[inner], limb[inner] * height[inner]], -1)
+    if not ring.any() or inner.sum() < 3 or px[inner].mean() < 10.0 * max(sky.mean(), 1e-12):
+        return None
+    basis = np.stack([limb(r[inner]), limb(r[inner]) * height[inner]], -1)
     coef, *_ = np.linalg.lstsq(basis, px[inner] - sky, rcond=None)
-    return sky + (limb[..., None] * coef[0] + (limb * height)[..., None] * coef[1])
+    return {"sky": sky.tolist(), "base": coef[0].tolist(), "rise": coef[1].tolist()}
+
+
+def sun_model(fit, r, height):
+    """sun_fit's radiance at (r, height) (numpy; the shader's sun_radiance)."""
+    import numpy as np
+    return (np.asarray(fit["sky"]) + limb(r)[..., None]
+            * (np.asarray(fit["base"]) + height[..., None] * np.asarray(fit["rise"])))
+
+
+def bake_sun(scene, sun, path):
+    """sun_fit of the world's sun, rendered and saved at path (JSON); None without a disc."""
+    import json
+    fd, exr = tempfile.mkstemp(suffix=".exr", prefix="flowbsdf_sun_")
+    os.close(fd)
+    try:
+        fit = sun_fit(render_sun(scene, sun, exr), sun)
+    finally:
+        Path(exr).unlink(missing_ok=True)
+    tmp = Path(path).with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(fit))
+    os.replace(tmp, path)
+    return fit
 
 
 def render_world(scene, width=WIDTH, height=HEIGHT, spp=SPP, path=None):
@@ -394,9 +427,10 @@ def bake_world_map(scene, folder):
             meta = None
     sun = sun_of(scene)
     sun_file = sun_path(folder, key)
+    radiance = read_sun(sun_file) if sun is not None else None
     if sun is not None and not sun_file.is_file():
-        render_sun(scene, sun, sun_file)
-    return shader_inputs(path, meta, sun, exact_environment(scene), sun_file)
+        radiance = bake_sun(scene, sun, sun_file)
+    return shader_inputs(path, meta, sun, exact_environment(scene), radiance)
 
 
 def current_inputs(scene, folder):
@@ -408,4 +442,4 @@ def current_inputs(scene, folder):
     path = map_path(folder, key) if key else None
     meta = world_map.read_world_meta(path) if path is not None and world_map is not None else None
     return shader_inputs(path, meta, sun_of(scene) if key else None, exact_environment(scene) if key else None,
-                         sun_path(folder, key) if key else None)
+                         read_sun(sun_path(folder, key)) if key else None)

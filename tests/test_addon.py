@@ -656,6 +656,7 @@ def test_validate_reference_vs_cycles(addon, tmp_path):
     assert 'manifest = "red"' in text and 'albedo = [0.8, 0.8, 0.8]' in text
 
 
+@pytest.mark.slow
 def test_validate_compares_like_with_like_under_a_sky_and_a_lamp(addon, tmp_path):
     """A Sky Texture world (rendered to an image for the reference) and an area lamp (exported
     with Cycles' radiometry): the OSL back end lights the material with both, the reference

@@ -77,8 +77,8 @@ def test_phi_blend_is_periodic(baked, name):
         np.testing.assert_allclose(turned, tab.pdf(incident(61.0, phi), rotate_z(wo, phi)), rtol=1e-9)
 
 
-@pytest.mark.parametrize("name", NAMES)
-@pytest.mark.parametrize("theta,phi", slow_unless(CHI2_WIS, default=[(57.3, 100.0)], unpack=True))
+@pytest.mark.parametrize("name,theta,phi", slow_unless([(n, t, p) for n in NAMES for t, p in CHI2_WIS],
+                                                   default=[("aniso_1to50_rotated", 57.3, 100.0)], unpack=True))
 def test_chi2_between_bins(baked, name, theta, phi):
     r = chi2_test(baked[name][2], incident(theta, math.radians(phi)), n=100_000, n_tests=N_CHI2, seed=11)
     assert r.passed, (name, theta, phi, r)
@@ -116,6 +116,7 @@ def test_file_round_trip(baked, tmp_path):
     np.testing.assert_array_equal(back.sample(wi, u)[0], tab.sample(wi, u)[0])
 
 
+@pytest.mark.slow
 def test_bake_an_anisotropic_manifest_entry(tmp_path):
     """flowbsdf bake bakes it (no more "[skip] anisotropic"), with its OSL texture (the
     layout has phi bins) and closure fit; a second run finds it current."""

@@ -8,7 +8,7 @@ seeded random moments; after every kill
     never interrupted (training resumes from its checkpoints bit for bit);
   - stale tables (material or model changed) are detected and rebuilt, never used.
 
-Default run: 3 kills of each (small settings, ~30 s); the `slow` variants do 20 of each.
+Default run: 2 kills of each (small settings, ~30 s); the `slow` variants do 20 of each.
 Debris: a killed bake can leave its `.<name>.exr.*.tmp` temporary file behind (never opened;
 it is reported here, see test_kill_debris_is_never_opened).
 """
@@ -111,7 +111,7 @@ def bake_kills(tmp_path, kills, seed):
 
 
 def test_bake_killed_at_random_moments(tmp_path):
-    out, manifest, debris = bake_kills(tmp_path, kills=3, seed=8)
+    out, manifest, debris = bake_kills(tmp_path, kills=2, seed=8)
     # stale inputs are detected and rebuilt: the material changed, then a model appeared
     changed = bake_manifest_file(tmp_path, alpha=0.25)
     m = load_manifest(changed)
@@ -204,7 +204,7 @@ def train_kills(tmp_path, kills, seed):
 
 
 def test_training_killed_at_random_moments(tmp_path):
-    train_kills(tmp_path, kills=3, seed=4)
+    train_kills(tmp_path, kills=2, seed=4)
 
 
 @pytest.mark.slow

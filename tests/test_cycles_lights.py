@@ -104,8 +104,7 @@ LAMPS = {
 
 
 # the default suite: every lamp type and shape once, MIS on and off, spread and colour; the rest with -m slow
-DEFAULT_LAMPS = ["point", "point-sphere", "spot-blend", "sun-angle", "sun-angle-no-mis", "area-rect-coloured",
-                 "area-ellipse-spread", "area-disk-no-mis"]
+DEFAULT_LAMPS = ["point", "point-sphere", "spot-blend", "sun-angle-no-mis", "area-rect-coloured", "area-ellipse-spread"]
 
 
 @pytest.mark.parametrize("name", slow_unless(sorted(LAMPS), default=DEFAULT_LAMPS))
@@ -191,9 +190,9 @@ def test_sky_sun_direction_is_where_the_world_map_is_brightest(lambert, rotation
 
 def test_sun_in_a_sky_without_fireflies(lambert):
     """A learned Lambertian sphere under a Sky Texture with its sun: the image is Cycles' Diffuse
-    BSDF's within MC error, and next-event estimation of the sun (its radiance image as a
+    BSDF's within MC error, and next-event estimation of the sun (its fitted radiance a
     control variate, MIS with the portal) keeps the noise at Cycles' own light sampling's
-    (measured at 64 spp, 16^2: per-pixel variance 0.94x Diffuse's; the sun drawn through the
+    (measured at 64 spp, 16^2: per-pixel variance 0.59x Diffuse's; the sun drawn through the
     portal instead, 21x; the tables alone, 16760x at 24^2)."""
     sc = cs.reset(N, N, spp=SPP)
     cs.ortho_camera(sc, scale=2.2)
@@ -202,7 +201,7 @@ def test_sun_in_a_sky_without_fireflies(lambert):
     lb.assign_learned_bsdf(learned, "lambert", lambert)
     sphere = cs.add_sphere(sc, learned, segments=64, rings=32)
     script = bpy.data.node_groups["Learned BSDF: lambert"].nodes[lb.SCRIPT]
-    assert Path(script.inputs["SunImage"].default_value).is_file() and script.inputs["SunTan"].default_value > 0
+    assert script.inputs["SunNEE"].default_value == 1 and max(script.inputs["SunBase"].default_value) > 0
     assert script.inputs["WorldShare"].default_value > 0
     mine, diffuse = _renders(sc, sphere, learned), _renders(sc, sphere, cs.material_with(_diffuse, "diffuse"))
     _assert_same(mine, diffuse)
@@ -210,34 +209,34 @@ def test_sun_in_a_sky_without_fireflies(lambert):
     assert mine.max() < 3 * diffuse.max()
 
 
-def _read_rgb(path):
-    import OpenEXR
-    with OpenEXR.File(str(path)) as f:
-        channels = f.parts[0].channels
-        return channels["RGBA"].pixels[..., :3] if "RGBA" in channels else channels["RGB"].pixels
-
-
-def test_sun_image_fits_the_rendered_disc(tmp_path):
-    """world.sun_model's smooth disc (what the shader reads as the sun's radiance) is the
-    rendered disc to 1 % inside it, and the sky around it; world.without_sun paints the disc
-    out of the world map, leaving the sky."""
+@pytest.mark.parametrize("elevation,rotation", [(0.4, -2.2), (0.05, 1.0)])
+def test_sun_fit_is_the_rendered_disc(tmp_path, elevation, rotation):
+    """world.sun_fit's disc (what the shader takes as the sun's radiance) is Cycles' to 1e-3 of
+    its centre at 99.5 % of the disc's pixels (measured 1e-4 typical); outside it there is sky
+    only; world.without_sun paints the disc out of the
+    world map, leaving the sky."""
     from blender_addon import world
     sc = cs.reset(8, 8, spp=1)
-    _sky_world(sc, elevation=0.4, rotation=-2.2)
+    _sky_world(sc, elevation=elevation, rotation=rotation)
     sun = world.sun_of(sc)
-    raw_path, path = tmp_path / "raw.exr", tmp_path / "sun.exr"
-    world.render_sun(sc, sun, raw_path, fit=False)
-    world.render_sun(sc, sun, path)
-    raw, model = _read_rgb(raw_path), _read_rgb(path)
-    r, height = world._sun_pixels(raw.shape[0], sun)
-    inner, ring = r < 0.9, (r > 1.1) & (r < 1.2)
-    assert raw[inner].mean() > 100 * raw[ring].mean()        # the disc is there, centred
-    np.testing.assert_allclose(model[inner], raw[inner], rtol=0.01)
-    assert np.all(model[r > 1.0] > raw[ring].mean(0))        # extended past the edge: the disc's rim, not sky
-    sky = world.render_world(sc, 256, 128, 16)
-    painted = world.without_sun(sky, sun)
-    assert painted.max() < 1e-2 * sky.max() and np.array_equal(painted[sky.sum(-1) < 2 * np.median(sky.sum(-1))],
-                                                             sky[sky.sum(-1) < 2 * np.median(sky.sum(-1))])
+    raw = world.render_sun(sc, sun, tmp_path / "raw.exr")
+    fit = world.sun_fit(raw, sun)
+    r, height = world.sun_pixels(raw.shape[0], sun)
+    disc, sky = r < 0.999, r > 1.001
+    centre = raw[r < 0.05].mean(0)
+    assert np.all(raw[sky] < 1e-3 * centre)                     # the disc is there, centred, sharp
+    error = np.abs(world.sun_model(fit, r, height) - raw).max(-1)[disc] / centre.max()
+    # a few rendered pixels are off their neighbours by up to 1 % (Cycles' samples not quite at
+    # the centre), where the fit runs on smoothly
+    assert np.mean(error < 1e-3) > 0.995 and error.max() < 2e-2, (np.mean(error < 1e-3), error.max())
+    fit_path = tmp_path / "sun.json"
+    baked = world.bake_sun(sc, sun, fit_path)
+    for key in ("sky", "base", "rise"):
+        assert baked[key] == pytest.approx(fit[key], rel=1e-6) and world.read_sun(fit_path)[key] == baked[key]
+    full = world.render_world(sc, 256, 128, 16)
+    painted = world.without_sun(full, sun)
+    plain = full.sum(-1) < 2 * np.median(full.sum(-1))
+    assert painted.max() < 1e-2 * full.max() and np.array_equal(painted[plain], full[plain])
 
 
 @pytest.mark.parametrize("interpolation", slow_unless(["Linear", "Closest"], default=["Linear"]))

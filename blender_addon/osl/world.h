@@ -75,23 +75,14 @@ float pdf_world(WorldMap m, vector dir)
     return fetch1(m.file, m.Wt, m.Ht, col, m.rpdf + row);
 }
 
-// The frame of a sun's radiance image (world.render_sun: a perspective camera looking at the
-// sun, x to the right, y up): x horizontal unless the sun is near the zenith.
-void sun_frame(vector sun, output vector x, output vector y)
+// A Sky Texture's sun disc's radiance toward dir (within the disc of half angle `half` around
+// sun), as the node fitted it to Cycles' render (blender_addon/world.sun_fit): the sky plus a
+// colour linear in the height across the disc, limb-darkened. The angle by its sine (float
+// keeps it for a tiny disc).
+color sun_radiance(vector sun, float half, color sky, color base, color rise, vector dir)
 {
-    x = normalize(cross(sun, (abs(sun[2]) < 0.999) ? vector(0, 0, 1) : vector(0, 1, 0)));
-    y = cross(x, sun);
-}
-
-// The sun image's radiance toward dir (near the sun): the image spans tan_half either side of
-// the sun's axis in the tangent plane.
-color sun_radiance(string image, vector sun, float tan_half, vector dir)
-{
-    vector x, y;
-    sun_frame(sun, x, y);
-    float c = dot(dir, sun) * tan_half;
-    // Zero derivatives: the same radiance wherever dir came from (filtered by dir's derivatives,
-    // the next-event and the portal terms read differently blurred images: they no longer cancel).
-    return texture(image, 0.5 + 0.5 * dot(dir, x) / c, 0.5 - 0.5 * dot(dir, y) / c, 0, 0, 0, 0,
-                   "interp", "linear", "wrap", "clamp");
+    float r = asin(min(length(cross(dir, sun)), 1.0)) / half;
+    float h = (asin(clamp(dir[2], -1.0, 1.0)) - asin(clamp(sun[2], -1.0, 1.0))) / (2.0 * half) + 0.5;
+    float limb = 1.0 - 0.6 * (1.0 - sqrt(max(1.0 - r * r, 0.0)));
+    return sky + (base + rise * h) * limb;
 }
