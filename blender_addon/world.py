@@ -413,9 +413,10 @@ def bake_world_map(scene, folder):
     world_map = node._bake_mod("world_map")
     if key is None or world_map is None:
         return shader_inputs(None, None, None)
-    path = map_path(folder, key)
+    path, sky_file = map_path(folder, key), sky_path(folder, key)
     meta = world_map.read_world_meta(path)
-    if meta is None:
+    exact = exact_environment(scene)
+    if meta is None or (exact is None and not sky_file.is_file()):
         try:
             radiance = image_radiance(scene)
             if radiance is None:
@@ -423,6 +424,8 @@ def bake_world_map(scene, folder):
             wm = world_map.WorldMap(radiance)
             meta = {"key": key, "peak": wm.peak}
             world_map.write_world_texture(path, wm, meta)
+            if exact is None:
+                write_sky(sky_file, radiance)
         except world_map.FlowBSDFError:         # black world: nothing to sample
             meta = None
     sun = sun_of(scene)
@@ -430,7 +433,30 @@ def bake_world_map(scene, folder):
     radiance = read_sun(sun_file) if sun is not None else None
     if sun is not None and not sun_file.is_file():
         radiance = bake_sun(scene, sun, sun_file)
-    return shader_inputs(path, meta, sun, exact_environment(scene), radiance)
+    return shader_inputs(path, meta, sun, _environment(exact, sky_file), radiance)
+
+
+def sky_path(folder, key):
+    return Path(folder) / f"world-{key[:16]}.sky.exr"
+
+
+def write_sky(path, radiance):
+    """The map's radiance (rows from the zenith) as the float image the OSL shader reads."""
+    import numpy as np
+    from . import node
+    rgba = np.concatenate([radiance, np.ones(radiance.shape[:2] + (1,))], -1).astype(np.float32)
+    node._bake_mod("exrio").write_rgba_exr(path, rgba, "flowbsdf", {"sky": True})
+
+
+def _environment(exact, sky_file):
+    """What the OSL shader reads as the world's radiance for its next-event estimation: the
+    world's own image (exact_environment), else the map's radiance (sky_path: the world as
+    rendered, the sun painted out; at the map's resolution, read Closest). The shader uses it
+    as a control variate (Cycles adds the true world), so an approximate image costs noise,
+    never bias."""
+    if exact is not None:
+        return exact
+    return (str(sky_file), 1.0, 0) if sky_file.is_file() else None
 
 
 def current_inputs(scene, folder):
@@ -441,5 +467,6 @@ def current_inputs(scene, folder):
     world_map = node._bake_mod("world_map")
     path = map_path(folder, key) if key else None
     meta = world_map.read_world_meta(path) if path is not None and world_map is not None else None
-    return shader_inputs(path, meta, sun_of(scene) if key else None, exact_environment(scene) if key else None,
+    env = _environment(exact_environment(scene), sky_path(folder, key)) if key else None
+    return shader_inputs(path, meta, sun_of(scene) if key else None, env,
                          read_sun(sun_path(folder, key)) if key else None)

@@ -480,7 +480,7 @@ def test_trained_pdf_integrates_to_one(which, request):
         assert abs(total - kept) < 0.005, (deg, total, kept)
 
 
-@pytest.mark.parametrize("which", ["trained_disk", "trained_spherical", "trained_slope"])
+@pytest.mark.parametrize("which", slow_unless(["trained_disk", "trained_spherical", "trained_slope"], default=["trained_disk"]))
 def test_trained_model_does_not_fold_and_is_exact(which, request):
     src, tr, model = request.getfixturevalue(which)
     u = np.random.default_rng(7).random((8000, 2))
@@ -518,6 +518,7 @@ def test_spherical_lobe_across_phi_pi(trained_spherical):
     assert abs(p[0] / p[1] - 1) < 1e-4
 
 
+@pytest.mark.slow
 def test_sharp_lobe_flows_get_a_defensive_share(tmp_path):
     """rv measured honestly, E_p[p/q] - 1 with wo drawn from the exact lobe (GGX alpha 0.05),
     of tiny disk and slope flows: the bare flows leave parts of the lobe all but uncovered (the

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 import cycles_scenes as cs
+from conftest import slow_unless
 from bake.baselines import CosineSampler
 from bake.materials import open_material
 from bake.metrics import chi2_test
@@ -214,7 +215,12 @@ CASES = {
 }
 
 
-@pytest.mark.parametrize("case", CASES)
+# the default run: each lamp kind, shape, spread, scale and colour option once; the rest with -m slow
+SLOW_CASES = {"point r>0 sphere, seen, ball", "sun angle 0, ball", "sun angle 40, normalize off", "area square",
+              "area rectangle, non-uniform scale", "area disk", "area ellipse"}
+
+
+@pytest.mark.parametrize("case", slow_unless(list(CASES), default=[c for c in CASES if c not in SLOW_CASES]))
 def test_lamp_matches_cycles(case):
     (blender, entry), *ball = CASES[case]
     z, ratio, se, cyc, ref = compare([blender], [entry], sphere=bool(ball))
