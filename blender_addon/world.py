@@ -175,55 +175,23 @@ def sun_frame(direction):
     return x, np.cross(x, d)
 
 
-def render_sun(scene, sun, path, res=SUN_RES, spp=SUN_SPP):
-    """Render the world around its sun (sun_of) into the OpenEXR `path`: a perspective camera at
-    the origin looking at the sun, sun_frame's x to the right and y up, SUN_MARGIN times the
-    disc's radius either side, every sample at its pixel's centre. Returns the pixels (rows from
-    the top, RGB)."""
+def render_sun(scene, sun, path=None, res=SUN_RES, spp=SUN_SPP):
+    """The world around its sun (sun_of), res x res (rows from the top, RGB): a perspective
+    camera at the origin looking at the sun, sun_frame's x to the right and y up, SUN_MARGIN
+    times the disc's radius either side, every sample at its pixel's centre (kept in the
+    OpenEXR `path` when given)."""
     from mathutils import Matrix
     x, y = sun_frame(sun[0])
     z = [-c for c in sun[0]]                # a camera looks along its -Z
-    tmp = bpy.data.scenes.new("FlowBSDF sun")
-    cam_data = bpy.data.cameras.new("FlowBSDF sun")
-    cam = bpy.data.objects.new("FlowBSDF sun", cam_data)
-    try:
-        tmp.world = scene.world
-        tmp.frame_current = scene.frame_current
-        tmp.collection.objects.link(cam)
-        tmp.camera = cam
+
+    def perspective(cam_data, cam):
         cam_data.type = 'PERSP'
         cam_data.sensor_fit = 'HORIZONTAL'
         cam_data.angle = 2.0 * math.atan(SUN_MARGIN * math.tan(math.acos(sun[1])))
         cam_data.clip_start = 1e-3
         cam.matrix_world = Matrix(((x[0], y[0], z[0], 0.0), (x[1], y[1], z[1], 0.0),
                                    (x[2], y[2], z[2], 0.0), (0.0, 0.0, 0.0, 1.0)))
-        r = tmp.render
-        r.engine = 'CYCLES'
-        r.resolution_x = r.resolution_y = res
-        r.resolution_percentage = 100
-        r.image_settings.file_format = 'OPEN_EXR'
-        r.image_settings.color_depth = '32'
-        r.filepath = str(path)
-        tmp.cycles.device = 'CPU'
-        tmp.cycles.samples = spp
-        tmp.cycles.use_adaptive_sampling = False
-        tmp.cycles.use_denoising = False
-        # every sample at the pixel's centre: the radiance there, exactly (Cycles' box filter is
-        # one pixel wide whatever its width)
-        tmp.cycles.pixel_filter_type = 'GAUSSIAN'
-        tmp.cycles.filter_width = 0.01
-        tmp.view_settings.view_transform = 'Standard'
-        bpy.ops.render.render(write_still=True, scene=tmp.name)
-        image = bpy.data.images.load(str(path))
-        try:
-            import numpy as np
-            return np.array(image.pixels[:], np.float32).reshape(res, res, image.channels)[::-1, :, :3]
-        finally:
-            bpy.data.images.remove(image)
-    finally:
-        bpy.data.scenes.remove(tmp)
-        bpy.data.objects.remove(cam)
-        bpy.data.cameras.remove(cam_data)
+    return _render_world_view(scene, perspective, res, res, spp, path, at_centres=True)
 
 
 def sun_pixels(res, sun):
@@ -275,15 +243,10 @@ def sun_model(fit, r, height):
 def bake_sun(scene, sun, path):
     """sun_fit of the world's sun, rendered and saved at path (JSON); None without a disc."""
     import json
-    fd, exr = tempfile.mkstemp(suffix=".exr", prefix="flowbsdf_sun_")
-    os.close(fd)
-    try:
-        fit = sun_fit(render_sun(scene, sun, exr), sun)
-    finally:
-        Path(exr).unlink(missing_ok=True)
-    tmp = Path(path).with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(fit))
-    os.replace(tmp, path)
+    from . import node
+    fit = sun_fit(render_sun(scene, sun), sun)
+    with node._bake_mod("files").atomic_path(path) as tmp:
+        Path(tmp).write_text(json.dumps(fit))
     return fit
 
 
@@ -291,9 +254,25 @@ def render_world(scene, width=WIDTH, height=HEIGHT, spp=SPP, path=None):
     """The scene's world as an equirectangular radiance image (height, width, 3), row 0 the
     zenith, column u = 0.5 - atan2(y, x) / 2 pi (bake/world_map.py); with `path`, the 32-bit
     OpenEXR Cycles wrote is kept there too (the reference tracer reads it as its environment)."""
-    tmp = bpy.data.scenes.new("FlowBSDF world map")
-    cam_data = bpy.data.cameras.new("FlowBSDF world map")
-    cam = bpy.data.objects.new("FlowBSDF world map", cam_data)
+    def equirectangular(cam_data, cam):
+        cam_data.type = 'PANO'
+        if hasattr(cam_data, "panorama_type"):
+            cam_data.panorama_type = 'EQUIRECTANGULAR'
+        else:                                   # Blender < 4.0
+            cam_data.cycles.panorama_type = 'EQUIRECTANGULAR'
+        cam.rotation_euler = (1.5707963267948966, 0.0, -1.5707963267948966)   # measured: Blender's convention
+    return _render_world_view(scene, equirectangular, width, height, spp, path)
+
+
+def _render_world_view(scene, set_camera, width, height, spp, path=None, at_centres=False):
+    """Render the scene's world alone (a temporary scene holding only a camera, which
+    set_camera(camera data, camera object) sets up) with Cycles on the CPU: the pixels (height,
+    width, 3), row 0 the top; the 32-bit OpenEXR kept at `path` when given. A one-pixel box
+    filter, or with at_centres every sample at its pixel's centre (a Gaussian of width 0.01:
+    Cycles' box is one pixel wide whatever its width)."""
+    tmp = bpy.data.scenes.new("FlowBSDF world")
+    cam_data = bpy.data.cameras.new("FlowBSDF world")
+    cam = bpy.data.objects.new("FlowBSDF world", cam_data)
     if path is None:
         fd, out = tempfile.mkstemp(suffix=".exr", prefix="flowbsdf_world_")
         os.close(fd)
@@ -304,12 +283,7 @@ def render_world(scene, width=WIDTH, height=HEIGHT, spp=SPP, path=None):
         tmp.frame_current = scene.frame_current
         tmp.collection.objects.link(cam)
         tmp.camera = cam
-        cam_data.type = 'PANO'
-        if hasattr(cam_data, "panorama_type"):
-            cam_data.panorama_type = 'EQUIRECTANGULAR'
-        else:                                   # Blender < 4.0
-            cam_data.cycles.panorama_type = 'EQUIRECTANGULAR'
-        cam.rotation_euler = (1.5707963267948966, 0.0, -1.5707963267948966)   # measured: Blender's convention
+        set_camera(cam_data, cam)
         r = tmp.render
         r.engine = 'CYCLES'
         r.resolution_x, r.resolution_y, r.resolution_percentage = width, height, 100
@@ -320,7 +294,9 @@ def render_world(scene, width=WIDTH, height=HEIGHT, spp=SPP, path=None):
         tmp.cycles.samples = spp
         tmp.cycles.use_adaptive_sampling = False
         tmp.cycles.use_denoising = False
-        tmp.cycles.pixel_filter_type = 'BOX'
+        tmp.cycles.pixel_filter_type = 'GAUSSIAN' if at_centres else 'BOX'
+        if at_centres:
+            tmp.cycles.filter_width = 0.01
         tmp.view_settings.view_transform = 'Standard'
         bpy.ops.render.render(write_still=True, scene=tmp.name)
         image = bpy.data.images.load(out)
@@ -415,12 +391,12 @@ def bake_world_map(scene, folder):
         return shader_inputs(None, None, None)
     path, sky_file = map_path(folder, key), sky_path(folder, key)
     meta = world_map.read_world_meta(path)
-    exact = exact_environment(scene)
+    exact, sun = exact_environment(scene), sun_of(scene)
     if meta is None or (exact is None and not sky_file.is_file()):
         try:
             radiance = image_radiance(scene)
             if radiance is None:
-                radiance = without_sun(render_world(scene), sun_of(scene))
+                radiance = without_sun(render_world(scene), sun)
             wm = world_map.WorldMap(radiance)
             meta = {"key": key, "peak": wm.peak}
             world_map.write_world_texture(path, wm, meta)
@@ -428,7 +404,6 @@ def bake_world_map(scene, folder):
                 write_sky(sky_file, radiance)
         except world_map.FlowBSDFError:         # black world: nothing to sample
             meta = None
-    sun = sun_of(scene)
     sun_file = sun_path(folder, key)
     radiance = read_sun(sun_file) if sun is not None else None
     if sun is not None and not sun_file.is_file():
