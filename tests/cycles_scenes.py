@@ -317,3 +317,19 @@ def assert_furnace(got, ref, var, spp):
     rel = (got.mean(0) - ref.mean(0)) / ref.mean(0)
     sigma_mean = np.sqrt(np.sum(var / spp, axis=0)) / len(ref) / ref.mean(0)
     assert np.all(np.abs(rel) < 4 * sigma_mean + 1.5e-3), (rel, sigma_mean)
+
+
+def lambert_tables(folder, albedo=0.8):
+    """Baked tables of a Lambertian (ideal tabulation, 24 x 24 cells, 5 theta bins): the learned
+    material whose Cycles twin is a Diffuse BSDF of that albedo. Returns the .exr path."""
+    import numpy as np
+    from bake.ideal import IdealSampler
+    from bake.materials import open_material
+    from bake.tabulate import build_tables
+    mat = open_material({"kind": "analytic", "model": "lambert", "albedo": albedo})
+    tab = build_tables(mat, IdealSampler(mat, resolution=64), np.radians([0.0, 30.0, 60.0, 80.0, 89.5]),
+                       rows=24, cols=24, grid=96)
+    tab.meta["material"] = "lambert"
+    path = Path(folder) / "lambert.exr"
+    tab.save(path)
+    return path

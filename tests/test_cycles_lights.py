@@ -10,9 +10,6 @@ import pytest
 
 import cycles_scenes as cs
 from conftest import slow_unless
-from bake.ideal import IdealSampler
-from bake.materials import open_material
-from bake.tabulate import build_tables
 
 bpy = cs.bpy_or_skip()
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
@@ -24,13 +21,7 @@ N, SPP, SEEDS = 16, 64, 6
 
 @pytest.fixture(scope="module")
 def lambert(tmp_path_factory):
-    mat = open_material({"kind": "analytic", "model": "lambert", "albedo": ALBEDO})
-    tab = build_tables(mat, IdealSampler(mat, resolution=64), np.radians([0.0, 30.0, 60.0, 80.0, 89.5]),
-                       rows=24, cols=24, grid=96)
-    tab.meta["material"] = "lambert"
-    path = tmp_path_factory.mktemp("lights") / "lambert.exr"
-    tab.save(path)
-    return path
+    return cs.lambert_tables(tmp_path_factory.mktemp("lights"), ALBEDO)
 
 
 @pytest.fixture(autouse=True)

@@ -703,16 +703,7 @@ def test_svm_update_world(svm, plastic, tmp_path):
 @pytest.fixture(scope="module")
 def lambert(tmp_path_factory):
     """Tables of a Lambertian of albedo 0.8 (as tests/test_cycles_lights.py's)."""
-    from bake.ideal import IdealSampler
-    from bake.materials import open_material
-    from bake.tabulate import build_tables
-    mat = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.8})
-    tab = build_tables(mat, IdealSampler(mat, resolution=64), np.radians([0.0, 30.0, 60.0, 80.0, 89.5]),
-                       rows=24, cols=24, grid=96)
-    tab.meta["material"] = "lambert"
-    path = tmp_path_factory.mktemp("svm_lambert") / "lambert.exr"
-    tab.save(path)
-    return path
+    return cs.lambert_tables(tmp_path_factory.mktemp("svm_lambert"))
 
 
 def _sky_sphere(svm, lambert, folder, n, sun_size=None):
