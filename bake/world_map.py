@@ -36,6 +36,7 @@ from .geometry import LUMINANCE
 LAYOUT = 1
 TEXTURE_WIDTH = 1024
 GUIDES = 4096
+PIXELS_PER_GUIDE = 128      # guides for larger maps: ~7 search steps whatever the map's size
 META_KEY = "flowbsdf_world"
 
 
@@ -87,8 +88,13 @@ class WorldMap:
         s = np.sqrt(np.maximum(0.0, 1.0 - z * z))
         return np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=-1), self.pdf_pixel[row, col]
 
-    def guides(self, count=GUIDES):
+    @property
+    def guide_count(self):
+        return max(GUIDES, self.H * self.W // PIXELS_PER_GUIDE)
+
+    def guides(self, count=None):
         """(count, 2) brackets [lo, hi) of the sampled pixel index for u0 in [g, g + 1) / count."""
+        count = count or self.guide_count
         g = np.arange(count)
         n = self.H * self.W
         lo = np.clip(np.searchsorted(self.cdf, g / count, side="right") - 1, 0, n - 1)
@@ -103,16 +109,17 @@ class WorldMap:
         r_cdf = 1
         r_pdf = r_cdf + rows(n + 1)
         r_guide = r_pdf + self.H
-        height = r_guide + rows(GUIDES)
+        count = self.guide_count
+        height = r_guide + rows(count)
         img = np.zeros((height, wt, 4), np.float64)
         img[0, 0, :3] = (LAYOUT, self.W, self.H)
-        img[0, 1, :3] = (GUIDES, r_cdf, r_pdf)
+        img[0, 1, :3] = (count, r_cdf, r_pdf)
         img[0, 2, :3] = (r_guide, 0, 0)
         k = np.arange(n + 1)
         img[r_cdf + k // wt, k % wt, 0] = self.cdf
         img[r_pdf:r_pdf + self.H, :self.W, 0] = self.pdf_pixel
-        g = np.arange(GUIDES)
-        img[r_guide + g // wt, g % wt, :2] = self.guides()
+        g = np.arange(count)
+        img[r_guide + g // wt, g % wt, :2] = self.guides(count)
         return img.astype(np.float32)
 
 

@@ -41,8 +41,15 @@ float world_cdf(WorldMap m, int k)
     return fetch1(m.file, m.Wt, m.Ht, k % iw, m.rcdf + k / iw);
 }
 
-// The world-space direction for u (uniform in [0, 1)^2) and its pdf per steradian.
-void sample_world(WorldMap m, float u0, float u1, output vector dir, output float pdf)
+// The density per steradian of the map's pixel (row, col).
+float pdf_pixel(WorldMap m, int row, int col)
+{
+    return fetch1(m.file, m.Wt, m.Ht, col, m.rpdf + row);
+}
+
+// The world-space direction for u (uniform in [0, 1)^2), its pdf per steradian and its pixel.
+void sample_world(WorldMap m, float u0, float u1, output vector dir, output float pdf, output int row,
+                  output int col)
 {
     int iw = int(m.Wt);
     int g = min(int(u0 * m.G), m.G - 1);
@@ -53,7 +60,8 @@ void sample_world(WorldMap m, float u0, float u1, output vector dir, output floa
         if (world_cdf(m, mid) <= u0) lo = mid; else hi = mid;
     }
     int k = lo;
-    int row = k / m.W, col = k % m.W;
+    row = k / m.W;
+    col = k % m.W;
     float c0 = world_cdf(m, k), c1 = world_cdf(m, k + 1);
     float z0 = cos(M_PI * row / m.H), z1 = cos(M_PI * (row + 1) / m.H);
     float z = z0 + u1 * (z1 - z0);
@@ -61,18 +69,25 @@ void sample_world(WorldMap m, float u0, float u1, output vector dir, output floa
     float phi = (0.5 - (col + t) / m.W) * 2.0 * M_PI;
     float s = sqrt(max(1.0 - z * z, 0.0));
     dir = vector(s * cos(phi), s * sin(phi), z);
-    pdf = fetch1(m.file, m.Wt, m.Ht, col, m.rpdf + row);
+    pdf = pdf_pixel(m, row, col);
+}
+
+// The map pixel holding a world-space direction (where pdf_world reads its density).
+void world_pixel(WorldMap m, vector dir, output int row, output int col)
+{
+    float theta = acos(clamp(dir[2], -1.0, 1.0));
+    float u = 0.5 - atan2(dir[1], dir[0]) / (2.0 * M_PI);
+    u -= floor(u);
+    row = clamp(int(theta / M_PI * m.H), 0, m.H - 1);
+    col = clamp(int(u * m.W), 0, m.W - 1);
 }
 
 // The pdf per steradian of sample_world at a world-space direction.
 float pdf_world(WorldMap m, vector dir)
 {
-    float theta = acos(clamp(dir[2], -1.0, 1.0));
-    float u = 0.5 - atan2(dir[1], dir[0]) / (2.0 * M_PI);
-    u -= floor(u);
-    int row = clamp(int(theta / M_PI * m.H), 0, m.H - 1);
-    int col = clamp(int(u * m.W), 0, m.W - 1);
-    return fetch1(m.file, m.Wt, m.Ht, col, m.rpdf + row);
+    int row, col;
+    world_pixel(m, dir, row, col);
+    return pdf_pixel(m, row, col);
 }
 
 // A Sky Texture's sun disc's radiance toward dir (within the disc of half angle `half` around
