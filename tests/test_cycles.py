@@ -145,6 +145,47 @@ def test_osl_world_map_is_numpy(tmp_path):
     assert pdf.min() > 0 and np.all(d[:, 2] > np.cos(np.pi * 20 / 24) - 1e-6)
 
 
+def _probe_env(world, env, n, mode, u1=0.0):
+    """_probe of an image-world mode: the world map, the image (Closest) and ProbeTheta as u1."""
+    sc = cs.reset(n, n, spp=1)
+    sc.cycles.filter_width = 0.01
+    cs.ortho_camera(sc)
+
+    def nodes(tree):
+        s = lb.make_script_node(tree, probe=True)
+        s.inputs["World"].default_value = str(world)
+        s.inputs["EnvImage"].default_value = str(env)
+        s.inputs["EnvLinear"].default_value = 0
+        s.inputs["ProbeN"].default_value = n
+        s.inputs["ProbeTheta"].default_value = u1
+        s.inputs["ProbeMode"].default_value = mode
+        return s.outputs["BSDF"]
+    cs.add_plane(sc, cs.material_with(nodes))
+    return cs.render(sc).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("u1", [0.0, 0.99999994])
+def test_osl_env_nee_reads_the_sampled_texel(tmp_path, u1):
+    """Next-event estimation of a Closest image world at the map's size reads the texel of the
+    pixel it sampled, also for directions on a pixel's edge (u1 0 or 1: z on a row's edge, where
+    re-deriving the pixel from the direction can round into the neighbour: a dark pixel's density
+    with a sun texel's radiance was a firefly of 1e5)."""
+    import OpenEXR
+    from bake.world_map import WorldMap, write_world_texture
+    h, w, n = 32, 64, 48
+    img = (np.random.default_rng(5).random((h, w, 3)) ** 6 * 1e3 + 1e-3).astype(np.float32)
+    env = tmp_path / "env.exr"
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {"RGB": img}).write(str(env))
+    wm = WorldMap(img)
+    world = write_world_texture(tmp_path / "world.exr", wm)
+    u0 = (np.arange(n * n) + 0.5) / (n * n)         # the probe's pixel k, row by row
+    _, pdf = wm.sample(np.stack([u0, np.full(n * n, u1)], 1))
+    k = np.clip(np.searchsorted(wm.cdf, u0, side="right") - 1, 0, h * w - 1)
+    want = img.reshape(-1, 3)[k] / pdf[:, None]
+    got = _probe_env(world, env, n, 9, u1)
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+
+
 @pytest.mark.parametrize("linear", [1, 0])
 def test_osl_env_radiance_is_the_environment_textures(tmp_path, linear):
     """The shader's reading of an image world (what its next-event estimation uses) is Cycles'

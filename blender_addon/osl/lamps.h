@@ -90,7 +90,7 @@ float sun_half_angle(Lamp L) { return 0.5 * L.size[0]; }
 
 color sun_radiance(Lamp L)
 {
-    float s = sin(sun_half_angle(L));
+    float s = sin_small(sun_half_angle(L));
     return (has_flag(L, LAMP_NORMALIZE) && s > 0.0) ? L.S / (M_PI * s * s) : L.S;
 }
 
@@ -186,10 +186,10 @@ int lamp_hit(Lamp L, point Pp, vector dir, output float t, output color Le, outp
         return 0;
     if (L.kind == LAMP_SUN) {
         float h = sun_half_angle(L);
-        if (dot(dir, normalize(L.Z)) < cos(h))
+        if (!in_cone_angle(dir, normalize(L.Z), h))
             return 0;
         Le = sun_radiance(L);
-        pdf = 1.0 / (2.0 * M_PI * (1.0 - cos(h)));
+        pdf = 1.0 / (2.0 * M_PI * one_minus_cos(h));
         return 1;
     }
     if (L.kind == LAMP_POINT || L.kind == LAMP_SPOT) {
@@ -288,7 +288,7 @@ int lamp_sample(Lamp L, point Pp, float u0, float u1, output vector dir, output 
             Le = L.S;
             return 1;
         }
-        dir = cone_direction(s, 1.0 - cos(sun_half_angle(L)), u0, u1);
+        dir = cone_direction(s, one_minus_cos(sun_half_angle(L)), u0, u1);
         float t, t_exit;
         return lamp_hit(L, Pp, dir, t, Le, pdf, t_exit);
     }
