@@ -40,9 +40,9 @@ OSL shader): the portal direction is drawn from a mixture, as learned_bsdf.osl's
 probability c_sun = SunShare (when SunCos < 1) uniform in the cone of the sky's sun (axis
 SunDirection, cos of its half angle SunCos; lamps.h cone_direction), with c_world =
 WorldShare from the world's importance map, else (c_tables) from the tables. The map
-(bake/world_map.py's texture, WorldMap the numpy reference): the pixel by a branchless
-binary search of the flattened CDF from its guide's bracket (the step count fixed when the
-graph is built, from the widest bracket), the direction uniform in the pixel's solid
+(bake/world_map.py's texture, WorldMap the numpy reference): the pixel's row and column by
+branchless binary searches of the marginal and the row's conditional CDF (step counts fixed
+when the graph is built, from the map's size), the direction uniform in the pixel's solid
 angle; its pdf at a direction read back from the pixel's density. The technique is picked
 by u1, rescaled within it (film-stratified u stay stratified per technique); u0 passes
 through. Weight = baked f·cos / q, q = c_tables p_tables + c_world p_world + c_sun p_cone:
@@ -486,10 +486,10 @@ _world_layouts = {}
 
 def world_layout(path):
     """The numbers the graph needs of a world importance map (bake/world_map.py's texture): W,
-    H (map pixels), Wt, Ht (texture texels), G (guides), cdf, pdf, guide (their first rows)
-    and steps (the binary search's, from the widest guide bracket); None when `path` is empty
-    or not a current world map (then the graph draws no world-map samples). Read once per
-    file version from the image's pixels (numpy; no OpenEXR module needed)."""
+    H (map pixels), Wt, Ht (texture texels), the binary searches' steps over its rows and
+    columns, its layout; None when `path` is empty or not a current world map (then the graph
+    draws no world-map samples). Read once per file version from the image's pixels (numpy; no
+    OpenEXR module needed)."""
     if not path or not os.path.isfile(path):
         return None
     stat = os.stat(path)
@@ -509,39 +509,40 @@ def _read_world_layout(path):
         image.pixels.foreach_get(px)
     except (ImportError, RuntimeError, ValueError):
         return None
-    if wt < 3 or ht < 2:
+    if wt < 2 or ht < 3:
         return None
     px = px.reshape(ht, wt, 4)[::-1]        # Blender's pixels start at the bottom row
-    (version, w, h), (count, cdf, pdf), guide = px[0, 0, :3], px[0, 1, :3], px[0, 2, 0]
-    if version != layout or min(w, h, count) < 1:
+    version, w, h = px[0, 0, :3]
+    if version != layout or min(w, h) < 1 or ht < 2 + h or wt <= max(w, h):
         return None
-    g = np.arange(int(count))
-    brackets = px[int(guide) + g // wt, g % wt, :2]
-    widest = int((brackets[:, 1] - brackets[:, 0]).max())
-    return {"W": int(w), "H": int(h), "Wt": wt, "Ht": ht, "G": int(count), "cdf": int(cdf), "pdf": int(pdf),
-            "guide": int(guide), "steps": max(widest - 1, 0).bit_length()}
+    w, h = int(w), int(h)
+    return {"W": w, "H": h, "Wt": wt, "Ht": ht, "row_steps": (h - 1).bit_length(), "col_steps": (w - 1).bit_length(),
+            "layout": layout}
 
 
-def _world_texel(g, wl, image, x, row, first_row):
-    """The colour of the world texture's texel (x, first_row + row)."""
+def _world_texel(g, wl, image, x, row):
+    """The colour of the world texture's texel (x, row)."""
     tex = g.node("ShaderNodeTexImage", image=image, interpolation='Closest', extension='EXTEND')
     wt, ht = float(wl["Wt"]), float(wl["Ht"])
     g.set(tex.inputs["Vector"], g.combine(g.math('MULTIPLY_ADD', x, 1.0 / wt, 0.5 / wt),
-                                          g.math('MULTIPLY_ADD', row, -1.0 / ht, 1.0 - (first_row + 0.5) / ht)))
+                                          g.math('MULTIPLY_ADD', row, -1.0 / ht, 1.0 - 0.5 / ht)))
     return tex.outputs["Color"]
 
 
-def _world_entry(g, wl, image, k, first_row):
-    """Entry k of a flattened block of the world texture (x = k mod Wt, row first_row + k div
-    Wt; exact in float32 for k < 2^24): its red channel."""
-    row = g.math('FLOOR', g.math('DIVIDE', k, float(wl["Wt"])))
-    return g.dot(_world_texel(g, wl, image, g.math('MULTIPLY_ADD', row, -float(wl["Wt"]), k), row, first_row), X)
+def _world_group_name(kind, wl, image):
+    return f"{GROUP_PREFIX}world{wl['layout']} {kind}: {image.name}"
+
+
+def _is_world_group(name, kind):
+    """Whether a node group is a world group of this kind (of any map, any layout)."""
+    head = name.split(": ")[0]
+    return head.startswith(f"{GROUP_PREFIX}world") and head.endswith(f" {kind}")
 
 
 def _world_group(kind, wl, image, inputs, outputs, build):
     """The node group `kind` of a world texture (its numbers are constants of the group): a new
     map gets new groups, which update_world swaps in."""
-    done, tree = _group(f"{GROUP_PREFIX}world {kind}: {image.name}", inputs, outputs)
+    done, tree = _group(_world_group_name(kind, wl, image), inputs, outputs)
     if done:
         return done
     g = _Graph(tree)
@@ -552,51 +553,51 @@ def _world_group(kind, wl, image, inputs, outputs, build):
     return tree
 
 
-def _world_cdf_group(wl, image):
-    """Group "world cdf": CDF entry min(Index, W H) (past the end: the total, 1)."""
-    def build(g, inp):
-        return {"Value": _world_entry(g, wl, image, g.math('MINIMUM', inp["Index"], float(wl["W"] * wl["H"])),
-                                      wl["cdf"])}
-    return _world_group("cdf", wl, image, [("Index", "Float")], [("Value", "Float")], build)
-
-
 def _world_step_group(wl, image):
-    """Group "world search step": index = Lo + Half; Lo moves there when its CDF entry is <= Target."""
+    """Group "world search step" over a CDF in texture row Row (entries 0 .. Last, the last 1):
+    index = Lo + Half; Lo moves there when its entry (past Last: the last, 1) is <= Target."""
     def build(g, inp):
         index = g.math('ADD', inp["Lo"], inp["Half"])
-        above = g.math('GREATER_THAN', g.group(_world_cdf_group(wl, image), Index=index)[0], inp["Target"])
+        entry = g.dot(_world_texel(g, wl, image, g.math('MINIMUM', index, inp["Last"]), inp["Row"]), X)
+        above = g.math('GREATER_THAN', entry, inp["Target"])
         return {"Lo": g.math('MULTIPLY_ADD', above, g.math('MULTIPLY', inp["Half"], -1.0), index)}
-    return _world_group("search step", wl, image, [("Lo", "Float"), ("Target", "Float"), ("Half", "Float")],
+    return _world_group("search step", wl, image, [("Lo", "Float"), ("Target", "Float"), ("Half", "Float"),
+                                                   ("Row", "Float"), ("Last", "Float")],
                         [("Lo", "Float")], build)
 
 
+def _world_search(g, wl, image, u, row, last, steps):
+    """(k, cdf_k, cdf_k+1): the last entry k < last of the CDF in texture row `row` with cdf_k <=
+    u, found branchlessly in `steps` halvings (2^steps >= last)."""
+    lo = 0.0
+    for s in reversed(range(steps)):
+        lo = g.group(_world_step_group(wl, image), Lo=lo, Target=u, Half=float(2 ** s), Row=row, Last=float(last))[0]
+    c0 = g.dot(_world_texel(g, wl, image, lo, row), X)
+    c1 = g.dot(_world_texel(g, wl, image, g.math('ADD', lo, 1.0), row), X)
+    return lo, c0, c1
+
+
 def _world_sample_group(wl, image):
-    """Group "world sample": world.h sample_world / WorldMap.sample. The pixel k is the last
-    with cdf_k <= U0, searched branchlessly from its guide's lo over 2^steps entries (entries
-    past the bracket are > U0, past the end the total); the direction is uniform in the
-    pixel's solid angle (z from U1, azimuth from U0's place between cdf_k and cdf_k+1); Pdf
-    is the pixel's density per steradian."""
+    """Group "world sample": world.h sample_world / WorldMap.sample. The pixel's row by the
+    rows' marginal CDF (U0), its column by the row's conditional CDF (U1), each searched
+    branchlessly; the direction uniform in the pixel's solid angle (z from U0's place in its
+    row's share, azimuth from U1's in its pixel's); Pdf is the pixel's density per steradian."""
     def build(g, inp):
         u0, u1 = inp["U0"], inp["U1"]
-        w, h, count = float(wl["W"]), float(wl["H"]), float(wl["G"])
-        lo = _world_entry(g, wl, image, g.math('MINIMUM', g.math('FLOOR', g.math('MULTIPLY', u0, count)), count - 1.0),
-                          wl["guide"])
-        for s in reversed(range(wl["steps"])):
-            lo = g.group(_world_step_group(wl, image), Lo=lo, Target=u0, Half=float(2 ** s))[0]
-        k = g.math('MINIMUM', lo, w * h - 1.0)
-        c0 = g.group(_world_cdf_group(wl, image), Index=k)[0]
-        c1 = g.group(_world_cdf_group(wl, image), Index=g.math('ADD', k, 1.0))[0]
-        row = g.math('FLOOR', g.math('DIVIDE', k, w))
-        col = g.math('MULTIPLY_ADD', row, -w, k)
+        w, h = float(wl["W"]), float(wl["H"])
+        row, r0, r1 = _world_search(g, wl, image, u0, 1.0, wl["H"], wl["row_steps"])
+        cond_row = g.math('ADD', row, 2.0)
+        col, c0, c1 = _world_search(g, wl, image, u1, cond_row, wl["W"], wl["col_steps"])
+        t_row = g.math('DIVIDE', g.math('SUBTRACT', u0, r0), g.math('SUBTRACT', r1, r0), clamp=True)
+        t_col = g.math('DIVIDE', g.math('SUBTRACT', u1, c0), g.math('SUBTRACT', c1, c0), clamp=True)
         z0 = g.math('COSINE', g.math('MULTIPLY', row, math.pi / h))
         z1 = g.math('COSINE', g.math('MULTIPLY_ADD', row, math.pi / h, math.pi / h))
-        z = g.math('MULTIPLY_ADD', u1, g.math('SUBTRACT', z1, z0), z0)
-        t = g.math('DIVIDE', g.math('SUBTRACT', u0, c0), g.math('SUBTRACT', c1, c0), clamp=True)
-        phi = g.math('MULTIPLY_ADD', g.math('ADD', col, t), -2.0 * math.pi / w, math.pi)
+        z = g.math('MULTIPLY_ADD', t_row, g.math('SUBTRACT', z1, z0), z0)
+        phi = g.math('MULTIPLY_ADD', g.math('ADD', col, t_col), -2.0 * math.pi / w, math.pi)
         s = g.math('SQRT', g.math('MAXIMUM', g.math('SUBTRACT', 1.0, g.math('MULTIPLY', z, z)), 0.0))
         direction = g.combine(g.math('MULTIPLY', s, g.math('COSINE', phi)), g.math('MULTIPLY', s, g.math('SINE', phi)),
                               z)
-        return {"Direction": direction, "Pdf": g.dot(_world_texel(g, wl, image, col, row, wl["pdf"]), X)}
+        return {"Direction": direction, "Pdf": g.dot(_world_texel(g, wl, image, col, cond_row), Y)}
     return _world_group("sample", wl, image, [("U0", "Float"), ("U1", "Float")],
                         [("Direction", "Vector"), ("Pdf", "Float")], build)
 
@@ -612,7 +613,7 @@ def _world_pdf_group(wl, image):
         u = g.math('FLOORED_MODULO', g.math('MULTIPLY_ADD', g.math('ARCTAN2', g.dot(d, Y), g.dot(d, X)),
                                             -0.5 / math.pi, 0.5), 1.0)
         col = g.math('MINIMUM', g.math('FLOOR', g.math('MULTIPLY', u, w)), w - 1.0)
-        return {"Pdf": g.dot(_world_texel(g, wl, image, col, row, wl["pdf"]), X)}
+        return {"Pdf": g.dot(_world_texel(g, wl, image, col, g.math('ADD', row, 2.0)), Y)}
     return _world_group("pdf", wl, image, [("Direction", "Vector")], [("Pdf", "Float")], build)
 
 
@@ -815,8 +816,8 @@ def update_world(tree, world):
         for node in tree.nodes:
             if node.bl_idname == "ShaderNodeGroup" and node.node_tree is not None:
                 for kind, build in _WORLD_GROUPS.items():
-                    prefix = f"{GROUP_PREFIX}world {kind}: "
-                    if node.node_tree.name.startswith(prefix) and node.node_tree.name != prefix + image.name:
+                    name = node.node_tree.name
+                    if _is_world_group(name, kind) and name != _world_group_name(kind, mix.map, image):
                         node.node_tree = build(mix.map, image)
     return True
 

@@ -167,9 +167,9 @@ def _probe_env(world, env, n, mode, u1=0.0):
 @pytest.mark.parametrize("u1", [0.0, 0.99999994])
 def test_osl_env_nee_reads_the_sampled_texel(tmp_path, u1):
     """Next-event estimation of a Closest image world at the map's size reads the texel of the
-    pixel it sampled, also for directions on a pixel's edge (u1 0 or 1: z on a row's edge, where
-    re-deriving the pixel from the direction can round into the neighbour: a dark pixel's density
-    with a sun texel's radiance was a firefly of 1e5)."""
+    pixel it sampled, also for directions on a pixel's edge (u1 0 or 1: the azimuth on a column's
+    edge, where re-deriving the pixel from the direction can round into the neighbour: a dark
+    pixel's density with a sun texel's radiance was a firefly of 1e5)."""
     import OpenEXR
     from bake.world_map import WorldMap, write_world_texture
     h, w, n = 32, 64, 48
@@ -178,10 +178,10 @@ def test_osl_env_nee_reads_the_sampled_texel(tmp_path, u1):
     OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {"RGB": img}).write(str(env))
     wm = WorldMap(img)
     world = write_world_texture(tmp_path / "world.exr", wm)
-    u0 = (np.arange(n * n) + 0.5) / (n * n)         # the probe's pixel k, row by row
-    _, pdf = wm.sample(np.stack([u0, np.full(n * n, u1)], 1))
-    k = np.clip(np.searchsorted(wm.cdf, u0, side="right") - 1, 0, h * w - 1)
-    want = img.reshape(-1, 3)[k] / pdf[:, None]
+    u = np.stack([(np.arange(n * n) + 0.5) / (n * n), np.full(n * n, u1)], 1)   # the probe's pixels, row by row
+    _, pdf = wm.sample(u)
+    row, col, _, _ = wm.sample_pixel(u)
+    want = img[row, col] / pdf[:, None]
     got = _probe_env(world, env, n, 9, u1)
     np.testing.assert_allclose(got, want, rtol=1e-5)
 

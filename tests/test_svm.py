@@ -518,7 +518,7 @@ def test_svm_world_map_sample_is_numpy(svm, tmp_path):
     grid of u, and its pdf graph reads the sampled pixel's density back."""
     wm, path = _world_map(tmp_path)
     wl = svm.world_layout(str(path))
-    assert (wl["W"], wl["H"], wl["Wt"]) == (48, 24, 1024) and wl["steps"] >= 1
+    assert (wl["W"], wl["H"], wl["Wt"], wl["row_steps"], wl["col_steps"]) == (48, 24, 1024, 5, 6)
     n = 40
     iy, ix = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
     u = np.stack([(ix.ravel() + 0.5) / n, (iy.ravel() + 0.5) / n], 1)

@@ -1,72 +1,66 @@
 // FlowBSDF OSL: the world's importance map (bake/world_map.py's texture layout): an
 // equirectangular map in Blender's convention (column u = 0.5 - atan2(y, x) / 2 pi, row =
 // theta / pi * H, row 0 the zenith), a pixel chosen by its share of the baked radiance times
-// its solid angle, the direction uniform in the pixel's solid angle. pdf() reads the pixel's
-// density back, so sampling and density are exactly consistent (bake/world_map.WorldMap is
-// the numpy reference).
+// its solid angle — its row by the marginal CDF, its column by the row's conditional CDF — the
+// direction uniform in the pixel's solid angle. pdf() reads the pixel's density back, so
+// sampling and density are exactly consistent (bake/world_map.WorldMap is the numpy reference).
 
-#define WORLD_LAYOUT 1
+#define WORLD_LAYOUT 2
 
 struct WorldMap {
     string file;
     float Wt, Ht;       // the texture's size
-    int W, H, G;        // the map's pixels, guide entries
-    int rcdf, rpdf, rguide;     // first rows of the CDF, pdf and guide blocks
+    int W, H;           // the map's pixels
 };
 
-// 1 and the map's header when `file` is a current world map (3 fetches: read it once).
+// 1 and the map's header when `file` is a current world map.
 int world_header(string file, output WorldMap m)
 {
     int res[2];
     m.file = file;
-    if (file == "" || !gettextureinfo(file, "resolution", res) || res[0] < 3)
+    if (file == "" || !gettextureinfo(file, "resolution", res) || res[0] < 2 || res[1] < 3)
         return 0;
     m.Wt = res[0];
     m.Ht = res[1];
     color h0 = fetch(file, m.Wt, m.Ht, 0, 0);   // (WORLD_LAYOUT, W, H)
-    color h1 = fetch(file, m.Wt, m.Ht, 1, 0);   // (G, rcdf, rpdf)
-    color h2 = fetch(file, m.Wt, m.Ht, 2, 0);   // (rguide, 0, 0)
     m.W = int(h0[1]);
     m.H = int(h0[2]);
-    m.G = int(h1[0]);
-    m.rcdf = int(h1[1]);
-    m.rpdf = int(h1[2]);
-    m.rguide = int(h2[0]);
-    return int(h0[0]) == WORLD_LAYOUT && m.W >= 1 && m.H >= 1 && m.G >= 1;
-}
-
-float world_cdf(WorldMap m, int k)
-{
-    int iw = int(m.Wt);
-    return fetch1(m.file, m.Wt, m.Ht, k % iw, m.rcdf + k / iw);
+    return int(h0[0]) == WORLD_LAYOUT && m.W >= 1 && m.H >= 1;
 }
 
 // The density per steradian of the map's pixel (row, col).
 float pdf_pixel(WorldMap m, int row, int col)
 {
-    return fetch1(m.file, m.Wt, m.Ht, col, m.rpdf + row);
+    color c = fetch(m.file, m.Wt, m.Ht, col, 2 + row);
+    return c[1];
+}
+
+// The last entry k < n of a CDF (texture row y, entries at x = 0 .. n, the last 1) with
+// cdf_k <= u, its value and the next one.
+int cdf_search(WorldMap m, int y, int n, float u, output float c0, output float c1)
+{
+    int lo = 0, hi = n;
+    while (hi - lo > 1) {
+        int mid = (lo + hi) / 2;
+        if (fetch1(m.file, m.Wt, m.Ht, mid, y) <= u) lo = mid; else hi = mid;
+    }
+    c0 = fetch1(m.file, m.Wt, m.Ht, lo, y);
+    c1 = fetch1(m.file, m.Wt, m.Ht, lo + 1, y);
+    return lo;
 }
 
 // The world-space direction for u (uniform in [0, 1)^2), its pdf per steradian and its pixel.
 void sample_world(WorldMap m, float u0, float u1, output vector dir, output float pdf, output int row,
                   output int col)
 {
-    int iw = int(m.Wt);
-    int g = min(int(u0 * m.G), m.G - 1);
-    color guide = fetch(m.file, m.Wt, m.Ht, g % iw, m.rguide + g / iw);
-    int lo = int(guide[0]), hi = int(guide[1]);
-    while (hi - lo > 1) {
-        int mid = (lo + hi) / 2;
-        if (world_cdf(m, mid) <= u0) lo = mid; else hi = mid;
-    }
-    int k = lo;
-    row = k / m.W;
-    col = k % m.W;
-    float c0 = world_cdf(m, k), c1 = world_cdf(m, k + 1);
+    float r0, r1, c0, c1;
+    row = cdf_search(m, 1, m.H, u0, r0, r1);
+    col = cdf_search(m, 2 + row, m.W, u1, c0, c1);
+    float t_row = clamp((u0 - r0) / (r1 - r0), 0.0, 1.0);
+    float t_col = clamp((u1 - c0) / (c1 - c0), 0.0, 1.0);
     float z0 = cos(M_PI * row / m.H), z1 = cos(M_PI * (row + 1) / m.H);
-    float z = z0 + u1 * (z1 - z0);
-    float t = clamp((u0 - c0) / (c1 - c0), 0.0, 1.0);
-    float phi = (0.5 - (col + t) / m.W) * 2.0 * M_PI;
+    float z = z0 + t_row * (z1 - z0);
+    float phi = (0.5 - (col + t_col) / m.W) * 2.0 * M_PI;
     float s = sqrt(max(1.0 - z * z, 0.0));
     dir = vector(s * cos(phi), s * sin(phi), z);
     pdf = pdf_pixel(m, row, col);
