@@ -17,7 +17,7 @@ file it was trained on (.bsdf / .binary). The teacher is flow.pt's best weights,
 reflow.pt's; the architecture comes from the model file's training settings (default: the
 *.flow.npz next to CKPT_DIR, else the weights' shapes). Each cell is the rv of the one-sample
 estimator lum(f)·cos / pdf of the flow's own N-step sampler with its exact N-step pdf
-(float64 torch, the same protocol as bake.metrics.sample_weights: lost samples count as 0),
+(float64 torch, the same protocol as bake.quality.metrics.sample_weights: lost samples count as 0),
 against material.eval, plus the share of samples with det(I + J/N) <= 0 at some step.
 """
 import trainer  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
@@ -33,7 +33,7 @@ import time
 import numpy as np
 import torch
 
-from bake import flow as F
+from bake.core import flow as F
 from trainer.synthetic import GGXReflection
 from trainer.train import COMMON, Trainer, make_settings
 
@@ -140,8 +140,8 @@ def load_trained(ckpt_dir, model_path=None):
 
 
 def material_weights(material, wi, y1, log_p, domain):
-    """w = lum(f)·cos / pdf as bake.metrics.sample_weights (lost samples: 0)."""
-    from bake.geometry import luminance
+    """w = lum(f)·cos / pdf as bake.quality.metrics.sample_weights (lost samples: 0)."""
+    from bake.core.geometry import luminance
     wo = F.MAPS[domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
     with np.errstate(over="ignore"):
         pdf = np.exp(log_p)
@@ -152,7 +152,7 @@ def material_weights(material, wi, y1, log_p, domain):
 
 
 def crosscheck(net, model_file_arrays, theta, n_steps, domain, k=64, seed=11):
-    """max relative difference between torch's forward pdf and bake.flow's inverse pdf (numpy,
+    """max relative difference between torch's forward pdf and bake.core.flow's inverse pdf (numpy,
     the exported float32 weights evaluated at n_steps) on k samples, and how many of them fold.
     Where the N-step map folds it is not injective: the forward pdf p0/|det| is then not the
     sampler's density and the inverse may find another preimage, so they may disagree."""
@@ -192,7 +192,7 @@ def trained_main(argv):
           f"student vel {student.config['vel_width']}x{student.config['vel_depth']}, domain {domain}, "
           f"trained N={(meta or {}).get('steps')}; {args.samples} samples/cell, seed {args.seed}, "
           f"torch threads {torch.get_num_threads()}, load {os.getloadavg()[0]:.2f}", flush=True)
-    # Cross-checks: the student is the exported file; torch pdf == bake.flow's exact pdf.
+    # Cross-checks: the student is the exported file; torch pdf == bake.core.flow's exact pdf.
     file_arrays = None
     if model_path:
         with np.load(model_path, allow_pickle=False) as z:
@@ -205,9 +205,9 @@ def trained_main(argv):
     head = "| model | N | " + " | ".join(f"{t:g}°" for t in thetas) + " | fold % (max) | s |"
     lines = [head, "|---" * (len(thetas) + 4) + "|"]
     if not args.no_baseline:
-        from bake.baselines import CosineSampler
-        from bake.geometry import incident
-        from bake.metrics import sample_weights
+        from bake.core.baselines import CosineSampler
+        from bake.core.geometry import incident
+        from bake.quality.metrics import sample_weights
         cells = []
         for t in thetas:
             w = sample_weights(material, CosineSampler(), incident(t), args.samples, seed=args.seed)

@@ -1,4 +1,4 @@
-"""Flow sampler: numerics of bake.flow, agreement with the torch trainer, model files, training.
+"""Flow sampler: numerics of bake.core.flow, agreement with the torch trainer, model files, training.
 
 Everything here is fast (tiny networks, a few hundred steps); the full presets are in
 the slow-marked tests at the end.
@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from bake import flow as F
+from bake.core import flow as F
 from bake.errors import FlowBSDFError
 from conftest import TINY_TRAIN_TOML, slow_unless, write_npz
 
@@ -398,7 +398,7 @@ def test_defensive_mixture_keeps_sample_pdf_and_invert_consistent(domain, tmp_pa
     # The uniform share lower-bounds the density everywhere above the horizon.
     grid = F.Disk().to_dir(np.random.default_rng(4).uniform(-0.7, 0.7, (500, 2)))
     assert np.all(model.pdf(wi, grid) >= 0.05 / (2 * np.pi) * (1 - 1e-12))
-    from bake.metrics import chi2_test
+    from bake.quality.metrics import chi2_test
     assert chi2_test(model, wi, n=100_000, res=(16, 16), seed=2, n_tests=2).passed
     v1 = {k: v for k, v in net.meta(4).items()}
     v1["version"] = 1
@@ -417,8 +417,8 @@ def test_defensive_setting_is_checked_before_training():
 def test_bake_flow_does_not_import_torch():
     import subprocess
     import sys
-    code = ("import sys, bake.flow, bake; assert 'torch' not in sys.modules, 'torch imported'; "
-            "print(bake.load_model is bake.flow.load_model)")
+    code = ("import sys, bake.core.flow, bake; assert 'torch' not in sys.modules, 'torch imported'; "
+            "print(bake.load_model is bake.core.flow.load_model)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "True"
@@ -528,7 +528,7 @@ def test_sharp_lobe_flows_get_a_defensive_share(tmp_path):
     The trainer's defensive uniform share brings the mean over 0/40/70 deg down by far
     (measured: disk 0.1 -> 0.61 / 0.36 / 0.68; slope 0.01 -> 0.5-1.1 / 0.8-2 / 0.7-1.4 over
     seeds), and the slope model's mixture sampler passes the chi-square test."""
-    from bake.metrics import chi2_test
+    from bake.quality.metrics import chi2_test
     for domain in ("disk", "slope"):
         src = GGXReflection(domain, alpha=0.05, theta_max_deg=80)
         _, path = _train_tiny(tmp_path / domain, domain, src)
@@ -611,8 +611,8 @@ optional = true
 
 
 def test_the_preset_names_are_the_trainers():
-    """flowbsdf's parsers (bake/job.py, torch-free) list the presets trainer/train.py defines."""
-    from bake.job import TRAIN_PRESETS
+    """flowbsdf's parsers (bake/plumbing/job.py, torch-free) list the presets trainer/train.py defines."""
+    from bake.plumbing.job import TRAIN_PRESETS
     from trainer.train import PRESETS
     assert TRAIN_PRESETS == tuple(PRESETS)
 
@@ -651,7 +651,7 @@ def test_training_never_ends_worse_than_its_start(tmp_path):
 
 
 def test_auto_domain_picks_slope_for_sharp_gloss_and_disk_for_matte():
-    from bake.ideal import IdealSampler
+    from bake.core.ideal import IdealSampler
     from bake.materials import open_material
     from trainer.sources import SLOPE_SHARE, choose_domain
     picks = {}

@@ -595,7 +595,7 @@ def _manifest(manifest, path):
     if manifest is None:
         manifest = Path("manifest.toml")
     if isinstance(manifest, (str, Path)):
-        from ..manifest import load_manifest
+        from ..plumbing.manifest import load_manifest
         manifest = load_manifest(manifest)
     return manifest
 

@@ -70,9 +70,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import FlowBSDFError
 from .baselines import UniformSampler
 from .domains import Disk, get_domain
-from .errors import FlowBSDFError
 from .warps import rotate_z
 
 FORMAT = "flowbsdf-flow"
@@ -432,7 +432,7 @@ class SlopeMap:
     Every wo above the horizon has exactly one y, but a y whose mirror direction falls below
     the horizon has no wo: sample() returns pdf 0 there (a lost sample, no bias), and a trained
     model puts little mass there because its data has none. wi: the canonical incident
-    direction per row. Training data comes as disk coordinates of wo (bake.domains: Disk).
+    direction per row. Training data comes as disk coordinates of wo (bake.core.domains: Disk).
     """
 
     domain = "slope"
@@ -572,7 +572,7 @@ class MLP:
 class FlowModel:
     """A trained conditional flow: sample(wi, u) -> (wo, pdf), pdf(wi, wo), invert(wi, wo) -> u.
 
-    Attributes: `domain` (the bake.domains object), `domain_name`, `isotropic`, `steps`
+    Attributes: `domain` (the bake.core.domains object), `domain_name`, `isotropic`, `steps`
     (Euler steps N; `with_steps(n)` gives a copy with another N), `meta` (the file's
     metadata dict), `path`. After each call `last_stats` holds diagnostics: the fraction of
     samples whose Euler map folds (det(I + J/N) <= 0 at some step) and, for pdf/invert,
