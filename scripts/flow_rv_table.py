@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from bake.core import flow as F
+from bake.core import flow_maps, special
 from trainer.synthetic import GGXReflection
 from trainer.train import COMMON, Trainer, make_settings
 
@@ -50,9 +51,9 @@ def flow_samples(net, theta, n_steps, n=1 << 15, seed=5):
         lp0 = net64.base.log_prob(c, y0)
         y1, logdet, min_det = net64.euler(c, y0, n_steps)
     y1 = y1.numpy()
-    cmap = F.MAPS[net.domain]
+    cmap = flow_maps.MAPS[net.domain]
     if not F.planar(net.domain):
-        y1[:, 1] = F.wrap_angle(y1[:, 1])
+        y1[:, 1] = special.wrap_angle(y1[:, 1])
     wi_rows = np.broadcast_to(wi, (n, 3))
     log_p = (lp0 - logdet).numpy() - cmap.log_dw_dy(y1, wi_rows)
     return wi, y1, log_p, min_det.numpy()
@@ -60,7 +61,7 @@ def flow_samples(net, theta, n_steps, n=1 << 15, seed=5):
 
 def flow_directions(net, wi, y1):
     """wo of flow coordinates y1 and whether each is above the horizon (slope maps lose some)."""
-    wo = F.MAPS[net.domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
+    wo = flow_maps.MAPS[net.domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
     return wo, wo[:, 2] > 0
 
 
@@ -142,7 +143,7 @@ def load_trained(ckpt_dir, model_path=None):
 def material_weights(material, wi, y1, log_p, domain):
     """w = lum(f)·cos / pdf as bake.quality.metrics.sample_weights (lost samples: 0)."""
     from bake.core.geometry import luminance
-    wo = F.MAPS[domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
+    wo = flow_maps.MAPS[domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
     with np.errstate(over="ignore"):
         pdf = np.exp(log_p)
     ok = (pdf > 0) & (wo[:, 2] > 0) & np.isfinite(pdf)
@@ -161,7 +162,7 @@ def crosscheck(net, model_file_arrays, theta, n_steps, domain, k=64, seed=11):
     if model_file_arrays is not None:   # the student: check it is the exported file's weights
         for key, v in net.arrays().items():
             assert np.array_equal(v.astype(np.float32), model_file_arrays[key]), key
-    wo = F.MAPS[domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
+    wo = flow_maps.MAPS[domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
     ok = wo[:, 2] > 0                   # slope maps lose samples below the horizon: pdf 0 both ways
     p_np = model.pdf(wi, wo[ok])
     return float(np.max(np.abs(p_np / np.exp(log_p[ok]) - 1.0))), int(np.sum(min_det <= 0))

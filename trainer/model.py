@@ -1,6 +1,6 @@
 """The flow's networks in torch, mirroring bake/core/flow.py (which runs the exported weights in numpy).
 
-Coordinates are bake.core.flow's flow coordinates y (disk: R²; spherical and slope: (s, phi) on
+Coordinates are the flow coordinates y of bake.core.flow_maps (disk: R²; spherical and slope: (s, phi) on
 R x S¹).
   BaseNet      c -> parameters of the base: disk, a diagonal Gaussian in y (or a scale
                mixture of `components`); spherical and slope, a Gaussian in s times a von

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from bake.core import flow as npflow
+from bake.core import flow_maps
 from bake.core.domains import get_domain
 from bake.errors import FlowBSDFError
 
@@ -122,7 +123,7 @@ class PreparedSource:
 
     def __init__(self, source, domain, isotropic):
         self.source, self.domain, self.isotropic = source, domain, isotropic
-        self.map = npflow.MAPS[domain]
+        self.map = flow_maps.MAPS[domain]
 
     def prepare(self, wi, x1):
         wi = np.asarray(wi, np.float64)
@@ -248,7 +249,7 @@ class Trainer:
         if not hasattr(self, "_holdout"):
             rng = np.random.default_rng([self.settings["seed"], 7919])
             c, y = self.data.draw(self.settings["holdout"], rng)
-            self._holdout = (c, y, npflow.MAPS[self.domain].log_dw_dy(y, npflow.canonical_wi(c, self.isotropic)))
+            self._holdout = (c, y, flow_maps.MAPS[self.domain].log_dw_dy(y, npflow.canonical_wi(c, self.isotropic)))
         return self._holdout
 
     def evaluate(self, net, steps, fold_repeats=1):

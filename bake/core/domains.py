@@ -60,7 +60,7 @@ class Spherical:
         return np.mod(np.asarray(phi, float) + np.pi, 2.0 * np.pi) - np.pi
 
 
-# A "slope" flow (bake.core.flow.SlopeMap) takes its training data as disk coordinates of wo: its
+# A "slope" flow (bake.core.flow_maps.SlopeMap) takes its training data as disk coordinates of wo: its
 # half-vector map depends on wi, so it lives in the flow.
 DOMAINS = {"disk": Disk, "spherical": Spherical, "slope": Disk}
 
