@@ -15,8 +15,8 @@ from bake.tracer import accel
 from bake.tracer.integrator import PathTracer, render
 from bake.tracer.lights import Environment, read_hdr, sky_image
 from bake.tracer.samplers import make_sampler
-from bake.tracer.scene import (SHADERBALL, Camera, SceneMaterial, Scene, builtin_scene, load_obj, load_ply,
-                               load_scene, shaderball_mesh)
+from bake.tracer.meshes import SHADERBALL, load_obj, load_ply, shaderball_mesh
+from bake.tracer.scene import Camera, SceneMaterial, Scene, builtin_scene, load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 PLASTIC = {"kind": "analytic", "model": "plastic", "albedo": [0.7, 0.2, 0.1], "alpha": 0.12}
