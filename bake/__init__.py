@@ -1,4 +1,15 @@
-"""FlowBSDF's torch-free core: materials, domains, samplers, yardsticks, tables.
+"""FlowBSDF's torch-free runtime (numpy only; Blender loads it): materials, samplers, tables,
+yardsticks, the commands. One folder per kind:
+
+    core/        the samplers and what they stand on: flow, tables, ideal, baselines, warps
+    export/      what Blender's Cycles back ends read: OSL and SVM textures, closure fit, world map
+    quality/     yardsticks, reports, benchmarks, the stress suite
+    plumbing/    the `flowbsdf` command, manifests, jobs, farm tasks, files
+    materials/   measured and analytic BSDFs
+    tracer/      the reference path tracer
+    errors.py    FlowBSDFError, the one error type of every folder
+
+The public API:
 
     open_material(spec)     a material (bake/materials/)
     open_sampler(kind, ..)  a sampler by name; the contract every sampler keeps (bake/core/sampler.py)

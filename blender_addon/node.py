@@ -77,8 +77,8 @@ FIT_VERSION = 2
 
 
 def _bake_mod(name):
-    """A module of the add-on's `bake` (numpy), or None where this Blender's Python cannot
-    import it (no numpy: Debian's Blender 3.4)."""
+    """A module of the add-on's `bake` (numpy) by its name below the package ("export.world_map"),
+    or None where this Blender's Python cannot import it (no numpy: Debian's Blender 3.4)."""
     import importlib
     from . import deps
     try:
