@@ -95,7 +95,8 @@ def job_template(names, job_dir, manifest, shared, python, train, scene=None, sa
         _param("Train", "STRING", "auto: train where the manifest wants a model and the Python has "
                "torch; always; never (bake from the ideal tabulation)", train, allowedValues=list(TRAIN_MODES)),
     ]
-    task_args = ["-m", "bake.plumbing.cli", "farm", "task", "{{Param.Manifest}}", "--material", "{{Task.Param.Material}}",
+    task_args = ["-m", "bake.plumbing.cli", "farm", "task", "{{Param.Manifest}}",
+                 "--material", "{{Task.Param.Material}}",
                  "--out", "{{Param.SharedOut}}", "--train", "{{Param.Train}}", "--openjd"]
     chunks = _chunks(list(names))
     steps = []
