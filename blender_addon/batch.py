@@ -9,7 +9,7 @@ Commands: `scan` (write the manifest, print what each material needs and whether
 tables are current), `bake` (the whole job), `validate` (reference tracer vs Cycles:
 MSE, SSIM and a side-by-side image in <out>/validate/) and `farm openjd --job-dir DIR`
 (scan, then write an Open Job Description job bundle that trains/bakes each material on a
-farm and assembles this file: `flowbsdf farm openjd` in the worker Python, bake/farm.py;
+farm and assembles this file: `flowbsdf farm openjd` in the worker Python, bake/plumbing/farm.py;
 --blender, --addon-dir: Blender and the add-on's folder on the farm). Options:
     --python PY        the Python that bakes (numpy + OpenEXR) and trains (torch + FlowBSDF's
                        trainer); else FLOWBSDF_PYTHON, the preference, the Python Blender reports
@@ -177,7 +177,7 @@ def _validate(scene, args):
 
 def _farm(scene, args):
     """`farm openjd --job-dir DIR`: scan the scene (its manifest), then the CLI's `farm openjd`
-    (bake/farm.py) in the worker Python writes the job bundle with an Assemble step for this file."""
+    (bake/plumbing/farm.py) in the worker Python writes the job bundle with an Assemble step for this file."""
     try:
         if args.engine != "openjd" or not args.job_dir:
             raise BatchError("usage: farm openjd --job-dir DIR [--out DIR] [--train MODE] [--save-as PATH]")
@@ -190,7 +190,7 @@ def _farm(scene, args):
         from . import prefs
         p = prefs.get()
         python = worker.python_for(p)
-        cmd = [str(python), "-m", "bake.cli", "farm", "openjd", manifest, "--scene", bpy.data.filepath,
+        cmd = [str(python), "-m", "bake.plumbing.cli", "farm", "openjd", manifest, "--scene", bpy.data.filepath,
                "--out", os.path.abspath(args.job_dir), "--shared", out, "--python", str(python),
                "--train", args.train or scene.flowbsdf.train.lower(),
                "--blender", args.blender or bpy.app.binary_path or "blender", "--addon-dir", args.addon_dir]

@@ -95,7 +95,7 @@ def _blend_path(path):
 # worker Python, for a Blender whose own Python cannot (no numpy: Debian's 3.4).
 DERIVE_CODE = """
 import sys
-from bake.osl_export import bake_derived
+from bake.export.osl_export import bake_derived
 for k, path in enumerate(sys.argv[1:], 1):
     print(f"[progress {k}/{len(sys.argv) - 1}] fit + OSL texture {path}", flush=True)
     bake_derived(path, log=lambda line: print(line, flush=True))
@@ -107,7 +107,7 @@ def ensure_derived(tables_paths, python=None, extra_paths=None):
     when this Blender cannot (no numpy); elsewhere the node makes them itself when binding.
     Returns the paths it derived; worker.JobError when the worker fails."""
     from . import node
-    if node._bake_mod("osl_export") is not None:
+    if node._bake_mod("export.osl_export") is not None:
         return []
     todo = [str(p) for p in tables_paths if os.path.isfile(p) and not node.derived_current(p)]
     if not todo:

@@ -14,11 +14,11 @@ installed, and materials append and link like any other. Its node tree, "Learned
   fit instead of black. The scene's pixel filter and seed feed it (`film_settings`): on
   camera rays it stratifies its samples by their place in the pixel.
 - SVM (every Cycles device, GPU included; Blender 5.0+): the same table sampler as plain
-  shader nodes ending in a Ray Portal BSDF (svm.py, texture bake/svm_export.py): exact for
+  shader nodes ending in a Ray Portal BSDF (svm.py, texture bake/export/svm_export.py): exact for
   the world and emissive surfaces; lamps are not light-sampled.
 - fit: Cycles closures (Diffuse BSDF + GGX Glossy BSDF) whose colours and roughness are
   piecewise-linear functions of the view angle (Layer Weight "Facing" = 1 - cos theta_i),
-  fitted at bake time (bake/closure_fit.py). Its parameters live in the node tree, so it
+  fitted at bake time (bake/export/closure_fit.py). Its parameters live in the node tree, so it
   renders everywhere (Eevee, previews) even when the table files are gone; approximate.
 
 Two Mix Shaders pick one: "FlowBSDF SVM backend" (fit or SVM), then "FlowBSDF backend"
@@ -70,15 +70,15 @@ SCRIPT = "FlowBSDF OSL"
 OSL_SOURCE = Path(__file__).resolve().parent / "osl" / "learned_bsdf.osl"
 # The grey diffuse used when a material has neither a fit nor tables.
 NEUTRAL = (0.5, 0.5, 0.5)
-# The fit file format (bake/closure_fit.py: load_fit, FIT_VERSION), read here without numpy.
+# The fit file format (bake/export/closure_fit.py: load_fit, FIT_VERSION), read here without numpy.
 FIT_FORMAT = "flowbsdf-closure-fit"
-OSL_LAYOUT = 3          # the OSL texture's layout (bake/osl_export.LAYOUT): part of its file name
+OSL_LAYOUT = 3          # the OSL texture's layout (bake/export/osl_export.LAYOUT): part of its file name
 FIT_VERSION = 2
 
 
 def _bake_mod(name):
-    """A module of the add-on's `bake` (numpy), or None where this Blender's Python cannot
-    import it (no numpy: Debian's Blender 3.4)."""
+    """A module of the add-on's `bake` (numpy) by its name below the package ("export.world_map"),
+    or None where this Blender's Python cannot import it (no numpy: Debian's Blender 3.4)."""
     import importlib
     from . import deps
     try:
@@ -89,7 +89,7 @@ def _bake_mod(name):
 
 
 def _file_hash(path):
-    """sha256 of the file's bytes (as bake.files.file_hash)."""
+    """sha256 of the file's bytes (as bake.plumbing.files.file_hash)."""
     import hashlib
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -126,7 +126,7 @@ def _fit_file(tables_path):
         why = f"closure fit stale (made from other tables): {path}"
     except ValueError as e:
         why = str(e)
-    closure_fit = _bake_mod("closure_fit")
+    closure_fit = _bake_mod("export.closure_fit")
     if closure_fit is None:
         raise ValueError(f"{why}; re-bake (refitting needs numpy, absent in this Blender)")
     return closure_fit.ensure_fit(tables_path)
@@ -134,8 +134,8 @@ def _fit_file(tables_path):
 
 def _osl_texture(tables_path):
     """The OSL texture of a table file: made or refreshed by `bake` where it imports, else the
-    one the bake wrote (its name carries the tables' hash: bake/osl_export.export_path)."""
-    osl_export = _bake_mod("osl_export")
+    one the bake wrote (its name carries the tables' hash: bake/export/osl_export.export_path)."""
+    osl_export = _bake_mod("export.osl_export")
     error = None
     if osl_export is not None:
         try:
@@ -149,7 +149,7 @@ def _osl_texture(tables_path):
 
 
 def _texture_path(tables_path, digest):
-    """The OSL texture's name beside the tables (bake/osl_export.export_path, without numpy)."""
+    """The OSL texture's name beside the tables (bake/export/osl_export.export_path, without numpy)."""
     return tables_path.with_name(f"{tables_path.stem}.osl{OSL_LAYOUT}-{digest[:12]}.exr")
 
 
@@ -157,12 +157,12 @@ def svm_available():
     """Whether this Blender has the Ray Portal BSDF (4.2+), the Light Path node's Portal Depth
     output (5.0+; svm.py reads it) and a `bake` that imports (numpy): what the SVM back end needs."""
     return (hasattr(bpy.types, "ShaderNodeBsdfRayPortal") and bpy.app.version >= (5, 0, 0)
-            and _bake_mod("svm_export") is not None)
+            and _bake_mod("export.svm_export") is not None)
 
 
 def _svm_texture(tables_path):
-    """The SVM texture of a table file, made or refreshed by `bake` (bake/svm_export.py)."""
-    return str(_bake_mod("svm_export").ensure_svm_export(tables_path))
+    """The SVM texture of a table file, made or refreshed by `bake` (bake/export/svm_export.py)."""
+    return str(_bake_mod("export.svm_export").ensure_svm_export(tables_path))
 
 
 def derived_current(tables_path):

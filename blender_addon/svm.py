@@ -1,7 +1,7 @@
 """The baked-table sampler as a plain Cycles shader node graph (SVM): every Cycles device.
 
 `build_svm_sampler` adds to a shader node tree the nodes that reproduce `Tables.sample`
-(bake/tables.py, the numpy reference) on the texture of bake/svm_export.py, and ends in a
+(bake/core/tables.py, the numpy reference) on the texture of bake/export/svm_export.py, and ends in a
 Ray Portal BSDF that continues the path in the sampled direction with weight W = baked
 f·cos / pdf. Nothing needs OSL: the graph runs wherever Cycles runs (CPU with OSL off,
 CUDA, OptiX, HIP, Metal, oneAPI). The table sizes, offsets and search step counts are
@@ -40,7 +40,7 @@ OSL shader): the portal direction is drawn from a mixture, as learned_bsdf.osl's
 probability c_sun = SunShare (when SunCos < 1) uniform in the cone of the sky's sun (axis
 SunDirection, cos of its half angle SunCos; lamps.h cone_direction), with c_world =
 WorldShare from the world's importance map, else (c_tables) from the tables. The map
-(bake/world_map.py's texture, WorldMap the numpy reference): the pixel's row and column by
+(bake/export/world_map.py's texture, WorldMap the numpy reference): the pixel's row and column by
 branchless binary searches of the marginal and the row's conditional CDF (step counts fixed
 when the graph is built, from the map's size), the direction uniform in the pixel's solid
 angle; its pdf at a direction read back from the pixel's density. The technique is picked
@@ -90,7 +90,7 @@ import os
 import bpy
 
 CUTOFF = 1e-5           # Cycles' CLOSURE_WEIGHT_CUTOFF
-K_SMALL = 1e-4          # bake/tables.py _SMALL: the in-cell density's small-rate branch
+K_SMALL = 1e-4          # bake/core/tables.py _SMALL: the in-cell density's small-rate branch
 TANGENT = (1.0, 0.0, 0.0)
 GRAPH_VERSION = 1       # in the node groups' names: a graph built by other code gets new groups
 GROUP_PREFIX = f"FlowBSDF SVM{GRAPH_VERSION} "
@@ -103,7 +103,7 @@ X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
 def _svm_export():
     import importlib
     from . import deps
-    return importlib.import_module(f"{deps.bake.__name__}.svm_export")
+    return importlib.import_module(f"{deps.bake.__name__}.export.svm_export")
 
 
 def _image(path):
@@ -237,7 +237,7 @@ def _step_group(image, alpha):
 # ------------------------------------------------------------------------------ the sampler
 
 class _Sampler:
-    """The sampler's nodes on one SVM texture (layout: bake/svm_export.py). `incident` adds
+    """The sampler's nodes on one SVM texture (layout: bake/export/svm_export.py). `incident` adds
     the bin lookup and blend weights (once per graph), then `sample` and `locate` add the
     sampler and its inverse (the pdf at a direction)."""
 
@@ -361,7 +361,7 @@ class _Sampler:
         return m, ka, kb, g.combine(wr, wg, wb), g.math('SUBTRACT', a1, a0), g.math('SUBTRACT', b1, b0)
 
     def pdf(self, m, x, ka, kb, y, da, db, ex_a=None, ex_b=None):
-        """m exp_density(x, ka) exp_density(y, kb) / (da db) (bake/tables.py)."""
+        """m exp_density(x, ka) exp_density(y, kb) / (da db) (bake/core/tables.py)."""
         g = self.g
         dens = g.math('MULTIPLY', _exp_density(g, x, ka, ex_a), _exp_density(g, y, kb, ex_b))
         return g.math('DIVIDE', g.math('MULTIPLY', m, dens), g.math('MULTIPLY', da, db))
@@ -418,7 +418,7 @@ def _log2(n):
 
 
 def _from_ab(g, a, b, phi_i):
-    """bake/tables.py from_ab: wo (floats x, y, z) in the local frame, where wi has azimuth phi_i
+    """bake/core/tables.py from_ab: wo (floats x, y, z) in the local frame, where wi has azimuth phi_i
     (None: 0, the isotropic frame that follows wi)."""
     sin_o = g.math('SQRT', g.math('MULTIPLY', a, g.math('SUBTRACT', 2.0, a)))
     phi_o = g.math('ADD', b, phi_i) if phi_i is not None else b
@@ -427,7 +427,7 @@ def _from_ab(g, a, b, phi_i):
 
 
 def _to_ab(g, wo, phi_i):
-    """bake/tables.py to_ab (phi_ref = phi_i + pi) of a local direction (floats x, y, z)."""
+    """bake/core/tables.py to_ab (phi_ref = phi_i + pi) of a local direction (floats x, y, z)."""
     x, y, z = wo
     a = g.math('DIVIDE', g.math('ADD', g.math('MULTIPLY', x, x), g.math('MULTIPLY', y, y)),
                g.math('ADD', g.math('MAXIMUM', z, 0.0), 1.0))
@@ -458,7 +458,7 @@ def _small(g, k):
 
 
 def _exp_inverse_cdf(g, u, k):
-    """bake/tables.py exp_inverse_cdf, both branches, one selected; also e^k - 1 (reused)."""
+    """bake/core/tables.py exp_inverse_cdf, both branches, one selected; also e^k - 1 (reused)."""
     series = g.math('MULTIPLY_ADD', g.math('MULTIPLY', k, g.math('MULTIPLY', u, g.math('SUBTRACT', 1.0, u))), 0.5, u)
     ex = _expm1(g, k)
     exact = g.math('DIVIDE', _log1p(g, g.math('MULTIPLY', u, ex)), k)
@@ -466,7 +466,7 @@ def _exp_inverse_cdf(g, u, k):
 
 
 def _exp_density(g, x, k, ex=None):
-    """bake/tables.py exp_density, both branches, one selected (ex: e^k - 1 when known)."""
+    """bake/core/tables.py exp_density, both branches, one selected (ex: e^k - 1 when known)."""
     ex = _expm1(g, k) if ex is None else ex
     series = g.math('MULTIPLY_ADD', k, g.math('SUBTRACT', x, 0.5), 1.0)
     exact = g.math('DIVIDE', g.math('MULTIPLY', k, g.math('EXPONENT', g.math('MULTIPLY', k, x))), ex)
@@ -478,14 +478,14 @@ def _exp_density(g, x, k, ex=None):
 def _world_map_module():
     import importlib
     from . import deps
-    return importlib.import_module(f"{deps.bake.__name__}.world_map")
+    return importlib.import_module(f"{deps.bake.__name__}.export.world_map")
 
 
 _world_layouts = {}
 
 
 def world_layout(path):
-    """The numbers the graph needs of a world importance map (bake/world_map.py's texture): W,
+    """The numbers the graph needs of a world importance map (bake/export/world_map.py's texture): W,
     H (map pixels), Wt, Ht (texture texels), the binary searches' steps over its rows and
     columns, its layout; None when `path` is empty or not a current world map (then the graph
     draws no world-map samples). Read once per file version from the image's pixels (numpy; no
@@ -940,7 +940,7 @@ def _sample(g, texture_path, group_input_tangent_socket):
 
 def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, location=(0.0, 0.0), world=None):
     """Add to the shader node tree `tree` the sampler of the SVM texture `texture_path`
-    (bake/svm_export.ensure_svm_export) ending in a Ray Portal BSDF; returns its shader output
+    (bake/export/svm_export.ensure_svm_export) ending in a Ray Portal BSDF; returns its shader output
     socket. Anisotropic tables take their frame's x from `group_input_tangent_socket` (a
     vector socket, e.g. the Learned BSDF group's Tangent input), world x when None. Camera
     rays stratify u by the film when the current scene allows it (set_film updates that).

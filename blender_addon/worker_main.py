@@ -92,7 +92,7 @@ class Step:
 
 
 class BakeProgress(Step):
-    """A material's bake, estimated from the baker's log (bake/tabulate.plan_tables): the
+    """A material's bake, estimated from the baker's log (bake/core/tabulate.plan_tables): the
     resolution probe ("resolution R: single-bin rv X"), then one line per incident angle the
     planner adds ("bins N: split ... (midpoint rv S)") until the worst midpoint reaches tol / 2
     or the memory budget caps the angles, then the final build (silent) and the node's
@@ -105,7 +105,7 @@ class BakeProgress(Step):
 
     def __init__(self, name, settings, clock=time.monotonic):
         import inspect
-        from bake.tabulate import FLOATS_PER_CELL, RESOLUTIONS, plan_tables
+        from bake.core.tabulate import FLOATS_PER_CELL, RESOLUTIONS, plan_tables
         super().__init__(clock)
         defaults = {k: v.default for k, v in inspect.signature(plan_tables).parameters.items()}
         get = lambda key: settings.get(key, defaults[key])        # noqa: E731
@@ -221,7 +221,7 @@ def cmd_probe(args):
 def material_status(entry, out_dir, manifest_path):
     """A material's state: can it be opened, is it isotropic, model and tables present/current."""
     from bake.errors import FlowBSDFError
-    from bake.pipeline import model_path, open_current_tables, table_path
+    from bake.plumbing.pipeline import model_path, open_current_tables, table_path
     info = {"name": entry.name, "domain": entry.domain, "isotropic": None, "error": None,
             "model": model_path(out_dir, entry.name).is_file(), "tables": "missing",
             "tables_path": str(table_path(out_dir, entry.name)), "theta_bins_deg": None}
@@ -246,7 +246,7 @@ def material_status(entry, out_dir, manifest_path):
 
 
 def cmd_status(args):
-    from bake.manifest import load_manifest
+    from bake.plumbing.manifest import load_manifest
     manifest = load_manifest(args.manifest)
     for entry in manifest.select(args.material and args.material[0], log=emit):
         emit("[status] " + json.dumps(material_status(entry, args.out, manifest.path)))
@@ -298,8 +298,8 @@ def write_preview(entry, manifest, out_dir, tables_path, log=emit):
 
 def cmd_bake(args):
     from bake.errors import FlowBSDFError
-    from bake.manifest import load_manifest
-    from bake.pipeline import bake_entry, bake_settings, model_path
+    from bake.plumbing.manifest import load_manifest
+    from bake.plumbing.pipeline import bake_entry, bake_settings, model_path
     manifest = load_manifest(args.manifest)
     wanted = set(args.material or [])
     entries = [e for e in manifest.select(log=emit) if not wanted or e.name in wanted]
@@ -340,7 +340,7 @@ def cmd_bake(args):
             with BakeProgress(entry.name, bake_settings(entry, manifest.path)) as progress:
                 path, status = bake_entry(entry, args.out, manifest.path, log=progress.log)
                 if path is not None:        # the node's OSL texture and closure fit, beside the tables
-                    from bake.osl_export import bake_derived
+                    from bake.export.osl_export import bake_derived
                     bake_derived(path, log=progress.log)
                     write_preview(entry, manifest, args.out, path, log=progress.log)
         except FlowBSDFError as e:
@@ -373,7 +373,7 @@ def write_compare(path, cycles, ref, result):
     """compare.png (Cycles, the reference and their luminance difference, labelled, with the
     numbers) and compare.md beside it saying the same in words."""
     import numpy as np
-    from bake.geometry import LUMINANCE
+    from bake.core.geometry import LUMINANCE
     from bake.tracer.images import false_colour, tonemap, write_png
     from bake.tracer.label import labelled_panels
     err = np.abs((cycles - ref) @ LUMINANCE)
@@ -393,7 +393,7 @@ def cmd_validate(args):
     MIS, as the OSL back end does) vs Cycles' image."""
     import numpy as np
     from bake.errors import FlowBSDFError
-    from bake.manifest import load_manifest
+    from bake.plumbing.manifest import load_manifest
     from bake.tracer.compare import metrics
     from bake.tracer.images import read_exr, write_exr
     from bake.tracer.integrator import render

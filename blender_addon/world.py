@@ -1,4 +1,4 @@
-"""The world's importance map for the Learned BSDF's shaders (bake/world_map.py).
+"""The world's importance map for the Learned BSDF's shaders (bake/export/world_map.py).
 
 `bake_world_map(scene, folder)` makes the world's equirectangular radiance map and writes the
 texture the shaders sample: an Environment Texture world straight from its image's texels
@@ -251,14 +251,14 @@ def bake_sun(scene, sun, path):
     import json
     from . import node
     fit = sun_fit(render_sun(scene, sun), sun)
-    with node._bake_mod("files").atomic_path(path) as tmp:
+    with node._bake_mod("plumbing.files").atomic_path(path) as tmp:
         Path(tmp).write_text(json.dumps(fit))
     return fit
 
 
 def render_world(scene, width=WIDTH, height=HEIGHT, spp=SPP, path=None):
     """The scene's world as an equirectangular radiance image (height, width, 3), row 0 the
-    zenith, column u = 0.5 - atan2(y, x) / 2 pi (bake/world_map.py); with `path`, the 32-bit
+    zenith, column u = 0.5 - atan2(y, x) / 2 pi (bake/export/world_map.py); with `path`, the 32-bit
     OpenEXR Cycles wrote is kept there too (the reference tracer reads it as its environment)."""
     def equirectangular(cam_data, cam):
         cam_data.type = 'PANO'
@@ -392,7 +392,7 @@ def bake_world_map(scene, folder):
     missing; no map for no world, a black one, or where numpy/bake are missing."""
     key = world_key(scene)
     from . import node
-    world_map = node._bake_mod("world_map")
+    world_map = node._bake_mod("export.world_map")
     if key is None or world_map is None:
         return shader_inputs(None, None, None)
     path, sky_file = map_path(folder, key), sky_path(folder, key)
@@ -426,7 +426,7 @@ def write_sky(path, radiance):
     import numpy as np
     from . import node
     rgba = np.concatenate([radiance, np.ones(radiance.shape[:2] + (1,))], -1).astype(np.float32)
-    node._bake_mod("exrio").write_rgba_exr(path, rgba, "flowbsdf", {"sky": True})
+    node._bake_mod("plumbing.exrio").write_rgba_exr(path, rgba, "flowbsdf", {"sky": True})
 
 
 def _environment(exact, sky_file):
@@ -445,7 +445,7 @@ def current_inputs(scene, folder):
     when it is not made yet: then the tables sample alone, unbiased, noisier)."""
     key = world_key(scene)
     from . import node
-    world_map = node._bake_mod("world_map")
+    world_map = node._bake_mod("export.world_map")
     path = map_path(folder, key) if key else None
     meta = world_map.read_world_meta(path) if path is not None and world_map is not None else None
     env = _environment(exact_environment(scene), sky_path(folder, key)) if key else None

@@ -42,9 +42,9 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 import cycles_scenes as cs  # noqa: E402
-from bake.closure_fit import load_fit, principled_params  # noqa: E402
-from bake.manifest import load_manifest  # noqa: E402
-from bake.tables import open_tables  # noqa: E402
+from bake.export.closure_fit import load_fit, principled_params  # noqa: E402
+from bake.plumbing.manifest import load_manifest  # noqa: E402
+from bake.core.tables import open_tables  # noqa: E402
 
 DEFAULT = ["paper_white", "cm_military_green", "chm_mint"]
 OSL_SEEDS = 8
@@ -197,7 +197,7 @@ def run_material(name, env_kind, env_path, args, manifest_path):
         img, var, var1, secs = trace(scene_path, manifest_path, tables, which, spp, workers=args.workers)
         print(f"[{env_kind} {name}] tracer {which} {spp} spp: {secs:.0f} s", flush=True)
         np.save(folder / f"tracer_{which}.npy", np.stack([img, var, var1]))
-    from bake.closure_fit import ensure_fit
+    from bake.export.closure_fit import ensure_fit
     fit = load_fit(ensure_fit(tables_path))
     for kind, spp in CASES(args.spp):
         img, secs = render_case(kind, name, tables_path, env_path, args.size, spp, fit=fit,

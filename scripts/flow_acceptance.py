@@ -10,7 +10,7 @@ theta_i in {0, 30, 60, 75, 85}: rv of the flow's own sampler (N = the trained st
 fold fraction, and the chi-square test of sample() against pdf() (1e5 samples, 16x16
 half-vector bins, Šidák over all cells). Prints and writes a Markdown table.
 
-rv is measured two ways: `bake.metrics.relative_variance_ref` (wo from the ideal sampler on a
+rv is measured two ways: `bake.quality.metrics.relative_variance_ref` (wo from the ideal sampler on a
 jittered 512 x 512 grid: sees the regions the sampler rarely visits; the table's numbers) and the
 direct estimate from 2^16 of the sampler's own samples (seed 7; what sessions 2-4 reported: it
 understates heavy tails), in a second table. A '!' marks a cell whose reference estimate one
@@ -24,13 +24,13 @@ from pathlib import Path
 
 import numpy as np
 
-from bake.baselines import fit_ggx
-from bake.flow import load_model
-from bake.geometry import incident
-from bake.ideal import IdealSampler
+from bake.core.baselines import fit_ggx
+from bake.core.flow import load_model
+from bake.core.geometry import incident
+from bake.core.ideal import IdealSampler
 from bake.materials import open_material
 from bake.materials.rgl import SHARED_FILES, shared_dir
-from bake.metrics import chi2_test, relative_variance_ref, sample_weights
+from bake.quality.metrics import chi2_test, relative_variance_ref, sample_weights
 
 THETAS = (0, 30, 60, 75, 85)
 

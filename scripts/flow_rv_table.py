@@ -17,7 +17,7 @@ file it was trained on (.bsdf / .binary). The teacher is flow.pt's best weights,
 reflow.pt's; the architecture comes from the model file's training settings (default: the
 *.flow.npz next to CKPT_DIR, else the weights' shapes). Each cell is the rv of the one-sample
 estimator lum(f)·cos / pdf of the flow's own N-step sampler with its exact N-step pdf
-(float64 torch, the same protocol as bake.metrics.sample_weights: lost samples count as 0),
+(float64 torch, the same protocol as bake.quality.metrics.sample_weights: lost samples count as 0),
 against material.eval, plus the share of samples with det(I + J/N) <= 0 at some step.
 """
 import trainer  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
@@ -33,7 +33,8 @@ import time
 import numpy as np
 import torch
 
-from bake import flow as F
+from bake.core import flow as F
+from bake.core import flow_maps, special
 from trainer.synthetic import GGXReflection
 from trainer.train import COMMON, Trainer, make_settings
 
@@ -50,9 +51,9 @@ def flow_samples(net, theta, n_steps, n=1 << 15, seed=5):
         lp0 = net64.base.log_prob(c, y0)
         y1, logdet, min_det = net64.euler(c, y0, n_steps)
     y1 = y1.numpy()
-    cmap = F.MAPS[net.domain]
+    cmap = flow_maps.MAPS[net.domain]
     if not F.planar(net.domain):
-        y1[:, 1] = F.wrap_angle(y1[:, 1])
+        y1[:, 1] = special.wrap_angle(y1[:, 1])
     wi_rows = np.broadcast_to(wi, (n, 3))
     log_p = (lp0 - logdet).numpy() - cmap.log_dw_dy(y1, wi_rows)
     return wi, y1, log_p, min_det.numpy()
@@ -60,7 +61,7 @@ def flow_samples(net, theta, n_steps, n=1 << 15, seed=5):
 
 def flow_directions(net, wi, y1):
     """wo of flow coordinates y1 and whether each is above the horizon (slope maps lose some)."""
-    wo = F.MAPS[net.domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
+    wo = flow_maps.MAPS[net.domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
     return wo, wo[:, 2] > 0
 
 
@@ -140,9 +141,9 @@ def load_trained(ckpt_dir, model_path=None):
 
 
 def material_weights(material, wi, y1, log_p, domain):
-    """w = lum(f)·cos / pdf as bake.metrics.sample_weights (lost samples: 0)."""
-    from bake.geometry import luminance
-    wo = F.MAPS[domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
+    """w = lum(f)·cos / pdf as bake.quality.metrics.sample_weights (lost samples: 0)."""
+    from bake.core.geometry import luminance
+    wo = flow_maps.MAPS[domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
     with np.errstate(over="ignore"):
         pdf = np.exp(log_p)
     ok = (pdf > 0) & (wo[:, 2] > 0) & np.isfinite(pdf)
@@ -152,7 +153,7 @@ def material_weights(material, wi, y1, log_p, domain):
 
 
 def crosscheck(net, model_file_arrays, theta, n_steps, domain, k=64, seed=11):
-    """max relative difference between torch's forward pdf and bake.flow's inverse pdf (numpy,
+    """max relative difference between torch's forward pdf and bake.core.flow's inverse pdf (numpy,
     the exported float32 weights evaluated at n_steps) on k samples, and how many of them fold.
     Where the N-step map folds it is not injective: the forward pdf p0/|det| is then not the
     sampler's density and the inverse may find another preimage, so they may disagree."""
@@ -161,7 +162,7 @@ def crosscheck(net, model_file_arrays, theta, n_steps, domain, k=64, seed=11):
     if model_file_arrays is not None:   # the student: check it is the exported file's weights
         for key, v in net.arrays().items():
             assert np.array_equal(v.astype(np.float32), model_file_arrays[key]), key
-    wo = F.MAPS[domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
+    wo = flow_maps.MAPS[domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
     ok = wo[:, 2] > 0                   # slope maps lose samples below the horizon: pdf 0 both ways
     p_np = model.pdf(wi, wo[ok])
     return float(np.max(np.abs(p_np / np.exp(log_p[ok]) - 1.0))), int(np.sum(min_det <= 0))
@@ -192,7 +193,7 @@ def trained_main(argv):
           f"student vel {student.config['vel_width']}x{student.config['vel_depth']}, domain {domain}, "
           f"trained N={(meta or {}).get('steps')}; {args.samples} samples/cell, seed {args.seed}, "
           f"torch threads {torch.get_num_threads()}, load {os.getloadavg()[0]:.2f}", flush=True)
-    # Cross-checks: the student is the exported file; torch pdf == bake.flow's exact pdf.
+    # Cross-checks: the student is the exported file; torch pdf == bake.core.flow's exact pdf.
     file_arrays = None
     if model_path:
         with np.load(model_path, allow_pickle=False) as z:
@@ -205,9 +206,9 @@ def trained_main(argv):
     head = "| model | N | " + " | ".join(f"{t:g}°" for t in thetas) + " | fold % (max) | s |"
     lines = [head, "|---" * (len(thetas) + 4) + "|"]
     if not args.no_baseline:
-        from bake.baselines import CosineSampler
-        from bake.geometry import incident
-        from bake.metrics import sample_weights
+        from bake.core.baselines import CosineSampler
+        from bake.core.geometry import incident
+        from bake.quality.metrics import sample_weights
         cells = []
         for t in thetas:
             w = sample_weights(material, CosineSampler(), incident(t), args.samples, seed=args.seed)

@@ -15,7 +15,7 @@ Per (scene, material) — draft tables (32 x 32 cells, 8 theta bins, ideal tabul
 --tables-dir has the material:
   1. CPU time per spp of each back end (this process's CPU time: Cycles' threads; wall time
      too, for the record), measured in this run, interleaved: Principled BSDF fit
-     (bake.closure_fit.principled_params), OSL back end, SVM back end, closure fit (and
+     (bake.export.closure_fit.principled_params), OSL back end, SVM back end, closure fit (and
      Principled under OSL, for the record); each at --t-lo and --t-hi spp in --t-rounds
      rounds (order rotated), time per spp = (min t_hi - min t_lo) / (hi - lo): scene sync and
      shader compilation excluded.
@@ -59,8 +59,8 @@ sys.path.insert(0, str(ROOT / "scripts"))
 
 import cycles_acceptance as ca  # noqa: E402
 import cycles_scenes as cs  # noqa: E402
-from bake.closure_fit import ensure_fit, load_fit  # noqa: E402
-from bake.tables import open_tables  # noqa: E402
+from bake.export.closure_fit import ensure_fit, load_fit  # noqa: E402
+from bake.core.tables import open_tables  # noqa: E402
 
 NAMES = ["paper_white", "cm_military_green", "chm_mint"]
 SCENES = ("hdri", "sky", "studio", "truesky")
@@ -85,10 +85,10 @@ def draft_tables(name, folder, tables_dir=None):
         return Path(tables_dir) / f"{name}.exr"
     path = Path(folder) / f"{name}.exr"
     if not path.is_file():
-        from bake.ideal import IdealSampler
+        from bake.core.ideal import IdealSampler
         from bake.materials import open_material
-        from bake.manifest import load_manifest
-        from bake.tabulate import build_tables
+        from bake.plumbing.manifest import load_manifest
+        from bake.core.tabulate import build_tables
         entry = {e.name: e for e in load_manifest(ROOT / "manifest.toml").materials}[name]
         mat = open_material(entry.source, base_dir=ROOT)
         t0 = time.perf_counter()

@@ -40,8 +40,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 import cycles_scenes as cs  # noqa: E402
-from bake.osl_export import ensure_osl_export  # noqa: E402
-from bake.svm_export import ensure_svm_export  # noqa: E402
+from bake.export.osl_export import ensure_osl_export  # noqa: E402
+from bake.export.svm_export import ensure_svm_export  # noqa: E402
 
 
 SKY = {"strength": 0.2, "sun_elevation": 0.5, "sun_rotation": 1.0}
@@ -69,9 +69,9 @@ def _sky_inputs(folder):
 
 def _lambert(folder):
     """Tables of a Lambertian of albedo 0.8 (as tests/test_svm.py's)."""
-    from bake.ideal import IdealSampler
+    from bake.core.ideal import IdealSampler
     from bake.materials import open_material
-    from bake.tabulate import build_tables
+    from bake.core.tabulate import build_tables
     mat = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.8})
     tab = build_tables(mat, IdealSampler(mat, resolution=64), np.radians([0.0, 30.0, 60.0, 80.0, 89.5]),
                        rows=24, cols=24, grid=96)

@@ -20,14 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-from bake.geometry import incident
-from bake.ideal import IdealSampler
+from bake.core.geometry import incident
+from bake.core.ideal import IdealSampler
 from bake.materials import open_material
 from bake.materials.rgl import SHARED_FILES, shared_dir
-from bake.metrics import chi2_test, relative_variance_ref, sample_weights
-from bake.tables import open_tables
-from bake.tabulate import plan_tables
-from bake.bench import random_incident, samples_per_second
+from bake.quality.metrics import chi2_test, relative_variance_ref, sample_weights
+from bake.core.tables import open_tables
+from bake.core.tabulate import plan_tables
+from bake.quality.bench import random_incident, samples_per_second
 
 THETAS = (0, 30, 60, 75, 85)
 
@@ -54,7 +54,7 @@ def main():
             tab = open_tables(path)
         else:
             if args.models:
-                from bake.flow import load_model
+                from bake.core.flow import load_model
                 source = load_model(Path(args.models) / f"{name}.flow.npz")
             else:
                 source = IdealSampler(mat)
@@ -83,7 +83,7 @@ def main():
         print("| " + " | ".join(line) + " |", flush=True)
         peer = None
         if args.mitsuba:
-            from bake.mitsuba_peer import MitsubaMeasuredSampler
+            from bake.quality.mitsuba_peer import MitsubaMeasuredSampler
             peer = MitsubaMeasuredSampler(shared_dir() / f"{name}.bsdf")
             for theta in THETAS:
                 w = sample_weights(mat, peer, incident(theta), 1 << 18, seed=7)

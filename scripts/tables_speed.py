@@ -24,17 +24,17 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 from conftest import RGL_FILES, rgl_dir  # noqa: E402
 
-from bake import fasttables  # noqa: E402
-from bake.bench import random_incident, single_threaded  # noqa: E402
-from bake.geometry import incident  # noqa: E402
-from bake.tables import open_tables  # noqa: E402
+from bake.core import fasttables  # noqa: E402
+from bake.quality.bench import random_incident, single_threaded  # noqa: E402
+from bake.core.geometry import incident  # noqa: E402
+from bake.core.tables import open_tables  # noqa: E402
 
 
 def load_tables(path, name):
     if not path.is_file():
-        from bake.ideal import IdealSampler
+        from bake.core.ideal import IdealSampler
         from bake.materials import open_material
-        from bake.tabulate import plan_tables
+        from bake.core.tabulate import plan_tables
         print(f"[bake] {name}: no {path}, baking from the ideal tabulation", flush=True)
         mat = open_material(rgl_dir() / f"{name}.bsdf")
         plan_tables(mat, IdealSampler(mat)).save(path)
@@ -81,7 +81,7 @@ def main():
     p.add_argument("--repeat", type=int, default=7)
     p.add_argument("--baseline", help="another FlowBSDF checkout, timed beside this one")
     args = p.parse_args()
-    from bake.mitsuba_peer import MitsubaMeasuredSampler
+    from bake.quality.mitsuba_peer import MitsubaMeasuredSampler
     print(f"tables: {fasttables.REASON if fasttables.load() else fasttables.REASON}")
     base = None
     if args.baseline:

@@ -23,8 +23,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bake.errors import FlowBSDFError  # noqa: E402
-from bake.manifest import load_manifest  # noqa: E402
-from bake.pipeline import open_current_tables  # noqa: E402
+from bake.plumbing.manifest import load_manifest  # noqa: E402
+from bake.plumbing.pipeline import open_current_tables  # noqa: E402
 from bake.tracer.compare import compare  # noqa: E402
 from bake.tracer.scene import builtin_scene  # noqa: E402
 

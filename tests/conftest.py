@@ -39,7 +39,7 @@ def rgl():
 
 
 def write_npz(path, meta, arrays):
-    """A model file as bake.flow reads it: the arrays, and `meta` (a dict, or a string as it
+    """A model file as bake.core.flow reads it: the arrays, and `meta` (a dict, or a string as it
     is; None: left out) as the JSON string `meta`."""
     payload = dict(arrays)
     if meta is not None:

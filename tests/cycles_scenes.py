@@ -271,9 +271,9 @@ SMALL_BINS = np.radians([0.0, 30.0, 60.0, 80.0, 89.5])
 
 def small_tables(source, name, folder):
     """16 x 16-cell tables over SMALL_BINS from the ideal tabulation, saved as <folder>/<name>.exr."""
-    from bake.ideal import IdealSampler
+    from bake.core.ideal import IdealSampler
     from bake.materials import open_material
-    from bake.tabulate import build_tables
+    from bake.core.tabulate import build_tables
     mat = open_material(source)
     tab = build_tables(mat, IdealSampler(mat, resolution=64), SMALL_BINS, rows=16, cols=16, grid=96)
     tab.meta["material"] = name
@@ -284,9 +284,9 @@ def small_tables(source, name, folder):
 def aniso_small_tables(folder):
     """Small anisotropic tables (GGX 0.3 x 0.05 at 20 deg: 3 theta x 4 phi bins over pi), saved
     as <folder>/brushed.exr."""
-    from bake.ideal import IdealSampler
+    from bake.core.ideal import IdealSampler
     from bake.materials import open_material
-    from bake.tabulate import build_tables
+    from bake.core.tabulate import build_tables
     mat = open_material({"kind": "analytic", "model": "ggx", "alpha_x": 0.3, "alpha_y": 0.05, "angle": 20})
     phi_bins = np.arange(4) * (mat.phi_period / 4)
     tab = build_tables(mat, IdealSampler(mat, resolution=48), np.radians([0.0, 45.0, 89.5]), rows=16, cols=16,
@@ -323,9 +323,9 @@ def lambert_tables(folder, albedo=0.8):
     """Baked tables of a Lambertian (ideal tabulation, 24 x 24 cells, 5 theta bins): the learned
     material whose Cycles twin is a Diffuse BSDF of that albedo. Returns the .exr path."""
     import numpy as np
-    from bake.ideal import IdealSampler
+    from bake.core.ideal import IdealSampler
     from bake.materials import open_material
-    from bake.tabulate import build_tables
+    from bake.core.tabulate import build_tables
     mat = open_material({"kind": "analytic", "model": "lambert", "albedo": albedo})
     tab = build_tables(mat, IdealSampler(mat, resolution=64), np.radians([0.0, 30.0, 60.0, 80.0, 89.5]),
                        rows=24, cols=24, grid=96)

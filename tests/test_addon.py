@@ -16,7 +16,7 @@ if str(ROOT) not in sys.path:
 bpy = pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed")
 import cycles_scenes as cs  # noqa: E402  (tests/ helper of the node tests)
 
-from bake.manifest import load_manifest  # noqa: E402
+from bake.plumbing.manifest import load_manifest  # noqa: E402
 
 
 def _addon():
@@ -521,7 +521,7 @@ def test_extension_zip_builds_validates_installs(tmp_path):
     assert "validated" in proc.stdout and zip_path.is_file()
     import zipfile
     names = zipfile.ZipFile(zip_path).namelist()
-    assert "blender_manifest.toml" in names and "vendor/bake/pipeline.py" in names
+    assert "blender_manifest.toml" in names and "vendor/bake/plumbing/pipeline.py" in names
     assert "worker_main.py" in names and "osl/learned_bsdf.osl" in names
     assert not [n for n in names if n.endswith((".so", ".pyc")) or "trainer/" in n]
     manifest = tomllib.loads(zipfile.ZipFile(zip_path).read("blender_manifest.toml").decode())

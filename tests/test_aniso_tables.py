@@ -1,4 +1,4 @@
-"""Baked tables of anisotropic materials: bins over theta_i x phi_i (bake/tables.py).
+"""Baked tables of anisotropic materials: bins over theta_i x phi_i (bake/core/tables.py).
 
 The hard cases aniso_1to50 (GGX alpha 0.5 x 0.01) and its rotated twin (0.01 x 0.5 at 37
 deg), small tables (16x16 cells, 5 theta bins x 8 phi bins over the period pi): sample, pdf
@@ -11,14 +11,14 @@ import math
 import numpy as np
 import pytest
 
-from bake.geometry import incident
+from bake.core.geometry import incident
 from conftest import slow_unless
-from bake.ideal import IdealSampler
-from bake.metrics import chi2_test, relative_variance
-from bake.osl_export import LAYOUT
-from bake.stress import hard_cases, make_tables
-from bake.tables import open_tables
-from bake.warps import rotate_z
+from bake.core.ideal import IdealSampler
+from bake.quality.metrics import chi2_test, relative_variance
+from bake.export.osl_export import LAYOUT
+from bake.quality.stress import hard_cases, make_tables
+from bake.core.tables import open_tables
+from bake.core.warps import rotate_z
 from contract import assert_sampler_contract
 
 NAMES = ("aniso_1to50", "aniso_1to50_rotated")
@@ -120,8 +120,8 @@ def test_file_round_trip(baked, tmp_path):
 def test_bake_an_anisotropic_manifest_entry(tmp_path):
     """flowbsdf bake bakes it (no more "[skip] anisotropic"), with its OSL texture (the
     layout has phi bins) and closure fit; a second run finds it current."""
-    from bake.manifest import load_manifest
-    from bake.pipeline import bake_manifest, table_path
+    from bake.plumbing.manifest import load_manifest
+    from bake.plumbing.pipeline import bake_manifest, table_path
     manifest = tmp_path / "manifest.toml"
     manifest.write_text('[[material]]\nname = "brushed"\n'
                         'source = { kind = "analytic", model = "ggx", alpha_x = 0.3, alpha_y = 0.05, angle = 20 }\n'

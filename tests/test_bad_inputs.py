@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 
 from bake.errors import FlowBSDFError
-from bake.flow import load_model
-from bake.manifest import load_manifest
+from bake.core.flow import load_model
+from bake.plumbing.manifest import load_manifest
 from bake.materials import open_material
 from bake.materials.merl import DIMS, N_BINS
-from bake.pipeline import bake_manifest, model_path, table_path
-from bake.tables import open_tables
+from bake.plumbing.pipeline import bake_manifest, model_path, table_path
+from bake.core.tables import open_tables
 from conftest import write_npz
 from test_rgl import synthetic_fields, write_tensor_file
 
@@ -90,8 +90,8 @@ def _npy(a):
 @pytest.fixture(scope="module")
 def good_tables(tmp_path_factory):
     """A small valid table file (Lambert, ideal source)."""
-    from bake.ideal import IdealSampler
-    from bake.tabulate import build_tables
+    from bake.core.ideal import IdealSampler
+    from bake.core.tabulate import build_tables
     mat = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})
     tab = build_tables(mat, IdealSampler(mat, resolution=32), np.radians([0.0, 45.0, 89.0]), rows=8, cols=8,
                        grid=48)
@@ -428,7 +428,7 @@ def test_cli_reports_bad_inputs_without_traceback(tmp_path):
     manifest = _bake_manifest_for(tmp_path, f'source = "{bad.name}"')
     env_python = str(ROOT / ".venv" / "bin" / "python")
     python = env_python if Path(env_python).exists() else sys.executable
-    r = subprocess.run([python, "-m", "bake.cli", "bake", str(manifest), "--out", str(tmp_path / "out")],
+    r = subprocess.run([python, "-m", "bake.plumbing.cli", "bake", str(manifest), "--out", str(tmp_path / "out")],
                        capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 2, r.stderr
     assert "Traceback" not in r.stderr

@@ -353,7 +353,7 @@ def test_node_reads_the_fit_format_bake_writes(batch_scene, batch_bake, tmp_path
     pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed")
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))
-    from bake import closure_fit
+    from bake.export import closure_fit
     from blender_addon import node
     _bound_blend(batch_scene, batch_bake)
     assert node.FIT_VERSION == closure_fit.FIT_VERSION

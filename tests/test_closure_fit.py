@@ -2,12 +2,12 @@
 import numpy as np
 import pytest
 
-from bake import closure_fit
+from bake.export import closure_fit
 from bake.errors import FlowBSDFError
-from bake.ideal import IdealSampler
+from bake.core.ideal import IdealSampler
 from bake.materials import open_material
-from bake.osl_export import LAYOUT, _guide, bake_derived, ensure_osl_export, read_export
-from bake.tabulate import build_tables
+from bake.export.osl_export import LAYOUT, _guide, bake_derived, ensure_osl_export, read_export
+from bake.core.tabulate import build_tables
 
 BINS = np.radians([0.0, 30.0, 60.0, 80.0, 89.5])
 KNOTS = (0.0, 45.0, 75.0, 88.0)

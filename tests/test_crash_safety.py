@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bake.flow import load_model
-from bake.manifest import load_manifest
-from bake.pipeline import bake_manifest, open_current_tables, table_path
-from bake.tables import open_tables
+from bake.core.flow import load_model
+from bake.plumbing.manifest import load_manifest
+from bake.plumbing.pipeline import bake_manifest, open_current_tables, table_path
+from bake.core.tables import open_tables
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON = str(ROOT / ".venv" / "bin" / "python") if (ROOT / ".venv" / "bin" / "python").exists() else sys.executable
@@ -81,7 +81,7 @@ def bake_kills(tmp_path, kills, seed):
     rng = np.random.default_rng(seed)
     manifest = bake_manifest_file(tmp_path)
     out = tmp_path / "out"
-    cmd = [PYTHON, "-m", "bake.cli", "bake", str(manifest), "--out", str(out)]
+    cmd = [PYTHON, "-m", "bake.plumbing.cli", "bake", str(manifest), "--out", str(out)]
     # a reference: how long a full bake takes here (kills land anywhere inside it)
     t0 = time.perf_counter()
     assert subprocess.run(cmd, cwd=ROOT, capture_output=True).returncode == 0
@@ -122,7 +122,7 @@ def test_bake_killed_at_random_moments(tmp_path):
     matte = [e for e in m.materials if e.name == "matte"][0]
     assert open_current_tables(matte, out, m.path) is not None
     from test_bad_inputs import tiny_model_arrays, tiny_model_meta
-    from bake.flow import save_model
+    from bake.core.flow import save_model
     save_model(out / "models" / "matte.flow.npz", tiny_model_meta(), tiny_model_arrays())
     assert open_current_tables(matte, out, m.path) is None, "tables of a replaced model used"
 

@@ -11,8 +11,8 @@ import pytest
 
 import cycles_scenes as cs
 from conftest import slow_unless
-from bake.closure_fit import baked_albedo, load_fit, params_at
-from bake.osl_export import ensure_osl_export
+from bake.export.closure_fit import baked_albedo, load_fit, params_at
+from bake.export.osl_export import ensure_osl_export
 
 bpy = cs.bpy_or_skip()
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
@@ -65,9 +65,9 @@ def _probe(tex, n, theta, mode, phi=0.0, world=""):
 def test_osl_sampler_is_tables_sample(baked, name):
     """Same u -> same wo, the same weight (= baked f cos / pdf) and the same pdf as the numpy
     reference (the sampler's exact density: weight x pdf = baked f cos)."""
-    from bake.osl_export import LAYOUT
-    from bake.tables import open_tables
-    from bake.osl_export import export_path
+    from bake.export.osl_export import LAYOUT
+    from bake.core.tables import open_tables
+    from bake.export.osl_export import export_path
     assert lb.OSL_LAYOUT == LAYOUT and f"#define LAYOUT {LAYOUT}\n" in lb.shader_source()
     assert lb._texture_path(baked[name], "0" * 64) == export_path(baked[name], "0" * 64)
     tab = open_tables(baked[name])
@@ -104,7 +104,7 @@ def _hemisphere_directions(n):
 def _assert_osl_eval_is_numpy(tex, tab, angles):
     """The shader's eval_tables (next-event estimation's pdf and baked f cos) gives numpy's
     Tables.pdf and Tables.eval x cos at directions all over the hemisphere."""
-    from bake.geometry import incident
+    from bake.core.geometry import incident
     n = 32
     wo = _hemisphere_directions(n)
     for theta_deg, phi_deg in angles:
@@ -118,16 +118,16 @@ def _assert_osl_eval_is_numpy(tex, tab, angles):
 
 @pytest.mark.parametrize("name", ["plastic", "gold"])
 def test_osl_eval_is_tables_pdf_and_eval(baked, name):
-    from bake.tables import open_tables
+    from bake.core.tables import open_tables
     tab = open_tables(baked[name])
     tab.backend = "numpy"
     _assert_osl_eval_is_numpy(ensure_osl_export(baked[name]), tab, [(0.0, 0.0), (33.0, 0.0), (71.3, 0.0), (88.0, 0.0)])
 
 
 def test_osl_world_map_is_numpy(tmp_path):
-    """The shader's world-map sampling (direction and pdf) is bake.world_map.WorldMap's, and its
+    """The shader's world-map sampling (direction and pdf) is bake.export.world_map.WorldMap's, and its
     pdf_world reads back the sampled pixel's density."""
-    from bake.world_map import WorldMap, write_world_texture
+    from bake.export.world_map import WorldMap, write_world_texture
     rng = np.random.default_rng(3)
     img = rng.random((24, 48, 3)) ** 4
     img[3, 40] = 300.0                      # a sun
@@ -171,7 +171,7 @@ def test_osl_env_nee_reads_the_sampled_texel(tmp_path, u1):
     edge, where re-deriving the pixel from the direction can round into the neighbour: a dark
     pixel's density with a sun texel's radiance was a firefly of 1e5)."""
     import OpenEXR
-    from bake.world_map import WorldMap, write_world_texture
+    from bake.export.world_map import WorldMap, write_world_texture
     h, w, n = 32, 64, 48
     img = (np.random.default_rng(5).random((h, w, 3)) ** 6 * 1e3 + 1e-3).astype(np.float32)
     env = tmp_path / "env.exr"
@@ -233,8 +233,8 @@ def aniso_tables(tmp_path_factory):
 def test_osl_sampler_is_tables_sample_anisotropic(aniso_tables):
     """Anisotropic tables in OSL: the four-bin blend over theta_i x phi_i gives numpy's wo,
     weight and pdf, on bins, between them and across the period's wrap."""
-    from bake.geometry import incident
-    from bake.tables import open_tables
+    from bake.core.geometry import incident
+    from bake.core.tables import open_tables
     tab = open_tables(aniso_tables)
     tab.backend = "numpy"
     tex = ensure_osl_export(aniso_tables)
@@ -260,7 +260,7 @@ def test_osl_furnace_anisotropic(aniso_tables, tangent):
     tangent frame (x = the node's Tangent input, world x when unset, projected onto the
     tangent plane), within Monte Carlo error: the frame, phi_i and the four-bin blend are the
     numpy reference's."""
-    from bake.tables import open_tables
+    from bake.core.tables import open_tables
     tab = open_tables(aniso_tables)
     spp = 256
     img, normal, inner, node, sc = _furnace(aniso_tables, spp, "osl", tangent=tangent)
@@ -297,7 +297,7 @@ def test_osl_furnace_gives_the_baked_albedo(baked, name):
     """Sphere under a constant white sky: each pixel is the baked albedo E[W] at its view angle,
     within Monte Carlo error (per-pixel variance Var[W] / spp from the tables: an upper bound,
     the film-stratified u of camera rays does better)."""
-    from bake.tables import open_tables
+    from bake.core.tables import open_tables
     tab = open_tables(baked[name])
     spp = 256
     img, normal, inner, node, sc = _furnace(baked[name], spp, "osl")
@@ -323,7 +323,7 @@ def test_fit_furnace_gives_the_fitted_albedo(baked):
 
 def baked_albedo_fit(fit, cos_i):
     """The fit's albedo at a view angle: kd + ks A_ggx(alpha), evaluated from the knots."""
-    from bake.closure_fit import ggx_albedo
+    from bake.export.closure_fit import ggx_albedo
     kd, ks, alpha = params_at(fit, cos_i)
     wi = np.array([np.sqrt(max(1 - cos_i ** 2, 0.0)), 0.0, cos_i])
     return kd + ks * ggx_albedo(wi, float(alpha), n=4096)
@@ -534,7 +534,7 @@ def _check_osl_matches_tracer(tables_path, name, tmp_path, hashed=False, n=24, s
     measured over Cycles seeds. Returns (Cycles scene, reference image, sphere mask)."""
     import dataclasses
     import tomllib
-    from bake.tables import open_tables
+    from bake.core.tables import open_tables
     from bake.tracer import render
     from bake.tracer.scene import scene_from_dict
     sc, node, path = _osl_vs_tracer_scene({name: tables_path}, name, n, spp, tmp_path)
@@ -645,7 +645,7 @@ def test_film_stratified_u_is_unbiased_and_cuts_noise(baked, pixel_filter, width
     seeds' spread, which holds the per-render rotation's share), and the noise drops far
     below the hashed u's (per-pixel variance over seeds; measured on this plastic at 64 spp:
     0.10 box, 0.20 Blackman-Harris, 0.18 Gaussian)."""
-    from bake.tables import open_tables
+    from bake.core.tables import open_tables
     path, n, spp, seeds = baked["plastic"], 16, 64, 8
     ref = baked_albedo(open_tables(path), 0.5)
     imgs = _tilted_plane_furnace(path, n, spp, seeds, pixel_filter, width)

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from bake.domains import Disk, Spherical, get_domain
+from bake.core.domains import Disk, Spherical, get_domain
 from bake.errors import FlowBSDFError
-from bake.geometry import spherical_dir
+from bake.core.geometry import spherical_dir
 
 
 def random_dirs(n, rng):

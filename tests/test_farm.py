@@ -1,4 +1,4 @@
-"""Farm jobs (bake/farm.py): the Open Job Description bundle run by the real OpenJD runtime, and
+"""Farm jobs (bake/plumbing/farm.py): the Open Job Description bundle run by the real OpenJD runtime, and
 the Flamenco job type compiled by a stub harness in node (not the Flamenco manager).
 
 The OpenJD tools (`openjd-cli`, a test dependency) are found beside this Python, on PATH or at
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from bake import farm
+from bake.plumbing import farm
 from conftest import ROOT, TINY_TRAIN_TOML
 from test_blender_batch import MAKE_SCENE, _stage_addon
 
@@ -61,7 +61,7 @@ needs_openjd = pytest.mark.skipif(OPENJD is None, reason="the OpenJD tools are n
 
 
 def _env():
-    """The workers' environment: this checkout's bake/trainer for `python -m bake.cli`."""
+    """The workers' environment: this checkout's bake/trainer for `python -m bake.plumbing.cli`."""
     env = {k: v for k, v in os.environ.items() if k not in ("FLOWBSDF_PYTHON", "FLOWBSDF_TRAIN_PYTHON")}
     env["PYTHONPATH"] = str(ROOT)
     return env
@@ -74,7 +74,7 @@ def _run(cmd, cwd=None, timeout=300):
 
 
 def _cli(*args):
-    return _run([sys.executable, "-m", "bake.cli", *args], cwd=ROOT)
+    return _run([sys.executable, "-m", "bake.plumbing.cli", *args], cwd=ROOT)
 
 
 def _progress(out):
@@ -169,7 +169,7 @@ def test_openjd_runs_each_bake_task_for_real_with_path_mapping(tmp_path):
     if farm.can_train(sys.executable):
         assert "openjd_status: rough: training stage reflow done" in runs["rough"][1]
         assert (mnt / "shot" / "out" / "models" / "rough.flow.npz").is_file()
-        from bake.tables import open_tables
+        from bake.core.tables import open_tables
         assert open_tables(tables / "rough.exr").meta["source"] == "flow"        # baked from the trained model
     assert not (mnt / "shot" / "out" / "models" / "matte.flow.npz").exists()      # source = ideal: no training
     code, out = runs["broken"]
@@ -324,7 +324,7 @@ def _compile(tmp_path, **overrides):
 
 def _exec(name, stage, settings=SETTINGS):
     return {"type": "exec", "params": {"exe": settings["python"], "args": [
-        "-m", "bake.cli", "farm", "task", settings["manifest"], "--material", name, "--out",
+        "-m", "bake.plumbing.cli", "farm", "task", settings["manifest"], "--material", name, "--out",
         settings["shared_out"], "--train", settings["train"], "--stage", stage]}}
 
 

@@ -1,4 +1,4 @@
-"""The C fast path of Tables (bake/_tables_c.c via bake/fasttables.py) against the numpy
+"""The C fast path of Tables (bake/core/_tables_c.c via bake/core/fasttables.py) against the numpy
 reference: same samples, pdfs, inverses and BSDF values to 1e-10, and a silent numpy
 fallback when the library is disabled or missing."""
 import os
@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bake import fasttables
+from bake.core import fasttables
 from bake.errors import FlowBSDFError
-from bake.geometry import incident, spherical_dir
-from bake.ideal import IdealSampler
+from bake.core.geometry import incident, spherical_dir
+from bake.core.ideal import IdealSampler
 from bake.materials import open_material
-from bake.tables import Tables, from_ab
-from bake.tabulate import build_tables
+from bake.core.tables import Tables, from_ab
+from bake.core.tabulate import build_tables
 
 ROOT = Path(__file__).resolve().parents[1]
 needs_c = pytest.mark.skipif(not fasttables.AVAILABLE, reason=f"C tables library unavailable: {fasttables.REASON}")
@@ -246,7 +246,7 @@ def test_numpy_fallback_when_the_library_is_disabled(tables, monkeypatch):
 
 def test_env_var_disables_the_library():
     """FLOWBSDF_NO_C=1: bake imports, says why in one line, and the tables sample with numpy."""
-    code = ("import numpy as np; from bake import fasttables as f; from bake.tables import Tables; "
+    code = ("import numpy as np; from bake.core import fasttables as f; from bake.core.tables import Tables; "
             "t = Tables([0.0], [[0, 0.5, 1]], [[[0, 3, 6.3], [0, 3, 6.3]]], np.ones((1, 2, 2)), "
             "np.zeros((1, 2, 2)), np.zeros((1, 2, 2)), np.ones((1, 2, 2, 3))); "
             "wo, p = t.sample([0, 0, 1], np.random.default_rng(0).random((10, 2))); "

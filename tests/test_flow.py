@@ -1,4 +1,4 @@
-"""Flow sampler: numerics of bake.flow, agreement with the torch trainer, model files, training.
+"""Flow sampler: numerics of bake.core.flow, agreement with the torch trainer, model files, training.
 
 Everything here is fast (tiny networks, a few hundred steps); the full presets are in
 the slow-marked tests at the end.
@@ -8,7 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from bake import flow as F
+from bake.core import flow as F
+from bake.core import flow_maps, special
+from bake.core.domains import Disk
 from bake.errors import FlowBSDFError
 from conftest import TINY_TRAIN_TOML, slow_unless, write_npz
 
@@ -43,36 +45,36 @@ def unit(v):
 
 def test_ndtri_inverts_ndtr_in_both_tails():
     p = np.concatenate([np.logspace(-300, -1, 200), np.linspace(0.01, 0.99, 99), 1 - np.logspace(-16, -1, 50)])
-    z = F.ndtri(p)
+    z = special.ndtri(p)
     assert np.all(np.isfinite(z))
     lower = p <= 0.5
-    np.testing.assert_allclose(F.ndtr(z[lower]), p[lower], rtol=1e-12)   # condition number ~ z²
-    np.testing.assert_allclose(1 - F.ndtr(z[~lower]), 1 - p[~lower], rtol=1e-9)
-    np.testing.assert_allclose(F.ndtri(np.array([0.975, 1e-10])), [1.959963984540054, -6.361340902404056],
+    np.testing.assert_allclose(special.ndtr(z[lower]), p[lower], rtol=1e-12)   # condition number ~ z²
+    np.testing.assert_allclose(1 - special.ndtr(z[~lower]), 1 - p[~lower], rtol=1e-9)
+    np.testing.assert_allclose(special.ndtri(np.array([0.975, 1e-10])), [1.959963984540054, -6.361340902404056],
                                rtol=1e-14)
-    assert F.ndtri(np.array([0.0]))[0] == -np.inf
+    assert special.ndtri(np.array([0.0]))[0] == -np.inf
 
 
 def test_von_mises_cdf_inverse_and_density():
     rng = np.random.default_rng(0)
     kappa = np.concatenate([[0.0, 1e-8, 32.0], rng.uniform(0, 32, 500)])
     u = rng.random(len(kappa))
-    m = F.vm_terms(32.0)
-    psi = F.vm_icdf(u, kappa, m)
-    np.testing.assert_allclose(F.vm_cdf(psi, kappa, m), u, atol=2e-15)
+    m = special.vm_terms(32.0)
+    psi = special.vm_icdf(u, kappa, m)
+    np.testing.assert_allclose(special.vm_cdf(psi, kappa, m), u, atol=2e-15)
     h = 1e-5
-    num = (F.vm_cdf(psi + h, kappa, m) - F.vm_cdf(psi - h, kappa, m)) / (2 * h)
-    np.testing.assert_allclose(num, np.exp(F.vm_log_pdf(psi, kappa)), rtol=1e-7, atol=1e-9)
-    ends = F.vm_cdf(np.array([-np.pi, np.pi]), np.array([5.0, 5.0]), m)
+    num = (special.vm_cdf(psi + h, kappa, m) - special.vm_cdf(psi - h, kappa, m)) / (2 * h)
+    np.testing.assert_allclose(num, np.exp(special.vm_log_pdf(psi, kappa)), rtol=1e-7, atol=1e-9)
+    ends = special.vm_cdf(np.array([-np.pi, np.pi]), np.array([5.0, 5.0]), m)
     np.testing.assert_allclose(ends, [0.0, 1.0], atol=1e-15)
 
 
-@pytest.mark.parametrize("cmap", [F.DiskMap, F.SphericalMap])
+@pytest.mark.parametrize("cmap", [flow_maps.DiskMap, flow_maps.SphericalMap])
 def test_coordinate_maps_round_trip_and_jacobian(cmap):
     rng = np.random.default_rng(1)
     y = rng.normal(size=(2000, 2)) * 1.5
-    if cmap is F.SphericalMap:
-        y[:, 1] = F.wrap_angle(y[:, 1])
+    if cmap is flow_maps.SphericalMap:
+        y[:, 1] = special.wrap_angle(y[:, 1])
     w = cmap.to_dir(y)
     np.testing.assert_allclose(np.linalg.norm(w, axis=1), 1.0, atol=1e-15)
     assert np.all(w[:, 2] > 0)
@@ -85,11 +87,11 @@ def test_coordinate_maps_round_trip_and_jacobian(cmap):
 
 
 def test_slope_map_round_trip_jacobian_and_lost_region():
-    cmap = F.SlopeMap
+    cmap = flow_maps.SlopeMap
     rng = np.random.default_rng(11)
     y = rng.normal(size=(4000, 2)) * 1.5
     y[:, 0] -= 1.0
-    y[:, 1] = F.wrap_angle(y[:, 1])
+    y[:, 1] = special.wrap_angle(y[:, 1])
     for deg in (0.0, 40.0, 85.0):
         wi = np.broadcast_to([np.sin(np.radians(deg)), 0.0, np.cos(np.radians(deg))], (len(y), 3))
         w = cmap.to_dir(y, wi)
@@ -132,14 +134,14 @@ def test_maps_send_the_cosine_lobe_to_the_standard_gaussian():
     # Lambertian target in flow coordinates is exactly N(0, I) (disk) / N(0,1) x U(phi) (spherical).
     rng = np.random.default_rng(2)
     y = rng.normal(size=(5, 2))
-    for cmap in (F.DiskMap, F.SphericalMap):
+    for cmap in (flow_maps.DiskMap, flow_maps.SphericalMap):
         w = cmap.to_dir(y)
         log_p_omega = np.log(w[:, 2] / np.pi)
         log_p_y = log_p_omega + cmap.log_dw_dy(y)
-        if cmap is F.DiskMap:
-            expect = np.sum(F.log_normal_pdf(y), axis=1)
+        if cmap is flow_maps.DiskMap:
+            expect = np.sum(special.log_normal_pdf(y), axis=1)
         else:
-            expect = F.log_normal_pdf(y[:, 0]) - math.log(2 * math.pi)
+            expect = special.log_normal_pdf(y[:, 0]) - math.log(2 * math.pi)
         np.testing.assert_allclose(log_p_y, expect, atol=1e-12)
 
 
@@ -168,7 +170,7 @@ def test_numpy_matches_torch(domain, isotropic):
     y1_n, ld_n, _ = model.flow_forward(c, y0)
     if domain in ("spherical", "slope"):
         y1_t = y1_t.detach().numpy().copy()
-        y1_t[:, 1] = F.wrap_angle(y1_t[:, 1])
+        y1_t[:, 1] = special.wrap_angle(y1_t[:, 1])
     else:
         y1_t = y1_t.detach().numpy()
     np.testing.assert_allclose(y1_n, y1_t, rtol=1e-5, atol=1e-5)
@@ -396,9 +398,9 @@ def test_defensive_mixture_keeps_sample_pdf_and_invert_consistent(domain, tmp_pa
     np.testing.assert_allclose(back, wo[flow_rows], atol=1e-7)
     assert model.last_stats["n"] == len(back)
     # The uniform share lower-bounds the density everywhere above the horizon.
-    grid = F.Disk().to_dir(np.random.default_rng(4).uniform(-0.7, 0.7, (500, 2)))
+    grid = Disk().to_dir(np.random.default_rng(4).uniform(-0.7, 0.7, (500, 2)))
     assert np.all(model.pdf(wi, grid) >= 0.05 / (2 * np.pi) * (1 - 1e-12))
-    from bake.metrics import chi2_test
+    from bake.quality.metrics import chi2_test
     assert chi2_test(model, wi, n=100_000, res=(16, 16), seed=2, n_tests=2).passed
     v1 = {k: v for k, v in net.meta(4).items()}
     v1["version"] = 1
@@ -417,8 +419,8 @@ def test_defensive_setting_is_checked_before_training():
 def test_bake_flow_does_not_import_torch():
     import subprocess
     import sys
-    code = ("import sys, bake.flow, bake; assert 'torch' not in sys.modules, 'torch imported'; "
-            "print(bake.load_model is bake.flow.load_model)")
+    code = ("import sys, bake.core.flow, bake; assert 'torch' not in sys.modules, 'torch imported'; "
+            "print(bake.load_model is bake.core.flow.load_model)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "True"
@@ -528,7 +530,7 @@ def test_sharp_lobe_flows_get_a_defensive_share(tmp_path):
     The trainer's defensive uniform share brings the mean over 0/40/70 deg down by far
     (measured: disk 0.1 -> 0.61 / 0.36 / 0.68; slope 0.01 -> 0.5-1.1 / 0.8-2 / 0.7-1.4 over
     seeds), and the slope model's mixture sampler passes the chi-square test."""
-    from bake.metrics import chi2_test
+    from bake.quality.metrics import chi2_test
     for domain in ("disk", "slope"):
         src = GGXReflection(domain, alpha=0.05, theta_max_deg=80)
         _, path = _train_tiny(tmp_path / domain, domain, src)
@@ -611,8 +613,8 @@ optional = true
 
 
 def test_the_preset_names_are_the_trainers():
-    """flowbsdf's parsers (bake/job.py, torch-free) list the presets trainer/train.py defines."""
-    from bake.job import TRAIN_PRESETS
+    """flowbsdf's parsers (bake/plumbing/job.py, torch-free) list the presets trainer/train.py defines."""
+    from bake.plumbing.job import TRAIN_PRESETS
     from trainer.train import PRESETS
     assert TRAIN_PRESETS == tuple(PRESETS)
 
@@ -651,7 +653,7 @@ def test_training_never_ends_worse_than_its_start(tmp_path):
 
 
 def test_auto_domain_picks_slope_for_sharp_gloss_and_disk_for_matte():
-    from bake.ideal import IdealSampler
+    from bake.core.ideal import IdealSampler
     from bake.materials import open_material
     from trainer.sources import SLOPE_SHARE, choose_domain
     picks = {}

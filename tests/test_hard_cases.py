@@ -1,6 +1,6 @@
 """Hard cases (issue 8), the fast part: every sampler on materials built to break it.
 
-The cases are bake.stress.hard_cases() (near-mirror GGX, anisotropy 1:50 at 12 phi_i,
+The cases are bake.quality.stress.hard_cases() (near-mirror GGX, anisotropy 1:50 at 12 phi_i,
 grazing 85-89.9 deg, lobes across phi = +-pi, near-black and over-unity albedo, synthetic
 RGL/MERL data with negative values, invalid entries and empty rows, f·cos zero over most
 of the hemisphere). `flowbsdf stress` runs the same with >= 1e8 samples per case.
@@ -21,10 +21,10 @@ import math
 import numpy as np
 import pytest
 
-from bake.geometry import incident
-from bake.ideal import IdealSampler
-from bake.metrics import chi2_test
-from bake.stress import Tally, check_chunk, hard_cases, make_tables, run_case
+from bake.core.geometry import incident
+from bake.core.ideal import IdealSampler
+from bake.quality.metrics import chi2_test
+from bake.quality.stress import Tally, check_chunk, hard_cases, make_tables, run_case
 
 N = 30_000           # samples per case and sampler (flowbsdf stress: 1e8)
 CHI2_N = 100_000
@@ -100,7 +100,7 @@ def test_hard_case(samplers, workdir, name):
             # the ideal sampler may lose a few samples below the horizon (owned up to as pdf 0)
             assert tally.valid >= 0.99 * tally.n, (name, tally.valid)
         # chi-square at the hardest incident direction (the last); the ideal sampler binned on
-        # its own half-vector grid (bake.stress.chi2_cases explains the binnings)
+        # its own half-vector grid (bake.quality.stress.chi2_cases explains the binnings)
         if sname == "tables" and name in HARD_EDGED:
             continue        # test_tables_on_hard_edged_materials
         binning = "halfvector" if sname == "ideal" else case.chi2_binning
@@ -112,8 +112,8 @@ def test_hard_case(samplers, workdir, name):
 def test_albedo_is_unbiased(samplers, workdir, name):
     """The estimator f·cos/pdf averages to the albedo (ideal quadrature): nothing dropped or
     clamped, at 1e-6 albedo as at 5.5."""
-    from bake.geometry import luminance
-    from bake.metrics import sample_weights
+    from bake.core.geometry import luminance
+    from bake.quality.metrics import sample_weights
     case = CASES[name]
     mat = case.open(workdir)
     ref = IdealSampler(mat, resolution=256, supersample=2)
@@ -137,8 +137,8 @@ def test_tables_on_hard_edged_materials_keep_their_albedo(samplers, workdir, nam
     """A sliver of f·cos at a hard edge inside a wide cell was missed by the cell quadrature
     (albedo 4-6 % low, weights of rare samples huge); tabulate now integrates such cells around
     their source points."""
-    from bake.geometry import luminance
-    from bake.metrics import sample_weights
+    from bake.core.geometry import luminance
+    from bake.quality.metrics import sample_weights
     case = CASES[name]
     tab = samplers[name]["tables"]
     wi = case.directions()[-1]
@@ -220,7 +220,7 @@ def flows(workdir):
     pytest.importorskip("torch")
     from trainer.sources import MaterialSource
     from trainer.train import Trainer, make_settings
-    from bake.flow import load_model
+    from bake.core.flow import load_model
     tiny = dict(teacher=dict(vel_width=32, vel_depth=2), batch=512, base_steps=100, flow_steps=300, flow_lr=3e-3,
                 flow_eval_every=150, flow_eval_steps=8, reflow_pairs=4096, reflow_ode_steps=16, reflow_steps=200,
                 reflow_eval_every=100, holdout=256, ckpt_every=100, warmup=20)
@@ -254,7 +254,7 @@ def test_flow_pdf_is_finite_at_the_horizon(domain):
     """pdf() of a flow at directions a hair above the horizon (wo.z down to 1e-320): it was NaN
     for wo.z < 1e-154 (cos² underflowed, flow coordinates became inf). sample() never returns
     such directions with pdf > 0, so sample() and pdf() stay consistent."""
-    from bake.flow import FlowModel
+    from bake.core.flow import FlowModel
     rng = np.random.default_rng(0)
     f = lambda *s: (0.1 * rng.standard_normal(s)).astype(np.float32)   # noqa: E731
     n_base, n_in = (4, 5) if domain == "disk" else (5, 6)

@@ -1,10 +1,10 @@
 import numpy as np
 
-from bake.geometry import incident, luminance
-from bake.ideal import IdealSampler, training_pairs
-from bake.domains import Disk
+from bake.core.geometry import incident, luminance
+from bake.core.ideal import IdealSampler, training_pairs
+from bake.core.domains import Disk
 from bake.materials import open_material
-from bake.metrics import relative_variance
+from bake.quality.metrics import relative_variance
 from contract import assert_sampler_contract
 
 

@@ -3,9 +3,9 @@ import textwrap
 
 import pytest
 
-from bake.cli import main
+from bake.plumbing.cli import main
 from bake.errors import FlowBSDFError
-from bake.manifest import load_manifest
+from bake.plumbing.manifest import load_manifest
 from conftest import ROOT
 
 

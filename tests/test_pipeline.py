@@ -4,12 +4,12 @@ import textwrap
 import numpy as np
 import pytest
 
-from bake.cli import main
+from bake.plumbing.cli import main
 from bake.errors import FlowBSDFError
-from bake.manifest import load_manifest
-from bake.osl_export import LAYOUT
-from bake.pipeline import bake_manifest, open_current_tables, table_path
-from bake.tables import open_tables
+from bake.plumbing.manifest import load_manifest
+from bake.export.osl_export import LAYOUT
+from bake.plumbing.pipeline import bake_manifest, open_current_tables, table_path
+from bake.core.tables import open_tables
 
 FAST = "bake = { resolution = 16, tol = 0.5, grid = 96, samples = 2048, first_bins = 3, ideal_resolution = 48 }"
 

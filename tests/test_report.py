@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from bake.materials import open_material
-from bake.baselines import CosineSampler, fit_ggx
-from bake.bench import samples_per_second, single_thread_env
+from bake.core.baselines import CosineSampler, fit_ggx
+from bake.quality.bench import samples_per_second, single_thread_env
 from bake.errors import FlowBSDFError
-from bake.geometry import incident, spherical_dir
-from bake.ideal import IdealSampler
-from bake.metrics import chi2_test, relative_variance, relative_variance_ref
-from bake.report import (SPEED_ERROR_FIELDS, plot_pdf_slices, plot_target, speed_error_rows,
+from bake.core.geometry import incident, spherical_dir
+from bake.core.ideal import IdealSampler
+from bake.quality.metrics import chi2_test, relative_variance, relative_variance_ref
+from bake.quality.report import (SPEED_ERROR_FIELDS, plot_pdf_slices, plot_target, speed_error_rows,
                          summary_markdown, summary_rows, write_report)
 
 
@@ -131,7 +131,7 @@ def test_samples_per_second():
 # ---------------------------------------------------------------- Mitsuba peer
 
 def test_mitsuba_peer_errors(monkeypatch, tmp_path):
-    from bake import mitsuba_peer
+    from bake.quality import mitsuba_peer
     with pytest.raises(FlowBSDFError, match="no such RGL file"):
         mitsuba_peer.MitsubaMeasuredSampler(tmp_path / "missing.bsdf")
     monkeypatch.setitem(sys.modules, "mitsuba", None)     # import mitsuba -> ImportError
@@ -140,7 +140,7 @@ def test_mitsuba_peer_errors(monkeypatch, tmp_path):
 
 
 def test_llvm_version_names():
-    from bake.mitsuba_peer import _llvm_version
+    from bake.quality.mitsuba_peer import _llvm_version
     assert _llvm_version("/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1") == 19
     assert _llvm_version("libLLVM-19.so") == 19
     assert _llvm_version("libLLVM-15.so.1") == 15
@@ -153,7 +153,7 @@ def mint(request):
     pytest.importorskip("mitsuba")
     from conftest import rgl_path
     from bake.materials.rgl import RGLMaterial
-    from bake.mitsuba_peer import MitsubaMeasuredSampler
+    from bake.quality.mitsuba_peer import MitsubaMeasuredSampler
     path = rgl_path("chm_mint_rgb")
     return RGLMaterial(path), MitsubaMeasuredSampler(path)
 
@@ -196,7 +196,7 @@ def test_mitsuba_peer_sample_agrees_with_pdf(mint, theta):
 
 
 def test_mitsuba_variant_choice(monkeypatch):
-    from bake import mitsuba_peer
+    from bake.quality import mitsuba_peer
     monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
     monkeypatch.delenv("FLOWBSDF_MITSUBA_VARIANT", raising=False)
     monkeypatch.setattr(mitsuba_peer, "find_libllvm", lambda min_version=19: None)

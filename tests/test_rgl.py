@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bake.errors import FlowBSDFError
-from bake.geometry import luminance, normalize, reflect, spherical_dir
+from bake.core.geometry import luminance, normalize, reflect, spherical_dir
 from bake.materials import open_material
 from bake.materials.rgl import RGLMaterial, read_tensor_file, write_tensor_file  # noqa: F401 (test_bad_inputs imports it from here)
 from conftest import RGL_FILES

@@ -1,11 +1,11 @@
-"""open_sampler (bake/sampler.py): every kind it opens without files keeps the sampler contract."""
+"""open_sampler (bake/core/sampler.py): every kind it opens without files keeps the sampler contract."""
 import numpy as np
 import pytest
 
 from bake import FlowBSDFError, Sampler, open_sampler
-from bake.geometry import incident
+from bake.core.geometry import incident
 from bake.materials import open_material
-from bake.sampler import KINDS, RENDER_KINDS
+from bake.core.sampler import KINDS, RENDER_KINDS
 from contract import assert_sampler_contract
 
 PLASTIC = {"kind": "analytic", "model": "plastic", "albedo": [0.5, 0.3, 0.2], "alpha": 0.2}

@@ -1,4 +1,4 @@
-"""The SVM back end (bake/svm_export.py, blender_addon/svm.py): its texture fits GPU texture
+"""The SVM back end (bake/export/svm_export.py, blender_addon/svm.py): its texture fits GPU texture
 limits for the largest tables the baker writes; the node graph samples exactly what numpy's
 Tables.sample does (probe); it renders the baked albedo in a white furnace with OSL off; it
 leaves the SVM stack a wide margin, measured with Cycles' own overflow message; the world
@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 import cycles_scenes as cs
-from bake import svm_export
+from bake.export import svm_export
 from bake.errors import FlowBSDFError
-from bake.tables import Tables, open_tables
+from bake.core.tables import Tables, open_tables
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
 
@@ -432,7 +432,7 @@ def test_svm_film_stratified_u_is_unbiased_and_cuts_noise(svm, plastic):
     under a white sky converges to the baked albedo at cos theta_i = 0.5 either way (mean over
     pixels and seeds within 4 standard errors); the film's per-pixel variance over seeds is far
     below the hashed one's (measured 0.09 of it)."""
-    from bake.closure_fit import baked_albedo
+    from bake.export.closure_fit import baked_albedo
     ref = baked_albedo(open_tables(plastic), 0.5)
     sc = cs.reset(16, 16, spp=64, osl=False, threads=1)
     sc.cycles.pixel_filter_type = 'BOX'
@@ -484,10 +484,10 @@ def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, capfd, tmp_path,
 # ------------------------------------------------------------------------------ the world
 
 def _world_map(folder, name="world.exr"):
-    """A small synthetic world map (bake/world_map.py) with a bright spot (a sun) and a black
+    """A small synthetic world map (bake/export/world_map.py) with a bright spot (a sun) and a black
     region (below: never drawn, pdf 0), as tests/test_cycles.py's OSL probe; its CDF wraps
     over two texture rows."""
-    from bake.world_map import WorldMap, write_world_texture
+    from bake.export.world_map import WorldMap, write_world_texture
     rng = np.random.default_rng(3)
     img = rng.random((24, 48, 3)) ** 4
     img[3, 40] = 300.0
@@ -514,7 +514,7 @@ def _render_probe(svm, build, inputs, folder, width=32):
 
 
 def test_svm_world_map_sample_is_numpy(svm, tmp_path):
-    """The graph's world-map sampling (direction, pdf) is bake.world_map.WorldMap's on a 40 x 40
+    """The graph's world-map sampling (direction, pdf) is bake.export.world_map.WorldMap's on a 40 x 40
     grid of u, and its pdf graph reads the sampled pixel's density back."""
     wm, path = _world_map(tmp_path)
     wl = svm.world_layout(str(path))
@@ -668,7 +668,7 @@ def test_svm_update_world(svm, plastic, tmp_path):
     rng = np.random.default_rng(5)
     img = rng.random((24, 48, 3)) ** 2
     img[8, 10] = 500.0
-    from bake.world_map import WorldMap, write_world_texture
+    from bake.export.world_map import WorldMap, write_world_texture
     wm2 = WorldMap(img)
     path2 = write_world_texture(tmp_path / "world2.exr", wm2)
     before = _sun_world(path, "map and sun")

@@ -2,13 +2,13 @@ import numpy as np
 import pytest
 
 from bake.errors import FlowBSDFError
-from bake.geometry import incident
-from bake.ideal import IdealSampler
+from bake.core.geometry import incident
+from bake.core.ideal import IdealSampler
 from bake.materials import open_material
 from bake.materials.base import Material, as_dirs
-from bake.metrics import chi2_test, relative_variance
-from bake.tables import TWO_PI, Tables, exp_cdf, exp_density, exp_inverse_cdf, from_ab, open_tables, to_ab
-from bake.tabulate import _finish_bin, build_tables, exp_rate_for_mean, plan_tables
+from bake.quality.metrics import chi2_test, relative_variance
+from bake.core.tables import TWO_PI, Tables, exp_cdf, exp_density, exp_inverse_cdf, from_ab, open_tables, to_ab
+from bake.core.tabulate import _finish_bin, build_tables, exp_rate_for_mean, plan_tables
 from contract import assert_sampler_contract
 
 HARD = {

@@ -7,16 +7,16 @@ import numpy as np
 import pytest
 
 from bake import FlowBSDFError
-from bake.baselines import CosineSampler, GGXSampler
-from bake.geometry import LUMINANCE
-from bake.ideal import FineIdeal
+from bake.core.baselines import CosineSampler, GGXSampler
+from bake.core.geometry import LUMINANCE
+from bake.core.ideal import FineIdeal
 from bake.materials import open_material
 from bake.tracer import accel
 from bake.tracer.integrator import PathTracer, render
 from bake.tracer.lights import Environment, read_hdr, sky_image
 from bake.tracer.samplers import make_sampler
-from bake.tracer.scene import (SHADERBALL, Camera, SceneMaterial, Scene, builtin_scene, load_obj, load_ply,
-                               load_scene, shaderball_mesh)
+from bake.tracer.meshes import SHADERBALL, load_obj, load_ply, shaderball_mesh
+from bake.tracer.scene import Camera, SceneMaterial, Scene, builtin_scene, load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 PLASTIC = {"kind": "analytic", "model": "plastic", "albedo": [0.7, 0.2, 0.1], "alpha": 0.12}
@@ -184,8 +184,8 @@ def plastic_reference(plastic_scene):
 
 
 def _tables_for(mat):
-    from bake.ideal import IdealSampler
-    from bake.tabulate import build_tables
+    from bake.core.ideal import IdealSampler
+    from bake.core.tabulate import build_tables
     return build_tables(mat, IdealSampler(mat, resolution=64), np.radians([0, 30, 55, 70, 80, 87, 89.5]),
                         rows=24, cols=24, grid=128, lobe_width=0.1)
 
@@ -225,7 +225,7 @@ def test_the_convergence_check_catches_a_wrong_pdf(plastic_scene, plastic_refere
 def test_flow_sampler_converges(plastic_scene, plastic_reference, tmp_path):
     torch = pytest.importorskip("torch")
     from trainer.model import FlowNet
-    from bake.flow import load_model, save_model
+    from bake.core.flow import load_model, save_model
     mat, scene = plastic_scene
     torch.manual_seed(3)
     net = FlowNet("disk", True, vel_width=16, vel_depth=2, time_freq=1, base_components=1)
@@ -626,7 +626,7 @@ def test_missing_tables_and_models_say_so(tmp_path):
 # ------------------------------------------------------------------------ CLI
 
 def test_cli_render_and_compare(tmp_path, monkeypatch, capsys):
-    from bake.cli import main
+    from bake.plumbing.cli import main
     monkeypatch.chdir(ROOT)
     out = tmp_path / "r.exr"
     assert main(["render", "builtin:shaderball-point", "--material", "matte_white", "--sampler", "cosine",

@@ -17,9 +17,9 @@ import pytest
 
 import cycles_scenes as cs
 from conftest import slow_unless
-from bake.baselines import CosineSampler
+from bake.core.baselines import CosineSampler
 from bake.materials import open_material
-from bake.metrics import chi2_test
+from bake.quality.metrics import chi2_test
 from bake.tracer.integrator import render
 from bake.tracer.scene import SceneMaterial, scene_from_dict
 

@@ -1,9 +1,9 @@
 """python -m trainer train MANIFEST [--material NAME]... [--preset fast|balanced|paper] [--device cpu|cuda]
 [--out DIR] [--threads N] [--no-progress]; `flowbsdf train` takes the same arguments (the parser is
-bake.job.add_train_arguments) and runs this in a subprocess.
+bake.plumbing.job.add_train_arguments) and runs this in a subprocess.
 
 Trains one flow per material of the manifest (or only the --material ones) and writes
-<out>/<name>.flow.npz (default out/models; torch-free: load with bake.flow.load_model).
+<out>/<name>.flow.npz (default out/models; torch-free: load with bake.core.flow.load_model).
 Checkpoints go to <out>/<name>.train/ckpt/: rerunning the same command resumes an
 interrupted run.
 
@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 from bake.errors import FlowBSDFError, exit_code
-from bake.job import add_train_arguments
+from bake.plumbing.job import add_train_arguments
 
 SOURCE_KEYS = {"theta_i", "resolution", "pool", "supersample", "phi_i_count"}
 
@@ -39,7 +39,7 @@ def cmd_train(args):
     import numpy as np
     import torch
 
-    from bake.manifest import load_manifest
+    from bake.plumbing.manifest import load_manifest
 
     from .sources import SLOPE_SHARE, SPECULAR_CONE_DEG, MaterialSource, choose_domain
     from .train import train

@@ -1,20 +1,20 @@
-"""The flow's networks in torch, mirroring bake/flow.py (which runs the exported weights in numpy).
+"""The flow's networks in torch, mirroring bake/core/flow.py (which runs the exported weights in numpy).
 
-Coordinates are bake.flow's flow coordinates y (disk: R²; spherical and slope: (s, phi) on
+Coordinates are the flow coordinates y of bake.core.flow_maps (disk: R²; spherical and slope: (s, phi) on
 R x S¹).
   BaseNet      c -> parameters of the base: disk, a diagonal Gaussian in y (or a scale
                mixture of `components`); spherical and slope, a Gaussian in s times a von
                Mises in phi. Fit by likelihood (stage 1).
   VelocityNet  D(y, t, c): SiLU MLP; input [y | (s, cos phi, sin phi)], time features, c.
   FlowNet      both, plus Euler sampling with exact log-dets and RK4 integration.
-c are conditioning features of wi (bake.flow.cond_features).
+c are conditioning features of wi (bake.core.flow.cond_features).
 """
 import math
 
 import torch
 from torch import nn
 
-from bake import flow as npflow
+from bake.core import flow as npflow
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -67,7 +67,7 @@ class MLP(nn.Module):
 class BaseNet(nn.Module):
     """The conditional base. Disk: a scale mixture of `components` Gaussians sharing the mean
     mu and the axis scales exp(ls) (component k's extra log scale lam_k <= 0, lam_0 = 0), so
-    that one base holds a sharp spike and a broad glow; bake.flow samples it through its
+    that one base holds a sharp spike and a broad glow; bake.core.flow samples it through its
     radial inverse CDF (a bijection of the unit square). Spherical: Gaussian(s) x von Mises(phi)."""
 
     def __init__(self, domain, cond_dim, width=32, depth=2, log_sigma_range=(-4.0, 1.5), kappa_max=32.0,
@@ -130,7 +130,7 @@ class BaseNet(nn.Module):
 
     @torch.no_grad()
     def sample(self, c, generator=None):
-        """Ancestral sampling (the same distribution bake.flow draws through its inverse CDF)."""
+        """Ancestral sampling (the same distribution bake.core.flow draws through its inverse CDF)."""
         n = len(c)
         if npflow.planar(self.domain):
             mu, ls, logw, lam = self.params(c)
@@ -223,7 +223,7 @@ def step_det(J, n_steps):
 
 
 class FlowNet(nn.Module):
-    """Base + velocity, with the settings bake.flow needs to rebuild them."""
+    """Base + velocity, with the settings bake.core.flow needs to rebuild them."""
 
     def __init__(self, domain, isotropic, vel_width=128, vel_depth=4, time_freq=0, base_width=32,
                  base_depth=2, log_sigma_range=(-4.0, 1.5), kappa_max=32.0, base_components=1):
@@ -299,7 +299,7 @@ class FlowNet(nn.Module):
         return meta
 
     def to_numpy(self, steps, **extra):
-        """The bake.flow.FlowModel of the current weights (float32 as in the file)."""
+        """The bake.core.flow.FlowModel of the current weights (float32 as in the file)."""
         import numpy as np
         arrays = {k: v.astype(np.float32) for k, v in self.arrays().items()}
         return npflow.FlowModel(self.meta(steps, **extra), arrays)
@@ -307,7 +307,7 @@ class FlowNet(nn.Module):
 
 @torch.no_grad()
 def euler_inverse(net, c, y1, n_steps, tol=1e-10, max_iter=40):
-    """Solve the N Euler steps backwards (damped Newton per step, as bake.flow does).
+    """Solve the N Euler steps backwards (damped Newton per step, as bake.core.flow does).
 
     Returns y0, sum_k log|det(I + J_k/N)|, min det, converged mask. Used for the trainer's
     quality checks (torch is several times faster than numpy's BLAS here); run it in float64."""

@@ -1,4 +1,4 @@
-"""Training-data sources for real materials: exact samples of max(lum f, 0)·cos from bake.ideal.
+"""Training-data sources for real materials: exact samples of max(lum f, 0)·cos from bake.core.ideal.
 
 A source has to provide `draw(n, rng) -> (wi (n,3), x1 (n,2) domain coordinates)`, and may
 provide `density(wi, wo)`, the normalized target (the trainer scores the defensive share with it).
@@ -10,7 +10,7 @@ import hashlib
 
 import numpy as np
 
-from bake.domains import get_domain
+from bake.core.domains import get_domain
 from bake.errors import FlowBSDFError
 
 
@@ -52,7 +52,7 @@ def default_theta_grid(n=45, max_deg=89.0):
 class MaterialSource:
     def __init__(self, material, domain="disk", theta_i=None, phi_i_count=16, resolution=256,
                  supersample=2, pool=1 << 21, seed=0, sampler=None, progress=None):
-        from bake.ideal import IdealSampler   # numpy only; imported lazily
+        from bake.core.ideal import IdealSampler   # numpy only; imported lazily
 
         self.material = material
         self.domain = get_domain(domain) if isinstance(domain, str) else domain

@@ -6,7 +6,7 @@ only sees `draw(n, rng) -> (wi (n,3), x1 (n,2) domain coordinates)`; `density(wi
 """
 import numpy as np
 
-from bake.domains import get_domain
+from bake.core.domains import get_domain
 
 
 class GGXReflection:

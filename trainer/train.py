@@ -2,9 +2,9 @@
 
     source.draw(n, rng) -> (wi (n,3), x1 (n,2) in the domain's coordinates)
 
-is all the trainer knows about the target: pairs may come from bake.ideal (a material's
+is all the trainer knows about the target: pairs may come from bake.core.ideal (a material's
 exact tabulated sampler), a synthetic lobe or anything else. Pairs are converted to flow
-coordinates (bake.flow), isotropic ones rotated to phi_i = 0.
+coordinates (bake.core.flow), isotropic ones rotated to phi_i = 0.
 
 Stages (each checkpointed in out_dir/ckpt/<stage>.pt, written atomically, resumable):
   base     fit the base distribution by maximum likelihood.
@@ -21,7 +21,7 @@ loss: every `*_eval_every` steps the EMA model is scored by its negative log-lik
 (float64), with `flow_eval_steps` steps for the teacher and the final N for the student;
 the best weights are kept (a map that folds never beats one that does not) and training
 stops after `patience` checks without improvement. The exported file is scored once more
-with bake.flow itself (numpy) as a cross-check.
+with bake.core.flow itself (numpy) as a cross-check.
 """
 import copy
 import hashlib
@@ -34,8 +34,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bake import flow as npflow
-from bake.domains import get_domain
+from bake.core import flow as npflow
+from bake.core import flow_maps
+from bake.core.domains import get_domain
 from bake.errors import FlowBSDFError
 
 from .model import FlowNet, euler_inverse, step_det
@@ -72,7 +73,7 @@ COMMON = dict(
     kappa_max=32.0, base_components=1, warmup=100, min_lr_frac=0.05, ckpt_every=250, fold_penalty=0.0,
     fold_margin=0.05, grad_clip=1.0, min_frac=0.5, defensive="auto",
 )
-# defensive = "auto": the uniform share of the final sampler (bake.flow, "Defensive mixture") is the
+# defensive = "auto": the uniform share of the final sampler (bake.core.flow, "Defensive mixture") is the
 # one of these with the lowest held-out relative variance; a number fixes it. Never below 1 %:
 # the held-out set cannot see regions rarer than ~1 / DEFENSIVE_SAMPLES (ilm_solo_m_68, slope:
 # held-out preferred 0, but rv at 75 deg was 0.61 bare and 0.135 at 0.01); the floor costs at
@@ -122,7 +123,7 @@ class PreparedSource:
 
     def __init__(self, source, domain, isotropic):
         self.source, self.domain, self.isotropic = source, domain, isotropic
-        self.map = npflow.MAPS[domain]
+        self.map = flow_maps.MAPS[domain]
 
     def prepare(self, wi, x1):
         wi = np.asarray(wi, np.float64)
@@ -248,7 +249,7 @@ class Trainer:
         if not hasattr(self, "_holdout"):
             rng = np.random.default_rng([self.settings["seed"], 7919])
             c, y = self.data.draw(self.settings["holdout"], rng)
-            self._holdout = (c, y, npflow.MAPS[self.domain].log_dw_dy(y, npflow.canonical_wi(c, self.isotropic)))
+            self._holdout = (c, y, flow_maps.MAPS[self.domain].log_dw_dy(y, npflow.canonical_wi(c, self.isotropic)))
         return self._holdout
 
     def evaluate(self, net, steps, fold_repeats=1):
@@ -274,7 +275,7 @@ class Trainer:
                 "fold_inv": float(torch.mean((min_det_inv <= 0).double())), "not_converged": int(np.sum(~conv))}
 
     def evaluate_numpy(self, net, steps):
-        """The same NLL from the exported numpy model (bake.flow), as a cross-check."""
+        """The same NLL from the exported numpy model (bake.core.flow), as a cross-check."""
         c, y, log_dw = self.holdout()
         model = net.to_numpy(steps)
         y0, logdet, _, conv = model.flow_inverse(c, y)

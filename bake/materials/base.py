@@ -4,7 +4,7 @@ import hashlib
 
 import numpy as np
 
-from ..geometry import luminance
+from ..core.geometry import luminance
 
 
 def as_dirs(wi, wo):

@@ -1,7 +1,8 @@
 """The reference path tracer (numpy only): renders scenes with any BSDF sampler -- baked
 tables, the flow, the ideal tabulation, a fitted GGX lobe, cosine -- and compares them.
 
-    scene.py       scene files (TOML/JSON; format in its docstring), OBJ/PLY, built-in scenes
+    scene.py       scene files (TOML/JSON; format in its docstring), built-in scenes
+    meshes.py      OBJ and PLY loaders, the shader ball (analytic pieces and as a mesh)
     accel.py       ray intersection: triangle BVH, analytic spheres, planes, lathe pieces
     lights.py      environment (image, procedural sky, constant; importance sampled) and
                    Blender's lamps (point, spot, sun, area) with Cycles' radiometry

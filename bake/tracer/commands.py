@@ -1,8 +1,8 @@
-"""`flowbsdf render` and `flowbsdf compare` (registered by bake/cli.py)."""
+"""`flowbsdf render` and `flowbsdf compare` (registered by bake/plumbing/cli.py)."""
 from pathlib import Path
 
+from ..core.sampler import RENDER_KINDS, canonical_kind
 from ..errors import FlowBSDFError
-from ..sampler import RENDER_KINDS, canonical_kind
 
 
 def _scene(args):
@@ -23,10 +23,10 @@ def _scene(args):
 
 def cmd_render(args):
     import time
+    from .compare import _prepare
     from .images import write_exr
     from .integrator import render
     from .samplers import scene_samplers
-    from .compare import _prepare
     scene = _scene(args)
     cam = scene.camera
     print(f"[render] {args.scene}: {cam.width}x{cam.height}, sampler {args.sampler}, "

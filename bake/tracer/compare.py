@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.geometry import LUMINANCE
+from ..core.ideal import FineIdeal
 from ..errors import FlowBSDFError
-from ..geometry import LUMINANCE
-from ..ideal import FineIdeal
 from .images import false_colour, mae, mse, ssim, tonemap, write_exr, write_png
 from .integrator import render
 from .samplers import scene_samplers

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..files import atomic_path
-from ..geometry import LUMINANCE
+from ..core.geometry import LUMINANCE
+from ..plumbing.files import atomic_path
 
 
 def _atomic(path, write):

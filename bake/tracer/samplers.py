@@ -1,10 +1,10 @@
-"""A BSDF sampler per scene material, by the name a render asks for (bake/sampler.py's
+"""A BSDF sampler per scene material, by the name a render asks for (bake/core/sampler.py's
 RENDER_KINDS: tables | flow | ideal | ggx | cosine; `ideal` is the binned ideal tabulation).
 Tables and flows come from the manifest material's files under `tables_dir`."""
 import time
 
+from ..core.sampler import RENDER_KIND, RENDER_KINDS, canonical_kind, open_sampler
 from ..errors import FlowBSDFError
-from ..sampler import RENDER_KIND, RENDER_KINDS, canonical_kind, open_sampler
 
 
 def make_sampler(name, scene_material, tables_dir="out"):

@@ -5,7 +5,7 @@
 // then one `assemble` task after every bake (blender-render: the add-on's batch command binds
 // each material's node to its tables and saves the .blend). With train = never there are no
 // train tasks. Install: copy this file into the Manager's `scripts/` folder and restart it.
-// Settings, worker set-up and what was run: docs/farm.md. Task logic lives in bake/farm.py.
+// Settings, worker set-up and what was run: docs/farm.md. Task logic lives in bake/plumbing/farm.py.
 
 const JOB_TYPE = {
     label: "FlowBSDF Bake",
@@ -74,18 +74,18 @@ function compileJob(job) {
     }
 }
 
-// One material's stage: `python -m bake.cli farm task` (bake/farm.py).
+// One material's stage: `python -m bake.plumbing.cli farm task` (bake/plumbing/farm.py).
 function materialTask(settings, name, stage, taskType) {
     const task = author.Task(`${stage}-${name}`, taskType);
     task.addCommand(author.Command("exec", {
         exe: settings.python,
-        args: ["-m", "bake.cli", "farm", "task", settings.manifest, "--material", name,
+        args: ["-m", "bake.plumbing.cli", "farm", "task", settings.manifest, "--material", name,
                "--out", settings.shared_out, "--train", settings.train, "--stage", stage],
     }));
     return task;
 }
 
-// The add-on's batch entry for Blender 3.4+ (bake/farm.py blender_expr: the same text).
+// The add-on's batch entry for Blender 3.4+ (bake/plumbing/farm.py blender_expr: the same text).
 function batchExpr(addonDir) {
     return `import sys; d = r'''${addonDir || ""}'''; d and sys.path.insert(0, d); ` +
            "import flowbsdf.batch as b; b.main()";

@@ -1,5 +1,5 @@
-// FlowBSDF OSL: the baked tables (bake/osl_export.py's texture layout): header, sampling and
-// evaluation. A port of bake/tables.py's Tables.sample and Tables._locate (the numpy reference).
+// FlowBSDF OSL: the baked tables (bake/export/osl_export.py's texture layout): header, sampling and
+// evaluation. A port of bake/core/tables.py's Tables.sample and Tables._locate (the numpy reference).
 // Every texel is fetched with "interp", "closest" and zero derivatives, so values come back exact.
 
 #define LAYOUT 3
@@ -51,7 +51,7 @@ float expm1_(float x)
     return (abs(x) < 1e-5) ? x + 0.5 * x * x : exp(x) - 1.0;
 }
 
-// The in-cell density k e^(k x) / (e^k - 1) on [0, 1] (bake/tables.py exp_density).
+// The in-cell density k e^(k x) / (e^k - 1) on [0, 1] (bake/core/tables.py exp_density).
 float exp_density(float x, float k)
 {
     if (abs(k) < K_SMALL)
@@ -59,7 +59,7 @@ float exp_density(float x, float k)
     return k * exp(k * x) / expm1_(k);
 }
 
-// Inverse CDF of the in-cell density k e^(k x) / (e^k - 1) on [0, 1] (bake/tables.py).
+// Inverse CDF of the in-cell density k e^(k x) / (e^k - 1) on [0, 1] (bake/core/tables.py).
 float exp_inverse_cdf(float u, float k)
 {
     float x;

@@ -1,9 +1,9 @@
-// FlowBSDF OSL: the world's importance map (bake/world_map.py's texture layout): an
+// FlowBSDF OSL: the world's importance map (bake/export/world_map.py's texture layout): an
 // equirectangular map in Blender's convention (column u = 0.5 - atan2(y, x) / 2 pi, row =
 // theta / pi * H, row 0 the zenith), a pixel chosen by its share of the baked radiance times
 // its solid angle — its row by the marginal CDF, its column by the row's conditional CDF — the
 // direction uniform in the pixel's solid angle. pdf() reads the pixel's density back, so
-// sampling and density are exactly consistent (bake/world_map.WorldMap is the numpy reference).
+// sampling and density are exactly consistent (bake/export/world_map.WorldMap is the numpy reference).
 
 #define WORLD_LAYOUT 2
 

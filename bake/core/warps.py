@@ -12,8 +12,8 @@ Directions are in the local shading frame (z = normal, wi pointing away from the
     dwo_du(wi, m, u1)           |d omega_o / d u| of wo = reflect(wi, m) at u = (u1, .):
                                 4 (wi·m) sin(theta_m) pi u1 2 pi, zero where wi·m <= 0
 
-The ideal sampler (bake/ideal.py) tabulates over half_vector's square; the chi-square test
-(bake/metrics.py) bins samples on it.
+The ideal sampler (bake/core/ideal.py) tabulates over half_vector's square; the chi-square test
+(bake/quality/metrics.py) bins samples on it.
 """
 import numpy as np
 

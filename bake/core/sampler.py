@@ -16,10 +16,10 @@ tests/contract.py checks a sampler against this contract (assert_sampler_contrac
 
 The kinds `open_sampler` knows (`ggx-fit`, the report's old label, is an alias of `ggx`):
 
-    uniform         uniform hemisphere (bake/baselines.py)
+    uniform         uniform hemisphere (bake/core/baselines.py)
     cosine          cosine-weighted hemisphere
     ggx             the GGX + diffuse lobe fitted to the material (baselines.fit_ggx)
-    ideal           the ideal tabulation, exact per distinct wi (bake/ideal.py IdealSampler)
+    ideal           the ideal tabulation, exact per distinct wi (bake/core/ideal.py IdealSampler)
     ideal-binned    the ideal tabulation at fixed incident bins, 1 degree apart (FineIdeal): what
                     renders use, where every pixel has its own wi
     tables          the baked tables of a manifest entry (<out_dir>/tables/<name>.exr, current only)
@@ -31,7 +31,7 @@ RENDER_KINDS are the names the reference tracer, `flowbsdf render/compare` and a
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
-from .errors import FlowBSDFError
+from ..errors import FlowBSDFError
 
 KINDS = ("uniform", "cosine", "ggx", "ideal", "ideal-binned", "tables", "flow")
 ALIASES = {"ggx-fit": "ggx"}
@@ -88,7 +88,7 @@ def open_sampler(kind, material, entry=None, out_dir="out", ideal=None, manifest
 
 
 def _current_tables(entry, out_dir, manifest_path):
-    from .pipeline import open_current_tables, table_path
+    from ..plumbing.pipeline import open_current_tables, table_path
     path = table_path(out_dir, entry.name)
     if not Path(path).is_file():
         raise FlowBSDFError(f"no baked tables for {entry.name!r} (run flowbsdf bake)", path)
@@ -100,8 +100,8 @@ def _current_tables(entry, out_dir, manifest_path):
 
 
 def _flow(entry, out_dir):
+    from ..plumbing.pipeline import model_path
     from .flow import load_model
-    from .pipeline import model_path
     path = model_path(out_dir, entry.name)
     if not path.is_file():
         raise FlowBSDFError(f"no trained flow for {entry.name!r} (run flowbsdf train); "

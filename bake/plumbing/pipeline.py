@@ -4,8 +4,8 @@ Layout of an output folder:
     <out>/models/<name>.flow.npz     trained flows (flowbsdf train)
     <out>/tables/<name>.exr          baked tables (flowbsdf bake)
     <out>/tables/<name>.osl<layout>-<hash>.exr, <name>.svm<layout>-<hash>.exr, <name>.fit.json
-                                     what the Blender node reads beside them (bake/osl_export.py,
-                                     bake/svm_export.py, bake/closure_fit.py)
+                                     what the Blender node reads beside them (bake/export/osl_export.py,
+                                     bake/export/svm_export.py, bake/export/closure_fit.py)
 A table file records the hash of its inputs (material content, model file, bake settings,
 table format); a bake whose inputs hash matches the file on disk is skipped, any change
 rebuilds it, and a stale file is never used (`open_current_tables`).
@@ -15,9 +15,9 @@ import json
 import time
 from pathlib import Path
 
-from .errors import FlowBSDFError
+from ..core.tables import FORMAT_VERSION, open_tables
+from ..errors import FlowBSDFError
 from .files import file_hash, remove_stale_temps
-from .tables import FORMAT_VERSION, open_tables
 
 # Bumped when the construction changes in a way that should rebuild existing tables.
 BUILDER_VERSION = 2      # 2: cells that miss a hard-edged sliver of mass are integrated around their points
@@ -81,16 +81,16 @@ def inputs_of(material, settings, model_file):
 
 
 def _choose_source(material, settings, model_file):
-    from .ideal import IdealSampler
+    from ..core.ideal import IdealSampler
     if model_file is not None:
-        from .flow import load_model
+        from ..core.flow import load_model
         return load_model(model_file), "flow"
     return IdealSampler(material, resolution=settings.get("ideal_resolution", 256)), "ideal"
 
 
 def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
     """Bake one manifest entry; returns (path, 'baked' | 'current')."""
-    from .tabulate import plan_tables
+    from ..core.tabulate import plan_tables
     settings = bake_settings(entry, manifest_path)
     material = entry.open()
     model_file = model_path(out_dir, entry.name)
@@ -123,7 +123,7 @@ def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
 def bake_with_derived(entry, out_dir, manifest_path, force=False, log=print):
     """bake_entry, then what the Blender node needs beside the tables (OSL and SVM textures,
     closure fit: osl_export.bake_derived)."""
-    from .osl_export import bake_derived
+    from ..export.osl_export import bake_derived
     path, status = bake_entry(entry, out_dir, manifest_path, force=force, log=log)
     bake_derived(path, log=log)
     return path, status

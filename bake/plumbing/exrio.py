@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FlowBSDFError
+from ..errors import FlowBSDFError
 from .files import atomic_path
 
 META_KEY = "flowbsdf"

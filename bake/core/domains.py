@@ -5,7 +5,7 @@ domain converts as p_x(x) = p_omega(wo) * jacobian(x).
 """
 import numpy as np
 
-from .errors import FlowBSDFError
+from ..errors import FlowBSDFError
 
 
 class Disk:
@@ -60,7 +60,7 @@ class Spherical:
         return np.mod(np.asarray(phi, float) + np.pi, 2.0 * np.pi) - np.pi
 
 
-# A "slope" flow (bake.flow.SlopeMap) takes its training data as disk coordinates of wo: its
+# A "slope" flow (bake.core.flow_maps.SlopeMap) takes its training data as disk coordinates of wo: its
 # half-vector map depends on wi, so it lives in the flow.
 DOMAINS = {"disk": Disk, "spherical": Spherical, "slope": Disk}
 

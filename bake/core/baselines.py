@@ -1,14 +1,14 @@
 """Baseline samplers every learned sampler must beat: uniform, cosine, and a fitted GGX lobe.
 
-They keep the sampler contract (bake/sampler.py): `sample(wi, u) -> (wo, pdf)` and
+They keep the sampler contract (bake/core/sampler.py): `sample(wi, u) -> (wo, pdf)` and
 `pdf(wi, wo)`, pdf per steradian, zero below the horizon; `open_sampler("uniform" | "cosine" |
 "ggx", material)` opens them by name.
 """
 import numpy as np
 
+from ..materials.analytic import ggx_reflection_pdf, ggx_sample_reflection
+from ..materials.base import as_dirs
 from .geometry import luminance
-from .materials.analytic import ggx_reflection_pdf, ggx_sample_reflection
-from .materials.base import as_dirs
 
 
 class UniformSampler:

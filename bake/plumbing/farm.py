@@ -34,7 +34,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from .errors import FlowBSDFError
+from ..errors import FlowBSDFError
 from .files import atomic_path
 
 SPEC_VERSION = "jobtemplate-2023-09"
@@ -95,7 +95,8 @@ def job_template(names, job_dir, manifest, shared, python, train, scene=None, sa
         _param("Train", "STRING", "auto: train where the manifest wants a model and the Python has "
                "torch; always; never (bake from the ideal tabulation)", train, allowedValues=list(TRAIN_MODES)),
     ]
-    task_args = ["-m", "bake.cli", "farm", "task", "{{Param.Manifest}}", "--material", "{{Task.Param.Material}}",
+    task_args = ["-m", "bake.plumbing.cli", "farm", "task", "{{Param.Manifest}}",
+                 "--material", "{{Task.Param.Material}}",
                  "--out", "{{Param.SharedOut}}", "--train", "{{Param.Train}}", "--openjd"]
     chunks = _chunks(list(names))
     steps = []
@@ -259,8 +260,8 @@ def _wants_model(entry, material, settings, out_dir):
 
 
 def _task(manifest_path, name, out_dir, train, stage, report):
+    from ..export.osl_export import bake_derived
     from .manifest import load_manifest
-    from .osl_export import bake_derived
     from .pipeline import bake_entry, bake_settings
     report.progress(0, f"{name}: opening the material")
     manifest = load_manifest(manifest_path)

@@ -1,11 +1,11 @@
-/* The C fast path of bake/tables.py's Tables: sample, pdf, invert, eval.
+/* The C fast path of bake/core/tables.py's Tables: sample, pdf, invert, eval.
  *
  * A transcription of the numpy reference (Tables.sample/_locate/pdf/invert/eval,
  * exp_cdf/exp_inverse_cdf/exp_density, to_ab/from_ab, _search, _bins): the same formulas
  * in the same order of operations, the same branches, clipping and small-rate series, so
  * results agree with numpy to a few ulps (only libm's transcendental functions may round
  * differently from numpy's). One thread, no Python API: loaded with ctypes by
- * bake/fasttables.py, which passes the Tables' float64 working arrays and preallocated
+ * bake/core/fasttables.py, which passes the Tables' float64 working arrays and preallocated
  * outputs.
  *
  * Three things make it fast without changing a single rounding:
@@ -67,7 +67,7 @@ double sin(double) FT_VEC;
 #define FT_SOURCE_SHA "unknown"
 #endif
 
-/* Bumped whenever ft_tables or a signature changes (bake/fasttables.py checks it). */
+/* Bumped whenever ft_tables or a signature changes (bake/core/fasttables.py checks it). */
 #define FT_ABI 1
 
 static const double PI = 3.141592653589793;       /* np.pi */
@@ -76,7 +76,7 @@ static const double SMALL = 1e-4;                 /* tables._SMALL */
 
 #define BLK 16      /* samples per block (see the header) */
 
-/* The Tables, as bake/fasttables.py passes them (C-contiguous arrays). */
+/* The Tables, as bake/core/fasttables.py passes them (C-contiguous arrays). */
 typedef struct {
     int64_t K, R, C;
     const double *theta_bins;  /* (K) */

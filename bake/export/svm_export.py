@@ -73,8 +73,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FlowBSDFError
-from .exrio import write_rgba_exr
+from ..errors import FlowBSDFError
+from ..plumbing.exrio import write_rgba_exr
 from .osl_export import _guide, ensure_export
 
 LAYOUT = 1

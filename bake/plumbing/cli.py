@@ -2,9 +2,9 @@
 
     check, yardsticks, bake, report, run   here: a manifest, --material, --out (but check)
     train                                  the trainer (torch) in a subprocess; its parser is
-                                           bake/job.py's add_train_arguments
-    stress                                 bake/stress.py
-    farm openjd, farm task                 bake/farm.py
+                                           bake/plumbing/job.py's add_train_arguments
+    stress                                 bake/quality/stress.py
+    farm openjd, farm task                 bake/plumbing/farm.py
     render, compare                        bake/tracer/commands.py
 
 A FlowBSDFError ends it with its message and exit code 2; an interrupt with 130.
@@ -14,7 +14,7 @@ import sys
 import time
 from pathlib import Path
 
-from .errors import exit_code
+from ..errors import exit_code
 from .job import TRAIN_PRESETS, add_train_arguments, run_trainer
 
 
@@ -28,8 +28,8 @@ def cmd_check(args):
 
 
 def cmd_yardsticks(args):
+    from ..quality.report import markdown_table, write_csv, yardstick_rows
     from .manifest import load_manifest
-    from .report import markdown_table, write_csv, yardstick_rows
     manifest = load_manifest(args.manifest)
     thetas = tuple(float(t) for t in args.thetas.split(","))
     rows = []
@@ -52,8 +52,8 @@ def cmd_bake(args):
 
 
 def cmd_report(args):
+    from ..quality.report import report_manifest
     from .manifest import load_manifest
-    from .report import report_manifest
     steps = tuple(int(x) for x in args.steps.split(",") if x.strip())
     written = report_manifest(load_manifest(args.manifest), args.out, name=args.material, n=args.samples,
                               steps=steps)
@@ -62,7 +62,7 @@ def cmd_report(args):
 
 
 def cmd_run(args):
-    """The main job: train -> bake -> report -> render per material, then one page (bake/job.py)."""
+    """The main job: train -> bake -> report -> render per material, then one page (bake/plumbing/job.py)."""
     from .job import Job
     from .manifest import load_manifest
     Job(load_manifest(args.manifest), args.out, preset=args.preset, train=not args.no_train,
@@ -99,11 +99,11 @@ def build_parser():
                    help="samples per rv cell of the report (default: the manifest's [run.report], else 16384)")
 
     add_train_arguments(sub.add_parser("train", help="train flow models (torch, in a subprocess: python -m trainer)"))
-    from .stress import add_parser as add_stress
+    from ..quality.stress import add_parser as add_stress
     add_stress(sub)
     from .farm import add_parser as add_farm        # farm openjd, farm task
     add_farm(sub)
-    from .tracer.commands import add_commands as add_tracer_commands   # render, compare
+    from ..tracer.commands import add_commands as add_tracer_commands   # render, compare
     add_tracer_commands(sub)
     return p
 

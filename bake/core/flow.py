@@ -4,29 +4,15 @@ A model maps u in [0,1)² to an outgoing direction wo, conditioned on the incide
 direction wi, in three bijective pieces:
 
     u --(inverse CDF of the base)--> y0 --(N Euler steps of the velocity MLP)--> y1
-      --(fixed coordinate map)--> wo
+      --(fixed coordinate map, flow_maps.py)--> wo
 
-Flow coordinates y live on an unbounded space (for disk and spherical a bijection onto the
-hemisphere, so no sample is ever lost):
-  - disk:      y in R², y = x * rho / r with x = (wo.x, wo.y), r = |x| = sin(theta_o),
-               rho² = -2 log(1 - r²) = -4 log(cos theta_o).
-  - spherical: y = (s, phi) in R x S¹, sin²(theta_o) = Phi(s), cos²(theta_o) = Phi(-s),
-               Phi the standard normal CDF.
-  - slope:     y = (log tan theta_h, phi_h) in R x S¹ (SlopeMap), h = (wi + wo)/|wi + wo|
-               the half vector: a GGX lobe of roughness alpha is a unit-width bump at
-               log(alpha) whatever wi, a spike over a glow two bumps; a y whose mirror
-               direction is below the horizon is a lost sample (pdf 0).
-The disk and spherical maps send the cosine-weighted hemisphere to the standard Gaussian
-(times a uniform phi), so for a Lambertian material the ideal flow is the identity with a
-standard base, and the target density in y is always f(wi, wo) times a Gaussian weight:
-  disk:       d omega / dy          = cos(theta_o) / 2
-  spherical:  d omega / (ds dphi)   = N(s) / (2 cos(theta_o))     (N the normal density)
-The horizon is at infinity (grazing directions get resolution, like an adaptive
-parameterization); in the spherical map the pole is at s = -inf.
+Flow coordinates y live on an unbounded space: flow_maps.py (disk, spherical, slope) maps
+them to directions, and its docstring says how.
 
 Base (conditioned on wi through a small MLP): disk, a diagonal Gaussian (or a scale
 mixture) in y; spherical and slope, a Gaussian in s times a von Mises in phi. u maps to it
-through the inverse CDFs (ndtri for the Gaussian, numerical inversion of the von Mises CDF).
+through the inverse CDFs (special.py: ndtri for the Gaussian, numerical inversion of the von
+Mises CDF).
 
 Each Euler step y_{k+1} = y_k + D(y_k, t_k, c) / N, t_k = k / N, multiplies the density by
 1 / det(I + J_k / N), J_k = dD/dy (2x2, analytic forward-mode derivatives of the MLP), so
@@ -70,9 +56,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import FlowBSDFError
 from .baselines import UniformSampler
-from .domains import Disk, get_domain
-from .errors import FlowBSDFError
+from .domains import get_domain
+from .flow_maps import MAPS
+from .special import (LOG_2PI, logsumexp, log_normal_pdf, mix_radial_cdf, mix_radial_icdf, ndtr, ndtri,
+                      vm_cdf, vm_icdf, vm_log_pdf, vm_terms, wrap_angle)
 from .warps import rotate_z
 
 FORMAT = "flowbsdf-flow"
@@ -80,9 +69,6 @@ VERSION = 2                      # 2 added `defensive`; version-1 files load wit
 READS_VERSIONS = (1, 2)
 MAX_DEFENSIVE = 0.5
 UNIFORM_PDF = 0.5 / math.pi      # uniform over the hemisphere, per steradian
-LOG_2PI = math.log(2.0 * math.pi)
-LOG2 = math.log(2.0)
-SQRT1_2 = math.sqrt(0.5)
 # u is clipped into [U_MIN, 1 - 2^-53] so that u = 0 (probability 2^-53) maps to a finite point.
 U_MIN = 1e-17
 # Disk base mixtures: component k's log scale relative to the broadest, lam_k, lies in (-LAM_MIN_ABS, 0].
@@ -110,379 +96,6 @@ def base_outputs(domain, components=1):
     if not planar(domain):
         return 5
     return 4 if components == 1 else 4 + 2 * components - 1
-
-# --------------------------------------------------------------------------- special functions
-
-_erfc = np.frompyfunc(math.erfc, 1, 1)
-
-
-def erfc(x):
-    """The complementary error function (libm's, vectorized)."""
-    x = np.asarray(x, dtype=np.float64)
-    return np.asarray(_erfc(x), dtype=np.float64).reshape(x.shape)
-
-
-def ndtr(z):
-    """Standard normal CDF, accurate in both tails."""
-    return 0.5 * erfc(-np.asarray(z, dtype=np.float64) * SQRT1_2)
-
-
-def log_normal_pdf(z):
-    return -0.5 * np.asarray(z) ** 2 - 0.5 * LOG_2PI
-
-
-# Acklam's rational approximation of the normal quantile (relative error 1.2e-9), refined below.
-_A = (-3.969683028665376e+01, 2.209460984245205e+02, -2.759285104469687e+02,
-      1.383577518672690e+02, -3.066479806614716e+01, 2.506628277459239e+00)
-_B = (-5.447609879822406e+01, 1.615858368580409e+02, -1.556989798598866e+02,
-      6.680131188771972e+01, -1.328068155288572e+01)
-_C = (-7.784894002430293e-03, -3.223964580411365e-01, -2.400758277161838e+00,
-      -2.549732539343734e+00, 4.374664141464968e+00, 2.938163982698783e+00)
-_D = (7.784695709041462e-03, 3.224671290700398e-01, 2.445134137142996e+00, 3.754408661907416e+00)
-
-
-def _poly(c, x):
-    r = np.zeros_like(x) + c[0]
-    for a in c[1:]:
-        r = r * x + a
-    return r
-
-
-def _ndtri_lower(p):
-    """Normal quantile for p in (0, 0.5] (the lower half, where p has full relative precision)."""
-    p = np.asarray(p, dtype=np.float64)
-    z = np.empty_like(p)
-    tail = p < 0.02425
-    q = np.sqrt(-2.0 * np.log(p[tail]))
-    z[tail] = _poly(_C, q) / (_poly(_D, q) * q + 1.0)
-    q = p[~tail] - 0.5
-    r = q * q
-    z[~tail] = _poly(_A, r) * q / (_poly(_B, r) * r + 1.0)
-    # Two Halley steps on ndtr(z) = p make it the inverse of *this* module's ndtr to rounding.
-    for _ in range(2):
-        e = ndtr(z) - p
-        d = e * np.exp(0.5 * z * z + 0.5 * LOG_2PI)
-        z = z - d / (1.0 + 0.5 * z * d)
-    return z
-
-
-def ndtri(p):
-    """Standard normal quantile, accurate in both tails (p = 0 -> -inf, p = 1 -> +inf)."""
-    p = np.asarray(p, dtype=np.float64)
-    out = np.full(p.shape, np.nan)
-    lo = (p > 0.0) & (p <= 0.5)
-    hi = (p > 0.5) & (p < 1.0)
-    out[lo] = _ndtri_lower(p[lo])
-    out[hi] = -_ndtri_lower(1.0 - p[hi])
-    out[p == 0.0] = -np.inf
-    out[p == 1.0] = np.inf
-    return out
-
-
-def wrap_angle(a):
-    """The representative of an angle in [-pi, pi)."""
-    return np.mod(np.asarray(a, dtype=np.float64) + np.pi, 2.0 * np.pi) - np.pi
-
-
-def log_i0(kappa):
-    """log I0(kappa), kappa >= 0 (np.i0 is exact enough below ~700; the base keeps kappa small)."""
-    kappa = np.asarray(kappa, dtype=np.float64)
-    big = kappa > 600.0
-    k = np.where(big, 600.0, kappa)
-    out = np.log(np.i0(k))
-    # Asymptotic series for large kappa (never reached with the trainer's kappa_max).
-    kb = np.where(big, kappa, 1.0)
-    asym = kb - 0.5 * np.log(2.0 * np.pi * kb) + np.log1p(1.0 / (8.0 * kb) + 9.0 / (128.0 * kb * kb))
-    return np.where(big, asym, out)
-
-
-def vm_terms(kappa_max):
-    """How many Fourier terms the von Mises CDF needs for kappa <= kappa_max (I_n/I_0 < 1e-18)."""
-    return int(math.ceil(math.sqrt(90.0 * max(kappa_max, 1.0)))) + 20
-
-
-def _bessel_ratios(kappa, m):
-    """rho_n = I_n(kappa) / I_0(kappa), n = 1..m, shape (len(kappa), m), by Miller's backward recurrence."""
-    kappa = np.asarray(kappa, dtype=np.float64)
-    extra = 40
-    r = np.zeros_like(kappa)
-    ratios = np.empty((m, kappa.size))
-    for n in range(m + extra, 0, -1):
-        r = kappa / (2.0 * n + kappa * r)          # r_n = I_n / I_{n-1}
-        if n <= m:
-            ratios[n - 1] = r
-    return np.cumprod(ratios, axis=0).T
-
-
-def vm_cdf(psi, kappa, m):
-    """CDF of a zero-mean von Mises at psi in [-pi, pi] (Fourier series, Clenshaw summation)."""
-    psi = np.asarray(psi, dtype=np.float64)
-    rho = _bessel_ratios(kappa, m)
-    return _vm_cdf_rho(psi, rho)
-
-
-def _vm_cdf_rho(psi, rho):
-    m = rho.shape[1]
-    c = rho / np.arange(1, m + 1)
-    x2 = 2.0 * np.cos(psi)
-    b1 = np.zeros_like(psi)
-    b2 = np.zeros_like(psi)
-    for n in range(m - 1, -1, -1):
-        b1, b2 = c[:, n] + x2 * b1 - b2, b1
-    return (psi + np.pi) / (2.0 * np.pi) + b1 * np.sin(psi) / np.pi
-
-
-def vm_log_pdf(psi, kappa):
-    kappa = np.asarray(kappa, dtype=np.float64)
-    return kappa * np.cos(psi) - LOG_2PI - log_i0(kappa)
-
-
-def vm_icdf(u, kappa, m, max_iter=100):
-    """psi in [-pi, pi) with vm_cdf(psi) = u: safeguarded Newton (bisection fallback)."""
-    u = np.asarray(u, dtype=np.float64)
-    kappa = np.asarray(kappa, dtype=np.float64)
-    rho = _bessel_ratios(kappa, m)
-    lo = np.full(u.shape, -np.pi)
-    hi = np.full(u.shape, np.pi)
-    # Initial guess: uniform for small kappa, the Gaussian limit for large kappa.
-    g_uniform = 2.0 * np.pi * u - np.pi
-    g_normal = np.clip(ndtri(np.clip(u, 1e-300, 1.0 - 1e-16)) / np.sqrt(np.maximum(kappa, 1e-12)),
-                       -np.pi, np.pi)
-    psi = np.where(kappa < 2.0, g_uniform, g_normal)
-    active = np.arange(u.size)
-    log_norm = LOG_2PI + log_i0(kappa)
-    for _ in range(max_iter):
-        if active.size == 0:
-            break
-        p = psi[active]
-        f = _vm_cdf_rho(p, rho[active]) - u[active]
-        below = f < 0
-        lo[active] = np.where(below, p, lo[active])
-        hi[active] = np.where(below, hi[active], p)
-        dens = np.exp(kappa[active] * np.cos(p) - log_norm[active])
-        step = f / dens
-        new = p - step
-        l, h = lo[active], hi[active]
-        bad = ~((new > l) & (new < h)) | ~np.isfinite(new)
-        new = np.where(bad, 0.5 * (l + h), new)
-        hit = np.abs(f) <= 2.5e-16                      # u resolved to its last bit: keep p
-        psi[active] = np.where(hit, p, new)
-        done = hit | (np.abs(new - p) <= 4e-16 * (1.0 + np.abs(p))) | (h - l <= 4e-16 * (1.0 + np.abs(l)))
-        active = active[~done]
-    return psi
-
-
-# --------------------------------------------------------------------------- radial scale mixtures
-
-def _logsumexp(a, axis=-1):
-    m = np.max(a, axis=axis, keepdims=True)
-    m = np.where(np.isfinite(m), m, 0.0)
-    return np.log(np.sum(np.exp(a - m), axis=axis)) + m[..., 0]
-
-
-def mix_radial_cdf(q, logw, lam):
-    """P(|z|² <= q) = sum_k w_k (1 - exp(-q / (2 v_k))), accurate for small q."""
-    return np.sum(np.exp(logw) * -np.expm1(-0.5 * q[:, None] * np.exp(-2.0 * lam)), axis=-1)
-
-
-def mix_radial_icdf(u1, logw, lam, max_iter=200):
-    """q = |z|² with mix_radial_cdf(q) = u1: Newton on the convex, decreasing log tail from q = 0
-    (its iterates approach the root from below, never past it)."""
-    target = np.log1p(-u1)
-    inv_v = np.exp(-2.0 * lam)
-    q = np.zeros(len(u1))
-    active = np.ones(len(u1), bool)
-    for _ in range(max_iter):
-        comp = logw[active] - 0.5 * q[active, None] * inv_v[active]
-        g = _logsumexp(comp)          # log P(|z|² > q) = logsumexp_k(log w_k - q / (2 v_k))
-        # d/dq log tail = -sum_k w_k e^{-q/2v_k} / (2 v_k) / tail
-        slope = -0.5 * np.sum(np.exp(comp - g[:, None]) * inv_v[active], axis=-1)
-        step = (target[active] - g) / slope
-        # At u1 ~ 0 the target sits within rounding of log(sum w) = 0: never step below q = 0.
-        step = np.maximum(step, -q[active])
-        q[active] += step
-        done = np.abs(step) <= 1e-15 * np.maximum(q[active], 1e-300) + 1e-300
-        idx = np.flatnonzero(active)
-        active[idx[done]] = False
-        if not active.any():
-            break
-    return q
-
-
-# --------------------------------------------------------------------------- coordinate maps
-
-class DiskMap:
-    """y in R² <-> wo in the upper hemisphere: y = x rho / r, rho² = -4 log cos(theta_o)."""
-
-    domain = "disk"
-    periodic = (False, False)
-
-    @staticmethod
-    def to_dir(y, wi=None):
-        y = np.asarray(y, dtype=np.float64)
-        q = np.sum(y * y, axis=-1)                      # rho²
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(q > 1e-300, np.sqrt(-np.expm1(-0.5 * q) / np.where(q > 1e-300, q, 1.0)),
-                             SQRT1_2)                   # r / rho
-        z = np.exp(-0.25 * q)
-        return np.concatenate([y * ratio[..., None], z[..., None]], axis=-1)
-
-    @staticmethod
-    def from_dir(wo, wi=None):
-        """Flow coordinates of directions (cos theta_o from wo.z keeps precision near the rim)."""
-        wo = np.asarray(wo, dtype=np.float64)
-        n2 = np.sum(wo * wo, axis=-1)
-        r2 = (wo[..., 0] ** 2 + wo[..., 1] ** 2) / n2
-        small = r2 < 0.5
-        with np.errstate(divide="ignore", invalid="ignore"):
-            # log(cos² theta) from log|z|: z² underflows to 0 (rho = inf, pdf NaN) for z < 1e-154
-            log_c2 = 2.0 * np.log(np.abs(wo[..., 2])) - np.log(n2)
-            q = -2.0 * np.where(small, np.log1p(-np.where(small, r2, 0.0)), log_c2)   # rho²
-            ratio = np.where(r2 > 1e-300, np.sqrt(q / np.where(r2 > 1e-300, r2, 1.0)), math.sqrt(2.0))
-        return wo[..., :2] / np.sqrt(n2)[..., None] * ratio[..., None]
-
-    @staticmethod
-    def from_domain(x, wi=None):
-        """Flow coordinates of disk domain points (|x| < 1)."""
-        x = np.asarray(x, dtype=np.float64)
-        r2 = np.sum(x * x, axis=-1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(r2 > 1e-300, np.sqrt(-2.0 * np.log1p(-r2) / np.where(r2 > 1e-300, r2, 1.0)),
-                             math.sqrt(2.0))
-        return x * ratio[..., None]
-
-    @staticmethod
-    def to_domain(y):
-        return DiskMap.to_dir(y)[..., :2]
-
-    @staticmethod
-    def log_dw_dy(y, wi=None):
-        """log of d omega / dy (solid angle per unit flow area) = log(cos theta_o / 2)."""
-        return -0.25 * np.sum(np.asarray(y) ** 2, axis=-1) - LOG2
-
-    @staticmethod
-    def valid(wo):
-        return np.asarray(wo)[..., 2] > 0.0
-
-
-class SphericalMap:
-    """(s, phi) in R x S¹ <-> wo: sin²(theta_o) = Phi(s), cos²(theta_o) = Phi(-s)."""
-
-    domain = "spherical"
-    periodic = (False, True)
-
-    @staticmethod
-    def to_dir(y, wi=None):
-        y = np.asarray(y, dtype=np.float64)
-        s, phi = y[..., 0], y[..., 1]
-        st = np.sqrt(ndtr(s))
-        ct = np.sqrt(ndtr(-s))
-        return np.stack([st * np.cos(phi), st * np.sin(phi), ct], axis=-1)
-
-    @staticmethod
-    def from_dir(wo, wi=None):
-        wo = np.asarray(wo, dtype=np.float64)
-        n2 = np.sum(wo * wo, axis=-1)
-        s2 = (wo[..., 0] ** 2 + wo[..., 1] ** 2) / n2
-        c2 = wo[..., 2] ** 2 / n2
-        # z > 0 with z² below the smallest normal (z < 1.5e-154) would give s = inf or NaN and a NaN
-        # pdf: take the smallest normal instead (s = 37.5; the density there is < 1e-300 either way).
-        # The same at the pole (wo = normal, s = -inf): a light straight above a shading point
-        # asked pdf() there and got NaN (stress suite); the density's limit there is ~0.
-        tiny = np.finfo(np.float64).tiny
-        c2 = np.where((c2 < tiny) & (wo[..., 2] != 0), tiny, c2)
-        s2 = np.maximum(s2, tiny)
-        s = np.where(s2 <= 0.5, ndtri(s2), -ndtri(c2))
-        return np.stack([s, np.arctan2(wo[..., 1], wo[..., 0])], axis=-1)
-
-    @staticmethod
-    def from_domain(x, wi=None):
-        x = np.asarray(x, dtype=np.float64)
-        theta = x[..., 0]
-        tiny = np.finfo(np.float64).tiny        # as in from_dir: the pole stays finite
-        s2, c2 = np.maximum(np.sin(theta) ** 2, tiny), np.maximum(np.cos(theta) ** 2, tiny)
-        s = np.where(s2 <= 0.5, ndtri(s2), -ndtri(c2))
-        return np.stack([s, wrap_angle(x[..., 1])], axis=-1)
-
-    @staticmethod
-    def to_domain(y):
-        y = np.asarray(y, dtype=np.float64)
-        theta = np.arctan2(np.sqrt(ndtr(y[..., 0])), np.sqrt(ndtr(-y[..., 0])))
-        return np.stack([theta, wrap_angle(y[..., 1])], axis=-1)
-
-    @staticmethod
-    def log_dw_dy(y, wi=None):
-        """log of d omega / (ds dphi) = log(N(s) / (2 cos theta_o))."""
-        s = np.asarray(y, dtype=np.float64)[..., 0]
-        with np.errstate(divide="ignore"):
-            return log_normal_pdf(s) - LOG2 - 0.5 * np.log(ndtr(-s))
-
-    @staticmethod
-    def valid(wo):
-        return np.asarray(wo)[..., 2] > 0.0
-
-
-class SlopeMap:
-    """(s, phi) in R x S¹ <-> the half vector h at tan(theta_h) = e^s, azimuth phi; wo = 2 (wi.h) h - wi.
-
-    Log-polar slope space: a GGX lobe of any roughness alpha becomes a bump of unit width at
-    s = log(alpha), so a sharp spike over a broad glow (clear coats, lacquers) is two bumps
-    along one axis, which a flow can learn, where in a linear map their scales differ 100x.
-    d omega_h / (ds dphi) = sin²(theta_h) cos(theta_h); d omega_o = 4 (wi.h) d omega_h.
-    Every wo above the horizon has exactly one y, but a y whose mirror direction falls below
-    the horizon has no wo: sample() returns pdf 0 there (a lost sample, no bias), and a trained
-    model puts little mass there because its data has none. wi: the canonical incident
-    direction per row. Training data comes as disk coordinates of wo (bake.domains: Disk).
-    """
-
-    domain = "slope"
-    periodic = (False, True)
-
-    @staticmethod
-    def _half(y):
-        y = np.asarray(y, dtype=np.float64)
-        s, phi = y[..., 0], y[..., 1]
-        t = np.exp(-np.abs(s))                     # tan or cot of theta_h, never overflows
-        norm = 1.0 / np.sqrt(1.0 + t * t)
-        st = np.where(s > 0, norm, t * norm)
-        ct = np.where(s > 0, t * norm, norm)
-        return np.stack([st * np.cos(phi), st * np.sin(phi), ct], axis=-1)
-
-    @staticmethod
-    def to_dir(y, wi):
-        h = SlopeMap._half(y)
-        return 2.0 * np.sum(wi * h, axis=-1, keepdims=True) * h - wi
-
-    @staticmethod
-    def from_dir(wo, wi):
-        wo = np.asarray(wo, dtype=np.float64)
-        h = wo / np.linalg.norm(wo, axis=-1, keepdims=True) + wi
-        tiny = np.finfo(np.float64).tiny          # h along the normal: s = -inf, kept finite
-        r = np.maximum(np.hypot(h[..., 0], h[..., 1]), tiny)
-        with np.errstate(divide="ignore"):
-            s = np.log(r) - np.log(np.maximum(h[..., 2], tiny))
-        return np.stack([s, np.arctan2(h[..., 1], h[..., 0])], axis=-1)
-
-    @staticmethod
-    def from_domain(x, wi):
-        return SlopeMap.from_dir(Disk().to_dir(x), wi)
-
-    @staticmethod
-    def log_dw_dy(y, wi):
-        s = np.asarray(y, dtype=np.float64)[..., 0]
-        log_sin = -0.5 * np.logaddexp(0.0, -2.0 * s)
-        log_cos = -0.5 * np.logaddexp(0.0, 2.0 * s)
-        cos_ih = np.sum(wi * SlopeMap._half(y), axis=-1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return 2.0 * log_sin + log_cos + np.log(4.0 * np.maximum(cos_ih, 0.0))
-
-    @staticmethod
-    def valid(wo):
-        return np.asarray(wo)[..., 2] > 0.0
-
-
-MAPS = {"disk": DiskMap, "spherical": SphericalMap, "slope": SlopeMap}
-
 
 def canonical_wi(c, isotropic):
     """The incident direction of conditioning features (isotropic: rotated to phi_i = 0)."""
@@ -572,7 +185,7 @@ class MLP:
 class FlowModel:
     """A trained conditional flow: sample(wi, u) -> (wo, pdf), pdf(wi, wo), invert(wi, wo) -> u.
 
-    Attributes: `domain` (the bake.domains object), `domain_name`, `isotropic`, `steps`
+    Attributes: `domain` (the bake.core.domains object), `domain_name`, `isotropic`, `steps`
     (Euler steps N; `with_steps(n)` gives a copy with another N), `meta` (the file's
     metadata dict), `path`. After each call `last_stats` holds diagnostics: the fraction of
     samples whose Euler map folds (det(I + J/N) <= 0 at some step) and, for pdf/invert,
@@ -667,7 +280,7 @@ class FlowModel:
                 zero = np.zeros((len(c), 1))
                 return out[:, 0:2], ls, zero, zero
             logits = out[:, 4:4 + K]
-            logw = logits - _logsumexp(logits)[:, None]
+            logw = logits - logsumexp(logits)[:, None]
             lam = np.concatenate([np.zeros((len(c), 1)), -LAM_MIN_ABS * _sigmoid(out[:, 4 + K:])], axis=1)
             return out[:, 0:2], ls, logw, lam
         ls = lo + (hi - lo) * _sigmoid(out[:, 1])
@@ -678,7 +291,7 @@ class FlowModel:
     @staticmethod
     def _mix_log_density(z, logw, lam):
         q = np.sum(z * z, axis=-1)
-        return _logsumexp(logw - LOG_2PI - 2.0 * lam - 0.5 * q[:, None] * np.exp(-2.0 * lam))
+        return logsumexp(logw - LOG_2PI - 2.0 * lam - 0.5 * q[:, None] * np.exp(-2.0 * lam))
 
     # ----------------------------------------------------------------- base distribution
     # Disk, one component: u -> z per axis through the normal inverse CDF. Several components:

@@ -34,9 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FlowBSDFError
-from .exrio import write_rgba_exr
-from .geometry import LUMINANCE
+from ..core.geometry import LUMINANCE
+from ..errors import FlowBSDFError
+from ..plumbing.exrio import write_rgba_exr
 
 LAYOUT = 2
 TEXTURE_WIDTH = 1024

@@ -9,9 +9,9 @@ import time
 
 import numpy as np
 
-from .baselines import CosineSampler, fit_ggx
-from .geometry import incident, luminance
-from .ideal import IdealSampler
+from ..core.baselines import CosineSampler, fit_ggx
+from ..core.geometry import incident, luminance
+from ..core.ideal import IdealSampler
 from .metrics import relative_variance, relative_variance_ref
 
 THETAS_DEG = (0, 30, 60, 75, 85)
@@ -240,7 +240,7 @@ def write_report(rows, out_dir, slices=(), plots=True, title="Speed vs error"):
           markdown_table(rows, thetas), "", "## Per sampler: error, lost samples, speed (one thread), memory", "",
           summary_markdown(rows), "",
           "rv = Var[lum(f·cos)/pdf] / E[...]²; lost = fraction of samples with pdf 0 or below the horizon; "
-          "speed: best-of-k wall clock of sample() and pdf() on one thread (bake.bench).", ""]
+          "speed: best-of-k wall clock of sample() and pdf() on one thread (bake.quality.bench).", ""]
     path = out / "speed_error.md"
     written["markdown"] = path
     write_csv([{k: r.get(k) for k in SPEED_ERROR_FIELDS} for r in rows], out / "speed_error.csv")
@@ -271,7 +271,7 @@ def _pyplot():
     try:
         import matplotlib
     except ImportError:
-        from .errors import FlowBSDFError
+        from ..errors import FlowBSDFError
         raise FlowBSDFError("the report's plots need matplotlib (`pip install matplotlib`)") from None
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
@@ -407,9 +407,9 @@ def manifest_samplers(entry, material, out_dir, manifest_path, steps=(2, 4, 8), 
     """Every sampler the report compares for one material: baselines, the ideal tabulation,
     the flow at several step counts (always its trained N), the baked tables (and a half-resolution rebuild on the
     same bins), plain tabulation at the tables' memory, and Mitsuba's sampler for RGL files."""
-    from .ideal import BinnedIdeal
-    from .pipeline import model_path, table_path
-    from .sampler import StaleTables, open_sampler
+    from ..core.ideal import BinnedIdeal
+    from ..core.sampler import StaleTables, open_sampler
+    from ..plumbing.pipeline import model_path, table_path
     ideal = open_sampler("ideal", material)
     samplers = {kind: open_sampler(kind, material, ideal=ideal) for kind in ("uniform", "cosine", "ggx")}
     samplers["ideal"] = ideal
@@ -424,7 +424,7 @@ def manifest_samplers(entry, material, out_dir, manifest_path, steps=(2, 4, 8), 
         except StaleTables:
             log(f"[report] {entry.name}: tables are stale (material, model or settings changed): re-bake")
     if tables is not None:
-        from .tabulate import build_tables
+        from ..core.tabulate import build_tables
         samplers["tables"] = tables
         half = max(tables.rows // 2, 4)
         samplers[f"tables {half}x{half}"] = build_tables(

@@ -12,10 +12,10 @@
     domain = "spherical"            # overrides the default
     train = { preset = "fast" }     # merged over defaults.train
 
-    [run]                           # optional: the main job (`flowbsdf run`, bake/job.py)
+    [run]                           # optional: the main job (`flowbsdf run`, bake/plumbing/job.py)
     max_materials = 3               # only the first 3 materials whose source is present
-    report = { samples = 16384 }    # the speed-vs-error report (bake.job.REPORT_DEFAULTS)
-    render = { size = 96, spp = 32 }    # the shader-ball renders (bake.job.RENDER_DEFAULTS)
+    report = { samples = 16384 }    # the speed-vs-error report (bake.plumbing.job.REPORT_DEFAULTS)
+    render = { size = 96, spp = 32 }    # the shader-ball renders (bake.plumbing.job.RENDER_DEFAULTS)
 
 Relative paths resolve against the manifest's folder. Source paths may name environment
 variables: `$NAME`, `${NAME}`, and `${NAME:-default}` (NAME when set and not empty, else the
@@ -27,9 +27,9 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .domains import DOMAINS
-from .errors import FlowBSDFError
-from .materials import open_material
+from ..core.domains import DOMAINS
+from ..errors import FlowBSDFError
+from ..materials import open_material
 
 MATERIAL_KEYS = {"name", "source", "domain", "optional", "train", "bake"}
 DEFAULT_KEYS = {"domain", "train", "bake"}

@@ -8,7 +8,7 @@ its first moments, bounded by the log range of its own f·cos along each axis.
 """
 import numpy as np
 
-from .errors import FlowBSDFError
+from ..errors import FlowBSDFError
 from .geometry import luminance, spherical_dir
 from .tables import _SMALL, K_MAX, TWO_PI, Tables, _search, from_ab, to_ab
 
@@ -444,8 +444,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
     bounds the theta bins as for an isotropic material, i.e. it is per azimuth: anisotropic
     tables take up to phi_count times as much.
     """
+    from ..quality.metrics import relative_variance
     from .ideal import IdealSampler
-    from .metrics import relative_variance
     log = log or (lambda *_: None)
     ideal = source if isinstance(source, IdealSampler) else IdealSampler(material, resolution=ideal_resolution)
     if lobe_width == "auto":

@@ -5,7 +5,7 @@ Hard cases: every sampler of the product on materials built to break it, with
   - no NaN/inf/negative pdf, no non-finite direction or weight f·cos/pdf, in every sample;
   - samples either in the upper hemisphere with pdf > 0, or invalid (pdf 0) consistently:
     pdf() returns the same value at the sample (checked on a share of each chunk);
-  - chi-square of sample() against pdf() (bake.metrics.chi2_test, Šidák-corrected over
+  - chi-square of sample() against pdf() (bake.quality.metrics.chi2_test, Šidák-corrected over
     every test of the run);
   - rv (relative variance of the albedo estimator) finite.
 
@@ -30,10 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .geometry import luminance, reflect
-from .materials import open_material
-from .materials.base import Material, as_dirs
-from .materials.rgl import write_tensor_file
+from ..core.geometry import luminance, reflect
+from ..materials import open_material
+from ..materials.base import Material, as_dirs
+from ..materials.rgl import write_tensor_file
 
 # ------------------------------------------------------------------------------ materials
 
@@ -104,8 +104,8 @@ def synthetic_rgl(path, seed=0, n_theta=6, n=32):
 def synthetic_merl(path, seed=0):
     """A MERL file with 40 % invalid (negative) entries, empty theta_h rows, and an albedo
     above one (a bright glossy lobe over a white base)."""
-    from .materials.analytic import Lambert, Microfacet, Mixture
-    from .materials.merl import DIMS, INVALID, tabulate
+    from ..materials.analytic import Lambert, Microfacet, Mixture
+    from ..materials.merl import DIMS, INVALID, tabulate
     rng = np.random.default_rng(seed)
     table = tabulate(Mixture([(1.0, Lambert(0.9)), (2.5, Microfacet("ggx", 0.08))]))
     table[:, 30:45] = 0.0                                       # empty rows of theta_h
@@ -199,7 +199,7 @@ TABLE_BINS = np.radians([0.0, 15.0, 30.0, 45.0, 60.0, 70.0, 78.0, 84.0, 87.0, 89
 
 def make_tables(material, ideal, size=32, grid=192, bins=TABLE_BINS, phi_count=8):
     """Small baked tables of a material (anisotropic: phi_count azimuths over its period)."""
-    from .tabulate import build_tables, default_phi_bins, lobe_width_of
+    from ..core.tabulate import build_tables, default_phi_bins, lobe_width_of
     try:
         width = lobe_width_of(material, ideal)
     except Exception:   # noqa: BLE001 (a fit that fails on an odd material: no lobe zones)
@@ -210,7 +210,7 @@ def make_tables(material, ideal, size=32, grid=192, bins=TABLE_BINS, phi_count=8
 
 def make_samplers(case, workdir, ideal_resolution=128, table_size=32, grid=192, models=None):
     """{name: sampler} for a case: tables, ideal, flow (when a model is given)."""
-    from .sampler import open_sampler
+    from ..core.sampler import open_sampler
     mat = case.open(workdir)
     ideal = open_sampler("ideal", mat, resolution=ideal_resolution)
     out = {"ideal": ideal, "tables": make_tables(mat, ideal, table_size, grid)}
@@ -344,7 +344,7 @@ def chi2_cases(case, sampler, workdir, n=200_000, n_tests=1, seed=1, max_wis=3, 
 def train_flows(cases, workdir, log=print, python=None):
     """Tiny flows for the analytic cases, trained by `python -m trainer` in a subprocess
     (bake/ stays free of torch). Returns {case name: FlowModel}; {} when training fails."""
-    from .flow import load_model
+    from ..core.flow import load_model
     workdir = Path(workdir)
     lines = []
     specs = {c.name: ({"kind": "analytic", **_analytic_spec(c)}, c.flow_domain) for c in cases
@@ -407,7 +407,7 @@ def _toml_inline(value):
 
 
 def load_models(folder, cases):
-    from .flow import load_model
+    from ..core.flow import load_model
     folder = Path(folder)
     return {c.name: load_model(folder / f"{c.name}.flow.npz") for c in cases
             if (folder / f"{c.name}.flow.npz").is_file()}
@@ -459,8 +459,8 @@ LOAD_BAKE = dict(resolution=16, tol=0.5, grid=96, samples=2048, first_bins=4, id
 
 def run_load(workdir, n_materials=50, soak=10 ** 9, chunk=1 << 20, log=print, plot=True):
     """Bake n materials in one batch, then sample `soak` directions through their tables."""
-    from .manifest import load_manifest
-    from .pipeline import bake_manifest, open_current_tables
+    from ..plumbing.manifest import load_manifest
+    from ..plumbing.pipeline import bake_manifest, open_current_tables
     workdir = Path(workdir)
     manifest = write_load_manifest(workdir / "load.toml", load_materials(n_materials), LOAD_BAKE)
     m = load_manifest(manifest)
@@ -603,7 +603,7 @@ def add_parser(sub):
 
 
 def cmd_stress(args):
-    from .errors import FlowBSDFError
+    from ..errors import FlowBSDFError
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 

@@ -26,11 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FlowBSDFError
-from .files import atomic_path, file_hash
-from .geometry import luminance
-from .materials.analytic import ggx_ndf, ggx_lambda, ggx_reflection_pdf, ggx_sample_reflection
-from .tables import open_tables
+from ..core.geometry import luminance
+from ..core.tables import open_tables
+from ..errors import FlowBSDFError
+from ..materials.analytic import ggx_ndf, ggx_lambda, ggx_reflection_pdf, ggx_sample_reflection
+from ..plumbing.files import atomic_path, file_hash
 
 FIT_VERSION = 2
 KNOTS_DEG = (0.0, 15.0, 30.0, 40.0, 50.0, 58.0, 65.0, 70.0, 74.0, 78.0, 81.0, 84.0, 86.0, 88.0, 89.5)

@@ -1,5 +1,5 @@
 """The main job's page, OUT/index.html: what FlowBSDF did to each material and how well it
-does, at a glance. Built from what the job's stages left on disk (bake/job.py): per material
+does, at a glance. Built from what the job's stages left on disk (bake/plumbing/job.py): per material
 the equal-time renders of the shader ball with their error maps and MSE (render/<name>/,
 tracer.compare), the speed-vs-error summary with its Pareto plot, and the pdf slices (ideal /
 flow / tables) (report/<name>/, report.write_report). Images are linked by relative paths,
@@ -10,8 +10,8 @@ import re
 import time
 from pathlib import Path
 
-from .progress import fmt_seconds
-from .sampler import canonical_kind
+from ..core.sampler import canonical_kind
+from ..plumbing.progress import fmt_seconds
 
 STYLE = """
 body { font: 15px/1.45 system-ui, sans-serif; margin: 2em auto; max-width: 1100px; padding: 0 1em; color: #222 }
@@ -167,8 +167,8 @@ def _times(x, ref):
 
 def write_page(out_dir, manifest, entries, timings):
     """Write OUT/index.html from the report and render folders of `entries`; returns its path."""
-    from .files import atomic_path
-    from .job import read_stamp
+    from ..plumbing.files import atomic_path
+    from ..plumbing.job import read_stamp
     out = Path(out_dir)
     stamps = [(e.name, read_stamp(out / "render" / e.name), read_stamp(out / "report" / e.name)) for e in entries]
     parts = [f"<!doctype html><meta charset=utf-8><title>FlowBSDF: {_e(Path(manifest.path).name)}</title>",

@@ -1,4 +1,4 @@
-"""The C fast path of Tables (bake/_tables_c.c), loaded with ctypes; never required.
+"""The C fast path of Tables (bake/core/_tables_c.c), loaded with ctypes; never required.
 
     AVAILABLE   True when the C library is loaded
     REASON      one line: where it was loaded from, or why not (then Tables uses numpy)
@@ -15,7 +15,7 @@ vector lanes (`flowbsdf report` measures the speed, with one wi per call and wit
 wi per sample, beside Mitsuba's).
 
 Where the library comes from, first that works:
-1. `bake/_tables_c*.so` (or .pyd/.dylib) beside this file, built by setup.py when the
+1. `bake/core/_tables_c*.so` (or .pyd/.dylib) beside this file, built by setup.py when the
    package is installed (`pip install -e .` builds it in place). It embeds the SHA-256 of
    the C source it was built from; when that source is beside it and differs (edited after
    the install), the library is stale and skipped.

@@ -25,7 +25,7 @@ Variants (`variant=None` picks one):
 `$FLOWBSDF_MITSUBA_VARIANT` overrides the automatic choice. Dr.Jit's LLVM backend uses
 all cores by default (Dr.Jit 1.5 ignores `DRJIT_NUM_THREADS`): pass `threads=1`, which
 calls `drjit.set_thread_count(1)`, for per-core throughput; `limit_threads(n)` is the
-context manager `bake.bench` uses.
+context manager `bake.quality.bench` uses.
 """
 import contextlib
 import glob
@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FlowBSDFError
-from .materials.base import as_dirs
+from ..errors import FlowBSDFError
+from ..materials.base import as_dirs
 
 LLVM_VARIANTS = ("llvm_ad_rgb", "llvm_rgb")
 SCALAR_VARIANT = "scalar_rgb"

@@ -1,5 +1,5 @@
 """The main job, `flowbsdf run MANIFEST`: per material train -> bake -> report -> render, then
-one page, OUT/index.html, that shows what came out (bake/page.py).
+one page, OUT/index.html, that shows what came out (bake/quality/page.py).
 
 Each stage of each material is skipped when its product is current:
   train   OUT/models/<name>.flow.npz, by the trainer (a subprocess: torch) when missing or
@@ -26,7 +26,7 @@ import sys
 import time
 from pathlib import Path
 
-from .errors import FlowBSDFError
+from ..errors import FlowBSDFError
 from .files import atomic_path, file_hash
 from .progress import Progress, fmt_seconds
 
@@ -102,8 +102,8 @@ def write_stamp(folder, inputs_hash, **data):
 def run_settings(manifest, key, defaults):
     """The manifest's [run.<key>] over `defaults`: unknown keys, values of another type than the
     default's and unknown sampler or scene names are errors."""
-    from .sampler import RENDER_KINDS
-    from .tracer.scene import BUILTINS
+    from ..core.sampler import RENDER_KINDS
+    from ..tracer.scene import BUILTINS
     given = manifest.run.get(key, {})
     unknown = sorted(set(given) - set(defaults))
     if unknown:
@@ -156,7 +156,7 @@ class Job:
 
     def train_current(self, entry, material):
         """A model trained on this very material (any preset: a better one is kept)."""
-        from .flow import load_model
+        from ..core.flow import load_model
         from .pipeline import model_path
         path = model_path(self.out, entry.name)
         try:
@@ -200,7 +200,7 @@ class Job:
         return _stamp_matches(self.out / "report" / entry.name, self.report_inputs(entry, material))
 
     def report(self, entry, material):
-        from .report import entry_report, write_report
+        from ..quality.report import entry_report, write_report
         folder = self.out / "report" / entry.name
         digest = self.report_inputs(entry, material)
         t0 = time.perf_counter()
@@ -233,8 +233,8 @@ class Job:
 
     def render(self, entry, material):
         import numpy as np
-        from .tracer.compare import compare
-        from .tracer.scene import builtin_scene
+        from ..tracer.compare import compare
+        from ..tracer.scene import builtin_scene
         r = self.render_settings
         folder = self.out / "render" / entry.name
         ref_digest = self.reference_inputs(entry, material)
@@ -279,7 +279,7 @@ class Job:
 
     def run(self, name=None):
         """Every stage of every selected material, then the page; returns the page's path."""
-        from .page import write_page
+        from ..quality.page import write_page
         entries = selected(self.manifest, name, log=self.log)
         if not entries:
             raise FlowBSDFError("no material to work on", self.manifest.path)

@@ -41,10 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FlowBSDFError
-from .exrio import write_rgba_exr
-from .files import file_hash
-from .tables import open_tables
+from ..core.tables import open_tables
+from ..errors import FlowBSDFError
+from ..plumbing.exrio import write_rgba_exr
+from ..plumbing.files import file_hash
 
 LAYOUT = 3
 META_KEY = "flowbsdf_osl"
@@ -178,7 +178,7 @@ def ensure_osl_export(tables_path, log=None):
 
 def bake_derived(tables_path, log=None):
     """What the Blender node needs beside a table file: its OSL texture, its SVM texture
-    (bake/svm_export.py) and its closure fit (each rebuilt only when missing or stale).
+    (bake/export/svm_export.py) and its closure fit (each rebuilt only when missing or stale).
     Called by the bake pipeline; returns (OSL texture, fit)."""
     from .closure_fit import ensure_fit
     from .svm_export import ensure_svm_export

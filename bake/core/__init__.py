@@ -1,0 +1,13 @@
+"""The samplers and what they stand on (numpy only).
+
+    sampler        the sampler contract; every sampler by name (open_sampler)
+    flow           the learned flow sampler: a trained model (.flow.npz) run exactly
+    tables         baked tables (.exr): an exact, table-speed sampler per material
+    fasttables     the tables' optional C fast path (_tables_c.c, loaded with ctypes)
+    tabulate       building tables from a material and a source sampler
+    ideal          the ideal sampler: f·cos tabulated finely per incident direction
+    baselines      uniform, cosine and a fitted GGX lobe: what every learned sampler must beat
+    domains        2D sampling domains of outgoing directions (disk, spherical)
+    warps          the maps between the unit square and directions that several modules share
+    geometry       directions in the local shading frame, luminance
+"""

@@ -1,0 +1,7 @@
+"""What Blender's Cycles back ends read: baked tables and the world turned into shader data.
+
+    osl_export     the tables as the texture the OSL shader reads (blender_addon/osl/)
+    svm_export     the tables as the texture the SVM node graph reads (blender_addon/svm.py)
+    closure_fit    Cycles closures (diffuse + GGX) fitted to the tables: the fit back end
+    world_map      the world's importance map, where the back ends sample the environment
+"""
