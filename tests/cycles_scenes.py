@@ -202,11 +202,17 @@ def render(scene):
 
 
 def render_seeds(scene, seeds):
-    """Renders with Cycles seeds 0..seeds-1: (seeds, H, W, 3)."""
+    """Renders with Cycles seeds 0..seeds-1: (seeds, H, W, 3). Cycles keeps the scene between
+    them (persistent data: no second sync, BVH, shader compilation or world map)."""
     imgs = []
-    for seed in range(seeds):
-        scene.cycles.seed = seed
-        imgs.append(render(scene))
+    keep = scene.render.use_persistent_data
+    scene.render.use_persistent_data = True
+    try:
+        for seed in range(seeds):
+            scene.cycles.seed = seed
+            imgs.append(render(scene))
+    finally:
+        scene.render.use_persistent_data = keep
     return np.array(imgs)
 
 
