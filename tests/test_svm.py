@@ -48,6 +48,16 @@ def test_texture_too_large_for_gpus_is_an_error():
         svm_export.texture_image(_synthetic(2, None, R=2, C=4000))
 
 
+def test_the_largest_world_map_fits_gpu_limits():
+    """An image world's map keeps the image's pixels up to world.IMAGE_WIDTH x IMAGE_HEIGHT (the
+    add-on's cap): its texture stays within the GPU side limit."""
+    from bake.export.world_map import WorldMap
+    world = pytest.importorskip("blender_addon.world")
+    h, w = world.IMAGE_HEIGHT, world.IMAGE_WIDTH
+    img = WorldMap(np.ones((h, w, 3))).texture_image()
+    assert img.shape == (h + 2, w + 1, 4) and max(img.shape[:2]) <= svm_export.MAX_SIDE
+
+
 @pytest.fixture(scope="module")
 def plastic(tmp_path_factory):
     return cs.small_tables(PLASTIC, "plastic", tmp_path_factory.mktemp("svm_plastic"))
