@@ -36,16 +36,27 @@ float pdf_pixel(WorldMap m, int row, int col)
 }
 
 // The last entry k < n of a CDF (texture row y, entries at x = 0 .. n, the last 1) with
-// cdf_k <= u, its value and the next one.
-int cdf_search(WorldMap m, int y, int n, float u, output float c0, output float c1)
+// cdf_k <= u, its value and the next one: searched within the bracket of u's guide (channels
+// `gc` and gc + 1 of texel floor(u Wt) of the row), the whole CDF should float rounding put u
+// outside it.
+int cdf_search(WorldMap m, int y, int n, int gc, float u, output float c0, output float c1)
 {
-    int lo = 0, hi = n;
-    while (hi - lo > 1) {
-        int mid = (lo + hi) / 2;
-        if (fetch1(m.file, m.Wt, m.Ht, mid, y) <= u) lo = mid; else hi = mid;
+    float alpha = 0;
+    color guide = texture(m.file, (clamp(int(u * m.Wt), 0, int(m.Wt) - 1) + 0.5) / m.Wt, (y + 0.5) / m.Ht,
+                          0, 0, 0, 0, "interp", "closest", "wrap", "clamp", "alpha", alpha);
+    int lo = int(guide[gc]), hi = (gc == 1) ? int(guide[2]) : int(alpha);
+    for (int pass = 0; pass < 2; pass++) {
+        while (hi - lo > 1) {
+            int mid = (lo + hi) / 2;
+            if (fetch1(m.file, m.Wt, m.Ht, mid, y) <= u) lo = mid; else hi = mid;
+        }
+        c0 = fetch1(m.file, m.Wt, m.Ht, lo, y);
+        c1 = fetch1(m.file, m.Wt, m.Ht, lo + 1, y);
+        if (c0 <= u && u < c1)
+            break;
+        lo = 0;
+        hi = n;
     }
-    c0 = fetch1(m.file, m.Wt, m.Ht, lo, y);
-    c1 = fetch1(m.file, m.Wt, m.Ht, lo + 1, y);
     return lo;
 }
 
@@ -54,8 +65,8 @@ void sample_world(WorldMap m, float u0, float u1, output vector dir, output floa
                   output int col)
 {
     float r0, r1, c0, c1;
-    row = cdf_search(m, 1, m.H, u0, r0, r1);
-    col = cdf_search(m, 2 + row, m.W, u1, c0, c1);
+    row = cdf_search(m, 1, m.H, 1, u0, r0, r1);
+    col = cdf_search(m, 2 + row, m.W, 2, u1, c0, c1);
     float t_row = clamp((u0 - r0) / (r1 - r0), 0.0, 1.0);
     float t_col = clamp((u1 - c0) / (c1 - c0), 0.0, 1.0);
     float z0 = cos(M_PI * row / m.H), z1 = cos(M_PI * (row + 1) / m.H);
