@@ -428,11 +428,16 @@ def _render_seeds(svm, sc, materials, seeds):
     """Renders with Cycles seeds 0..seeds-1, each with the seed handed to the materials' graphs
     (set_film: it rotates the film-stratified u per render): (seeds, H, W, 3)."""
     imgs = []
-    for seed in range(seeds):
-        sc.cycles.seed = seed
-        for mat in materials:
-            svm.set_film(mat.node_tree, sc)
-        imgs.append(cs.render(sc))
+    keep = sc.render.use_persistent_data
+    sc.render.use_persistent_data = True        # as cs.render_seeds
+    try:
+        for seed in range(seeds):
+            sc.cycles.seed = seed
+            for mat in materials:
+                svm.set_film(mat.node_tree, sc)
+            imgs.append(cs.render(sc))
+    finally:
+        sc.render.use_persistent_data = keep
     return np.array(imgs)
 
 
