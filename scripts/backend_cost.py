@@ -45,13 +45,7 @@ def setups():
 def per_spp(kind, name, tables, fit, setup, lo, hi):
     sc, _ = ca.cycles_scene(kind, name, tables, None, 64, lo, fit=fit, setup=setup, native=True)
     cs.render(sc)                               # warm: compilation, world map, textures
-    secs = []
-    for spp in (lo, hi):
-        sc.cycles.samples = spp
-        c0 = time.process_time()
-        cs.render(sc)
-        secs.append(time.process_time() - c0)
-    return (secs[1] - secs[0]) / (hi - lo)
+    return cs.seconds_per_spp(sc, lo, hi, clock=time.process_time)
 
 
 def main(argv=None):

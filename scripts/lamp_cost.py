@@ -12,7 +12,6 @@ import argparse
 import math
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -68,16 +67,9 @@ def main(argv=None):
             for principled in (False, True):
                 sc = scene(tables, lamps, principled, args.size, lo)
                 cs.render(sc)                        # warm: compile, world map, textures
-                times = []
-                for spp in (lo, hi):
-                    sc.cycles.samples = spp
-                    t0 = time.perf_counter()
-                    cs.render(sc)
-                    times.append(time.perf_counter() - t0)
-                # per sample: the difference of two sample counts, net of each render's fixed cost
-                # (scene sync, OSL setup: ~1.5 s a frame for the OSL back end at this size)
+                # net of each render's fixed cost (scene sync, OSL setup: ~1.5 s a frame here)
                 key = (lamps, principled)
-                best[key] = min(best.get(key, float("inf")), (times[1] - times[0]) / (hi - lo))
+                best[key] = min(best.get(key, float("inf")), cs.seconds_per_spp(sc, lo, hi))
                 bpy.ops.wm.read_factory_settings(use_empty=True)
     print(f"{args.size}x{args.size}, ms per sample per frame from {lo} and {hi} spp, 1 thread, best of {args.repeat}")
     print("| lamps | OSL ms/spp | Principled ms/spp | OSL / Principled |")

@@ -201,6 +201,21 @@ def render(scene):
         Path(path).unlink(missing_ok=True)
 
 
+def seconds_per_spp(scene, lo, hi, clock=None):
+    """Render time per sample at the scene's settings: from renders at lo and hi spp, so each
+    render's fixed cost (scene sync, shader compilation) cancels. `clock` time.perf_counter
+    (wall) by default, or time.process_time (this process's CPU: Cycles' threads)."""
+    import time
+    clock = clock or time.perf_counter
+    secs = []
+    for spp in (lo, hi):
+        scene.cycles.samples = spp
+        t0 = clock()
+        render(scene)
+        secs.append(clock() - t0)
+    return (secs[1] - secs[0]) / (hi - lo)
+
+
 def render_seeds(scene, seeds):
     """Renders with Cycles seeds 0..seeds-1: (seeds, H, W, 3). Cycles keeps the scene between
     them (persistent data: no second sync, BVH, shader compilation or world map)."""

@@ -41,21 +41,19 @@ def registered():
     lb.unregister()
 
 
-def _probe(tex, n, theta, mode, phi=0.0, world=""):
+def _probe(tex, n, theta, mode, phi=0.0, world="", **inputs):
+    """The probe shader's outputs on an n x n grid (rows top first, flattened); `inputs` sets
+    further script inputs by name."""
     sc = cs.reset(n, n, spp=1)
     sc.cycles.filter_width = 0.01             # every pixel's one sample at its centre
     cs.ortho_camera(sc)
-    names = {}
 
     def nodes(tree):
         s = lb.make_script_node(tree, probe=True)
-        s.inputs["Tables"].default_value = str(tex)
-        s.inputs["World"].default_value = str(world)
-        s.inputs["ProbeN"].default_value = n
-        s.inputs["ProbeTheta"].default_value = theta
-        s.inputs["ProbePhi"].default_value = phi
-        s.inputs["ProbeMode"].default_value = mode
-        names["s"] = s.name
+        values = {"Tables": str(tex), "World": str(world), "ProbeN": n, "ProbeTheta": theta, "ProbePhi": phi,
+                  "ProbeMode": mode, **inputs}
+        for name, value in values.items():
+            s.inputs[name].default_value = value
         return s.outputs["BSDF"]
     cs.add_plane(sc, cs.material_with(nodes))
     return cs.render(sc).reshape(-1, 3)
@@ -145,25 +143,6 @@ def test_osl_world_map_is_numpy(tmp_path):
     assert pdf.min() > 0 and np.all(d[:, 2] > np.cos(np.pi * 20 / 24) - 1e-6)
 
 
-def _probe_env(world, env, n, mode, u1=0.0):
-    """_probe of an image-world mode: the world map, the image (Closest) and ProbeTheta as u1."""
-    sc = cs.reset(n, n, spp=1)
-    sc.cycles.filter_width = 0.01
-    cs.ortho_camera(sc)
-
-    def nodes(tree):
-        s = lb.make_script_node(tree, probe=True)
-        s.inputs["World"].default_value = str(world)
-        s.inputs["EnvImage"].default_value = str(env)
-        s.inputs["EnvLinear"].default_value = 0
-        s.inputs["ProbeN"].default_value = n
-        s.inputs["ProbeTheta"].default_value = u1
-        s.inputs["ProbeMode"].default_value = mode
-        return s.outputs["BSDF"]
-    cs.add_plane(sc, cs.material_with(nodes))
-    return cs.render(sc).reshape(-1, 3)
-
-
 @pytest.mark.parametrize("u1", [0.0, 0.99999994])
 def test_osl_env_nee_reads_the_sampled_texel(tmp_path, u1):
     """Next-event estimation of a Closest image world at the map's size reads the texel of the
@@ -182,7 +161,7 @@ def test_osl_env_nee_reads_the_sampled_texel(tmp_path, u1):
     _, pdf = wm.sample(u)
     row, col, _, _ = wm.sample_pixel(u)
     want = img[row, col] / pdf[:, None]
-    got = _probe_env(world, env, n, 9, u1)
+    got = _probe("", n, u1, 9, world=world, EnvImage=str(env), EnvLinear=0)
     np.testing.assert_allclose(got, want, rtol=1e-5)
 
 
