@@ -44,7 +44,7 @@ from ..core.geometry import LUMINANCE
 from ..errors import FlowBSDFError
 from ..plumbing.exrio import write_rgba_exr
 
-LAYOUT = 2
+LAYOUT = 3
 TEXTURE_WIDTH = 1024
 META_KEY = "flowbsdf_world"
 

@@ -5,7 +5,7 @@
 // direction uniform in the pixel's solid angle. pdf() reads the pixel's density back, so
 // sampling and density are exactly consistent (bake/export/world_map.WorldMap is the numpy reference).
 
-#define WORLD_LAYOUT 2
+#define WORLD_LAYOUT 3
 
 struct WorldMap {
     string file;
