@@ -67,9 +67,7 @@ class WorldMap:
             raise FlowBSDFError("the world is black: nothing to importance-sample")
         rows = power.sum(1)
         self.marginal = _cdf32(rows)
-        cond = np.cumsum(power, 1) / np.where(rows > 0, rows, 1.0)[:, None]
-        cond[rows <= 0] = np.arange(1, self.W + 1) / self.W      # never drawn: any CDF
-        self.conditional = _cdf32(None, np.concatenate([np.zeros((self.H, 1)), cond], 1))
+        self.conditional = _cdf32(power)
         self.pdf_pixel = (np.diff(self.marginal)[:, None] * np.diff(self.conditional, axis=1) / omega[:, None])
         # how unevenly the world's light is spread: 1 for a constant world (from the float64
         # shares: the float32 CDFs' rounding makes tiny pixels' densities coarse)
@@ -91,8 +89,11 @@ class WorldMap:
         """(row, col, t_row, t_col) for u (N, 2): the pixel and the leftovers of u0 and u1 in it."""
         u = np.atleast_2d(np.asarray(u, np.float64))
         row = np.clip(np.searchsorted(self.marginal, u[:, 0], side="right") - 1, 0, self.H - 1)
+        # every row's CDF lifted by its index: one sorted array, one search for all samples
+        lifted = (self.conditional + np.arange(self.H)[:, None]).ravel()
+        k = np.searchsorted(lifted, u[:, 1] + row, side="right") - 1
+        col = np.clip(k - row * (self.W + 1), 0, self.W - 1)
         cdf = self.conditional[row]
-        col = np.clip((cdf <= u[:, 1:2]).sum(1) - 1, 0, self.W - 1)
         i = np.arange(len(row))
         return row, col, _leftover(u[:, 0], self.marginal[row], self.marginal[row + 1]), \
             _leftover(u[:, 1], cdf[i, col], cdf[i, col + 1])
@@ -118,11 +119,15 @@ class WorldMap:
         return img.astype(np.float32)
 
 
-def _cdf32(weights, cdf=None):
-    """A CDF (from weights, or given with its 0 first), rounded to float32 and ending at 1 exactly."""
-    if cdf is None:
-        cdf = np.concatenate([[0.0], np.cumsum(weights) / np.sum(weights)])
-    cdf = np.array(cdf, np.float64)
+def _cdf32(weights):
+    """The CDFs of weights along the last axis (a 0 first, 1 last; uniform where the weights sum
+    to 0: never drawn), rounded to float32 as the shaders read them."""
+    weights = np.asarray(weights, np.float64)
+    total = weights.sum(-1, keepdims=True)
+    cum = np.cumsum(weights, -1) / np.where(total > 0, total, 1.0)
+    uniform = np.broadcast_to(np.arange(1, weights.shape[-1] + 1) / weights.shape[-1], cum.shape)
+    cum = np.where(total > 0, cum, uniform)
+    cdf = np.concatenate([np.zeros(cum.shape[:-1] + (1,)), cum], -1)
     cdf[..., -1] = 1.0
     return cdf.astype(np.float32).astype(np.float64)
 
