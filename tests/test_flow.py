@@ -4,6 +4,7 @@ Everything here is fast (tiny networks, a few hundred steps); the full presets a
 the slow-marked tests at the end.
 """
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from bake.core import flow as F
 from bake.core import flow_maps, special
 from bake.core.domains import Disk
 from bake.errors import FlowBSDFError
-from conftest import TINY_TRAIN_TOML, slow_unless, write_npz
+from conftest import ROOT, TINY_TRAIN_TOML, slow_unless, write_npz
 
 trainer = pytest.importorskip("trainer")   # sets OMP_WAIT_POLICY before torch loads
 torch = pytest.importorskip("torch")
@@ -610,6 +611,27 @@ optional = true
     assert np.all(pdf > 0)
     assert main(["train", str(manifest), "--material", "nope", "--no-progress"]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_train_device_check(tmp_path, capsys):
+    """scripts/train_device_check.py (issue 24): a device torch cannot use is skipped with the
+    reason (exit 0); two CPU runs of one seed train the same flow, so their rv match and the
+    check passes — the whole comparison runs on a machine without a GPU."""
+    import torch
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import train_device_check as check
+    manifest = tmp_path / "manifest.toml"
+    manifest.write_text('[[material]]\nname = "rough"\nsource = { kind = "analytic", model = "ggx", alpha = 0.4 }\n'
+                        "[material.train]\n" + TINY_TRAIN_TOML)
+    common = ["--manifest", str(manifest), "--material", "rough", "--thetas", "0,60", "--samples", "4096"]
+    if not torch.cuda.is_available():
+        assert check.main(common + ["--devices", "cuda"]) == 0
+        assert "cuda: skipped: torch sees no CUDA device" in capsys.readouterr().out
+    assert check.main(common + ["--devices", "cpu", "--out", str(tmp_path / "models")]) == 0
+    rows = {line.split("|")[1].strip(): [float(x) for x in line.split("|")[3:5]]
+            for line in capsys.readouterr().out.splitlines() if line.startswith("| cpu")}
+    assert set(rows) == {"cpu (reference)", "cpu"}
+    assert rows["cpu"] == rows["cpu (reference)"] and all(0 < r < 10 for r in rows["cpu"])
 
 
 def test_the_preset_names_are_the_trainers():
