@@ -172,25 +172,32 @@ void sample_tables(string file, float W, float H, int K, int R, int C, int NP, f
     // Row: the last i with CDF_i <= u0 (the guide brackets it).
     color guide = fetch(file, W, H, min(int(u0 * R), R - 1), base + 2 + 2 * R);
     int lo = int(guide[0]), hi = int(guide[1]);
+    float c0 = -1.0, c1 = -1.0;         // the CDF at lo and hi, once the search has read them
     while (hi - lo > 1) {
         int mid = (lo + hi) / 2;
-        if (fetch_blend(file, W, H, mid, base, w) <= u0) lo = mid; else hi = mid;
+        float c = fetch_blend(file, W, H, mid, base, w);
+        if (c <= u0) { lo = mid; c0 = c; } else { hi = mid; c1 = c; }
     }
     int i = lo;
-    float c0 = fetch_blend(file, W, H, i, base, w);
-    float c1 = fetch_blend(file, W, H, i + 1, base, w);
+    if (c0 < 0.0)
+        c0 = fetch_blend(file, W, H, i, base, w);
+    if (c1 < 0.0 || hi != i + 1)
+        c1 = fetch_blend(file, W, H, i + 1, base, w);
     float v = u1 * (c1 - c0);
     // Column: the last j with cumsum_ij <= v.
     int yrow = base + 2 + i;
     guide = fetch(file, W, H, min(int(u1 * C), C - 1), base + 3 + 2 * R + i);
     lo = int(guide[0]);
     hi = int(guide[1]);
+    float d0 = -1.0;
     while (hi - lo > 1) {
         int mid = (lo + hi) / 2;
-        if (fetch_blend(file, W, H, mid, yrow, w) <= v) lo = mid; else hi = mid;
+        float d = fetch_blend(file, W, H, mid, yrow, w);
+        if (d <= v) { lo = mid; d0 = d; } else hi = mid;
     }
     int j = lo;
-    float d0 = fetch_blend(file, W, H, j, yrow, w);
+    if (d0 < 0.0)
+        d0 = fetch_blend(file, W, H, j, yrow, w);
     float a0 = fetch_blend(file, W, H, i, base + 1, w);
     float a1 = fetch_blend(file, W, H, i + 1, base + 1, w);
     float b0 = fetch_blend(file, W, H, j, base + 2 + R + i, w);
@@ -223,24 +230,33 @@ void eval_tables(string file, float W, float H, int K, int R, int C, int NP, flo
     float a = min((wo[0] * wo[0] + wo[1] * wo[1]) / (1.0 + wo[2]), 1.0);
     float b = mod(atan2(wo[1], wo[0]) - phi_i, 2.0 * M_PI);     // as in sample_tables: phi_o = b + phi_i
     // Row: the last i with a_i <= a; column: the last j with b_ij <= b.
+    // (the edges at lo and hi = lo + 1 are the cell's: kept from the search, not re-read)
     int lo = 0, hi = R;
+    float a0 = -1.0, a1 = -1.0;
     while (hi - lo > 1) {
         int mid = (lo + hi) / 2;
-        if (fetch_blend(file, W, H, mid, base + 1, w) <= a) lo = mid; else hi = mid;
+        float e = fetch_blend(file, W, H, mid, base + 1, w);
+        if (e <= a) { lo = mid; a0 = e; } else { hi = mid; a1 = e; }
     }
     int i = lo;
+    if (a0 < 0.0)
+        a0 = fetch_blend(file, W, H, i, base + 1, w);
+    if (a1 < 0.0)
+        a1 = fetch_blend(file, W, H, i + 1, base + 1, w);
     int brow = base + 2 + R + i;
     lo = 0;
     hi = C;
+    float b0 = -1.0, b1 = -1.0;
     while (hi - lo > 1) {
         int mid = (lo + hi) / 2;
-        if (fetch_blend(file, W, H, mid, brow, w) <= b) lo = mid; else hi = mid;
+        float e = fetch_blend(file, W, H, mid, brow, w);
+        if (e <= b) { lo = mid; b0 = e; } else { hi = mid; b1 = e; }
     }
     int j = lo;
-    float a0 = fetch_blend(file, W, H, i, base + 1, w);
-    float a1 = fetch_blend(file, W, H, i + 1, base + 1, w);
-    float b0 = fetch_blend(file, W, H, j, brow, w);
-    float b1 = fetch_blend(file, W, H, j + 1, brow, w);
+    if (b0 < 0.0)
+        b0 = fetch_blend(file, W, H, j, brow, w);
+    if (b1 < 0.0)
+        b1 = fetch_blend(file, W, H, j + 1, brow, w);
     color weight, cell;
     blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, cell);
     float x = clamp((a - a0) / (a1 - a0), 0.0, 1.0);

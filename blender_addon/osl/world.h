@@ -46,12 +46,17 @@ int cdf_search(WorldMap m, int y, int n, int gc, float u, output float c0, outpu
                           0, 0, 0, 0, "interp", "closest", "wrap", "clamp", "alpha", alpha);
     int lo = int(guide[gc]), hi = (gc == 1) ? int(guide[2]) : int(alpha);
     for (int pass = 0; pass < 2; pass++) {
+        // (the search's last reads at lo and hi = lo + 1 are the bracket's values: kept, not re-read)
+        int seen_lo = 0, seen_hi = 0;
         while (hi - lo > 1) {
             int mid = (lo + hi) / 2;
-            if (fetch1(m.file, m.Wt, m.Ht, mid, y) <= u) lo = mid; else hi = mid;
+            float c = fetch1(m.file, m.Wt, m.Ht, mid, y);
+            if (c <= u) { lo = mid; c0 = c; seen_lo = 1; } else { hi = mid; c1 = c; seen_hi = 1; }
         }
-        c0 = fetch1(m.file, m.Wt, m.Ht, lo, y);
-        c1 = fetch1(m.file, m.Wt, m.Ht, lo + 1, y);
+        if (!seen_lo)
+            c0 = fetch1(m.file, m.Wt, m.Ht, lo, y);
+        if (!seen_hi || hi != lo + 1)
+            c1 = fetch1(m.file, m.Wt, m.Ht, lo + 1, y);
         if (c0 <= u && u < c1)
             break;
         lo = 0;
