@@ -36,6 +36,13 @@ IMAGE_WIDTH, IMAGE_HEIGHT = 2048, 1024
 SHARE = 0.5
 SUN_SHARE, SUN_MAP_SHARE = 0.3, 0.2     # with a sun: its disc, and the map for the sky
 FLAT = 1.5          # the map's peak pdf over a uniform sphere's, below which the world is "flat"
+# OSL: an image world whose map peaks at BRIGHT times a uniform sphere's pdf or more (a small sun)
+# gets next-event estimation of its pixels that bright; the rest of it, and a world with no such
+# pixels, is sampled through the portal's mixture with the map (no shadow rays: measured on the
+# lights acceptance's sunny HDRI, peak 38: the same noise per sample as next-event estimation of
+# the whole map, which cost 2.6x the time per sample; the rendered sky's sun: 16 pixels of
+# 1e4-1.6e5x uniform hold 75 % of its light, the other pixels are below 3x).
+BRIGHT = 100.0
 # The image of the sun disc its radiance is fitted to (OSL's next-event estimation of a Sky
 # Texture's sun): pixels a side, samples per pixel, and its half width over the disc's.
 SUN_RES, SUN_SPP, SUN_MARGIN = 64, 4, 1.25
@@ -116,7 +123,7 @@ def shader_inputs(path, meta, sun, env=None, sun_radiance=None):
     flat = meta is None or meta.get("peak", 0.0) <= FLAT
     inputs = {"World": str(path) if meta else "", "WorldShare": 0.0 if flat else SHARE,
               "SunDirection": (0.0, 0.0, 1.0), "SunCos": 1.0, "SunAngle": 0.0, "SunShare": 0.0,
-              "EnvImage": "", "EnvStrength": 0.0, "EnvLinear": 1,
+              "EnvImage": "", "EnvStrength": 0.0, "EnvLinear": 1, "EnvBright": 0.0,
               "SunNEE": 0, "SunSky": (0.0, 0.0, 0.0, 1.0), "SunBase": (0.0, 0.0, 0.0, 1.0),
               "SunRise": (0.0, 0.0, 0.0, 1.0)}
     if sun is not None:
@@ -126,8 +133,8 @@ def shader_inputs(path, meta, sun, env=None, sun_radiance=None):
             # (colour sockets are RGBA)
             inputs.update(SunNEE=1, **{key: (*sun_radiance[name], 1.0) for key, name in
                                        (("SunSky", "sky"), ("SunBase", "base"), ("SunRise", "rise"))})
-    if env is not None and meta is not None and not flat:
-        inputs.update(EnvImage=env[0], EnvStrength=env[1], EnvLinear=env[2])
+    if env is not None and meta is not None and meta.get("peak", 0.0) >= BRIGHT:
+        inputs.update(EnvImage=env[0], EnvStrength=env[1], EnvLinear=env[2], EnvBright=BRIGHT / (4.0 * math.pi))
     return inputs
 
 

@@ -230,20 +230,28 @@ def test_sun_fit_is_the_rendered_disc(tmp_path, elevation, rotation):
     assert painted.max() < 1e-2 * full.max() and np.array_equal(painted[plain], full[plain])
 
 
-@pytest.mark.parametrize("interpolation", slow_unless(["Linear", "Closest"], default=["Linear"]))
-def test_hdri_sun_by_next_event_estimation(lambert, tmp_path, interpolation):
+@pytest.mark.parametrize("interpolation,sun", slow_unless(
+    [("Linear", "tiny"), ("Closest", "tiny"), ("Linear", "broad")], default=[("Linear", "tiny"), ("Linear", "broad")],
+    unpack=True))
+def test_hdri_sun_by_next_event_estimation(lambert, tmp_path, interpolation, sun):
     """An Environment Texture world with a tiny, very bright sun (2 x 2 texels): the shader reads
-    the image itself and lights the material by next-event estimation with MIS (the image a
-    control variate for Cycles' own world along escaping portal directions), so the sphere is
-    Cycles' Diffuse BSDF's within MC error and its noise stays near Cycles' own (measured at
-    64 spp, 16^2: per-pixel variance 8.1x (Linear) and 1.5x (Closest) Diffuse's; with hashed
-    next-event u 10.7x (Linear); drawn through the portal from the map instead: 8500x at
-    24^2, with 1e3 fireflies)."""
+    the image itself and lights the material by next-event estimation of the sun's pixels with
+    MIS (the image a control variate for Cycles' own world along escaping portal directions that
+    reach them; the dim sky is left to the portal), so the sphere is Cycles' Diffuse BSDF's
+    within MC error and its noise stays near Cycles' own (measured at 64 spp, 16^2: per-pixel
+    variance 8.1x (Linear) and 1.5x (Closest) Diffuse's; with hashed next-event u 10.7x
+    (Linear); drawn through the portal from the map instead: 8500x at 24^2, with 1e3
+    fireflies). A broad sun (a patch 40x the sky) is drawn through the portal from the map
+    instead: no shadow rays, the same image."""
     import OpenEXR
+    from blender_addon import world as bw
     h, w = 512, 1024
     img = np.full((h, w, 3), 0.5, np.float32)
     img[h // 2:] = 0.1
-    img[150:152, 350:352] = 5e4
+    if sun == "tiny":
+        img[150:152, 350:352] = 5e4
+    else:
+        img[120:170, 330:400] = 20.0
     path = tmp_path / "sun.exr"
     OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {"RGB": img}).write(str(path))
     sc = cs.reset(N, N, spp=SPP)
@@ -255,7 +263,11 @@ def test_hdri_sun_by_next_event_estimation(lambert, tmp_path, interpolation):
     lb.assign_learned_bsdf(learned, "lambert", lambert)
     sphere = cs.add_sphere(sc, learned, segments=64, rings=32)
     script = bpy.data.node_groups["Learned BSDF: lambert"].nodes[lb.SCRIPT]
-    assert script.inputs["EnvImage"].default_value == str(path)
+    if sun == "tiny":
+        assert script.inputs["EnvImage"].default_value == str(path)
+        assert script.inputs["EnvBright"].default_value == pytest.approx(bw.BRIGHT / (4 * np.pi))
+    else:
+        assert script.inputs["EnvImage"].default_value == "" and script.inputs["WorldShare"].default_value == bw.SHARE
     mine, diffuse = _renders(sc, sphere, learned), _renders(sc, sphere, cs.material_with(_diffuse, "diffuse"))
     _assert_same(mine, diffuse)
     assert mine.var(0, ddof=1).mean() < 25 * diffuse.var(0, ddof=1).mean()
