@@ -34,6 +34,12 @@ IMAGE_WIDTH, IMAGE_HEIGHT = 2048, 1024
 # The shares of portal directions drawn from the world map and from a Sky Texture's sun disc:
 # no map for a near-constant world, where the tables alone are the better choice.
 SHARE = 0.5
+# ... and for a map with a small sun (peak >= BRIGHT, below): most of its light is in a few pixels
+# only the map finds, so one-sample MIS wants most samples there (scripts/map_share_model.py, the
+# lights acceptance's rendered sky, noise per sample against SHARE's: 0.31 paper_white, 0.42
+# cm_military_green, 0.45 chm_mint; its sunny HDRI, peak 38, keeps SHARE: 0.5-0.65 is best for
+# paper_white). OSL samples such pixels by next-event estimation instead.
+SMALL_SUN_SHARE = 0.8
 SUN_SHARE, SUN_MAP_SHARE = 0.3, 0.2     # with a sun: its disc, and the map for the sky
 FLAT = 1.5          # the map's peak pdf over a uniform sphere's, below which the world is "flat"
 # OSL: an image world whose map peaks at BRIGHT times a uniform sphere's pdf or more (a small sun)
@@ -121,7 +127,9 @@ def shader_inputs(path, meta, sun, env=None, sun_radiance=None):
     image world the OSL shader can read exactly (exact_environment) and the sun disc's radiance
     (sun_fit's: OSL samples the sun by next-event estimation)."""
     flat = meta is None or meta.get("peak", 0.0) <= FLAT
-    inputs = {"World": str(path) if meta else "", "WorldShare": 0.0 if flat else SHARE,
+    small_sun = meta is not None and meta.get("peak", 0.0) >= BRIGHT
+    share = 0.0 if flat else SMALL_SUN_SHARE if small_sun else SHARE
+    inputs = {"World": str(path) if meta else "", "WorldShare": share,
               "SunDirection": (0.0, 0.0, 1.0), "SunCos": 1.0, "SunAngle": 0.0, "SunShare": 0.0,
               "EnvImage": "", "EnvStrength": 0.0, "EnvLinear": 1, "EnvBright": 0.0,
               "SunNEE": 0, "SunSky": (0.0, 0.0, 0.0, 1.0), "SunBase": (0.0, 0.0, 0.0, 1.0),
@@ -133,7 +141,7 @@ def shader_inputs(path, meta, sun, env=None, sun_radiance=None):
             # (colour sockets are RGBA)
             inputs.update(SunNEE=1, **{key: (*sun_radiance[name], 1.0) for key, name in
                                        (("SunSky", "sky"), ("SunBase", "base"), ("SunRise", "rise"))})
-    if env is not None and meta is not None and meta.get("peak", 0.0) >= BRIGHT:
+    if env is not None and small_sun:
         inputs.update(EnvImage=env[0], EnvStrength=env[1], EnvLinear=env[2], EnvBright=BRIGHT / (4.0 * math.pi))
     return inputs
 

@@ -266,6 +266,7 @@ def test_hdri_sun_by_next_event_estimation(lambert, tmp_path, interpolation, sun
     if sun == "tiny":
         assert script.inputs["EnvImage"].default_value == str(path)
         assert script.inputs["EnvBright"].default_value == pytest.approx(bw.BRIGHT / (4 * np.pi))
+        assert script.inputs["WorldShare"].default_value == pytest.approx(bw.SMALL_SUN_SHARE)   # (the SVM's)
     else:
         assert script.inputs["EnvImage"].default_value == "" and script.inputs["WorldShare"].default_value == bw.SHARE
     mine, diffuse = _renders(sc, sphere, learned), _renders(sc, sphere, cs.material_with(_diffuse, "diffuse"))
