@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from bake.errors import FlowBSDFError
-from bake.core.geometry import incident
+from bake.core.geometry import incident, spherical_dir
 from bake.core.ideal import IdealSampler
 from bake.materials import open_material
 from bake.materials.base import Material, as_dirs
@@ -155,3 +155,78 @@ def test_plan_picks_small_tables_for_a_diffuse_material():
     small = plan_tables(lambert, IdealSampler(lambert, resolution=64), grid=128, samples=1 << 12)
     assert small.rows <= 24 and len(small.theta_bins) <= 8
     assert small.nbytes < 100_000
+
+
+def test_luminance_of_a_stack_is_the_rowwise_product():
+    """geometry.luminance flattens (..., 3) arrays to one 2D product (the baker's quadrature
+    calls it on (cells, nodes, 3)): bit for bit what each row's own product gives."""
+    from bake.core.geometry import LUMINANCE, luminance
+    x = np.random.default_rng(1).normal(size=(7, 300, 3))
+    out = luminance(x)
+    assert out.shape == (7, 300)
+    np.testing.assert_array_equal(out, np.stack([row @ LUMINANCE for row in x]))
+    assert luminance(x[0, 0]) == x[0, 0] @ LUMINANCE
+
+
+def test_bins_with_the_same_neighbours_share_their_edges(monkeypatch):
+    """_build_column computes normalized edges once per neighbourhood (both bins of a pair pool
+    the same points): the same tables, bit for bit, as computing them for every bin."""
+    from bake.core import tabulate
+    mat = open_material(HARD["mirror-ish"])
+    ideal = IdealSampler(mat, resolution=64)
+    kw = dict(rows=12, cols=12, grid=96, lobe_width=0.1, cache={})
+    fields = ("a_edges", "b_edges", "mass", "alpha", "beta", "weights")
+    for t in (np.radians([10.0, 40.0]), np.radians([10.0, 40.0, 70.0])):
+        shared = build_tables(mat, ideal, t, **kw)
+        with monkeypatch.context() as m:
+            m.setattr(tabulate, "_once_per_neighbourhood", lambda near, compute: [compute(n) for n in near])
+            each = build_tables(mat, ideal, t, **kw)
+        for f in fields:
+            np.testing.assert_array_equal(getattr(shared, f), getattr(each, f))
+    # a pair's two bins: the same normalized edges, placed at each bin's own knots
+    assert not np.array_equal(shared.a_edges[0], shared.a_edges[1])
+
+
+def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(monkeypatch):
+    """The isotropic probe skips a resolution's remaining angles once one fails, and picks the
+    resolution the full probe picks (the smallest whose worst angle reaches tol / 2), whatever
+    angle fails. Each resolution's single-bin rv per probe angle comes from a table here."""
+    from types import SimpleNamespace
+    from bake.core import tabulate
+    from bake.quality import metrics
+    lambert = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})
+    probe = [10, 45, 75, 86]
+    cases = {    # rv per resolution (16, 24, 32, 48, 64) per probe angle (tol / 2 = 1); the choice
+        "grazing fails": ([[0, 0, 0, 9]] * 2 + [[0] * 4] * 3, 32),
+        "normal fails": ([[9, 0, 0, 0]] * 3 + [[0] * 4] * 2, 48),
+        "mid angles fail": ([[0, 9, 9, 0]] * 4 + [[0, 0, 0, 1]], 64),
+        "nothing passes": ([[9] * 4] * 5, 64),
+        "first passes": ([[1, 1, 1, 1]] * 5, 16),
+    }
+    monkeypatch.setattr(tabulate, "lobe_width_of", lambda *a: None)
+    for name, (table, want) in cases.items():
+        built = []
+
+        def fake_build(material, source, thetas, rows, cols, **kw):
+            built.append((rows, round(float(np.degrees(thetas[0])))))
+            return SimpleNamespace(rows=rows, meta={})
+
+        def fake_rv(material, tab, wi, n=0, seed=0):
+            t = round(float(np.degrees(np.arccos(wi[2]))))
+            return float(table[tabulate.RESOLUTIONS.index(tab.rows)][probe.index(t)]), 1.0
+
+        monkeypatch.setattr(tabulate, "build_tables", fake_build)
+        monkeypatch.setattr(metrics, "relative_variance", fake_rv)
+        planned = tabulate.plan_tables(lambert, IdealSampler(lambert, resolution=8), tol=2.0, first_bins=2,
+                                       memory_budget=1)
+        full = next((r for r, rvs in zip(tabulate.RESOLUTIONS, table) if max(rvs) <= 1.0), tabulate.RESOLUTIONS[-1])
+        assert planned.rows == full == want, name
+        probed = [(r, t) for r, t in built[:-1]]         # the last build: the final tables
+        for r, rvs in zip(tabulate.RESOLUTIONS, table):
+            at_r = [t for q, t in probed if q == r]
+            if r < want:       # a failing resolution: built up to its first failing angle only
+                assert len(at_r) < 4 and max(rvs[probe.index(t)] for t in at_r) > 1.0, name
+            elif r == want and max(rvs) <= 1.0:
+                assert sorted(at_r) == probe, name       # a passing one: every angle
+            else:
+                assert r == want or not at_r, name

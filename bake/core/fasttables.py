@@ -6,6 +6,8 @@
     sample(tables, wi, u), pdf(tables, wi, wo), invert(tables, wi, wo), eval(tables, wi, wo)
                 the Tables methods in C; each returns None when it cannot take the inputs
                 (the caller then runs the numpy reference)
+    rgl_eval(params, vndf, rgb, ndf, wo)
+                an RGL material's f for one wi (RGLMaterial.eval's hot loop, for the baker)
 
 The C code is a transcription of the numpy reference in tables.py (same formulas, same
 order of operations, same branches): results agree to a few ulps (libm's or libmvec's
@@ -71,6 +73,8 @@ def _open(path, want_sha):
         fn = getattr(lib, name)
         fn.restype = None
         fn.argtypes = [ctypes.POINTER(_Tables), i64, ptr, i64, ptr, ptr] + ([ptr] if name == "ft_sample" else [])
+    lib.ft_rgl_eval.restype = None
+    lib.ft_rgl_eval.argtypes = [i64, ptr, ptr, ptr, i64, i64, ptr, i64, i64, ptr, i64, i64, ptr]
     return lib
 
 
@@ -237,3 +241,21 @@ def invert(tab, wi, wo):
 
 def eval(tab, wi, wo):  # noqa: A001 (the Tables method's name)
     return _call(tab, "ft_eval", wi, wo, 3, (3,))
+
+
+def rgl_eval(params, vndf, vndf_shape, rgb, rgb_shape, ndf, wo):
+    """RGLMaterial._eval_chunk for one wi in C (see ft_rgl_eval for `params`), or None without
+    the library. vndf: (patches, 9) and rgb: (patches, 12) float64 tables of that wi."""
+    lib = _lib if _loaded else load()
+    if lib is None:
+        return None
+    arrays = [np.ascontiguousarray(x, np.float64) for x in (params, vndf, rgb, ndf, wo)]
+    params, vndf, rgb, ndf, wo = arrays
+    (vny, vnx), (ry, rx) = vndf_shape, rgb_shape
+    if (params.shape != (10,) or wo.ndim != 2 or wo.shape[1] != 3 or vndf.shape != ((vny - 1) * (vnx - 1), 9)
+            or rgb.shape != ((ry - 1) * (rx - 1), 12) or ndf.ndim != 2):
+        return None
+    out = np.empty((len(wo), 3))
+    lib.ft_rgl_eval(len(wo), wo.ctypes.data, params.ctypes.data, vndf.ctypes.data, vny, vnx, rgb.ctypes.data,
+                    ry, rx, ndf.ctypes.data, ndf.shape[0], ndf.shape[1], out.ctypes.data)
+    return out

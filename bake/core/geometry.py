@@ -6,7 +6,12 @@ LUMINANCE = np.array([0.212671, 0.715160, 0.072169])
 
 
 def luminance(rgb):
-    return np.asarray(rgb) @ LUMINANCE
+    # As one 2D product: numpy's matmul of a stack (ndim > 2) by a vector loops per row, ~90x
+    # slower on the baker's (cells, nodes, 3) arrays; the 2D product gives the same bits.
+    rgb = np.asarray(rgb)
+    if rgb.ndim <= 2:
+        return rgb @ LUMINANCE
+    return (rgb.reshape(-1, 3) @ LUMINANCE).reshape(rgb.shape[:-1])
 
 
 def spherical_dir(theta, phi):

@@ -360,16 +360,17 @@ def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_widt
         if key not in cache:
             cache[key] = _points(material, source, wi, grid, phi_ref, gamma)
         points.append(cache[key])
-    near = [range(max(0, k - window), min(K, k + window + 1)) for k in range(K)]
+    near = [tuple(range(max(0, k - window), min(K, k + window + 1))) for k in range(K)]
 
     row_knots = [lobe_knots(t, lobe_width) for t in theta_bins]
     row_counts = _segment_counts(rows, len(row_knots[0]) - 1)
     normed = [_normalize(p[0], k) + (p[2],) for p, k in zip(points, row_knots)]
-    a_edges = []
-    for k in range(K):
-        seg, r, w = (np.concatenate(x) for x in zip(*(normed[j] for j in near[k])))
-        a_edges.append(_strictly_increasing(_denormalize(_shared_edges(seg, r, w, row_counts, row_share),
-                                                         row_knots[k]), 0.0, 1.0))
+    def row_edges(nbrs):
+        seg, r, w = (np.concatenate(x) for x in zip(*(normed[j] for j in nbrs)))
+        return _shared_edges(seg, r, w, row_counts, row_share)
+
+    a_edges = [_strictly_increasing(_denormalize(shared, knots), 0.0, 1.0)
+               for shared, knots in zip(_once_per_neighbourhood(near, row_edges), row_knots)]
 
     # Per bin: each point's row, and its normalized position within that row's column knots.
     by_row = []
@@ -383,14 +384,20 @@ def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_widt
         bounds = np.searchsorted(row[order], np.arange(rows + 1))
         by_row.append((knots, seg[order], r[order], w[order], bounds))
     col_counts = _segment_counts(cols, by_row[0][0].shape[1] - 1)
-    b_edges = np.empty((K, rows, cols + 1), np.float32)
-    for k in range(K):
+    def col_edges(nbrs):       # per row
+        out = []
         for i in range(rows):
             pooled = [(seg[lo:hi], r[lo:hi], w[lo:hi])
-                      for _, seg, r, w, bounds in (by_row[j] for j in near[k])
+                      for _, seg, r, w, bounds in (by_row[j] for j in nbrs)
                       for lo, hi in [(bounds[i], bounds[i + 1])]]
             seg, r, w = (np.concatenate(x) for x in zip(*pooled))
-            b_edges[k, i] = _denormalize(_shared_edges(seg, r, w, col_counts, col_share), by_row[k][0][i])
+            out.append(_shared_edges(seg, r, w, col_counts, col_share))
+        return out
+
+    b_edges = np.empty((K, rows, cols + 1), np.float32)
+    for k, shared in enumerate(_once_per_neighbourhood(near, col_edges)):
+        for i in range(rows):
+            b_edges[k, i] = _denormalize(shared[i], by_row[k][0][i])
         b_edges[k] = _strictly_increasing(b_edges[k], 0.0, TWO_PI)
 
     parts = []
@@ -400,6 +407,13 @@ def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_widt
         step()
     mass, alpha, beta, weights = (np.stack(x) for x in zip(*parts))
     return np.stack(a_edges), b_edges, mass, alpha, beta, weights
+
+
+def _once_per_neighbourhood(near, compute):
+    """[compute(n) for n in near], each distinct neighbourhood computed once: bins that pool the
+    same points (both bins of a pair the planner builds) get the same normalized edges."""
+    done = {}
+    return [done[n] if n in done else done.setdefault(n, compute(n)) for n in near]
 
 
 def _normalize_rows(x, knots, row):
@@ -434,8 +448,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
     """Tables with only the resolution and incident bins this material needs.
 
     Resolution: the smallest of RESOLUTIONS whose single-bin tables reach rv <= tol / 2 at a
-    few elevations. Bins: start from `first_bins` evenly spaced elevations; while the memory
-    budget allows another bin, split the interval whose interpolated midpoint loses most
+    few elevations (isotropic: a resolution's probe stops at its first failing elevation).
+    Bins: start from `first_bins` evenly spaced elevations; while the memory budget allows another bin, split the interval whose interpolated midpoint loses most
     against a bin built at that midpoint, until no interval loses more than tol / 2.
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
@@ -464,11 +478,23 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
     probe_phis = [0.0] if phi_bins is None else phi_bins[::max(1, len(phi_bins) // 4)]
     worst_phi = 0.0
     if resolution is None:
-        probe = np.radians([10.0, 45.0, 75.0, 86.0])
+        probe = np.radians([86.0, 75.0, 10.0, 45.0])     # grazing first: where coarse tables fail first
+
+        def probe_rv(phi, stop):   # the worst rv over the probe angles, or the first one above stop
+            worst = 0.0
+            for t in probe:
+                worst = max(worst, rv_at(build([t], phi), t, phi))
+                if worst > stop:
+                    break
+            return worst
+
+        # Isotropic: one angle above tol / 2 decides that a resolution fails (the rest need not be
+        # built). Anisotropic: the worst azimuth is needed, so every angle is.
+        stop = 0.5 * tol if phi_bins is None else np.inf
         for resolution in RESOLUTIONS:
-            by_phi = {phi: max(rv_at(build([t], phi), t, phi) for t in probe) for phi in probe_phis}
+            by_phi = {phi: probe_rv(phi, stop) for phi in probe_phis}
             worst_phi, worst = max(by_phi.items(), key=lambda kv: kv[1])
-            log(f"resolution {resolution}: single-bin rv {worst:.4f}"
+            log(f"resolution {resolution}: single-bin rv {worst:.4f}" + (" or more" if worst > stop else "")
                 + ("" if phi_bins is None else f" (at phi_i {np.degrees(worst_phi):.1f} deg)"))
             if worst <= 0.5 * tol:
                 break

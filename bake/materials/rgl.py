@@ -422,10 +422,23 @@ class RGLMaterial(Material):
             if wi[0, 2] <= 0:
                 return out
             incident = self._incident(wi[0])
+            fast = self._eval_c(wo, incident)
+            if fast is not None:
+                return fast
         for start in range(0, n, CHUNK):
             sl = slice(start, min(start + CHUNK, n))
             out[sl] = self._eval_chunk(wi[sl], wo[sl], incident)
         return out
+
+    def _eval_c(self, wo, incident):
+        """eval for one wi in C (bake/core/_tables_c.c ft_rgl_eval: the numpy _eval_chunk
+        transcribed, to a few ulps), or None without the C library."""
+        from ..core import fasttables
+        signs = incident["signs"] or (1.0, 1.0)
+        params = np.array([*incident["wi"], *signs, incident["theta_i"], incident["phi_i"],
+                           float(self._relative_phi), float(self._jacobian), incident["sigma"]], np.float64)
+        return fasttables.rgl_eval(params, incident["vndf"], self._vndf_shape, incident["rgb"], self._rgb_shape,
+                                   self._ndf, wo)
 
     def _mirror(self, wix, wiy):
         """Signs for the x and y components (Mitsuba's symmetry reduction), or None."""

@@ -1,0 +1,104 @@
+"""Issue-24 bake-time table: Final bakes (plan_tables' defaults, from the ideal tabulation) of
+the shared RGL materials, this checkout beside another one, with the tables' rv.
+
+    .venv/bin/python scripts/bake_speed.py [--materials a,b] [--repeat K] [--baseline CHECKOUT]
+        [--out DIR]
+
+Per material: the bake's wall seconds (best of `repeat`; with --baseline the two checkouts
+take turns within every repeat, so a load spike hits both), the planned resolution and bin
+count, and the tables' rv at theta_i 0/30/60/75/85 (metrics.relative_variance_ref against
+the ideal tabulation, 512² directions, as scripts/tables_acceptance.py reports it).
+--baseline: another FlowBSDF checkout (e.g. `git archive <commit> | tar -x -C DIR`), imported
+as `bake_baseline`. Prints Markdown; asserts nothing (machines and loads differ).
+"""
+import argparse
+import importlib
+import importlib.util
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from bake.core.geometry import incident  # noqa: E402
+from bake.core.ideal import IdealSampler  # noqa: E402
+from bake.core.tabulate import plan_tables  # noqa: E402
+from bake.materials import open_material  # noqa: E402
+from bake.materials.rgl import SHARED_FILES, shared_dir  # noqa: E402
+from bake.quality.metrics import relative_variance_ref  # noqa: E402
+
+THETAS = (0, 30, 60, 75, 85)
+
+
+def baseline_bake(checkout):
+    """(open_material, IdealSampler, plan_tables) of another checkout's `bake`, as `bake_baseline`."""
+    init = Path(checkout) / "bake" / "__init__.py"
+    spec = importlib.util.spec_from_file_location("bake_baseline", init, submodule_search_locations=[str(init.parent)])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["bake_baseline"] = module
+    spec.loader.exec_module(module)
+    mats = importlib.import_module("bake_baseline.materials")
+    ideal = importlib.import_module("bake_baseline.core.ideal")
+    tabulate = importlib.import_module("bake_baseline.core.tabulate")
+    return mats.open_material, ideal.IdealSampler, tabulate.plan_tables
+
+
+def bake(kit, path):
+    """(seconds, tables) of one Final bake with a fresh material and source (nothing cached)."""
+    open_mat, ideal, plan = kit
+    t0 = time.perf_counter()
+    mat = open_mat(path)
+    tab = plan(mat, ideal(mat))
+    return time.perf_counter() - t0, tab
+
+
+def rvs(mat, tab, ideal):
+    return [relative_variance_ref(mat, tab, incident(t), ideal, k=512, seed=7)[0] for t in THETAS]
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--materials", default=",".join(SHARED_FILES))
+    p.add_argument("--repeat", type=int, default=1)
+    p.add_argument("--baseline", help="another FlowBSDF checkout, baked in turns with this one")
+    p.add_argument("--out", help="save the tables here (<name>.<label>.exr)")
+    args = p.parse_args()
+    kits = {"new": (open_material, IdealSampler, plan_tables)}
+    if args.baseline:
+        kits = {"old": baseline_bake(args.baseline), **kits}
+    print(f"load: {os.getloadavg()[0]:.2f} (1 min) at start, {os.cpu_count()} cores", flush=True)
+    head = ["material"] + [f"{lab} s" for lab in kits] + (["old/new"] if args.baseline else []) + \
+        [f"{lab} res x bins" for lab in kits] + [f"{lab} rv {t}" for t in THETAS for lab in kits]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name in args.materials.split(","):
+        path = shared_dir() / f"{name}.bsdf"
+        best, tables = {lab: np.inf for lab in kits}, {}
+        for r in range(args.repeat):
+            for lab, kit in kits.items():
+                seconds, tables[lab] = bake(kit, path)
+                best[lab] = min(best[lab], seconds)
+                print(f"  {name} {lab} turn {r + 1}: {seconds:.1f} s (load {os.getloadavg()[0]:.2f})", flush=True)
+        mat = open_material(path)
+        ideal = IdealSampler(mat)
+        rv = {lab: rvs(mat, tab, ideal) for lab, tab in tables.items()}
+        if args.out:
+            Path(args.out).mkdir(parents=True, exist_ok=True)
+            for lab, tab in tables.items():
+                tab.save(Path(args.out) / f"{name}.{lab}.exr")
+        row = [name.removesuffix("_rgb")] + [f"{best[lab]:.1f}" for lab in kits]
+        if args.baseline:
+            row.append(f"{best['old'] / best['new']:.2f}")
+        row += [f"{tab.rows} x {len(tab.theta_bins)}" for tab in tables.values()]
+        row += [f"{rv[lab][i]:.4f}" for i in range(len(THETAS)) for lab in kits]
+        lines.append("| " + " | ".join(row) + " |")
+        print(lines[-1], flush=True)
+    print(f"\nFinal bake wall seconds, best of {args.repeat} (turns interleaved); "
+          f"load at end {os.getloadavg()[0]:.2f}\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
