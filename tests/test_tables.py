@@ -8,7 +8,7 @@ from bake.materials import open_material
 from bake.materials.base import Material, as_dirs
 from bake.quality.metrics import chi2_test, relative_variance
 from bake.core.tables import TWO_PI, Tables, exp_cdf, exp_density, exp_inverse_cdf, from_ab, open_tables, to_ab
-from bake.core.tabulate import _finish_bin, build_tables, exp_rate_for_mean, plan_tables
+from bake.core.tabulate import _finish_bin, _moments_around, build_tables, exp_rate_for_mean, plan_tables
 from contract import assert_sampler_contract
 
 HARD = {
@@ -230,3 +230,26 @@ def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(
                 assert sorted(at_r) == probe, name       # a passing one: every angle
             else:
                 assert r == want or not at_r, name
+
+
+def test_cells_integrated_around_their_points_keep_their_mass_with_16_nodes(monkeypatch):
+    """Cells the refined rule still misses are integrated again in pieces around their points
+    with a q_around² rule per piece (16: a sixteenth of the 64² it was): the cells' masses
+    and the tables' rv stay those of 64 nodes."""
+    import functools
+    from bake.core import tabulate
+    mat = open_material(HARD["mirror-ish"])
+    ideal = IdealSampler(mat, resolution=128)
+    wi = incident(80.0)
+    around, cell_moments = [], tabulate._cell_moments
+    monkeypatch.setattr(tabulate, "_moments_around", lambda *a: around.append(len(a[3])) or
+                        _moments_around(*a))
+    out = {}
+    for q in (64, 16):
+        monkeypatch.setattr(tabulate, "_cell_moments", functools.partial(cell_moments, q_around=q))
+        tab = build_tables(mat, ideal, [np.radians(80.0)], rows=32, cols=32, grid=256, lobe_width=0.03, cache={})
+        out[q] = (tab.mass[0], relative_variance(mat, tab, wi, n=1 << 15)[0])
+    assert around and around[0] == around[1] >= 5             # cells integrated around their points
+    assert np.abs(out[16][0] - out[64][0]).sum() < 1e-4
+    assert not np.array_equal(out[16][0], out[64][0])          # the rule did change
+    assert abs(out[16][1] - out[64][1]) <= 0.01 * out[64][1]
