@@ -2,14 +2,16 @@
 the shared RGL materials, this checkout beside another one, with the tables' rv.
 
     .venv/bin/python scripts/bake_speed.py [--materials a,b] [--repeat K] [--baseline CHECKOUT]
-        [--out DIR]
+        [--out DIR] [--memory-budget BYTES]
 
 Per material: the bake's wall seconds (best of `repeat`; with --baseline the two checkouts
 take turns within every repeat, so a load spike hits both), the planned resolution and bin
 count, and the tables' rv at theta_i 0/30/60/75/85 (metrics.relative_variance_ref against
 the ideal tabulation, 512² directions, as scripts/tables_acceptance.py reports it).
 --baseline: another FlowBSDF checkout (e.g. `git archive <commit> | tar -x -C DIR`), imported
-as `bake_baseline`. Prints Markdown; asserts nothing (machines and loads differ).
+as `bake_baseline`. --memory-budget: plan_tables' budget (default: Final's), e.g. to cap a sharp
+material's bin count for a shorter comparison. Prints Markdown; asserts nothing (machines and
+loads differ).
 """
 import argparse
 import importlib
@@ -46,12 +48,12 @@ def baseline_bake(checkout):
     return mats.open_material, ideal.IdealSampler, tabulate.plan_tables
 
 
-def bake(kit, path):
+def bake(kit, path, **options):
     """(seconds, tables) of one Final bake with a fresh material and source (nothing cached)."""
     open_mat, ideal, plan = kit
     t0 = time.perf_counter()
     mat = open_mat(path)
-    tab = plan(mat, ideal(mat))
+    tab = plan(mat, ideal(mat), **options)
     return time.perf_counter() - t0, tab
 
 
@@ -65,7 +67,9 @@ def main():
     p.add_argument("--repeat", type=int, default=1)
     p.add_argument("--baseline", help="another FlowBSDF checkout, baked in turns with this one")
     p.add_argument("--out", help="save the tables here (<name>.<label>.exr)")
+    p.add_argument("--memory-budget", type=int, help="plan_tables' memory_budget (default: its own)")
     args = p.parse_args()
+    options = {} if args.memory_budget is None else {"memory_budget": args.memory_budget}
     kits = {"new": (open_material, IdealSampler, plan_tables)}
     if args.baseline:
         kits = {"old": baseline_bake(args.baseline), **kits}
@@ -78,7 +82,7 @@ def main():
         best, tables = {lab: np.inf for lab in kits}, {}
         for r in range(args.repeat):
             for lab, kit in kits.items():
-                seconds, tables[lab] = bake(kit, path)
+                seconds, tables[lab] = bake(kit, path, **options)
                 best[lab] = min(best[lab], seconds)
                 print(f"  {name} {lab} turn {r + 1}: {seconds:.1f} s (load {os.getloadavg()[0]:.2f})", flush=True)
         mat = open_material(path)
@@ -95,7 +99,7 @@ def main():
         row += [f"{rv[lab][i]:.4f}" for i in range(len(THETAS)) for lab in kits]
         lines.append("| " + " | ".join(row) + " |")
         print(lines[-1], flush=True)
-    print(f"\nFinal bake wall seconds, best of {args.repeat} (turns interleaved); "
+    print(f"\nFinal bake wall seconds{'' if not options else f' ({options})'}, best of {args.repeat} (turns interleaved); "
           f"load at end {os.getloadavg()[0]:.2f}\n")
     print("\n".join(lines))
 
