@@ -99,19 +99,8 @@ def svm():
 def _probe(svm, texture, inputs, folder, width=32, inverse=False):
     """The graph's (wo, weight, pdf) for probe inputs (n, 4): u0, u1, cos theta_i, phi_i; with
     `inverse`, (pdf, f·cos, zeros) for inputs cos theta_o, phi_o, cos theta_i, phi_i."""
-    import OpenEXR
-    n = len(inputs)
-    height = -(-n // width)
-    grid = np.concatenate([inputs, np.repeat(inputs[-1:], height * width - n, 0)]).astype(np.float32)
-    path = folder / "probe.exr"
-    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
-                 {"RGBA": grid.reshape(height, width, 4)}).write(str(path))
-    sc = cs.reset(3 * width, height, spp=1, osl=False, threads=1)
-    sc.cycles.filter_width = 0.01             # every pixel's one sample at its centre
-    cs.ortho_camera(sc)
-    cs.add_plane(sc, cs.material_with(lambda tree: svm.build_svm_probe(tree, texture, path, inverse)), size=20.0)
-    img = cs.render(sc)
-    thirds = [img[:, k * width:(k + 1) * width].reshape(-1, 3)[:n] for k in range(3)]
+    thirds = _render_probe(svm, lambda tree, probe: svm.build_svm_probe(tree, texture, probe, inverse),
+                           inputs, folder, width)
     if inverse:
         return thirds[0][:, 0], thirds[1], thirds[2]
     return 2.0 * thirds[0] - 1.0, thirds[1], thirds[2][:, 0]
@@ -521,7 +510,7 @@ def _render_probe(svm, build, inputs, folder, width=32):
     OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
                  {"RGBA": grid.reshape(height, width, 4)}).write(str(path))
     sc = cs.reset(3 * width, height, spp=1, osl=False, threads=1)
-    sc.cycles.filter_width = 0.01
+    sc.cycles.filter_width = 0.01             # every pixel's one sample at its centre
     cs.ortho_camera(sc)
     cs.add_plane(sc, cs.material_with(lambda tree: build(tree, path)), size=20.0)
     img = cs.render(sc)
