@@ -15,7 +15,6 @@ loads differ).
 """
 import argparse
 import importlib
-import importlib.util
 import os
 import sys
 import time
@@ -25,6 +24,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts"))
+from baseline import import_baseline  # noqa: E402
 from bake.core.geometry import incident  # noqa: E402
 from bake.core.ideal import IdealSampler  # noqa: E402
 from bake.core.tabulate import plan_tables  # noqa: E402
@@ -37,11 +38,7 @@ THETAS = (0, 30, 60, 75, 85)
 
 def baseline_bake(checkout):
     """(open_material, IdealSampler, plan_tables) of another checkout's `bake`, as `bake_baseline`."""
-    init = Path(checkout) / "bake" / "__init__.py"
-    spec = importlib.util.spec_from_file_location("bake_baseline", init, submodule_search_locations=[str(init.parent)])
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bake_baseline"] = module
-    spec.loader.exec_module(module)
+    import_baseline(checkout)
     mats = importlib.import_module("bake_baseline.materials")
     ideal = importlib.import_module("bake_baseline.core.ideal")
     tabulate = importlib.import_module("bake_baseline.core.tabulate")

@@ -13,7 +13,7 @@ tar -x -C DIR`), whose Tables, on the same files, are timed in the same turns: b
 after in one run. Prints samples/s and ratios; asserts nothing (machines and loads differ).
 """
 import argparse
-import importlib.util
+import importlib
 import sys
 import time
 from pathlib import Path
@@ -22,6 +22,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "scripts"))
+from baseline import import_baseline  # noqa: E402
 from conftest import RGL_FILES, rgl_dir  # noqa: E402
 
 from bake.core import fasttables  # noqa: E402
@@ -42,13 +44,9 @@ def load_tables(path, name):
 
 
 def baseline_package(checkout):
-    """The `bake` package of another checkout, imported as `bake_baseline`."""
-    init = Path(checkout) / "bake" / "__init__.py"
-    spec = importlib.util.spec_from_file_location("bake_baseline", init, submodule_search_locations=[str(init.parent)])
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bake_baseline"] = module
-    spec.loader.exec_module(module)
-    return importlib.import_module("bake_baseline.tables"), importlib.import_module("bake_baseline.fasttables")
+    """The tables and fasttables modules of another checkout's `bake` (scripts/baseline.py)."""
+    import_baseline(checkout)
+    return importlib.import_module("bake_baseline.core.tables"), importlib.import_module("bake_baseline.core.fasttables")
 
 
 def seconds(fn):
