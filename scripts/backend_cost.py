@@ -6,7 +6,9 @@ One material (the lights acceptance's draft tables of --material), the acceptanc
   constant   a constant world: the tables' sample and the portal only (no map, no lamps);
   hdri       the acceptance's "sunny" image world: + the world's next-event estimation (map
              sample, shadow ray, the tables' pdf for MIS) and its control variate;
-  studio     two lamps (area + sphere) and a dim constant world: + lamp next-event estimation.
+  studio     two lamps (area + sphere) and a dim constant world: + lamp next-event estimation;
+  sky        (where scripts/lights_acceptance.py has rendered it) its Sky Texture image: a small
+             sun's next-event estimation.
 Per scene and back end (Principled, fit, SVM, OSL): CPU time of this process (Cycles'
 threads) per spp, from two sample counts (each render's fixed cost, scene sync and shader
 compilation, cancels), the best of --repeat interleaved rounds (the machine is shared).
@@ -35,11 +37,15 @@ def setups():
     hdri = la.OUT / "env_sunny.exr"
     if not hdri.is_file():
         ca.make_env(hdri, "sunny")
-    scenes = la.setups(hdri, None)
+    sky = la.OUT / "sky_2048x1024.exr"
+    scenes = la.setups(hdri, sky)
 
     def constant(sc):
         cs.set_world(sc, color=(0.5, 0.5, 0.5))
-    return {"constant": constant, "hdri": scenes["hdri"], "studio": scenes["studio"]}
+    out = {"constant": constant, "hdri": scenes["hdri"], "studio": scenes["studio"]}
+    if sky.is_file():       # made by scripts/lights_acceptance.py
+        out["sky"] = scenes["sky"]
+    return out
 
 
 def per_spp(kind, name, tables, fit, setup, lo, hi):
