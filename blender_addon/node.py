@@ -441,11 +441,13 @@ def _build_tree(tree, name, tables_path, fit_path):
     info = {"material": name, "tables": str(tables_path), "fit": str(fit_path or ""),
             "osl_texture": osl_texture, "svm_texture": svm_texture, "has_fit": fit is not None,
             "has_osl": with_osl, "fit_error": float(max(fit["rel_error"])) if fit else -1.0,
+            "matte": _world_mod().matte_fraction(fit),
             "problems": "; ".join(problems)}
     shader = fit_out
     if svm_texture:
         from . import svm
-        world_inputs = _world_inputs(bpy.context.scene, tables_path.parent, bake=False)
+        world_inputs = _world_mod().material_share(_world_inputs(bpy.context.scene, tables_path.parent, bake=False),
+                                                   info["matte"])
         svm_out = svm.build_svm_sampler(tree, svm_texture, group_in.outputs["Tangent"], location=(-1400, -3000),
                                         world=world_inputs)
         for image in bpy.data.images:       # the texture's image, relative to the .blend as the tables are
@@ -720,9 +722,10 @@ def sync(scene, refresh=False, bake_world=False):
         folder = Path(_info(tree).get("tables", "")).parent
         if folder not in worlds:
             worlds[folder] = _world_inputs(scene, folder, bake_world)
+        world = _world_mod().material_share(worlds[folder], _info(tree).get("matte"))
         if _has_svm(tree):
             from . import svm
-            if not svm.update_world(tree, worlds[folder]):      # a technique the graph lacks: rebuild it
+            if not svm.update_world(tree, world):      # a technique the graph lacks: rebuild it
                 info = _info(tree)
                 _build_tree(tree, info["material"], Path(info["tables"]),
                             Path(info["fit"]) if info.get("fit") else None)
@@ -732,7 +735,7 @@ def sync(scene, refresh=False, bake_world=False):
         if script is not None:
             _set_inputs(script, film)
             lamps.bind(script, scene)
-            _set_inputs(script, worlds[folder])
+            _set_inputs(script, world)
 
 
 def _set_switches(tree, backend):
@@ -740,6 +743,11 @@ def _set_switches(tree, backend):
         switch = tree.nodes.get(name)
         if switch is not None and switch.outputs[0].default_value != float(on):
             switch.outputs[0].default_value = float(on)
+
+
+def _world_mod():
+    from . import world
+    return world
 
 
 def _world_inputs(scene, folder, bake):

@@ -230,6 +230,28 @@ def test_sun_fit_is_the_rendered_disc(tmp_path, elevation, rotation):
     assert painted.max() < 1e-2 * full.max() and np.array_equal(painted[plain], full[plain])
 
 
+def test_the_map_share_follows_the_material(lambert):
+    """A plain map's share of portal directions runs from SHARE_GLOSSY (no diffuse part) to
+    SHARE_MATTE (all diffuse) with the fit's matte fraction; a sun's and a small sun's shares,
+    and a material without a fit, keep the world's."""
+    from blender_addon import world as bw
+    plain = bw.shader_inputs("map.exr", {"peak": 38.0}, None)
+    assert plain["WorldShare"] == bw.SHARE
+    fit = {"diffuse": [[0.2, 0.2, 0.2]], "fit_albedo": [[0.8, 0.8, 0.8]]}
+    assert bw.matte_fraction(fit) == pytest.approx(0.25) and bw.matte_fraction(None) is None
+    assert bw.material_share(plain, 0.0)["WorldShare"] == bw.SHARE_GLOSSY
+    assert bw.material_share(plain, 1.0)["WorldShare"] == bw.SHARE_MATTE
+    assert bw.material_share(plain, 0.25)["WorldShare"] == pytest.approx(0.75 * bw.SHARE_GLOSSY + 0.25 * bw.SHARE_MATTE)
+    assert bw.material_share(plain, None) == plain
+    sunny = bw.shader_inputs("map.exr", {"peak": 38.0}, ((0.0, 0.0, 1.0), 0.9999))
+    small = bw.shader_inputs("map.exr", {"peak": 500.0}, None)
+    assert bw.material_share(sunny, 1.0) == sunny and bw.material_share(small, 1.0) == small
+    cs.reset(8, 8, spp=1)
+    mat = bpy.data.materials.new("share")
+    lb.assign_learned_bsdf(mat, "lambert", lambert)
+    assert lb._info(bpy.data.node_groups["Learned BSDF: lambert"])["matte"] == pytest.approx(1.0, abs=0.02)
+
+
 @pytest.mark.parametrize("interpolation,sun", slow_unless(
     [("Linear", "tiny"), ("Closest", "tiny"), ("Linear", "broad")], default=[("Linear", "tiny"), ("Linear", "broad")],
     unpack=True))
@@ -268,7 +290,9 @@ def test_hdri_sun_by_next_event_estimation(lambert, tmp_path, interpolation, sun
         assert Path(script.inputs["EnvMap"].default_value).name.endswith(".bright.exr")
         assert script.inputs["WorldShare"].default_value == pytest.approx(bw.SMALL_SUN_SHARE)   # (the SVM's)
     else:
-        assert script.inputs["EnvImage"].default_value == "" and script.inputs["WorldShare"].default_value == bw.SHARE
+        # (a Lambertian: its fit is all diffuse, so the map takes the matte material's share)
+        assert script.inputs["EnvImage"].default_value == ""
+        assert script.inputs["WorldShare"].default_value == pytest.approx(bw.SHARE_MATTE, abs=0.01)
     mine, diffuse = _renders(sc, sphere, learned), _renders(sc, sphere, cs.material_with(_diffuse, "diffuse"))
     _assert_same(mine, diffuse)
     # (measured: 4.4x Diffuse's variance for the tiny sun, Linear, drawn from the bright pixels'
