@@ -23,8 +23,11 @@ b = k P + p as in Tables. Layout (W = texture width, rows from the top of the im
         +2 + i      column cumulative sums of row i, x = 0..C
         +2 + R + i  b edges of row i, x = 0..C
         +2 + 2 R    row guide: at x = g < G_R = R, (lo, hi) brackets the row for u0 in [g, g + 1) / R
+                    (red, green), and the row of a = 1 - cos theta_o in [g, g + 1) / R among the
+                    a edges (blue, alpha: the inverse's search, eval_tables)
         +3 + 2 R + i  column guide of row i: at x = g < G_C = C, (lo, hi) brackets the column for
-                    u1 in [g, g + 1) / C
+                    u1 in [g, g + 1) / C (red, green), and the column of b in [g, g + 1) 2 pi / C
+                    among the row's b edges (blue, alpha)
       with the four bins a sample blends in its channels: red (k, p), green (k + 1, p), blue
       (k, p + 1), alpha (k + 1, p + 1) (p + 1 wrapping to 0; k + 1 clipped to K - 1), so one
       fetch gives all four ends of the blend. A guide's bracket holds for any blend of the four
@@ -46,7 +49,7 @@ from ..errors import FlowBSDFError
 from ..plumbing.exrio import write_rgba_exr
 from ..plumbing.files import file_hash
 
-LAYOUT = 3
+LAYOUT = 4
 META_KEY = "flowbsdf_osl"
 
 
@@ -114,11 +117,13 @@ def texture_image(tables):
                 img[base + 1, :R + 1, ch] = tables._a[b]
                 img[base + 2:base + 2 + R, :C + 1, ch] = tables._col_cum[b]
                 img[base + 2 + R:base + 2 + 2 * R, :C + 1, ch] = tables._b[b]
-            row_cdf = f32(tables._row_cdf[blend])
+            row_cdf, a_edges = f32(tables._row_cdf[blend]), f32(tables._a[blend])
             img[base + 2 + 2 * R, :R, :2] = _guide(row_cdf, row_cdf[:, -1], R)
+            img[base + 2 + 2 * R, :R, 2:] = _guide(a_edges, np.ones(4), R)
             for i in range(R):
-                col_cum = f32(tables._col_cum[blend, i])
+                col_cum, b_edges = f32(tables._col_cum[blend, i]), f32(tables._b[blend, i])
                 img[base + 3 + 2 * R + i, :C, :2] = _guide(col_cum, col_cum[:, -1], C)
+                img[base + 3 + 2 * R + i, :C, 2:] = _guide(b_edges, np.full(4, 2.0 * np.pi), C)
     return img.astype(np.float32)
 
 

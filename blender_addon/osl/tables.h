@@ -2,7 +2,7 @@
 // evaluation. A port of bake/core/tables.py's Tables.sample and Tables._locate (the numpy reference).
 // Every texel is fetched with "interp", "closest" and zero derivatives, so values come back exact.
 
-#define LAYOUT 3
+#define LAYOUT 4
 #define K_SMALL 1e-4
 
 float fetch1(string file, float W, float H, int x, int y)
@@ -214,6 +214,34 @@ void sample_tables(string file, float W, float H, int K, int R, int C, int NP, f
     pdf = cell[0] * exp_density(x, cell[1]) * exp_density(y, cell[2]) / ((a1 - a0) * (b1 - b0));
 }
 
+// The last k < n with blended edge_k <= x among the edges of texture row y (x = 0 .. n), its
+// edge and the next one: searched within the guide's bracket [lo, hi), the whole row should
+// float rounding put x outside it. (The search's last reads at lo and hi = lo + 1 are the
+// bracket's edges: kept, not re-read.)
+int edge_search(string file, float W, float H, int y, int n, int lo_guide, int hi_guide, float w[4], float x,
+                output float e0, output float e1)
+{
+    int lo = lo_guide, hi = hi_guide;
+    for (int pass = 0; pass < 2; pass++) {
+        e0 = -1.0;
+        e1 = -1.0;
+        while (hi - lo > 1) {
+            int mid = (lo + hi) / 2;
+            float e = fetch_blend(file, W, H, mid, y, w);
+            if (e <= x) { lo = mid; e0 = e; } else { hi = mid; e1 = e; }
+        }
+        if (e0 < 0.0)
+            e0 = fetch_blend(file, W, H, lo, y, w);
+        if (e1 < 0.0 || hi != lo + 1)
+            e1 = fetch_blend(file, W, H, lo + 1, y, w);
+        if ((e0 <= x || lo == 0) && (x < e1 || lo == n - 1))
+            break;
+        lo = 0;
+        hi = n;
+    }
+    return lo;
+}
+
 // The tables' pdf (per steradian) and baked f cos (= the cell's weight x pdf) at a direction
 // wo of the local frame (Tables.pdf and Tables.eval x cos): 0 below the horizon.
 void eval_tables(string file, float W, float H, int K, int R, int C, int NP, float period,
@@ -229,34 +257,15 @@ void eval_tables(string file, float W, float H, int K, int R, int C, int NP, flo
     blend_bins(file, W, H, K, R, NP, period, cos_i, phi_i, bins, w, base);
     float a = min((wo[0] * wo[0] + wo[1] * wo[1]) / (1.0 + wo[2]), 1.0);
     float b = mod(atan2(wo[1], wo[0]) - phi_i, 2.0 * M_PI);     // as in sample_tables: phi_o = b + phi_i
-    // Row: the last i with a_i <= a; column: the last j with b_ij <= b.
-    // (the edges at lo and hi = lo + 1 are the cell's: kept from the search, not re-read)
-    int lo = 0, hi = R;
-    float a0 = -1.0, a1 = -1.0;
-    while (hi - lo > 1) {
-        int mid = (lo + hi) / 2;
-        float e = fetch_blend(file, W, H, mid, base + 1, w);
-        if (e <= a) { lo = mid; a0 = e; } else { hi = mid; a1 = e; }
-    }
-    int i = lo;
-    if (a0 < 0.0)
-        a0 = fetch_blend(file, W, H, i, base + 1, w);
-    if (a1 < 0.0)
-        a1 = fetch_blend(file, W, H, i + 1, base + 1, w);
+    // Row: the last i with a_i <= a; column: the last j with b_ij <= b. Each search starts from
+    // its guide's bracket (blue, alpha of the row / column guide texels).
+    float a0, a1, b0, b1;
+    float alpha = 0;
+    color guide = fetch4(file, W, H, clamp(int(a * R), 0, R - 1), base + 2 + 2 * R, alpha);
+    int i = edge_search(file, W, H, base + 1, R, int(guide[2]), int(alpha), w, a, a0, a1);
     int brow = base + 2 + R + i;
-    lo = 0;
-    hi = C;
-    float b0 = -1.0, b1 = -1.0;
-    while (hi - lo > 1) {
-        int mid = (lo + hi) / 2;
-        float e = fetch_blend(file, W, H, mid, brow, w);
-        if (e <= b) { lo = mid; b0 = e; } else { hi = mid; b1 = e; }
-    }
-    int j = lo;
-    if (b0 < 0.0)
-        b0 = fetch_blend(file, W, H, j, brow, w);
-    if (b1 < 0.0)
-        b1 = fetch_blend(file, W, H, j + 1, brow, w);
+    guide = fetch4(file, W, H, clamp(int(b * (C / (2.0 * M_PI))), 0, C - 1), base + 3 + 2 * R + i, alpha);
+    int j = edge_search(file, W, H, brow, C, int(guide[2]), int(alpha), w, b, b0, b1);
     color weight, cell;
     blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, cell);
     float x = clamp((a - a0) / (a1 - a0), 0.0, 1.0);
