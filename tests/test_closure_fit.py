@@ -104,6 +104,32 @@ def test_derived_files_are_cached_rebuilt_and_atomic(tmp_path, lambert, glossy):
         ensure_osl_export(tmp_path / "gone.exr")
 
 
+def test_the_inverse_guides_bracket_the_edge_searches(tmp_path, glossy):
+    """The OSL texture's guides of the a edges (row guide, blue / alpha) and of each row's b
+    edges (column guides, blue / alpha): for a in [g, g + 1) / R (b in [g, g + 1) 2 pi / C) the
+    last edge <= the value, blended over the corner's bins with any weights, lies in [lo, hi)."""
+    path = tmp_path / "g.exr"
+    glossy.save(path)
+    img, _ = read_export(ensure_osl_export(path))
+    K, R, C = len(glossy.theta_bins), glossy.rows, glossy.cols
+    rng = np.random.default_rng(1)
+    for k in range(max(K - 1, 1)):
+        base = 3 + 2 * K * R + k * (3 + 3 * R)
+        for _ in range(200):
+            w = rng.random(4) * np.array([1, 1, 0, 0])     # isotropic: two bins
+            w /= w.sum()
+            a = rng.random()
+            edges = img[base + 1, :R + 1] @ w
+            i = min(np.nonzero(edges <= a)[0].max(), R - 1)
+            lo, hi = img[base + 2 + 2 * R, min(int(a * R), R - 1), 2:4]
+            assert lo <= i < hi, (k, a, i, lo, hi)
+            b = rng.random() * 2 * np.pi
+            edges = img[base + 2 + R + i, :C + 1] @ w
+            j = min(np.nonzero(edges <= b)[0].max(), C - 1)
+            lo, hi = img[base + 3 + 2 * R + i, min(int(b * C / (2 * np.pi)), C - 1), 2:4]
+            assert lo <= j < hi, (k, b, j, lo, hi)
+
+
 def test_guides_bracket_the_search_for_any_blend():
     """The OSL texture's guides: for u in [g, g + 1) / count, the index the shader searches
     (the last i with the blended cumulative sum <= u x the blended total) lies in the guide's
