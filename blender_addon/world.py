@@ -39,7 +39,8 @@ SHARE = 0.5
 # the better guide. Measured on the lights acceptance's sunny HDRI (peak 38), 96 spp x 8,
 # per-sample variance x CPU time per spp at a share of 0.65 over 0.5: paper_white (matte
 # fraction 0.88) 0.69 OSL / 0.74 SVM, cm_military_green (0.23) 1.06 OSL, chm_mint (0.14) 1.64
-# OSL / 1.54 SVM; 0.3: paper_white 2.0 OSL. The share runs linearly in the matte fraction.
+# OSL / 1.54 SVM; 0.3: paper_white 2.0 OSL (scripts/map_share_render.py). The share runs
+# linearly in the matte fraction.
 SHARE_GLOSSY, SHARE_MATTE = 0.35, 0.7
 # ... and for a map with a small sun (peak >= BRIGHT, below): most of its light is in a few pixels
 # only the map finds. Rendered (SVM, the lights acceptance's sky, 4 x 32 spp, per-sample variance
