@@ -55,7 +55,7 @@ from pathlib import Path
 import bpy
 from bpy.app.handlers import persistent
 
-from . import lamps
+from . import lamps, world
 
 BACKENDS = ("osl", "svm", "fit", "auto")
 ENUM_ORDER = ("auto", "osl", "fit", "svm")     # the scene enum's items, as stored in files (append only)
@@ -441,13 +441,13 @@ def _build_tree(tree, name, tables_path, fit_path):
     info = {"material": name, "tables": str(tables_path), "fit": str(fit_path or ""),
             "osl_texture": osl_texture, "svm_texture": svm_texture, "has_fit": fit is not None,
             "has_osl": with_osl, "fit_error": float(max(fit["rel_error"])) if fit else -1.0,
-            "matte": _world_mod().matte_fraction(fit),
+            "matte": world.matte_fraction(fit),
             "problems": "; ".join(problems)}
     shader = fit_out
     if svm_texture:
         from . import svm
-        world_inputs = _world_mod().material_share(_world_inputs(bpy.context.scene, tables_path.parent, bake=False),
-                                                   info["matte"])
+        world_inputs = world.material_share(_world_inputs(bpy.context.scene, tables_path.parent, bake=False),
+                                            info["matte"])
         svm_out = svm.build_svm_sampler(tree, svm_texture, group_in.outputs["Tangent"], location=(-1400, -3000),
                                         world=world_inputs)
         for image in bpy.data.images:       # the texture's image, relative to the .blend as the tables are
@@ -722,10 +722,10 @@ def sync(scene, refresh=False, bake_world=False):
         folder = Path(_info(tree).get("tables", "")).parent
         if folder not in worlds:
             worlds[folder] = _world_inputs(scene, folder, bake_world)
-        world = _world_mod().material_share(worlds[folder], _info(tree).get("matte"))
+        inputs = world.material_share(worlds[folder], _info(tree).get("matte"))
         if _has_svm(tree):
             from . import svm
-            if not svm.update_world(tree, world):      # a technique the graph lacks: rebuild it
+            if not svm.update_world(tree, inputs):      # a technique the graph lacks: rebuild it
                 info = _info(tree)
                 _build_tree(tree, info["material"], Path(info["tables"]),
                             Path(info["fit"]) if info.get("fit") else None)
@@ -735,7 +735,7 @@ def sync(scene, refresh=False, bake_world=False):
         if script is not None:
             _set_inputs(script, film)
             lamps.bind(script, scene)
-            _set_inputs(script, world)
+            _set_inputs(script, inputs)
 
 
 def _set_switches(tree, backend):
@@ -745,15 +745,9 @@ def _set_switches(tree, backend):
             switch.outputs[0].default_value = float(on)
 
 
-def _world_mod():
-    from . import world
-    return world
-
-
 def _world_inputs(scene, folder, bake):
     """The shader's world inputs (world.shader_inputs): the world's map when it exists (made
     when `bake`), else none — then the portal samples the tables alone (still unbiased)."""
-    from . import world
     try:
         return world.bake_world_map(scene, folder) if bake else world.current_inputs(scene, folder)
     except Exception as e:      # noqa: BLE001  (no world map: noisier, not wrong)
@@ -802,7 +796,6 @@ def _schedule_world(scene):
     script = next((t.nodes.get(SCRIPT) for t in _trees() if t.library is None and t.nodes.get(SCRIPT)), None)
     if script is None:
         return
-    from . import world
     key = world.world_key(scene)
     current = script.inputs["World"].default_value if "World" in script.inputs else ""
     if key is None or (current and Path(current).name == world.map_path(".", key).name):

@@ -52,9 +52,9 @@ SUN_SHARE, SUN_MAP_SHARE = 0.3, 0.2     # with a sun: its disc, and the map for 
 FLAT = 1.5          # the map's peak pdf over a uniform sphere's, below which the world is "flat"
 # OSL: an image world whose map peaks at BRIGHT times a uniform sphere's pdf or more (a small sun)
 # gets next-event estimation of its pixels that bright, drawn from a map of those pixels alone
-# (bright_map: drawn from the whole map, the quarter of the draws that fell in dimmer pixels were
-# lost); the rest of it, and a world with no such
-# pixels, is sampled through the portal's mixture with the map (no shadow rays: measured on the
+# (WorldMap.bright_only; drawn from the whole map, a quarter of the draws fell in dimmer pixels
+# and were lost); the rest of it, and a world with no such pixels, is sampled through the
+# portal's mixture with the map (no shadow rays: measured on the
 # lights acceptance's sunny HDRI, peak 38: the same noise per sample as next-event estimation of
 # the whole map, which cost 2.6x the time per sample; the rendered sky's sun: 16 pixels of
 # 1e4-1.6e5x uniform hold 75 % of its light, the other pixels are below 3x).
@@ -452,7 +452,8 @@ def bake_world_map(scene, folder):
             wm = world_map.WorldMap(radiance)
             meta = {"key": key, "peak": wm.peak}
             if wm.peak >= BRIGHT:
-                world_map.write_world_texture(bright_file, bright_map(wm, radiance), {"key": key, "bright": BRIGHT})
+                world_map.write_world_texture(bright_file, wm.bright_only(radiance, BRIGHT / (4.0 * math.pi)),
+                                              {"key": key, "bright": BRIGHT})
             world_map.write_world_texture(path, wm, meta)
             if exact is None:
                 write_sky(sky_file, radiance)
@@ -463,16 +464,6 @@ def bake_world_map(scene, folder):
     if sun is not None and not sun_file.is_file():
         radiance = bake_sun(scene, sun, sun_file)
     return shader_inputs(path, meta, sun, _environment(exact, sky_file), radiance, bright_file)
-
-
-def bright_map(wm, radiance):
-    """The importance map of the radiance's pixels whose density in the world map wm is at least
-    BRIGHT times a uniform sphere's, the others black: where OSL's next-event estimation draws
-    its directions. (The same pixels as wm's, so a pixel's radiance is read from one texel.)"""
-    import numpy as np
-    from . import node
-    bright = wm.pdf_pixel >= BRIGHT / (4.0 * math.pi)
-    return node._bake_mod("export.world_map").WorldMap(np.where(bright[..., None], radiance, 0.0))
 
 
 def bright_path(folder, key):

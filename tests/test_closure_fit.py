@@ -154,3 +154,24 @@ def test_guides_bracket_the_search_for_any_blend():
             i = np.nonzero(blend[:n] <= u * blend[-1])[0].max()
             lo, hi = guide[min(int(u * count), count - 1)]
             assert lo <= i < hi, (trial, i, lo, hi)
+
+
+def test_bright_only_map_draws_the_bright_pixels_alone():
+    """WorldMap.bright_only: the pixels at or above the density keep their share of the light
+    (their density over the bright ones' total probability), the others have density 0 and are
+    never drawn."""
+    from bake.export.world_map import WorldMap
+    rng = np.random.default_rng(3)
+    radiance = rng.uniform(0.5, 1.5, (32, 64, 3))
+    radiance[10:12, 20:22] = 2e4                    # a small sun
+    full = WorldMap(radiance)
+    density = 100.0 / (4.0 * np.pi)
+    bright = full.bright_only(radiance, density)
+    mask = full.pdf_pixel >= density
+    assert 0 < mask.sum() < mask.size and bright.H == full.H and bright.W == full.W
+    assert np.all(bright.pdf_pixel[~mask] == 0.0)
+    omega = ((full.z_edges[:-1] - full.z_edges[1:]) * (2.0 * np.pi / full.W))[:, None] * np.ones((1, full.W))
+    total = np.sum(full.pdf_pixel[mask] * omega[mask])
+    np.testing.assert_allclose(bright.pdf_pixel[mask], full.pdf_pixel[mask] / total, rtol=1e-5)
+    d, pdf = bright.sample(rng.random((4000, 2)))
+    assert np.all(pdf > 0) and np.all(mask[bright._pixel(d)])

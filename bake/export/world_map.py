@@ -73,6 +73,13 @@ class WorldMap:
         # shares: the float32 CDFs' rounding makes tiny pixels' densities coarse)
         self.peak = float((power / omega[:, None]).max() / total * 4.0 * np.pi)
 
+    def bright_only(self, radiance, density):
+        """The map of `radiance` (this map's image) with every pixel whose density here is below
+        `density` (per steradian) black: where the OSL shader's next-event estimation of a small
+        sun draws from. Same size, so its pixels are this map's."""
+        bright = self.pdf_pixel >= density
+        return WorldMap(np.where(bright[..., None], np.asarray(radiance, np.float64)[..., :3], 0.0))
+
     def _pixel(self, d):
         theta = np.arccos(np.clip(d[:, 2], -1.0, 1.0))
         u = 0.5 - np.arctan2(d[:, 1], d[:, 0]) / (2.0 * np.pi)
