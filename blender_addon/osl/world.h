@@ -36,33 +36,16 @@ float pdf_pixel(WorldMap m, int row, int col)
 }
 
 // The last entry k < n of a CDF (texture row y, entries at x = 0 .. n, the last 1) with
-// cdf_k <= u, its value and the next one: searched within the bracket of u's guide (channels
-// `gc` and gc + 1 of texel floor(u Wt) of the row), the whole CDF should float rounding put u
-// outside it.
+// cdf_k <= u, its value and the next one: tables.h's edge_search of the red channel, from the
+// bracket of u's guide (channels `gc` and gc + 1 of texel floor(u Wt) of the row).
 int cdf_search(WorldMap m, int y, int n, int gc, float u, output float c0, output float c1)
 {
     float alpha = 0;
     color guide = texture(m.file, (clamp(int(u * m.Wt), 0, int(m.Wt) - 1) + 0.5) / m.Wt, (y + 0.5) / m.Ht,
                           0, 0, 0, 0, "interp", "closest", "wrap", "clamp", "alpha", alpha);
-    int lo = int(guide[gc]), hi = (gc == 1) ? int(guide[2]) : int(alpha);
-    for (int pass = 0; pass < 2; pass++) {
-        // (the search's last reads at lo and hi = lo + 1 are the bracket's values: kept, not re-read)
-        int seen_lo = 0, seen_hi = 0;
-        while (hi - lo > 1) {
-            int mid = (lo + hi) / 2;
-            float c = fetch1(m.file, m.Wt, m.Ht, mid, y);
-            if (c <= u) { lo = mid; c0 = c; seen_lo = 1; } else { hi = mid; c1 = c; seen_hi = 1; }
-        }
-        if (!seen_lo)
-            c0 = fetch1(m.file, m.Wt, m.Ht, lo, y);
-        if (!seen_hi || hi != lo + 1)
-            c1 = fetch1(m.file, m.Wt, m.Ht, lo + 1, y);
-        if (c0 <= u && u < c1)
-            break;
-        lo = 0;
-        hi = n;
-    }
-    return lo;
+    float red[4] = {1.0, 0.0, 0.0, 0.0};
+    return edge_search(m.file, m.Wt, m.Ht, y, n, int(guide[gc]), (gc == 1) ? int(guide[2]) : int(alpha), red, u,
+                       c0, c1);
 }
 
 // The world-space direction for u (uniform in [0, 1)^2), its pdf per steradian and its pixel.
