@@ -374,25 +374,32 @@ def test_three_materials_scanned_baked_rendered(baked_scene):
 
 
 def test_the_svm_back_end_renders_what_osl_does(baked_scene):
-    """The same three spheres with the scene's back end on the SVM graph (every Cycles device):
-    each sphere's mean within noise of the OSL render (both sample the baked tables)."""
+    """The same three spheres with the scene's back end on the SVM graph (every Cycles device),
+    Cycles' shading system OSL and SVM: each sphere's mean within noise of the OSL render (all
+    sample the baked tables). The graph's textures are packed (svm._image: a file texture read
+    through OSL rendered a sphere black now and then)."""
     from blender_addon import node
     scene, _, _ = baked_scene
     if not node.svm_available():
         pytest.skip("this Blender cannot build the SVM back end (Ray Portal BSDF and Light Path Portal Depth: 5.0+)")
     means = {}
     try:
-        for backend in ("osl", "svm"):
+        for backend, shading_osl in (("osl", True), ("svm", True), ("svm", False)):
             node.set_backend(scene, backend)
+            scene.cycles.shading_system = shading_osl
             for name, _ in THREE:
                 group = next(n for n in bpy.data.materials[name].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
                 assert node.node_status(group, scene) == backend.upper(), node.node_status(group, scene)
             img = cs.render(scene)
-            means[backend] = [img[5:11, c - 3:c + 3].reshape(-1, 3).mean(0) for c in (8, 24, 40)]
+            means[backend, shading_osl] = [img[5:11, c - 3:c + 3].reshape(-1, 3).mean(0) for c in (8, 24, 40)]
     finally:
         node.set_backend(scene, "auto")
-    for osl, svm in zip(means["osl"], means["svm"]):
-        assert np.allclose(osl, svm, rtol=0.1, atol=0.03), means
+        scene.cycles.shading_system = True
+    for key in (("svm", True), ("svm", False)):
+        for osl, svm in zip(means["osl", True], means[key]):
+            assert np.allclose(osl, svm, rtol=0.1, atol=0.03), (key, means)
+    textures = [i for i in bpy.data.images if ".svm" in i.filepath]
+    assert len(textures) == len(THREE) and all(i.packed_file is not None for i in textures), textures
 
 
 def test_bake_writes_a_preview_beside_the_tables(baked_scene):
