@@ -49,6 +49,30 @@ def test_bake_skips_current_and_rebuilds_changed(tmp_path):
     assert not list((out / "tables").glob(".*")), "temporary files left behind"
 
 
+def test_a_bake_is_reproducible(tmp_path):
+    """Baking the same material again (forced) writes the same bytes: the file's hash names its
+    OSL and SVM textures, which then stay current (a bake's time in the file made every re-bake
+    a new file, new textures and rebuilt node graphs)."""
+    out = tmp_path / "out"
+    m = load_manifest_text(tmp_path, """
+        [[material]]
+        name = "gold"
+        source = { kind = "analytic", model = "ggx", alpha = 0.25, f0 = [0.9, 0.6, 0.3] }
+        """ + FAST)
+    path = table_path(out, "gold")
+    bake_manifest(m, out, log=lambda *_: None)
+    first, textures = path.read_bytes(), sorted(p.name for p in path.parent.glob("gold.*-*.exr"))
+    assert bake_manifest(m, out, force=True, log=lambda *_: None) == [path]
+    assert path.read_bytes() == first
+    assert sorted(p.name for p in path.parent.glob("gold.*-*.exr")) == textures and len(textures) == 2
+
+
+def load_manifest_text(tmp_path, text):
+    path = tmp_path / "m.toml"
+    path.write_text(textwrap.dedent(text))
+    return load_manifest(path)
+
+
 def test_broken_table_file_is_rebuilt(tmp_path):
     out = tmp_path / "out"
     m = manifest(tmp_path)
