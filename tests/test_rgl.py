@@ -383,6 +383,28 @@ def test_c_eval_matches_numpy(phi_i, tmp_path):
         np.testing.assert_array_equal(mat.eval(wi, wo), fast)      # eval takes the C path
 
 
+def test_c_eval_split_across_threads_is_one_call(tmp_path, monkeypatch):
+    """The baker's C eval runs in a slice per core (fasttables._split): the same bytes as one
+    call over all the directions, with uneven slices."""
+    from bake.core import fasttables
+    if fasttables.load() is None:
+        pytest.skip(fasttables.REASON)
+    mat = RGLMaterial(write_tensor_file(tmp_path / "m.bsdf", synthetic_fields(phi_i=(0.0, np.pi))))
+    rng = np.random.default_rng(5)
+    wi = spherical_dir(0.9, 0.4)
+    wo = spherical_dir(np.arccos(rng.uniform(-0.2, 1.0, 5001)), rng.uniform(-np.pi, np.pi, 5001))
+    monkeypatch.setattr(fasttables, "_workers", lambda: 1)
+    one = mat._eval_c(wo, mat._incident(wi))
+    monkeypatch.setattr(fasttables, "_workers", lambda: 3)
+    monkeypatch.setattr(fasttables, "MIN_SHARE", 1000)
+    calls = []
+    lib = fasttables.load()
+    monkeypatch.setattr(fasttables, "_lib", type("Spy", (), {"ft_rgl_eval": lambda self, n, *a: calls.append(n) or
+                                                             lib.ft_rgl_eval(n, *a)})())
+    split = mat._eval_c(wo, mat._incident(wi))
+    assert sorted(calls) == [1667, 1667, 1667] and np.array_equal(split, one) and (one != 0).any()
+
+
 def test_c_eval_matches_numpy_on_a_real_file(rgl):
     from bake.core import fasttables
     if fasttables.load() is None:

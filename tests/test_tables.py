@@ -8,7 +8,7 @@ from bake.materials import open_material
 from bake.materials.base import Material, as_dirs
 from bake.quality.metrics import chi2_test, relative_variance
 from bake.core.tables import TWO_PI, Tables, exp_cdf, exp_density, exp_inverse_cdf, from_ab, open_tables, to_ab
-from bake.core.tabulate import _finish_bin, _moments_around, build_tables, exp_rate_for_mean, plan_tables
+from bake.core.tabulate import _finish_bin, _moments_around, _nodes, build_tables, exp_rate_for_mean, plan_tables
 from contract import assert_sampler_contract
 
 HARD = {
@@ -253,3 +253,16 @@ def test_cells_integrated_around_their_points_keep_their_mass_with_16_nodes(monk
     assert np.abs(out[16][0] - out[64][0]).sum() < 1e-4
     assert not np.array_equal(out[16][0], out[64][0])          # the rule did change
     assert abs(out[16][1] - out[64][1]) <= 0.01 * out[64][1]
+
+
+def test_quadrature_nodes_are_from_ab_of_every_node():
+    """The quadrature's directions, with sines and cosines taken per a and b node
+    (tabulate._nodes), are bit for bit from_ab of each node of the a-major q x q rule."""
+    rng = np.random.default_rng(7)
+    a0, b0 = rng.random(5) * 0.9, rng.random(5) * 5.0
+    a1, b1 = a0 + rng.random(5) * 0.1, b0 + rng.random(5) * 1.2
+    q = 6
+    s = (np.arange(q) + 0.5) / q
+    A = (a0[:, None] + np.repeat(s, q)[None, :] * (a1 - a0)[:, None]).ravel()
+    B = (b0[:, None] + np.tile(s, q)[None, :] * (b1 - b0)[:, None]).ravel()
+    assert np.array_equal(_nodes(a0, a1, b0, b1, s, 0.7), from_ab(A, B, 0.7))

@@ -117,6 +117,26 @@ def lobe_col_knots(a_mid, lobe_width):
     return _knots([0.0, np.pi - half, np.pi, np.pi + half, TWO_PI], 0.0, TWO_PI, B_MIN)
 
 
+def _cos_nodes(a0, a1, s):
+    """cos theta_o (1 - a) at a cell's a nodes: (cells, q)."""
+    return 1.0 - (a0[:, None] + s[None, :] * (a1 - a0)[:, None])
+
+
+def _nodes(a0, a1, b0, b1, s, phi_ref):
+    """The directions of a q x q midpoint rule per cell (a-major: node i * q + j at a node i,
+    b node j), as from_ab of every node, with the sine and cosines taken once per a and b
+    node rather than per node (they were ~40 % of the quadrature)."""
+    a = a0[:, None] + s[None, :] * (a1 - a0)[:, None]
+    phi = (b0[:, None] + s[None, :] * (b1 - b0)[:, None]) - np.pi + phi_ref
+    sin_t = np.sqrt(np.maximum(a * (2.0 - a), 0.0))
+    q = len(s)
+    wo = np.empty((len(a0), q, q, 3))
+    np.multiply(sin_t[:, :, None], np.cos(phi)[:, None, :], out=wo[..., 0])
+    np.multiply(sin_t[:, :, None], np.sin(phi)[:, None, :], out=wo[..., 1])
+    wo[..., 2] = (1.0 - a)[:, :, None]
+    return wo.reshape(-1, 3)
+
+
 def _moments(material, wi, phi_ref, a0, a1, b0, b1, q, chunk=1 << 18):
     """Per cell [a0,a1]x[b0,b1], a q x q midpoint rule: target mass, its mean local x and y,
     the RGB integral of f·cos (da db = d omega), and the target's marginal densities along
@@ -131,10 +151,8 @@ def _moments(material, wi, phi_ref, a0, a1, b0, b1, q, chunk=1 << 18):
     step = max(1, chunk // (q * q))
     for c0 in range(0, n, step):
         sl = slice(c0, min(n, c0 + step))
-        A = (a0[sl, None] + X[None, :] * (a1 - a0)[sl, None]).ravel()
-        B = (b0[sl, None] + Y[None, :] * (b1 - b0)[sl, None]).ravel()
-        wo = from_ab(A, B, phi_ref)
-        value = (material.eval(wi, wo) * wo[:, 2:3]).reshape(-1, q * q, 3)
+        value = (material.eval(wi, _nodes(a0[sl], a1[sl], b0[sl], b1[sl], s, phi_ref)))
+        value = (value.reshape(-1, q, q, 3) * _cos_nodes(a0[sl], a1[sl], s)[:, :, None, None]).reshape(-1, q * q, 3)
         area = ((a1 - a0) * (b1 - b0))[sl] / (q * q)
         lum = np.maximum(luminance(value), 0.0)
         g = lum * area[:, None]
