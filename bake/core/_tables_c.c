@@ -53,6 +53,7 @@ double exp(double) FT_VEC;
 double expm1(double) FT_VEC;
 double log1p(double) FT_VEC;
 double atan2(double, double) FT_VEC;
+double asin(double) FT_VEC;
 double hypot(double, double) FT_VEC;
 double cos(double) FT_VEC;
 double sin(double) FT_VEC;
@@ -590,64 +591,92 @@ FT_INLINE void rgl_patch(double u, int64_t n, int64_t *i, double *f) {
     *f = x - (double)k;
 }
 
-FT_EXPORT void ft_rgl_eval(int64_t n, const double *wo, const double *par, const double *vndf, int64_t vny,
-                           int64_t vnx, const double *rgb, int64_t ry, int64_t rx, const double *ndf, int64_t nny,
-                           int64_t nnx, double *out) {
+/* The half vector's RGL coordinates of a block of directions (the libm calls, in vector
+ * lanes): um_x = sqrt(theta_m 2 / pi) and phi_m. Lanes past m hold a dummy direction, so every
+ * direction goes through a full block (see "Vector math" above). */
+FT_INLINE void rgl_angles(const double *wo, int64_t m, const double *par, double *um_x, double *phi_m) {
     const double wix = par[0], wiy = par[1], wiz = par[2], sgx = par[3], sgy = par[4];
+    double mx[BLK], my[BLK], t[BLK];
+    for (int q = 0; q < BLK; q++) {
+        const int in = q < m;
+        mx[q] = wix + (in ? wo[3 * q] : 0.0) * sgx;
+        my[q] = wiy + (in ? wo[3 * q + 1] : 0.0) * sgy;
+        t[q] = wiz + (in ? wo[3 * q + 2] : 1.0);
+    }
+    FT_SIMD for (int q = 0; q < BLK; q++) {
+        const double inv = 1.0 / sqrt(mx[q] * mx[q] + my[q] * my[q] + t[q] * t[q]);
+        const double x = mx[q] * inv, y = my[q] * inv, z = t[q] * inv;
+        mx[q] = x, my[q] = y;
+        t[q] = fmin(0.5 * sqrt(x * x + y * y + (z - 1.0) * (z - 1.0)), 1.0);
+    }
+    FT_SIMD for (int q = 0; q < BLK; q++) t[q] = asin(t[q]);
+    FT_SIMD for (int q = 0; q < BLK; q++) um_x[q] = sqrt(2.0 * t[q] * (2.0 / 3.141592653589793));
+    FT_SIMD for (int q = 0; q < BLK; q++) phi_m[q] = atan2(my[q], mx[q]);
+}
+
+FT_CLONES static void rgl_run(int64_t n, const double *wo, const double *par, const double *vndf, int64_t vny,
+                              int64_t vnx, const double *rgb, int64_t ry, int64_t rx, const double *ndf, int64_t nny,
+                              int64_t nnx, double *out) {
     const double phi_i = par[6], sigma = par[9];
     const int relative = par[7] != 0.0, jacobian = par[8] != 0.0;
     const double pi = 3.141592653589793;
-    for (int64_t s = 0; s < n; s++) {
-        double *o = out + 3 * s;
-        const double woz = wo[3 * s + 2];
-        if (!(woz > 0.0)) {
-            o[0] = o[1] = o[2] = 0.0;
-            continue;
+    double block_um_x[BLK], block_phi_m[BLK];
+    for (int64_t b = 0; b < n; b += BLK) {
+        const int64_t m = n - b < BLK ? n - b : BLK;
+        rgl_angles(wo + 3 * b, m, par, block_um_x, block_phi_m);
+        for (int64_t q = 0; q < m; q++) {
+            const int64_t s = b + q;
+            double *o = out + 3 * s;
+            const double woz = wo[3 * s + 2];
+            if (!(woz > 0.0)) {
+                o[0] = o[1] = o[2] = 0.0;
+                continue;
+            }
+            const double um_x = block_um_x[q], phi_m = block_phi_m[q];
+            double um_y = ((relative ? phi_m - phi_i : phi_m) + pi) * (0.5 / pi);
+            um_y -= floor(um_y);
+
+            int64_t px, py;
+            double fx, fy;
+            rgl_patch(um_x, vnx, &px, &fx);
+            rgl_patch(um_y, vny, &py, &fy);
+            const double *t = vndf + 9 * (py * (vnx - 1) + px);
+            const double gy = 1.0 - fy;
+            double row_total = gy * t[6] + fy * t[7];
+            const int zero = row_total == 0.0;
+            if (zero) row_total = 1.0;
+            const double c0 = gy * t[0] + fy * t[2], c1 = gy * t[1] + fy * t[3];
+            const double sx = (fx * (c0 + 0.5 * fx * (c1 - c0)) + gy * t[4] + fy * t[5]) / row_total;
+            const double sy = fy * (t[6] + 0.5 * fy * (t[7] - t[6])) + t[8];
+
+            int64_t qx, qy;
+            double hx, hy;
+            rgl_patch(sx, rx, &qx, &hx);
+            rgl_patch(sy, ry, &qy, &hy);
+            const double *g = rgb + 12 * (qy * (rx - 1) + qx);
+            const double ex = 1.0 - hx, ey = 1.0 - hy;
+            const double w[4] = {ex * ey, hx * ey, ex * hy, hx * hy};
+
+            double scale = 1.0 / woz;
+            if (jacobian) {
+                int64_t nx_, ny_;
+                double ax, ay;
+                rgl_patch(um_x, nnx, &nx_, &ax);
+                rgl_patch(um_y, nny, &ny_, &ay);
+                const int64_t i = ny_ * nnx + nx_;
+                const double bx = 1.0 - ax;
+                const double d = (1.0 - ay) * (bx * ndf[i] + ax * ndf[i + 1]) + ay * (bx * ndf[i + nnx] + ax * ndf[i + nnx + 1]);
+                scale *= d / (4.0 * sigma);
+            }
+            if (zero) scale = 0.0;
+            for (int c = 0; c < 3; c++)
+                o[c] = (w[0] * g[c] + w[1] * g[3 + c] + w[2] * g[6 + c] + w[3] * g[9 + c]) * scale;
         }
-        double mx = wix + wo[3 * s] * sgx, my = wiy + wo[3 * s + 1] * sgy, mz = wiz + woz;
-        const double inv = 1.0 / sqrt(mx * mx + my * my + mz * mz);
-        mx = mx * inv, my = my * inv, mz = mz * inv;
-        const double dist = sqrt(mx * mx + my * my + (mz - 1.0) * (mz - 1.0));
-        const double theta_m = 2.0 * asin(fmin(0.5 * dist, 1.0));
-        const double um_x = sqrt(theta_m * (2.0 / pi));
-        const double phi_m = atan2(my, mx);
-        double um_y = ((relative ? phi_m - phi_i : phi_m) + pi) * (0.5 / pi);
-        um_y -= floor(um_y);
-
-        int64_t px, py;
-        double fx, fy;
-        rgl_patch(um_x, vnx, &px, &fx);
-        rgl_patch(um_y, vny, &py, &fy);
-        const double *t = vndf + 9 * (py * (vnx - 1) + px);
-        const double gy = 1.0 - fy;
-        double row_total = gy * t[6] + fy * t[7];
-        const int zero = row_total == 0.0;
-        if (zero) row_total = 1.0;
-        const double c0 = gy * t[0] + fy * t[2], c1 = gy * t[1] + fy * t[3];
-        const double sx = (fx * (c0 + 0.5 * fx * (c1 - c0)) + gy * t[4] + fy * t[5]) / row_total;
-        const double sy = fy * (t[6] + 0.5 * fy * (t[7] - t[6])) + t[8];
-
-        int64_t qx, qy;
-        double hx, hy;
-        rgl_patch(sx, rx, &qx, &hx);
-        rgl_patch(sy, ry, &qy, &hy);
-        const double *g = rgb + 12 * (qy * (rx - 1) + qx);
-        const double ex = 1.0 - hx, ey = 1.0 - hy;
-        const double w[4] = {ex * ey, hx * ey, ex * hy, hx * hy};
-
-        double scale = 1.0 / woz;
-        if (jacobian) {
-            int64_t nx_, ny_;
-            double ax, ay;
-            rgl_patch(um_x, nnx, &nx_, &ax);
-            rgl_patch(um_y, nny, &ny_, &ay);
-            const int64_t i = ny_ * nnx + nx_;
-            const double bx = 1.0 - ax;
-            const double d = (1.0 - ay) * (bx * ndf[i] + ax * ndf[i + 1]) + ay * (bx * ndf[i + nnx] + ax * ndf[i + nnx + 1]);
-            scale *= d / (4.0 * sigma);
-        }
-        if (zero) scale = 0.0;
-        for (int c = 0; c < 3; c++)
-            o[c] = (w[0] * g[c] + w[1] * g[3 + c] + w[2] * g[6 + c] + w[3] * g[9 + c]) * scale;
     }
+}
+
+FT_EXPORT void ft_rgl_eval(int64_t n, const double *wo, const double *par, const double *vndf, int64_t vny,
+                           int64_t vnx, const double *rgb, int64_t ry, int64_t rx, const double *ndf, int64_t nny,
+                           int64_t nnx, double *out) {
+    rgl_run(n, wo, par, vndf, vny, vnx, rgb, ry, rx, ndf, nny, nnx, out);
 }
