@@ -346,7 +346,12 @@ def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):
     np.testing.assert_allclose(cs.render(sc), osl_img, rtol=1e-6)   # same seed, same image
 
     # Saved as it renders without the add-on (no lamps: the SVM graph), opened without it and
-    # with OSL off (as a GPU would): the sphere renders, not black.
+    # with OSL off (as a GPU would), its SVM texture file gone (a farm node without the project
+    # folder): the sphere renders from the texture packed in the .blend, not black.
+    svm_files = list(tmp_path.glob("gold.svm*.exr"))
+    assert svm_files
+    for p in svm_files:
+        p.unlink()
     lb.unregister()
     bpy.ops.wm.open_mainfile(filepath=str(blend))
     sc = bpy.context.scene
