@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import FlowBSDFError
 from .geometry import luminance, spherical_dir
-from .tables import _SMALL, K_MAX, TWO_PI, Tables, _search, from_ab, to_ab
+from .tables import _SMALL, K_MAX, TWO_PI, Tables, _search, to_ab
 
 A_MIN = 1e-4     # the least gap between row knots (keeps every segment of rows non-empty)
 B_MIN = 1e-4     # the same for column knots
@@ -117,11 +117,6 @@ def lobe_col_knots(a_mid, lobe_width):
     return _knots([0.0, np.pi - half, np.pi, np.pi + half, TWO_PI], 0.0, TWO_PI, B_MIN)
 
 
-def _cos_nodes(a0, a1, s):
-    """cos theta_o (1 - a) at a cell's a nodes: (cells, q)."""
-    return 1.0 - (a0[:, None] + s[None, :] * (a1 - a0)[:, None])
-
-
 def _nodes(a0, a1, b0, b1, s, phi_ref):
     """The directions of a q x q midpoint rule per cell (a-major: node i * q + j at a node i,
     b node j), as from_ab of every node, with the sine and cosines taken once per a and b
@@ -151,8 +146,8 @@ def _moments(material, wi, phi_ref, a0, a1, b0, b1, q, chunk=1 << 18):
     step = max(1, chunk // (q * q))
     for c0 in range(0, n, step):
         sl = slice(c0, min(n, c0 + step))
-        value = (material.eval(wi, _nodes(a0[sl], a1[sl], b0[sl], b1[sl], s, phi_ref)))
-        value = (value.reshape(-1, q, q, 3) * _cos_nodes(a0[sl], a1[sl], s)[:, :, None, None]).reshape(-1, q * q, 3)
+        wo = _nodes(a0[sl], a1[sl], b0[sl], b1[sl], s, phi_ref)
+        value = (material.eval(wi, wo) * wo[:, 2:3]).reshape(-1, q * q, 3)
         area = ((a1 - a0) * (b1 - b0))[sl] / (q * q)
         lum = np.maximum(luminance(value), 0.0)
         g = lum * area[:, None]
