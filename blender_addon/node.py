@@ -15,7 +15,9 @@ installed, and materials append and link like any other. Its node tree, "Learned
   camera rays it stratifies its samples by their place in the pixel.
 - SVM (every Cycles device, GPU included; Blender 5.0+): the same table sampler as plain
   shader nodes ending in a Ray Portal BSDF (svm.py, texture bake/export/svm_export.py): exact for
-  the world and emissive surfaces; lamps are not light-sampled.
+  the world and emissive surfaces; lamps are not light-sampled. Where the fit has a control
+  variate (its `cv`), the fit's closures scaled by it render beside the portal, which then
+  carries only the rest: Cycles' own light sampling of the world for most of the BSDF.
 - fit: Cycles closures (Diffuse BSDF + GGX Glossy BSDF) whose colours and roughness are
   piecewise-linear functions of the view angle (Layer Weight "Facing" = 1 - cos theta_i),
   fitted at bake time (bake/export/closure_fit.py). Its parameters live in the node tree, so it
@@ -73,7 +75,7 @@ NEUTRAL = (0.5, 0.5, 0.5)
 # The fit file format (bake/export/closure_fit.py: load_fit, FIT_VERSION), read here without numpy.
 FIT_FORMAT = "flowbsdf-closure-fit"
 OSL_LAYOUT = 4          # the OSL texture's layout (bake/export/osl_export.LAYOUT): part of its file name
-FIT_VERSION = 2
+FIT_VERSION = 3
 
 
 def _bake_mod(name):
@@ -109,7 +111,7 @@ def load_fit(path):
         raise ValueError(f"closure fit unreadable ({e}): {path}") from None
     if not isinstance(fit, dict) or fit.get("format") != FIT_FORMAT or fit.get("version") != FIT_VERSION:
         raise ValueError(f"not a current FlowBSDF closure fit, re-bake: {path}")
-    for key in ("x", "diffuse", "specular", "roughness", "rel_error"):
+    for key in ("x", "diffuse", "specular", "roughness", "rel_error", "cv"):
         if key not in fit:
             raise ValueError(f"closure fit without {key!r}: {path}")
     return fit
@@ -363,23 +365,32 @@ def _piecewise(tree, x_socket, xs, values, loc):
     return out
 
 
-def _build_fit(tree, fit, loc=(-1400, -400)):
-    """The fit back end's closures (a neutral grey diffuse without a fit); returns their
-    shader output socket."""
-    nodes, links = tree.nodes, tree.links
-    diffuse = nodes.new("ShaderNodeBsdfDiffuse")
-    diffuse.location = (loc[0] + 3400, loc[1])
-    if fit is None:
-        diffuse.inputs["Color"].default_value = (*NEUTRAL, 1.0)
-        return diffuse.outputs[0]
-    facing = nodes.new("ShaderNodeLayerWeight")
+def _fit_params(tree, fit, loc, scaled=False):
+    """Sockets (kd, ks, (r, r, r)) of the fit's closures at the view angle (Layer Weight
+    "Facing" = 1 - |cos theta_i|), each piecewise linear in it; `scaled`: the control
+    variate's share of them (the knots' kd and ks times their `cv` betas) and a fourth socket,
+    (s, s, s) of its portal share s."""
+    facing = tree.nodes.new("ShaderNodeLayerWeight")
     facing.inputs["Blend"].default_value = 0.5          # Facing = 1 - |cos theta_i|
     facing.location = loc
     x = facing.outputs["Facing"]
     xs = fit["x"]
-    kd = _piecewise(tree, x, xs, fit["diffuse"], (loc[0] + 200, loc[1]))
-    ks = _piecewise(tree, x, xs, fit["specular"], (loc[0] + 200, loc[1] - 500))
-    kr = _piecewise(tree, x, xs, [[r, r, r] for r in fit["roughness"]], (loc[0] + 200, loc[1] - 1000))
+    cv = fit["cv"] if scaled else [(1.0, 1.0, 0.0)] * len(xs)
+    kd = [[v * b[0] for v in k] for k, b in zip(fit["diffuse"], cv)]
+    ks = [[v * b[1] for v in k] for k, b in zip(fit["specular"], cv)]
+    params = (_piecewise(tree, x, xs, kd, (loc[0] + 200, loc[1])),
+              _piecewise(tree, x, xs, ks, (loc[0] + 200, loc[1] - 500)),
+              _piecewise(tree, x, xs, [[r, r, r] for r in fit["roughness"]], (loc[0] + 200, loc[1] - 1000)))
+    if scaled:
+        params += (_piecewise(tree, x, xs, [[b[2]] * 3 for b in cv], (loc[0] + 200, loc[1] - 1500)),)
+    return params
+
+
+def _closures(tree, kd, ks, kr, loc):
+    """A Diffuse BSDF (colour kd) plus a GGX Glossy BSDF (colour ks, roughness kr's x)."""
+    nodes, links = tree.nodes, tree.links
+    diffuse = nodes.new("ShaderNodeBsdfDiffuse")
+    diffuse.location = (loc[0] + 3400, loc[1])
     glossy = nodes.new("ShaderNodeBsdfAnisotropic")     # "Glossy BSDF" in Blender >= 4.0
     glossy.distribution = 'GGX'
     glossy.location = (loc[0] + 3400, loc[1] - 500)
@@ -396,6 +407,43 @@ def _build_fit(tree, fit, loc=(-1400, -400)):
     links.new(diffuse.outputs[0], add.inputs[0])
     links.new(glossy.outputs[0], add.inputs[1])
     return add.outputs[0]
+
+
+def _build_fit(tree, fit, loc=(-1400, -400)):
+    """The fit back end's closures (a neutral grey diffuse without a fit); returns their
+    shader output socket."""
+    if fit is None:
+        diffuse = tree.nodes.new("ShaderNodeBsdfDiffuse")
+        diffuse.location = (loc[0] + 3400, loc[1])
+        diffuse.inputs["Color"].default_value = (*NEUTRAL, 1.0)
+        return diffuse.outputs[0]
+    return _closures(tree, *_fit_params(tree, fit, loc), loc)
+
+
+def _svm_backend(tree, svm_texture, fit, tangent, world_inputs, loc=(-1400, -3000)):
+    """The SVM back end's shader: the sampler's portal mixture (svm.build_svm_sampler), with a
+    fit its control variate: the fit's closures scaled by its `cv` betas, which Cycles lights
+    with its lamp and world sampling, taken with probability 1 - s; else the portal carrying
+    the rest (bake/export/closure_fit.py)."""
+    from . import svm
+    if fit is None or not any(b[0] > 0.0 or b[1] > 0.0 for b in fit["cv"]):
+        return svm.build_svm_sampler(tree, svm_texture, tangent, location=loc, world=world_inputs)
+    kd, ks, kr, share = _fit_params(tree, fit, (loc[0], loc[1] + 1600), scaled=True)
+    links = tree.links
+
+    def over_rest(colour):          # colour / (1 - s): the closures' weight when taken
+        node = tree.nodes.new("ShaderNodeVectorMath")
+        node.operation = 'DIVIDE'
+        links.new(colour, node.inputs[0])
+        rest = tree.nodes.new("ShaderNodeVectorMath")
+        rest.operation = 'SUBTRACT'
+        rest.inputs[0].default_value = (1.0, 1.0, 1.0)
+        links.new(share, rest.inputs[1])
+        links.new(rest.outputs[0], node.inputs[1])
+        return node.outputs[0]
+    closures = _closures(tree, over_rest(kd), over_rest(ks), kr, (loc[0], loc[1] + 1600))
+    cv = {"diffuse": kd, "specular": ks, "roughness": kr, "share": share, "closures": closures}
+    return svm.build_svm_sampler(tree, svm_texture, tangent, location=loc, world=world_inputs, cv=cv)
 
 
 def _build_tree(tree, name, tables_path, fit_path):
@@ -445,11 +493,9 @@ def _build_tree(tree, name, tables_path, fit_path):
             "problems": "; ".join(problems)}
     shader = fit_out
     if svm_texture:
-        from . import svm
         world_inputs = world.material_share(_world_inputs(bpy.context.scene, tables_path.parent, bake=False),
                                             info["matte"])
-        svm_out = svm.build_svm_sampler(tree, svm_texture, group_in.outputs["Tangent"], location=(-1400, -3000),
-                                        world=world_inputs)
+        svm_out = _svm_backend(tree, svm_texture, fit, group_in.outputs["Tangent"], world_inputs)
         for image in bpy.data.images:       # the texture's image, relative to the .blend as the tables are
             if image.filepath and bpy.path.abspath(image.filepath) == svm_texture:
                 image.filepath = _relative(svm_texture)

@@ -59,6 +59,21 @@ direction), the map's numbers constants of its node groups (named after its imag
 `update_world` changes both without a rebuild, unless the graph lacks a technique the new
 inputs use. Without a map or a sun the graph is the tables' alone, as above.
 
+With a control variate (`build_svm_sampler(..., cv=...)`, the node's SVM back end whenever its
+fit has one: bake/export/closure_fit.py cv_scales), a shading point takes, with probability
+1 - s, Cycles closures rendering f_cv (the fit's Diffuse + GGX Glossy BSDFs scaled by per-
+view-angle betas; weight / (1 - s)), which Cycles lights by its own next-event estimation of
+lamps and the world with MIS; else (probability s, by u2, then rescaled for the roulette) the
+portal mixture above carrying the rest with weight (f cos - f_cv cos ok) / (q s): f_cv as
+_cv_fcos computes what Cycles' bsdf_diffuse_eval and bsdf_microfacet_eval (GGX, no Fresnel)
+give. The rest has both signs: its positive and negative channels are two portals (Cycles
+picks a closure by the magnitude of its mean weight). The pick between closures and portal
+is the graph's own, with a fixed s per view angle: Cycles' pick by weight would take a portal
+whose direction found the sun (small weight there: q is large) rarely and then with a huge
+weight. Unbiased for any betas and s (tests/test_svm.py: furnace, and sky + sun against the
+mixture alone, with less noise). Lamps the portal cannot see (points without a radius) still
+light only f_cv: the node keeps the fit for lamp-lit scenes without OSL (node._resolve).
+
 Cycles compiles the graph into SVM instructions in node creation order wherever that
 order is topological (svm.cpp generate_svm_nodes sweeps the nodes by id and emits every
 node whose inputs are done), and frees a value's stack slots after its last user. The
@@ -943,10 +958,11 @@ def _sample(g, texture_path, group_input_tangent_socket):
     valid = g.math('MULTIPLY', g.math('GREATER_THAN', cos_raw, 0.0),
                    g.math('GREATER_THAN', g.dot(direction, geometry.outputs["True Normal"]), 0.0))
     return {"direction": direction, "weight": weight, "pdf": pdf, "valid": valid,
-            "position": geometry.outputs["Position"], "u2": u2}
+            "position": geometry.outputs["Position"], "u2": u2, "wi": wi, "n": n}
 
 
-def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, location=(0.0, 0.0), world=None):
+def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, location=(0.0, 0.0), world=None,
+                      cv=None):
     """Add to the shader node tree `tree` the sampler of the SVM texture `texture_path`
     (bake/export/svm_export.ensure_svm_export) ending in a Ray Portal BSDF; returns its shader output
     socket. Anisotropic tables take their frame's x from `group_input_tangent_socket` (a
@@ -956,20 +972,86 @@ def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, locat
     SunDirection, SunCos, SunShare): the portal direction is then drawn from the mixture of
     the tables, the world map and the sun (module docstring); update_world changes them.
     Without a world map or sun to draw from (None, shares 0, no readable map), the graph is
-    the tables' alone."""
+    the tables' alone.
+    `cv`: a control variate f_cv, Cycles closures (sockets "diffuse", "specular": colours,
+    "roughness": its x, of a Diffuse and a GGX Glossy BSDF; "share": its x, s; "closures": the
+    shader of those closures with weights / (1 - s)): a shading point takes the closures with
+    probability 1 - s, else the portal carrying f - f_cv with weight (f - f_cv) cos / (q s),
+    as two portals (its positive and negative channels)."""
     g = _Graph(tree, location)
     mix = _Mixture(world)
     if mix:
-        return _mixture(g, texture_path, group_input_tangent_socket, mix)
+        return _mixture(g, texture_path, group_input_tangent_socket, mix, cv)
     out = _sample(g, texture_path, group_input_tangent_socket)
     # zero (the path ends) for light from below the surface or a direction below the geometry
-    return _portal(g, g.scale(out["weight"], out["valid"]), out["position"], out["direction"], out["u2"])
+    weight = g.scale(out["weight"], out["valid"])
+    if cv is None:
+        return _portal(g, weight, out["position"], out["direction"], out["u2"])
+    take, u2 = _cv_pick(g, cv, out["u2"])
+    rest = _cv_rest(g, cv, out["wi"], out["n"], out["direction"], weight, out["valid"], out["pdf"])
+    return _mix_shader(g, take, cv["closures"], _signed_portals(g, rest, out["position"], out["direction"], u2))
+
+
+def _cv_pick(g, cv, u2):
+    """(1 when the shading point takes the portal (probability s, the control variate's portal
+    share), else 0; u2 rescaled within the part taken: uniform again, for the roulette)."""
+    s = g.dot(cv["share"], X)
+    take = g.math('LESS_THAN', u2, s)
+    inside = g.select(take, g.math('DIVIDE', u2, s),
+                      g.math('DIVIDE', g.math('SUBTRACT', u2, s), g.math('SUBTRACT', 1.0, s)))
+    return take, g.math('MINIMUM', inside, 1.0 - 2.0 ** -24)
+
+
+def _cv_fcos(g, cv, wi, n, d):
+    """What the control variate's closures render toward d, f_cv cos theta_o (colour): Cycles'
+    Diffuse BSDF (colour cv["diffuse"]) and GGX Glossy BSDF (colour cv["specular"], roughness
+    r = cv["roughness"]'s x, alpha = r^2) as bsdf_diffuse_eval and bsdf_microfacet_eval compute
+    them (no Fresnel, height-correlated G2), at wi and d about the normal n."""
+    cos_i = g.dot(wi, n)
+    cos_o = g.dot(d, n)
+    above = g.math('MULTIPLY', g.math('GREATER_THAN', cos_i, 0.0), g.math('GREATER_THAN', cos_o, 0.0))
+    diffuse = g.scale(cv["diffuse"], g.math('MULTIPLY', g.math('MAXIMUM', cos_o, 0.0), 1.0 / math.pi))
+    r = g.math('MINIMUM', g.math('MAXIMUM', g.dot(cv["roughness"], X), 0.0), 1.0)
+    alpha2 = g.math('POWER', r, 4.0)
+    cos_h = g.dot(g.vmath('NORMALIZE', g.vmath('ADD', wi, d)), n)
+    cos_h2 = g.math('MINIMUM', g.math('MULTIPLY', cos_h, cos_h), 1.0)
+    den = g.math('MULTIPLY_ADD', alpha2, cos_h2, g.math('SUBTRACT', 1.0, cos_h2))
+    ndf = g.math('DIVIDE', alpha2, g.math('MULTIPLY', g.math('MULTIPLY', den, den), math.pi))
+
+    def lam(c):     # bsdf_lambda<GGX>: 0.5 (sqrt(1 + alpha2 max(1 / c^2 - 1, 0)) - 1)
+        tan2 = g.math('MAXIMUM', g.math('SUBTRACT', g.math('DIVIDE', 1.0, g.math('MULTIPLY', c, c)), 1.0), 0.0)
+        return g.math('MULTIPLY', g.math('SUBTRACT', g.math('SQRT', g.math('MULTIPLY_ADD', alpha2, tan2, 1.0)), 1.0), 0.5)
+    g2 = g.math('ADD', g.math('ADD', lam(cos_i), lam(cos_o)), 1.0)
+    glossy = g.math('DIVIDE', g.math('MULTIPLY', ndf, above), g.math('MULTIPLY', g.math('MULTIPLY', cos_i, 4.0), g2))
+    return g.vmath('MULTIPLY_ADD', cv["specular"], g.combine(glossy, glossy, glossy), diffuse)
+
+
+def _cv_rest(g, cv, wi, n, d, weight, ok, q):
+    """The portal's weight for the BSDF less the control variate, when taken with probability
+    s: (weight - f_cv cos ok / q) / s."""
+    s = g.dot(cv["share"], X)
+    rest = g.vmath('SUBTRACT', weight, g.scale(_cv_fcos(g, cv, wi, n, d), g.math('DIVIDE', ok, q)))
+    return g.scale(rest, g.math('DIVIDE', 1.0, s))
+
+
+def _signed_portals(g, weight, position, direction, u2):
+    """Two portals along `direction`, the positive and the negative channels of `weight`:
+    Cycles picks a closure by its mean weight's magnitude, which for a colour of mixed signs
+    may be near 0 while its channels are not (the path's weight over the pick would explode)."""
+    pos = _portal(g, g.vmath('MAXIMUM', weight, (0.0, 0.0, 0.0)), position, direction, u2)
+    neg = _portal(g, g.vmath('MINIMUM', weight, (0.0, 0.0, 0.0)), position, direction, u2)
+    node = g.node("ShaderNodeAddShader")
+    g.set(node.inputs[0], pos)
+    g.set(node.inputs[1], neg)
+    return node.outputs[0]
 
 
 def _portal(g, weight, position, direction, u2):
     """A Ray Portal BSDF continuing the path along `direction` with colour `weight`. Cycles
-    drops a closure of mean weight < CUTOFF: those below 2 CUTOFF are rouletted up to it."""
-    keep = g.math('MULTIPLY', g.dot(weight, (1.0 / 3, 1.0 / 3, 1.0 / 3)), 0.5 / CUTOFF, clamp=True)
+    drops a closure of mean weight (magnitude) < CUTOFF: those below 2 CUTOFF are rouletted up
+    to it."""
+    keep = g.math('MULTIPLY', g.math('ABSOLUTE', g.dot(weight, (1.0 / 3, 1.0 / 3, 1.0 / 3))), 0.5 / CUTOFF,
+                  clamp=True)
     survive = g.math('LESS_THAN', g.math('MULTIPLY', u2, 1.0 - 2.0 ** -24), keep)
     weight = g.scale(weight, g.math('DIVIDE', survive, keep))
     portal = g.node("ShaderNodeBsdfRayPortal")
@@ -979,8 +1061,9 @@ def _portal(g, weight, position, direction, u2):
     return portal.outputs["BSDF"]
 
 
-def _mixture(g, texture_path, group_input_tangent_socket, mix):
-    """The shading point and its u (as _sample), then the mixture's branches, each ending in a portal."""
+def _mixture(g, texture_path, group_input_tangent_socket, mix, cv=None):
+    """The shading point and its u (as _sample), then the mixture's branches, each ending in a
+    portal (two with a control variate `cv`: build_svm_sampler)."""
     sampler = _Sampler(g, texture_path)
     geometry, n, wi, cos_raw, cos_i, (tx, ty, phi_i) = _shading(g, sampler, group_input_tangent_socket)
     light_path = g.node("ShaderNodeLightPath")
@@ -991,7 +1074,15 @@ def _mixture(g, texture_path, group_input_tangent_socket, mix):
     at = {"n": n, "ng": geometry.outputs["True Normal"], "cos_raw": cos_raw, "cos_i": cos_i, "tx": tx, "ty": ty,
           "phi_i": phi_i, "u0": u0, "u1": u1}
     position = geometry.outputs["Position"]
-    return mix.graph(g, sampler, at, lambda out: _portal(g, out["weight"], position, out["direction"], u2))
+    if cv is None:
+        return mix.graph(g, sampler, at, lambda out: _portal(g, out["weight"], position, out["direction"], u2))
+
+    take, u2 = _cv_pick(g, cv, u2)
+
+    def closure(out):
+        rest = _cv_rest(g, cv, wi, n, out["direction"], out["weight"], out["ok"], out["q"])
+        return _signed_portals(g, rest, position, out["direction"], u2)
+    return _mix_shader(g, take, cv["closures"], mix.graph(g, sampler, at, closure))
 
 
 def tables_pdf_graph(tree, texture_path, wo_socket, group_input_tangent_socket=None, location=(0.0, 0.0)):

@@ -18,6 +18,14 @@ cosine and the GGX lobe's samplers, fixed seed). Recorded per knot: the relative
 error of f cos (`rel_error`) and the albedo the closures really reach (`fit_albedo`,
 equal to `albedo` unless ks or kd hit a bound).
 
+Per knot also the control variate (`cv`: beta_d, beta_s in [0, 1] and a portal share s,
+`cv_scales`): the SVM back end renders f_cv = beta_d kd / pi + beta_s ks f_ggx as Cycles
+closures (which Cycles lights with its own lamp and world sampling, MIS included) with
+probability 1 - s, weight 1 / (1 - s), else the rest, f - f_cv, through its Ray Portal with
+weight (f - f_cv) cos / (q s) at the portal's direction: unbiased for any beta and s. The
+betas minimise the rest's second moment (0 where the fit's lobe reaches directions the
+tables rarely sample: the rest's weight there would be a large negative number).
+
 `principled_params(fit)` maps a fit to one view-independent Principled BSDF (the
 baseline the acceptance script compares against).
 """
@@ -32,7 +40,9 @@ from ..errors import FlowBSDFError
 from ..materials.analytic import ggx_ndf, ggx_lambda, ggx_reflection_pdf, ggx_sample_reflection
 from ..plumbing.files import atomic_path, file_hash
 
-FIT_VERSION = 2
+FIT_VERSION = 3
+CV_BETAS = np.linspace(0.0, 1.0, 11)
+CV_MAX_WEIGHT = 3.0     # bound of the residual's negative weight f_cv cos / p, in albedos
 KNOTS_DEG = (0.0, 15.0, 30.0, 40.0, 50.0, 58.0, 65.0, 70.0, 74.0, 78.0, 81.0, 84.0, 86.0, 88.0, 89.5)
 ALPHAS = np.geomspace(0.002, 1.0, 24)
 
@@ -123,7 +133,7 @@ def fit_closures(tables, knots_deg=KNOTS_DEG, n=2048, seed=0):
     r = sqrt(alpha), the relative L2 error of f cos and the albedos."""
     out = {"format": "flowbsdf-closure-fit", "version": FIT_VERSION, "model": "diffuse+ggx",
            "x": [], "theta_deg": [], "diffuse": [], "specular": [], "roughness": [], "alpha": [],
-           "rel_error": [], "albedo": [], "fit_albedo": []}
+           "rel_error": [], "albedo": [], "fit_albedo": [], "cv": []}
     # Knots ascending in x = 1 - cos theta (Facing), i.e. ascending theta.
     for deg in sorted(knots_deg):
         theta = np.radians(deg)
@@ -137,13 +147,67 @@ def fit_closures(tables, knots_deg=KNOTS_DEG, n=2048, seed=0):
         out["rel_error"].append(rel)
         out["albedo"].append([float(v) for v in albedo])
         out["fit_albedo"].append([float(v) for v in fit_albedo])
+        out["cv"].append(list(cv_scales(tables, theta, kd, ks, alpha, seed=seed)))
     # The node clamps Facing to the knots' range: extend to x = 1 (grazing) with the last knot.
     if out["x"][-1] < 1.0:
-        for key in ("diffuse", "specular", "roughness", "alpha", "rel_error", "albedo", "fit_albedo"):
+        for key in ("diffuse", "specular", "roughness", "alpha", "rel_error", "albedo", "fit_albedo", "cv"):
             out[key].append(out[key][-1])
         out["x"].append(1.0)
         out["theta_deg"].append(90.0)
     return out
+
+
+def _hemisphere_grid(n_theta=96, n_phi=192):
+    """Midpoints of an equal-area (cos theta, phi) grid over the upper hemisphere."""
+    c = (np.arange(n_theta) + 0.5) / n_theta
+    phi = (np.arange(n_phi) + 0.5) / n_phi * 2 * np.pi
+    c, phi = np.meshgrid(c, phi, indexing="ij")
+    s = np.sqrt(1 - c * c)
+    return np.stack([s * np.cos(phi), s * np.sin(phi), c], -1).reshape(-1, 3)
+
+
+def cv_scales(tables, theta, kd, ks, alpha, n=1 << 15, seed=0, betas=CV_BETAS):
+    """(beta_d, beta_s, portal share) at this view angle (module docstring). The betas are the
+    control variate's coefficients that minimise the second moment of the rest's weight
+    (f - f_cv) cos / p over the tables' samples (least squares, on a grid in [0, 1]), among
+    those whose negative weight beta f_cv cos / p stays below CV_MAX_WEIGHT albedos on the
+    samples and on a dense hemisphere grid (the tables' floor density keeps p > 0). The share
+    is the probability with which a shading point takes the portal (the rest) rather than the
+    closures: sqrt(M_rest) / (sqrt(M_rest) + sqrt(M_cv)), the one-sample mixture's optimum for
+    the two parts' second moments in a white furnace, within [0.05, 0.95]; 1 without a
+    control variate. (Cycles' own pick between closures goes by their weights, which for the
+    portal depend on its direction: a sun found by the portal's mixture, where its weight is
+    small, would be taken rarely and then with a huge weight.)"""
+    wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
+    rng = np.random.default_rng(seed)
+    wo, pdf = tables.sample(wi, _stratified(n, rng))
+    keep = (wo[:, 2] > 0) & (pdf > 0)
+    wo, pdf = wo[keep], pdf[keep]
+    c = wo[:, 2:3]
+    w = tables.eval(wi, wo) * c / pdf[:, None]
+    kd, ks = np.asarray(kd, float), np.asarray(ks, float)
+    d = kd[None, :] * (c / np.pi) / pdf[:, None]
+    g = ks[None, :] * (ggx_fcos(wi, wo, alpha) / pdf)[:, None]
+    grid = _hemisphere_grid()
+    p_grid = tables.pdf(wi, grid)
+    with np.errstate(divide="ignore"):
+        bound_d = max(np.max(d.mean(1)), np.max(kd.mean() * grid[:, 2] / np.pi / p_grid))
+        bound_g = max(np.max(g.mean(1)), np.max(ks.mean() * ggx_fcos(wi, grid, alpha) / p_grid))
+    limit = CV_MAX_WEIGHT * max(float(w.mean()), 1e-3)
+    best = (np.inf, 0.0, 0.0)
+    for bd in betas:
+        for bs in betas:
+            if bd * bound_d + bs * bound_g > limit:
+                continue
+            m2 = float(np.mean((w - bd * d - bs * g) ** 2))
+            if m2 < best[0] - 1e-12:
+                best = (m2, float(bd), float(bs))
+    m_rest, bd, bs = best
+    if bd == 0.0 and bs == 0.0:
+        return 0.0, 0.0, 1.0
+    m_cv = float(np.mean(bd * d + bs * g)) ** 2
+    share = np.sqrt(m_rest) / (np.sqrt(m_rest) + np.sqrt(m_cv))
+    return bd, bs, float(np.clip(share, 0.05, 0.95))
 
 
 def params_at(fit, cos_i):
@@ -154,6 +218,16 @@ def params_at(fit, cos_i):
     ks = np.stack([np.interp(x, xs, np.asarray(fit["specular"])[:, c]) for c in range(3)], -1)
     r = np.interp(x, xs, fit["roughness"])
     return kd, ks, r * r
+
+
+def cv_params_at(fit, cos_i):
+    """(kd, ks, alpha) of the closures the SVM back end renders beside its portal: the fit's
+    knots scaled by their `cv` scales, then interpolated as params_at."""
+    scaled = dict(fit)
+    beta = np.asarray(fit["cv"])
+    scaled["diffuse"] = (np.asarray(fit["diffuse"]) * beta[:, 0:1]).tolist()
+    scaled["specular"] = (np.asarray(fit["specular"]) * beta[:, 1:2]).tolist()
+    return params_at(scaled, cos_i)
 
 
 def eval_fit(fit, wi, wo):
