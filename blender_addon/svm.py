@@ -63,7 +63,8 @@ With a control variate (`build_svm_sampler(..., cv=...)`, the node's SVM back en
 fit has one: bake/export/closure_fit.py cv_scales), a shading point takes, with probability
 1 - s, Cycles closures rendering f_cv (the fit's Diffuse + GGX Glossy BSDFs scaled by per-
 view-angle betas; weight / (1 - s)), which Cycles lights by its own next-event estimation of
-lamps and the world with MIS; else (probability s, by u2, then rescaled for the roulette) the
+lamps and the world with MIS; else (probability s, by u0, then rescaled: on camera rays the pick
+is as stratified over a pixel's samples as u0) the
 portal mixture above carrying the rest with weight (f cos - f_cv cos ok) / (q s): f_cv as
 _cv_fcos computes what Cycles' bsdf_diffuse_eval and bsdf_microfacet_eval (GGX, no Fresnel)
 give. The rest has both signs: its positive and negative channels are two portals (Cycles
@@ -943,12 +944,15 @@ def sample_graph(tree, texture_path, group_input_tangent_socket=None, location=(
     return _sample(_Graph(tree, location), texture_path, group_input_tangent_socket)
 
 
-def _sample(g, texture_path, group_input_tangent_socket):
+def _sample(g, texture_path, group_input_tangent_socket, cv=None):
     sampler = _Sampler(g, texture_path)
     geometry, n, wi, cos_raw, cos_i, (tx, ty, phi_i) = _shading(g, sampler, group_input_tangent_socket)
     light_path = g.node("ShaderNodeLightPath")
     u0, u1, u2 = _random(g, geometry, light_path)
     u0, u1 = _film_u(g, light_path, (u0, u1))
+    take = None
+    if cv is not None:
+        take, u0 = _cv_pick(g, cv, u0)
     sampler.incident(cos_i, phi_i)
     a, b, weight, pdf = sampler.sample(u0, u1)
     wo = _from_ab(g, a, b, phi_i)
@@ -958,7 +962,7 @@ def _sample(g, texture_path, group_input_tangent_socket):
     valid = g.math('MULTIPLY', g.math('GREATER_THAN', cos_raw, 0.0),
                    g.math('GREATER_THAN', g.dot(direction, geometry.outputs["True Normal"]), 0.0))
     return {"direction": direction, "weight": weight, "pdf": pdf, "valid": valid,
-            "position": geometry.outputs["Position"], "u2": u2, "wi": wi, "n": n}
+            "position": geometry.outputs["Position"], "u2": u2, "wi": wi, "n": n, "take": take}
 
 
 def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, location=(0.0, 0.0), world=None,
@@ -982,23 +986,24 @@ def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, locat
     mix = _Mixture(world)
     if mix:
         return _mixture(g, texture_path, group_input_tangent_socket, mix, cv)
-    out = _sample(g, texture_path, group_input_tangent_socket)
+    out = _sample(g, texture_path, group_input_tangent_socket, cv)
     # zero (the path ends) for light from below the surface or a direction below the geometry
     weight = g.scale(out["weight"], out["valid"])
     if cv is None:
         return _portal(g, weight, out["position"], out["direction"], out["u2"])
-    take, u2 = _cv_pick(g, cv, out["u2"])
     rest = _cv_rest(g, cv, out["wi"], out["n"], out["direction"], weight, out["valid"], out["pdf"])
-    return _mix_shader(g, take, cv["closures"], _signed_portals(g, rest, out["position"], out["direction"], u2))
+    return _mix_shader(g, out["take"], cv["closures"],
+                       _signed_portals(g, rest, out["position"], out["direction"], out["u2"]))
 
 
-def _cv_pick(g, cv, u2):
+def _cv_pick(g, cv, u0):
     """(1 when the shading point takes the portal (probability s, the control variate's portal
-    share), else 0; u2 rescaled within the part taken: uniform again, for the roulette)."""
+    share), else 0; u0 rescaled within the part taken: uniform again for the portal's sampling).
+    By u0, so that on camera rays the pick is as stratified over a pixel's samples as u0 is."""
     s = g.dot(cv["share"], X)
-    take = g.math('LESS_THAN', u2, s)
-    inside = g.select(take, g.math('DIVIDE', u2, s),
-                      g.math('DIVIDE', g.math('SUBTRACT', u2, s), g.math('SUBTRACT', 1.0, s)))
+    take = g.math('LESS_THAN', u0, s)
+    inside = g.select(take, g.math('DIVIDE', u0, s),
+                      g.math('DIVIDE', g.math('SUBTRACT', u0, s), g.math('SUBTRACT', 1.0, s)))
     return take, g.math('MINIMUM', inside, 1.0 - 2.0 ** -24)
 
 
@@ -1077,7 +1082,7 @@ def _mixture(g, texture_path, group_input_tangent_socket, mix, cv=None):
     if cv is None:
         return mix.graph(g, sampler, at, lambda out: _portal(g, out["weight"], position, out["direction"], u2))
 
-    take, u2 = _cv_pick(g, cv, u2)
+    take, at["u0"] = _cv_pick(g, cv, u0)
 
     def closure(out):
         rest = _cv_rest(g, cv, wi, n, out["direction"], out["weight"], out["ok"], out["q"])

@@ -70,6 +70,39 @@ def test_glossy_fit_finds_the_lobe_and_keeps_the_albedo(glossy):
         np.testing.assert_allclose(est, albedo, rtol=0.02)
 
 
+def test_control_variate_takes_an_exact_fit_whole(lambert):
+    """A Lambertian's fit is the BSDF itself: the SVM back end renders nearly all of it as
+    Cycles' closures (diffuse beta >= 0.8) and takes the portal rarely (share < 0.25: the rest
+    is these coarse 16 x 16 tables' own tabulation error; measured 0.14 at normal view)."""
+    fit = closure_fit.fit_closures(lambert, knots_deg=KNOTS)
+    for deg, (bd, bs, share) in zip(fit["theta_deg"], fit["cv"]):
+        if deg <= 75.0:
+            assert bd >= 0.8 and share < 0.25, (deg, bd, bs, share)
+
+
+def test_control_variate_keeps_the_rest_bounded(glossy):
+    """At every knot the chosen control variate's rest has a negative weight (f_cv - f) cos /
+    (p s) within CV_MAX_WEIGHT albedos, on samples the choice never saw (another seed), and
+    betas 0 come with share 1 (the portal alone)."""
+    fit = closure_fit.fit_closures(glossy, knots_deg=KNOTS)
+    assert any(b[0] + b[1] > 0 for b in fit["cv"]), fit["cv"]
+    rng = np.random.default_rng(7)
+    for deg, (bd, bs, share), kd, ks, alpha in zip(fit["theta_deg"], fit["cv"], fit["diffuse"], fit["specular"],
+                                                   fit["alpha"]):
+        if bd == 0.0 and bs == 0.0:
+            assert share == 1.0
+            continue
+        theta = np.radians(min(deg, 89.5))
+        wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
+        wo, p = glossy.sample(wi, rng.random((1 << 14, 2)))
+        c = wo[:, 2:3]
+        fcos = glossy.eval(wi, wo) * c
+        cv = bd * np.asarray(kd) * c / np.pi + bs * np.asarray(ks) * closure_fit.ggx_fcos(wi, wo, alpha)[:, None]
+        albedo = np.mean(fcos / p[:, None])
+        negative = np.max((cv - fcos) / p[:, None])
+        assert negative / share <= closure_fit.CV_MAX_WEIGHT * albedo, (deg, negative, share, albedo)
+
+
 def test_baked_albedo_is_the_tables_expectation(glossy):
     rng = np.random.default_rng(2)
     for theta in (0.2, 1.1, 1.5):
