@@ -113,6 +113,7 @@ GROUP_PREFIX = f"FlowBSDF SVM{GRAPH_VERSION} "
 FILM = "FlowBSDF SVM film"      # a Combine XYZ node per sampler: film_settings
 WORLD = "FlowBSDF SVM world"    # a Combine XYZ node per mixture: (WorldShare, SunShare, SunCos)
 SUN = "FlowBSDF SVM sun"        # a Combine XYZ node per mixture with a sun: SunDirection
+CV = "FlowBSDF SVM cv"          # a Value node per control variate: 1 on, 0 off (ControlVariate)
 X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
 
 
@@ -816,6 +817,9 @@ def update_world(tree, world):
     node groups. Returns False when a graph lacks a technique the new inputs use (the map or
     the sun; or `tree` has no world graph and the inputs have a technique): rebuild it then."""
     mix = _Mixture(world)
+    for node in tree.nodes:
+        if node.name.startswith(CV) and node.outputs[0].default_value != _cv_value(world):
+            node.outputs[0].default_value = _cv_value(world)
     nodes = [node for node in tree.nodes if node.name.startswith(WORLD)]
     if not nodes:
         return not mix
@@ -983,6 +987,8 @@ def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, locat
     probability 1 - s, else the portal carrying f - f_cv with weight (f - f_cv) cos / (q s),
     as two portals (its positive and negative channels)."""
     g = _Graph(tree, location)
+    if cv is not None:
+        cv = _cv_switched(g, cv, world)
     mix = _Mixture(world)
     if mix:
         return _mixture(g, texture_path, group_input_tangent_socket, mix, cv)
@@ -996,11 +1002,26 @@ def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, locat
                        _signed_portals(g, rest, out["position"], out["direction"], out["u2"]))
 
 
+def _cv_switched(g, cv, world):
+    """`cv` with "on" (the value of a node named CV: 1 uses the control variate, 0 leaves the
+    portal alone: world inputs' ControlVariate, update_world) and "s", the share of shading
+    points that take the portal: cv's share when on, else 1."""
+    node = g.node("ShaderNodeValue", name=CV, label=CV)
+    node.outputs[0].default_value = _cv_value(world)
+    on = node.outputs[0]
+    return dict(cv, on=on, s=g.math('SUBTRACT', 1.0, g.math('MULTIPLY', on, g.math('SUBTRACT', 1.0,
+                                                                                     g.dot(cv["share"], X)))))
+
+
+def _cv_value(world):
+    return float((world or {}).get("ControlVariate", 1.0))
+
+
 def _cv_pick(g, cv, u0):
     """(1 when the shading point takes the portal (probability s, the control variate's portal
     share), else 0; u0 rescaled within the part taken: uniform again for the portal's sampling).
     By u0, so that on camera rays the pick is as stratified over a pixel's samples as u0 is."""
-    s = g.dot(cv["share"], X)
+    s = cv["s"]
     take = g.math('LESS_THAN', u0, s)
     inside = g.select(take, g.math('DIVIDE', u0, s),
                       g.math('DIVIDE', g.math('SUBTRACT', u0, s), g.math('SUBTRACT', 1.0, s)))
@@ -1032,11 +1053,11 @@ def _cv_fcos(g, cv, wi, n, d):
 
 
 def _cv_rest(g, cv, wi, n, d, weight, ok, q):
-    """The portal's weight for the BSDF less the control variate, when taken with probability
-    s: (weight - f_cv cos ok / q) / s."""
-    s = g.dot(cv["share"], X)
-    rest = g.vmath('SUBTRACT', weight, g.scale(_cv_fcos(g, cv, wi, n, d), g.math('DIVIDE', ok, q)))
-    return g.scale(rest, g.math('DIVIDE', 1.0, s))
+    """The portal's weight for the BSDF less the control variate (when on), when taken with
+    probability s: (weight - on f_cv cos ok / q) / s."""
+    rest = g.vmath('SUBTRACT', weight, g.scale(_cv_fcos(g, cv, wi, n, d),
+                                              g.math('DIVIDE', g.math('MULTIPLY', ok, cv["on"]), q)))
+    return g.scale(rest, g.math('DIVIDE', 1.0, cv["s"]))
 
 
 def _signed_portals(g, weight, position, direction, u2):

@@ -863,3 +863,32 @@ def test_svm_control_variate_is_unbiased_and_cuts_the_sun_noise(svm, plastic, pl
     print(f"variance with / without the control variate {ratio:.3f}; means {means}, se {se:.2e}")
     assert abs(means[0] - means[1]) < 4 * se, (means, se)
     assert ratio < 0.8, ratio
+
+
+def test_svm_control_variate_switch(svm, plastic, plastic_fit, tmp_path):
+    """World inputs with ControlVariate 0 (a broad map, blender_addon.world.shader_inputs) leave
+    the portal alone: the node's SVM back end renders the pixels of the graph without a control
+    variate, exactly; update_world switches it on and off without a rebuild."""
+    from blender_addon import node as lb
+    n = 12
+    sc = cs.reset(n, n, spp=8, osl=False, threads=1)
+    cs.ortho_camera(sc, scale=2.2)
+    cs.set_world(sc, (0.6, 0.7, 0.8))
+    texture = svm_export.ensure_svm_export(plastic)
+    off = {"ControlVariate": 0.0}
+    switched = cs.material_with(lambda tree: lb._svm_backend(tree, texture, plastic_fit, None, off), "switched")
+    alone = cs.material_with(lambda tree: svm.build_svm_sampler(tree, texture), "alone")
+    sphere = cs.add_sphere(sc)
+
+    def render(material):
+        sphere.data.materials.clear()
+        sphere.data.materials.append(material)
+        return cs.render(sc)
+    np.testing.assert_array_equal(render(switched), render(alone))
+    tree = switched.node_tree
+    assert svm.update_world(tree, {"ControlVariate": 1.0})
+    on = render(switched)
+    assert not np.array_equal(on, render(alone))
+    assert svm.update_world(tree, off)
+    np.testing.assert_array_equal(render(switched), render(alone))
+    assert [node.outputs[0].default_value for node in tree.nodes if node.name.startswith(svm.CV)] == [0.0]
