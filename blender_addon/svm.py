@@ -72,8 +72,11 @@ picks a closure by the magnitude of its mean weight). The pick between closures 
 is the graph's own, with a fixed s per view angle: Cycles' pick by weight would take a portal
 whose direction found the sun (small weight there: q is large) rarely and then with a huge
 weight. Unbiased for any betas and s (tests/test_svm.py: furnace, and sky + sun against the
-mixture alone, with less noise). Lamps the portal cannot see (points without a radius) still
-light only f_cv: the node keeps the fit for lamp-lit scenes without OSL (node._resolve).
+mixture alone, with less noise). A Value node (CV) switches it: the world inputs'
+ControlVariate (blender_addon/world.shader_inputs: off under a broad image world, where the
+mixture alone was better; update_world sets it) makes s = 1 and f_cv 0 when off. Lamps the
+portal cannot see (points without a radius) still light only f_cv: the node keeps the fit for
+lamp-lit scenes without OSL (node._resolve).
 
 Cycles compiles the graph into SVM instructions in node creation order wherever that
 order is topological (svm.cpp generate_svm_nodes sweeps the nodes by id and emits every

@@ -149,7 +149,10 @@ def fit_closures(tables, knots_deg=KNOTS_DEG, n=2048, seed=0):
         out["rel_error"].append(rel)
         out["albedo"].append([float(v) for v in albedo])
         out["fit_albedo"].append([float(v) for v in fit_albedo])
-        out["cv"].append(list(cv_scales(tables, theta, kd, ks, alpha, seed=seed)))
+        # (anisotropic tables: no control variate; the fit is made at phi_i = 0 only, its rest
+        # at other phi_i unchecked)
+        out["cv"].append([0.0, 0.0, 1.0] if tables.anisotropic else list(cv_scales(tables, theta, kd, ks, alpha,
+                                                                                  seed=seed)))
     # The node clamps Facing to the knots' range: extend to x = 1 (grazing) with the last knot.
     if out["x"][-1] < 1.0:
         for key in ("diffuse", "specular", "roughness", "alpha", "rel_error", "albedo", "fit_albedo", "cv"):
