@@ -793,12 +793,15 @@ def _set_switches(tree, backend):
 
 def _world_inputs(scene, folder, bake):
     """The shader's world inputs (world.shader_inputs): the world's map when it exists (made
-    when `bake`), else none — then the portal samples the tables alone (still unbiased)."""
+    when `bake`), else none — then the portal samples the tables alone (still unbiased). The
+    SVM graph's control variate is on where the world has a small sun or the scene has lamps
+    (Cycles' light sampling of the fit's closures lights them; the portal does not)."""
     try:
-        return world.bake_world_map(scene, folder) if bake else world.current_inputs(scene, folder)
+        inputs = world.bake_world_map(scene, folder) if bake else world.current_inputs(scene, folder)
     except Exception as e:      # noqa: BLE001  (no world map: noisier, not wrong)
         print(f"FlowBSDF: no world importance map: {e}")
-        return world.shader_inputs(None, None, None)
+        inputs = world.shader_inputs(None, None, None)
+    return {**inputs, "ControlVariate": 1.0} if lamps.scene_lamps(scene) else inputs
 
 
 def update_world(scene):

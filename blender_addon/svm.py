@@ -73,8 +73,9 @@ is the graph's own, with a fixed s per view angle: Cycles' pick by weight would 
 whose direction found the sun (small weight there: q is large) rarely and then with a huge
 weight. Unbiased for any betas and s (tests/test_svm.py: furnace, and sky + sun against the
 mixture alone, with less noise). A Value node (CV) switches it: the world inputs'
-ControlVariate (blender_addon/world.shader_inputs: off under a broad image world, where the
-mixture alone was better; update_world sets it) makes s = 1 and f_cv 0 when off. Lamps the
+ControlVariate (blender_addon/world.shader_inputs and node._world_inputs: on for a small sun, a
+Sky Texture's sun or lamps, off elsewhere, where the mixture alone was better; absent: off;
+update_world sets it) makes s = 1 and f_cv 0 when off. Lamps the
 portal cannot see (points without a radius) still light only f_cv: the node keeps the fit for
 lamp-lit scenes without OSL (node._resolve).
 
@@ -1017,7 +1018,7 @@ def _cv_switched(g, cv, world):
 
 
 def _cv_value(world):
-    return float((world or {}).get("ControlVariate", 1.0))
+    return float((world or {}).get("ControlVariate", 0.0))
 
 
 def _cv_pick(g, cv, u0):

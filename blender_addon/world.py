@@ -142,11 +142,13 @@ def shader_inputs(path, meta, sun, env=None, sun_radiance=None, bright=None):
     share = 0.0 if flat else SMALL_SUN_SHARE if small_sun else SHARE
     # The SVM back end's control variate (svm.py) pays where the world has a small bright light
     # (the portal finds it all or nothing; Cycles' light sampling of the closures does not): a
-    # small sun, a Sky Texture's sun, or lamps and emitters in an otherwise flat world. Under a
-    # broad map the portal's mixture alone is better (the lights acceptance's sunny HDRI,
-    # paper_white at equal time: MSE 4.60e-4 with it, 1.9-2.9e-4 without in earlier runs).
-    broad = not flat and not small_sun and sun is None
-    inputs = {"World": str(path) if meta else "", "WorldShare": share, "ControlVariate": 0.0 if broad else 1.0,
+    # small sun or a Sky Texture's sun (and lamps: node._world_inputs). Elsewhere the portal's
+    # mixture alone is better: the lights acceptance's sunny HDRI (peak 38), equal time, MSE
+    # with / without it: paper_white 4.60e-4 / 1.39e-4, cm_military_green 1.22e-5 / 4.2e-6,
+    # chm_mint 2.95e-3 / 1.58e-3; a constant world, per-pixel variance 64 spp: paper_white
+    # 3.4e-4 / 2.6e-6, chm_mint 4.8e-4 / 1.1e-4.
+    inputs = {"World": str(path) if meta else "", "WorldShare": share,
+              "ControlVariate": 1.0 if small_sun or sun is not None else 0.0,
               "SunDirection": (0.0, 0.0, 1.0), "SunCos": 1.0, "SunAngle": 0.0, "SunShare": 0.0,
               "EnvImage": "", "EnvStrength": 0.0, "EnvLinear": 1, "EnvMap": "",
               "SunNEE": 0, "SunSky": (0.0, 0.0, 0.0, 1.0), "SunBase": (0.0, 0.0, 0.0, 1.0),

@@ -475,7 +475,7 @@ def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, capfd, tmp_path,
     world = fit = None
     if mixture:
         world = {"World": str(_world_map(tmp_path)[1]), "WorldShare": 0.2, "SunDirection": (0.3, 0.4, 0.8),
-                 "SunCos": 0.999, "SunShare": 0.3}
+                 "SunCos": 0.999, "SunShare": 0.3, "ControlVariate": 1.0}
     if cv:      # (the bake gives anisotropic tables no control variate: the largest graph possible)
         from bake.export import closure_fit
         fit = dict(closure_fit.load_fit(closure_fit.ensure_fit(brushed)))
@@ -824,7 +824,7 @@ def test_svm_control_variate_furnace_gives_the_baked_albedo(svm, plastic, plasti
     sc.cycles.filter_width = 0.01
     cs.ortho_camera(sc, scale=2.2)
     cs.set_world(sc, (1.0, 1.0, 1.0))
-    mat = _cv_material(svm, svm_export.ensure_svm_export(plastic), plastic_fit, None, "cv furnace")
+    mat = _cv_material(svm, svm_export.ensure_svm_export(plastic), plastic_fit, {"ControlVariate": 1.0}, "cv furnace")
     cs.add_sphere(sc, mat)
     imgs = _render_seeds(svm, sc, [mat], seeds)
     normal, hit = cs.sphere_view(n, n, scale=2.2)
@@ -893,3 +893,23 @@ def test_svm_control_variate_switch(svm, plastic, plastic_fit, tmp_path):
     assert svm.update_world(tree, off)
     np.testing.assert_array_equal(render(switched), render(alone))
     assert [node.outputs[0].default_value for node in tree.nodes if node.name.startswith(svm.CV)] == [0.0]
+
+
+def test_control_variate_is_on_where_a_small_light_is(svm, tmp_path):
+    """The world inputs switch the SVM control variate on for a small sun in the map (peak >=
+    BRIGHT), a Sky Texture's sun and a scene with lamps; off for no map, a flat or a broad map
+    (where the measurements in world.shader_inputs found the mixture alone better)."""
+    import bpy
+    from blender_addon import node as lb, world as bw
+    cv = lambda inputs: inputs["ControlVariate"]        # noqa: E731
+    assert cv(bw.shader_inputs(None, None, None)) == 0.0
+    assert cv(bw.shader_inputs(tmp_path / "w.exr", {"peak": 1.2}, None)) == 0.0         # flat
+    assert cv(bw.shader_inputs(tmp_path / "w.exr", {"peak": 38.0}, None)) == 0.0        # broad
+    assert cv(bw.shader_inputs(tmp_path / "w.exr", {"peak": 1e4}, None)) == 1.0         # small sun
+    assert cv(bw.shader_inputs(tmp_path / "w.exr", {"peak": 38.0}, ((0.0, 0.0, 1.0), 0.9999))) == 1.0
+    sc = cs.reset(8, 8, spp=1, osl=False)
+    cs.set_world(sc, (0.5, 0.5, 0.5))
+    assert cv(lb._world_inputs(sc, tmp_path, bake=False)) == 0.0
+    lamp = bpy.data.objects.new("lamp", bpy.data.lights.new("lamp", "POINT"))
+    sc.collection.objects.link(lamp)
+    assert cv(lb._world_inputs(sc, tmp_path, bake=False)) == 1.0
