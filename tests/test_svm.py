@@ -848,7 +848,7 @@ def test_svm_control_variate_is_unbiased_and_cuts_the_sun_noise(svm, plastic, pl
     (measured on this plastic, 16 px, 64 spp, 6 seeds: variance ratio 0.48; the draft tables
     of paper_white / cm_military_green / chm_mint: 0.51 / 0.33 / 0.37)."""
     n = 16
-    sc, sphere, materials = _sky_sphere(svm, cs.small_tables(PLASTIC, "plastic_sky", tmp_path), tmp_path, n)
+    sc, sphere, _ = _sky_sphere(svm, plastic, tmp_path, n)
     from blender_addon import world as bw
     inputs = bw.bake_world_map(sc, tmp_path)
     with_cv = _cv_material(svm, svm_export.ensure_svm_export(plastic), plastic_fit, inputs, "cv sky")

@@ -189,10 +189,10 @@ def cv_scales(tables, theta, kd, ks, alpha, n=1 << 15, seed=0, betas=CV_BETAS):
     taken rarely and then with a huge weight: hence the graph's own pick with a fixed s.)"""
     wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
     rng = np.random.default_rng(seed)
-    wo, pdf = tables.sample(wi, _stratified(n, rng))
-    keep = (wo[:, 2] > 0) & (pdf > 0)
-    wo, pdf = np.concatenate([wo[keep], _hemisphere_grid()]), None
-    p = tables.pdf(wi, wo)
+    wo, p = tables.sample(wi, _stratified(n, rng))
+    keep = (wo[:, 2] > 0) & (p > 0)
+    grid_wo = _hemisphere_grid()
+    wo, p = np.concatenate([wo[keep], grid_wo]), np.concatenate([p[keep], tables.pdf(wi, grid_wo)])
     c = wo[:, 2:3]
     fcos = tables.eval(wi, wo) * c
     kd, ks = np.asarray(kd, float), np.asarray(ks, float)
@@ -232,16 +232,6 @@ def params_at(fit, cos_i):
     ks = np.stack([np.interp(x, xs, np.asarray(fit["specular"])[:, c]) for c in range(3)], -1)
     r = np.interp(x, xs, fit["roughness"])
     return kd, ks, r * r
-
-
-def cv_params_at(fit, cos_i):
-    """(kd, ks, alpha) of the closures the SVM back end renders beside its portal: the fit's
-    knots scaled by their `cv` scales, then interpolated as params_at."""
-    scaled = dict(fit)
-    beta = np.asarray(fit["cv"])
-    scaled["diffuse"] = (np.asarray(fit["diffuse"]) * beta[:, 0:1]).tolist()
-    scaled["specular"] = (np.asarray(fit["specular"]) * beta[:, 1:2]).tolist()
-    return params_at(scaled, cos_i)
 
 
 def eval_fit(fit, wi, wo):
