@@ -147,15 +147,18 @@ def shader_inputs(path, meta, sun, env=None, sun_radiance=None, bright=None):
     # with / without it: paper_white 4.60e-4 / 1.39e-4, cm_military_green 1.22e-5 / 4.2e-6,
     # chm_mint 2.95e-3 / 1.58e-3; a constant world, per-pixel variance 64 spp: paper_white
     # 3.4e-4 / 2.6e-6, chm_mint 4.8e-4 / 1.1e-4.
+    # LightDirection: where that small light is, the direction the SVM graph matches its control
+    # variate to (svm._cv_matched: the closures carry all of the light's part).
     inputs = {"World": str(path) if meta else "", "WorldShare": share,
               "ControlVariate": 1.0 if small_sun or sun is not None else 0.0,
+              "LightDirection": tuple(meta["light"]) if small_sun and "light" in meta else (0.0, 0.0, 0.0),
               "SunDirection": (0.0, 0.0, 1.0), "SunCos": 1.0, "SunAngle": 0.0, "SunShare": 0.0,
               "EnvImage": "", "EnvStrength": 0.0, "EnvLinear": 1, "EnvMap": "",
               "SunNEE": 0, "SunSky": (0.0, 0.0, 0.0, 1.0), "SunBase": (0.0, 0.0, 0.0, 1.0),
               "SunRise": (0.0, 0.0, 0.0, 1.0)}
     if sun is not None:
-        inputs.update(SunDirection=sun[0], SunCos=sun[1], SunAngle=math.acos(sun[1]), SunShare=SUN_SHARE,
-                      WorldShare=0.0 if flat else SUN_MAP_SHARE)
+        inputs.update(SunDirection=sun[0], LightDirection=tuple(sun[0]), SunCos=sun[1], SunAngle=math.acos(sun[1]),
+                      SunShare=SUN_SHARE, WorldShare=0.0 if flat else SUN_MAP_SHARE)
         if sun_radiance is not None:
             # (colour sockets are RGBA)
             inputs.update(SunNEE=1, **{key: (*sun_radiance[name], 1.0) for key, name in
@@ -452,7 +455,8 @@ def bake_world_map(scene, folder):
     meta = world_map.read_world_meta(path)
     exact, sun = exact_environment(scene), sun_of(scene)
     small_sun = meta is not None and meta.get("peak", 0.0) >= BRIGHT
-    if meta is None or (exact is None and not sky_file.is_file()) or (small_sun and not bright_file.is_file()):
+    if meta is None or (exact is None and not sky_file.is_file()) or \
+            (small_sun and (not bright_file.is_file() or "light" not in meta)):
         try:
             radiance = image_radiance(scene)
             if radiance is None:
@@ -460,6 +464,7 @@ def bake_world_map(scene, folder):
             wm = world_map.WorldMap(radiance)
             meta = {"key": key, "peak": wm.peak}
             if wm.peak >= BRIGHT:
+                meta["light"] = [float(x) for x in wm.light_direction(BRIGHT / (4.0 * math.pi))]
                 world_map.write_world_texture(bright_file, wm.bright_only(radiance, BRIGHT / (4.0 * math.pi)),
                                               {"key": key, "bright": BRIGHT})
             world_map.write_world_texture(path, wm, meta)

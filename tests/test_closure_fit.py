@@ -212,3 +212,52 @@ def test_bright_only_map_draws_the_bright_pixels_alone():
     np.testing.assert_allclose(bright.pdf_pixel[mask], full.pdf_pixel[mask] / total, rtol=1e-5)
     d, pdf = bright.sample(rng.random((4000, 2)))
     assert np.all(pdf > 0) and np.all(mask[bright._pixel(d)])
+
+
+def test_light_direction_is_the_small_suns():
+    """WorldMap.light_direction: the power-weighted mean direction of the bright pixels is where
+    a small sun was painted (within its 2 x 2 pixels' extent), whichever way it lies; None
+    where no pixel is that bright."""
+    from bake.export.world_map import WorldMap
+    rng = np.random.default_rng(4)
+    for row, col in ((10, 20), (3, 60), (25, 0)):
+        radiance = rng.uniform(0.5, 1.5, (32, 64, 3))
+        radiance[row:row + 2, col:col + 2] = 2e4
+        wm = WorldMap(radiance)
+        d = wm.light_direction(100.0 / (4.0 * np.pi))
+        centre = np.array([row + 1.0, col + 1.0])       # the sun's centre (row, column) in pixels
+        z = np.cos(np.pi * centre[0] / 32)
+        phi = (0.5 - centre[1] / 64) * 2.0 * np.pi
+        want = np.array([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z])
+        assert abs(np.linalg.norm(d) - 1.0) < 1e-12
+        assert np.degrees(np.arccos(np.clip(d @ want, -1, 1))) < 360.0 / 64, (row, col, d, want)
+        assert wm.pdf(d[None])[0] >= 100.0 / (4.0 * np.pi)       # in the bright pixels
+    assert WorldMap(rng.uniform(0.5, 1.5, (32, 64, 3))).light_direction(100.0 / (4.0 * np.pi)) is None
+
+
+def test_match_image_holds_the_bsdf_over_the_fit(tmp_path, lambert, glossy):
+    """ensure_fit writes the match image beside the fit (named in it): texel (row j, column
+    i n + k) is f / f_fit at view cos i / (n - 1), light cos j / (n - 1), |phi| pi k / (n - 1),
+    as match_ratios computes it independently here at a few nodes; a Lambertian's fit is its
+    BSDF, so its ratios are ~1 (these coarse tables' own error: within 25 % where the light is
+    above cos 0.2; measured 0.99-1.21); a glossy one's run from far below 1 to far above."""
+    import OpenEXR
+    for tables, lo, hi in ((lambert, 0.8, 1.25), (glossy, 0.0, closure_fit.MATCH_MAX)):
+        path = tmp_path / "m.exr"
+        tables.save(path)
+        fit = closure_fit.load_fit(closure_fit.ensure_fit(path))
+        assert fit["match"] == "m.match.exr"
+        img = OpenEXR.File(str(tmp_path / fit["match"])).channels()["RGBA"].pixels
+        n = closure_fit.MATCH_N
+        assert img.shape == (n, n * n, 4)
+        for i, j, k in ((0, 5, 0), (7, 9, 3), (15, 15, 15), (12, 3, 8)):
+            cv, cl = max(i / (n - 1), 0.02), max(j / (n - 1), 0.02)
+            wi = np.array([np.sqrt(1 - cv * cv), 0.0, cv])
+            phi = np.pi * k / (n - 1)
+            wo = np.array([[np.sqrt(1 - cl * cl) * np.cos(phi), np.sqrt(1 - cl * cl) * np.sin(phi), cl]])
+            want = np.clip(tables.eval(wi, wo)[0] / closure_fit.eval_fit(fit, wi, wo)[0], 0, closure_fit.MATCH_MAX)
+            np.testing.assert_allclose(img[j, i * n + k, :3], want, rtol=1e-5)
+        ratios = img[n // 5:, :, :3]            # lights above cos 0.2
+        assert lo <= ratios.min() and ratios.max() <= hi, (ratios.min(), ratios.max())
+        if tables is glossy:
+            assert ratios.min() < 0.5 and ratios.max() > 1.5, (ratios.min(), ratios.max())

@@ -38,9 +38,13 @@ from ..core.geometry import luminance
 from ..core.tables import open_tables
 from ..errors import FlowBSDFError
 from ..materials.analytic import ggx_ndf, ggx_lambda, ggx_reflection_pdf, ggx_sample_reflection
+from ..plumbing.exrio import write_rgba_exr
 from ..plumbing.files import atomic_path, file_hash
 
-FIT_VERSION = 3
+FIT_VERSION = 4
+MATCH_N = 16        # the match image's nodes per axis (match_ratios)
+MATCH_MAX = 2.0     # its ratios' bound (blender_addon/svm.py matches only where the fit is within 10 %)
+MATCH_KEY = "flowbsdf_match"
 CV_BETAS = np.linspace(0.0, 1.0, 11)
 CV_LIGHT_SHARE = 0.5    # the portal mixture's probability of drawing a bright light (cv_scales)
 KNOTS_DEG = (0.0, 15.0, 30.0, 40.0, 50.0, 58.0, 65.0, 70.0, 74.0, 78.0, 81.0, 84.0, 86.0, 88.0, 89.5)
@@ -253,6 +257,40 @@ def principled_params(fit):
             "IOR": float(np.clip(ior, 1.0, 3.0)), "Specular IOR Level": 0.5}
 
 
+def match_ratios(tables, fit, n=MATCH_N):
+    """f / f_fit (RGB, in [0, MATCH_MAX]; 0 where the fit is 0) on a grid (n, n, n, 3): view
+    cos theta_v = i / (n - 1), light cos theta_l = j / (n - 1) and |phi_l| = pi k / (n - 1)
+    about the view's azimuth (cosines evaluated at >= 0.02: a row on the horizon holds its
+    neighbourhood's ratios). What the SVM back end scales the fit's closures by so that
+    f_cv = f toward a small light (blender_addon/svm.py: any scale is unbiased; this one is
+    the light's part of the rest ~0), read back by trilinear interpolation."""
+    c = np.maximum(np.linspace(0.0, 1.0, n), 0.02)
+    cl, phi = np.meshgrid(c, np.linspace(0.0, np.pi, n), indexing="ij")
+    sl = np.sqrt(1.0 - cl * cl)
+    wo = np.stack([sl * np.cos(phi), sl * np.sin(phi), cl], -1).reshape(-1, 3)
+    out = np.zeros((n, n, n, 3))
+    for i, cv in enumerate(c):
+        wi = np.array([np.sqrt(1.0 - cv * cv), 0.0, cv])
+        f, ff = tables.eval(wi, wo), eval_fit(fit, wi, wo)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out[i] = np.clip(np.where(ff > 0, f / ff, 0.0), 0.0, MATCH_MAX).reshape(n, n, 3)
+    return out
+
+
+def match_image(ratios):
+    """The (n, n * n, 4) float32 image of match_ratios: row j (from the top) holds cos theta_l
+    j / (n - 1), column i n + k the view i and |phi| k (svm._cv_matched reads it)."""
+    n = ratios.shape[0]
+    img = np.ones((n, n * n, 4), np.float32)
+    img[..., :3] = ratios.transpose(1, 0, 2, 3).reshape(n, n * n, 3)
+    return img
+
+
+def match_path(tables_path):
+    tables_path = Path(tables_path)
+    return tables_path.with_name(tables_path.stem + ".match.exr")
+
+
 # ------------------------------------------------------------------------------ files
 
 def fit_path(tables_path):
@@ -270,6 +308,8 @@ def load_fit(path):
         raise FlowBSDFError(f"closure fit unreadable ({e})", path) from None
     if fit.get("format") != "flowbsdf-closure-fit" or fit.get("version") != FIT_VERSION:
         raise FlowBSDFError("not a current FlowBSDF closure fit; re-bake", path)
+    if fit.get("match") and path.with_name(fit["match"]).is_file():
+        fit["match_path"] = str(path.with_name(fit["match"]))      # (as blender_addon/node.load_fit)
     return fit
 
 
@@ -284,9 +324,15 @@ def ensure_fit(tables_path, log=None):
             return path
     except FlowBSDFError:
         pass
-    fit = fit_closures(open_tables(tables_path))
+    tables = open_tables(tables_path)
+    fit = fit_closures(tables)
     fit["tables_hash"] = digest
     fit["tables"] = tables_path.name
+    if not tables.anisotropic:      # (the fit is made at phi_i 0: no matching for anisotropic tables)
+        match = match_path(tables_path)
+        write_rgba_exr(match, match_image(match_ratios(tables, fit)), MATCH_KEY,
+                       {"n": MATCH_N, "tables_hash": digest})
+        fit["match"] = match.name
     with atomic_path(path) as tmp:
         Path(tmp).write_text(json.dumps(fit, indent=1))
     if log:

@@ -73,6 +73,19 @@ class WorldMap:
         # shares: the float32 CDFs' rounding makes tiny pixels' densities coarse)
         self.peak = float((power / omega[:, None]).max() / total * 4.0 * np.pi)
 
+    def light_direction(self, density):
+        """The unit mean direction of the pixels whose density is `density` (per steradian) or
+        more, weighted by their power: where a small sun is (None without such pixels)."""
+        bright = self.pdf_pixel >= density
+        if not bright.any():
+            return None
+        z = 0.5 * (self.z_edges[:-1] + self.z_edges[1:])[:, None]
+        phi = (0.5 - (np.arange(self.W) + 0.5) / self.W)[None, :] * 2.0 * np.pi
+        s = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+        w = np.where(bright, np.diff(self.marginal)[:, None] * np.diff(self.conditional, axis=1), 0.0)
+        d = np.array([(w * s * np.cos(phi)).sum(), (w * s * np.sin(phi)).sum(), (w * z).sum()])
+        return d / np.linalg.norm(d)
+
     def bright_only(self, radiance, density):
         """The map of `radiance` (this map's image) with every pixel whose density here is below
         `density` (per steradian) black: where the OSL shader's next-event estimation of a small

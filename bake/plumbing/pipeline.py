@@ -3,8 +3,8 @@
 Layout of an output folder:
     <out>/models/<name>.flow.npz     trained flows (flowbsdf train)
     <out>/tables/<name>.exr          baked tables (flowbsdf bake)
-    <out>/tables/<name>.osl<layout>-<hash>.exr, <name>.svm<layout>-<hash>.exr, <name>.fit.json
-                                     what the Blender node reads beside them (bake/export/osl_export.py,
+    <out>/tables/<name>.osl<layout>-<hash>.exr, <name>.svm<layout>-<hash>.exr, <name>.fit.json,
+      <name>.match.exr (isotropic)   what the Blender node reads beside them (bake/export/osl_export.py,
                                      bake/export/svm_export.py, bake/export/closure_fit.py)
 A table file records the hash of its inputs (material content, model file, bake settings,
 table format); a bake whose inputs hash matches the file on disk is skipped, any change
