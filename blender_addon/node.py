@@ -446,11 +446,14 @@ def _svm_backend(tree, svm_texture, fit, tangent, world_inputs, loc=(-1400, -300
     with its lamp and world sampling, taken with probability 1 - s; else the portal carrying
     the rest (bake/export/closure_fit.py)."""
     from . import svm
-    if fit is None or not svm.control_variate_wanted(svm_texture, fit):
+    has_betas = fit is not None and any(b[0] > 0.0 or b[1] > 0.0 for b in fit["cv"])
+    # (a match image only where some view angle is matched: else no lookups)
+    match = fit.get("match_path") if fit and any(matched_share(e) > 0.0 for e in fit["rel_error"]) else None
+    if not (has_betas or match) or not svm.control_variate_wanted(svm_texture, fit):
         return svm.build_svm_sampler(tree, svm_texture, tangent, location=loc, world=world_inputs)
     kd, ks, kr, betas, matched = _fit_params(tree, fit, (loc[0], loc[1] + 1600), cv=True)
     cv = {"fit": (kd, ks), "roughness": kr, "betas": betas, "matched_share": matched,
-          "has_betas": any(b[0] > 0.0 or b[1] > 0.0 for b in fit["cv"]), "match_image": fit.get("match_path"),
+          "has_betas": has_betas, "match_image": match,
           "closures": lambda kd, ks: _closures(tree, kd, ks, kr, (loc[0], loc[1] + 1600))}
     return svm.build_svm_sampler(tree, svm_texture, tangent, location=loc, world=world_inputs, cv=cv)
 

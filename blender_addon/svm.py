@@ -867,7 +867,8 @@ def update_world(tree, world):
     mix = _Mixture(world)
     for node in tree.nodes:
         if node.name.startswith(CV):
-            if node.get("flowbsdf_light", 0) != int(mix.light is not None and bool(mix)):
+            if node.get("flowbsdf_light", 0) != int(mix.light is not None and bool(mix)
+                                                    and bool(node.get("flowbsdf_matchable", 0))):
                 return False
             if node.outputs[0].default_value != _cv_value(world):
                 node.outputs[0].default_value = _cv_value(world)
@@ -1068,6 +1069,7 @@ def _cv_switched(g, cv, world, matched):
     node = g.node("ShaderNodeValue", name=CV, label=CV)
     node.outputs[0].default_value = _cv_value(world)
     node["flowbsdf_light"] = int(matched)
+    node["flowbsdf_matchable"] = int(bool(cv.get("match_image")))
     if not matched and not cv["has_betas"]:
         return None
     on = node.outputs[0]

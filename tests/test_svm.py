@@ -933,6 +933,14 @@ def test_svm_matched_control_variate_follows_the_world(svm, plastic, plastic_fit
     assert not svm.update_world(plain, sun)
     assert svm.control_variate_wanted(texture, plastic_fit)
     assert not svm.control_variate_wanted(texture, None)
+    # a fit too poor to match anywhere and without betas: the plain graph, and no rebuild asked for
+    poor = dict(plastic_fit, rel_error=[0.5] * len(plastic_fit["x"]), cv=[[0.0, 0.0, 1.0]] * len(plastic_fit["x"]))
+    unmatched = bpy.data.node_groups.new("unmatched", "ShaderNodeTree")
+    lb._svm_backend(unmatched, texture, poor, None, sun)
+    bare = bpy.data.node_groups.new("bare", "ShaderNodeTree")
+    svm.build_svm_sampler(bare, texture, world=sun)
+    assert svm.graph_counts(unmatched) == svm.graph_counts(bare)
+    assert svm.update_world(unmatched, sun) and svm.update_world(unmatched, dict(sun, LightDirection=(0.0, 0.0, 0.0)))
 
 
 def test_svm_match_lookup_is_trilinear_in_the_match_image(svm, plastic, plastic_fit, tmp_path):
