@@ -436,9 +436,9 @@ def test_cli_reports_bad_inputs_without_traceback(tmp_path):
     out = tmp_path / "out"
     listing = _listing(out)
     # the good material's tables and what the Blender node reads beside them, nothing else
-    assert listing[:3] == ["tables", "tables/good.exr", "tables/good.fit.json"], listing
-    assert len(listing) == 5 and re.fullmatch(r"tables/good\.osl\d+-[0-9a-f]{12}\.exr", listing[3]), listing
-    assert re.fullmatch(r"tables/good\.svm\d+-[0-9a-f]{12}\.exr", listing[4]), listing
+    assert listing[:4] == ["tables", "tables/good.exr", "tables/good.fit.json", "tables/good.match.exr"], listing
+    assert len(listing) == 6 and re.fullmatch(r"tables/good\.osl\d+-[0-9a-f]{12}\.exr", listing[4]), listing
+    assert re.fullmatch(r"tables/good\.svm\d+-[0-9a-f]{12}\.exr", listing[5]), listing
     open_tables(table_path(out, "good"))
 
 

@@ -129,4 +129,5 @@ def test_bake_writes_readable_files_and_the_node_products_and_clears_dead_tempor
     os.umask(mask)
     assert path.stat().st_mode & 0o777 == 0o666 & ~mask, oct(path.stat().st_mode)   # not mkstemp's 0600
     names = sorted(p.name for p in path.parent.iterdir())
-    assert names[:2] == ["matte.exr", "matte.fit.json"] and names[2].startswith(f"matte.osl{LAYOUT}-"), names
+    assert names[:3] == ["matte.exr", "matte.fit.json", "matte.match.exr"], names
+    assert names[3].startswith(f"matte.osl{LAYOUT}-"), names
