@@ -441,10 +441,9 @@ def _build_fit(tree, fit, loc=(-1400, -400)):
 
 def _svm_backend(tree, svm_texture, fit, tangent, world_inputs, loc=(-1400, -3000)):
     """The SVM back end's shader: the sampler's portal mixture (svm.build_svm_sampler), with a
-    fit its control variate: the fit's closures scaled by its `cv` betas (or matched to a small
-    light: svm.py), which Cycles lights
-    with its lamp and world sampling, taken with probability 1 - s; else the portal carrying
-    the rest (bake/export/closure_fit.py)."""
+    fit its control variate: the fit's closures scaled by its `cv` betas (or matched to the
+    world's small light: svm.py), which Cycles lights with its lamp and world sampling, taken
+    with probability 1 - s; else the portal carrying the rest (bake/export/closure_fit.py)."""
     from . import svm
     has_betas = fit is not None and any(b[0] > 0.0 or b[1] > 0.0 for b in fit["cv"])
     # (a match image only where some view angle is matched: else no lookups)
