@@ -722,9 +722,9 @@ class _Mixture:
         for socket, value in zip(node.inputs, _world_values(self.inputs, self.map is not None, self.sun)):
             socket.default_value = value
         shares = node.outputs[0]
+        if scale is not None:       # (a matched control variate's points: fewer draws of the light)
+            shares = g.vmath('MULTIPLY', shares, g.combine(scale, scale, 1.0))
         self.c_world = g.dot(shares, X) if self.map else 0.0
-        if self.map and scale is not None:
-            self.c_world = g.math('MULTIPLY', self.c_world, scale)
         self.c_sun = 0.0
         if self.sun:
             sun = g.node("ShaderNodeCombineXYZ", name=SUN, label=SUN)
@@ -732,8 +732,6 @@ class _Mixture:
                 socket.default_value = value
             self.sun_cos = g.dot(shares, Z)
             self.c_sun = g.math('MULTIPLY', g.dot(shares, Y), g.math('LESS_THAN', self.sun_cos, 1.0))
-            if scale is not None:
-                self.c_sun = g.math('MULTIPLY', self.c_sun, scale)
             self.axis = g.vmath('NORMALIZE', sun.outputs[0])
             self.omc = g.math('SUBTRACT', 1.0, self.sun_cos)
             # c_sun p_cone inside the cone (0 for c_sun = 0: Cycles' divide by 0 gives 0)
@@ -826,6 +824,12 @@ def _light_direction(world):
     return d if any(d) else None
 
 
+def _matching(mix, matchable):
+    """Whether a control variate (with a match image: `matchable`) is matched to the light of
+    the mixture `mix` (its world has a small light and something to sample)."""
+    return matchable and mix.light is not None and bool(mix)
+
+
 def control_variate_wanted(texture_path, fit):
     """Whether the node's SVM back end hands build_svm_sampler a control variate: isotropic
     tables with a fit (for anisotropic tables the fit is made at phi_i 0 only)."""
@@ -867,8 +871,7 @@ def update_world(tree, world):
     mix = _Mixture(world)
     for node in tree.nodes:
         if node.name.startswith(CV):
-            if node.get("flowbsdf_light", 0) != int(mix.light is not None and bool(mix)
-                                                    and bool(node.get("flowbsdf_matchable", 0))):
+            if node.get("flowbsdf_light", 0) != int(_matching(mix, bool(node.get("flowbsdf_matchable", 0)))):
                 return False
             if node.outputs[0].default_value != _cv_value(world):
                 node.outputs[0].default_value = _cv_value(world)
@@ -1048,7 +1051,7 @@ def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, locat
     g = _Graph(tree, location)
     mix = _Mixture(world)
     if cv is not None:
-        cv = _cv_switched(g, cv, world, mix.light is not None and bool(mix) and bool(cv.get("match_image")))
+        cv = _cv_switched(g, cv, world, _matching(mix, bool(cv.get("match_image"))))
     if mix:
         return _mixture(g, texture_path, group_input_tangent_socket, mix, cv)
     out = _sample(g, texture_path, group_input_tangent_socket, cv)
@@ -1074,7 +1077,7 @@ def _cv_switched(g, cv, world, matched):
         return None
     on = node.outputs[0]
     kd, ks = cv["fit"]
-    return dict(cv, on=on, match=matched, diffuse=g.scale(kd, g.dot(cv["betas"], X)),
+    return dict(cv, on=on, matching=matched, diffuse=g.scale(kd, g.dot(cv["betas"], X)),
                 specular=g.scale(ks, g.dot(cv["betas"], Y)),
                 s=g.math('SUBTRACT', 1.0, g.math('MULTIPLY', on, g.math('SUBTRACT', 1.0, g.dot(cv["betas"], Z)))))
 
@@ -1169,15 +1172,15 @@ def _mixture(g, texture_path, group_input_tangent_socket, mix, cv=None):
     if cv is None:
         return mix.graph(g, sampler, at, lambda out: _portal(g, out["weight"], position, out["direction"], u2))
 
-    if cv["match"]:
+    scale = None
+    if cv["matching"]:
         cv = _cv_matched(g, cv, at, mix.light_axis(g))
+        scale = g.math('SUBTRACT', 1.0, g.math('MULTIPLY', cv["matched"], 1.0 - MATCHED_LIGHT_SCALE))
     take, at["u0"] = _cv_pick(g, cv, u0)
 
     def closure(out):
         rest = _cv_rest(g, cv, wi, n, out["direction"], out["weight"], out["ok"], out["q"])
         return _signed_portals(g, rest, position, out["direction"], u2)
-    scale = g.math('SUBTRACT', 1.0, g.math('MULTIPLY', cv["matched"], 1.0 - MATCHED_LIGHT_SCALE)) \
-        if "matched" in cv else None
     return _mix_shader(g, take, _cv_closures(g, cv), mix.graph(g, sampler, at, closure, scale))
 
 
