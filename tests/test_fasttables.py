@@ -269,3 +269,21 @@ def test_stale_library_is_rejected_and_a_fresh_one_compiles(tmp_path):
     assert fasttables._open(path, sha) is not None
     with pytest.raises(OSError, match="stale"):
         fasttables._open(path, "0" * 64)
+
+
+def test_one_blas_thread_sets_openblas_to_one_thread_and_restores_it():
+    """The baker runs BLAS in one thread (fasttables.one_blas_thread), nested or not, and gives
+    the caller's thread count back; the products' bits do not change."""
+    x = np.random.default_rng(3).normal(size=(200_000, 3))
+    v = np.array([0.2, 0.7, 0.1])
+    before = x @ v
+    with fasttables.one_blas_thread():
+        found = fasttables._blas[0]
+        inside = found[0]() if found else None
+        with fasttables.one_blas_thread():
+            np.testing.assert_array_equal(x @ v, before)
+        still = found[0]() if found else None
+    if found is None:
+        pytest.skip("numpy's BLAS is not an OpenBLAS found here")
+    assert inside == 1 and still == 1
+    assert fasttables._blas_users[0] == 0 and found[0]() == fasttables._blas_users[1]

@@ -266,3 +266,48 @@ def test_quadrature_nodes_are_from_ab_of_every_node():
     A = (a0[:, None] + np.repeat(s, q)[None, :] * (a1 - a0)[:, None]).ravel()
     B = (b0[:, None] + np.tile(s, q)[None, :] * (b1 - b0)[:, None]).ravel()
     assert np.array_equal(_nodes(a0, a1, b0, b1, s, 0.7), from_ab(A, B, 0.7))
+
+
+def test_builds_in_threads_are_the_builds_of_one_thread(monkeypatch):
+    """The baker builds bins, neighbourhoods' edges, source points and the planner's probes in
+    threads (tabulate._parallel): the same plan and tables, bit for bit, as in one thread."""
+    import threading
+    from bake.core import fasttables, tabulate
+    mat = open_material(HARD["mirror-ish"])
+    fields = ("theta_bins", "a_edges", "b_edges", "mass", "alpha", "beta", "weights")
+    threads = set()
+    finish = tabulate._finish_bin
+
+    def spy(*args):
+        threads.add(threading.current_thread().name.split("_")[0])
+        return finish(*args)
+
+    monkeypatch.setattr(tabulate, "_finish_bin", spy)
+    out = {}
+    for workers in (1, 2):
+        monkeypatch.setattr(fasttables, "_workers", lambda w=workers: w)
+        out[workers] = plan_tables(mat, IdealSampler(mat, resolution=64), resolution=16, grid=96, samples=1 << 12,
+                                   first_bins=3, memory_budget=16 * 7 * 4 * 16 * 16)
+    assert "flowbsdf-bake" in threads and "MainThread" in threads
+    assert len(out[1].theta_bins) > 3           # the planner split intervals (its probes ran in threads)
+    for f in fields:
+        np.testing.assert_array_equal(getattr(out[1], f), getattr(out[2], f))
+
+
+def test_points_of_a_bin_are_computed_once_when_threads_ask_together():
+    """The cache of the source's points holds a _Once per bin: threads that need the same bin's
+    points (the planner's concurrent probes) compute them once."""
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+    from bake.core.tabulate import _Once
+    calls = []
+
+    def slow(x):
+        calls.append(x)
+        time.sleep(0.05)
+        return x * 2
+
+    once = _Once(slow, 21)
+    with ThreadPoolExecutor(4) as pool:
+        assert list(pool.map(lambda _: once.get(), range(8))) == [42] * 8
+    assert calls == [21]

@@ -285,9 +285,80 @@ def _split(n, run):
     if parts < 2:
         run(0, n)
         return
-    if _pool is None:
-        from concurrent.futures import ThreadPoolExecutor
-        _pool = ThreadPoolExecutor(_workers(), thread_name_prefix="flowbsdf-eval")
+    with _lock:
+        if _pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+            _pool = ThreadPoolExecutor(_workers(), thread_name_prefix="flowbsdf-eval")
     edges = [n * k // parts for k in range(parts + 1)]
     for f in [_pool.submit(run, lo, hi) for lo, hi in zip(edges[:-1], edges[1:])]:
         f.result()
+
+
+# ------------------------------------------------------------------------------ BLAS threads
+
+def _openblas_threads():
+    """(get, set) of the thread count of the OpenBLAS that numpy loaded, or None (another BLAS,
+    or not found). Found among the process's libraries (Linux) or beside numpy (its wheels'
+    numpy.libs/ or numpy/.dylibs/); loading an already loaded library returns that library."""
+    import sys
+    paths = []
+    if sys.platform.startswith("linux"):
+        try:
+            with open("/proc/self/maps") as fh:
+                paths = [line.split()[-1] for line in fh if "openblas" in line.rsplit("/", 1)[-1].lower()]
+        except OSError:
+            pass
+    root = Path(np.__file__).resolve().parent
+    paths += [str(p) for p in (*root.parent.glob("numpy.libs/*openblas*"), *root.glob(".dylibs/*openblas*"))]
+    for path in dict.fromkeys(paths):
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for suffix in ("64_", ""):
+            get = getattr(lib, f"openblas_get_num_threads{suffix}", None)
+            set_ = getattr(lib, f"openblas_set_num_threads{suffix}", None)
+            if get is not None and set_ is not None:
+                set_.argtypes = [ctypes.c_int]
+                return get, set_
+    return None
+
+
+_blas = []          # [(get, set) or None], found on first use
+_blas_users = [0, None]     # how many are inside one_blas_thread, and the thread count to restore
+
+
+class one_blas_thread:
+    """Context manager (and decorator): OpenBLAS in one thread inside, restored when the last
+    one leaves. The baker calls BLAS only for small matrix-vector products, whose OpenBLAS
+    threads spin between calls (measured: a third of a chm_mint bake's CPU time, in sched_yield)
+    and take the cores from the baker's own threads; a product's bits do not depend on
+    OpenBLAS's thread count."""
+
+    def __enter__(self):
+        with _lock:
+            if not _blas:
+                try:
+                    _blas.append(_openblas_threads())
+                except Exception:        # noqa: BLE001 (never let this break a bake)
+                    _blas.append(None)
+            _blas_users[0] += 1
+            if _blas[0] is not None and _blas_users[0] == 1:
+                _blas_users[1] = _blas[0][0]()
+                _blas[0][1](1)
+        return self
+
+    def __exit__(self, *exc):
+        with _lock:
+            _blas_users[0] -= 1
+            if _blas[0] is not None and _blas_users[0] == 0:
+                _blas[0][1](_blas_users[1])
+
+    def __call__(self, fn):
+        import functools
+
+        @functools.wraps(fn)
+        def wrapped(*args, **kwargs):
+            with one_blas_thread():
+                return fn(*args, **kwargs)
+        return wrapped

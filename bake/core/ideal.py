@@ -21,6 +21,7 @@ with pdf 0 (lost, never re-weighted), and pdf() integrates to 1 minus that fract
     BinnedIdeal     Tables at fixed theta_i bins, nearest bin: plain tabulation at a memory budget
     FineIdeal       Tables 1 degree apart, built lazily: the ideal sampler of renders
 """
+import threading
 import time
 
 import numpy as np
@@ -122,6 +123,7 @@ class IdealSampler:
         self.material, self.resolution, self.supersample = material, resolution, supersample
         self.max_tables = max_tables
         self._tables = {}
+        self._lock = threading.Lock()
 
     def _canonical(self, wi):
         """Isotropic materials: rotate wi to phi_i = 0 (the returned angle undoes it)."""
@@ -134,10 +136,11 @@ class IdealSampler:
         key = tuple(np.round(wi, 12))
         tab = self._tables.get(key)
         if tab is None:
-            if len(self._tables) >= self.max_tables:
-                self._tables.pop(next(iter(self._tables)))
-            tab = self._tables[key] = Table(self.material, np.asarray(key, float), self.resolution,
-                                            self.supersample)
+            tab = Table(self.material, np.asarray(key, float), self.resolution, self.supersample)
+            with self._lock:       # the baker samples from threads
+                if key not in self._tables and len(self._tables) >= self.max_tables:
+                    self._tables.pop(next(iter(self._tables)))
+                tab = self._tables.setdefault(key, tab)
         return tab
 
     def _groups(self, wi):

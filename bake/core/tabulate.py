@@ -6,9 +6,12 @@ and RGB weights are integrated from the true f·cos per cell (refined until the 
 quadrature settles and agrees with the source points that fall in it). A cell's rates match
 its first moments, bounded by the log range of its own f·cos along each axis.
 """
+import threading
+
 import numpy as np
 
 from ..errors import FlowBSDFError
+from .fasttables import one_blas_thread
 from .geometry import luminance, spherical_dir
 from .tables import _SMALL, K_MAX, TWO_PI, Tables, _search, to_ab
 
@@ -322,6 +325,53 @@ def default_phi_bins(material, count):
     return np.arange(count) * (material.phi_period / count)
 
 
+_pool = None
+_pool_lock = threading.Lock()
+_local = threading.local()
+
+
+def _parallel(fn, items):
+    """fn(x) for x in items, in order (an iterator), one thread per core. The work is numpy and the C evaluator,
+    which let go of the GIL, and every item's result is computed as in a loop (same bytes).
+    A call from inside one of these threads runs its items in a loop (no nested pools)."""
+    from .fasttables import _workers
+    items = list(items)
+    workers = min(_workers(), len(items))
+    if workers < 2 or getattr(_local, "busy", False):
+        return map(fn, items)
+    global _pool
+    with _pool_lock:
+        if _pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+            _pool = ThreadPoolExecutor(_workers(), thread_name_prefix="flowbsdf-bake")
+
+    def run(x):
+        _local.busy = True
+        try:
+            return fn(x)
+        finally:
+            _local.busy = False
+    return _pool.map(run, items)
+
+
+class _Once:
+    """fn(*args), computed by the first caller of get(); the others wait for it."""
+
+    def __init__(self, fn, *args):
+        self._call, self._lock = (fn, args), threading.Lock()
+
+    def get(self):
+        with self._lock:
+            if self._call is not None:
+                fn, args = self._call
+                self._value, self._call = fn(*args), None
+        return self._value
+
+
+_cache_lock = threading.Lock()
+
+
+@one_blas_thread()
 def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_width=None, gamma=0.5,
                  row_share=0.02, col_share=0.05, quadrature=4, floor=1e-4, window=1,
                  progress=None, cache=None, phi_bins=None):
@@ -337,7 +387,7 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
     period = material.phi_period
     if phi_bins is not None and (len(phis) < 1 or np.any(np.diff(phis) <= 0) or phis[0] < 0 or phis[-1] >= period):
         raise FlowBSDFError(f"phi_bins {phis} must be increasing azimuths in [0, {period:g})")
-    cache = {} if cache is None else cache      # the source's points per bin, reusable across builds
+    cache = {} if cache is None else cache      # the source's points per bin (_Once), reusable across builds
     done = [0]
 
     def step():
@@ -371,12 +421,10 @@ def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_widt
     K = len(theta_bins)
     wis = [spherical_dir(t, phi) for t in theta_bins]
     phi_ref = phi + np.pi
-    points = []
-    for t, wi in zip(theta_bins, wis):
-        key = (float(t), phi, grid, gamma)
-        if key not in cache:
-            cache[key] = _points(material, source, wi, grid, phi_ref, gamma)
-        points.append(cache[key])
+    with _cache_lock:
+        entries = [cache.setdefault((float(t), phi, grid, gamma), _Once(_points, material, source, wi, grid, phi_ref,
+                                                                        gamma)) for t, wi in zip(theta_bins, wis)]
+    points = list(_parallel(_Once.get, entries))
     near = [tuple(range(max(0, k - window), min(K, k + window + 1))) for k in range(K)]
 
     row_knots = [lobe_knots(t, lobe_width) for t in theta_bins]
@@ -417,10 +465,12 @@ def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_widt
             b_edges[k, i] = _denormalize(shared[i], by_row[k][0][i])
         b_edges[k] = _strictly_increasing(b_edges[k], 0.0, TWO_PI)
 
-    parts = []
-    for k in range(K):
+    def finish(k):
         a, b, _, pm = points[k]
-        parts.append(_finish_bin(material, wis[k], phi_ref, a_edges[k], b_edges[k], a, b, pm, quadrature, floor))
+        return _finish_bin(material, wis[k], phi_ref, a_edges[k], b_edges[k], a, b, pm, quadrature, floor)
+    parts = []
+    for part in _parallel(finish, range(K)):
+        parts.append(part)
         step()
     mass, alpha, beta, weights = (np.stack(x) for x in zip(*parts))
     return np.stack(a_edges), b_edges, mass, alpha, beta, weights
@@ -429,8 +479,9 @@ def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_widt
 def _once_per_neighbourhood(near, compute):
     """[compute(n) for n in near], each distinct neighbourhood computed once: bins that pool the
     same points (both bins of a pair the planner builds) get the same normalized edges."""
-    done = {}
-    return [done[n] if n in done else done.setdefault(n, compute(n)) for n in near]
+    distinct = list(dict.fromkeys(near))
+    done = dict(zip(distinct, _parallel(compute, distinct)))
+    return [done[n] for n in near]
 
 
 def _normalize_rows(x, knots, row):
@@ -459,6 +510,7 @@ def lobe_width_of(material, ideal):
     return None if width > BROAD or fit.diffuse >= 0.9 else float(width)
 
 
+@one_blas_thread()
 def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution=None, first_bins=6,
                 theta_max_deg=89.5, min_gap_deg=0.2, samples=1 << 14, lobe_width="auto", ideal_resolution=256, log=None,
                 phi_count=8, **options):
@@ -533,16 +585,19 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
             own[theta] = rv_at(build([theta], worst_phi), theta, worst_phi)
         return own[theta]
 
+    def pair_rv(lo, hi):      # what the midpoint reaches between bins built at lo and hi
+        return rv_at(build([lo, hi], worst_phi), midpoint(lo, hi), worst_phi)
+
     while len(bins) < max_bins:
+        new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores and hi - lo > gap]
+        # The new intervals' builds are independent: all of them at once, in threads.
+        jobs = [(pair_rv, lo, hi) for lo, hi in new] + [(own_rv, midpoint(lo, hi)) for lo, hi in new]
+        pair = dict(zip(new, _parallel(lambda job: job[0](*job[1:]), jobs)))
         for lo, hi in zip(bins[:-1], bins[1:]):
             if (lo, hi) not in scores:
-                if hi - lo <= gap:
-                    scores[(lo, hi)] = 0.0
-                    continue
-                mid = midpoint(lo, hi)
-                pair = build([lo, hi], worst_phi)
                 # The interpolation's own error: what the midpoint loses against a bin built there.
-                scores[(lo, hi)] = max(rv_at(pair, mid, worst_phi) - max(own_rv(mid), 0.5 * tol), 0.0)
+                scores[(lo, hi)] = 0.0 if hi - lo <= gap else \
+                    max(pair[(lo, hi)] - max(own_rv(midpoint(lo, hi)), 0.5 * tol), 0.0)
         (lo, hi), worst = max(scores.items(), key=lambda kv: kv[1])
         if worst <= 0.5 * tol:
             break
