@@ -1,6 +1,6 @@
 import numpy as np
 
-from bake.core.geometry import incident, luminance
+from bake.core.geometry import incident, luminance, spherical_dir
 from bake.core.ideal import IdealSampler, training_pairs
 from bake.core.domains import Disk
 from bake.materials import open_material
@@ -57,3 +57,18 @@ def test_training_pairs_follow_the_target():
     assert set(np.round(np.degrees(np.arccos(wi[:, 2])), 6)) == {10.0, 50.0}
     # Cosine-distributed directions are uniform on the projected disk: E[r²] = 1/2.
     assert abs(np.mean(np.sum(x * x, axis=1)) - 0.5) < 0.01
+
+
+def test_tables_share_their_sub_cell_grid_and_stay_the_same():
+    """ideal._sub_cells (the u grid and its half vectors, shared by every wi's Table) is
+    read-only, and a Table built after others is the one built first."""
+    from bake.core.ideal import Table, _sub_cells
+    mat = open_material({"kind": "analytic", "model": "ggx", "alpha": 0.2})
+    wi = spherical_dir(np.radians(40.0), 0.0)
+    first = Table(mat, wi, 32, 2)
+    Table(mat, spherical_dir(np.radians(70.0), 0.0), 32, 2)
+    again = Table(mat, wi, 32, 2)
+    np.testing.assert_array_equal(first.density, again.density)
+    np.testing.assert_array_equal(first.albedo_rgb, again.albedo_rgb)
+    u, m = _sub_cells(32, 64, 2, 0, 32)
+    assert not u.flags.writeable and not m.flags.writeable

@@ -414,3 +414,20 @@ def test_c_eval_matches_numpy_on_a_real_file(rgl):
     for w in wi[:5]:
         fast = mat.eval(w, wo)
         np.testing.assert_allclose(fast, mat._eval_chunk(w[None], wo, mat._incident(w)), rtol=1e-8, atol=0)
+
+
+def test_single_wi_eval_reuses_its_incident_tables_per_wi(tmp_path):
+    """eval with one wi keeps that wi's interpolated tables (RGLMaterial._incidents): a material
+    that evaluated other wi in between gives, bit for bit, what a fresh one gives."""
+    path = write_tensor_file(tmp_path / "synthetic.bsdf", synthetic_fields((0.0,)))
+    rng = np.random.default_rng(2)
+    wo = normalize(rng.normal(size=(2048, 3)) * [1, 1, 0] + [0, 0, 1.5])
+    wis = [spherical_dir(np.radians(t), 0.3) for t in (10.0, 50.0, 80.0)]
+    used = open_material(path)
+    for _ in range(2):
+        for k, wi in enumerate(wis):
+            np.testing.assert_array_equal(used.eval(wi, wo), open_material(path).eval(wi, wo))
+    assert len(used._incidents) == 3
+    for t in range(20):         # bounded
+        used.eval(spherical_dir(np.radians(t), 0.0), wo)
+    assert len(used._incidents) <= 16

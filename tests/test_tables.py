@@ -311,3 +311,26 @@ def test_points_of_a_bin_are_computed_once_when_threads_ask_together():
     with ThreadPoolExecutor(4) as pool:
         assert list(pool.map(lambda _: once.get(), range(8))) == [42] * 8
     assert calls == [21]
+
+
+def test_edges_pooled_from_presorted_bins_are_the_masked_sorts_of_the_pooled_points():
+    """_by_segment (once per bin) + _pooled_edges (per neighbourhood and segment) give, bit for
+    bit, what masking the pooled points by segment and sorting each segment's r (stable) gave,
+    ties included (r on a coarse grid: many equal values)."""
+    from bake.core.tabulate import _by_segment, _mixture_edges, _pooled_edges
+    rng = np.random.default_rng(5)
+    segments, counts, share = 7, [3, 5, 1, 4, 2, 6, 3], 0.05
+    bins = []
+    for n in (400, 1, 0, 257):
+        seg = rng.integers(0, segments, n)
+        seg[:n // 3] = 2                               # a crowded segment
+        bins.append((seg, rng.integers(0, 16, n) / 15.0, rng.random(n)))
+    parts = [_by_segment(seg, r, w, segments) for seg, r, w in bins]
+    for nbrs in [(0,), (0, 1), (1, 2), (0, 1, 2, 3), (3, 0)]:
+        seg, r, w = (np.concatenate(x) for x in zip(*(bins[j] for j in nbrs)))
+        for s_, count in enumerate(counts):
+            sel = seg == s_
+            order = np.argsort(r[sel], kind="stable")
+            want = _mixture_edges(r[sel][order], w[sel][order], count, 0.0, 1.0, share)
+            got = _pooled_edges([parts[j] for j in nbrs], s_, count, share)
+            np.testing.assert_array_equal(got, want)

@@ -21,6 +21,7 @@ with pdf 0 (lost, never re-weighted), and pdf() integrates to 1 minus that fract
     BinnedIdeal     Tables at fixed theta_i bins, nearest bin: plain tabulation at a memory budget
     FineIdeal       Tables 1 degree apart, built lazily: the ideal sampler of renders
 """
+import functools
 import threading
 import time
 
@@ -31,23 +32,31 @@ from .geometry import luminance, normalize, reflect, theta_phi
 from .warps import dwo_du, half_vector, rotate_z, u_of_half_vector
 
 
+@functools.lru_cache(maxsize=32)
+def _sub_cells(n1, n2, s, r0, r1):
+    """Stratified points inside the cells of rows r0:r1 of an n1 x n2 grid, (n1*s) x (n2*s)
+    sub-cell centres u, and their half vectors: the same for every wi (read-only, shared)."""
+    g1 = (np.arange(n1 * s) + 0.5) / (n1 * s)
+    g2 = (np.arange(n2 * s) + 0.5) / (n2 * s)
+    u = np.stack(np.meshgrid(g1[r0 * s:r1 * s], g2, indexing="ij"), axis=-1).reshape(-1, 2)
+    m = half_vector(u)
+    u.flags.writeable = m.flags.writeable = False
+    return u, m
+
+
 class Table:
     """One wi's tabulated density: cell masses over the u grid, with their CDFs."""
 
     def __init__(self, material, wi, resolution, supersample):
         n1, n2 = resolution, 2 * resolution
         s = supersample
-        # Stratified points inside each cell: (n1*s) x (n2*s) sub-cell centres.
-        g1 = (np.arange(n1 * s) + 0.5) / (n1 * s)
-        g2 = (np.arange(n2 * s) + 0.5) / (n2 * s)
         self.wi = wi
         mass = np.zeros((n1, n2))
         rgb = np.zeros((n1, n2, 3))
         rows_per_chunk = max(1, (1 << 19) // (n2 * s * s))
         for r0 in range(0, n1, rows_per_chunk):
             r1 = min(n1, r0 + rows_per_chunk)
-            u = np.stack(np.meshgrid(g1[r0 * s:r1 * s], g2, indexing="ij"), axis=-1).reshape(-1, 2)
-            m = half_vector(u)
+            u, m = _sub_cells(n1, n2, s, r0, r1)
             wo = reflect(wi[None, :], m)
             value = material.eval(wi, wo)
             jac = dwo_du(wi[None, :], m, u[:, 0]) * (wo[:, 2] > 0)

@@ -73,15 +73,27 @@ def _normalize(x, knots):
     return seg, np.clip((x - lo) / (hi - lo), 0.0, 1.0)
 
 
-def _shared_edges(seg, r, w, counts, share):
-    """Normalized edges per segment: quantiles of the pooled (r, w) points of each segment,
-    mixed with uniform density. Returns a list of arrays in [0, 1], one per segment."""
-    out = []
-    for s_, count in enumerate(counts):
-        sel = seg == s_
-        order = np.argsort(r[sel], kind="stable")
-        out.append(_mixture_edges(r[sel][order], w[sel][order], count, 0.0, 1.0, share))
-    return out
+def _by_segment(seg, r, w, segments):
+    """Points ordered by segment (in [0, segments)), then by r, ties in their given order:
+    (r, w) in that order and each segment's bounds. Sorted once per bin, for every
+    neighbourhood that pools the bin (see _pooled_edges)."""
+    order = np.argsort(r, kind="stable")
+    order = order[np.argsort(seg[order].astype(np.int16 if segments < 1 << 15 else np.int64), kind="stable")]
+    return r[order], w[order], np.searchsorted(seg[order], np.arange(segments + 1))
+
+
+def _pooled_edges(parts, s_, count, share):
+    """Normalized edges of segment s_: quantiles of the points of the parts (_by_segment of
+    each bin of a neighbourhood) that fall in it, mixed with uniform density. The points are
+    pooled in the parts' order and sorted by r, ties in pooled order (a stable merge)."""
+    r, w = [[p[k][p[2][s_]:p[2][s_ + 1]] for p in parts] for k in (0, 1)]
+    if len(parts) == 1:
+        r, w = r[0], w[0]
+    else:
+        r, w = np.concatenate(r), np.concatenate(w)
+        order = np.argsort(r, kind="stable")
+        r, w = r[order], w[order]
+    return _mixture_edges(r, w, count, 0.0, 1.0, share)
 
 
 def _denormalize(shared, knots):
@@ -425,14 +437,14 @@ def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_widt
         entries = [cache.setdefault((float(t), phi, grid, gamma), _Once(_points, material, source, wi, grid, phi_ref,
                                                                         gamma)) for t, wi in zip(theta_bins, wis)]
     points = list(_parallel(_Once.get, entries))
-    near = [tuple(range(max(0, k - window), min(K, k + window + 1))) for k in range(K)]
-
     row_knots = [lobe_knots(t, lobe_width) for t in theta_bins]
     row_counts = _segment_counts(rows, len(row_knots[0]) - 1)
-    normed = [_normalize(p[0], k) + (p[2],) for p, k in zip(points, row_knots)]
+    by_seg = [_by_segment(*_normalize(p[0], k), p[2], len(row_counts)) for p, k in zip(points, row_knots)]
+    near = [tuple(range(max(0, k - window), min(K, k + window + 1))) for k in range(K)]
+
     def row_edges(nbrs):
-        seg, r, w = (np.concatenate(x) for x in zip(*(normed[j] for j in nbrs)))
-        return _shared_edges(seg, r, w, row_counts, row_share)
+        parts = [by_seg[j] for j in nbrs]
+        return [_pooled_edges(parts, s_, count, row_share) for s_, count in enumerate(row_counts)]
 
     a_edges = [_strictly_increasing(_denormalize(shared, knots), 0.0, 1.0)
                for shared, knots in zip(_once_per_neighbourhood(near, row_edges), row_knots)]
@@ -445,19 +457,14 @@ def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_widt
         a_mid = 0.5 * (a_edges[k][:-1].astype(np.float64) + a_edges[k][1:])
         knots = np.stack([lobe_col_knots(m, lobe_width) for m in a_mid])
         seg, r = _normalize_rows(b, knots, row)
-        order = np.argsort(row, kind="stable")
-        bounds = np.searchsorted(row[order], np.arange(rows + 1))
-        by_row.append((knots, seg[order], r[order], w[order], bounds))
+        # segment s of row i: group i * n + s
+        by_row.append((knots, _by_segment(row * (knots.shape[1] - 1) + seg, r, w, rows * (knots.shape[1] - 1))))
     col_counts = _segment_counts(cols, by_row[0][0].shape[1] - 1)
     def col_edges(nbrs):       # per row
-        out = []
-        for i in range(rows):
-            pooled = [(seg[lo:hi], r[lo:hi], w[lo:hi])
-                      for _, seg, r, w, bounds in (by_row[j] for j in nbrs)
-                      for lo, hi in [(bounds[i], bounds[i + 1])]]
-            seg, r, w = (np.concatenate(x) for x in zip(*pooled))
-            out.append(_shared_edges(seg, r, w, col_counts, col_share))
-        return out
+        parts = [by_row[j][1] for j in nbrs]
+        n = len(col_counts)
+        return [[_pooled_edges(parts, i * n + s_, count, col_share) for s_, count in enumerate(col_counts)]
+                for i in range(rows)]
 
     b_edges = np.empty((K, rows, cols + 1), np.float32)
     for k, shared in enumerate(_once_per_neighbourhood(near, col_edges)):

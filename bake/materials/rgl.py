@@ -401,6 +401,7 @@ class RGLMaterial(Material):
         self._rgb = _corner_table(np.moveaxis(rgb.reshape(self._slices, 3, *self._rgb_shape), 1, -1))
         self._ndf = f["ndf"].astype(np.float64)
         self._sigma = f["sigma"].astype(np.float64)
+        self._incidents = {}       # _incident per wi (its bytes), read-only once made
         with open(self.path, "rb") as fh:
             self._sha256 = hashlib.sha256(fh.read()).hexdigest()
 
@@ -421,7 +422,13 @@ class RGLMaterial(Material):
         if single and n >= 1024:
             if wi[0, 2] <= 0:
                 return out
-            incident = self._incident(wi[0])
+            key = wi[0].tobytes()
+            incident = self._incidents.get(key)
+            if incident is None:
+                incident = self._incident(wi[0])
+                if len(self._incidents) >= 16:      # the baker evaluates one wi ~20 times in a row
+                    self._incidents.clear()
+                self._incidents[key] = incident
             fast = self._eval_c(wo, incident)
             if fast is not None:
                 return fast
