@@ -168,11 +168,23 @@ def _moments(material, wi, phi_ref, a0, a1, b0, b1, q, chunk=1 << 18):
         g = lum * area[:, None]
         mass[sl] = g.sum(axis=1)
         mx[sl], my[sl] = g @ X, g @ Y
-        rgb[sl] = value.sum(axis=1) * area[:, None]
+        rgb[sl] = _sum_axis1(value) * area[:, None]
         grid = lum.reshape(-1, q, q)
         along_a[sl] = grid.sum(axis=2) * ((b1 - b0)[sl] / q)[:, None]
-        along_b[sl] = grid.sum(axis=1) * ((a1 - a0)[sl] / q)[:, None]
+        along_b[sl] = _sum_axis1(grid) * ((a1 - a0)[sl] / q)[:, None]
     return mass, mx, my, rgb, along_a, along_b
+
+
+def _sum_axis1(x):
+    """x.sum(axis=1) of a 3D array, bit for bit: numpy adds along a middle axis in order,
+    from +0, a few (the last axis') elements per inner loop, which is slow when that axis is
+    short (3 colours, q nodes); here a whole slice per add. numpy's own sum for long axes."""
+    if x.shape[1] > 256:
+        return x.sum(axis=1)
+    out = np.zeros((x.shape[0], x.shape[2]))
+    for k in range(x.shape[1]):
+        out += x[:, k]
+    return out
 
 
 def _moments_around(material, wi, phi_ref, a0, a1, b0, b1, box, q):
