@@ -341,7 +341,7 @@ def test_sum_along_the_middle_axis_is_numpys_bit_for_bit():
     x.sum(axis=1) bits, signed zeros, infinities and NaN included."""
     from bake.core.tabulate import _sum_axis1
     rng = np.random.default_rng(4)
-    for shape in [(300, 16, 3), (50, 64, 3), (20, 1, 3), (200, 4, 4), (7, 300, 3)]:
+    for shape in [(300, 16, 3), (50, 64, 3), (20, 1, 3), (200, 4, 4), (7, 300, 3), (5, 4096, 3), (40, 17, 8)]:
         x = rng.normal(size=shape) * 10.0 ** rng.uniform(-8, 3, shape[:2] + (1,))
         x[::7] = -0.0
         x[1::5, 0] = 0.0

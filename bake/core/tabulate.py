@@ -177,10 +177,11 @@ def _moments(material, wi, phi_ref, a0, a1, b0, b1, q, chunk=1 << 18):
 
 def _sum_axis1(x):
     """x.sum(axis=1) of a 3D array, bit for bit: numpy adds along a middle axis in order,
-    from +0, a few (the last axis') elements per inner loop, which is slow when that axis is
-    short (3 colours, q nodes); here a whole slice per add. numpy's own sum for long axes."""
-    if x.shape[1] > 256:
-        return x.sum(axis=1)
+    from +0, a few (the last axis') elements per inner loop, slow when that axis is short
+    (3 colours, q nodes). Here the same adds, a whole slice at a time: in a loop over a short
+    axis 1, else along axis 0 of a transposed copy (numpy adds an outer axis in order)."""
+    if x.shape[1] > 16:
+        return np.ascontiguousarray(x.transpose(1, 0, 2)).sum(axis=0)
     out = np.zeros((x.shape[0], x.shape[2]))
     for k in range(x.shape[1]):
         out += x[:, k]
