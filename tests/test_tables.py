@@ -283,6 +283,7 @@ def test_builds_in_threads_are_the_builds_of_one_thread(monkeypatch):
         return finish(*args)
 
     monkeypatch.setattr(tabulate, "_finish_bin", spy)
+    monkeypatch.setattr(tabulate, "_free_workers", lambda cores: cores)     # whatever else runs here
     out = {}
     for workers in (1, 2):
         monkeypatch.setattr(fasttables, "_workers", lambda w=workers: w)
@@ -350,3 +351,17 @@ def test_sum_along_the_middle_axis_is_numpys_bit_for_bit():
             want, got = x.sum(axis=1), _sum_axis1(x)
         np.testing.assert_array_equal(got, want)
         assert np.array_equal(np.signbit(got), np.signbit(want))
+
+
+def test_threads_follow_the_cores_other_processes_leave_idle(monkeypatch):
+    """tabulate._free_workers: all cores until a window of 1 to 10 s has been measured, then
+    the cores that other processes left idle in it (at least one)."""
+    from bake.core import tabulate
+    readings = iter([(0.0, 0.0, 0.0), (0.5, 0.2, 0.5),      # too soon: no decision yet
+                     (3.0, 1.0, 2.0), (4.0, 2.0, 3.0),      # others: 1 core of 2, then none
+                     (100.0, 2.0, 20.0)])                   # stale window: all again
+    monkeypatch.setattr(tabulate, "_cpu_seconds", lambda: next(readings))
+    monkeypatch.setattr(tabulate, "_usage", {"last": None, "workers": None})
+    assert [tabulate._free_workers(2) for _ in range(5)] == [2, 2, 1, 2, 2]
+    monkeypatch.setattr(tabulate, "_cpu_seconds", lambda: None)
+    assert tabulate._free_workers(4) == 4
