@@ -10,10 +10,14 @@ import numpy as np
 
 from ..errors import FlowBSDFError
 from .geometry import luminance, spherical_dir
+from . import halfvector
 from .tables import _SMALL, K_MAX, TWO_PI, Tables, _search, to_ab
+from .warps import rotate_z
 
 A_MIN = 1e-4     # the least gap between row knots (keeps every segment of rows non-empty)
 B_MIN = 1e-4     # the same for column knots
+CENTRE_ROW_KNOTS = np.array([0.0, 0.5, 1.0])       # halfvector coordinates: through the centre
+CENTRE_COL_KNOTS = np.array([0.0, np.pi, TWO_PI])
 
 
 def exp_rate_for_mean(mean):
@@ -132,7 +136,71 @@ def _nodes(a0, a1, b0, b1, s, phi_ref):
     return wo.reshape(-1, 3)
 
 
-def _moments(material, wi, phi_ref, a0, a1, b0, b1, q, chunk=1 << 18):
+class _WoFrame:
+    """The isotropic cells' (a, b) of wo, b from wi's plane (tables.to_ab, phi_ref = phi_i + pi)."""
+
+    def __init__(self, wi, phi_i):
+        self.phi_ref = phi_i + np.pi
+
+    def nodes(self, a0, a1, b0, b1, s):
+        """The q x q rule's directions and d omega_o / (da db) (1 here)."""
+        return _nodes(a0, a1, b0, b1, s, self.phi_ref), None
+
+    def ab(self, wo):
+        return to_ab(wo, self.phi_ref)
+
+
+class _HalfFrame:
+    """The anisotropic cells' (a, b) of the half vector at wi (halfvector.py), mapped in the
+    frame of the lobe's axes (at `angle` from the material's x axis)."""
+
+    def __init__(self, wi, angle):
+        self.angle = angle
+        self.wi = rotate_z(wi, -angle)
+
+    def nodes(self, a0, a1, b0, b1, s):
+        q = len(s)
+        a = np.repeat(a0[:, None] + s[None, :] * (a1 - a0)[:, None], q, axis=1)    # a-major, as _nodes
+        b = np.tile(b0[:, None] + s[None, :] * (b1 - b0)[:, None], (1, q))
+        wo, jac = halfvector.from_ab(self.wi, a.ravel(), b.ravel())
+        return rotate_z(wo, self.angle), jac
+
+    def ab(self, wo):
+        return halfvector.to_ab(self.wi, rotate_z(wo, -self.angle))[:2]
+
+
+def _closing_turn(period):
+    """The closing phi bin of halfvector tables from the first (the material turned by the
+    period, exactly): itself for a period of 2 pi; for pi, its cells turned by pi, which
+    in halfvector coordinates is (a, b) -> (1 - a, 2 pi - b). None: build it."""
+    if np.isclose(period, TWO_PI):
+        return lambda column: column
+    if not np.isclose(period, np.pi):
+        return None
+
+    def turn(column):
+        a_edges, b_edges, mass, alpha, beta, weights = column
+        flip = lambda x: x[:, ::-1, ::-1]         # noqa: E731 (rows and columns reversed, per bin)
+        return (np.float32(1.0) - a_edges[:, ::-1], np.float32(TWO_PI) - b_edges[:, ::-1, ::-1], flip(mass),
+                -flip(alpha), -flip(beta), weights[:, ::-1, ::-1])
+    return turn
+
+
+def lobe_axes_angle(source, grid=64):
+    """The angle of the principal axes of the source's half vectors at normal incidence
+    (their weighted second moments), the frame of halfvector coordinates: a lobe's streak
+    lies along the cells' rows or columns instead of across them."""
+    g = (np.arange(grid) + 0.5) / grid
+    u = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+    wo, pdf = source.sample(np.array([0.0, 0.0, 1.0]), u)
+    ok = (pdf > 0) & (wo[:, 2] > 0) & np.isfinite(pdf)
+    h = wo[ok] + np.array([0.0, 0.0, 1.0])
+    h /= np.linalg.norm(h, axis=1, keepdims=True)
+    sxx, syy, sxy = np.mean(h[:, 0] ** 2), np.mean(h[:, 1] ** 2), np.mean(h[:, 0] * h[:, 1])
+    return float(0.5 * np.arctan2(2.0 * sxy, sxx - syy))
+
+
+def _moments(material, wi, frame, a0, a1, b0, b1, q, chunk=1 << 18):
     """Per cell [a0,a1]x[b0,b1], a q x q midpoint rule: target mass, its mean local x and y,
     the RGB integral of f·cos (da db = d omega), and the target's marginal densities along
     a and b at the q nodes of each axis (shape (cells, q))."""
@@ -146,8 +214,9 @@ def _moments(material, wi, phi_ref, a0, a1, b0, b1, q, chunk=1 << 18):
     step = max(1, chunk // (q * q))
     for c0 in range(0, n, step):
         sl = slice(c0, min(n, c0 + step))
-        wo = _nodes(a0[sl], a1[sl], b0[sl], b1[sl], s, phi_ref)
-        value = (material.eval(wi, wo) * wo[:, 2:3]).reshape(-1, q * q, 3)
+        wo, jac = frame.nodes(a0[sl], a1[sl], b0[sl], b1[sl], s)
+        per_ab = wo[:, 2] if jac is None else wo[:, 2] * jac        # f·cos per da db
+        value = (material.eval(wi, wo) * per_ab[:, None]).reshape(-1, q * q, 3)
         area = ((a1 - a0) * (b1 - b0))[sl] / (q * q)
         lum = np.maximum(luminance(value), 0.0)
         g = lum * area[:, None]
@@ -160,7 +229,7 @@ def _moments(material, wi, phi_ref, a0, a1, b0, b1, q, chunk=1 << 18):
     return mass, mx, my, rgb, along_a, along_b
 
 
-def _moments_around(material, wi, phi_ref, a0, a1, b0, b1, box, q):
+def _moments_around(material, wi, frame, a0, a1, b0, b1, box, q):
     """Like _moments, with each cell cut at the box (lo_a, hi_a, lo_b, hi_b) that holds its
     source points, widened a little: up to 3 x 3 pieces, each with its own q x q rule, so
     that a sliver of mass at a hard edge inside a wide cell gets nodes of its own. The
@@ -183,7 +252,7 @@ def _moments_around(material, wi, phi_ref, a0, a1, b0, b1, box, q):
             ok = np.flatnonzero((pa1 > pa0) & (pb1 > pb0))
             if not len(ok):
                 continue
-            m, x, y, c, pa, pb = _moments(material, wi, phi_ref, pa0[ok], pa1[ok], pb0[ok], pb1[ok], q)
+            m, x, y, c, pa, pb = _moments(material, wi, frame, pa0[ok], pa1[ok], pb0[ok], pb1[ok], q)
             # piece-local first moments -> cell-local ones
             sa, sb = (pa1 - pa0)[ok] / (a1 - a0)[ok], (pb1 - pb0)[ok] / (b1 - b0)[ok]
             oa, ob = (pa0 - a0)[ok] / (a1 - a0)[ok], (pb0 - b0)[ok] / (b1 - b0)[ok]
@@ -209,7 +278,7 @@ def _rate_bound(marginal, at):
         return np.where(span > 0, np.log(hi / lo) / span, np.inf)
 
 
-def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, box=None, rtol=0.02, q_max=64,
+def _cell_moments(material, wi, a_edges, b_edges, frame, q, point_mass, box=None, rtol=0.02, q_max=64,
                   q_around=16):
     """Cell moments by a midpoint rule refined (q, 2q, 4q, ...) per cell until two levels
     agree within rtol and the rule does not fall short of `point_mass` (the importance-
@@ -235,12 +304,12 @@ def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, box=No
         nodes = (np.arange(q) + 0.5) / q
         return rule(moments, nodes, nodes)
 
-    out = list(uniform(_moments(material, wi, phi_ref, a0, a1, b0, b1, q), q))
+    out = list(uniform(_moments(material, wi, frame, a0, a1, b0, b1, q), q))
     tiny = 1e-7 * max(out[0].sum(), point_mass.sum())
     active = np.arange(len(a0))
     while q < q_max and len(active):
         q *= 2
-        new = uniform(_moments(material, wi, phi_ref, a0[active], a1[active], b0[active], b1[active], q), q)
+        new = uniform(_moments(material, wi, frame, a0[active], a1[active], b0[active], b1[active], q), q)
         old_mass = out[0][active]
         for o, v in zip(out, new):
             o[active] = v
@@ -251,7 +320,7 @@ def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, box=No
         short = active[point_mass[active] > 1.5 * out[0][active] + tiny]
         short = short[np.isfinite(box[0][short])]
         if len(short):
-            around = _moments_around(material, wi, phi_ref, a0[short], a1[short], b0[short], b1[short],
+            around = _moments_around(material, wi, frame, a0[short], a1[short], b0[short], b1[short],
                                      [x[short] for x in box], min(q, q_around))
             new = rule(around[:6], *around[6:])
             for o, v in zip(out, new):
@@ -265,7 +334,7 @@ def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, box=No
         tuple(x.reshape(shape) for x in (bound_a, bound_b))
 
 
-def _points(material, source, wi, grid, phi_ref, gamma):
+def _points(material, source, wi, grid, frame, gamma):
     """A stratified grid of the source's directions for wi: their table coordinates (a, b),
     the weight of each for placing edges (normalized), and its importance-sampled target
     mass (target / source pdf / grid²)."""
@@ -278,11 +347,11 @@ def _points(material, source, wi, grid, phi_ref, gamma):
     # Edges follow half the target itself (cells where the mass is) and half target^gamma
     # (cells on flanks and tails, where a cellwise model errs most).
     weight = 0.5 * _normalized(target / pdf) + 0.5 * _normalized(target ** gamma / pdf)
-    a, b = to_ab(wo, phi_ref)
+    a, b = frame.ab(wo)
     return a, b, weight, target / pdf / (grid * grid)
 
 
-def _finish_bin(material, wi, phi_ref, a_edges, b_edges, a, b, point_mass, quadrature, floor):
+def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrature, floor):
     """Per cell mass, exponential rates and RGB weight for one incident direction."""
     rows, cols = b_edges.shape[0], b_edges.shape[1] - 1
     row = np.clip(np.searchsorted(a_edges, a, side="right") - 1, 0, rows - 1)
@@ -294,7 +363,7 @@ def _finish_bin(material, wi, phi_ref, a_edges, b_edges, a, b, point_mass, quadr
         np.minimum.at(box[2 * k], cell[has], v[has])
         np.maximum.at(box[2 * k + 1], cell[has], v[has])
     point_mass = np.bincount(cell, weights=point_mass, minlength=rows * cols)
-    mass, mx, my, rgb, bound_a, bound_b = _cell_moments(material, wi, a_edges, b_edges, phi_ref, quadrature,
+    mass, mx, my, rgb, bound_a, bound_b = _cell_moments(material, wi, a_edges, b_edges, frame, quadrature,
                                                          point_mass, box)
     # Exponential rates matching each cell's first moments along a and b, no steeper than
     # the cell's own f·cos: a rate fitted to a flank must not keep decaying past a floor.
@@ -324,11 +393,12 @@ def default_phi_bins(material, count):
 
 def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_width=None, gamma=0.5,
                  row_share=0.02, col_share=0.05, quadrature=4, floor=1e-4, window=1,
-                 progress=None, cache=None, phi_bins=None):
+                 progress=None, cache=None, phi_bins=None, coords="wo"):
     """Tables of a material at the given incident elevations (radians) and, for an
     anisotropic material, azimuths `phi_bins` (radians, increasing within [0, phi_period)
     of the material; see default_phi_bins). Each azimuth's bins are built like an isotropic
-    material's (`_build_column`) at wi = (theta, phi).
+    material's (`_build_column`) at wi = (theta, phi). coords "halfvector" (anisotropic only):
+    cells over the half vector (tables.py), which hold a thin lobe between phi_i bins.
     """
     if phi_bins is None and not material.isotropic:
         raise FlowBSDFError("an anisotropic material needs bins over phi_i (phi_bins)")
@@ -349,14 +419,24 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
                 col_share=col_share, quadrature=quadrature, floor=floor, window=window, step=step)
     # One azimuth's source points are ~10 MB per bin: with several azimuths, each column's
     # are dropped once it is built (caching them all took > 20 GB for a planned 1:6 GGX).
-    columns = [_build_column(material, source, theta_bins, phi, cache=cache if len(phis) == 1 else {}, **opts)
-               for phi in phis]
+    if coords not in ("wo", "halfvector") or (coords == "halfvector" and phi_bins is None):
+        raise FlowBSDFError(f"coords {coords!r}: 'wo', or 'halfvector' for anisotropic tables")
+    frame_angle = 0.0
+    if coords == "halfvector":      # the phi axis closed: a last bin one period after the first
+        phis = phis + [phis[0] + period]
+        frame_angle = lobe_axes_angle(source)
+    columns = [_build_column(material, source, theta_bins, phi, coords, frame_angle,
+                             cache=cache if len(phis) == 1 else {}, **opts)
+               for phi in (phis[:-1] if coords == "halfvector" and _closing_turn(period) else phis)]
+    if coords == "halfvector" and (turn := _closing_turn(period)):
+        columns.append(turn(columns[0]))
     if phi_bins is None:
         return Tables(theta_bins, *columns[0])
-    return Tables(theta_bins, *(np.stack(x, axis=1) for x in zip(*columns)), phi_bins=phis, phi_period=period)
+    return Tables(theta_bins, *(np.stack(x, axis=1) for x in zip(*columns)), phi_bins=phis, phi_period=period,
+                  coords=coords, frame_angle=frame_angle)
 
 
-def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_width, gamma, row_share, col_share,
+def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, cols, grid, lobe_width, gamma, row_share, col_share,
                   quadrature, floor, window, cache, step):
     """The bins at the elevations theta_bins and azimuth phi: a_edges, b_edges, mass, alpha,
     beta, weights, each with a leading bin axis.
@@ -366,20 +446,24 @@ def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_widt
     lobe zone's azimuths. Between knots, a bin's edges sit at the quantiles of the pooled
     points of its neighbours within `window` bins (same phi), in positions normalized to
     each bin's knots: neighbouring bins then place a cell on the same part of the lobe, so
-    interpolating them moves the lobe instead of smearing it.
+    interpolating them moves the lobe instead of smearing it. In the half vector's
+    coordinates (anisotropic tables) the specular peak of every wi is the domain's centre:
+    the knots are there, and the lobe's width needs none.
     """
     K = len(theta_bins)
     wis = [spherical_dir(t, phi) for t in theta_bins]
-    phi_ref = phi + np.pi
+    frames = [_WoFrame(wi, phi) if coords == "wo" else _HalfFrame(wi, frame_angle) for wi in wis]
+    if coords == "halfvector":
+        lobe_width = None
     points = []
-    for t, wi in zip(theta_bins, wis):
-        key = (float(t), phi, grid, gamma)
+    for t, wi, frame in zip(theta_bins, wis, frames):
+        key = (float(t), phi, grid, gamma, coords)
         if key not in cache:
-            cache[key] = _points(material, source, wi, grid, phi_ref, gamma)
+            cache[key] = _points(material, source, wi, grid, frame, gamma)
         points.append(cache[key])
     near = [tuple(range(max(0, k - window), min(K, k + window + 1))) for k in range(K)]
 
-    row_knots = [lobe_knots(t, lobe_width) for t in theta_bins]
+    row_knots = [CENTRE_ROW_KNOTS if coords == "halfvector" else lobe_knots(t, lobe_width) for t in theta_bins]
     row_counts = _segment_counts(rows, len(row_knots[0]) - 1)
     normed = [_normalize(p[0], k) + (p[2],) for p, k in zip(points, row_knots)]
     def row_edges(nbrs):
@@ -395,7 +479,8 @@ def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_widt
         a, b, w, _ = points[k]
         row = np.clip(np.searchsorted(a_edges[k], a, side="right") - 1, 0, rows - 1)
         a_mid = 0.5 * (a_edges[k][:-1].astype(np.float64) + a_edges[k][1:])
-        knots = np.stack([lobe_col_knots(m, lobe_width) for m in a_mid])
+        knots = np.stack([CENTRE_COL_KNOTS if coords == "halfvector" else lobe_col_knots(m, lobe_width)
+                          for m in a_mid])
         seg, r = _normalize_rows(b, knots, row)
         order = np.argsort(row, kind="stable")
         bounds = np.searchsorted(row[order], np.arange(rows + 1))
@@ -420,7 +505,7 @@ def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_widt
     parts = []
     for k in range(K):
         a, b, _, pm = points[k]
-        parts.append(_finish_bin(material, wis[k], phi_ref, a_edges[k], b_edges[k], a, b, pm, quadrature, floor))
+        parts.append(_finish_bin(material, wis[k], frames[k], a_edges[k], b_edges[k], a, b, pm, quadrature, floor))
         step()
     mass, alpha, beta, weights = (np.stack(x) for x in zip(*parts))
     return np.stack(a_edges), b_edges, mass, alpha, beta, weights
