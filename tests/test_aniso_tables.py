@@ -31,13 +31,14 @@ N_CHI2 = len(NAMES) * len(CHI2_WIS)                           # every chi-square
 
 @pytest.fixture(scope="module")
 def baked(tmp_path_factory):
-    """{case: (material, ideal sampler, tables)}."""
+    """{case: (material, ideal sampler, tables over (a, b) of wo: files baked before the half
+    vector became anisotropic tables' default, still read and sampled)}."""
     workdir = tmp_path_factory.mktemp("aniso")
     out = {}
     for name in NAMES:
         mat = CASES[name].open(workdir)
         ideal = IdealSampler(mat, resolution=64)
-        out[name] = (mat, ideal, make_tables(mat, ideal, size=16, grid=64, bins=THETA_BINS))
+        out[name] = (mat, ideal, make_tables(mat, ideal, size=16, grid=64, bins=THETA_BINS, coords="wo"))
     return out
 
 
@@ -133,7 +134,7 @@ def test_bake_an_anisotropic_manifest_entry(tmp_path):
     path = table_path(out, "brushed")
     assert written == [path], lines
     tab = open_tables(path)
-    assert tab.anisotropic and len(tab.phi_bins) == 4 and len(tab.theta_bins) == 3
+    assert tab.anisotropic and len(tab.phi_bins) == 5 and tab.coords == "halfvector" and len(tab.theta_bins) == 3
     names = sorted(p.name for p in path.parent.iterdir())
     assert len(names) == 4 and names[0] == "brushed.exr" and names[1] == "brushed.fit.json", names
     assert names[2].startswith(f"brushed.osl{LAYOUT}-") and names[2].endswith(".exr"), names
@@ -155,7 +156,7 @@ def baked_half(tmp_path_factory):
     for name in NAMES:
         mat = CASES[name].open(workdir)
         ideal = IdealSampler(mat, resolution=64)
-        out[name] = (mat, ideal, make_tables(mat, ideal, size=16, grid=64, bins=THETA_BINS, coords="halfvector"))
+        out[name] = (mat, ideal, make_tables(mat, ideal, size=16, grid=64, bins=THETA_BINS))
     return out
 
 

@@ -373,6 +373,9 @@ def open_tables(path):
         period = _phi_period(meta, path)
         closed = meta.get("coords") == "halfvector"     # the last bin at the first + period
         phi_bins = _bins_of(meta, "phi_bins", path, 2 * period if closed else period, closed=closed)
+        if closed and (len(phi_bins) < 2 or not np.isclose(phi_bins[-1] - phi_bins[0], period)):
+            raise FlowBSDFError(f"phi_bins {meta['phi_bins']!r} of halfvector tables must close the period "
+                                f"{period:g}: corrupt file", path)
     coords = meta.get("coords", "wo")
     if coords not in COORDS:
         raise FlowBSDFError(f"table coordinates {coords!r} are unknown (this FlowBSDF reads {list(COORDS)}); "

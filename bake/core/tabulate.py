@@ -393,12 +393,13 @@ def default_phi_bins(material, count):
 
 def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_width=None, gamma=0.5,
                  row_share=0.02, col_share=0.05, quadrature=4, floor=1e-4, window=1,
-                 progress=None, cache=None, phi_bins=None, coords="wo"):
+                 progress=None, cache=None, phi_bins=None, coords=None):
     """Tables of a material at the given incident elevations (radians) and, for an
     anisotropic material, azimuths `phi_bins` (radians, increasing within [0, phi_period)
     of the material; see default_phi_bins). Each azimuth's bins are built like an isotropic
-    material's (`_build_column`) at wi = (theta, phi). coords "halfvector" (anisotropic only):
-    cells over the half vector (tables.py), which hold a thin lobe between phi_i bins.
+    material's (`_build_column`) at wi = (theta, phi). coords: "wo" (isotropic tables') or
+    "halfvector" (anisotropic only, their default): cells over the half vector (tables.py),
+    which hold a thin lobe between phi_i bins.
     """
     if phi_bins is None and not material.isotropic:
         raise FlowBSDFError("an anisotropic material needs bins over phi_i (phi_bins)")
@@ -419,6 +420,7 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
                 col_share=col_share, quadrature=quadrature, floor=floor, window=window, step=step)
     # One azimuth's source points are ~10 MB per bin: with several azimuths, each column's
     # are dropped once it is built (caching them all took > 20 GB for a planned 1:6 GGX).
+    coords = coords or ("wo" if phi_bins is None else "halfvector")
     if coords not in ("wo", "halfvector") or (coords == "halfvector" and phi_bins is None):
         raise FlowBSDFError(f"coords {coords!r}: 'wo', or 'halfvector' for anisotropic tables")
     frame_angle = 0.0

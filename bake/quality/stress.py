@@ -197,7 +197,7 @@ def hard_cases():
 TABLE_BINS = np.radians([0.0, 15.0, 30.0, 45.0, 60.0, 70.0, 78.0, 84.0, 87.0, 89.0, 89.5])
 
 
-def make_tables(material, ideal, size=32, grid=192, bins=TABLE_BINS, phi_count=8, coords="wo"):
+def make_tables(material, ideal, size=32, grid=192, bins=TABLE_BINS, phi_count=8, coords=None):
     """Small baked tables of a material (anisotropic: phi_count azimuths over its period, in
     `coords`)."""
     from ..core.tabulate import build_tables, default_phi_bins, lobe_width_of
