@@ -66,7 +66,8 @@ def to_ab(wi, wo):
     wo = np.asarray(wo, np.float64)
     wi = _per_point(wi, len(wo))
     h = wi + wo
-    h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):     # wo = -wi (below): callers give pdf 0
+        h = h / np.linalg.norm(h, axis=-1, keepdims=True)
     phi_h = np.arctan2(h[:, 1], h[:, 0])
     cap = _cap(wi, phi_h)
     radius = np.sqrt(np.clip((h[:, 0] ** 2 + h[:, 1] ** 2) / (1.0 + h[:, 2]) / cap, 0.0, 1.0))

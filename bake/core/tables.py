@@ -36,7 +36,7 @@ weights linear in cos(theta_i) times linear in phi_i, still a convex combination
 everything above holds. Their cells are over the half vector (`coords` "halfvector",
 bake/core/halfvector.py: a thin lobe stays put in it as phi_i turns, where in (a, b)
 above it turns with wi's plane and blending smears it); files from before keep (a, b)
-("wo"). The C fast path serves isotropic tables only; anisotropic ones use the numpy code.
+("wo"). The C fast path serves both; anisotropic files over wo use the numpy code.
 
 Per cell the table also keeps the RGB estimator weight W = integral of f·cos over the
 cell / its share of the target; `eval` returns W·pdf/cos, the baked BSDF the Cycles back
@@ -176,7 +176,7 @@ class Tables:
 
     @property
     def _fast(self):
-        if self.backend == "numpy" or self.anisotropic or self.coords != "wo":    # the C code: theta bins of wo
+        if self.backend == "numpy" or (self.anisotropic and self.coords != "halfvector"):     # C: not old wo files
             return None
         if _fasttables is None or not _fasttables.AVAILABLE:
             if self.backend == "c":

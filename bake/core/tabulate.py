@@ -532,6 +532,7 @@ def _normalize_rows(x, knots, row):
 
 RESOLUTIONS = (16, 24, 32, 48, 64)
 FLOATS_PER_CELL = 7      # mass, two rates, RGB weight, and (about) one column edge
+ANISO_BUDGET = 4         # anisotropic tables' share of memory_budget, all their azimuths together
 
 
 BROAD = 0.3     # lobes wider than this (radians) get no lobe zones: cells follow the mass alone
@@ -558,9 +559,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
     (default_phi_bins). The resolution probe runs at 4 of them; the theta bins are planned
-    at the azimuth where the probe did worst and shared by all azimuths. `memory_budget`
-    bounds the theta bins as for an isotropic material, i.e. it is per azimuth: anisotropic
-    tables take up to phi_count times as much.
+    at the azimuth where the probe did worst and shared by all azimuths. Their tables may take
+    ANISO_BUDGET times `memory_budget`, all azimuths together (16 MB at the default).
     """
     from ..quality.metrics import relative_variance
     from .ideal import IdealSampler
@@ -605,6 +605,9 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
     elif phi_bins is not None:
         worst_phi = max(probe_phis, key=lambda phi: rv_at(build([np.radians(75.0)], phi), np.radians(75.0), phi))
     per_bin = FLOATS_PER_CELL * 4 * resolution * resolution
+    if phi_bins is not None:        # every theta bin once per azimuth, and the one closing the period
+        per_bin *= len(phi_bins) + 1
+        memory_budget *= ANISO_BUDGET
     max_bins = max(2, int(memory_budget // per_bin))
 
     bins = list(np.radians(np.linspace(0.0, theta_max_deg, first_bins)))
