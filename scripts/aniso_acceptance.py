@@ -5,7 +5,7 @@ size, bake time and sampling speed; optionally beside tables over (a, b) of wo (
 anisotropic tables had before the half vector).
 
     .venv/bin/python scripts/aniso_acceptance.py [--cases a,b] [--coords halfvector,wo]
-        [--thetas 30,57.3,80] [--k 256] [--phi-count 8]
+        [--thetas 30,57.3,80] [--k 256] [--phi-count auto|N] [--resolution N]
 
 rv is metrics.relative_variance_ref (wo drawn from the ideal sampler on a jittered k x k grid;
 sees the tails a direct estimate misses). Prints Markdown; asserts nothing.
@@ -58,7 +58,7 @@ def main():
     ap.add_argument("--coords", default="halfvector")
     ap.add_argument("--thetas", default="30,57.3,80")
     ap.add_argument("--k", type=int, default=256)
-    ap.add_argument("--phi-count", type=int, default=8)
+    ap.add_argument("--phi-count", default="auto", help="plan_tables' phi_count: auto or a number")
     ap.add_argument("--resolution", type=int, default=None, help="fix the tables' resolution (skip the probe)")
     args = ap.parse_args()
     thetas = [float(t) for t in args.thetas.split(",")]
@@ -68,14 +68,17 @@ def main():
     for name in args.cases.split(","):
         mat = open_case(name, folder)
         ideal = IdealSampler(mat, resolution=256)
-        step = mat.phi_period / args.phi_count
-        phis = [(p + 0.37) * step * args.phi_count / 12 for p in range(12)]       # none on a bin
         for coords in args.coords.split(","):
             t0 = time.time()
-            tab = plan_tables(mat, ideal, phi_count=args.phi_count, resolution=args.resolution, coords=coords)
+            count = args.phi_count if args.phi_count == "auto" else int(args.phi_count)
+            tab = plan_tables(mat, ideal, phi_count=count, resolution=args.resolution, coords=coords)
             seconds = time.time() - t0
             plan = f"{tab.rows}x{tab.cols}, {len(tab.theta_bins)} x {len(tab.phi_bins)} bins"
             rate = speed(tab)
+            P = len(tab.phi_bins) - (tab.coords == "halfvector")      # the azimuths (halfvector: + the closing bin)
+            step = mat.phi_period / P
+            # 12 azimuths spread over the period, each 0.3 or 0.7 of the way between two bins
+            phis = [tab.phi_bins[(j * P) // 12] + (0.3 + 0.4 * (j % 2)) * step for j in range(12)]
             for theta in thetas:
                 ratios = []
                 for phi in phis:

@@ -531,6 +531,12 @@ def _normalize_rows(x, knots, row):
 # ------------------------------------------------------------------------------ planning
 
 RESOLUTIONS = (16, 24, 32, 48, 64)
+# Anisotropic tables spend memory on azimuths before cells: 32^2 cells x 32 phi bins hold a 1:25
+# or 1:50 GGX within 0.6-1.6x the 256^2 ideal's rv at theta_i 80 between phi bins, where 64^2 x 8
+# (the same memory) reached 3-10x (measured; the half vector's cap turns with phi_i at grazing).
+ANISO_RESOLUTIONS = (16, 24, 32)
+PHI_COUNTS = (8, 16, 32)
+PHI_PROBE_DEG = 80.0
 FLOATS_PER_CELL = 7      # mass, two rates, RGB weight, and (about) one column edge
 ANISO_BUDGET = 4         # anisotropic tables' share of memory_budget, all their azimuths together
 
@@ -549,7 +555,7 @@ def lobe_width_of(material, ideal):
 
 def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution=None, first_bins=6,
                 theta_max_deg=89.5, min_gap_deg=0.2, samples=1 << 14, lobe_width="auto", ideal_resolution=256, log=None,
-                phi_count=8, **options):
+                phi_count="auto", **options):
     """Tables with only the resolution and incident bins this material needs.
 
     Resolution: the smallest of RESOLUTIONS whose single-bin tables reach rv <= tol / 2 at a
@@ -558,7 +564,9 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
     against a bin built at that midpoint, until no interval loses more than tol / 2.
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
-    (default_phi_bins). The resolution probe runs at 4 of them; the theta bins are planned
+    (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
+    at theta_i PHI_PROBE_DEG loses at most the bin's own rv plus tol / 2 (at 4 azimuths). The
+    resolution (of ANISO_RESOLUTIONS) is probed at those 4 azimuths; the theta bins are planned
     at the azimuth where the probe did worst and shared by all azimuths. Their tables may take
     ANISO_BUDGET times `memory_budget`, all azimuths together (16 MB at the default).
     """
@@ -569,17 +577,17 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
     if lobe_width == "auto":
         lobe_width = lobe_width_of(material, ideal)
     opts = dict(lobe_width=lobe_width, cache={}, **options)
-    phi_bins = None if material.isotropic else default_phi_bins(material, phi_count)
+    aniso = not material.isotropic
 
     def build(thetas, phi=0.0, phis=None):     # phis: all azimuths; else the single azimuth phi
-        if phi_bins is not None:
+        if aniso:
             phis = [phi] if phis is None else phis
         return build_tables(material, source, thetas, resolution, resolution, phi_bins=phis, **opts)
 
     def rv_at(tab, theta, phi=0.0):
         return relative_variance(material, tab, spherical_dir(theta, phi), n=samples)[0]
 
-    probe_phis = [0.0] if phi_bins is None else phi_bins[::max(1, len(phi_bins) // 4)]
+    probe_phis = list(np.arange(4) * (material.phi_period / 4)) if aniso else [0.0]
     worst_phi = 0.0
     if resolution is None:
         probe = np.radians([86.0, 75.0, 10.0, 45.0])     # grazing first: where coarse tables fail first
@@ -594,16 +602,29 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
 
         # Isotropic: one angle above tol / 2 decides that a resolution fails (the rest need not be
         # built). Anisotropic: the worst azimuth is needed, so every angle is.
-        stop = 0.5 * tol if phi_bins is None else np.inf
-        for resolution in RESOLUTIONS:
+        stop = np.inf if aniso else 0.5 * tol
+        for resolution in (ANISO_RESOLUTIONS if aniso else RESOLUTIONS):
             by_phi = {phi: probe_rv(phi, stop) for phi in probe_phis}
             worst_phi, worst = max(by_phi.items(), key=lambda kv: kv[1])
             log(f"resolution {resolution}: single-bin rv {worst:.4f}" + (" or more" if worst > stop else "")
-                + ("" if phi_bins is None else f" (at phi_i {np.degrees(worst_phi):.1f} deg)"))
+                + (f" (at phi_i {np.degrees(worst_phi):.1f} deg)" if aniso else ""))
             if worst <= 0.5 * tol:
                 break
-    elif phi_bins is not None:
+    elif aniso:
         worst_phi = max(probe_phis, key=lambda phi: rv_at(build([np.radians(75.0)], phi), np.radians(75.0), phi))
+    phi_bins = None
+    if aniso:
+        if phi_count == "auto":
+            theta = np.radians(PHI_PROBE_DEG)
+            for phi_count in PHI_COUNTS:
+                step = material.phi_period / phi_count
+                pairs = [build([theta], phis=[phi, phi + step]) for phi in probe_phis]
+                loss = max(rv_at(tab, theta, phi + 0.5 * step) - 2.0 * rv_at(tab, theta, phi)
+                           for tab, phi in zip(pairs, probe_phis))
+                log(f"phi bins {phi_count}: the blend half-way loses {loss:.4f}")
+                if loss <= 0.5 * tol:
+                    break
+        phi_bins = default_phi_bins(material, phi_count)
     per_bin = FLOATS_PER_CELL * 4 * resolution * resolution
     if phi_bins is not None:        # every theta bin once per azimuth, and the one closing the period
         per_bin *= len(phi_bins) + 1
