@@ -139,7 +139,7 @@ def _nodes(a0, a1, b0, b1, s, phi_ref):
 class _WoFrame:
     """The isotropic cells' (a, b) of wo, b from wi's plane (tables.to_ab, phi_ref = phi_i + pi)."""
 
-    def __init__(self, wi, phi_i):
+    def __init__(self, phi_i):
         self.phi_ref = phi_i + np.pi
 
     def nodes(self, a0, a1, b0, b1, s):
@@ -202,8 +202,8 @@ def lobe_axes_angle(source, grid=64):
 
 def _moments(material, wi, frame, a0, a1, b0, b1, q, chunk=1 << 18):
     """Per cell [a0,a1]x[b0,b1], a q x q midpoint rule: target mass, its mean local x and y,
-    the RGB integral of f·cos (da db = d omega), and the target's marginal densities along
-    a and b at the q nodes of each axis (shape (cells, q))."""
+    the RGB integral of f·cos (over d omega_o: da db times the frame's Jacobian), and the
+    target's marginal densities along a and b at the q nodes of each axis (shape (cells, q))."""
     s = (np.arange(q) + 0.5) / q
     X = np.repeat(s, q)
     Y = np.tile(s, q)
@@ -454,7 +454,7 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
     """
     K = len(theta_bins)
     wis = [spherical_dir(t, phi) for t in theta_bins]
-    frames = [_WoFrame(wi, phi) if coords == "wo" else _HalfFrame(wi, frame_angle) for wi in wis]
+    frames = [_WoFrame(phi) if coords == "wo" else _HalfFrame(wi, frame_angle) for wi in wis]
     if coords == "halfvector":
         lobe_width = None
     points = []
