@@ -367,6 +367,9 @@ class _Sampler:
             if K > 1 else 0.0
         if P > 1:
             x = g.math('FLOORED_MODULO', g.math('SUBTRACT', phi_i, lay["phi0"]), lay["period"])
+            # halfvector tables: the whole periods phi_i was turned back by, plus the lobe's axes
+            self.ref = g.math('ADD', g.math('SUBTRACT', g.math('SUBTRACT', phi_i, lay["phi0"]), x),
+                              lay.get("frame", 0.0))
             p = self.bin_count(lay["phi_guide"], x, g.math('MULTIPLY', x, 1.0 / lay["period"]))
             corner = g.math('MULTIPLY_ADD', k, float(P), p)
         else:
@@ -393,6 +396,23 @@ class _Sampler:
             t1, s1 = g.math('SUBTRACT', 1.0, t), g.math('SUBTRACT', 1.0, s)
             self.weights = [(g.combine(g.math('MULTIPLY', t1, s1), g.math('MULTIPLY', t, s1), g.math('MULTIPLY', t1, s)),
                              g.math('MULTIPLY', t, s))]
+
+    def direction(self, a, b, cos_i, phi_i):
+        """wo (floats x, y, z in the local frame) at table coordinates (a, b), after `incident`,
+        and d omega_o / (da db) (None: 1, the "wo" coordinates; bake/core/tables.py)."""
+        g = self.g
+        if self.lay.get("coords", "wo") != "halfvector":
+            return _from_ab(g, a, b, phi_i), None
+        wo, jac = _half_from_ab(g, a, b, _half_wi(g, cos_i, phi_i, self.ref))
+        return _turn(g, wo, self.ref), jac
+
+    def coordinates(self, wo, cos_i, phi_i):
+        """(a, b, d omega_o / (da db) or None) of a local direction wo, after `incident`."""
+        g = self.g
+        if self.lay.get("coords", "wo") != "halfvector":
+            return _to_ab(g, wo, phi_i) + (None,)
+        return _half_to_ab(g, _turn(g, wo, g.math('MULTIPLY', self.ref, -1.0)),
+                           _half_wi(g, cos_i, phi_i, self.ref))
 
     def rows(self):
         return self.offset(self.origin, self.lay["x_row"])
@@ -485,6 +505,70 @@ def _to_ab(g, wo, phi_i):
     if phi_i is not None:
         azimuth = g.math('SUBTRACT', azimuth, phi_i)
     return a, g.math('FLOORED_MODULO', azimuth, 2.0 * math.pi)
+
+
+def _turn(g, w, angle):
+    """Floats (x, y, z) turned about z by the socket `angle`."""
+    c, s = g.math('COSINE', angle), g.math('SINE', angle)
+    return (g.math('SUBTRACT', g.math('MULTIPLY', c, w[0]), g.math('MULTIPLY', s, w[1])),
+            g.math('MULTIPLY_ADD', s, w[0], g.math('MULTIPLY', c, w[1])), w[2])
+
+
+def _half_wi(g, cos_i, phi_i, ref):
+    """wi in the halfvector map's frame (turned by `ref` from the local one)."""
+    sin_i = g.math('SQRT', g.math('MAXIMUM', g.math('MULTIPLY_ADD', cos_i, g.math('MULTIPLY', cos_i, -1.0), 1.0), 0.0))
+    rel = g.math('SUBTRACT', phi_i, ref)
+    return (g.math('MULTIPLY', sin_i, g.math('COSINE', rel)), g.math('MULTIPLY', sin_i, g.math('SINE', rel)), cos_i)
+
+
+def _half_cap(g, wi, cos_h, sin_h):
+    """bake/core/halfvector.py _cap: 1 - cos theta_max at the azimuth (cos_h, sin_h) of h."""
+    along = g.math('MULTIPLY_ADD', wi[0], cos_h, g.math('MULTIPLY', wi[1], sin_h))
+    half = g.math('SINE', g.math('MULTIPLY', g.math('ARCTAN2', wi[2], g.math('MULTIPLY', along, -1.0)), 0.25))
+    return g.math('MAXIMUM', g.math('MULTIPLY', g.math('MULTIPLY', half, half), 2.0), 1e-30)
+
+
+def _half_from_ab(g, a, b, wi):
+    """bake/core/halfvector.py from_ab: (wo floats in the map's frame, jac)."""
+    x, y = g.math('MULTIPLY_ADD', a, 2.0, -1.0), g.math('MULTIPLY_ADD', b, 1.0 / math.pi, -1.0)
+    wide = g.math('GREATER_THAN', g.math('ABSOLUTE', x), g.math('ABSOLUTE', y))    # ties: either way
+    r = g.select(wide, x, y)
+    ratio = g.math('DIVIDE', g.select(wide, y, x), r)              # Blender's divide: 0 at r = 0
+    angle = g.select(wide, g.math('MULTIPLY', ratio, math.pi / 4),
+                     g.math('MULTIPLY_ADD', ratio, -math.pi / 4, math.pi / 2))
+    u, v = g.math('MULTIPLY', r, g.math('COSINE', angle)), g.math('MULTIPLY', r, g.math('SINE', angle))
+    phi_h = g.math('ARCTAN2', v, u)
+    cos_h, sin_h = g.math('COSINE', phi_h), g.math('SINE', phi_h)
+    cap = _half_cap(g, wi, cos_h, sin_h)
+    one_minus_cos = g.math('MULTIPLY', g.math('MULTIPLY_ADD', u, u, g.math('MULTIPLY', v, v)), cap)
+    sin_t = g.math('SQRT', g.math('MAXIMUM', g.math('MULTIPLY', one_minus_cos,
+                                                     g.math('SUBTRACT', 2.0, one_minus_cos)), 0.0))
+    h = (g.math('MULTIPLY', sin_t, cos_h), g.math('MULTIPLY', sin_t, sin_h), g.math('SUBTRACT', 1.0, one_minus_cos))
+    cos_ih = g.dot(g.combine(*wi), g.combine(*h))
+    twice = g.math('MULTIPLY', cos_ih, 2.0)
+    wo = tuple(g.math('MULTIPLY_ADD', twice, hc, g.math('MULTIPLY', wc, -1.0)) for hc, wc in zip(h, wi))
+    return (wo[0], wo[1], g.math('MAXIMUM', wo[2], 0.0)), g.math('MULTIPLY', g.math('MULTIPLY', cos_ih, cap), 4.0)
+
+
+def _half_to_ab(g, wo, wi):
+    """bake/core/halfvector.py to_ab: (a, b, jac) of wo (floats in the map's frame)."""
+    h = g.vmath('NORMALIZE', g.vmath('ADD', g.combine(*wi), g.combine(*wo)))
+    hx, hy, hz = (g.dot(h, axis) for axis in (X, Y, Z))
+    phi_h = g.math('ARCTAN2', hy, hx)
+    cos_h, sin_h = g.math('COSINE', phi_h), g.math('SINE', phi_h)
+    cap = _half_cap(g, wi, cos_h, sin_h)
+    flat = g.math('DIVIDE', g.math('MULTIPLY_ADD', hx, hx, g.math('MULTIPLY', hy, hy)), g.math('ADD', hz, 1.0))
+    radius = g.math('SQRT', g.math('DIVIDE', flat, cap), clamp=True)
+    u, v = g.math('MULTIPLY', radius, cos_h), g.math('MULTIPLY', radius, sin_h)
+    wide = g.math('GREATER_THAN', g.math('ABSOLUTE', u), g.math('ABSOLUTE', v))
+    major = g.select(wide, u, v)                     # r = sign(major) radius, the other by its angle
+    r = g.math('MULTIPLY', g.math('SIGN', major), radius)
+    other = g.math('DIVIDE', g.math('MULTIPLY', r, g.math('ARCTANGENT', g.math('DIVIDE', g.select(wide, v, u), major))),
+                   math.pi / 4)
+    x, y = g.select(wide, r, other), g.select(wide, other, r)
+    a = g.math('MULTIPLY_ADD', x, 0.5, 0.5, clamp=True)
+    b = g.math('MINIMUM', g.math('MAXIMUM', g.math('MULTIPLY_ADD', y, math.pi, math.pi), 0.0), 2.0 * math.pi)
+    return a, b, g.math('MULTIPLY', g.math('MULTIPLY', g.dot(g.combine(*wi), h), cap), 4.0)
 
 
 def _expm1(g, k):
@@ -786,7 +870,9 @@ class _Mixture:
         t1 = g.math('MINIMUM', g.math('DIVIDE', g.math('SUBTRACT', at["u1"], self.c_light), self.c_tables),
                     1.0 - 2.0 ** -24)
         a, b, weight, pdf = sampler.sample(at["u0"], t1)
-        wo = _from_ab(g, a, b, at["phi_i"])
+        wo, jac = sampler.direction(a, b, at["cos_i"], at["phi_i"])
+        if jac is not None:
+            pdf = g.math('DIVIDE', pdf, jac)
         d = _to_world(g, at, wo)
         q = g.math('MULTIPLY_ADD', self.c_tables, pdf, self.light_pdf(g, d, "tables"))
         ok = _valid(g, at, wo[2], d)
@@ -1018,7 +1104,9 @@ def _sample(g, texture_path, group_input_tangent_socket, cv=None):
         take, u0 = _cv_pick(g, cv, u0)
     sampler.incident(cos_i, phi_i)
     a, b, weight, pdf = sampler.sample(u0, u1)
-    wo = _from_ab(g, a, b, phi_i)
+    wo, jac = sampler.direction(a, b, cos_i, phi_i)
+    if jac is not None:
+        pdf = g.math('DIVIDE', pdf, jac)
     if phi_i is None:
         tx, ty = _frame(g, n, wi)
     direction = g.vmath('ADD', g.vmath('ADD', g.scale(tx, wo[0]), g.scale(ty, wo[1])), g.scale(n, wo[2]))
@@ -1254,7 +1342,10 @@ def tables_pdf_graph(tree, texture_path, wo_socket, group_input_tangent_socket=N
 def _inverse(g, sampler, cos_i, phi_i, wo):
     """(pdf, f·cos) at the local direction wo (floats x, y, z), both 0 for wo_z <= 0."""
     sampler.incident(cos_i, phi_i)
-    pdf, weight = sampler.locate(*_to_ab(g, wo, phi_i))
+    a, b, jac = sampler.coordinates(wo, cos_i, phi_i)
+    pdf, weight = sampler.locate(a, b)
+    if jac is not None:
+        pdf = g.math('DIVIDE', pdf, jac)
     pdf = g.math('MULTIPLY', pdf, g.math('GREATER_THAN', wo[2], 0.0))
     return pdf, g.scale(weight, pdf)
 
@@ -1297,7 +1388,10 @@ def build_svm_probe(tree, texture_path, probe_path, inverse=False, location=(0.0
     else:
         sampler.incident(cos_i, phi_i)
         a, b, weight, pdf = sampler.sample(first, second)
-        wo = g.vmath('MULTIPLY_ADD', g.combine(*_from_ab(g, a, b, phi_i)), (0.5, 0.5, 0.5), (0.5, 0.5, 0.5))
+        wo, jac = sampler.direction(a, b, cos_i, phi_i)
+        if jac is not None:
+            pdf = g.math('DIVIDE', pdf, jac)
+        wo = g.vmath('MULTIPLY_ADD', g.combine(*wo), (0.5, 0.5, 0.5), (0.5, 0.5, 0.5))
         shown = (wo, weight, pdf)
     return _probe_output(g, thirds, shown)
 

@@ -302,16 +302,16 @@ def small_tables(source, name, folder):
     return folder / f"{name}.exr"
 
 
-def aniso_small_tables(folder):
-    """Small anisotropic tables (GGX 0.3 x 0.05 at 20 deg: 3 theta x 4 phi bins over pi), saved
-    as <folder>/brushed.exr."""
+def aniso_small_tables(folder, coords=None):
+    """Small anisotropic tables (GGX 0.3 x 0.05 at 20 deg: 3 theta x 4 phi bins over pi, cells
+    over `coords`, the half vector by default), saved as <folder>/brushed.exr."""
     from bake.core.ideal import IdealSampler
     from bake.materials import open_material
     from bake.core.tabulate import build_tables
     mat = open_material({"kind": "analytic", "model": "ggx", "alpha_x": 0.3, "alpha_y": 0.05, "angle": 20})
     phi_bins = np.arange(4) * (mat.phi_period / 4)
     tab = build_tables(mat, IdealSampler(mat, resolution=48), np.radians([0.0, 45.0, 89.5]), rows=16, cols=16,
-                       grid=64, phi_bins=phi_bins)
+                       grid=64, phi_bins=phi_bins, coords=coords)
     path = folder / "brushed.exr"
     tab.meta["material"] = "brushed"
     tab.save(path)

@@ -205,16 +205,21 @@ def test_osl_env_radiance_is_the_environment_textures(tmp_path, linear):
 
 @pytest.fixture(scope="module")
 def aniso_tables(tmp_path_factory):
-    """Small anisotropic tables (cycles_scenes.aniso_small_tables)."""
+    """Small anisotropic tables (cycles_scenes.aniso_small_tables), over the half vector."""
     return cs.aniso_small_tables(tmp_path_factory.mktemp("aniso"))
 
 
-def test_osl_sampler_is_tables_sample_anisotropic(aniso_tables):
+@pytest.mark.parametrize("coords", ["halfvector", "wo"])
+def test_osl_sampler_is_tables_sample_anisotropic(aniso_tables, coords, tmp_path):
     """Anisotropic tables in OSL: the four-bin blend over theta_i x phi_i gives numpy's wo,
-    weight and pdf, on bins, between them and across the period's wrap."""
+    weight and pdf, on bins, between them and across the period's wrap, in either coordinates
+    (halfvector: the default; wo: files baked before it)."""
     from bake.core.geometry import incident
     from bake.core.tables import open_tables
+    if coords != "halfvector":
+        aniso_tables = cs.aniso_small_tables(tmp_path, coords=coords)
     tab = open_tables(aniso_tables)
+    assert tab.coords == coords
     tab.backend = "numpy"
     tex = ensure_osl_export(aniso_tables)
     n = 24

@@ -101,7 +101,7 @@ def test_one_failure_does_not_stop_the_others(tmp_path, capsys):
         bake_manifest(m, out, log=log.append)
     assert table_path(out, "matte").is_file()
     brushed = open_tables(table_path(out, "brushed"))      # anisotropic: baked over phi_i too
-    assert brushed.anisotropic and len(brushed.phi_bins) == 4
+    assert brushed.anisotropic and len(brushed.phi_bins) == 5 and brushed.coords == "halfvector"   # 4 + the closing bin
     assert main(["bake", str(m.path), "--out", str(out)]) == 2
     assert "gone" in capsys.readouterr().err
 

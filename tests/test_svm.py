@@ -135,7 +135,9 @@ def _assert_probe_is_numpy(svm, tables_path, angles, folder, extremes=True):
     """wo within 3e-4 (median 2e-5), weight rtol 1e-4, pdf rtol 1e-3. At the EXTREMES of u the
     point within the cell is float32-limited in the graph (the remainder (v - cumsum) / mass
     cancels where a cell's mass is ~1e-4 of its row's): there the same cell (weight rtol
-    1e-4), wo within 2e-3, pdf rtol 1e-2."""
+    1e-4), wo within 2e-3, pdf rtol 1e-2 (halfvector tables: 2e-2 and 0.2, their rim cells, near
+    the horizon where f cos is ~0, are wide, the same share of a cell moves wo further and the
+    map's Jacobian varies across it; measured 0.012 and 0.107 at pdfs ~1e-5)."""
     tab = open_tables(tables_path)
     tab.backend = "numpy"
     inputs, extreme = _probe_inputs(angles, extremes=extremes)
@@ -143,11 +145,11 @@ def _assert_probe_is_numpy(svm, tables_path, angles, folder, extremes=True):
     ref_wo, ref_weight, ref_pdf = _numpy_sample(tab, inputs)
     err = np.abs(wo - ref_wo).max(axis=1)
     assert err[~extreme].max() < 3e-4 and np.median(err) < 2e-5, (err[~extreme].max(), np.median(err))
-    assert not extremes or err[extreme].max() < 2e-3, err[extreme].max()
+    assert not extremes or err[extreme].max() < (2e-2 if tab.coords == "halfvector" else 2e-3), err[extreme].max()
     np.testing.assert_allclose(weight, ref_weight, rtol=1e-4, atol=1e-7)
     np.testing.assert_allclose(pdf[~extreme], ref_pdf[~extreme], rtol=1e-3)
     if extremes:
-        np.testing.assert_allclose(pdf[extreme], ref_pdf[extreme], rtol=1e-2)
+        np.testing.assert_allclose(pdf[extreme], ref_pdf[extreme], rtol=0.2 if tab.coords == "halfvector" else 1e-2)
 
 
 def test_svm_sampler_is_tables_sample(svm, plastic, tmp_path):

@@ -8,7 +8,7 @@ from bake.materials import open_material
 from bake.materials.base import Material, as_dirs
 from bake.quality.metrics import chi2_test, relative_variance
 from bake.core.tables import TWO_PI, Tables, exp_cdf, exp_density, exp_inverse_cdf, from_ab, open_tables, to_ab
-from bake.core.tabulate import _finish_bin, _moments_around, _nodes, build_tables, exp_rate_for_mean, plan_tables
+from bake.core.tabulate import _WoFrame, _finish_bin, _moments_around, _nodes, build_tables, exp_rate_for_mean, plan_tables
 from contract import assert_sampler_contract
 
 HARD = {
@@ -67,7 +67,7 @@ def test_cell_rate_stops_at_the_floor_of_f_cos():
     wherever f·cos > 0."""
     mat, wi = FlankThenFloor(), incident(40.0)
     a_edges, b_edges, none = np.array([0.0, 0.5, 1.0]), np.array([[0.0, 1.0, 1.5, TWO_PI]] * 2), np.empty(0)
-    prob, alpha, beta, w = _finish_bin(mat, wi, np.pi, a_edges, b_edges, none, none, none, 4, 1e-4)
+    prob, alpha, beta, w = _finish_bin(mat, wi, _WoFrame(0.0), a_edges, b_edges, none, none, none, 4, 1e-4)
     assert np.all(np.abs(beta[:, 1]) <= np.log(1.001 / (1e-3 + np.exp(-60.0)))) and np.all(beta[:, 1] < -3)
     tab = Tables([np.radians(40.0)], a_edges[None], b_edges[None], prob[None], alpha[None], beta[None], w[None])
     y = (np.arange(4096) + 0.5) / 4096

@@ -69,17 +69,23 @@ double sin(double) FT_VEC;
 #endif
 
 /* Bumped whenever ft_tables or a signature changes (bake/core/fasttables.py checks it). */
-#define FT_ABI 1
+#define FT_ABI 2
 
 static const double PI = 3.141592653589793;       /* np.pi */
 static const double TWO_PI = 6.283185307179586;   /* 2.0 * np.pi */
 static const double SMALL = 1e-4;                 /* tables._SMALL */
+static const double QUARTER = 0.7853981633974483; /* halfvector.QUARTER, 0.25 * np.pi */
+static const double TINY = 1e-300;                /* halfvector._TINY */
 
 #define BLK 16      /* samples per block (see the header) */
 
-/* The Tables, as bake/core/fasttables.py passes them (C-contiguous arrays). */
+/* The Tables, as bake/core/fasttables.py passes them (C-contiguous arrays). Anisotropic
+ * tables (P > 1, halfvector coordinates only): bins k P + p, the phi axis closed (the last
+ * bin one period after the first), starts = phi_bins - phi_bins[0]. */
 typedef struct {
-    int64_t K, R, C;
+    int64_t K, R, C, P;
+    double period, frame, phi0;    /* anisotropic: phi_period, frame_angle, phi_bins[0] */
+    const double *starts;      /* (P) */
     const double *theta_bins;  /* (K) */
     const double *cos_bins;    /* (K) np.cos(theta_bins) */
     const double *a;           /* (K, R+1)    _a */
@@ -147,18 +153,22 @@ FT_INLINE void exp_density(const double *x, const double *k, const double *e, do
 
 /* ------------------------------------------------------------------------ bins, views */
 
-/* One sample's interpolation: (1 - t) bin k0 + t bin k1. Offsets of bin k0 in the row
- * arrays (a, row_cdf), the row x column+1 arrays (b, col_cum) and the cell arrays; d*: bin
- * k1's offset minus k0's. In flat mode all offsets are 0 and s, t unused. */
+/* One sample's interpolation: w[0] bin b0 + w[1] bin b1 (+ w[2] b2 + w[3] b3 when n == 4,
+ * anisotropic), Tables._lerp's order. Offsets of bin b0 in the row arrays (a, row_cdf), the
+ * row x column+1 arrays (b, col_cum) and the cell arrays; d*[c]: bin c+1's offset minus b0's.
+ * In flat mode all offsets are 0 and the weights unused. phi_ref: the "wo" coordinates'
+ * reference; halfvector: the map's frame angle, with wi in that frame (wr) and the cosine
+ * and sine that turn a direction back (cr, sr). */
 typedef struct {
-    double s, t, phi_ref;
-    ptrdiff_t ka, kb, kc, da, db, dc;
+    double w[4], phi_ref, wr[3], cr, sr;
+    int64_t n;
+    ptrdiff_t ka, kb, kc, da[3], db[3], dc[3];
 } ft_bin;
 
 /* The arrays the kernels read: the Tables' (interpolated per sample) or, in flat mode,
  * one wi's interpolated table, with expm1 of the rates (ea, eb) and float64 weights. */
 typedef struct {
-    int64_t R, C;
+    int64_t R, C, half;                /* half: the halfvector coordinates */
     const double *a, *b, *m, *alpha, *beta, *row_cdf, *col_cum;
     const float *w32;                  /* interpolated mode */
     const double *ea, *eb, *w64;       /* flat mode (w64 only for eval) */
@@ -167,7 +177,7 @@ typedef struct {
 /* Tables._bins for one wi, from theta, phi (geometry.theta_phi), cos(theta) (unused when
  * K == 1) and n = np.searchsorted(theta_bins, theta, side="right") */
 FT_INLINE void bin_of(const ft_tables *T, double theta, double phi, double cos_theta, int64_t n, ft_bin *B) {
-    const int64_t K = T->K, R = T->R, C = T->C;
+    const int64_t K = T->K, R = T->R, C = T->C, P = T->P;
     int64_t k0 = 0, k1 = 0;
     double t = 0.0;
     if (K != 1) {
@@ -179,15 +189,41 @@ FT_INLINE void bin_of(const ft_tables *T, double theta, double phi, double cos_t
         k0 = k;
         k1 = k + 1;
     }
-    B->s = 1.0 - t;
-    B->t = t;
-    B->phi_ref = phi + PI;
-    B->ka = k0 * (R + 1);
-    B->da = (k1 - k0) * (R + 1);
-    B->kb = k0 * R * (C + 1);
-    B->db = (k1 - k0) * R * (C + 1);
-    B->kc = k0 * R * C;
-    B->dc = (k1 - k0) * R * C;
+    int64_t bin[4] = {k0, k1, 0, 0};
+    if (P > 1) {    /* halfvector: phi_i turned back by whole periods into the closed axis */
+        const double turns = floor((phi - T->phi0) / T->period);
+        const double x = phi - T->phi0 - turns * T->period;
+        int64_t p = 0;
+        for (int64_t q = 0; q < P; q++) p += T->starts[q] <= x;     /* searchsorted right */
+        p -= 1;
+        if (p < 0) p = 0;
+        if (p > P - 2) p = P - 2;
+        const double sp = clip01((x - T->starts[p]) / (T->starts[p + 1] - T->starts[p]));
+        B->w[0] = (1.0 - t) * (1.0 - sp);
+        B->w[1] = (1.0 - t) * sp;
+        B->w[2] = t * (1.0 - sp);
+        B->w[3] = t * sp;
+        bin[0] = k0 * P + p;
+        bin[1] = k0 * P + p + 1;
+        bin[2] = k1 * P + p;
+        bin[3] = k1 * P + p + 1;
+        B->n = 4;
+        B->phi_ref = turns * T->period + T->frame;
+    } else {
+        B->w[0] = 1.0 - t;
+        B->w[1] = t;
+        B->w[2] = B->w[3] = 0.0;
+        B->n = 2;
+        B->phi_ref = phi + PI;
+    }
+    B->ka = bin[0] * (R + 1);
+    B->kb = bin[0] * R * (C + 1);
+    B->kc = bin[0] * R * C;
+    for (int c = 0; c < 3; c++) {
+        B->da[c] = (bin[c + 1] - bin[0]) * (R + 1);
+        B->db[c] = (bin[c + 1] - bin[0]) * R * (C + 1);
+        B->dc[c] = (bin[c + 1] - bin[0]) * R * C;
+    }
 }
 
 /* The bins of a block of directions w (row stride `stride`), one libm function per loop:
@@ -210,33 +246,56 @@ FT_INLINE void bins(const ft_tables *T, const double *w, int64_t stride, ft_bin 
     for (int64_t q = 0; q < T->K; q++)
         for (int k = 0; k < BLK; k++) n[k] += T->theta_bins[q] <= theta[k] ? 1.0 : 0.0;
     for (int k = 0; k < BLK; k++) bin_of(T, theta[k], phi[k], c[k], isnan(theta[k]) ? T->K : (int64_t)n[k], &B[k]);
+    if (T->P > 1) {     /* halfvector: wi in the map's frame (warps.rotate_z by -phi_ref) */
+        double cr[BLK], sr[BLK];
+        FT_SIMD for (int k = 0; k < BLK; k++) cr[k] = cos(B[k].phi_ref);
+        FT_SIMD for (int k = 0; k < BLK; k++) sr[k] = sin(B[k].phi_ref);
+        for (int k = 0; k < BLK; k++) {
+            B[k].cr = cr[k];
+            B[k].sr = sr[k];
+            B[k].wr[0] = cr[k] * x[k] - (-sr[k]) * y[k];
+            B[k].wr[1] = (-sr[k]) * x[k] + cr[k] * y[k];
+            B[k].wr[2] = z[k];
+        }
+    }
 }
 
-/* Tables._lerp of one element: x[off] of bin k0 with x[off + d] of bin k1; in flat mode
- * the (already interpolated) x[off]. */
-#define AT(x, off, d, Bk) (flat ? (x)[off] : (Bk).s * (x)[off] + (Bk).t * (x)[(off) + (d)])
+/* Tables._lerp of one element: x[off] of bin b0 blended with x[off + d[c]] of the others. */
+FT_INLINE double lerp(const double *x, ptrdiff_t off, const ptrdiff_t *d, const ft_bin *B) {
+    double v = B->w[0] * x[off] + B->w[1] * x[off + d[0]];
+    if (B->n == 4) v = (v + B->w[2] * x[off + d[1]]) + B->w[3] * x[off + d[2]];
+    return v;
+}
+
+FT_INLINE double lerp32(const float *x, ptrdiff_t off, const ptrdiff_t *d, const ft_bin *B) {
+    double v = B->w[0] * (double)x[off] + B->w[1] * (double)x[off + d[0]];
+    if (B->n == 4) v = (v + B->w[2] * (double)x[off + d[1]]) + B->w[3] * (double)x[off + d[2]];
+    return v;
+}
+
+/* Tables._lerp of one element (lerp); in flat mode the (already interpolated) x[off]. */
+#define AT(x, off, d, Bk) (flat ? (x)[off] : lerp((x), (off), (d), &(Bk)))
 
 /* The flat view of one wi (bin B) into buf; returns 0 when out of memory. */
 FT_INLINE int flatten(const ft_tables *T, const ft_bin *B, int with_weights, ft_view *V, double **buf) {
     const int64_t R = T->R, C = T->C, rows = R + 1, edges = R * (C + 1), cells = R * C;
-    const double s = B->s, t = B->t;
     double *p = malloc(sizeof(double) * (size_t)(2 * rows + 2 * edges + (5 + (with_weights ? 3 : 0)) * cells));
     if (!p) return 0;
     *buf = p;
     double *a = p, *row_cdf = a + rows, *b = row_cdf + rows, *col_cum = b + edges, *m = col_cum + edges;
     double *alpha = m + cells, *beta = alpha + cells, *ea = beta + cells, *eb = ea + cells, *w = eb + cells;
     for (int64_t i = 0; i < rows; i++) {
-        a[i] = s * T->a[B->ka + i] + t * T->a[B->ka + B->da + i];
-        row_cdf[i] = s * T->row_cdf[B->ka + i] + t * T->row_cdf[B->ka + B->da + i];
+        a[i] = lerp(T->a, B->ka + i, B->da, B);
+        row_cdf[i] = lerp(T->row_cdf, B->ka + i, B->da, B);
     }
     for (int64_t i = 0; i < edges; i++) {
-        b[i] = s * T->b[B->kb + i] + t * T->b[B->kb + B->db + i];
-        col_cum[i] = s * T->col_cum[B->kb + i] + t * T->col_cum[B->kb + B->db + i];
+        b[i] = lerp(T->b, B->kb + i, B->db, B);
+        col_cum[i] = lerp(T->col_cum, B->kb + i, B->db, B);
     }
     for (int64_t i = 0; i < cells; i++) {
-        m[i] = s * T->m[B->kc + i] + t * T->m[B->kc + B->dc + i];
-        alpha[i] = s * T->alpha[B->kc + i] + t * T->alpha[B->kc + B->dc + i];
-        beta[i] = s * T->beta[B->kc + i] + t * T->beta[B->kc + B->dc + i];
+        m[i] = lerp(T->m, B->kc + i, B->dc, B);
+        alpha[i] = lerp(T->alpha, B->kc + i, B->dc, B);
+        beta[i] = lerp(T->beta, B->kc + i, B->dc, B);
     }
     for (int64_t i0 = 0; i0 < cells; i0 += BLK) {   /* full blocks, as every other rate_e call */
         double ka[BLK], kb[BLK], e1[BLK], e2[BLK];
@@ -251,10 +310,12 @@ FT_INLINE int flatten(const ft_tables *T, const ft_bin *B, int with_weights, ft_
             eb[i0 + k] = e2[k];
         }
     }
-    if (with_weights)
+    if (with_weights) {
+        const ptrdiff_t d3[3] = {3 * B->dc[0], 3 * B->dc[1], 3 * B->dc[2]};
         for (int64_t i = 0; i < 3 * cells; i++)
-            w[i] = s * (double)T->weights[3 * B->kc + i] + t * (double)T->weights[3 * (B->kc + B->dc) + i];
-    *V = (ft_view){R, C, a, b, m, alpha, beta, row_cdf, col_cum, NULL, ea, eb, with_weights ? w : NULL};
+            w[i] = lerp32(T->weights, 3 * B->kc + i, d3, B);
+    }
+    *V = (ft_view){R, C, T->P > 1, a, b, m, alpha, beta, row_cdf, col_cum, NULL, ea, eb, with_weights ? w : NULL};
     return 1;
 }
 
@@ -267,7 +328,7 @@ FT_INLINE int flatten(const ft_tables *T, const ft_bin *B, int with_weights, ft_
  * roundings), so those i form a prefix and any bisection finds numpy's i. Branch-free: a
  * conditional move per halving (a mispredicted branch would cost more than the rest). */
 FT_INLINE void search_block(const double *value, int64_t n, const double *x, const ptrdiff_t *off,
-                            const ptrdiff_t *d, const ft_bin *B, int64_t *lo, const int flat) {
+                            const ptrdiff_t *const *d, const ft_bin *B, int64_t *lo, const int flat) {
     for (int k = 0; k < BLK; k++) lo[k] = 0;
     int64_t len = n;
     while (len > 1) {
@@ -340,13 +401,112 @@ FT_INLINE void density_block(const ft_cells *S, const double *X, const double *Y
         P[k] = S->m[k] * dx[k] * dy[k] / ((S->a1[k] - S->a0[k]) * (S->b1[k] - S->b0[k]));
 }
 
+/* halfvector.py _cap for a block: 1 - cos theta_max at azimuths phi_h of h, wi per lane */
+FT_INLINE void half_cap(const ft_bin *B, const double *phi_h, double *cap) {
+    double c[BLK], s[BLK], t[BLK];
+    FT_SIMD for (int k = 0; k < BLK; k++) c[k] = cos(phi_h[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) s[k] = sin(phi_h[k]);
+    for (int k = 0; k < BLK; k++) t[k] = -(B[k].wr[0] * c[k] + B[k].wr[1] * s[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) t[k] = atan2(B[k].wr[2], t[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) t[k] = sin(0.25 * t[k]);
+    for (int k = 0; k < BLK; k++) {
+        const double v = 2.0 * (t[k] * t[k]);
+        cap[k] = v < TINY ? TINY : v;
+    }
+}
+
+/* halfvector.from_ab for a block (wi: B[k].wr), then warps.rotate_z back by phi_ref: wo (BLK, 3)
+ * and jac = d omega_o / (da db) */
+FT_INLINE void half_from_ab(const ft_bin *B, const double *a, const double *b, double *wo, double *jac) {
+    double r[BLK], ang[BLK], u[BLK], v[BLK], phi[BLK], cap[BLK], c[BLK], sn[BLK], sh[BLK];
+    for (int k = 0; k < BLK; k++) {
+        const double x = 2.0 * a[k] - 1.0, y = b[k] / PI - 1.0;
+        const int wide = fabs(x) >= fabs(y);
+        r[k] = wide ? x : y;
+        const double safe = r[k] == 0.0 ? 1.0 : r[k];
+        ang[k] = wide ? QUARTER * (y / safe) : 2.0 * QUARTER - QUARTER * (x / safe);
+    }
+    FT_SIMD for (int k = 0; k < BLK; k++) u[k] = cos(ang[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) v[k] = sin(ang[k]);
+    for (int k = 0; k < BLK; k++) {
+        u[k] = r[k] * u[k];
+        v[k] = r[k] * v[k];
+    }
+    FT_SIMD for (int k = 0; k < BLK; k++) phi[k] = atan2(v[k], u[k]);
+    half_cap(B, phi, cap);
+    FT_SIMD for (int k = 0; k < BLK; k++) c[k] = cos(phi[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) sn[k] = sin(phi[k]);
+    for (int k = 0; k < BLK; k++) {
+        const double omc = (u[k] * u[k] + v[k] * v[k]) * cap[k];
+        const double q = omc * (2.0 - omc);
+        sh[k] = q < 0.0 ? 0.0 : q;
+        r[k] = omc;
+    }
+    FT_SIMD for (int k = 0; k < BLK; k++) sh[k] = sqrt(sh[k]);
+    for (int k = 0; k < BLK; k++) {
+        const double h0 = sh[k] * c[k], h1 = sh[k] * sn[k], h2 = 1.0 - r[k];
+        const double *w = B[k].wr;
+        const double d = (w[0] * h0 + w[1] * h1) + w[2] * h2;
+        const double x = 2.0 * d * h0 - w[0], y = 2.0 * d * h1 - w[1], z = 2.0 * d * h2 - w[2];
+        wo[3 * k] = B[k].cr * x - B[k].sr * y;
+        wo[3 * k + 1] = B[k].sr * x + B[k].cr * y;
+        wo[3 * k + 2] = z < 0.0 ? 0.0 : z;
+        jac[k] = 4.0 * d * cap[k];
+    }
+}
+
+/* halfvector.to_ab for a block of wo (turned by -phi_ref into the map's frame first): a, b, jac */
+FT_INLINE void half_to_ab(const ft_bin *B, const double *wo, double *a, double *b, double *jac) {
+    double h[3][BLK], n[BLK], phi[BLK], cap[BLK], rad[BLK], c[BLK], sn[BLK], t[BLK];
+    for (int k = 0; k < BLK; k++) {
+        const double *o = wo + 3 * k, *w = B[k].wr;
+        const double ox = B[k].cr * o[0] - (-B[k].sr) * o[1], oy = (-B[k].sr) * o[0] + B[k].cr * o[1];
+        h[0][k] = w[0] + ox;
+        h[1][k] = w[1] + oy;
+        h[2][k] = w[2] + o[2];
+        n[k] = (h[0][k] * h[0][k] + h[1][k] * h[1][k]) + h[2][k] * h[2][k];
+    }
+    FT_SIMD for (int k = 0; k < BLK; k++) n[k] = sqrt(n[k]);
+    for (int k = 0; k < BLK; k++)
+        for (int i = 0; i < 3; i++) h[i][k] = h[i][k] / n[k];
+    FT_SIMD for (int k = 0; k < BLK; k++) phi[k] = atan2(h[1][k], h[0][k]);
+    half_cap(B, phi, cap);
+    for (int k = 0; k < BLK; k++)
+        rad[k] = clip01((h[0][k] * h[0][k] + h[1][k] * h[1][k]) / (1.0 + h[2][k]) / cap[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) rad[k] = sqrt(rad[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) c[k] = cos(phi[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) sn[k] = sin(phi[k]);
+    for (int k = 0; k < BLK; k++) {
+        c[k] = rad[k] * c[k];     /* u */
+        sn[k] = rad[k] * sn[k];   /* v */
+        const int wide = fabs(c[k]) >= fabs(sn[k]);
+        t[k] = wide ? sn[k] / c[k] : c[k] / sn[k];      /* NaN at the centre: numpy's too */
+    }
+    FT_SIMD for (int k = 0; k < BLK; k++) t[k] = atan(t[k]);
+    for (int k = 0; k < BLK; k++) {
+        const double u = c[k], v = sn[k];
+        const int wide = fabs(u) >= fabs(v);
+        const double su = (double)((u > 0.0) - (u < 0.0)), sv = (double)((v > 0.0) - (v < 0.0));
+        double x = wide ? su * rad[k] : sv * rad[k] * t[k] / QUARTER;
+        double y = wide ? su * rad[k] * t[k] / QUARTER : sv * rad[k];
+        x = isnan(x) ? 0.0 : x;     /* np.nan_to_num */
+        y = isnan(y) ? 0.0 : y;
+        const double av = 0.5 * (x + 1.0), bv = PI * (y + 1.0);
+        a[k] = clip01(av);
+        b[k] = bv < 0.0 ? 0.0 : (bv > TWO_PI ? TWO_PI : bv);
+        const double *w = B[k].wr;
+        jac[k] = 4.0 * ((w[0] * h[0][k] + w[1] * h[1][k]) + w[2] * h[2][k]) * cap[k];
+    }
+}
+
 /* Tables.sample for one block: u (BLK, 2) -> wo (BLK, 3), pdf (BLK) */
 FT_INLINE void sample_block(const ft_view *V, const ft_bin *B, const double *u, double *wo, double *pdf,
                             const int flat) {
     const int64_t R = V->R, C = V->C;
     int64_t I[BLK], J[BLK];
     double val[BLK], c0[BLK], c1[BLK];
-    ptrdiff_t off[BLK], d[BLK];
+    ptrdiff_t off[BLK];
+    const ptrdiff_t *d[BLK];
     for (int k = 0; k < BLK; k++) {
         val[k] = u[2 * k];
         off[k] = B[k].ka;
@@ -375,6 +535,17 @@ FT_INLINE void sample_block(const ft_view *V, const ft_bin *B, const double *u, 
     }
     exp_inverse_cdf(X, S.ka, S.ea, X);
     exp_inverse_cdf(Y, S.kb, S.eb, Y);
+    if (V->half) {
+        double jac[BLK];
+        for (int k = 0; k < BLK; k++) {
+            A[k] = S.a0[k] + X[k] * (S.a1[k] - S.a0[k]);
+            Bv[k] = S.b0[k] + Y[k] * (S.b1[k] - S.b0[k]);
+        }
+        half_from_ab(B, A, Bv, wo, jac);
+        density_block(&S, X, Y, pdf);
+        for (int k = 0; k < BLK; k++) pdf[k] = pdf[k] / jac[k];
+        return;
+    }
     for (int k = 0; k < BLK; k++) {
         /* from_ab */
         A[k] = S.a0[k] + X[k] * (S.a1[k] - S.a0[k]);
@@ -396,22 +567,28 @@ FT_INLINE void sample_block(const ft_view *V, const ft_bin *B, const double *u, 
 
 /* Tables._locate for one block of wo: cell (I, J), in-cell X, Y, and the cells */
 FT_INLINE void locate_block(const ft_view *V, const ft_bin *B, const double *wo, int64_t *I, int64_t *J,
-                            double *X, double *Y, ft_cells *S, const int flat) {
+                            double *X, double *Y, ft_cells *S, double *jac, const int flat) {
     const int64_t R = V->R, C = V->C;
     double A[BLK], Bv[BLK], wx[BLK], wy[BLK];
-    ptrdiff_t off[BLK], d[BLK];
+    ptrdiff_t off[BLK];
+    const ptrdiff_t *d[BLK];
     for (int k = 0; k < BLK; k++) {
         wx[k] = wo[3 * k];
         wy[k] = wo[3 * k + 1];
     }
     FT_SIMD for (int k = 0; k < BLK; k++) Bv[k] = atan2(wy[k], wx[k]);
-    for (int k = 0; k < BLK; k++) {
+    if (V->half)
+        half_to_ab(B, wo, A, Bv, jac);
+    for (int k = 0; k < BLK && !V->half; k++) {
+        jac[k] = 1.0;
         /* to_ab */
         const double *w = wo + 3 * k;
         const double z = w[2];
         const double a = (w[0] * w[0] + w[1] * w[1]) / (1.0 + (z < 0.0 ? 0.0 : z));
         A[k] = z > 0.0 ? (a > 1.0 ? 1.0 : a) : 1.0;
         Bv[k] = mod_two_pi(Bv[k] - B[k].phi_ref + PI);
+    }
+    for (int k = 0; k < BLK; k++) {
         off[k] = B[k].ka;
         d[k] = B[k].da;
     }
@@ -433,18 +610,19 @@ FT_INLINE void pdf_block(const ft_view *V, const ft_bin *B, const double *wo, do
     int64_t I[BLK], J[BLK];
     double X[BLK], Y[BLK], P[BLK];
     ft_cells S;
-    locate_block(V, B, wo, I, J, X, Y, &S, flat);
+    double jac[BLK];
+    locate_block(V, B, wo, I, J, X, Y, &S, jac, flat);
     density_block(&S, X, Y, P);
-    for (int k = 0; k < BLK; k++) pdf[k] = wo[3 * k + 2] > 0.0 ? P[k] : 0.0;
+    for (int k = 0; k < BLK; k++) pdf[k] = wo[3 * k + 2] > 0.0 ? P[k] / jac[k] : 0.0;
 }
 
 /* Tables.invert: wo -> u (BLK, 2) */
 FT_INLINE void invert_block(const ft_view *V, const ft_bin *B, const double *wo, double *u, const int flat) {
     const int64_t C = V->C;
     int64_t I[BLK], J[BLK];
-    double X[BLK], Y[BLK];
+    double X[BLK], Y[BLK], jac[BLK];
     ft_cells S;
-    locate_block(V, B, wo, I, J, X, Y, &S, flat);
+    locate_block(V, B, wo, I, J, X, Y, &S, jac, flat);
     exp_cdf(X, S.ka, S.ea, X);
     exp_cdf(Y, S.kb, S.eb, Y);
     for (int k = 0; k < BLK; k++) {
@@ -466,16 +644,18 @@ FT_INLINE void eval_block(const ft_view *V, const ft_bin *B, const double *wo, c
     int64_t I[BLK], J[BLK];
     double X[BLK], Y[BLK], P[BLK];
     ft_cells S;
-    locate_block(V, B, wo, I, J, X, Y, &S, flat);
+    double jac[BLK];
+    locate_block(V, B, wo, I, J, X, Y, &S, jac, flat);
     density_block(&S, X, Y, P);
+    for (int k = 0; k < BLK; k++) P[k] = P[k] / jac[k];
     for (int k = 0; k < BLK; k++) {
         const double z = wo[3 * k + 2];
         const int above = z > 0.0 && wi_z[k * wi_stride] > 0.0;
         const double scale = P[k] / z;
         const ptrdiff_t ic = B[k].kc + I[k] * C + J[k];
         for (int ch = 0; ch < 3; ch++) {
-            const double wc = flat ? V->w64[3 * ic + ch]
-                                   : B[k].s * (double)V->w32[3 * ic + ch] + B[k].t * (double)V->w32[3 * (ic + B[k].dc) + ch];
+            const ptrdiff_t d3[3] = {3 * B[k].dc[0], 3 * B[k].dc[1], 3 * B[k].dc[2]};
+            const double wc = flat ? V->w64[3 * ic + ch] : lerp32(V->w32, 3 * ic + ch, d3, &B[k]);
             f[3 * k + ch] = above ? wc * scale : 0.0;
         }
     }
@@ -506,7 +686,7 @@ FT_CLONES static void run(int kind, const ft_tables *T, int64_t n, const double 
     enum { IN = 3, OUT = 3 };
     const int in_w = kind == SAMPLE ? 2 : 3, out_w = kind == SAMPLE ? 3 : (kind == PDF ? 1 : (kind == INVERT ? 2 : 3));
     ft_bin B[BLK];
-    ft_view V = {T->R, T->C, T->a, T->b, T->m, T->alpha, T->beta, T->row_cdf, T->col_cum, T->weights,
+    ft_view V = {T->R, T->C, T->P > 1, T->a, T->b, T->m, T->alpha, T->beta, T->row_cdf, T->col_cum, T->weights,
                  NULL, NULL, NULL};
     double *buf = NULL;
     double pad_wi[3 * BLK], pad_in[IN * BLK], pad_out[OUT * BLK], pad_out2[BLK];
@@ -516,7 +696,8 @@ FT_CLONES static void run(int kind, const ft_tables *T, int64_t n, const double 
             for (int c = 0; c < 3; c++) pad_wi[3 * k + c] = wi[c];
         bins(T, pad_wi, 3, B);
         if (n >= FLAT_MIN_SAMPLES(T->R, T->C) && flatten(T, &B[0], kind == EVAL, &V, &buf)) {
-            B[0].ka = B[0].kb = B[0].kc = B[0].da = B[0].db = B[0].dc = 0;
+            B[0].ka = B[0].kb = B[0].kc = 0;
+            for (int c = 0; c < 3; c++) B[0].da[c] = B[0].db[c] = B[0].dc[c] = 0;
         }
         for (int k = 1; k < BLK; k++) B[k] = B[0];
     }

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-ABI = 1                       # FT_ABI in _tables_c.c
+ABI = 2                       # FT_ABI in _tables_c.c
 HERE = Path(__file__).resolve().parent
 SOURCE = HERE / "_tables_c.c"
 # -ffp-contract=off: no fused multiply-adds (they would round the interpolations
@@ -51,9 +51,10 @@ VECTOR_FLAGS = ["-fopenmp-simd", "-lmvec", "-lm"]
 
 
 class _Tables(ctypes.Structure):
-    _fields_ = [("K", ctypes.c_int64), ("R", ctypes.c_int64), ("C", ctypes.c_int64)] + [
+    _fields_ = [(name, ctypes.c_int64) for name in ("K", "R", "C", "P")] + [
+        (name, ctypes.c_double) for name in ("period", "frame", "phi0")] + [
         (name, ctypes.c_void_p) for name in
-        ("theta_bins", "cos_bins", "a", "b", "m", "alpha", "beta", "row_cdf", "col_cum", "weights")]
+        ("starts", "theta_bins", "cos_bins", "a", "b", "m", "alpha", "beta", "row_cdf", "col_cum", "weights")]
 
 
 def source_sha():
@@ -173,7 +174,10 @@ _STRUCTS = weakref.WeakKeyDictionary()     # Tables -> (array ids, struct, array
 
 def _struct(tab):
     """The ctypes view of tab's working arrays (cached; rebuilt when an array is replaced),
-    or None when their shapes are not a table's."""
+    or None when their shapes are not a table's (or anisotropic tables are not over the half
+    vector: the C code knows that phi axis only)."""
+    if tab.anisotropic and tab.coords != "halfvector":
+        return None
     arrays = (tab.theta_bins, tab._a, tab._b, tab._m, tab._alpha, tab._beta, tab._row_cdf, tab._col_cum,
               tab.weights)
     key = tuple(map(id, arrays))
@@ -183,14 +187,18 @@ def _struct(tab):
     theta, a, b, m, alpha, beta, row_cdf, col_cum = (np.ascontiguousarray(x, np.float64) for x in arrays[:-1])
     weights = np.ascontiguousarray(arrays[-1], np.float32)
     K, R, C = len(theta), tab.rows, tab.cols
-    shapes = [(theta, (K,)), (a, (K, R + 1)), (row_cdf, (K, R + 1)), (b, (K, R, C + 1)), (col_cum, (K, R, C + 1)),
-              (m, (K, R, C)), (alpha, (K, R, C)), (beta, (K, R, C)), (weights, (K, R, C, 3))]
+    P = 1 if tab.phi_bins is None else len(tab.phi_bins)
+    B = K * P                     # the working arrays' bins: k P + p
+    shapes = [(theta, (K,)), (a, (B, R + 1)), (row_cdf, (B, R + 1)), (b, (B, R, C + 1)), (col_cum, (B, R, C + 1)),
+              (m, (B, R, C)), (alpha, (B, R, C)), (beta, (B, R, C)), (weights.reshape(-1, R, C, 3), (B, R, C, 3))]
     if K < 1 or R < 1 or C < 1 or any(x.shape != shape for x, shape in shapes):
         return None
     cos_bins = np.cos(theta)      # numpy's cos, as Tables._bins computes it
-    s = _Tables(K, R, C, *(x.ctypes.data for x in (theta, cos_bins, a, b, m, alpha, beta, row_cdf, col_cum,
-                                                     weights)))
-    _STRUCTS[tab] = (key, s, arrays + (theta, cos_bins, a, b, m, alpha, beta, row_cdf, col_cum, weights))
+    phi0 = 0.0 if P == 1 else float(tab.phi_bins[0])
+    starts = np.ascontiguousarray(np.zeros(1) if P == 1 else tab.phi_bins - tab.phi_bins[0], np.float64)
+    s = _Tables(K, R, C, P, tab.phi_period, tab.frame_angle, phi0,
+                *(x.ctypes.data for x in (starts, theta, cos_bins, a, b, m, alpha, beta, row_cdf, col_cum, weights)))
+    _STRUCTS[tab] = (key, s, arrays + (starts, theta, cos_bins, a, b, m, alpha, beta, row_cdf, col_cum, weights))
     return s
 
 

@@ -31,10 +31,12 @@ fading between two positions (a displacement interpolation).
 Anisotropic materials (`phi_bins`): bins over theta_i x phi_i, the phi_i bins increasing
 azimuths within one period P of the material's rotational symmetry (`phi_period`, 2 pi
 unless the material says otherwise; pi for elliptic microfacet lobes), wrapping around.
-Each bin is built at its own wi (b stays relative to phi_i's plane) and the four
-neighbouring bins are blended bilinearly: weights linear in cos(theta_i) times linear in
-phi_i, still a convex combination, so everything above holds. The C fast path serves
-isotropic tables only; anisotropic ones use the numpy code.
+Each bin is built at its own wi and the four neighbouring bins are blended bilinearly:
+weights linear in cos(theta_i) times linear in phi_i, still a convex combination, so
+everything above holds. Their cells are over the half vector (`coords` "halfvector",
+bake/core/halfvector.py: a thin lobe stays put in it as phi_i turns, where in (a, b)
+above it turns with wi's plane and blending smears it); files from before keep (a, b)
+("wo"). The C fast path serves both; anisotropic files over wo use the numpy code.
 
 Per cell the table also keeps the RGB estimator weight W = integral of f·cos over the
 cell / its share of the target; `eval` returns W·pdf/cos, the baked BSDF the Cycles back
@@ -45,7 +47,9 @@ import numpy as np
 from ..errors import FlowBSDFError
 from ..materials.base import as_dirs
 from ..plumbing.exrio import read_exr, write_exr
+from . import halfvector
 from .geometry import theta_phi
+from .warps import rotate_z
 
 try:        # the optional C fast path (never required: Blender imports bake/ with numpy only)
     from . import fasttables as _fasttables
@@ -54,6 +58,7 @@ except Exception:   # noqa: BLE001
 
 FORMAT_VERSION = 1
 TWO_PI = 2.0 * np.pi
+COORDS = ("wo", "halfvector")     # the cells' coordinates: (a, b) of wo, or halfvector.py's of h
 
 
 def to_ab(wo, phi_ref):
@@ -114,7 +119,7 @@ class Tables:
 
     Isotropic arrays: a_edges (K, R+1), b_edges (K, R, C+1), mass/alpha/beta (K, R, C),
     weights (K, R, C, 3). Anisotropic ones (phi_bins given, P of them) have a phi axis
-    after the theta axis: a_edges (K, P, R+1), and so on.
+    after the theta axis: a_edges (K, P, R+1), and so on. `coords`: what (a, b) are (COORDS).
     """
 
     name = "tables"
@@ -122,7 +127,11 @@ class Tables:
     ARRAYS = ("mass", "alpha", "beta")
 
     def __init__(self, theta_bins, a_edges, b_edges, mass, alpha, beta, weights, meta=None, backend="auto",
-                 phi_bins=None, phi_period=TWO_PI):
+                 phi_bins=None, phi_period=TWO_PI, coords="wo", frame_angle=0.0):
+        if coords not in COORDS:
+            raise FlowBSDFError(f"table coordinates {coords!r} must be one of {list(COORDS)}")
+        self.coords = coords
+        self.frame_angle = float(frame_angle)   # halfvector: the lobe's axes from the material's x axis
         self.theta_bins = np.asarray(theta_bins, np.float64)
         self.phi_bins = None if phi_bins is None else np.asarray(phi_bins, np.float64)
         self.phi_period = float(phi_period)
@@ -167,7 +176,7 @@ class Tables:
 
     @property
     def _fast(self):
-        if self.backend == "numpy" or self.anisotropic:     # the C code knows theta bins only
+        if self.backend == "numpy" or (self.anisotropic and self.coords != "halfvector"):     # C: not old wo files
             return None
         if _fasttables is None or not _fasttables.AVAILABLE:
             if self.backend == "c":
@@ -184,7 +193,8 @@ class Tables:
 
     def _bins(self, wi):
         """Per sample: the bins to blend, (N, n) indices on the working copies' bin axis and
-        (N, n) weights (2 bins isotropic, 4 anisotropic), and phi_ref."""
+        (N, n) weights (2 bins isotropic, 4 anisotropic), and the coordinates' reference:
+        phi_ref ("wo") or the angle of the frame h is mapped in ("halfvector")."""
         theta, phi = theta_phi(wi)
         K = len(self.theta_bins)
         if K == 1:
@@ -196,6 +206,18 @@ class Tables:
             c = np.cos(self.theta_bins)
             t = np.clip((c[k] - np.cos(theta)) / (c[k] - c[k + 1]), 0.0, 1.0)
         corners = [(k, 1.0 - t), (np.minimum(k + 1, K - 1), t)]
+        if self.coords == "halfvector":
+            # phi_bins span the period closed (the last at the first + period): phi_i turned
+            # back into it by whole periods, the material's symmetry; h is mapped in the frame
+            # turned alike, plus the lobe's axes.
+            P, period, starts = len(self.phi_bins), self.phi_period, self.phi_bins - self.phi_bins[0]
+            turns = np.floor((phi - self.phi_bins[0]) / period)
+            x = phi - self.phi_bins[0] - turns * period
+            p = np.clip(np.searchsorted(starts, x, side="right") - 1, 0, P - 2)
+            s = np.clip((x - starts[p]) / (starts[p + 1] - starts[p]), 0.0, 1.0)
+            corners = [(kk * P + pp, wk * wp) for kk, wk in corners for pp, wp in ((p, 1.0 - s), (p + 1, s))]
+            return ((np.stack([c[0] for c in corners], axis=1), np.stack([c[1] for c in corners], axis=1)),
+                    turns * period + self.frame_angle)
         if self.anisotropic:
             P, period = len(self.phi_bins), self.phi_period
             # phi_i within the period, from the first bin; the gap after the last bin wraps to
@@ -241,20 +263,26 @@ class Tables:
         a0, a1, b0, b1, m, ka, kb = self._cell(bins, i, j)
         x = exp_inverse_cdf(np.clip((u[:, 0] - c0) / (c1 - c0), 0.0, 1.0), ka)
         y = exp_inverse_cdf(np.clip((v - d0) / m, 0.0, 1.0), kb)
-        wo = from_ab(a0 + x * (a1 - a0), b0 + y * (b1 - b0), phi_ref)
         pdf = m * exp_density(x, ka) * exp_density(y, kb) / ((a1 - a0) * (b1 - b0))
-        return wo, pdf
+        a, b = a0 + x * (a1 - a0), b0 + y * (b1 - b0)
+        if self.coords == "halfvector":
+            wo, jac = halfvector.from_ab(rotate_z(wi, -phi_ref), a, b)
+            return rotate_z(wo, phi_ref), pdf / jac
+        return from_ab(a, b, phi_ref), pdf
 
     def _locate(self, wi, wo):
         bins, phi_ref = self._bins(wi)
-        a, b = to_ab(wo, phi_ref)
+        if self.coords == "halfvector":
+            a, b, jac = halfvector.to_ab(rotate_z(wi, -phi_ref), rotate_z(wo, -phi_ref))
+        else:
+            a, b, jac = *to_ab(wo, phi_ref), 1.0
         L = self._lerp
         i = _search(a, self.rows, lambda m: L(self._a, bins, m))
         j = _search(b, self.cols, lambda m: L(self._b, bins, i, m))
         a0, a1, b0, b1, m, ka, kb = self._cell(bins, i, j)
         x = np.clip((a - a0) / (a1 - a0), 0.0, 1.0)
         y = np.clip((b - b0) / (b1 - b0), 0.0, 1.0)
-        pdf = m * exp_density(x, ka) * exp_density(y, kb) / ((a1 - a0) * (b1 - b0))
+        pdf = m * exp_density(x, ka) * exp_density(y, kb) / ((a1 - a0) * (b1 - b0)) / jac
         return bins, i, j, x, y, ka, kb, pdf
 
     def pdf(self, wi, wo):
@@ -295,6 +323,8 @@ class Tables:
                 "theta_bins": [float(x) for x in self.theta_bins], "rows": R, "cols": C}
         if self.anisotropic:
             meta.update(phi_bins=[float(x) for x in self.phi_bins], phi_period=self.phi_period)
+        if self.coords != "wo":
+            meta.update(coords=self.coords, frame_angle=self.frame_angle)
         write_exr(path, {"a_edges": self.a_edges.reshape(B, R + 1), "b_edges": self.b_edges.reshape(B * R, C + 1),
                          **{n: getattr(self, n).reshape(B * R, C) for n in self.ARRAYS},
                          "weights": self.weights.reshape(B * R, C * 3)}, meta)
@@ -341,7 +371,15 @@ def open_tables(path):
     phi_bins, period = None, TWO_PI
     if meta.get("phi_bins") is not None:       # anisotropic: bins over phi_i within one period
         period = _phi_period(meta, path)
-        phi_bins = _bins_of(meta, "phi_bins", path, period, closed=False)
+        closed = meta.get("coords") == "halfvector"     # the last bin at the first + period
+        phi_bins = _bins_of(meta, "phi_bins", path, 2 * period if closed else period, closed=closed)
+        if closed and (len(phi_bins) < 2 or not np.isclose(phi_bins[-1] - phi_bins[0], period)):
+            raise FlowBSDFError(f"phi_bins {meta['phi_bins']!r} of halfvector tables must close the period "
+                                f"{period:g}: corrupt file", path)
+    coords = meta.get("coords", "wo")
+    if coords not in COORDS:
+        raise FlowBSDFError(f"table coordinates {coords!r} are unknown (this FlowBSDF reads {list(COORDS)}); "
+                            "re-bake it", path)
     K, P = len(theta_bins), 1 if phi_bins is None else len(phi_bins)
     B = K * P
     shapes = [a.shape, b.shape, w.shape] + [c.shape for c in cells]
@@ -357,4 +395,4 @@ def open_tables(path):
     lead = (K,) if phi_bins is None else (K, P)
     return Tables(theta_bins, a.reshape(*lead, R + 1), b.reshape(*lead, R, C + 1),
                   *(c.reshape(*lead, R, C) for c in cells), w.reshape(*lead, R, C, 3), meta,
-                  phi_bins=phi_bins, phi_period=period)
+                  phi_bins=phi_bins, phi_period=period, coords=coords, frame_angle=float(meta.get("frame_angle", 0.0)))

@@ -15,10 +15,14 @@ import numpy as np
 from ..errors import FlowBSDFError
 from .fasttables import one_blas_thread
 from .geometry import luminance, spherical_dir
+from . import halfvector
 from .tables import _SMALL, K_MAX, TWO_PI, Tables, _search, to_ab
+from .warps import rotate_z
 
 A_MIN = 1e-4     # the least gap between row knots (keeps every segment of rows non-empty)
 B_MIN = 1e-4     # the same for column knots
+CENTRE_ROW_KNOTS = np.array([0.0, 0.5, 1.0])       # halfvector coordinates: through the centre
+CENTRE_COL_KNOTS = np.array([0.0, np.pi, TWO_PI])
 
 
 def exp_rate_for_mean(mean):
@@ -149,10 +153,74 @@ def _nodes(a0, a1, b0, b1, s, phi_ref):
     return wo.reshape(-1, 3)
 
 
-def _moments(material, wi, phi_ref, a0, a1, b0, b1, q, chunk=1 << 18):
+class _WoFrame:
+    """The isotropic cells' (a, b) of wo, b from wi's plane (tables.to_ab, phi_ref = phi_i + pi)."""
+
+    def __init__(self, phi_i):
+        self.phi_ref = phi_i + np.pi
+
+    def nodes(self, a0, a1, b0, b1, s):
+        """The q x q rule's directions and d omega_o / (da db) (1 here)."""
+        return _nodes(a0, a1, b0, b1, s, self.phi_ref), None
+
+    def ab(self, wo):
+        return to_ab(wo, self.phi_ref)
+
+
+class _HalfFrame:
+    """The anisotropic cells' (a, b) of the half vector at wi (halfvector.py), mapped in the
+    frame of the lobe's axes (at `angle` from the material's x axis)."""
+
+    def __init__(self, wi, angle):
+        self.angle = angle
+        self.wi = rotate_z(wi, -angle)
+
+    def nodes(self, a0, a1, b0, b1, s):
+        q = len(s)
+        a = np.repeat(a0[:, None] + s[None, :] * (a1 - a0)[:, None], q, axis=1)    # a-major, as _nodes
+        b = np.tile(b0[:, None] + s[None, :] * (b1 - b0)[:, None], (1, q))
+        wo, jac = halfvector.from_ab(self.wi, a.ravel(), b.ravel())
+        return rotate_z(wo, self.angle), jac
+
+    def ab(self, wo):
+        return halfvector.to_ab(self.wi, rotate_z(wo, -self.angle))[:2]
+
+
+def _closing_turn(period):
+    """The closing phi bin of halfvector tables from the first (the material turned by the
+    period, exactly): itself for a period of 2 pi; for pi, its cells turned by pi, which
+    in halfvector coordinates is (a, b) -> (1 - a, 2 pi - b). None: build it."""
+    if np.isclose(period, TWO_PI):
+        return lambda column: column
+    if not np.isclose(period, np.pi):
+        return None
+
+    def turn(column):
+        a_edges, b_edges, mass, alpha, beta, weights = column
+        flip = lambda x: x[:, ::-1, ::-1]         # noqa: E731 (rows and columns reversed, per bin)
+        return (np.float32(1.0) - a_edges[:, ::-1], np.float32(TWO_PI) - b_edges[:, ::-1, ::-1], flip(mass),
+                -flip(alpha), -flip(beta), weights[:, ::-1, ::-1])
+    return turn
+
+
+def lobe_axes_angle(source, grid=64):
+    """The angle of the principal axes of the source's half vectors at normal incidence
+    (their weighted second moments), the frame of halfvector coordinates: a lobe's streak
+    lies along the cells' rows or columns instead of across them."""
+    g = (np.arange(grid) + 0.5) / grid
+    u = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+    wo, pdf = source.sample(np.array([0.0, 0.0, 1.0]), u)
+    ok = (pdf > 0) & (wo[:, 2] > 0) & np.isfinite(pdf)
+    h = wo[ok] + np.array([0.0, 0.0, 1.0])
+    h /= np.linalg.norm(h, axis=1, keepdims=True)
+    sxx, syy, sxy = np.mean(h[:, 0] ** 2), np.mean(h[:, 1] ** 2), np.mean(h[:, 0] * h[:, 1])
+    return float(0.5 * np.arctan2(2.0 * sxy, sxx - syy))
+
+
+def _moments(material, wi, frame, a0, a1, b0, b1, q, chunk=1 << 18):
     """Per cell [a0,a1]x[b0,b1], a q x q midpoint rule: target mass, its mean local x and y,
-    the RGB integral of f·cos (da db = d omega), and the target's marginal densities along
-    a and b at the q nodes of each axis (shape (cells, q))."""
+    the RGB integral of f·cos (over d omega_o: da db times the frame's Jacobian), and the
+    target's marginal densities along a and b at the q nodes of each axis (shape (cells, q))."""
     s = (np.arange(q) + 0.5) / q
     X = np.repeat(s, q)
     Y = np.tile(s, q)
@@ -163,8 +231,9 @@ def _moments(material, wi, phi_ref, a0, a1, b0, b1, q, chunk=1 << 18):
     step = max(1, chunk // (q * q))
     for c0 in range(0, n, step):
         sl = slice(c0, min(n, c0 + step))
-        wo = _nodes(a0[sl], a1[sl], b0[sl], b1[sl], s, phi_ref)
-        value = (material.eval(wi, wo) * wo[:, 2:3]).reshape(-1, q * q, 3)
+        wo, jac = frame.nodes(a0[sl], a1[sl], b0[sl], b1[sl], s)
+        per_ab = wo[:, 2] if jac is None else wo[:, 2] * jac        # f·cos per da db
+        value = (material.eval(wi, wo) * per_ab[:, None]).reshape(-1, q * q, 3)
         area = ((a1 - a0) * (b1 - b0))[sl] / (q * q)
         lum = np.maximum(luminance(value), 0.0)
         g = lum * area[:, None]
@@ -190,7 +259,7 @@ def _sum_axis1(x):
     return out
 
 
-def _moments_around(material, wi, phi_ref, a0, a1, b0, b1, box, q):
+def _moments_around(material, wi, frame, a0, a1, b0, b1, box, q):
     """Like _moments, with each cell cut at the box (lo_a, hi_a, lo_b, hi_b) that holds its
     source points, widened a little: up to 3 x 3 pieces, each with its own q x q rule, so
     that a sliver of mass at a hard edge inside a wide cell gets nodes of its own. The
@@ -213,7 +282,7 @@ def _moments_around(material, wi, phi_ref, a0, a1, b0, b1, box, q):
             ok = np.flatnonzero((pa1 > pa0) & (pb1 > pb0))
             if not len(ok):
                 continue
-            m, x, y, c, pa, pb = _moments(material, wi, phi_ref, pa0[ok], pa1[ok], pb0[ok], pb1[ok], q)
+            m, x, y, c, pa, pb = _moments(material, wi, frame, pa0[ok], pa1[ok], pb0[ok], pb1[ok], q)
             # piece-local first moments -> cell-local ones
             sa, sb = (pa1 - pa0)[ok] / (a1 - a0)[ok], (pb1 - pb0)[ok] / (b1 - b0)[ok]
             oa, ob = (pa0 - a0)[ok] / (a1 - a0)[ok], (pb0 - b0)[ok] / (b1 - b0)[ok]
@@ -239,7 +308,7 @@ def _rate_bound(marginal, at):
         return np.where(span > 0, np.log(hi / lo) / span, np.inf)
 
 
-def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, box=None, rtol=0.02, q_max=64,
+def _cell_moments(material, wi, a_edges, b_edges, frame, q, point_mass, box=None, rtol=0.02, q_max=64,
                   q_around=16):
     """Cell moments by a midpoint rule refined (q, 2q, 4q, ...) per cell until two levels
     agree within rtol and the rule does not fall short of `point_mass` (the importance-
@@ -265,12 +334,12 @@ def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, box=No
         nodes = (np.arange(q) + 0.5) / q
         return rule(moments, nodes, nodes)
 
-    out = list(uniform(_moments(material, wi, phi_ref, a0, a1, b0, b1, q), q))
+    out = list(uniform(_moments(material, wi, frame, a0, a1, b0, b1, q), q))
     tiny = 1e-7 * max(out[0].sum(), point_mass.sum())
     active = np.arange(len(a0))
     while q < q_max and len(active):
         q *= 2
-        new = uniform(_moments(material, wi, phi_ref, a0[active], a1[active], b0[active], b1[active], q), q)
+        new = uniform(_moments(material, wi, frame, a0[active], a1[active], b0[active], b1[active], q), q)
         old_mass = out[0][active]
         for o, v in zip(out, new):
             o[active] = v
@@ -281,7 +350,7 @@ def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, box=No
         short = active[point_mass[active] > 1.5 * out[0][active] + tiny]
         short = short[np.isfinite(box[0][short])]
         if len(short):
-            around = _moments_around(material, wi, phi_ref, a0[short], a1[short], b0[short], b1[short],
+            around = _moments_around(material, wi, frame, a0[short], a1[short], b0[short], b1[short],
                                      [x[short] for x in box], min(q, q_around))
             new = rule(around[:6], *around[6:])
             for o, v in zip(out, new):
@@ -295,7 +364,7 @@ def _cell_moments(material, wi, a_edges, b_edges, phi_ref, q, point_mass, box=No
         tuple(x.reshape(shape) for x in (bound_a, bound_b))
 
 
-def _points(material, source, wi, grid, phi_ref, gamma):
+def _points(material, source, wi, grid, frame, gamma):
     """A stratified grid of the source's directions for wi: their table coordinates (a, b),
     the weight of each for placing edges (normalized), and its importance-sampled target
     mass (target / source pdf / grid²)."""
@@ -308,11 +377,11 @@ def _points(material, source, wi, grid, phi_ref, gamma):
     # Edges follow half the target itself (cells where the mass is) and half target^gamma
     # (cells on flanks and tails, where a cellwise model errs most).
     weight = 0.5 * _normalized(target / pdf) + 0.5 * _normalized(target ** gamma / pdf)
-    a, b = to_ab(wo, phi_ref)
+    a, b = frame.ab(wo)
     return a, b, weight, target / pdf / (grid * grid)
 
 
-def _finish_bin(material, wi, phi_ref, a_edges, b_edges, a, b, point_mass, quadrature, floor):
+def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrature, floor):
     """Per cell mass, exponential rates and RGB weight for one incident direction."""
     rows, cols = b_edges.shape[0], b_edges.shape[1] - 1
     row = np.clip(np.searchsorted(a_edges, a, side="right") - 1, 0, rows - 1)
@@ -324,7 +393,7 @@ def _finish_bin(material, wi, phi_ref, a_edges, b_edges, a, b, point_mass, quadr
         np.minimum.at(box[2 * k], cell[has], v[has])
         np.maximum.at(box[2 * k + 1], cell[has], v[has])
     point_mass = np.bincount(cell, weights=point_mass, minlength=rows * cols)
-    mass, mx, my, rgb, bound_a, bound_b = _cell_moments(material, wi, a_edges, b_edges, phi_ref, quadrature,
+    mass, mx, my, rgb, bound_a, bound_b = _cell_moments(material, wi, a_edges, b_edges, frame, quadrature,
                                                          point_mass, box)
     # Exponential rates matching each cell's first moments along a and b, no steeper than
     # the cell's own f·cos: a rate fitted to a flank must not keep decaying past a floor.
@@ -435,11 +504,13 @@ _cache_lock = threading.Lock()
 @one_blas_thread()
 def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_width=None, gamma=0.5,
                  row_share=0.02, col_share=0.05, quadrature=4, floor=1e-4, window=1,
-                 progress=None, cache=None, phi_bins=None):
+                 progress=None, cache=None, phi_bins=None, coords=None):
     """Tables of a material at the given incident elevations (radians) and, for an
     anisotropic material, azimuths `phi_bins` (radians, increasing within [0, phi_period)
     of the material; see default_phi_bins). Each azimuth's bins are built like an isotropic
-    material's (`_build_column`) at wi = (theta, phi).
+    material's (`_build_column`) at wi = (theta, phi). coords: "wo" (isotropic tables') or
+    "halfvector" (anisotropic only, their default): cells over the half vector (tables.py),
+    which hold a thin lobe between phi_i bins.
     """
     if phi_bins is None and not material.isotropic:
         raise FlowBSDFError("an anisotropic material needs bins over phi_i (phi_bins)")
@@ -460,14 +531,25 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
                 col_share=col_share, quadrature=quadrature, floor=floor, window=window, step=step)
     # One azimuth's source points are ~10 MB per bin: with several azimuths, each column's
     # are dropped once it is built (caching them all took > 20 GB for a planned 1:6 GGX).
-    columns = [_build_column(material, source, theta_bins, phi, cache=cache if len(phis) == 1 else {}, **opts)
-               for phi in phis]
+    coords = coords or ("wo" if phi_bins is None else "halfvector")
+    if coords not in ("wo", "halfvector") or (coords == "halfvector" and phi_bins is None):
+        raise FlowBSDFError(f"coords {coords!r}: 'wo', or 'halfvector' for anisotropic tables")
+    frame_angle = 0.0
+    if coords == "halfvector":      # the phi axis closed: a last bin one period after the first
+        phis = phis + [phis[0] + period]
+        frame_angle = lobe_axes_angle(source)
+    columns = [_build_column(material, source, theta_bins, phi, coords, frame_angle,
+                             cache=cache if len(phis) == 1 else {}, **opts)
+               for phi in (phis[:-1] if coords == "halfvector" and _closing_turn(period) else phis)]
+    if coords == "halfvector" and (turn := _closing_turn(period)):
+        columns.append(turn(columns[0]))
     if phi_bins is None:
         return Tables(theta_bins, *columns[0])
-    return Tables(theta_bins, *(np.stack(x, axis=1) for x in zip(*columns)), phi_bins=phis, phi_period=period)
+    return Tables(theta_bins, *(np.stack(x, axis=1) for x in zip(*columns)), phi_bins=phis, phi_period=period,
+                  coords=coords, frame_angle=frame_angle)
 
 
-def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_width, gamma, row_share, col_share,
+def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, cols, grid, lobe_width, gamma, row_share, col_share,
                   quadrature, floor, window, cache, step):
     """The bins at the elevations theta_bins and azimuth phi: a_edges, b_edges, mass, alpha,
     beta, weights, each with a leading bin axis.
@@ -477,16 +559,21 @@ def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_widt
     lobe zone's azimuths. Between knots, a bin's edges sit at the quantiles of the pooled
     points of its neighbours within `window` bins (same phi), in positions normalized to
     each bin's knots: neighbouring bins then place a cell on the same part of the lobe, so
-    interpolating them moves the lobe instead of smearing it.
+    interpolating them moves the lobe instead of smearing it. In the half vector's
+    coordinates (anisotropic tables) the specular peak of every wi is the domain's centre:
+    the knots are there, and the lobe's width needs none.
     """
     K = len(theta_bins)
     wis = [spherical_dir(t, phi) for t in theta_bins]
-    phi_ref = phi + np.pi
+    frames = [_WoFrame(phi) if coords == "wo" else _HalfFrame(wi, frame_angle) for wi in wis]
+    if coords == "halfvector":
+        lobe_width = None
     with _cache_lock:
-        entries = [cache.setdefault((float(t), phi, grid, gamma), _Once(_points, material, source, wi, grid, phi_ref,
-                                                                        gamma)) for t, wi in zip(theta_bins, wis)]
+        entries = [cache.setdefault((float(t), phi, grid, gamma, coords),
+                                    _Once(_points, material, source, wi, grid, frame, gamma))
+                   for t, wi, frame in zip(theta_bins, wis, frames)]
     points = list(_parallel(_Once.get, entries))
-    row_knots = [lobe_knots(t, lobe_width) for t in theta_bins]
+    row_knots = [CENTRE_ROW_KNOTS if coords == "halfvector" else lobe_knots(t, lobe_width) for t in theta_bins]
     row_counts = _segment_counts(rows, len(row_knots[0]) - 1)
     by_seg = [_by_segment(*_normalize(p[0], k), p[2], len(row_counts)) for p, k in zip(points, row_knots)]
     near = [tuple(range(max(0, k - window), min(K, k + window + 1))) for k in range(K)]
@@ -504,7 +591,8 @@ def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_widt
         a, b, w, _ = points[k]
         row = np.clip(np.searchsorted(a_edges[k], a, side="right") - 1, 0, rows - 1)
         a_mid = 0.5 * (a_edges[k][:-1].astype(np.float64) + a_edges[k][1:])
-        knots = np.stack([lobe_col_knots(m, lobe_width) for m in a_mid])
+        knots = np.stack([CENTRE_COL_KNOTS if coords == "halfvector" else lobe_col_knots(m, lobe_width)
+                          for m in a_mid])
         seg, r = _normalize_rows(b, knots, row)
         # segment s of row i: group i * n + s
         by_row.append((knots, _by_segment(row * (knots.shape[1] - 1) + seg, r, w, rows * (knots.shape[1] - 1))))
@@ -523,7 +611,7 @@ def _build_column(material, source, theta_bins, phi, rows, cols, grid, lobe_widt
 
     def finish(k):
         a, b, _, pm = points[k]
-        return _finish_bin(material, wis[k], phi_ref, a_edges[k], b_edges[k], a, b, pm, quadrature, floor)
+        return _finish_bin(material, wis[k], frames[k], a_edges[k], b_edges[k], a, b, pm, quadrature, floor)
     parts = []
     for part in _parallel(finish, range(K)):
         parts.append(part)
@@ -551,7 +639,14 @@ def _normalize_rows(x, knots, row):
 # ------------------------------------------------------------------------------ planning
 
 RESOLUTIONS = (16, 24, 32, 48, 64)
+# Anisotropic tables spend memory on azimuths before cells: 32^2 cells x 32 phi bins hold a 1:25
+# or 1:50 GGX within 0.6-1.6x the 256^2 ideal's rv at theta_i 80 between phi bins, where 64^2 x 8
+# (the same memory) reached 3-10x (measured; the half vector's cap turns with phi_i at grazing).
+ANISO_RESOLUTIONS = (16, 24, 32)
+PHI_COUNTS = (8, 16, 32)
+PHI_PROBE_DEG = 80.0
 FLOATS_PER_CELL = 7      # mass, two rates, RGB weight, and (about) one column edge
+ANISO_BUDGET = 4         # anisotropic tables' share of memory_budget, all their azimuths together
 
 
 BROAD = 0.3     # lobes wider than this (radians) get no lobe zones: cells follow the mass alone
@@ -569,7 +664,7 @@ def lobe_width_of(material, ideal):
 @one_blas_thread()
 def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution=None, first_bins=6,
                 theta_max_deg=89.5, min_gap_deg=0.2, samples=1 << 14, lobe_width="auto", ideal_resolution=256, log=None,
-                phi_count=8, **options):
+                phi_count="auto", **options):
     """Tables with only the resolution and incident bins this material needs.
 
     Resolution: the smallest of RESOLUTIONS whose single-bin tables reach rv <= tol / 2 at a
@@ -578,10 +673,11 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
     against a bin built at that midpoint, until no interval loses more than tol / 2.
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
-    (default_phi_bins). The resolution probe runs at 4 of them; the theta bins are planned
-    at the azimuth where the probe did worst and shared by all azimuths. `memory_budget`
-    bounds the theta bins as for an isotropic material, i.e. it is per azimuth: anisotropic
-    tables take up to phi_count times as much.
+    (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
+    at theta_i PHI_PROBE_DEG loses at most the bin's own rv plus tol / 2 (at 4 azimuths). The
+    resolution (of ANISO_RESOLUTIONS) is probed at those 4 azimuths; the theta bins are planned
+    at the azimuth where the probe did worst and shared by all azimuths. Their tables may take
+    ANISO_BUDGET times `memory_budget`, all azimuths together (16 MB at the default).
     """
     from ..quality.metrics import relative_variance
     from .ideal import IdealSampler
@@ -590,17 +686,17 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
     if lobe_width == "auto":
         lobe_width = lobe_width_of(material, ideal)
     opts = dict(lobe_width=lobe_width, cache={}, **options)
-    phi_bins = None if material.isotropic else default_phi_bins(material, phi_count)
+    aniso = not material.isotropic
 
     def build(thetas, phi=0.0, phis=None):     # phis: all azimuths; else the single azimuth phi
-        if phi_bins is not None:
+        if aniso:
             phis = [phi] if phis is None else phis
         return build_tables(material, source, thetas, resolution, resolution, phi_bins=phis, **opts)
 
     def rv_at(tab, theta, phi=0.0):
         return relative_variance(material, tab, spherical_dir(theta, phi), n=samples)[0]
 
-    probe_phis = [0.0] if phi_bins is None else phi_bins[::max(1, len(phi_bins) // 4)]
+    probe_phis = list(np.arange(4) * (material.phi_period / 4)) if aniso else [0.0]
     worst_phi = 0.0
     if resolution is None:
         probe = np.radians([86.0, 75.0, 10.0, 45.0])     # grazing first: where coarse tables fail first
@@ -615,17 +711,33 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
 
         # Isotropic: one angle above tol / 2 decides that a resolution fails (the rest need not be
         # built). Anisotropic: the worst azimuth is needed, so every angle is.
-        stop = 0.5 * tol if phi_bins is None else np.inf
-        for resolution in RESOLUTIONS:
+        stop = np.inf if aniso else 0.5 * tol
+        for resolution in (ANISO_RESOLUTIONS if aniso else RESOLUTIONS):
             by_phi = {phi: probe_rv(phi, stop) for phi in probe_phis}
             worst_phi, worst = max(by_phi.items(), key=lambda kv: kv[1])
             log(f"resolution {resolution}: single-bin rv {worst:.4f}" + (" or more" if worst > stop else "")
-                + ("" if phi_bins is None else f" (at phi_i {np.degrees(worst_phi):.1f} deg)"))
+                + (f" (at phi_i {np.degrees(worst_phi):.1f} deg)" if aniso else ""))
             if worst <= 0.5 * tol:
                 break
-    elif phi_bins is not None:
+    elif aniso:
         worst_phi = max(probe_phis, key=lambda phi: rv_at(build([np.radians(75.0)], phi), np.radians(75.0), phi))
+    phi_bins = None
+    if aniso:
+        if phi_count == "auto":
+            theta = np.radians(PHI_PROBE_DEG)
+            for phi_count in PHI_COUNTS:
+                step = material.phi_period / phi_count
+                pairs = [build([theta], phis=[phi, phi + step]) for phi in probe_phis]
+                loss = max(rv_at(tab, theta, phi + 0.5 * step) - 2.0 * rv_at(tab, theta, phi)
+                           for tab, phi in zip(pairs, probe_phis))
+                log(f"phi bins {phi_count}: the blend half-way loses {loss:.4f}")
+                if loss <= 0.5 * tol:
+                    break
+        phi_bins = default_phi_bins(material, phi_count)
     per_bin = FLOATS_PER_CELL * 4 * resolution * resolution
+    if phi_bins is not None:        # every theta bin once per azimuth, and the one closing the period
+        per_bin *= len(phi_bins) + 1
+        memory_budget *= ANISO_BUDGET
     max_bins = max(2, int(memory_budget // per_bin))
 
     bins = list(np.radians(np.linspace(0.0, theta_max_deg, first_bins)))

@@ -216,6 +216,7 @@ def texture_image(tables):
 
     layout = {"layout": LAYOUT, "K": K, "P": P, "R": R, "C": C, "NB": nb, "period": period,
               "phi0": 0.0 if tables.phi_bins is None else float(tables.phi_bins[0]),
+              "coords": tables.coords, "frame": tables.frame_angle,
               "width": width, "height": height, "block": [bw, bh], "blocks_per_row": nx,
               "corners": len(corners), "x_row": xr, "x_col": xc, "x_cell": xx,
               "row_stride": sr, "col_stride": sc, "cell_stride": sx,

@@ -197,15 +197,17 @@ def hard_cases():
 TABLE_BINS = np.radians([0.0, 15.0, 30.0, 45.0, 60.0, 70.0, 78.0, 84.0, 87.0, 89.0, 89.5])
 
 
-def make_tables(material, ideal, size=32, grid=192, bins=TABLE_BINS, phi_count=8):
-    """Small baked tables of a material (anisotropic: phi_count azimuths over its period)."""
+def make_tables(material, ideal, size=32, grid=192, bins=TABLE_BINS, phi_count=8, coords=None):
+    """Small baked tables of a material (anisotropic: phi_count azimuths over its period, in
+    `coords`)."""
     from ..core.tabulate import build_tables, default_phi_bins, lobe_width_of
     try:
         width = lobe_width_of(material, ideal)
     except Exception:   # noqa: BLE001 (a fit that fails on an odd material: no lobe zones)
         width = None
     phi_bins = None if material.isotropic else default_phi_bins(material, phi_count)
-    return build_tables(material, ideal, bins, rows=size, cols=size, grid=grid, lobe_width=width, phi_bins=phi_bins)
+    return build_tables(material, ideal, bins, rows=size, cols=size, grid=grid, lobe_width=width, phi_bins=phi_bins,
+                        coords=coords)
 
 
 def make_samplers(case, workdir, ideal_resolution=128, table_size=32, grid=192, models=None):

@@ -2,7 +2,7 @@
 // evaluation. A port of bake/core/tables.py's Tables.sample and Tables._locate (the numpy reference).
 // Every texel is fetched with "interp", "closest" and zero derivatives, so values come back exact.
 
-#define LAYOUT 4
+#define LAYOUT 5
 #define K_SMALL 1e-4
 
 float fetch1(string file, float W, float H, int x, int y)
@@ -70,9 +70,10 @@ float exp_inverse_cdf(float u, float k)
     return clamp(x, 0.0, 1.0);
 }
 
-// The texture's header: 1 and (W, H, K, R, C, P, phi period) when it is a current export.
+// The texture's header: 1 and (W, H, K, R, C, P, phi period, halfvector coordinates?, their
+// frame's angle) when it is a current export.
 int read_header(string file, output float W, output float H, output int K, output int R,
-                output int C, output int NP, output float period)
+                output int C, output int NP, output float period, output int half, output float frame)
 {
     int res[2];
     if (!gettextureinfo(file, "resolution", res) || res[0] < 3 || res[1] < 3)
@@ -81,7 +82,10 @@ int read_header(string file, output float W, output float H, output int K, outpu
     H = res[1];
     color h0 = fetch(file, W, H, 0, 0);      // (LAYOUT, K, R)
     color h1 = fetch(file, W, H, 1, 0);      // (C, W, H)
-    color h2 = fetch(file, W, H, 2, 0);      // (P, phi period, 0)
+    float h2a = 0;
+    color h2 = fetch4(file, W, H, 2, 0, h2a);      // (P, phi period, halfvector?, frame angle)
+    half = int(h2[2]);
+    frame = h2a;
     K = int(h0[1]);
     R = int(h0[2]);
     C = int(h1[0]);
@@ -92,10 +96,13 @@ int read_header(string file, output float W, output float H, output int K, outpu
 }
 
 // The bins a direction blends at (cos theta_i, phi_i) (phi_i in the tangent frame; 0 when
-// NP = 1): their indices, weights and the first row of their corner block.
-void blend_bins(string file, float W, float H, int K, int R, int NP, float period,
-                float cos_i, float phi_i, output int bins[4], output float w[4], output int base)
+// NP = 1): their indices, weights and the first row of their corner block; and for halfvector
+// tables the whole periods phi_i was turned back by (turn).
+void blend_bins(string file, float W, float H, int K, int R, int NP, float period, int half,
+                float cos_i, float phi_i, output int bins[4], output float w[4], output int base,
+                output float turn)
 {
+    turn = 0.0;
     // theta_i: the last k with theta_bin k <= theta_i (cos_k >= cos_i), weight t toward k + 1.
     int k = 0;
     float t = 0.0;
@@ -115,13 +122,16 @@ void blend_bins(string file, float W, float H, int K, int R, int NP, float perio
         k = min(lo, K - 2);
         t = clamp((c0 - cos_i) / (c0 - c1), 0.0, 1.0);
     }
-    // phi_i: within the period from the first bin; the last bin's gap wraps to the first.
+    // phi_i: within the period from the first bin; the last bin's gap wraps to the first
+    // (halfvector: the bins close the period, the last one at the first + period).
     int p = 0;
     float sp = 0.0;
     if (NP > 1) {
         float phi0 = fetch_phi(file, W, H, 0);
         float x = mod(phi_i - phi0, period);
-        int lo = 0, hi = NP;
+        if (half)
+            turn = phi_i - phi0 - x;
+        int lo = 0, hi = half ? NP - 1 : NP;
         while (hi - lo > 1) {
             int mid = (lo + hi) / 2;
             if (fetch_phi(file, W, H, mid) - phi0 <= x) lo = mid; else hi = mid;
@@ -158,16 +168,71 @@ void blend_cell(string file, float W, float H, int B, int R, int bins[4], float 
     }
 }
 
+// bake/core/halfvector.py: 1 - cos theta_max(phi_h), the valid cap of h along phi_h at wi.
+float half_cap(vector wi, float phi_h)
+{
+    float s = sin(0.25 * atan2(wi[2], -(wi[0] * cos(phi_h) + wi[1] * sin(phi_h))));
+    return max(2.0 * s * s, 1e-30);
+}
+
+// bake/core/halfvector.py from_ab: wo of table coordinates (a, b) at wi (the map's frame), and
+// jac = d omega_o / (da db).
+vector half_from_ab(vector wi, float a, float b, output float jac)
+{
+    float x = 2.0 * a - 1.0, y = b / M_PI - 1.0;
+    float r = y, angle = M_PI_2 - M_PI_4 * ((y != 0.0) ? x / y : 0.0);
+    if (abs(x) >= abs(y)) {
+        r = x;
+        angle = M_PI_4 * ((x != 0.0) ? y / x : 0.0);
+    }
+    float u = r * cos(angle), v = r * sin(angle);
+    float phi_h = atan2(v, u);
+    float cap = half_cap(wi, phi_h);
+    float one_minus_cos = (u * u + v * v) * cap;
+    float sin_h = sqrt(max(one_minus_cos * (2.0 - one_minus_cos), 0.0));
+    vector h = vector(sin_h * cos(phi_h), sin_h * sin(phi_h), 1.0 - one_minus_cos);
+    float cos_ih = dot(wi, h);
+    vector wo = 2.0 * cos_ih * h - wi;
+    wo[2] = max(wo[2], 0.0);
+    jac = 4.0 * cos_ih * cap;
+    return wo;
+}
+
+// bake/core/halfvector.py to_ab: (a, b) and jac of wo at wi (both in the map's frame).
+void half_to_ab(vector wi, vector wo, output float a, output float b, output float jac)
+{
+    vector h = normalize(wi + wo);
+    float phi_h = atan2(h[1], h[0]);
+    float cap = half_cap(wi, phi_h);
+    float radius = sqrt(clamp((h[0] * h[0] + h[1] * h[1]) / (1.0 + h[2]) / cap, 0.0, 1.0));
+    float u = radius * cos(phi_h), v = radius * sin(phi_h);
+    float x = sign(v) * radius * ((v != 0.0) ? atan(u / v) : 0.0) / M_PI_4, y = sign(v) * radius;
+    if (abs(u) >= abs(v)) {
+        x = sign(u) * radius;
+        y = sign(u) * radius * ((u != 0.0) ? atan(v / u) : 0.0) / M_PI_4;
+    }
+    a = clamp(0.5 * (x + 1.0), 0.0, 1.0);
+    b = clamp(M_PI * (y + 1.0), 0.0, 2.0 * M_PI);
+    jac = 4.0 * dot(wi, h) * cap;
+}
+
+vector turn_z(vector w, float angle)
+{
+    float c = cos(angle), s = sin(angle);
+    return vector(c * w[0] - s * w[1], s * w[0] + c * w[1], w[2]);
+}
+
 // Samples the tables at (cos theta_i, phi_i): wo in the local frame (x toward phi = 0), its
 // weight (baked f cos / pdf) and pdf per steradian.
-void sample_tables(string file, float W, float H, int K, int R, int C, int NP, float period,
-                   float cos_i, float phi_i, float u0, float u1,
+void sample_tables(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
+                   float frame, float cos_i, float phi_i, float u0, float u1,
                    output vector wo, output color weight, output float pdf)
 {
     int bins[4];
     float w[4];
     int base;
-    blend_bins(file, W, H, K, R, NP, period, cos_i, phi_i, bins, w, base);
+    float turn;
+    blend_bins(file, W, H, K, R, NP, period, half, cos_i, phi_i, bins, w, base, turn);
 
     // Row: the last i with CDF_i <= u0 (the guide brackets it).
     color guide = fetch(file, W, H, min(int(u0 * R), R - 1), base + 2 + 2 * R);
@@ -208,10 +273,17 @@ void sample_tables(string file, float W, float H, int K, int R, int C, int NP, f
     float y = exp_inverse_cdf(clamp((v - d0) / cell[0], 0.0, 1.0), cell[2]);
     float a = a0 + x * (a1 - a0);
     float b = b0 + y * (b1 - b0);
+    pdf = cell[0] * exp_density(x, cell[1]) * exp_density(y, cell[2]) / ((a1 - a0) * (b1 - b0));
+    if (half) {     // h in the frame turned by whole periods and the lobe's axes
+        float ref = turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0)), jac;
+        vector wi = vector(sin_i * cos(phi_i - ref), sin_i * sin(phi_i - ref), cos_i);
+        wo = turn_z(half_from_ab(wi, a, b, jac), ref);
+        pdf /= jac;
+        return;
+    }
     float s = sqrt(max(a * (2.0 - a), 0.0));
     // b is the azimuth from the mirror plane of wi, + pi: phi_o = b - pi + (phi_i + pi).
     wo = vector(s * cos(b + phi_i), s * sin(b + phi_i), 1.0 - a);
-    pdf = cell[0] * exp_density(x, cell[1]) * exp_density(y, cell[2]) / ((a1 - a0) * (b1 - b0));
 }
 
 // The last k < n with blended edge_k <= x among the edges of texture row y (x = 0 .. n), its
@@ -244,8 +316,8 @@ int edge_search(string file, float W, float H, int y, int n, int lo_guide, int h
 
 // The tables' pdf (per steradian) and baked f cos (= the cell's weight x pdf) at a direction
 // wo of the local frame (Tables.pdf and Tables.eval x cos): 0 below the horizon.
-void eval_tables(string file, float W, float H, int K, int R, int C, int NP, float period,
-                 float cos_i, float phi_i, vector wo, output color fcos, output float pdf)
+void eval_tables(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
+                 float frame, float cos_i, float phi_i, vector wo, output color fcos, output float pdf)
 {
     fcos = 0;
     pdf = 0;
@@ -254,9 +326,16 @@ void eval_tables(string file, float W, float H, int K, int R, int C, int NP, flo
     int bins[4];
     float w[4];
     int base;
-    blend_bins(file, W, H, K, R, NP, period, cos_i, phi_i, bins, w, base);
+    float turn;
+    blend_bins(file, W, H, K, R, NP, period, half, cos_i, phi_i, bins, w, base, turn);
     float a = min((wo[0] * wo[0] + wo[1] * wo[1]) / (1.0 + wo[2]), 1.0);
     float b = mod(atan2(wo[1], wo[0]) - phi_i, 2.0 * M_PI);     // as in sample_tables: phi_o = b + phi_i
+    float jac = 1.0;
+    if (half) {
+        float ref = turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0));
+        vector wi = vector(sin_i * cos(phi_i - ref), sin_i * sin(phi_i - ref), cos_i);
+        half_to_ab(wi, turn_z(wo, -ref), a, b, jac);
+    }
     // Row: the last i with a_i <= a; column: the last j with b_ij <= b. Each search starts from
     // its guide's bracket (blue, alpha of the row / column guide texels).
     float a0, a1, b0, b1;
@@ -270,6 +349,6 @@ void eval_tables(string file, float W, float H, int K, int R, int C, int NP, flo
     blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, cell);
     float x = clamp((a - a0) / (a1 - a0), 0.0, 1.0);
     float y = clamp((b - b0) / (b1 - b0), 0.0, 1.0);
-    pdf = cell[0] * exp_density(x, cell[1]) * exp_density(y, cell[2]) / ((a1 - a0) * (b1 - b0));
+    pdf = cell[0] * exp_density(x, cell[1]) * exp_density(y, cell[2]) / ((a1 - a0) * (b1 - b0)) / jac;
     fcos = weight * pdf;
 }

@@ -1,0 +1,82 @@
+"""The anisotropic tables' coordinates: the half vector h of (wi, wo) on a disk.
+
+Why: in the isotropic tables' coordinates (theta_o and the azimuth from wi's plane) a thin
+anisotropic lobe is a streak that turns as phi_i turns, so tables blended between two phi_i
+bins smear it over a blob tens of times its area (rv 500x the ideal tabulation half-way
+between bins, 1:25 GGX at theta_i 70, 8 bins over pi). In the half vector, in the
+material's own frame, the same lobe stays where the microfacets are: only its weights
+change with wi, and blending follows it.
+
+The map, for a given wi (upper hemisphere):
+- The valid h (whose mirror of wi, wo = 2 (wi.h) h - wi, is above the horizon) are the
+  h with theta_h < theta_max(phi_h) = atan2(wi_z, -A) / 2, A = wi's component along phi_h:
+  a star-shaped cap around the pole, shrinking on the side away from wi.
+- Scaled radially to a unit disk by area: radius^2 = (1 - cos theta_h) / (1 - cos theta_max),
+  angle phi_h (the material frame's x axis at angle 0).
+- The disk onto the square [-1, 1]^2 by the concentric map (area-preserving, rays to rays,
+  the disk's centre, the specular peak of every wi, at the square's centre), and the square
+  onto the tables' (a, b) in [0, 1] x [0, 2 pi].
+So the valid h fill the tables' domain exactly: no sample is lost below the horizon, and a
+streak of microfacets is a straight line through the centre at every wi.
+
+Measure: d omega_h = (1 - cos theta_max(phi_h)) da db, d omega_o = 4 (wo.h) d omega_h, so
+a density over (a, b) is one over wo divided by jac = 4 (wo.h) (1 - cos theta_max).
+"""
+import numpy as np
+
+TWO_PI = 2.0 * np.pi
+QUARTER = 0.25 * np.pi
+_TINY = 1e-300
+
+
+def _cap(wi, phi_h):
+    """1 - cos theta_max(phi_h): the valid cap's extent along phi_h, per direction."""
+    along = wi[:, 0] * np.cos(phi_h) + wi[:, 1] * np.sin(phi_h)
+    return np.maximum(2.0 * np.sin(0.25 * np.arctan2(wi[:, 2], -along)) ** 2, _TINY)   # no cancellation
+
+
+def _per_point(wi, n):
+    wi = np.asarray(wi, np.float64)
+    return np.broadcast_to(wi, (n, 3)) if wi.ndim == 1 else wi
+
+
+def from_ab(wi, a, b):
+    """(wo, jac) of table coordinates (a, b) at wi: jac = d omega_o / (da db)."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    wi = _per_point(wi, len(a))
+    x, y = 2.0 * a - 1.0, b / np.pi - 1.0
+    wide = np.abs(x) >= np.abs(y)                        # the square's sector: |x| >= |y|
+    r = np.where(wide, x, y)
+    safe = np.where(r == 0.0, 1.0, r)
+    angle = np.where(wide, QUARTER * (y / safe), 2.0 * QUARTER - QUARTER * (x / safe))
+    u, v = r * np.cos(angle), r * np.sin(angle)          # the disk point
+    phi_h = np.arctan2(v, u)
+    cap = _cap(wi, phi_h)
+    one_minus_cos = (u * u + v * v) * cap
+    sin_h = np.sqrt(np.maximum(one_minus_cos * (2.0 - one_minus_cos), 0.0))
+    h = np.stack([sin_h * np.cos(phi_h), sin_h * np.sin(phi_h), 1.0 - one_minus_cos], axis=-1)
+    cos_ih = np.sum(wi * h, axis=-1)
+    wo = 2.0 * cos_ih[:, None] * h - wi
+    wo[:, 2] = np.maximum(wo[:, 2], 0.0)                  # the rim is the horizon (rounding)
+    return wo, 4.0 * cos_ih * cap
+
+
+def to_ab(wi, wo):
+    """(a, b, jac) of directions wo at wi (both upper hemisphere), as from_ab's inverse."""
+    wo = np.asarray(wo, np.float64)
+    wi = _per_point(wi, len(wo))
+    h = wi + wo
+    with np.errstate(invalid="ignore", divide="ignore"):     # wo = -wi (below): callers give pdf 0
+        h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    phi_h = np.arctan2(h[:, 1], h[:, 0])
+    cap = _cap(wi, phi_h)
+    radius = np.sqrt(np.clip((h[:, 0] ** 2 + h[:, 1] ** 2) / (1.0 + h[:, 2]) / cap, 0.0, 1.0))
+    u, v = radius * np.cos(phi_h), radius * np.sin(phi_h)
+    wide = np.abs(u) >= np.abs(v)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = np.where(wide, np.sign(u) * radius, np.sign(v) * radius * np.arctan(u / v) / QUARTER)
+        y = np.where(wide, np.sign(u) * radius * np.arctan(v / u) / QUARTER, np.sign(v) * radius)
+    x, y = np.nan_to_num(x), np.nan_to_num(y)             # the centre: u = v = 0
+    a = np.clip(0.5 * (x + 1.0), 0.0, 1.0)
+    b = np.clip(np.pi * (y + 1.0), 0.0, TWO_PI)
+    return a, b, 4.0 * np.sum(wi * h, axis=-1) * cap
