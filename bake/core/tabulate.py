@@ -643,8 +643,9 @@ RESOLUTIONS = (16, 24, 32, 48, 64)
 # or 1:50 GGX within 0.6-1.6x the 256^2 ideal's rv at theta_i 80 between phi bins, where 64^2 x 8
 # (the same memory) reached 3-10x (measured; the half vector's cap turns with phi_i at grazing).
 ANISO_RESOLUTIONS = (16, 24, 32)
-PHI_COUNTS = (8, 16, 32)
-PHI_PROBE_DEG = 80.0
+# At theta_i 86 a 1:25 GGX needs 64 (32: 3.5x the ideal's rv half-way, 64: 1.3x; measured).
+PHI_COUNTS = (8, 16, 32, 64)
+PHI_PROBE_DEG = (80.0, 86.0)
 FLOATS_PER_CELL = 7      # mass, two rates, RGB weight, and (about) one column edge
 ANISO_BUDGET = 4         # anisotropic tables' share of memory_budget, all their azimuths together
 
@@ -674,7 +675,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
     (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
-    at theta_i PHI_PROBE_DEG loses at most the bin's own rv plus tol / 2 (at 4 azimuths). The
+    at each theta_i of PHI_PROBE_DEG loses at most the bin's own rv plus tol / 2 (at 4 azimuths). The
     resolution (of ANISO_RESOLUTIONS) is probed at those 4 azimuths; the theta bins are planned
     at the azimuth where the probe did worst and shared by all azimuths. Their tables may take
     ANISO_BUDGET times `memory_budget`, all azimuths together (16 MB at the default).
@@ -724,12 +725,12 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
     phi_bins = None
     if aniso:
         if phi_count == "auto":
-            theta = np.radians(PHI_PROBE_DEG)
+            probes = [(np.radians(t), phi) for t in PHI_PROBE_DEG for phi in probe_phis]
             for phi_count in PHI_COUNTS:
                 step = material.phi_period / phi_count
-                pairs = [build([theta], phis=[phi, phi + step]) for phi in probe_phis]
-                loss = max(rv_at(tab, theta, phi + 0.5 * step) - 2.0 * rv_at(tab, theta, phi)
-                           for tab, phi in zip(pairs, probe_phis))
+                pairs = list(_parallel(lambda tp: build([tp[0]], phis=[tp[1], tp[1] + step]), probes))
+                loss = max(rv_at(tab, t, phi + 0.5 * step) - 2.0 * rv_at(tab, t, phi)
+                           for tab, (t, phi) in zip(pairs, probes))
                 log(f"phi bins {phi_count}: the blend half-way loses {loss:.4f}")
                 if loss <= 0.5 * tol:
                     break
