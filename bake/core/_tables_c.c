@@ -576,17 +576,19 @@ FT_INLINE void locate_block(const ft_view *V, const ft_bin *B, const double *wo,
         wx[k] = wo[3 * k];
         wy[k] = wo[3 * k + 1];
     }
-    FT_SIMD for (int k = 0; k < BLK; k++) Bv[k] = atan2(wy[k], wx[k]);
-    if (V->half)
+    if (V->half) {
         half_to_ab(B, wo, A, Bv, jac);
-    for (int k = 0; k < BLK && !V->half; k++) {
-        jac[k] = 1.0;
-        /* to_ab */
-        const double *w = wo + 3 * k;
-        const double z = w[2];
-        const double a = (w[0] * w[0] + w[1] * w[1]) / (1.0 + (z < 0.0 ? 0.0 : z));
-        A[k] = z > 0.0 ? (a > 1.0 ? 1.0 : a) : 1.0;
-        Bv[k] = mod_two_pi(Bv[k] - B[k].phi_ref + PI);
+    } else {
+        FT_SIMD for (int k = 0; k < BLK; k++) Bv[k] = atan2(wy[k], wx[k]);
+        for (int k = 0; k < BLK; k++) {
+            jac[k] = 1.0;
+            /* to_ab */
+            const double *w = wo + 3 * k;
+            const double z = w[2];
+            const double a = (w[0] * w[0] + w[1] * w[1]) / (1.0 + (z < 0.0 ? 0.0 : z));
+            A[k] = z > 0.0 ? (a > 1.0 ? 1.0 : a) : 1.0;
+            Bv[k] = mod_two_pi(Bv[k] - B[k].phi_ref + PI);
+        }
     }
     for (int k = 0; k < BLK; k++) {
         off[k] = B[k].ka;

@@ -24,6 +24,8 @@ a density over (a, b) is one over wo divided by jac = 4 (wo.h) (1 - cos theta_ma
 """
 import numpy as np
 
+from .warps import rotate_z
+
 TWO_PI = 2.0 * np.pi
 QUARTER = 0.25 * np.pi
 _TINY = 1e-300
@@ -40,10 +42,11 @@ def _per_point(wi, n):
     return np.broadcast_to(wi, (n, 3)) if wi.ndim == 1 else wi
 
 
-def from_ab(wi, a, b):
-    """(wo, jac) of table coordinates (a, b) at wi: jac = d omega_o / (da db)."""
+def from_ab(wi, a, b, frame=0.0):
+    """(wo, jac) of table coordinates (a, b) at wi: jac = d omega_o / (da db). h is mapped in
+    the frame turned by `frame` (per point or one angle) from wi's and wo's."""
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    wi = _per_point(wi, len(a))
+    wi = rotate_z(_per_point(wi, len(a)), -frame)
     x, y = 2.0 * a - 1.0, b / np.pi - 1.0
     wide = np.abs(x) >= np.abs(y)                        # the square's sector: |x| >= |y|
     r = np.where(wide, x, y)
@@ -58,13 +61,13 @@ def from_ab(wi, a, b):
     cos_ih = np.sum(wi * h, axis=-1)
     wo = 2.0 * cos_ih[:, None] * h - wi
     wo[:, 2] = np.maximum(wo[:, 2], 0.0)                  # the rim is the horizon (rounding)
-    return wo, 4.0 * cos_ih * cap
+    return rotate_z(wo, frame), 4.0 * cos_ih * cap
 
 
-def to_ab(wi, wo):
+def to_ab(wi, wo, frame=0.0):
     """(a, b, jac) of directions wo at wi (both upper hemisphere), as from_ab's inverse."""
-    wo = np.asarray(wo, np.float64)
-    wi = _per_point(wi, len(wo))
+    wo = rotate_z(np.asarray(wo, np.float64), -frame)
+    wi = rotate_z(_per_point(wi, len(wo)), -frame)
     h = wi + wo
     with np.errstate(invalid="ignore", divide="ignore"):     # wo = -wi (below): callers give pdf 0
         h = h / np.linalg.norm(h, axis=-1, keepdims=True)

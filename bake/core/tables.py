@@ -49,7 +49,6 @@ from ..materials.base import as_dirs
 from ..plumbing.exrio import read_exr, write_exr
 from . import halfvector
 from .geometry import theta_phi
-from .warps import rotate_z
 
 try:        # the optional C fast path (never required: Blender imports bake/ with numpy only)
     from . import fasttables as _fasttables
@@ -206,30 +205,27 @@ class Tables:
             c = np.cos(self.theta_bins)
             t = np.clip((c[k] - np.cos(theta)) / (c[k] - c[k + 1]), 0.0, 1.0)
         corners = [(k, 1.0 - t), (np.minimum(k + 1, K - 1), t)]
-        if self.coords == "halfvector":
-            # phi_bins span the period closed (the last at the first + period): phi_i turned
-            # back into it by whole periods, the material's symmetry; h is mapped in the frame
-            # turned alike, plus the lobe's axes.
-            P, period, starts = len(self.phi_bins), self.phi_period, self.phi_bins - self.phi_bins[0]
-            turns = np.floor((phi - self.phi_bins[0]) / period)
-            x = phi - self.phi_bins[0] - turns * period
-            p = np.clip(np.searchsorted(starts, x, side="right") - 1, 0, P - 2)
-            s = np.clip((x - starts[p]) / (starts[p + 1] - starts[p]), 0.0, 1.0)
-            corners = [(kk * P + pp, wk * wp) for kk, wk in corners for pp, wp in ((p, 1.0 - s), (p + 1, s))]
-            return ((np.stack([c[0] for c in corners], axis=1), np.stack([c[1] for c in corners], axis=1)),
-                    turns * period + self.frame_angle)
+        ref = phi + np.pi
         if self.anisotropic:
-            P, period = len(self.phi_bins), self.phi_period
-            # phi_i within the period, from the first bin; the gap after the last bin wraps to
-            # the first one (+ period). x == period after rounding gives s = 1 on bin 0: right.
-            x = np.mod(phi - self.phi_bins[0], period)
-            starts = self.phi_bins - self.phi_bins[0]
-            p = np.clip(np.searchsorted(starts, x, side="right") - 1, 0, P - 1)
-            ends = np.append(starts[1:], period)
-            s = np.clip((x - starts[p]) / (ends[p] - starts[p]), 0.0, 1.0)
-            corners = [(kk * P + pp, wk * wp) for kk, wk in corners
-                       for pp, wp in ((p, 1.0 - s), ((p + 1) % P, s))]
-        return (np.stack([c[0] for c in corners], axis=1), np.stack([c[1] for c in corners], axis=1)), phi + np.pi
+            P, period, starts = len(self.phi_bins), self.phi_period, self.phi_bins - self.phi_bins[0]
+            if self.coords == "halfvector":
+                # phi_bins span the period closed (the last at the first + period): phi_i turned
+                # back into it by whole periods, the material's symmetry; h is mapped in the
+                # frame turned alike, plus the lobe's axes.
+                turns = np.floor((phi - self.phi_bins[0]) / period)
+                x = phi - self.phi_bins[0] - turns * period
+                p = np.clip(np.searchsorted(starts, x, side="right") - 1, 0, P - 2)
+                nxt, end = p + 1, starts[p + 1]
+                ref = turns * period + self.frame_angle
+            else:
+                # phi_i within the period, from the first bin; the gap after the last bin wraps to
+                # the first one (+ period). x == period after rounding gives s = 1 on bin 0: right.
+                x = np.mod(phi - self.phi_bins[0], period)
+                p = np.clip(np.searchsorted(starts, x, side="right") - 1, 0, P - 1)
+                nxt, end = (p + 1) % P, np.append(starts[1:], period)[p]
+            s = np.clip((x - starts[p]) / (end - starts[p]), 0.0, 1.0)
+            corners = [(kk * P + pp, wk * wp) for kk, wk in corners for pp, wp in ((p, 1.0 - s), (nxt, s))]
+        return (np.stack([c[0] for c in corners], axis=1), np.stack([c[1] for c in corners], axis=1)), ref
 
     @staticmethod
     def _lerp(table, bins, *idx):
@@ -266,14 +262,14 @@ class Tables:
         pdf = m * exp_density(x, ka) * exp_density(y, kb) / ((a1 - a0) * (b1 - b0))
         a, b = a0 + x * (a1 - a0), b0 + y * (b1 - b0)
         if self.coords == "halfvector":
-            wo, jac = halfvector.from_ab(rotate_z(wi, -phi_ref), a, b)
-            return rotate_z(wo, phi_ref), pdf / jac
+            wo, jac = halfvector.from_ab(wi, a, b, phi_ref)
+            return wo, pdf / jac
         return from_ab(a, b, phi_ref), pdf
 
     def _locate(self, wi, wo):
         bins, phi_ref = self._bins(wi)
         if self.coords == "halfvector":
-            a, b, jac = halfvector.to_ab(rotate_z(wi, -phi_ref), rotate_z(wo, -phi_ref))
+            a, b, jac = halfvector.to_ab(wi, wo, phi_ref)
         else:
             a, b, jac = *to_ab(wo, phi_ref), 1.0
         L = self._lerp

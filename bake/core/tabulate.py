@@ -17,7 +17,6 @@ from .fasttables import one_blas_thread
 from .geometry import luminance, spherical_dir
 from . import halfvector
 from .tables import _SMALL, K_MAX, TWO_PI, Tables, _search, to_ab
-from .warps import rotate_z
 
 A_MIN = 1e-4     # the least gap between row knots (keeps every segment of rows non-empty)
 B_MIN = 1e-4     # the same for column knots
@@ -172,18 +171,16 @@ class _HalfFrame:
     frame of the lobe's axes (at `angle` from the material's x axis)."""
 
     def __init__(self, wi, angle):
-        self.angle = angle
-        self.wi = rotate_z(wi, -angle)
+        self.wi, self.angle = wi, angle
 
     def nodes(self, a0, a1, b0, b1, s):
         q = len(s)
         a = np.repeat(a0[:, None] + s[None, :] * (a1 - a0)[:, None], q, axis=1)    # a-major, as _nodes
         b = np.tile(b0[:, None] + s[None, :] * (b1 - b0)[:, None], (1, q))
-        wo, jac = halfvector.from_ab(self.wi, a.ravel(), b.ravel())
-        return rotate_z(wo, self.angle), jac
+        return halfvector.from_ab(self.wi, a.ravel(), b.ravel(), self.angle)
 
     def ab(self, wo):
-        return halfvector.to_ab(self.wi, rotate_z(wo, -self.angle))[:2]
+        return halfvector.to_ab(self.wi, wo, self.angle)[:2]
 
 
 def _closing_turn(period):
