@@ -107,9 +107,13 @@ class MaterialSource:
         """The normalized target density (per steradian) the samples follow: the ideal tabulation's."""
         return self.sampler.pdf(wi, wo)
 
-    def draw(self, n, rng):
+    def pool(self):
+        """All the pairs draw() picks from: (wi (n, 3), x (n, 2) in the domain's coordinates)."""
         if self._pool is None:
             self._build_pool()
-        wi, x = self._pool
+        return self._pool
+
+    def draw(self, n, rng):
+        wi, x = self.pool()
         k = rng.integers(0, len(wi), n)
         return wi[k], x[k]

@@ -233,7 +233,7 @@ class Chi2Result:
 
 
 def chi2_test(sampler, wi, n=1_000_000, res=(32, 32), binning="halfvector", seed=0, alpha=0.01,
-              n_tests=1, min_expected=5.0):
+              n_tests=1, min_expected=5.0, crowd=64, quad_tol=0.01):
     """Goodness of fit of sampler.sample(wi, .) against sampler.pdf(wi, .).
 
     Samples the sampler loses (pdf 0, or below the horizon) form one more bin whose
@@ -260,7 +260,7 @@ def chi2_test(sampler, wi, n=1_000_000, res=(32, 32), binning="halfvector", seed
         w, jac = bins.to_dir(a, b)
         return np.where(jac > 0, sampler.pdf(wi, w) * jac, 0.0)
 
-    expected, quad_err = integrate_bins(density, res, ab, tol=0.01 / n, with_error=True)
+    expected, quad_err = integrate_bins(density, res, ab, tol=quad_tol / n, crowd=crowd, with_error=True)
     # |children - parent| underestimates the error where a jump crosses the cells (measured:
     # 2-4x on the cap and cone cases at 1e6 samples), hence the factor.
     expected, quad_err = n * expected, 4.0 * n * quad_err
