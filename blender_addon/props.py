@@ -95,7 +95,7 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
         ("SPHERICAL", "Spherical", "theta, phi (anisotropic materials)"),
         ("SLOPE", "Slope", "log tan theta_h, phi_h of the half vector: sharp and layered glossy materials")])
     preset: bpy.props.EnumProperty(name="Training", default="BALANCED", items=[
-        ("FAST", "Fast", "~1 min per material"), ("BALANCED", "Balanced", "5-8 min on 2 cores"),
+        ("FAST", "Fast", "~1 min per material"), ("BALANCED", "Balanced", "3-5 min on 2 cores"),
         ("PAPER", "Paper", "GPU advised")])
     bake_quality: bpy.props.EnumProperty(name="Tables", default="FINAL", items=[
         ("DRAFT", "Draft", "Tiny tables, seconds: layout and tests"),

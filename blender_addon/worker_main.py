@@ -182,7 +182,7 @@ class BakeProgress(Step):
         return elapsed / (elapsed + remaining), words
 
 
-TRAIN_TIME = {"fast": "about 1 min", "balanced": "5-8 min", "paper": "hours without a GPU"}
+TRAIN_TIME = {"fast": "about 1 min", "balanced": "3-5 min", "paper": "hours without a GPU"}
 
 
 class TrainProgress(Step):
