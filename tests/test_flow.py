@@ -613,6 +613,23 @@ def test_reflow_beats_the_teacher_at_few_steps(trained_disk):
     assert student["nll"] < tr.evaluate(teacher, 4)["nll"]
 
 
+@pytest.mark.parametrize("domain", ["disk", "spherical"])
+def test_a_pooled_source_is_converted_once_to_the_same_pairs(domain):
+    """PreparedSource converts a finite pool (MaterialSource.pool) to flow coordinates once and
+    then draws by index: the pairs are those of converting each draw of the source."""
+    from bake.materials import open_material
+    from trainer.sources import MaterialSource
+    from trainer.train import PreparedSource
+    mat = open_material({"kind": "analytic", "model": "ggx", "alpha": 0.2, "f0": 0.9})
+    src = MaterialSource(mat, domain, theta_i=np.radians([0.0, 40.0, 80.0]), resolution=32, pool=4096)
+    prepared = PreparedSource(src, domain, isotropic=True)
+    c, y = prepared.draw(1000, np.random.default_rng(5))
+    c_each, y_each = prepared.prepare(*src.draw(1000, np.random.default_rng(5)))
+    assert len(prepared._pool[0]) == len(src.pool()[0])     # no pair is invalid: the indices agree
+    np.testing.assert_array_equal(c, c_each)
+    np.testing.assert_array_equal(y, y_each)
+
+
 def test_the_weight_average_does_not_lag_a_short_stage(tmp_path):
     """The EMA's decay ramps up from 0 ((1 + k) / (10 + k), capped at `ema`): with a fixed 0.999
     the averaged teacher of a 400-step stage still held 0.999^400 = 67 % of its untrained start and
