@@ -50,9 +50,7 @@ PRESETS = {
         reflow_pairs=1 << 16, reflow_ode_steps=32, reflow_steps=1000, reflow_lr=1e-3,
         reflow_eval_every=250, patience=4, holdout=2048, ema=0.995,
     ),
-    # ~4 min for an isotropic material on 2 CPU cores (aurora, spherical: 235 s; the same preset
-    # at batch 4096, 5000 teacher / 20000 student steps, 2^18 pairs, 48 RK4 steps: 743 s, held-out
-    # NLL -0.975 vs -0.987 now, rv at 0-85 deg 0.23 vs 0.39 mean; see trainer/README.md).
+    # ~4 min for an isotropic material on 2 CPU cores (what it trades: trainer/README.md, Presets).
     "balanced": dict(
         teacher=dict(vel_width=128, vel_depth=4), student=dict(vel_width=32, vel_depth=3),
         batch=2048, base_steps=600, base_lr=1e-2,
@@ -130,6 +128,7 @@ class PreparedSource:
     def __init__(self, source, domain, isotropic):
         self.source, self.domain, self.isotropic = source, domain, isotropic
         self.map = flow_maps.MAPS[domain]
+        self._pool = None       # (c, y) of the source's whole pool, where it has one
 
     def prepare(self, wi, x1):
         wi = np.asarray(wi, np.float64)
@@ -151,7 +150,7 @@ class PreparedSource:
     def draw(self, n, rng):
         if hasattr(self.source, "pool"):
             # A finite pool: converted once (the conversion cost ~4 ms of a ~15 ms training step).
-            if not hasattr(self, "_pool"):
+            if self._pool is None:
                 self._pool = self.prepare(*self.source.pool())
                 if len(self._pool[0]) == 0:
                     raise FlowBSDFError("the training data source returned no valid pairs")

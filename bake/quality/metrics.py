@@ -242,7 +242,8 @@ def chi2_test(sampler, wi, n=1_000_000, res=(32, 32), binning="halfvector", seed
 
     The expected counts come from adaptive quadrature, which on a pdf with jumps (tables
     of hard-edged materials) is off by up to ~1e-4 of the total: at 1e6 samples that alone
-    would fail a correct sampler. So each bin's variance is its expected count plus the
+    would fail a correct sampler (quad_tol, in samples per cell, and crowd are integrate_bins'
+    tol x n and crowd). So each bin's variance is its expected count plus the
     square of its quadrature error estimate (times 4n); the lost bin's is the total's. For
     smooth pdfs the error terms are ~1e-7 per bin and change nothing.
     """
