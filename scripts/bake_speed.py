@@ -6,8 +6,9 @@ the shared RGL materials, this checkout beside another one, with the tables' rv.
 
 Per material: the bake's wall seconds (best of `repeat`; with --baseline the two checkouts
 take turns within every repeat, so a load spike hits both), the planned resolution and bin
-count, and the tables' rv at theta_i 0/30/60/75/85 (metrics.relative_variance_ref against
-the ideal tabulation, 512² directions, as scripts/tables_acceptance.py reports it).
+count, the size in MB, and the tables' rv at theta_i 0/30/60/75/85 (metrics.relative_variance_ref
+against the ideal tabulation, 512² directions, as scripts/tables_acceptance.py reports it) with
+its ratio to the ideal tabulation's own rv there (issue 22's "within 1.5x the ideal").
 --baseline: another FlowBSDF checkout (e.g. `git archive <commit> | tar -x -C DIR`), imported
 as `bake_baseline`. --memory-budget: plan_tables' budget (default: Final's), e.g. to cap a sharp
 material's bin count for a shorter comparison. Prints Markdown; asserts nothing (machines and
@@ -72,7 +73,8 @@ def main():
         kits = {"old": baseline_bake(args.baseline), **kits}
     print(f"load: {os.getloadavg()[0]:.2f} (1 min) at start, {os.cpu_count()} cores", flush=True)
     head = ["material"] + [f"{lab} s" for lab in kits] + (["old/new"] if args.baseline else []) + \
-        [f"{lab} res x bins" for lab in kits] + [f"{lab} rv {t}" for t in THETAS for lab in kits]
+        [f"{lab} res x bins" for lab in kits] + [f"{lab} MB" for lab in kits] + \
+        [f"{lab} rv {t} (/ideal)" for t in THETAS for lab in kits]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name in args.materials.split(","):
         path = shared_dir() / f"{name}.bsdf"
@@ -85,6 +87,7 @@ def main():
         mat = open_material(path)
         ideal = IdealSampler(mat)
         rv = {lab: rvs(mat, tab, ideal) for lab, tab in tables.items()}
+        ideal_rv = rvs(mat, ideal, ideal)
         if args.out:
             Path(args.out).mkdir(parents=True, exist_ok=True)
             for lab, tab in tables.items():
@@ -93,7 +96,8 @@ def main():
         if args.baseline:
             row.append(f"{best['old'] / best['new']:.2f}")
         row += [f"{tab.rows} x {len(tab.theta_bins)}" for tab in tables.values()]
-        row += [f"{rv[lab][i]:.4f}" for i in range(len(THETAS)) for lab in kits]
+        row += [f"{tab.nbytes / 2**20:.2f}" for tab in tables.values()]
+        row += [f"{rv[lab][i]:.4f} ({rv[lab][i] / ideal_rv[i]:.2f})" for i in range(len(THETAS)) for lab in kits]
         lines.append("| " + " | ".join(row) + " |")
         print(lines[-1], flush=True)
     print(f"\nFinal bake wall seconds{'' if not options else f' ({options})'}, best of {args.repeat} (turns interleaved); "

@@ -667,8 +667,9 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
 
     Resolution: the smallest of RESOLUTIONS whose single-bin tables reach rv <= tol / 2 at a
     few elevations (isotropic: a resolution's probe stops at its first failing elevation).
-    Bins: start from `first_bins` evenly spaced elevations; while the memory budget allows another bin, split the interval whose interpolated midpoint loses most
-    against a bin built at that midpoint, until no interval loses more than tol / 2.
+    Bins: start from `first_bins` evenly spaced elevations; while the memory budget allows
+    another bin, split the interval whose interpolated midpoint loses most against the better
+    of its two bins (interval_loss), until no interval loses more than tol / 2.
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
     (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
@@ -744,26 +745,23 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
     def midpoint(lo, hi):     # interpolation is linear in cos(theta): test where it errs most
         return float(np.arccos(0.5 * (np.cos(lo) + np.cos(hi))))
 
-    scores, own = {}, {}
+    scores = {}
 
-    def own_rv(theta):        # what a bin built exactly at theta reaches: the floor of its interval
-        if theta not in own:
-            own[theta] = rv_at(build([theta], worst_phi), theta, worst_phi)
-        return own[theta]
-
-    def pair_rv(lo, hi):      # what the midpoint reaches between bins built at lo and hi
-        return rv_at(build([lo, hi], worst_phi), midpoint(lo, hi), worst_phi)
+    def interval_loss(lo, hi):
+        """What interpolating between bins at lo and hi loses at the midpoint beyond what the
+        bins themselves reach: the midpoint's rv above the better of the two bins' own rv (both
+        measured on the same pair of bins: a bin built at the midpoint costs as much as the pair,
+        and would only be needed for this)."""
+        if hi - lo <= gap:
+            return 0.0
+        tab = build([lo, hi], worst_phi)
+        floor = min(rv_at(tab, lo, worst_phi), rv_at(tab, hi, worst_phi))
+        return max(rv_at(tab, midpoint(lo, hi), worst_phi) - max(floor, 0.5 * tol), 0.0)
 
     while len(bins) < max_bins:
-        new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores and hi - lo > gap]
+        new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
         # The new intervals' builds are independent: all of them at once, in threads.
-        jobs = [(pair_rv, lo, hi) for lo, hi in new] + [(own_rv, midpoint(lo, hi)) for lo, hi in new]
-        pair = dict(zip(new, _parallel(lambda job: job[0](*job[1:]), jobs)))
-        for lo, hi in zip(bins[:-1], bins[1:]):
-            if (lo, hi) not in scores:
-                # The interpolation's own error: what the midpoint loses against a bin built there.
-                scores[(lo, hi)] = 0.0 if hi - lo <= gap else \
-                    max(pair[(lo, hi)] - max(own_rv(midpoint(lo, hi)), 0.5 * tol), 0.0)
+        scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
         (lo, hi), worst = max(scores.items(), key=lambda kv: kv[1])
         if worst <= 0.5 * tol:
             break
