@@ -95,13 +95,16 @@ class BakeProgress(Step):
     """A material's bake, estimated from the baker's log (bake/core/tabulate.plan_tables): the
     resolution probe ("resolution R: single-bin rv X"), then one line per incident angle the
     planner adds ("bins N: split ... (midpoint rv S)") until the worst midpoint reaches tol / 2
-    or the memory budget caps the angles, then the final build (silent) and the node's
-    textures and fit ("[svm]/[osl]/[fit] wrote"). Angles left: from how far the worst midpoint
-    went down on a log scale, and how far the angle count went towards its cap; the time a
-    split takes, measured; the final build, about a tenth of a split per angle (measured on an
-    RGL material: 47 s for 34 angles after 14 s splits). Lines pass through to the log."""
+    or the memory budget caps the angles, then the tables' build ("tables: building N angles",
+    "tables: built K of N", about ten of them) and the node's textures and fit ("[svm]/[osl]/[fit]
+    wrote"). Angles left: from how far the worst midpoint went down on a log scale, and how far
+    the angle count went towards its cap; the time a split takes, measured. The build: a tenth
+    of a split per angle (from the ideal tabulation's points; a flow's cost ~20x as much) until
+    its first "built" line, then its own pace. Lines pass through to the log."""
     RESOLUTION = re.compile(r"resolution (\d+): single-bin rv ([0-9.eE+-]+)")
     SPLIT = re.compile(r"bins (\d+): split .*\(midpoint rv ([0-9.eE+-]+)\)")
+    BUILDING = re.compile(r"tables: building (\d+) angles")
+    BUILT = re.compile(r"tables: built (\d+) of (\d+)")
 
     def __init__(self, name, settings, clock=time.monotonic):
         import inspect
@@ -114,6 +117,7 @@ class BakeProgress(Step):
         self.target, self.budget = 0.5 * get("tol"), get("memory_budget")
         self.stage, self.probed, self.bins = "prepare", 0, self.first
         self.scores, self.events = [], []          # the planner's worst midpoint rv; times of its lines
+        self.build = None                          # [start time, parts built, parts, time of the last]
 
     def log(self, line):
         emit(line)
@@ -131,6 +135,12 @@ class BakeProgress(Step):
             self.bins = int(m.group(1))
             self.scores.append(float(m.group(2)))
             self.events.append(self.clock())
+        elif self.BUILDING.match(text):
+            self.bins = int(self.BUILDING.match(text).group(1))
+            self.stage, self.build = "build", [self.clock(), 0, None, None]
+        elif self.BUILT.match(text) and self.build:
+            m = self.BUILT.match(text)
+            self.build[1:] = [int(m.group(1)), int(m.group(2)), self.clock()]
         elif line.startswith(("[svm] ", "[osl] ", "[fit] ")):
             self.stage = "derive"
         elif line.startswith("[preview] "):
@@ -165,10 +175,11 @@ class BakeProgress(Step):
             return 0.97, f"{who}: writing the node's textures and closure fit"
         if self.stage == "preview":
             return 0.98, f"{who}: rendering a preview"
+        if self.stage == "build":
+            return self._build_estimate(now, who)
         if len(self.scores) < 3:
             return 0.1, f"{who}: {self.bins} angles placed, estimating the time left"
-        recent = self.events[-5:]
-        split = (recent[-1] - recent[0]) / (len(recent) - 1)
+        split = self._split_seconds()
         left, capped = self.angles_left()
         total = self.bins + left
         remaining = left * split + total * split / 10 + 3.0 - (now - self.events[-1])
@@ -180,6 +191,23 @@ class BakeProgress(Step):
             words = (f"{who}: {self.bins} of {'at most' if capped else 'about'} {total} angles, "
                      f"{time_left(remaining)}")
         return elapsed / (elapsed + remaining), words
+
+    def _split_seconds(self):
+        recent = self.events[-5:]
+        return (recent[-1] - recent[0]) / max(len(recent) - 1, 1)
+
+    def _build_estimate(self, now, who):
+        start, done, parts, last = self.build
+        if done:
+            remaining = (last - start) / done * (parts - done) - (now - last)
+        else:
+            split = self._split_seconds() if len(self.events) > 1 else 1.0
+            remaining = self.bins * split / 10 - (now - start)
+        words = f"{who}: building the tables ({done} of {parts or self.bins} angles done"
+        if remaining <= 0:
+            return None, words + ")"
+        elapsed = now - self.t0
+        return elapsed / (elapsed + remaining), words + f", {time_left(remaining)})"
 
 
 TRAIN_TIME = {"fast": "about 1 min", "balanced": "3-5 min", "paper": "hours without a GPU"}

@@ -279,6 +279,14 @@ def test_bake_progress_in_words_from_the_planner_log(monkeypatch):
     m2 = re.match(r"\[step ([0-9.]+)\] .* about (\d+) (min|s) left$", lines[-1])
     assert m2 and float(m2.group(1)) > float(m.group(1)), lines[-1]
     assert (int(m2.group(2)) if m2.group(3) == "min" else 0) <= before - 1, (words, lines[-1])
+    # The tables' build (from a flow's points it may take longer than the planning): its own pace.
+    feed(150.0, "[bake] MilitaryGreen: tables: building 34 angles")
+    assert "building the tables (0 of 34 angles done" in lines[-1], lines[-1]
+    feed(170.0, "[bake] MilitaryGreen: tables: built 4 of 34")
+    m3 = re.match(r"\[step ([0-9.]+)\] Baking MilitaryGreen: building the tables \(4 of 34 angles done, "
+                  r"about (\d+) (min|s) left\)$", lines[-1])
+    assert m3 and m3.group(2, 3) == ("2", "min"), lines[-1]          # 20 s per 4 angles: 150 s left
+    assert float(m3.group(1)) >= float(m2.group(1))
     feed(200.0, "[svm] wrote /x/MilitaryGreen.svm1-0.exr")
     assert lines[-1].endswith("Baking MilitaryGreen: writing the node's textures and closure fit")
     assert wm.time_left(5) == "a few seconds left" and wm.time_left(40) == "about 40 s left"

@@ -365,3 +365,25 @@ def test_threads_follow_the_cores_other_processes_leave_idle(monkeypatch):
     assert [tabulate._free_workers(2) for _ in range(5)] == [2, 2, 1, 2, 2]
     monkeypatch.setattr(tabulate, "_cpu_seconds", lambda: None)
     assert tabulate._free_workers(4) == 4
+
+
+def test_planner_probes_with_the_ideal_and_builds_the_plan_from_the_source():
+    """plan_tables probes with the ideal tabulation (cheap per angle; a flow's points cost ~20x)
+    and builds the planned tables from the given source's points: the source is asked only
+    for the planned bins' incident angles, once each."""
+    mat = open_material(HARD["mirror-ish"])
+    ideal = IdealSampler(mat, resolution=64)
+    asked = []
+
+    class Source:     # a non-ideal source (as a flow is): the ideal's samples, counted
+        def sample(self, wi, u):
+            asked.append(round(float(np.degrees(np.arccos(wi[2]))), 6))
+            return ideal.sample(wi, u)
+
+        def pdf(self, wi, wo):
+            return ideal.pdf(wi, wo)
+
+    tab = plan_tables(mat, Source(), resolution=16, grid=96, samples=1 << 12, first_bins=3,
+                      memory_budget=8 * 7 * 4 * 16 * 16, ideal_resolution=64)
+    assert len(tab.theta_bins) > 3          # the probes split intervals, without asking the source
+    assert sorted(asked) == sorted(round(float(t), 6) for t in np.degrees(tab.theta_bins))

@@ -665,6 +665,10 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
                 phi_count="auto", **options):
     """Tables with only the resolution and incident bins this material needs.
 
+    The probes build tables from the ideal tabulation's points (`ideal`: the plan depends on
+    the material, and a flow's points cost ~20x as much per incident angle: 6 s for 512²
+    with its Jacobians); the planned tables are built from `source`'s.
+
     Resolution: the smallest of RESOLUTIONS whose single-bin tables reach rv <= tol / 2 at a
     few elevations (isotropic: a resolution's probe stops at its first failing elevation).
     Bins: start from `first_bins` evenly spaced elevations; while the memory budget allows
@@ -687,9 +691,11 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
     opts = dict(lobe_width=lobe_width, cache={}, **options)
     aniso = not material.isotropic
 
-    def build(thetas, phi=0.0, phis=None):     # phis: all azimuths; else the single azimuth phi
+    def build(thetas, phi=0.0, phis=None, source=ideal):    # phis: all azimuths; else the single azimuth phi
         if aniso:
             phis = [phi] if phis is None else phis
+        if source is not ideal:     # the probes' cache holds the ideal source's points
+            opts["cache"] = {}
         return build_tables(material, source, thetas, resolution, resolution, phi_bins=phis, **opts)
 
     def rv_at(tab, theta, phi=0.0):
@@ -768,7 +774,15 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=0.004, resolution
         bins = sorted(bins + [midpoint(lo, hi)])
         del scores[(lo, hi)]
         log(f"bins {len(bins)}: split {np.degrees(lo):.2f}-{np.degrees(hi):.2f} deg (midpoint rv {worst:.4f})")
-    tables = build(bins, phis=phi_bins)
+    log(f"tables: building {len(bins)} angles" + (f" x {len(phi_bins)} azimuths" if phi_bins is not None else ""))
+    every = [0]
+
+    def built(done, total):     # about ten lines, whatever the count
+        if done == total or done * 10 // total > every[0]:
+            every[0] = done * 10 // total
+            log(f"tables: built {done} of {total}")
+    opts["progress"] = built
+    tables = build(bins, phis=phi_bins, source=source)
     tables.meta.update(resolution=resolution, lobe_width=lobe_width, tol=tol)
     if phi_bins is not None:
         tables.meta.update(phi_count=len(phi_bins), planned_at_phi=float(worst_phi))
