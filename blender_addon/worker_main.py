@@ -93,16 +93,16 @@ class Step:
 
 class BakeProgress(Step):
     """A material's bake, estimated from the baker's log (bake/core/tabulate.plan_tables): the
-    resolution probe ("resolution R: single-bin rv X"), then one line per incident angle the
-    planner adds ("bins N: split ... (midpoint rv S)") until the worst midpoint reaches tol / 2
-    or the memory budget caps the angles, then the tables' build ("tables: building N angles",
+    resolution probe ("resolution R: single-bin rv Xx the target"), then one line per incident
+    angle the planner adds ("bins N: split ... (midpoint loss Sx its target)") until the worst
+    midpoint reaches its target (S <= 1) or the memory budget caps the angles, then the tables' build ("tables: building N angles",
     "tables: built K of N", about ten of them) and the node's textures and fit ("[svm]/[osl]/[fit]
     wrote"). Angles left: from how far the worst midpoint went down on a log scale, and how far
     the angle count went towards its cap; the time a split takes, measured. The build: a tenth
     of a split per angle (from the ideal tabulation's points; a flow's cost ~20x as much) until
     its first "built" line, then its own pace. Lines pass through to the log."""
-    RESOLUTION = re.compile(r"resolution (\d+): single-bin rv ([0-9.eE+-]+)")
-    SPLIT = re.compile(r"bins (\d+): split .*\(midpoint rv ([0-9.eE+-]+)\)")
+    RESOLUTION = re.compile(r"resolution (\d+): single-bin rv ([0-9.eE+-]+)x the target")
+    SPLIT = re.compile(r"bins (\d+): split .*\(midpoint loss ([0-9.eE+-]+)x its target\)")
     BUILDING = re.compile(r"tables: building (\d+) angles")
     BUILT = re.compile(r"tables: built (\d+) of (\d+)")
 
@@ -114,7 +114,7 @@ class BakeProgress(Step):
         get = lambda key: settings.get(key, defaults[key])        # noqa: E731
         self.name, self.resolutions, self.cell = name, RESOLUTIONS, FLOATS_PER_CELL * 4
         self.resolution, self.first = get("resolution"), get("first_bins")
-        self.target, self.budget = 0.5 * get("tol"), get("memory_budget")
+        self.target, self.budget = 1.0, get("memory_budget")     # the planner's scores are x its targets
         self.stage, self.probed, self.bins = "prepare", 0, self.first
         self.scores, self.events = [], []          # the planner's worst midpoint rv; times of its lines
         self.build = None                          # [start time, parts built, parts, time of the last]

@@ -255,14 +255,14 @@ def test_bake_progress_in_words_from_the_planner_log(monkeypatch):
         now[0] = t
         progress.log(text)
         steps.append((progress.done, lines[-1]))
-    feed(8.0, "[bake] MilitaryGreen: resolution 16: single-bin rv 0.2005")
+    feed(8.0, "[bake] MilitaryGreen: resolution 16: single-bin rv 100.25x the target or more")
     assert steps[-1][1] == "[step 0.050] Baking MilitaryGreen: choosing the table resolution (1 of 5)"
     for t, r in ((9, 24), (10, 32), (13, 48), (18, 64)):
-        feed(float(t), f"[bake] MilitaryGreen: resolution {r}: single-bin rv 0.0081")
+        feed(float(t), f"[bake] MilitaryGreen: resolution {r}: single-bin rv 4.05x the target or more")
     assert progress.resolution == 64 and progress.max_bins() == 34
-    scores = [0.457, 0.282, 0.208, 0.146, 0.110, 0.108, 0.0845, 0.0437, 0.031, 0.0198, 0.0182]
+    scores = [228.5, 141, 104, 73, 55, 54, 42.25, 21.85, 15.5, 9.9, 9.1]      # x the target
     for k, score in enumerate(scores):
-        feed(30.0 + 10 * k, f"[bake] MilitaryGreen: bins {7 + k}: split 1.00-2.00 deg (midpoint rv {score})")
+        feed(30.0 + 10 * k, f"[bake] MilitaryGreen: bins {7 + k}: split 1.00-2.00 deg (midpoint loss {score}x its target)")
     assert all(text.startswith("[bake] ") or text.startswith("[step ") for text in lines)
     assert sum(text.startswith("[bake] MilitaryGreen: bins") for text in lines) == len(scores)  # the log keeps them
     words = steps[-1][1]

@@ -1,3 +1,5 @@
+import itertools
+
 import numpy as np
 import pytest
 
@@ -57,6 +59,72 @@ class FlankThenFloor(Material):
         _, b = to_ab(wo, np.pi)
         g = (1e-3 + np.exp(-60.0 * np.abs(b - 1.0) / 0.5)) * ((b < 1.1) | (b > 1.25))
         return np.repeat((g / np.maximum(wo[:, 2], 1e-12))[:, None], 3, axis=1) * (wo[:, 2:3] > 0)
+
+
+class FlankAcrossAnEdge(Material):
+    """f·cos depending on the azimuth b alone: 1 for b in [0.5, 1], then a flank
+    e^(-(b - 1) / 0.005) into the wide cell b in [1, 2 pi], whose only other mass is a bump of
+    1e-3 near its far end; 1e-4 elsewhere: the lobe's flank crossing a column edge (measured on
+    a sharp RGL file at theta_i 85)."""
+
+    def eval(self, wi, wo):
+        wi, wo = as_dirs(wi, wo)
+        _, b = to_ab(wo, np.pi)
+        g = 1e-4 + np.where(b < 1.0, b > 0.5, np.exp(-np.maximum(b - 1.0, 0.0) / 0.005)) \
+            + 1e-3 * ((b > 5.5) & (b < 6.0))
+        return np.repeat((g / np.maximum(wo[:, 2], 1e-12))[:, None], 3, axis=1) * (wo[:, 2:3] > 0)
+
+
+def test_a_flank_that_crosses_a_cell_edge_is_integrated_again_along_it(monkeypatch):
+    """The wide cell's rule (4 to 64 nodes a side) steps over the flank beside its edge and sees
+    the far bump only: its exponential leans away from the flank, where its pdf would be ~1e-5
+    of f·cos's share (one such cell gave rv 0.83 at theta_i 85 on a measured file). Its density
+    at that edge is far below its neighbour's across it (f·cos is continuous), so a strip along
+    the edge is integrated again (on the measured file: rv 0.83 -> 0.0026)."""
+    from bake.core import tabulate
+    mat, wi = FlankAcrossAnEdge(), incident(40.0)
+    a_edges, b_edges, none = np.array([0.0, 0.5, 1.0]), np.array([[0.0, 0.5, 1.0, TWO_PI]] * 2), np.empty(0)
+    y = (np.arange(4096) + 0.5) / 4096
+    flank = from_ab(np.full_like(y, 0.25), 1.0 + 0.03 * y, np.pi)
+    fine = (np.arange(1 << 20) + 0.5) / (1 << 20)
+    total = mat.target(wi, from_ab(np.full_like(fine, 0.25), TWO_PI * fine, np.pi)).mean() * TWO_PI   # a: 1 wide
+    ratio = {}
+    for jump in (np.inf, tabulate.EDGE_JUMP):
+        monkeypatch.setattr(tabulate, "EDGE_JUMP", jump)
+        prob, alpha, beta, w = _finish_bin(mat, wi, _WoFrame(0.0), a_edges, b_edges, none, none, none, 4, 1e-4)
+        tab = Tables([np.radians(40.0)], a_edges[None], b_edges[None], prob[None], alpha[None], beta[None], w[None])
+        g, pdf = mat.target(wi, flank), tab.pdf(wi, flank)
+        ratio[jump] = np.min(pdf / (g / total))         # q / p over the flank
+    # Without the strip: q/p 5e-5. With it the cell holds its mass and leans onto the flank: 100x
+    # more (one exponential over a cell 1000x wider than the flank cannot follow it all the way).
+    assert ratio[np.inf] < 1e-4 and ratio[tabulate.EDGE_JUMP] > 100 * ratio[np.inf], ratio
+    assert_sampler_contract(tab, wi, np.random.default_rng(4).random((20000, 2)), pdf_rtol=1e-9,
+                            chi2=dict(n=200_000))
+
+
+def test_unresolved_edges_are_found_on_either_side_and_across_rows():
+    """A cell whose density at an edge is EDGE_JUMP x below its neighbour's gets a strip along that
+    edge (b within a row, wrapping at 2 pi, and a across rows); a continuous table gets none."""
+    from bake.core.tabulate import STRIP, _unresolved_edges
+    a_edges = np.array([0.0, 0.5, 1.0])
+    b_edges = np.array([[0.0, 2.0, 4.0, TWO_PI]] * 2)
+    area = 0.5 * np.diff(b_edges, axis=1)
+    flat = np.zeros((2, 3))
+    cells, _ = _unresolved_edges(a_edges, b_edges, area.copy(), flat, flat)
+    assert len(cells) == 0
+    mass = area.copy()
+    mass[0, 1] *= 1e-3                              # a cell far below all its neighbours
+    cells, box = _unresolved_edges(a_edges, b_edges, mass, flat, flat)
+    assert list(cells) == [1]                       # one strip per cell: its worst edge
+    lo_a, hi_a, lo_b, hi_b = (x[0] for x in box)
+    width_a, width_b = hi_a - lo_a, hi_b - lo_b
+    assert (width_a, width_b) in ((0.5, STRIP * 2.0), (STRIP * 0.5, 2.0))
+    mass = area.copy()
+    mass[1, 0] *= 1e-3                              # beside the wrap: its left neighbour is the last column
+    beta = np.zeros((2, 3))
+    beta[1, 2] = 8.0                                # ... and that one leans onto the wrapping edge
+    cells, box = _unresolved_edges(a_edges, b_edges, mass, flat, beta)
+    assert 3 in cells
 
 
 def test_cell_rate_stops_at_the_floor_of_f_cos():
@@ -189,8 +257,9 @@ def test_bins_with_the_same_neighbours_share_their_edges(monkeypatch):
 
 def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(monkeypatch):
     """The isotropic probe skips a resolution's remaining angles once one fails, and picks the
-    resolution the full probe picks (the smallest whose worst angle reaches tol / 2), whatever
-    angle fails. Each resolution's single-bin rv per probe angle comes from a table here."""
+    resolution the full probe picks (the smallest whose worst angle reaches its target), whatever
+    angle fails. Each resolution's single-bin rv per probe angle comes from a table here; the
+    target is tol / 2, or ideal_ratio times the ideal tabulation's rv (0.5 here) when that is more."""
     from types import SimpleNamespace
     from bake.core import tabulate
     from bake.quality import metrics
@@ -204,7 +273,9 @@ def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(
         "first passes": ([[1, 1, 1, 1]] * 5, 16),
     }
     monkeypatch.setattr(tabulate, "lobe_width_of", lambda *a: None)
-    for name, (table, want) in cases.items():
+    ideal = IdealSampler(lambert, resolution=8)
+    for (name, (table, want)), targets in itertools.product(cases.items(), ({"tol": 2.0, "ideal_ratio": None},
+                                                                            {"tol": 1e-9, "ideal_ratio": 2.0})):
         built = []
 
         def fake_build(material, source, thetas, rows, cols, **kw):
@@ -212,13 +283,14 @@ def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(
             return SimpleNamespace(rows=rows, meta={})
 
         def fake_rv(material, tab, wi, n=0, seed=0):
+            if tab is ideal:
+                return 0.5, 1.0
             t = round(float(np.degrees(np.arccos(wi[2]))))
             return float(table[tabulate.RESOLUTIONS.index(tab.rows)][probe.index(t)]), 1.0
 
         monkeypatch.setattr(tabulate, "build_tables", fake_build)
         monkeypatch.setattr(metrics, "relative_variance", fake_rv)
-        planned = tabulate.plan_tables(lambert, IdealSampler(lambert, resolution=8), tol=2.0, first_bins=2,
-                                       memory_budget=1)
+        planned = tabulate.plan_tables(lambert, ideal, first_bins=2, memory_budget=1, **targets)
         full = next((r for r, rvs in zip(tabulate.RESOLUTIONS, table) if max(rvs) <= 1.0), tabulate.RESOLUTIONS[-1])
         assert planned.rows == full == want, name
         probed = [(r, t) for r, t in built[:-1]]         # the last build: the final tables
@@ -249,7 +321,8 @@ def test_cells_integrated_around_their_points_keep_their_mass_with_16_nodes(monk
         monkeypatch.setattr(tabulate, "_cell_moments", functools.partial(cell_moments, q_around=q))
         tab = build_tables(mat, ideal, [np.radians(80.0)], rows=32, cols=32, grid=256, lobe_width=0.03, cache={})
         out[q] = (tab.mass[0], relative_variance(mat, tab, wi, n=1 << 15)[0])
-    assert around and around[0] == around[1] >= 5             # cells integrated around their points
+    half = len(around) // 2          # each build: around the points, then (maybe) strips along edges
+    assert around and around[:half] == around[half:] and around[0] >= 5     # cells integrated around their points
     assert np.abs(out[16][0] - out[64][0]).sum() < 1e-4
     assert not np.array_equal(out[16][0], out[64][0])          # the rule did change
     assert abs(out[16][1] - out[64][1]) <= 0.01 * out[64][1]

@@ -20,8 +20,9 @@ from ..errors import FlowBSDFError
 from .files import file_hash, remove_stale_temps
 
 # Bumped when the construction changes in a way that should rebuild existing tables.
-BUILDER_VERSION = 2      # 2: cells that miss a hard-edged sliver of mass are integrated around their points
-BAKE_KEYS = {"source", "tol", "memory_budget", "resolution", "grid", "lobe_width", "samples", "first_bins",
+BUILDER_VERSION = 3      # 2: cells that miss a hard-edged sliver of mass are integrated around their points
+                         # 3: isotropic plans aim at the ideal tabulation's rv (tabulate.plan_tables)
+BAKE_KEYS = {"source", "tol", "ideal_ratio", "memory_budget", "resolution", "grid", "lobe_width", "samples", "first_bins",
              "ideal_resolution", "phi_count"}
 SOURCES = ("auto", "flow", "ideal")
 
@@ -56,7 +57,7 @@ def bake_settings(entry, manifest_path):
 SETTING_LIMITS = {"resolution": (int, 2, 1024), "grid": (int, 8, 4096), "samples": (int, 64, 1 << 24),
                   "first_bins": (int, 2, 512), "ideal_resolution": (int, 8, 2048), "phi_count": (int, 1, 256),
                   "memory_budget": (int, 1 << 10, 1 << 34), "tol": (float, 0.0, 10.0),
-                  "lobe_width": (float, 0.0, 1.6)}
+                  "ideal_ratio": (float, 0.0, 1000.0), "lobe_width": (float, 0.0, 1.6)}
 
 
 def _check_setting(key, value):
