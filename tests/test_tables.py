@@ -304,6 +304,20 @@ def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(
                 assert r == want or not at_r, name
 
 
+def test_resolutions_leave_the_budget_room_for_enough_angles():
+    """The resolution probe tries only resolutions whose tables fit MIN_BINS incident angles in
+    the memory budget (a sharp file's 64² at 2 MB left 17 angles and lost up to 53x the ideal's rv
+    between them); a budget too small for any of them leaves the choice to the probe."""
+    from bake.core.tabulate import FLOATS_PER_CELL, MIN_BINS, RESOLUTIONS, _resolutions_within
+    per_bin = lambda r: FLOATS_PER_CELL * 4 * r * r        # noqa: E731
+    for budget in (1_000_000, 2_000_000, 4_000_000, 16_000_000):
+        within = _resolutions_within(budget)
+        assert within == [r for r in RESOLUTIONS if budget // per_bin(r) >= MIN_BINS]
+    assert _resolutions_within(MIN_BINS * per_bin(32)) == [16, 24, 32]
+    assert _resolutions_within(MIN_BINS * per_bin(32) - 1) == [16, 24]
+    assert _resolutions_within(1) == list(RESOLUTIONS)
+
+
 def test_cells_integrated_around_their_points_keep_their_mass_with_16_nodes(monkeypatch):
     """Cells the refined rule still misses are integrated again in pieces around their points
     with a q_around² rule per piece (16: a sixteenth of the 64² it was): the cells' masses

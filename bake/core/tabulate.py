@@ -712,6 +712,19 @@ FLOATS_PER_CELL = 7      # mass, two rates, RGB weight, and (about) one column e
 ANISO_BUDGET = 4         # anisotropic tables' share of memory_budget, all their azimuths together
 
 
+# Isotropic resolutions leave the budget room for MIN_BINS incident angles: at 2 MB, 64² leaves 17
+# and sharp shared files lost 7-53x the ideal's rv between them (measured; 48 would exclude 64² at 4 MB,
+# which measured worse on malachite, ilm and irid at 48² x 62).
+MIN_BINS = 24
+
+
+def _resolutions_within(memory_budget):
+    """RESOLUTIONS whose tables fit MIN_BINS incident angles in the budget (all of them when
+    not even the smallest does: the budget then decides alone)."""
+    fits = [r for r in RESOLUTIONS if memory_budget // (FLOATS_PER_CELL * 4 * r * r) >= MIN_BINS]
+    return fits or list(RESOLUTIONS)
+
+
 ISO_TOL = 0.0004     # isotropic: rv 2e-4 is near the ideal tabulation's best (1e-4 to 5e-3 on the shared files)
 ANISO_TOL = 0.004
 BROAD = 0.3     # lobes wider than this (radians) get no lobe zones: cells follow the mass alone
@@ -799,7 +812,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
 
         # Isotropic: one angle above its target decides that a resolution fails (the rest need
         # not be built). Anisotropic: the worst azimuth is needed, so every angle is.
-        for resolution in (ANISO_RESOLUTIONS if aniso else RESOLUTIONS):
+        for resolution in (ANISO_RESOLUTIONS if aniso else _resolutions_within(memory_budget)):
             by_phi = {phi: probe_rv(phi) for phi in probe_phis}
             worst_phi, worst = max(by_phi.items(), key=lambda kv: kv[1])
             log(f"resolution {resolution}: single-bin rv {worst:.2f}x the target" + (" or more" if worst > 1 and not aniso else "")
