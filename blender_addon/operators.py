@@ -164,9 +164,10 @@ class FLOWBSDF_OT_bake(_BakeOperator, bpy.types.Operator):
     TRAIN = "never"
     TOOLTIPS = {
         True: "Bake this material's tables and bind its node. Never trains: uses its trained model if it has "
-              "one, else tabulates the material directly. Draft: seconds; Final: a few minutes on 2 cores",
+              "one, else tabulates the material directly. Draft: seconds; Final: under a minute on 2 cores "
+              "(2-3 min from a trained model)",
         False: "Bake the tables of every learned material the scene renders and bind their nodes. Never "
-               "trains (trained models are used where they exist). Draft: seconds; Final: minutes per material"}
+               "trains (trained models are used where they exist). Draft: seconds; Final: about a minute per material"}
 
 
 class FLOWBSDF_OT_train_bake(_BakeOperator, bpy.types.Operator):

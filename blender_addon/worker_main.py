@@ -95,9 +95,9 @@ class BakeProgress(Step):
     """A material's bake, estimated from the baker's log (bake/core/tabulate.plan_tables): the
     resolution probe ("resolution R: single-bin rv Xx the target"), then one line per incident
     angle the planner adds ("bins N: split ... (midpoint loss Sx its target)") until the worst
-    midpoint reaches its target (S <= 1) or the memory budget caps the angles, then the tables' build ("tables: building N angles",
-    "tables: built K of N", about ten of them) and the node's textures and fit ("[svm]/[osl]/[fit]
-    wrote"). Angles left: from how far the worst midpoint went down on a log scale, and how far
+    midpoint reaches its target (S <= 1) or the memory budget caps the angles, then the tables'
+    build ("tables: building N angles", "tables: built K of N", about ten of them) and the node's
+    textures and fit ("[svm]/[osl]/[fit] wrote"). Angles left: from how far the worst midpoint went down on a log scale, and how far
     the angle count went towards its cap; the time a split takes, measured. The build: a tenth
     of a split per angle (from the ideal tabulation's points; a flow's cost ~20x as much) until
     its first "built" line, then its own pace. Lines pass through to the log."""

@@ -394,9 +394,8 @@ def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrat
                                                          point_mass, box)
     # Exponential rates matching each cell's first moments along a and b, no steeper than
     # the cell's own f·cos: a rate fitted to a flank must not keep decaying past a floor.
-    rates = lambda: (np.clip(exp_rate_for_mean(mx), -bound_a, bound_a),      # noqa: E731
-                     np.clip(exp_rate_for_mean(my), -bound_b, bound_b))
-    alpha, beta = rates()
+    alpha = np.clip(exp_rate_for_mean(mx), -bound_a, bound_a)
+    beta = np.clip(exp_rate_for_mean(my), -bound_b, bound_b)
     cells, strip = _unresolved_edges(a_edges, b_edges, mass, alpha, beta)
     if len(cells):
         # Integrated again in a strip along that edge: the mass the rule's nodes stepped over.
@@ -409,7 +408,8 @@ def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrat
         mass[r, c], mx[r, c], my[r, c], rgb[r, c] = m, sx[found] / m, sy[found] / m, c_rgb[found]
         bound_a[r, c] = _rate_bound(along_a[found], at_a[found])
         bound_b[r, c] = _rate_bound(along_b[found], at_b[found])
-        alpha, beta = rates()
+        alpha[r, c] = np.clip(exp_rate_for_mean(mx[r, c]), -bound_a[r, c], bound_a[r, c])
+        beta[r, c] = np.clip(exp_rate_for_mean(my[r, c]), -bound_b[r, c], bound_b[r, c])
     # A floor of uniform density keeps pdf > 0 everywhere, so the table never loses a
     # direction where f·cos > 0 (unbiased whatever the quadrature missed).
     area = np.diff(a_edges.astype(np.float64))[:, None] * np.diff(b_edges.astype(np.float64), axis=1)
@@ -778,12 +778,10 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     aniso = not material.isotropic
     tol = (ANISO_TOL if aniso else ISO_TOL) if tol is None else tol
 
-    def build(thetas, phi=0.0, phis=None, source=ideal):    # phis: all azimuths; else the single azimuth phi
+    def build(thetas, phi=0.0, phis=None):     # a probe; phis: all azimuths, else the single azimuth phi
         if aniso:
             phis = [phi] if phis is None else phis
-        if source is not ideal:     # the probes' cache holds the ideal source's points
-            opts["cache"] = {}
-        return build_tables(material, source, thetas, resolution, resolution, phi_bins=phis, **opts)
+        return build_tables(material, ideal, thetas, resolution, resolution, phi_bins=phis, **opts)
 
     def rv_at(tab, theta, phi=0.0):
         return relative_variance(material, tab, spherical_dir(theta, phi), n=samples)[0]
@@ -815,7 +813,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
         for resolution in (ANISO_RESOLUTIONS if aniso else _resolutions_within(memory_budget)):
             by_phi = {phi: probe_rv(phi) for phi in probe_phis}
             worst_phi, worst = max(by_phi.items(), key=lambda kv: kv[1])
-            log(f"resolution {resolution}: single-bin rv {worst:.2f}x the target" + (" or more" if worst > 1 and not aniso else "")
+            log(f"resolution {resolution}: single-bin rv {worst:.2f}x the target"
+                + (" or more" if worst > 1 and not aniso else "")
                 + (f" (at phi_i {np.degrees(worst_phi):.1f} deg)" if aniso else ""))
             if worst <= 1.0:
                 break
@@ -869,7 +868,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
             break
         bins = sorted(bins + [midpoint(lo, hi)])
         del scores[(lo, hi)]
-        log(f"bins {len(bins)}: split {np.degrees(lo):.2f}-{np.degrees(hi):.2f} deg (midpoint loss {worst:.2f}x its target)")
+        log(f"bins {len(bins)}: split {np.degrees(lo):.2f}-{np.degrees(hi):.2f} deg "
+            f"(midpoint loss {worst:.2f}x its target)")
     log(f"tables: building {len(bins)} angles" + (f" x {len(phi_bins)} azimuths" if phi_bins is not None else ""))
     every = [0]
 
@@ -877,8 +877,9 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
         if done == total or done * 10 // total > every[0]:
             every[0] = done * 10 // total
             log(f"tables: built {done} of {total}")
-    opts["progress"] = built
-    tables = build(bins, phis=phi_bins, source=source)
+    # From the source's own points: a fresh cache (the probes' holds the ideal's).
+    tables = build_tables(material, source, bins, resolution, resolution, phi_bins=phi_bins,
+                          **{**opts, "cache": {}, "progress": built})
     tables.meta.update(resolution=resolution, lobe_width=lobe_width, tol=tol, ideal_ratio=ideal_ratio)
     if phi_bins is not None:
         tables.meta.update(phi_count=len(phi_bins), planned_at_phi=float(worst_phi))
