@@ -13,8 +13,8 @@ farm and assembles this file: `flowbsdf farm openjd` in the worker Python, bake/
 --blender, --addon-dir: Blender and the add-on's folder on the farm). Options:
     --python PY        the Python that bakes (numpy + OpenEXR) and trains (torch + FlowBSDF's
                        trainer); else FLOWBSDF_PYTHON, the preference, the Python Blender reports
-    --train MODE       never (default: bake from trained models or the ideal tabulation),
-                       always (train materials without a model first), auto (when PY has torch)
+    --train MODE       never (default; a material whose Tables from is Trained model must have
+                       one), always (train those without a model first), auto (when PY has torch)
     --out DIR          output folder (default: the scene's, //flowbsdf)
     --material NAME    only this Blender material (repeatable)
     --save-as PATH     save there instead of over the opened file;  --no-save: do not save

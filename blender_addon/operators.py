@@ -163,11 +163,11 @@ class FLOWBSDF_OT_bake(_BakeOperator, bpy.types.Operator):
     bl_label = "Bake"
     TRAIN = "never"
     TOOLTIPS = {
-        True: "Bake this material's tables and bind its node. Never trains: uses its trained model if it has "
-              "one, else tabulates the material directly. Draft: seconds; Final: under a minute on 2 cores "
-              "(2-3 min from a trained model)",
+        True: "Bake this material's tables and bind its node. Never trains: the tables come from the material "
+              "itself, or from its trained model when Tables from says so. Draft: seconds; Final: under a "
+              "minute on 2 cores (2-4 min from a trained model)",
         False: "Bake the tables of every learned material the scene renders and bind their nodes. Never "
-               "trains (trained models are used where they exist). Draft: seconds; Final: about a minute per material"}
+               "trains. Draft: seconds; Final: about a minute per material"}
 
 
 class FLOWBSDF_OT_train_bake(_BakeOperator, bpy.types.Operator):
@@ -177,10 +177,21 @@ class FLOWBSDF_OT_train_bake(_BakeOperator, bpy.types.Operator):
     TRAIN = "always"
     TOOLTIPS = {
         True: "Train a flow model for this material unless it has one (Fast: about 1 min, Balanced: 3-5 min, "
-              "Paper: hours without a GPU; resumes after Cancel), then bake its tables and bind its node. "
-              "Needs a Python with torch and FlowBSDF's trainer (add-on preferences)",
+              "Paper: hours without a GPU; resumes after Cancel), then bake its tables from it (sets Tables "
+              "from: Trained model) and bind its node. Needs a Python with torch and FlowBSDF's trainer "
+              "(add-on preferences)",
         False: "Train a flow model for every learned material the scene renders that has none (minutes "
-               "each), then bake their tables and bind their nodes. Needs a Python with torch and the trainer"}
+               "each), then bake their tables from them and bind their nodes. Needs a Python with torch and "
+               "the trainer"}
+
+    def start(self, context):
+        # Training is asked for so that the tables come from the model: say so where it is kept.
+        mats = [getattr(context, "material", None) or _active_material(context)] if self.only_active \
+            else [m for m in bpy.data.materials if m.flowbsdf.enabled]
+        for mat in mats:
+            if mat is not None and mat.flowbsdf.enabled:
+                mat.flowbsdf.tables_from = "MODEL"
+        return super().start(context)
 
 
 class FLOWBSDF_OT_cancel(bpy.types.Operator):
@@ -245,7 +256,8 @@ class FLOWBSDF_OT_load_model(bpy.types.Operator):
         except OSError as e:
             self.report({"ERROR"}, f"FlowBSDF: cannot copy the model to {dst}: {e}")
             return {"CANCELLED"}
-        self.report({"INFO"}, f"FlowBSDF: model for {mat.name} -> {dst} (bake to use it)")
+        mat.flowbsdf.tables_from = "MODEL"
+        self.report({"INFO"}, f"FlowBSDF: model for {mat.name} -> {dst} (Tables from: Trained model; bake to use it)")
         return {"FINISHED"}
 
 

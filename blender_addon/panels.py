@@ -203,6 +203,7 @@ def draw_material(layout, mat, context):
         col.prop(s, "python_isotropic")
     col.prop(s, "domain")
     col.prop(s, "preset")
+    col.prop(s, "tables_from")
     col.prop(s, "bake_quality")
     col = layout.column(align=True)
     col.operator("flowbsdf.bake", text="Bake", icon="RENDER_STILL").only_active = True

@@ -71,7 +71,8 @@ def source_spec(material):
 def manifest_entry(material):
     s = material.flowbsdf
     return {"name": manifest_name(material), "source": source_spec(material), "domain": s.domain.lower(),
-            "train": {"preset": s.preset.lower()}, "bake": dict(BAKE_QUALITY[s.bake_quality])}
+            "train": {"preset": s.preset.lower()},
+            "bake": {**BAKE_QUALITY[s.bake_quality], "source": "flow" if s.tables_from == "MODEL" else "auto"}}
 
 
 class FlowBSDFMaterial(bpy.types.PropertyGroup):
@@ -97,6 +98,11 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
     preset: bpy.props.EnumProperty(name="Training", default="BALANCED", items=[
         ("FAST", "Fast", "~1 min per material"), ("BALANCED", "Balanced", "3-5 min on 2 cores"),
         ("PAPER", "Paper", "GPU advised")])
+    tables_from: bpy.props.EnumProperty(name="Tables from", default="MATERIAL", items=[
+        ("MATERIAL", "Material", "The material itself: its f·cos tabulated at each incident angle places the "
+         "cells (Final: under a minute on 2 cores)"),
+        ("MODEL", "Trained model", "Its trained flow model places the cells (the paper's route; Final: 2-4 min; "
+         "Train + Bake or Load Model first). The cells' masses come from the material either way")])
     bake_quality: bpy.props.EnumProperty(name="Tables", default="FINAL", items=[
         ("DRAFT", "Draft", "Tiny tables, seconds: layout and tests"),
         ("PREVIEW", "Preview", "Coarser tables for look-dev"),

@@ -327,7 +327,7 @@ def write_preview(entry, manifest, out_dir, tables_path, log=emit):
 def cmd_bake(args):
     from bake.errors import FlowBSDFError
     from bake.plumbing.manifest import load_manifest
-    from bake.plumbing.pipeline import bake_entry, bake_settings, model_path
+    from bake.plumbing.pipeline import bake_entry, bake_settings, wants_model
     manifest = load_manifest(args.manifest)
     wanted = set(args.material or [])
     entries = [e for e in manifest.select(log=emit) if not wanted or e.name in wanted]
@@ -338,21 +338,22 @@ def cmd_bake(args):
     plan, failures = [], []
     for entry in entries:
         try:
-            isotropic = entry.open().isotropic
+            needs_model = wants_model(entry, entry.open(), bake_settings(entry, manifest.path), args.out)
         except FlowBSDFError as e:          # reported at the end; the others still bake
             failures.append(f"{entry.name}: {e}")
             emit(f"[fail] {failures[-1]}")
             continue
-        wants_model = (isotropic and bake_settings(entry, manifest.path)["source"] != "ideal"
-                       and not model_path(args.out, entry.name).is_file())
-        if wants_model and args.train == "always" and not trainer_here:
+        if needs_model and args.train == "always" and not trainer_here:
             raise FlowBSDFError(f"material {entry.name!r} needs training, but this Python ({sys.executable}) "
                                 "has no torch/trainer: use one that has (the FlowBSDF checkout's "
                                 ".venv/bin/python), or bake without training")
-        if wants_model and args.train != "never" and trainer_here:
+        if needs_model and args.train != "never" and trainer_here:
             plan.append(("train", entry))
-        elif wants_model:
-            emit(f"[note] {entry.name}: no trained model; baking from the ideal tabulation")
+        elif needs_model:
+            failures.append(f"{entry.name}: its tables come from a trained model and it has none: Train + Bake, "
+                            "Load Model, or set Tables from: Material")
+            emit(f"[fail] {failures[-1]}")
+            continue
         plan.append(("bake", entry))
     for k, (step, entry) in enumerate(plan, 1):
         emit(f"[progress {k}/{len(plan)}] {step} {entry.name}")

@@ -2,7 +2,7 @@
 the shared RGL materials, this checkout beside another one, with the tables' rv.
 
     .venv/bin/python scripts/bake_speed.py [--materials a,b] [--repeat K] [--baseline CHECKOUT]
-        [--out DIR] [--memory-budget BYTES]
+        [--out DIR] [--memory-budget BYTES] [--models DIR [--grids 512,256]]
 
 Per material: the bake's wall seconds (best of `repeat`; with --baseline the two checkouts
 take turns within every repeat, so a load spike hits both), the planned resolution and bin
@@ -11,8 +11,10 @@ against the ideal tabulation, 512² directions, as scripts/tables_acceptance.py 
 its ratio to the ideal tabulation's own rv there (issue 22's "within 1.5x the ideal").
 --baseline: another FlowBSDF checkout (e.g. `git archive <commit> | tar -x -C DIR`), imported
 as `bake_baseline`. --memory-budget: plan_tables' budget (default: Final's), e.g. to cap a sharp
-material's bin count for a shorter comparison. Prints Markdown; asserts nothing (machines and
-loads differ).
+material's bin count for a shorter comparison. --models: also bake from each material's trained
+model DIR/<name>.flow.npz (bake source "flow"; a column per point grid of --grids, e.g.
+"flow256"), in turns with the ideal-sourced bake. Prints Markdown; asserts nothing (machines
+and loads differ).
 """
 import argparse
 import importlib
@@ -48,11 +50,18 @@ def baseline_bake(checkout):
 
 def bake(kit, path, **options):
     """(seconds, tables) of one Final bake with a fresh material and source (nothing cached)."""
-    open_mat, ideal, plan = kit
+    open_mat, source, plan, *kit_options = kit
     t0 = time.perf_counter()
     mat = open_mat(path)
-    tab = plan(mat, ideal(mat), **options)
+    tab = plan(mat, source(mat), **options, **(kit_options[0] if kit_options else {}))
     return time.perf_counter() - t0, tab
+
+
+def flow_kits(models, grids):
+    """A kit per point grid baking from the material's trained model (bake source "flow")."""
+    from bake.core.flow import load_model
+    source = lambda mat: load_model(Path(models) / f"{mat.name.removesuffix('_rgb')}.flow.npz")  # noqa: E731
+    return {f"flow{g}": (open_material, source, plan_tables, {"grid": g}) for g in grids}
 
 
 def rvs(mat, tab, ideal):
@@ -66,11 +75,15 @@ def main():
     p.add_argument("--baseline", help="another FlowBSDF checkout, baked in turns with this one")
     p.add_argument("--out", help="save the tables here (<name>.<label>.exr)")
     p.add_argument("--memory-budget", type=int, help="plan_tables' memory_budget (default: its own)")
+    p.add_argument("--models", help="also bake from DIR/<name>.flow.npz (bake source flow)")
+    p.add_argument("--grids", default="512", help="with --models: the flow's point grids, e.g. 512,256")
     args = p.parse_args()
     options = {} if args.memory_budget is None else {"memory_budget": args.memory_budget}
     kits = {"new": (open_material, IdealSampler, plan_tables)}
     if args.baseline:
         kits = {"old": baseline_bake(args.baseline), **kits}
+    if args.models:
+        kits.update(flow_kits(args.models, [int(g) for g in args.grids.split(",")]))
     print(f"load: {os.getloadavg()[0]:.2f} (1 min) at start, {os.cpu_count()} cores", flush=True)
     head = ["material"] + [f"{lab} s" for lab in kits] + (["old/new"] if args.baseline else []) + \
         [f"{lab} res x bins" for lab in kits] + [f"{lab} MB" for lab in kits] + \

@@ -211,6 +211,23 @@ def test_bake_never_trains_and_the_two_buttons_say_what_they_do(addon, tmp_path,
     assert bake[True] != train[True] and bake[False] != train[False] and bake[True] != bake[False]
 
 
+def test_tables_from_a_model_without_one_fails_with_what_to_do(addon, tmp_path, monkeypatch):
+    """Tables from: Trained model makes the manifest's bake source "flow"; Bake (never trains)
+    without a model fails that material with the ways out, and writes no tables; Material
+    (the default) bakes from the material itself."""
+    from blender_addon.props import manifest_entry
+    monkeypatch.delenv("FLOWBSDF_PYTHON", raising=False)
+    mat = one_learned_object(tmp_path, "wants_model")
+    assert mat.flowbsdf.tables_from == "MATERIAL" and manifest_entry(mat)["bake"]["source"] == "auto"
+    mat.flowbsdf.tables_from = "MODEL"
+    assert manifest_entry(mat)["bake"]["source"] == "flow"
+    with bpy.context.temp_override(material=mat), pytest.raises(RuntimeError, match="its tables come from a trained model"):
+        bpy.ops.flowbsdf.bake(only_active=True)       # an operator's ERROR report raises in background
+    state = bpy.context.window_manager.flowbsdf_job
+    assert state.failed and "it has none: Train + Bake, Load Model, or set Tables from: Material" in state.message
+    assert not (tmp_path / "tables" / "wants_model.exr").exists()
+
+
 def test_job_progress_and_cancel(tmp_path):
     """A worker job reports progress lines and a cancel ends it and its process group."""
     from blender_addon import worker
@@ -829,13 +846,13 @@ def test_modal_progress_and_cancel(addon, tmp_path):
 @pytest.mark.slow
 def test_train_then_bake_from_the_panel(addon, tmp_path):
     """Train + Bake: the trainer runs as a subprocess of the worker (torch never in Blender);
-    the tables are then baked from the trained flow."""
+    the material's Tables from becomes Trained model and the tables are baked from the flow."""
     pytest.importorskip("torch")
     from blender_addon import scan, worker
     mat = one_learned_object(tmp_path, "trained")
     with bpy.context.temp_override(material=mat):
         assert bpy.ops.flowbsdf.train_bake(only_active=True) == {"FINISHED"}
-    assert (tmp_path / "models" / "trained.flow.npz").is_file()
+    assert (tmp_path / "models" / "trained.flow.npz").is_file() and mat.flowbsdf.tables_from == "MODEL"
     job = worker.Job(sys.executable, ["status", str(tmp_path / "manifest.toml"), "--out", str(tmp_path)])
     info = scan.parse_status(job.run(echo=False))["trained"]
     assert info["tables"] == "current" and info["tables_source"] == "flow", info

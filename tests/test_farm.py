@@ -21,8 +21,8 @@ from conftest import ROOT, TINY_TRAIN_TOML
 from test_blender_batch import MAKE_SCENE, _stage_addon
 
 DRAFT = '{ resolution = 16, tol = 0.5, grid = 96, samples = 2048, first_bins = 3, ideal_resolution = 48 }'
-# A training run of seconds (the trainer's own test settings); the other materials bake from
-# the ideal tabulation (no model wanted).
+# A training run of seconds (the trainer's own test settings) for "rough", whose tables come
+# from its model (source "flow"); the others bake from the ideal tabulation (auto: no model wanted).
 TINY_TRAIN = f'preset = "fast"\n{TINY_TRAIN_TOML}ema = 0.9\n'
 MANIFEST = f"""[defaults]
 bake = {DRAFT}
@@ -30,7 +30,6 @@ bake = {DRAFT}
 [[material]]
 name = "matte"
 source = {{ kind = "analytic", model = "lambert", albedo = 0.8 }}
-bake = {{ source = "ideal" }}
 
 [[material]]
 name = "broken"
@@ -39,6 +38,7 @@ source = "measured/missing.bsdf"
 [[material]]
 name = "rough"
 source = {{ kind = "analytic", model = "ggx", alpha = 0.4 }}
+bake = {{ source = "flow" }}
 [material.train]
 {TINY_TRAIN}
 [[material]]
@@ -171,7 +171,7 @@ def test_openjd_runs_each_bake_task_for_real_with_path_mapping(tmp_path):
         assert (mnt / "shot" / "out" / "models" / "rough.flow.npz").is_file()
         from bake.core.tables import open_tables
         assert open_tables(tables / "rough.exr").meta["source"] == "flow"        # baked from the trained model
-    assert not (mnt / "shot" / "out" / "models" / "matte.flow.npz").exists()      # source = ideal: no training
+    assert not (mnt / "shot" / "out" / "models" / "matte.flow.npz").exists()      # source auto: no training
     code, out = runs["broken"]
     assert code == 1 and "Session ended with errors" in out
     assert re.search(r"openjd_fail: material 'broken': \S*/mnt/shot/measured/missing.bsdf: material file not "

@@ -67,6 +67,33 @@ def test_a_bake_is_reproducible(tmp_path):
     assert sorted(p.name for p in path.parent.glob("gold.*-*.exr")) == textures and len(textures) == 2
 
 
+def test_auto_tables_ignore_models_and_flow_tables_follow_theirs(tmp_path):
+    """source "auto" builds the tables from the ideal tabulation whether or not a model exists
+    (a model appearing leaves them current); source "flow" builds them from the model, goes
+    stale when the model is replaced, and without a model is an error that says what to do."""
+    from bake.core.flow import save_model
+    from test_bad_inputs import tiny_model_arrays, tiny_model_meta
+    out, quiet = tmp_path / "out", (lambda *_: None)
+    auto = manifest(tmp_path)
+    bake_manifest(auto, out, log=quiet)
+    model = out / "models" / "matte.flow.npz"
+    save_model(model, tiny_model_meta(), tiny_model_arrays(seed=0))
+    assert open_current_tables(auto.materials[0], out, auto.path) is not None
+    assert bake_manifest(auto, out, log=quiet) == []
+    assert open_tables(table_path(out, "matte")).meta["source"] == "ideal"
+
+    flow = manifest(tmp_path, bake=FAST.replace("}", ', source = "flow" }'))
+    assert open_current_tables(flow.materials[0], out, flow.path) is None
+    assert bake_manifest(flow, out, log=quiet) == [table_path(out, "matte")]
+    assert open_tables(table_path(out, "matte")).meta["source"] == "flow"
+    assert open_current_tables(flow.materials[0], out, flow.path) is not None
+    save_model(model, tiny_model_meta(), tiny_model_arrays(seed=1))
+    assert open_current_tables(flow.materials[0], out, flow.path) is None, "tables of a replaced model used"
+    model.unlink()
+    with pytest.raises(FlowBSDFError, match="bake source 'flow' but no model"):
+        bake_manifest(flow, out, log=quiet)
+
+
 def load_manifest_text(tmp_path, text):
     path = tmp_path / "m.toml"
     path.write_text(textwrap.dedent(text))

@@ -254,15 +254,10 @@ def _train(entry, manifest_path, out_dir, python, report, span):
                             "rerun the task to resume from its checkpoints")
 
 
-def _wants_model(entry, material, settings, out_dir):
-    from .pipeline import model_path
-    return material.isotropic and settings["source"] != "ideal" and not model_path(out_dir, entry.name).is_file()
-
-
 def _task(manifest_path, name, out_dir, train, stage, report):
     from ..export.osl_export import bake_derived
     from .manifest import load_manifest
-    from .pipeline import bake_entry, bake_settings
+    from .pipeline import bake_entry, bake_settings, wants_model
     report.progress(0, f"{name}: opening the material")
     manifest = load_manifest(manifest_path)
     entries = manifest.select(name, log=report.log)
@@ -273,7 +268,7 @@ def _task(manifest_path, name, out_dir, train, stage, report):
     material = entry.open()
     settings = bake_settings(entry, manifest.path)
     start = 5
-    if stage in ("all", "train") and _wants_model(entry, material, settings, out_dir):
+    if stage in ("all", "train") and wants_model(entry, material, settings, out_dir):
         python = trainer_python()
         if train != "never" and can_train(python):
             _train(entry, manifest.path, out_dir, python, report, (start, 60 if stage == "all" else 100))
@@ -282,8 +277,9 @@ def _task(manifest_path, name, out_dir, train, stage, report):
             raise FlowBSDFError(f"material {entry.name!r} needs training (--train always), but {python} has no "
                                 "torch/FlowBSDF trainer: set FLOWBSDF_TRAIN_PYTHON or the job's Python")
         else:
-            report.log(f"[note] {entry.name}: no trained model; the bake uses the ideal tabulation "
-                       f"({'--train never' if train == 'never' else f'{python} has no torch'})")
+            raise FlowBSDFError(f"material {entry.name!r}: bake source 'flow' needs a trained model and "
+                                + ("--train never" if train == "never" else f"{python} has no torch/FlowBSDF trainer")
+                                + " (train it first, or bake with source = 'auto')")
     if stage in ("all", "bake"):
         report.progress(start, f"{name}: baking tables")
         path, status = bake_entry(entry, out_dir, manifest.path, log=report.log)

@@ -4,7 +4,8 @@ one page, OUT/index.html, that shows what came out (bake/quality/page.py).
 Each stage of each material is skipped when its product is current:
   train   OUT/models/<name>.flow.npz, by the trainer (a subprocess: torch) when missing or
           trained on another version of the material; it resumes from its checkpoints
-          (isotropic materials only: anisotropic ones are baked from the ideal tabulation)
+          (isotropic materials only); the report and render compare it with the tables, which
+          are built from it only with bake source "flow" (pipeline.tables_use_model)
   bake    OUT/tables/<name>.exr and the Blender node's files (pipeline.bake_with_derived: kept
           while the hash of their inputs matches)
   report  OUT/report/<name>/: speed vs error of every sampler (report.entry_report, write_report)
