@@ -697,6 +697,37 @@ optional = true
     assert "nope" in capsys.readouterr().err
 
 
+def test_cli_trains_the_small_presets_on_one_thread(tmp_path, monkeypatch):
+    """fast and balanced train with one torch thread unless --threads says otherwise (chm_mint
+    balanced: 135 s on one thread, 186 s on two); paper keeps every thread; the process's own
+    setting is restored afterwards."""
+    import torch
+    import trainer.train
+    from trainer.cli import main
+    seen = []
+
+    def fake_train(source, out_dir, preset="balanced", **_):
+        seen.append((preset, torch.get_num_threads()))
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "m.flow.npz").write_bytes(b"")
+        return out_dir / "m.flow.npz"
+    monkeypatch.setattr(trainer.train, "train", fake_train)
+    manifest = tmp_path / "m.toml"
+    manifest.write_text('[[material]]\nname = "m"\nsource = { kind = "analytic", model = "lambert", albedo = 0.5 }\n'
+                        'domain = "disk"\n')
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        for preset, extra, threads in (("balanced", [], 1), ("fast", [], 1), ("paper", [], 2),
+                                       ("balanced", ["--threads", "2"], 2)):
+            assert main(["train", str(manifest), "--preset", preset, "--no-progress",
+                         "--out", str(tmp_path / "models"), *extra]) == 0
+            assert seen[-1] == (preset, threads)
+            assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_train_device_check(tmp_path, capsys):
     """scripts/train_device_check.py (issue 24): a device torch cannot use is skipped with the
     reason (exit 0); two CPU runs of one seed train the same flow, so their rv match and the
