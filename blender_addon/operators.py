@@ -176,7 +176,7 @@ class FLOWBSDF_OT_train_bake(_BakeOperator, bpy.types.Operator):
     bl_label = "Train + Bake"
     TRAIN = "always"
     TOOLTIPS = {
-        True: "Train a flow model for this material unless it has one (Fast: about 1 min, Balanced: 3-5 min, "
+        True: "Train a flow model for this material unless it has one (Fast: about 1 min, Balanced: 2-3 min, "
               "Paper: hours without a GPU; resumes after Cancel), then bake its tables from it (sets Tables "
               "from: Trained model) and bind its node. Needs a Python with torch and FlowBSDF's trainer "
               "(add-on preferences)",

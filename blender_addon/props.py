@@ -96,7 +96,7 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
         ("SPHERICAL", "Spherical", "theta, phi (anisotropic materials)"),
         ("SLOPE", "Slope", "log tan theta_h, phi_h of the half vector: sharp and layered glossy materials")])
     preset: bpy.props.EnumProperty(name="Training", default="BALANCED", items=[
-        ("FAST", "Fast", "~1 min per material"), ("BALANCED", "Balanced", "3-5 min on 2 cores"),
+        ("FAST", "Fast", "~1 min per material"), ("BALANCED", "Balanced", "2-3 min on 2 cores"),
         ("PAPER", "Paper", "GPU advised")])
     tables_from: bpy.props.EnumProperty(name="Tables from", default="MATERIAL", items=[
         ("MATERIAL", "Material", "The material itself: its f·cos tabulated at each incident angle places the "

@@ -210,7 +210,7 @@ class BakeProgress(Step):
         return elapsed / (elapsed + remaining), words + f", {time_left(remaining)})"
 
 
-TRAIN_TIME = {"fast": "about 1 min", "balanced": "3-5 min", "paper": "hours without a GPU"}
+TRAIN_TIME = {"fast": "about 1 min", "balanced": "2-3 min", "paper": "hours without a GPU"}
 
 
 class TrainProgress(Step):

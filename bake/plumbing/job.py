@@ -58,7 +58,7 @@ RENDER_DEFAULTS = {
 # the CPU time of the demo's stages (demo.toml), about their wall time on 2 idle cores; training
 # from the presets' descriptions (trainer/train.py).
 PRIORS = {"bake": 30.0, "report": 35.0, "render": 30.0}
-TRAIN_PRIORS = {"fast": 45.0, "balanced": 240.0, "paper": 3600.0}
+TRAIN_PRIORS = {"fast": 70.0, "balanced": 160.0, "paper": 3600.0}
 # The trainer's presets by name (their settings: trainer/train.py PRESETS).
 TRAIN_PRESETS = tuple(TRAIN_PRIORS)
 
