@@ -13,7 +13,7 @@ farm and assembles this file: `flowbsdf farm openjd` in the worker Python, bake/
 --blender, --addon-dir: Blender and the add-on's folder on the farm). Options:
     --python PY        the Python that bakes (numpy + OpenEXR) and trains (torch + FlowBSDF's
                        trainer); else FLOWBSDF_PYTHON, the preference, the Python Blender reports
-    --train MODE       never (default; a material whose Tables from is Trained model must have
+    --train MODE       never (default; a material whose tables are From: Trained model must have
                        one), always (train those without a model first), auto (when PY has torch)
     --out DIR          output folder (default: the scene's, //flowbsdf)
     --material NAME    only this Blender material (repeatable)

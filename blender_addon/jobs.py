@@ -61,7 +61,7 @@ def start_status(scene, context=None):
 
 def start_bake(scene, context=None, only=None, train="never"):
     """Start the bake job: `train` "never" (tables from the material, or from its trained model
-    where Tables from says so and the model exists), "always" (train the materials whose tables
+    where its From (under Tables) says so and the model exists), "always" (train the materials whose tables
     come from a model and have none first; fails without torch) or "auto"."""
     rows, manifest, out = prepare(scene, only)
     p = prefs.get(context)

@@ -164,7 +164,7 @@ class FLOWBSDF_OT_bake(_BakeOperator, bpy.types.Operator):
     TRAIN = "never"
     TOOLTIPS = {
         True: "Bake this material's tables and bind its node. Never trains: the tables come from the material "
-              "itself, or from its trained model when Tables from says so. Draft: seconds; Final: under a "
+              "itself, or from its trained model when From (under Tables) says so. Draft: seconds; Final: under a "
               "minute on 2 cores (2-4 min from a trained model)",
         False: "Bake the tables of every learned material the scene renders and bind their nodes. Never "
                "trains. Draft: seconds; Final: about a minute per material"}
@@ -177,8 +177,8 @@ class FLOWBSDF_OT_train_bake(_BakeOperator, bpy.types.Operator):
     TRAIN = "always"
     TOOLTIPS = {
         True: "Train a flow model for this material unless it has one (Fast: about 1 min, Balanced: 2-3 min, "
-              "Paper: hours without a GPU; resumes after Cancel), then bake its tables from it (sets Tables "
-              "from: Trained model) and bind its node. Needs a Python with torch and FlowBSDF's trainer "
+              "Paper: hours without a GPU; resumes after Cancel), then bake its tables from it (sets "
+              "From: Trained model) and bind its node. Needs a Python with torch and FlowBSDF's trainer "
               "(add-on preferences)",
         False: "Train a flow model for every learned material the scene renders that has none (minutes "
                "each), then bake their tables from them and bind their nodes. Needs a Python with torch and "
@@ -257,7 +257,7 @@ class FLOWBSDF_OT_load_model(bpy.types.Operator):
             self.report({"ERROR"}, f"FlowBSDF: cannot copy the model to {dst}: {e}")
             return {"CANCELLED"}
         mat.flowbsdf.tables_from = "MODEL"
-        self.report({"INFO"}, f"FlowBSDF: model for {mat.name} -> {dst} (Tables from: Trained model; bake to use it)")
+        self.report({"INFO"}, f"FlowBSDF: model for {mat.name} -> {dst} (From: Trained model; bake to use it)")
         return {"FINISHED"}
 
 

@@ -98,7 +98,7 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
     preset: bpy.props.EnumProperty(name="Training", default="BALANCED", items=[
         ("FAST", "Fast", "~1 min per material"), ("BALANCED", "Balanced", "2-3 min on 2 cores"),
         ("PAPER", "Paper", "GPU advised")])
-    tables_from: bpy.props.EnumProperty(name="Tables from", default="MATERIAL", items=[
+    tables_from: bpy.props.EnumProperty(name="From", default="MATERIAL", items=[
         ("MATERIAL", "Material", "The material itself: its f·cos tabulated at each incident angle places the "
          "cells (Final: under a minute on 2 cores)"),
         ("MODEL", "Trained model", "Its trained flow model places the cells (the paper's route; Final: 2-4 min; "

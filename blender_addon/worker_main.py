@@ -351,7 +351,7 @@ def cmd_bake(args):
             plan.append(("train", entry))
         elif needs_model:
             failures.append(f"{entry.name}: its tables come from a trained model and it has none: Train + Bake, "
-                            "Load Model, or set Tables from: Material")
+                            "Load Model, or set From (under Tables): Material")
             emit(f"[fail] {failures[-1]}")
             continue
         plan.append(("bake", entry))

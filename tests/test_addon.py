@@ -212,7 +212,7 @@ def test_bake_never_trains_and_the_two_buttons_say_what_they_do(addon, tmp_path,
 
 
 def test_tables_from_a_model_without_one_fails_with_what_to_do(addon, tmp_path, monkeypatch):
-    """Tables from: Trained model makes the manifest's bake source "flow"; Bake (never trains)
+    """Tables > From: Trained model makes the manifest's bake source "flow"; Bake (never trains)
     without a model fails that material with the ways out, and writes no tables; Material
     (the default) bakes from the material itself."""
     from blender_addon.props import manifest_entry
@@ -224,7 +224,7 @@ def test_tables_from_a_model_without_one_fails_with_what_to_do(addon, tmp_path, 
     with bpy.context.temp_override(material=mat), pytest.raises(RuntimeError, match="its tables come from a trained model"):
         bpy.ops.flowbsdf.bake(only_active=True)       # an operator's ERROR report raises in background
     state = bpy.context.window_manager.flowbsdf_job
-    assert state.failed and "it has none: Train + Bake, Load Model, or set Tables from: Material" in state.message
+    assert state.failed and "it has none: Train + Bake, Load Model, or set From (under Tables): Material" in state.message
     assert not (tmp_path / "tables" / "wants_model.exr").exists()
 
 
@@ -846,7 +846,7 @@ def test_modal_progress_and_cancel(addon, tmp_path):
 @pytest.mark.slow
 def test_train_then_bake_from_the_panel(addon, tmp_path):
     """Train + Bake: the trainer runs as a subprocess of the worker (torch never in Blender);
-    the material's Tables from becomes Trained model and the tables are baked from the flow."""
+    the material's tables' From becomes Trained model and the tables are baked from the flow."""
     pytest.importorskip("torch")
     from blender_addon import scan, worker
     mat = one_learned_object(tmp_path, "trained")
