@@ -257,8 +257,8 @@ def test_bins_with_the_same_neighbours_share_their_edges(monkeypatch):
 
 def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(monkeypatch):
     """The isotropic probe skips a resolution's remaining angles once one fails, and picks the
-    resolution the full probe picks (the smallest whose worst angle reaches its target), whatever
-    angle fails. Each resolution's single-bin rv per probe angle comes from a table here; the
+    resolution the full probe picks (the smallest whose worst angle reaches its target; when none
+    does, the one that comes closest, the larger on a tie), whatever angle fails. Each resolution's single-bin rv per probe angle comes from a table here; the
     target is tol / 2, or ideal_ratio times the ideal tabulation's rv (0.5 here) when that is more."""
     from types import SimpleNamespace
     from bake.core import tabulate
@@ -270,6 +270,7 @@ def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(
         "normal fails": ([[9, 0, 0, 0]] * 3 + [[0] * 4] * 2, 48),
         "mid angles fail": ([[0, 9, 9, 0]] * 4 + [[0, 0, 0, 1]], 64),
         "nothing passes": ([[9] * 4] * 5, 64),
+        "nothing passes, 48 comes closest": ([[9] * 4] * 3 + [[3] * 4, [8] * 4], 48),
         "first passes": ([[1, 1, 1, 1]] * 5, 16),
     }
     monkeypatch.setattr(tabulate, "lobe_width_of", lambda *a: None)
@@ -291,7 +292,8 @@ def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(
         monkeypatch.setattr(tabulate, "build_tables", fake_build)
         monkeypatch.setattr(metrics, "relative_variance", fake_rv)
         planned = tabulate.plan_tables(lambert, ideal, first_bins=2, memory_budget=1, **targets)
-        full = next((r for r, rvs in zip(tabulate.RESOLUTIONS, table) if max(rvs) <= 1.0), tabulate.RESOLUTIONS[-1])
+        full = next((r for r, rvs in zip(tabulate.RESOLUTIONS, table) if max(rvs) <= 1.0),
+                    min(zip(tabulate.RESOLUTIONS, table), key=lambda rt: (max(rt[1]), -rt[0]))[0])
         assert planned.rows == full == want, name
         probed = [(r, t) for r, t in built[:-1]]         # the last build: the final tables
         for r, rvs in zip(tabulate.RESOLUTIONS, table):
@@ -300,8 +302,8 @@ def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(
                 assert len(at_r) < 4 and max(rvs[probe.index(t)] for t in at_r) > 1.0, name
             elif r == want and max(rvs) <= 1.0:
                 assert sorted(at_r) == probe, name       # a passing one: every angle
-            else:
-                assert r == want or not at_r, name
+            else:       # above the choice: never built, unless none passes (then all were)
+                assert r == want or not at_r or all(max(rvs) > 1.0 for rvs in table), name
 
 
 def test_resolutions_leave_the_budget_room_for_enough_angles():

@@ -810,14 +810,24 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
 
         # Isotropic: one angle above its target decides that a resolution fails (the rest need
         # not be built). Anisotropic: the worst azimuth is needed, so every angle is.
+        tried = {}
         for resolution in (ANISO_RESOLUTIONS if aniso else _resolutions_within(memory_budget)):
             by_phi = {phi: probe_rv(phi) for phi in probe_phis}
             worst_phi, worst = max(by_phi.items(), key=lambda kv: kv[1])
+            tried[resolution] = worst, worst_phi
             log(f"resolution {resolution}: single-bin rv {worst:.2f}x the target"
                 + (" or more" if worst > 1 and not aniso else "")
                 + (f" (at phi_i {np.degrees(worst_phi):.1f} deg)" if aniso else ""))
             if worst <= 1.0:
                 break
+        else:
+            if not aniso:
+                # None reaches its target: the closest one. More cells are not always closer
+                # (aurora at theta_i 86: 48² 3.2x, 64² 8.0x; sharp files fail every resolution at
+                # the first probe angle, so they compare there), and fewer leave room for more bins.
+                resolution = min(tried, key=lambda r: (tried[r][0], -r))
+                worst, worst_phi = tried[resolution]
+                log(f"resolution {resolution}: none reaches the target; this one comes closest")
     elif aniso:
         worst_phi = max(probe_phis, key=lambda phi: rv_at(build([np.radians(75.0)], phi), np.radians(75.0), phi))
     phi_bins = None
