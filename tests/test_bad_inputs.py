@@ -410,8 +410,8 @@ def test_bake_with_a_broken_input_leaves_no_partial_output(tmp_path, good_tables
     out = tmp_path / "out"
     if kind == "model":
         bad = make(model_path(out, "broken").parent.mkdir(parents=True) or model_path(out, "broken"), good_tables)
-        manifest = _bake_manifest_for(tmp_path, 'source = { kind = "analytic", model = "ggx", alpha = 0.3 }',
-                                      with_good=False)
+        manifest = _bake_manifest_for(tmp_path, 'source = { kind = "analytic", model = "ggx", alpha = 0.3 }\n'
+                                      'bake = { source = "flow" }', with_good=False)     # tables from the model
     else:
         bad = make(tmp_path / f"broken{SUFFIX[kind]}", good_tables)
         manifest = _bake_manifest_for(tmp_path, f'source = "{bad.name}"', with_good=False)
