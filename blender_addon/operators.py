@@ -187,7 +187,7 @@ class FLOWBSDF_OT_train_bake(_BakeOperator, bpy.types.Operator):
     def start(self, context):
         # Training is asked for so that the tables come from the model: say so where it is kept.
         mats = [getattr(context, "material", None) or _active_material(context)] if self.only_active \
-            else [m for m in bpy.data.materials if m.flowbsdf.enabled]
+            else [slot.material for ob in context.scene.objects for slot in ob.material_slots]
         for mat in mats:
             if mat is not None and mat.flowbsdf.enabled:
                 mat.flowbsdf.tables_from = "MODEL"
