@@ -14,6 +14,7 @@ phi_i_count: incident azimuths, anisotropic materials), and any trainer setting 
 trainer.train.PRESETS / COMMON).
 """
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 
@@ -36,9 +37,13 @@ def main(argv=None):
 
 
 def cmd_train(args):
+    import numpy as np
     import torch
 
     from bake.plumbing.manifest import load_manifest
+
+    from .sources import SLOPE_SHARE, SPECULAR_CONE_DEG, MaterialSource, choose_domain
+    from .train import train
 
     if args.device == "cuda" and not torch.cuda.is_available():
         raise FlowBSDFError("--device cuda: torch sees no CUDA device")
@@ -53,28 +58,11 @@ def cmd_train(args):
     log = lambda m: print(m, file=sys.stderr)  # noqa: E731
     materials = [m for m in manifest.select(None, log=log) if not args.material or m.name in args.material]
     out = Path(args.out)
-    all_threads = torch.get_num_threads()
-    try:
-        return _train_each(args, materials, out, all_threads, log)
-    finally:
-        torch.set_num_threads(all_threads)
-
-
-def _train_each(args, materials, out, all_threads, log):
-    import numpy as np
-    import torch
-
-    from . import train as training
-    from .sources import SLOPE_SHARE, SPECULAR_CONE_DEG, MaterialSource, choose_domain
-
     written = []
     for entry in materials:
         settings = dict(getattr(entry, "train", None) or {})
         preset = args.preset or settings.pop("preset", None) or "balanced"
         settings.pop("preset", None)
-        # fast and balanced: one thread unless asked (their nets are small, their steps overhead-bound:
-        # chm_mint balanced alone on 2 cores took 135 s with one thread, 186 s with two).
-        torch.set_num_threads(args.threads or (1 if preset in ("fast", "balanced") else all_threads))
         source_kw = {k: settings.pop(k) for k in list(settings) if k in SOURCE_KEYS}
         if "theta_i" in source_kw:
             source_kw["theta_i"] = np.radians(np.asarray(source_kw["theta_i"], float))
@@ -92,12 +80,13 @@ def _train_each(args, materials, out, all_threads, log):
                   f"{SPECULAR_CONE_DEG:g} deg of the specular direction)", file=sys.stderr)
         fingerprint = material.fingerprint()
         print(f"[{entry.name}] training ({domain}, preset {preset}) -> {out}", file=sys.stderr)
-        path = training.train(source, out / f"{entry.name}.train", preset=preset, domain=domain,
-                              isotropic=material.isotropic, name=entry.name, device=args.device,
-                              progress=not args.no_progress, log=log,
-                              meta={"material": {"fingerprint": fingerprint, "kind": type(material).__name__},
-                                    "source": source.describe(), **extra},
-                              **settings)
+        with _torch_threads(torch, args.threads or (1 if preset in ("fast", "balanced") else None)):
+            path = train(source, out / f"{entry.name}.train", preset=preset, domain=domain,
+                         isotropic=material.isotropic, name=entry.name, device=args.device,
+                         progress=not args.no_progress, log=log,
+                         meta={"material": {"fingerprint": fingerprint, "kind": type(material).__name__},
+                               "source": source.describe(), **extra},
+                         **settings)
         final = out / path.name
         out.mkdir(parents=True, exist_ok=True)
         path.replace(final)
@@ -106,3 +95,17 @@ def _train_each(args, materials, out, all_threads, log):
     for p in written:
         print(p)
     return 0
+
+
+@contextlib.contextmanager
+def _torch_threads(torch, n):
+    """torch's CPU threads set to n (None: unchanged) for the block, restored after it. fast and
+    balanced train on one unless asked: their nets are small and their steps overhead-bound
+    (chm_mint balanced alone on 2 cores: 135 s on one thread, 186 s on two)."""
+    before = torch.get_num_threads()
+    if n:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

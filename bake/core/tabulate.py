@@ -755,7 +755,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     materials, or ideal_ratio 0 or None: tol / 2 everywhere (default ANISO_TOL).
 
     Resolution: the smallest of RESOLUTIONS whose single-bin tables reach their target at a
-    few elevations (isotropic: a resolution's probe stops at its first failing elevation).
+    few elevations (isotropic: a resolution's probe stops at its first failing elevation; when
+    none does, the one that comes closest).
     Bins: start from `first_bins` evenly spaced elevations; while the memory budget allows
     another bin, split the interval whose interpolated midpoint loses most against the better
     of its two bins (interval_loss) relative to the midpoint's target, until no interval loses
@@ -814,20 +815,18 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
         for resolution in (ANISO_RESOLUTIONS if aniso else _resolutions_within(memory_budget)):
             by_phi = {phi: probe_rv(phi) for phi in probe_phis}
             worst_phi, worst = max(by_phi.items(), key=lambda kv: kv[1])
-            tried[resolution] = worst, worst_phi
+            tried[resolution] = worst
             log(f"resolution {resolution}: single-bin rv {worst:.2f}x the target"
                 + (" or more" if worst > 1 and not aniso else "")
                 + (f" (at phi_i {np.degrees(worst_phi):.1f} deg)" if aniso else ""))
             if worst <= 1.0:
                 break
-        else:
-            if not aniso:
-                # None reaches its target: the closest one. More cells are not always closer
-                # (aurora at theta_i 86: 48² 3.2x, 64² 8.0x; sharp files fail every resolution at
-                # the first probe angle, so they compare there), and fewer leave room for more bins.
-                resolution = min(tried, key=lambda r: (tried[r][0], -r))
-                worst, worst_phi = tried[resolution]
-                log(f"resolution {resolution}: none reaches the target; this one comes closest")
+        if worst > 1.0 and not aniso:
+            # None reaches its target: the closest one. More cells are not always closer (aurora
+            # at theta_i 86: 48² 3.2x, 64² 8.0x; sharp files fail every resolution at the first
+            # probe angle, so they compare there), and fewer leave room for more bins.
+            resolution = min(tried, key=lambda r: (tried[r], -r))
+            log(f"resolution {resolution}: none reaches the target; this one comes closest")
     elif aniso:
         worst_phi = max(probe_phis, key=lambda phi: rv_at(build([np.radians(75.0)], phi), np.radians(75.0), phi))
     phi_bins = None

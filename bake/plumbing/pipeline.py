@@ -91,9 +91,15 @@ def tables_use_model(settings):
     return settings["source"] == "flow"
 
 
+def _tables_model(entry, settings, out_dir):
+    """The model file the entry's tables are built from (source "flow"), else None."""
+    return model_path(out_dir, entry.name) if tables_use_model(settings) else None
+
+
 def wants_model(entry, material, settings, out_dir):
     """Whether baking this entry needs a model that is not there yet (training comes first)."""
-    return material.isotropic and tables_use_model(settings) and not model_path(out_dir, entry.name).is_file()
+    model_file = _tables_model(entry, settings, out_dir)
+    return material.isotropic and model_file is not None and not model_file.is_file()
 
 
 def _choose_source(material, settings, model_file):
@@ -109,13 +115,10 @@ def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
     from ..core.tabulate import plan_tables
     settings = bake_settings(entry, manifest_path)
     material = entry.open()
-    model_file = model_path(out_dir, entry.name)
-    source_kind = settings["source"]
-    if source_kind == "flow" and not model_file.is_file():
+    model_file = _tables_model(entry, settings, out_dir)
+    if model_file is not None and not model_file.is_file():
         raise FlowBSDFError(f"material {entry.name!r}: bake source 'flow' but no model at {model_file} "
                             "(run flowbsdf train first)")
-    if not tables_use_model(settings):
-        model_file = None
     inputs, digest = inputs_of(material, settings, model_file)
     path = table_path(out_dir, entry.name)
     if not force and path.is_file():
@@ -177,9 +180,9 @@ def open_current_tables(entry, out_dir, manifest_path):
     if not path.is_file():
         return None
     settings = bake_settings(entry, manifest_path)
-    model_file = model_path(out_dir, entry.name)
-    if not tables_use_model(settings) or not model_file.is_file():
-        model_file = None
+    model_file = _tables_model(entry, settings, out_dir)
+    if model_file is not None and not model_file.is_file():
+        return None
     _, digest = inputs_of(entry.open(), settings, model_file)
     tables = open_tables(path)
     return tables if tables.meta.get("inputs_hash") == digest else None
