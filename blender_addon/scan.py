@@ -194,6 +194,15 @@ def needs_text(info):
     return "theta_i only: bins chosen at bake time"
 
 
+def source_text(info):
+    """Where a material's tables come from and whether it has a model, in words."""
+    model = "model trained" if info.get("model") else "no trained model"
+    source = info.get("tables_source")
+    if source == "flow":
+        return "tables from its trained model"
+    return f"tables from the material; {model}" if source else model
+
+
 def state_of(info):
     if info.get("error"):
         return "error"
@@ -213,11 +222,10 @@ def fill_scan_items(scene, rows, statuses):
         item.users = len(row["users"])
         item.state = state_of(info) if info else "unknown"
         item.needs = needs_text(info) if info else ""
-        item.detail = info.get("error") or ("model trained" if info.get("model") else "no model")
+        item.detail = info.get("error") or source_text(info)
 
 
 def notes_of(rows, statuses):
     return {row["name"]: f"state: {state_of(statuses[row['name']])}; needs "
-            f"{needs_text(statuses[row['name']])}; "
-            + ("model trained" if statuses[row["name"]].get("model") else "no trained model")
+            f"{needs_text(statuses[row['name']])}; {source_text(statuses[row['name']])}"
             for row in rows if row["name"] in statuses}

@@ -203,7 +203,7 @@ def test_bake_never_trains_and_the_two_buttons_say_what_they_do(addon, tmp_path,
     assert (tmp_path / "tables" / "never_trained.exr").is_file()
     assert not (tmp_path / "models").exists()
     manifest = (tmp_path / "manifest.toml").read_text()
-    assert "state: current" in manifest and "no trained model" in manifest
+    assert "state: current" in manifest and "tables from the material; no trained model" in manifest
     tips = {cls.bl_idname: cls.TOOLTIPS for cls in (operators.FLOWBSDF_OT_bake, operators.FLOWBSDF_OT_train_bake)}
     bake, train = tips["flowbsdf.bake"], tips["flowbsdf.train_bake"]
     assert "Never trains" in bake[True] and "Final: under a minute" in bake[True]
@@ -856,6 +856,7 @@ def test_train_then_bake_from_the_panel(addon, tmp_path):
     job = worker.Job(sys.executable, ["status", str(tmp_path / "manifest.toml"), "--out", str(tmp_path)])
     info = scan.parse_status(job.run(echo=False))["trained"]
     assert info["tables"] == "current" and info["tables_source"] == "flow", info
+    assert scan.source_text(info) == "tables from its trained model"
 
 
 def test_scan_measured_file_material(addon, tmp_path, rgl):
@@ -869,5 +870,6 @@ def test_scan_measured_file_material(addon, tmp_path, rgl):
     assert bpy.ops.flowbsdf.scan() == {"FINISHED"}
     item = scene.flowbsdf.scan_items[0]
     assert (item.learned, item.state) == ("paper", "missing") and item.needs.startswith("theta_i only")
+    assert item.detail == "no trained model"
     entry = load_manifest(tmp_path / "manifest.toml").materials[0]
     assert entry.source == str(path) and entry.open().isotropic
