@@ -218,6 +218,38 @@ def test_file_round_trip_and_corruption(tables, tmp_path):
         assert bad.name in str(err.value)
 
 
+def test_cells_are_shared_out_by_weight_with_a_few_everywhere():
+    from bake.core.tabulate import SEGMENT_EVEN, _weighted_counts
+    counts = _weighted_counts(48, [0.0, 0.01, 0.09, 0.9])
+    assert sum(counts) == 48 and min(counts) >= 1 and counts == sorted(counts)
+    assert counts[3] >= 48 * (1 - SEGMENT_EVEN) * 0.9 and counts[0] >= 48 * SEGMENT_EVEN / 4 - 1
+    assert _weighted_counts(12, [1, 1, 1, 1]) == [3, 3, 3, 3] and _weighted_counts(5, [0, 0]) in ([3, 2], [2, 3])
+
+
+def test_cells_follow_a_sharp_lobes_tail_beside_a_diffuse_base(monkeypatch):
+    """A GGX alpha 0.01 coat over a diffuse base: rows split evenly among the lobe zone's
+    segments put 3/4 of them within 2.3 deg of the normal at theta_i 0 and one row over the
+    coat's tail beyond (measured: 45x the ideal's rv, 15x with rows by weight); cells at the
+    quantiles alone left the flanks to wide cells (theta_i 80: 2.5x the ideal, 0.7x with an
+    even share)."""
+    from bake.core import tabulate
+    from bake.quality.metrics import relative_variance_ref
+    mat = open_material({"kind": "analytic", "model": "plastic", "albedo": [0.6, 0.2, 0.1], "alpha": 0.01})
+    ideal = IdealSampler(mat, resolution=128)
+
+    def ratio(theta, **kw):
+        tab = build_tables(mat, ideal, np.radians([theta]), rows=32, cols=32, grid=256, lobe_width=0.04, **kw)
+        rv = lambda s: relative_variance_ref(mat, s, incident(theta), ideal, k=256, seed=1)[0]   # noqa: E731
+        return rv(tab) / rv(ideal)
+
+    now = {t: ratio(t) for t in (0.0, 80.0)}
+    assert now[80.0] < 1.0, now
+    with monkeypatch.context() as m:
+        m.setattr(tabulate, "SEGMENT_EVEN", 1.0)
+        before = {t: ratio(t, row_share=0.02, col_share=0.05) for t in (0.0, 80.0)}
+    assert before[0.0] > 2.5 * now[0.0] and before[80.0] > 2.0 * now[80.0], (before, now)
+
+
 def test_plan_picks_small_tables_for_a_diffuse_material():
     lambert = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})
     small = plan_tables(lambert, IdealSampler(lambert, resolution=64), grid=128, samples=1 << 12)
@@ -341,7 +373,9 @@ def test_cells_integrated_around_their_points_keep_their_mass_with_16_nodes(monk
     assert around and around[:half] == around[half:] and around[0] >= 5     # cells integrated around their points
     assert np.abs(out[16][0] - out[64][0]).sum() < 1e-4
     assert not np.array_equal(out[16][0], out[64][0])          # the rule did change
-    assert abs(out[16][1] - out[64][1]) <= 0.01 * out[64][1]
+    # within 1 % with the cells at quantiles alone, 2.6 % with the even shares (SHARES): its cells
+    # around the points differ; the masses agree to 1e-4 all the same
+    assert abs(out[16][1] - out[64][1]) <= 0.03 * out[64][1]
 
 
 def test_quadrature_nodes_are_from_ab_of_every_node():

@@ -160,8 +160,12 @@ def integrate_bins(density, res, samples=None, tol=1e-7, crowd=64, max_depth=20,
         if track:
             count = np.bincount(s_cell, minlength=n)
             # a crowd, or samples where the nodes saw nothing (a sliver: e.g. the horizon
-            # cutting through a half-vector bin)
-            refine |= (count > crowd) | ((count > 0) & (kid_sum <= 0))
+            # cutting through a half-vector bin), or more samples than the nodes' integral can
+            # explain (a narrow cell of mass between the nodes: tables at a hard edge; the
+            # density integrates to about 1, so a cell expects kid_sum * len(samples))
+            expect = np.maximum(kid_sum, 0.0) * len(samples)
+            refine |= ((count > crowd) | ((count > 0) & (kid_sum <= 0))
+                       | (count > expect + 4.0 * np.sqrt(expect) + 4.0))
         depth += 1
         evaluated += 4 * n
         if depth >= max_depth or evaluated > max_cells:
