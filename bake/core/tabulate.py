@@ -67,12 +67,13 @@ def _normalized(w):
     return w / total if total > 0 else w
 
 
-# (rows, columns) spread evenly, per coordinates. Over wo, quantiles alone crowd the cells into
-# a lobe's core and leave its flanks and tails in wide cells whose exponential cannot follow
-# them: single 48² bins of the ten shared files went from 1.7-16x the ideal's rv (worst of
-# theta_i 0/30/60/75/85) to 0.5-7.6x with 0.3 / 0.4 and _weighted_counts (measured; 0.02 / 0.05 and even counts before). The half
-# vector's cells (anisotropic) keep the shares they were measured with.
-SHARES = {"wo": (0.3, 0.4), "halfvector": (0.02, 0.05)}
+# Share of a segment's (rows, columns) spread evenly over it. Quantiles alone crowd the cells
+# into a lobe's core and leave its flanks and tails to wide cells whose exponential cannot
+# follow them: isotropic single 48² bins of the ten shared files went from 1.7-16x the ideal's
+# rv (worst of theta_i 0/30/60/75/85) to 0.5-7.6x with 0.3 / 0.4 and _weighted_counts
+# (measured; 0.02 / 0.05 and even counts before). Anisotropic tables keep what they were
+# measured with.
+SHARES = {"isotropic": (0.3, 0.4), "anisotropic": (0.02, 0.05)}
 SEGMENT_EVEN = 0.25     # share of a row's (column's) cells split evenly among its segments
 
 
@@ -606,7 +607,7 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
     "halfvector" (anisotropic only, their default): cells over the half vector (tables.py),
     which hold a thin lobe between phi_i bins. row_share, col_share: the share of a segment's
     rows (columns) spread evenly over it, the rest at the quantiles of the points' weight
-    (default: SHARES of the coordinates).
+    (default: SHARES; isotropic tables also share a segment's cells out by weight).
     """
     if phi_bins is None and not material.isotropic:
         raise FlowBSDFError("an anisotropic material needs bins over phi_i (phi_bins)")
@@ -630,8 +631,10 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
     coords = coords or ("wo" if phi_bins is None else "halfvector")
     if coords not in ("wo", "halfvector") or (coords == "halfvector" and phi_bins is None):
         raise FlowBSDFError(f"coords {coords!r}: 'wo', or 'halfvector' for anisotropic tables")
-    opts["row_share"] = SHARES[coords][0] if row_share is None else row_share
-    opts["col_share"] = SHARES[coords][1] if col_share is None else col_share
+    kind = "isotropic" if phi_bins is None else "anisotropic"
+    opts["row_share"] = SHARES[kind][0] if row_share is None else row_share
+    opts["col_share"] = SHARES[kind][1] if col_share is None else col_share
+    opts["weighted"] = phi_bins is None
     frame_angle = 0.0
     if coords == "halfvector":      # the phi axis closed: a last bin one period after the first
         phis = phis + [phis[0] + period]
@@ -648,7 +651,7 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
 
 
 def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, cols, grid, lobe_width, gamma, row_share, col_share,
-                  quadrature, floor, window, cache, step):
+                  quadrature, floor, window, cache, step, weighted):
     """The bins at the elevations theta_bins and azimuth phi: a_edges, b_edges, mass, alpha,
     beta, weights, each with a leading bin axis.
 
@@ -677,8 +680,7 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
     near = [tuple(range(max(0, k - window), min(K, k + window + 1))) for k in range(K)]
     # Cells per segment by the weight of all the column's bins: interpolation pairs cells by
     # index, and a lobe zone paired with its outside lost 10-600x (measured with counts per
-    # neighbourhood). The half vector's segments, its centre's two halves: even, as measured.
-    weighted = coords == "wo"
+    # neighbourhood). Anisotropic tables: even, as measured.
 
     def counts(n, shares):
         return _weighted_counts(n, shares) if weighted else _even_counts(n, len(shares))
