@@ -400,17 +400,22 @@ class _Sampler:
     def direction(self, a, b, cos_i, phi_i):
         """wo (floats x, y, z in the local frame) at table coordinates (a, b), after `incident`,
         and d omega_o / (da db) (None: 1, the "wo" coordinates; bake/core/tables.py)."""
-        g = self.g
-        if self.lay.get("coords", "wo") != "halfvector":
+        g, coords = self.g, self.lay.get("coords", "wo")
+        if coords == "wo":
             return _from_ab(g, a, b, phi_i), None
+        if coords == "halfpolar":       # the map's frame: wi's turned by pi (phi_i None: wi's frame)
+            wo, jac = _polar_from_ab(g, a, b, _polar_wi(g, cos_i))
+            return _turn(g, wo, _polar_ref(g, phi_i)), jac
         wo, jac = _half_from_ab(g, a, b, _half_wi(g, cos_i, phi_i, self.ref))
         return _turn(g, wo, self.ref), jac
 
     def coordinates(self, wo, cos_i, phi_i):
         """(a, b, d omega_o / (da db) or None) of a local direction wo, after `incident`."""
-        g = self.g
-        if self.lay.get("coords", "wo") != "halfvector":
+        g, coords = self.g, self.lay.get("coords", "wo")
+        if coords == "wo":
             return _to_ab(g, wo, phi_i) + (None,)
+        if coords == "halfpolar":
+            return _polar_to_ab(g, _turn(g, wo, g.math('MULTIPLY', _polar_ref(g, phi_i), -1.0)), _polar_wi(g, cos_i))
         return _half_to_ab(g, _turn(g, wo, g.math('MULTIPLY', self.ref, -1.0)),
                            _half_wi(g, cos_i, phi_i, self.ref))
 
@@ -528,6 +533,22 @@ def _half_cap(g, wi, cos_h, sin_h):
     return g.math('MAXIMUM', g.math('MULTIPLY', g.math('MULTIPLY', half, half), 2.0), 1e-30)
 
 
+def _mirror(g, wi, h, cap):
+    """(wo floats, jac) of half vector h at wi: wo = 2 (wi.h) h - wi (z at least 0), jac =
+    4 (wi.h) cap, as halfvector.py's maps end."""
+    cos_ih = g.dot(g.combine(*wi), g.combine(*h))
+    twice = g.math('MULTIPLY', cos_ih, 2.0)
+    wo = tuple(g.math('MULTIPLY_ADD', twice, hc, g.math('MULTIPLY', wc, -1.0)) for hc, wc in zip(h, wi))
+    return (wo[0], wo[1], g.math('MAXIMUM', wo[2], 0.0)), g.math('MULTIPLY', g.math('MULTIPLY', cos_ih, cap), 4.0)
+
+
+def _h_at(g, one_minus_cos, cos_h, sin_h):
+    """h (floats) of 1 - cos theta_h and the cosine and sine of phi_h."""
+    sin_t = g.math('SQRT', g.math('MAXIMUM', g.math('MULTIPLY', one_minus_cos,
+                                                     g.math('SUBTRACT', 2.0, one_minus_cos)), 0.0))
+    return g.math('MULTIPLY', sin_t, cos_h), g.math('MULTIPLY', sin_t, sin_h), g.math('SUBTRACT', 1.0, one_minus_cos)
+
+
 def _half_from_ab(g, a, b, wi):
     """bake/core/halfvector.py from_ab: (wo floats in the map's frame, jac)."""
     x, y = g.math('MULTIPLY_ADD', a, 2.0, -1.0), g.math('MULTIPLY_ADD', b, 1.0 / math.pi, -1.0)
@@ -541,13 +562,36 @@ def _half_from_ab(g, a, b, wi):
     cos_h, sin_h = g.math('COSINE', phi_h), g.math('SINE', phi_h)
     cap = _half_cap(g, wi, cos_h, sin_h)
     one_minus_cos = g.math('MULTIPLY', g.math('MULTIPLY_ADD', u, u, g.math('MULTIPLY', v, v)), cap)
-    sin_t = g.math('SQRT', g.math('MAXIMUM', g.math('MULTIPLY', one_minus_cos,
-                                                     g.math('SUBTRACT', 2.0, one_minus_cos)), 0.0))
-    h = (g.math('MULTIPLY', sin_t, cos_h), g.math('MULTIPLY', sin_t, sin_h), g.math('SUBTRACT', 1.0, one_minus_cos))
-    cos_ih = g.dot(g.combine(*wi), g.combine(*h))
-    twice = g.math('MULTIPLY', cos_ih, 2.0)
-    wo = tuple(g.math('MULTIPLY_ADD', twice, hc, g.math('MULTIPLY', wc, -1.0)) for hc, wc in zip(h, wi))
-    return (wo[0], wo[1], g.math('MAXIMUM', wo[2], 0.0)), g.math('MULTIPLY', g.math('MULTIPLY', cos_ih, cap), 4.0)
+    return _mirror(g, wi, _h_at(g, one_minus_cos, cos_h, sin_h), cap)
+
+
+def _polar_wi(g, cos_i):
+    """wi in the halfpolar map's frame, turned by phi_i + pi: (-sin theta_i, 0, cos theta_i)."""
+    sin_i = g.math('SQRT', g.math('MAXIMUM', g.math('MULTIPLY_ADD', cos_i, g.math('MULTIPLY', cos_i, -1.0), 1.0), 0.0))
+    return g.math('MULTIPLY', sin_i, -1.0), 0.0, cos_i
+
+
+def _polar_ref(g, phi_i):
+    """The halfpolar map's frame angle, phi_i + pi (phi_i None: wi's frame)."""
+    return math.pi if phi_i is None else g.math('ADD', phi_i, math.pi)
+
+
+def _polar_from_ab(g, a, b, wi):
+    """bake/core/halfvector.py polar_from_ab: (wo floats in the map's frame, jac)."""
+    cos_h, sin_h = g.math('COSINE', b), g.math('SINE', b)
+    cap = _half_cap(g, wi, cos_h, sin_h)
+    return _mirror(g, wi, _h_at(g, g.math('MULTIPLY', a, cap), cos_h, sin_h), cap)
+
+
+def _polar_to_ab(g, wo, wi):
+    """bake/core/halfvector.py polar_to_ab: (a, b, jac) of wo (floats in the map's frame)."""
+    h = g.vmath('NORMALIZE', g.vmath('ADD', g.combine(*wi), g.combine(*wo)))
+    hx, hy, hz = (g.dot(h, axis) for axis in (X, Y, Z))
+    b = g.math('FLOORED_MODULO', g.math('ARCTAN2', hy, hx), 2.0 * math.pi)
+    cap = _half_cap(g, wi, g.math('COSINE', b), g.math('SINE', b))
+    flat = g.math('DIVIDE', g.math('MULTIPLY_ADD', hx, hx, g.math('MULTIPLY', hy, hy)), g.math('ADD', hz, 1.0))
+    a = g.math('DIVIDE', flat, cap, clamp=True)
+    return a, b, g.math('MULTIPLY', g.math('MULTIPLY', g.dot(g.combine(*wi), h), cap), 4.0)
 
 
 def _half_to_ab(g, wo, wi):

@@ -290,13 +290,14 @@ def sphere_view_persp(width, height, distance=6.0, fov_deg=22.0, radius=1.0, min
 SMALL_BINS = np.radians([0.0, 30.0, 60.0, 80.0, 89.5])
 
 
-def small_tables(source, name, folder):
-    """16 x 16-cell tables over SMALL_BINS from the ideal tabulation, saved as <folder>/<name>.exr."""
+def small_tables(source, name, folder, coords=None):
+    """16 x 16-cell tables over SMALL_BINS from the ideal tabulation (cells over `coords`, the
+    default's when None), saved as <folder>/<name>.exr."""
     from bake.core.ideal import IdealSampler
     from bake.materials import open_material
     from bake.core.tabulate import build_tables
     mat = open_material(source)
-    tab = build_tables(mat, IdealSampler(mat, resolution=64), SMALL_BINS, rows=16, cols=16, grid=96)
+    tab = build_tables(mat, IdealSampler(mat, resolution=64), SMALL_BINS, rows=16, cols=16, grid=96, coords=coords)
     tab.meta["material"] = name
     tab.save(folder / f"{name}.exr")
     return folder / f"{name}.exr"

@@ -31,7 +31,11 @@ SPECS = {
 def baked(tmp_path_factory):
     """Small baked tables (16 x 16 cells, 5 bins) per material, written as the pipeline does."""
     root = tmp_path_factory.mktemp("tables")
-    return {name: _small_tables(spec, name, root) for name, spec in SPECS.items()}
+    out = {name: _small_tables(spec, name, root) for name, spec in SPECS.items()}
+    for name in ("gold", "plastic"):       # both coordinates of isotropic tables
+        out[f"{name}-wo"] = _small_tables(SPECS[name], f"{name}-wo", root, coords="wo")
+        out[f"{name}-halfpolar"] = _small_tables(SPECS[name], f"{name}-halfpolar", root, coords="halfpolar")
+    return out
 
 
 @pytest.fixture(autouse=True)
@@ -59,7 +63,8 @@ def _probe(tex, n, theta, mode, phi=0.0, world="", **inputs):
     return cs.render(sc).reshape(-1, 3)
 
 
-@pytest.mark.parametrize("name", slow_unless(sorted(SPECS), default=["gold"]))
+@pytest.mark.parametrize("name", slow_unless(sorted(SPECS) + ["gold-wo", "gold-halfpolar"],
+                                             default=["gold-wo", "gold-halfpolar"]))
 def test_osl_sampler_is_tables_sample(baked, name):
     """Same u -> same wo, the same weight (= baked f cos / pdf) and the same pdf as the numpy
     reference (the sampler's exact density: weight x pdf = baked f cos)."""
@@ -114,7 +119,7 @@ def _assert_osl_eval_is_numpy(tex, tab, angles):
         np.testing.assert_allclose(_probe(tex, n, theta, 4, phi), fcos, rtol=1e-3, atol=1e-7)
 
 
-@pytest.mark.parametrize("name", ["plastic", "gold"])
+@pytest.mark.parametrize("name", ["plastic-wo", "gold-wo", "plastic-halfpolar", "gold-halfpolar"])
 def test_osl_eval_is_tables_pdf_and_eval(baked, name):
     from bake.core.tables import open_tables
     tab = open_tables(baked[name])

@@ -69,7 +69,7 @@ double sin(double) FT_VEC;
 #endif
 
 /* Bumped whenever ft_tables or a signature changes (bake/core/fasttables.py checks it). */
-#define FT_ABI 2
+#define FT_ABI 3
 
 static const double PI = 3.141592653589793;       /* np.pi */
 static const double TWO_PI = 6.283185307179586;   /* 2.0 * np.pi */
@@ -83,7 +83,7 @@ static const double TINY = 1e-300;                /* halfvector._TINY */
  * tables (P > 1, halfvector coordinates only): bins k P + p, the phi axis closed (the last
  * bin one period after the first), starts = phi_bins - phi_bins[0]. */
 typedef struct {
-    int64_t K, R, C, P;
+    int64_t K, R, C, P, coords;    /* coords: 0 "wo", 1 "halfvector", 2 "halfpolar" (isotropic) */
     double period, frame, phi0;    /* anisotropic: phi_period, frame_angle, phi_bins[0] */
     const double *starts;      /* (P) */
     const double *theta_bins;  /* (K) */
@@ -168,7 +168,7 @@ typedef struct {
 /* The arrays the kernels read: the Tables' (interpolated per sample) or, in flat mode,
  * one wi's interpolated table, with expm1 of the rates (ea, eb) and float64 weights. */
 typedef struct {
-    int64_t R, C, half;                /* half: the halfvector coordinates */
+    int64_t R, C, half;                /* half: ft_tables.coords (1, 2: over h) */
     const double *a, *b, *m, *alpha, *beta, *row_cdf, *col_cum;
     const float *w32;                  /* interpolated mode */
     const double *ea, *eb, *w64;       /* flat mode (w64 only for eval) */
@@ -246,7 +246,7 @@ FT_INLINE void bins(const ft_tables *T, const double *w, int64_t stride, ft_bin 
     for (int64_t q = 0; q < T->K; q++)
         for (int k = 0; k < BLK; k++) n[k] += T->theta_bins[q] <= theta[k] ? 1.0 : 0.0;
     for (int k = 0; k < BLK; k++) bin_of(T, theta[k], phi[k], c[k], isnan(theta[k]) ? T->K : (int64_t)n[k], &B[k]);
-    if (T->P > 1) {     /* halfvector: wi in the map's frame (warps.rotate_z by -phi_ref) */
+    if (T->coords) {     /* h's coordinates: wi in the map's frame (warps.rotate_z by -phi_ref) */
         double cr[BLK], sr[BLK];
         FT_SIMD for (int k = 0; k < BLK; k++) cr[k] = cos(B[k].phi_ref);
         FT_SIMD for (int k = 0; k < BLK; k++) sr[k] = sin(B[k].phi_ref);
@@ -315,7 +315,7 @@ FT_INLINE int flatten(const ft_tables *T, const ft_bin *B, int with_weights, ft_
         for (int64_t i = 0; i < 3 * cells; i++)
             w[i] = lerp32(T->weights, 3 * B->kc + i, d3, B);
     }
-    *V = (ft_view){R, C, T->P > 1, a, b, m, alpha, beta, row_cdf, col_cum, NULL, ea, eb, with_weights ? w : NULL};
+    *V = (ft_view){R, C, T->coords, a, b, m, alpha, beta, row_cdf, col_cum, NULL, ea, eb, with_weights ? w : NULL};
     return 1;
 }
 
@@ -455,6 +455,57 @@ FT_INLINE void half_from_ab(const ft_bin *B, const double *a, const double *b, d
     }
 }
 
+/* halfvector.polar_from_ab for a block (wi: B[k].wr), then turned back by phi_ref: wo, jac */
+FT_INLINE void polar_from_ab(const ft_bin *B, const double *a, const double *b, double *wo, double *jac) {
+    double cap[BLK], c[BLK], sn[BLK], sh[BLK];
+    half_cap(B, b, cap);
+    FT_SIMD for (int k = 0; k < BLK; k++) c[k] = cos(b[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) sn[k] = sin(b[k]);
+    for (int k = 0; k < BLK; k++) {
+        const double omc = a[k] * cap[k];
+        const double q = omc * (2.0 - omc);
+        sh[k] = q < 0.0 ? 0.0 : q;
+    }
+    FT_SIMD for (int k = 0; k < BLK; k++) sh[k] = sqrt(sh[k]);
+    for (int k = 0; k < BLK; k++) {
+        const double h0 = sh[k] * c[k], h1 = sh[k] * sn[k], h2 = 1.0 - a[k] * cap[k];
+        const double *w = B[k].wr;
+        const double d = (w[0] * h0 + w[1] * h1) + w[2] * h2;
+        const double x = 2.0 * d * h0 - w[0], y = 2.0 * d * h1 - w[1], z = 2.0 * d * h2 - w[2];
+        wo[3 * k] = B[k].cr * x - B[k].sr * y;
+        wo[3 * k + 1] = B[k].sr * x + B[k].cr * y;
+        wo[3 * k + 2] = z < 0.0 ? 0.0 : z;
+        jac[k] = 4.0 * d * cap[k];
+    }
+}
+
+/* halfvector.polar_to_ab for a block of wo (turned by -phi_ref into the map's frame first) */
+FT_INLINE void polar_to_ab(const ft_bin *B, const double *wo, double *a, double *b, double *jac) {
+    double h[3][BLK], n[BLK], cap[BLK];
+    for (int k = 0; k < BLK; k++) {
+        const double *o = wo + 3 * k, *w = B[k].wr;
+        const double ox = B[k].cr * o[0] - (-B[k].sr) * o[1], oy = (-B[k].sr) * o[0] + B[k].cr * o[1];
+        h[0][k] = w[0] + ox;
+        h[1][k] = w[1] + oy;
+        h[2][k] = w[2] + o[2];
+        n[k] = (h[0][k] * h[0][k] + h[1][k] * h[1][k]) + h[2][k] * h[2][k];
+    }
+    FT_SIMD for (int k = 0; k < BLK; k++) n[k] = sqrt(n[k]);
+    for (int k = 0; k < BLK; k++)
+        for (int i = 0; i < 3; i++) h[i][k] = h[i][k] / n[k];
+    FT_SIMD for (int k = 0; k < BLK; k++) b[k] = atan2(h[1][k], h[0][k]);
+    for (int k = 0; k < BLK; k++) {
+        b[k] = isnan(b[k]) ? 0.0 : mod_two_pi(b[k]);      /* np.nan_to_num(np.mod(., 2 pi)) */
+    }
+    half_cap(B, b, cap);
+    for (int k = 0; k < BLK; k++) {
+        const double av = clip01((h[0][k] * h[0][k] + h[1][k] * h[1][k]) / (1.0 + h[2][k]) / cap[k]);
+        a[k] = isnan(av) ? 0.0 : av;
+        const double *w = B[k].wr;
+        jac[k] = 4.0 * ((w[0] * h[0][k] + w[1] * h[1][k]) + w[2] * h[2][k]) * cap[k];
+    }
+}
+
 /* halfvector.to_ab for a block of wo (turned by -phi_ref into the map's frame first): a, b, jac */
 FT_INLINE void half_to_ab(const ft_bin *B, const double *wo, double *a, double *b, double *jac) {
     double h[3][BLK], n[BLK], phi[BLK], cap[BLK], rad[BLK], c[BLK], sn[BLK], t[BLK];
@@ -541,7 +592,8 @@ FT_INLINE void sample_block(const ft_view *V, const ft_bin *B, const double *u, 
             A[k] = S.a0[k] + X[k] * (S.a1[k] - S.a0[k]);
             Bv[k] = S.b0[k] + Y[k] * (S.b1[k] - S.b0[k]);
         }
-        half_from_ab(B, A, Bv, wo, jac);
+        if (V->half == 2) polar_from_ab(B, A, Bv, wo, jac);
+        else half_from_ab(B, A, Bv, wo, jac);
         density_block(&S, X, Y, pdf);
         for (int k = 0; k < BLK; k++) pdf[k] = pdf[k] / jac[k];
         return;
@@ -576,7 +628,9 @@ FT_INLINE void locate_block(const ft_view *V, const ft_bin *B, const double *wo,
         wx[k] = wo[3 * k];
         wy[k] = wo[3 * k + 1];
     }
-    if (V->half) {
+    if (V->half == 2) {
+        polar_to_ab(B, wo, A, Bv, jac);
+    } else if (V->half) {
         half_to_ab(B, wo, A, Bv, jac);
     } else {
         FT_SIMD for (int k = 0; k < BLK; k++) Bv[k] = atan2(wy[k], wx[k]);
@@ -688,7 +742,7 @@ FT_CLONES static void run(int kind, const ft_tables *T, int64_t n, const double 
     enum { IN = 3, OUT = 3 };
     const int in_w = kind == SAMPLE ? 2 : 3, out_w = kind == SAMPLE ? 3 : (kind == PDF ? 1 : (kind == INVERT ? 2 : 3));
     ft_bin B[BLK];
-    ft_view V = {T->R, T->C, T->P > 1, T->a, T->b, T->m, T->alpha, T->beta, T->row_cdf, T->col_cum, T->weights,
+    ft_view V = {T->R, T->C, T->coords, T->a, T->b, T->m, T->alpha, T->beta, T->row_cdf, T->col_cum, T->weights,
                  NULL, NULL, NULL};
     double *buf = NULL;
     double pad_wi[3 * BLK], pad_in[IN * BLK], pad_out[OUT * BLK], pad_out2[BLK];

@@ -40,7 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
-ABI = 2                       # FT_ABI in _tables_c.c
+ABI = 3                       # FT_ABI in _tables_c.c
+COORDS = ("wo", "halfvector", "halfpolar")     # tables.COORDS in the order of ft_tables.coords
 HERE = Path(__file__).resolve().parent
 SOURCE = HERE / "_tables_c.c"
 # -ffp-contract=off: no fused multiply-adds (they would round the interpolations
@@ -51,7 +52,7 @@ VECTOR_FLAGS = ["-fopenmp-simd", "-lmvec", "-lm"]
 
 
 class _Tables(ctypes.Structure):
-    _fields_ = [(name, ctypes.c_int64) for name in ("K", "R", "C", "P")] + [
+    _fields_ = [(name, ctypes.c_int64) for name in ("K", "R", "C", "P", "coords")] + [
         (name, ctypes.c_double) for name in ("period", "frame", "phi0")] + [
         (name, ctypes.c_void_p) for name in
         ("starts", "theta_bins", "cos_bins", "a", "b", "m", "alpha", "beta", "row_cdf", "col_cum", "weights")]
@@ -176,7 +177,7 @@ def _struct(tab):
     """The ctypes view of tab's working arrays (cached; rebuilt when an array is replaced),
     or None when their shapes are not a table's (or anisotropic tables are not over the half
     vector: the C code knows that phi axis only)."""
-    if tab.anisotropic and tab.coords != "halfvector":
+    if tab.anisotropic != (tab.coords == "halfvector"):    # isotropic: wo or halfpolar
         return None
     arrays = (tab.theta_bins, tab._a, tab._b, tab._m, tab._alpha, tab._beta, tab._row_cdf, tab._col_cum,
               tab.weights)
@@ -196,7 +197,7 @@ def _struct(tab):
     cos_bins = np.cos(theta)      # numpy's cos, as Tables._bins computes it
     phi0 = 0.0 if P == 1 else float(tab.phi_bins[0])
     starts = np.ascontiguousarray(np.zeros(1) if P == 1 else tab.phi_bins - tab.phi_bins[0], np.float64)
-    s = _Tables(K, R, C, P, tab.phi_period, tab.frame_angle, phi0,
+    s = _Tables(K, R, C, P, COORDS.index(tab.coords), tab.phi_period, tab.frame_angle, phi0,
                 *(x.ctypes.data for x in (starts, theta, cos_bins, a, b, m, alpha, beta, row_cdf, col_cum, weights)))
     _STRUCTS[tab] = (key, s, arrays + (starts, theta, cos_bins, a, b, m, alpha, beta, row_cdf, col_cum, weights))
     return s

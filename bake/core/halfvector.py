@@ -83,3 +83,37 @@ def to_ab(wi, wo, frame=0.0):
     a = np.clip(0.5 * (x + 1.0), 0.0, 1.0)
     b = np.clip(np.pi * (y + 1.0), 0.0, TWO_PI)
     return a, b, 4.0 * np.sum(wi * h, axis=-1) * cap
+
+
+# The isotropic tables' polar map: the same valid cap, polar instead of concentric. a = the
+# disk radius^2 = (1 - cos theta_h) / (1 - cos theta_max(phi_h)), b = phi_h in the frame (Tables
+# turns it by phi_i + pi: b = 0 away from wi, where the cap is narrowest). Rings of a are
+# rings around the mirror direction, as a lobe's level sets are; d omega_h = cap da db, so
+# again jac = 4 (wo.h) cap.
+
+
+def polar_from_ab(wi, a, b, frame=0.0):
+    """(wo, jac) of polar coordinates (a, b) at wi, h mapped in the frame turned by `frame`."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    wi = rotate_z(_per_point(wi, len(a)), -frame)
+    cap = _cap(wi, b)
+    one_minus_cos = a * cap
+    sin_h = np.sqrt(np.maximum(one_minus_cos * (2.0 - one_minus_cos), 0.0))
+    h = np.stack([sin_h * np.cos(b), sin_h * np.sin(b), 1.0 - one_minus_cos], axis=-1)
+    cos_ih = np.sum(wi * h, axis=-1)
+    wo = 2.0 * cos_ih[:, None] * h - wi
+    wo[:, 2] = np.maximum(wo[:, 2], 0.0)
+    return rotate_z(wo, frame), 4.0 * cos_ih * cap
+
+
+def polar_to_ab(wi, wo, frame=0.0):
+    """(a, b, jac) of directions wo at wi, as polar_from_ab's inverse."""
+    wo = rotate_z(np.asarray(wo, np.float64), -frame)
+    wi = rotate_z(_per_point(wi, len(wo)), -frame)
+    h = wi + wo
+    with np.errstate(invalid="ignore", divide="ignore"):
+        h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    b = np.mod(np.arctan2(h[:, 1], h[:, 0]), TWO_PI)
+    cap = _cap(wi, b)
+    a = np.nan_to_num(np.clip((h[:, 0] ** 2 + h[:, 1] ** 2) / (1.0 + h[:, 2]) / cap, 0.0, 1.0))
+    return a, np.nan_to_num(b), 4.0 * np.sum(wi * h, axis=-1) * cap

@@ -74,6 +74,8 @@ def _normalized(w):
 # (measured; 0.02 / 0.05 and even counts before). Anisotropic tables keep what they were
 # measured with.
 SHARES = {"isotropic": (0.3, 0.4), "anisotropic": (0.02, 0.05)}
+ISO_COORDS = "wo"       # isotropic tables' default coordinates (tables.py)
+ISO_PLANNED = ("halfpolar", "wo")     # the coordinates plan_tables tries for isotropic tables
 SEGMENT_EVEN = 0.25     # share of a row's (column's) cells split evenly among its segments
 
 
@@ -198,6 +200,47 @@ class _WoFrame:
 
     def ab(self, wo):
         return to_ab(wo, self.phi_ref)
+
+
+class _PolarFrame:
+    """The isotropic halfpolar cells' (a, b) of the half vector at wi = (theta, phi):
+    halfvector.polar_to_ab in the frame turned by phi + pi, as Tables maps them."""
+
+    def __init__(self, wi, phi):
+        self.wi, self.angle = wi, phi + np.pi
+
+    def nodes(self, a0, a1, b0, b1, s):
+        q = len(s)
+        a = np.repeat(a0[:, None] + s[None, :] * (a1 - a0)[:, None], q, axis=1)
+        b = np.tile(b0[:, None] + s[None, :] * (b1 - b0)[:, None], (1, q))
+        return halfvector.polar_from_ab(self.wi, a.ravel(), b.ravel(), self.angle)
+
+    def ab(self, wo):
+        return halfvector.polar_to_ab(self.wi, wo, self.angle)[:2]
+
+
+# Row knots of halfpolar cells at these fractions of the lobe width: a coat's spike inside a
+# broader lobe (cc_green_malachite, 48² single bins at theta_i 0/30/60/85: one knot at the lobe
+# width 2.08/1.12/0.79/9.73x the ideal's rv, with one at a quarter too 0.57/0.36/0.72/4.00x).
+POLAR_FRACTIONS = (0.25, 1.0)
+
+
+def polar_lobe_knots(wi, lobe_width):
+    """Row knots in a of halfpolar cells at wi: the centre (the mirror direction), the rings
+    holding the half vectors within POLAR_FRACTIONS of lobe_width / 2 of the normal (the
+    mirror doubles h's angle; their median a, the cap varying around the ring), the rim.
+    Without a lobe width: none."""
+    if lobe_width is None:
+        return np.array([0.0, 1.0])
+    around = np.linspace(0.0, TWO_PI, 16, endpoint=False)
+    knots = [0.0]
+    for fraction in POLAR_FRACTIONS:
+        t = 0.5 * lobe_width * fraction
+        h = np.stack([np.sin(t) * np.cos(around), np.sin(t) * np.sin(around), np.full_like(around, np.cos(t))], axis=1)
+        wo = 2.0 * (h @ wi)[:, None] * h - wi
+        wo[:, 2] = np.maximum(wo[:, 2], 1e-9)
+        knots.append(np.median(halfvector.polar_to_ab(wi, wo)[0]))      # a: the same in any frame
+    return _knots(knots + [1.0], 0.0, 1.0, A_MIN)
 
 
 class _HalfFrame:
@@ -604,9 +647,10 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
     """Tables of a material at the given incident elevations (radians) and, for an
     anisotropic material, azimuths `phi_bins` (radians, increasing within [0, phi_period)
     of the material; see default_phi_bins). Each azimuth's bins are built like an isotropic
-    material's (`_build_column`) at wi = (theta, phi). coords: "wo" (isotropic tables') or
-    "halfvector" (anisotropic only, their default): cells over the half vector (tables.py),
-    which hold a thin lobe between phi_i bins. row_share, col_share: the share of a segment's
+    material's (`_build_column`) at wi = (theta, phi). coords (tables.py): isotropic "wo" or
+    "halfpolar" (the half vector, polar around the mirror direction), anisotropic "halfvector"
+    (their default: the half vector, concentric, which holds a thin lobe between phi_i bins)
+    or "wo". Default: ISO_COORDS for isotropic tables. row_share, col_share: the share of a segment's
     rows (columns) spread evenly over it, the rest at the quantiles of the points' weight
     (default: SHARES; isotropic tables also share a segment's cells out by weight).
     """
@@ -629,9 +673,10 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
                 col_share=col_share, quadrature=quadrature, floor=floor, window=window, step=step)
     # One azimuth's source points are ~10 MB per bin: with several azimuths, each column's
     # are dropped once it is built (caching them all took > 20 GB for a planned 1:6 GGX).
-    coords = coords or ("wo" if phi_bins is None else "halfvector")
-    if coords not in ("wo", "halfvector") or (coords == "halfvector" and phi_bins is None):
-        raise FlowBSDFError(f"coords {coords!r}: 'wo', or 'halfvector' for anisotropic tables")
+    coords = coords or (ISO_COORDS if phi_bins is None else "halfvector")
+    if coords not in (("wo", "halfpolar") if phi_bins is None else ("wo", "halfvector")):
+        raise FlowBSDFError(f"coords {coords!r}: 'wo' or 'halfpolar' for isotropic tables, "
+                            "'halfvector' or 'wo' for anisotropic ones")
     kind = "isotropic" if phi_bins is None else "anisotropic"
     opts["row_share"] = SHARES[kind][0] if row_share is None else row_share
     opts["col_share"] = SHARES[kind][1] if col_share is None else col_share
@@ -646,7 +691,7 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
     if coords == "halfvector" and (turn := _closing_turn(period)):
         columns.append(turn(columns[0]))
     if phi_bins is None:
-        return Tables(theta_bins, *columns[0])
+        return Tables(theta_bins, *columns[0], coords=coords)
     return Tables(theta_bins, *(np.stack(x, axis=1) for x in zip(*columns)), phi_bins=phis, phi_period=period,
                   coords=coords, frame_angle=frame_angle)
 
@@ -662,20 +707,21 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
     points of its neighbours within `window` bins (same phi), in positions normalized to
     each bin's knots: neighbouring bins then place a cell on the same part of the lobe, so
     interpolating them moves the lobe instead of smearing it. In the half vector's
-    coordinates (anisotropic tables) the specular peak of every wi is the domain's centre:
-    the knots are there, and the lobe's width needs none.
+    coordinates the specular peak of every wi is the domain's centre: the knots are there
+    (concentric: its row and column; polar: a = 0, with rings at the lobe's width,
+    polar_lobe_knots, and the column at wi's side, b = pi).
     """
     K = len(theta_bins)
     wis = [spherical_dir(t, phi) for t in theta_bins]
-    frames = [_WoFrame(phi) if coords == "wo" else _HalfFrame(wi, frame_angle) for wi in wis]
-    if coords == "halfvector":
-        lobe_width = None
+    frames = [_WoFrame(phi) if coords == "wo" else _PolarFrame(wi, phi) if coords == "halfpolar"
+              else _HalfFrame(wi, frame_angle) for wi in wis]
     with _cache_lock:
         entries = [cache.setdefault((float(t), phi, grid, gamma, coords),
                                     _Once(_points, material, source, wi, grid, frame, gamma))
                    for t, wi, frame in zip(theta_bins, wis, frames)]
     points = list(_parallel(_Once.get, entries))
-    row_knots = [CENTRE_ROW_KNOTS if coords == "halfvector" else lobe_knots(t, lobe_width) for t in theta_bins]
+    row_knots = [CENTRE_ROW_KNOTS if coords == "halfvector" else polar_lobe_knots(wi, lobe_width)
+                 if coords == "halfpolar" else lobe_knots(t, lobe_width) for t, wi in zip(theta_bins, wis)]
     n_seg = len(row_knots[0]) - 1
     by_seg = [_by_segment(*_normalize(p[0], k), p[2], n_seg) for p, k in zip(points, row_knots)]
     near = [tuple(range(max(0, k - window), min(K, k + window + 1))) for k in range(K)]
@@ -701,8 +747,8 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
         a, b, w, _ = points[k]
         row = np.clip(np.searchsorted(a_edges[k], a, side="right") - 1, 0, rows - 1)
         a_mid = 0.5 * (a_edges[k][:-1].astype(np.float64) + a_edges[k][1:])
-        knots = np.stack([CENTRE_COL_KNOTS if coords == "halfvector" else lobe_col_knots(m, lobe_width)
-                          for m in a_mid])
+        knots = (np.tile(CENTRE_COL_KNOTS, (rows, 1)) if coords != "wo"
+                 else np.stack([lobe_col_knots(m, lobe_width) for m in a_mid]))
         seg, r = _normalize_rows(b, knots, row)
         # segment s of row i: group i * n + s
         by_row.append((knots, _by_segment(row * (knots.shape[1] - 1) + seg, r, w, rows * (knots.shape[1] - 1))))
@@ -792,7 +838,7 @@ def lobe_width_of(material, ideal):
 @one_blas_thread()
 def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio=1.0, resolution=None,
                 first_bins=6, theta_max_deg=89.5, min_gap_deg=0.2, samples=1 << 14, lobe_width="auto",
-                ideal_resolution=256, log=None, phi_count="auto", **options):
+                ideal_resolution=256, log=None, phi_count="auto", coords="auto", **options):
     """Tables with only the resolution and incident bins this material needs.
 
     The probes build tables from the ideal tabulation's points (`ideal`: the plan depends on
@@ -812,6 +858,13 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     of its two bins (interval_loss) relative to the midpoint's target, until no interval loses
     more than its target.
 
+    Coordinates (isotropic): "auto" plans the tables over each of ISO_PLANNED and keeps the plan
+    whose worst midpoint is closest to its target (when both reach their targets: the smaller). Neither
+    wins everywhere: over the half vector a lobe stays put between bins, over wo a diffuse
+    base is the same at every theta_i (measured on the shared files, 2 MB: the worst of
+    theta_i 0/30/60/75/85 of 7 files 1.3-3x closer to the ideal over the half vector, paper
+    and colodur 3.5x and 2.7x further).
+
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
     (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
     at each theta_i of PHI_PROBE_DEG loses at most the bin's own rv plus tol / 2 (at 4 azimuths). The
@@ -825,14 +878,13 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     ideal = source if isinstance(source, IdealSampler) else IdealSampler(material, resolution=ideal_resolution)
     if lobe_width == "auto":
         lobe_width = lobe_width_of(material, ideal)
-    opts = dict(lobe_width=lobe_width, cache={}, **options)
     aniso = not material.isotropic
     tol = (ANISO_TOL if aniso else ISO_TOL) if tol is None else tol
-
-    def build(thetas, phi=0.0, phis=None):     # a probe; phis: all azimuths, else the single azimuth phi
-        if aniso:
-            phis = [phi] if phis is None else phis
-        return build_tables(material, ideal, thetas, resolution, resolution, phi_bins=phis, **opts)
+    if coords == "auto":
+        candidates = [None] if aniso else list(ISO_PLANNED)
+    else:
+        candidates = [coords]
+    cache = {}
 
     def rv_at(tab, theta, phi=0.0):
         return relative_variance(material, tab, spherical_dir(theta, phi), n=samples)[0]
@@ -846,89 +898,124 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
             targets[theta] = max(ideal_ratio * rv_at(ideal, theta), 0.5 * tol)
         return targets[theta]
 
-    probe_phis = list(np.arange(4) * (material.phi_period / 4)) if aniso else [0.0]
-    worst_phi = 0.0
-    if resolution is None:
-        probe = np.radians([86.0, 75.0, 10.0, 45.0])     # grazing first: where coarse tables fail first
+    def plan(coords, say):
+        """(resolution, bins, phi_bins, worst_phi, worst interval loss) of the tables over coords."""
+        opts = dict(lobe_width=lobe_width, cache=cache, coords=coords, **options)
+        resolution = plan_resolution
 
-        def probe_rv(phi):   # the worst rv / target over the probe angles (isotropic: up to the first above 1)
-            worst = 0.0
-            for t in probe:
-                worst = max(worst, rv_at(build([t], phi), t, phi) / target(t))
-                if worst > 1.0 and not aniso:
+        def build(thetas, phi=0.0, phis=None):     # a probe; phis: all azimuths, else the single azimuth phi
+            if aniso:
+                phis = [phi] if phis is None else phis
+            return build_tables(material, ideal, thetas, resolution, resolution, phi_bins=phis, **opts)
+
+        probe_phis = list(np.arange(4) * (material.phi_period / 4)) if aniso else [0.0]
+        worst_phi = 0.0
+        if resolution is None:
+            probe = np.radians([86.0, 75.0, 10.0, 45.0])     # grazing first: where coarse tables fail first
+
+            def probe_rv(phi):   # the worst rv / target over the probe angles (isotropic: up to the first above 1)
+                worst = 0.0
+                for t in probe:
+                    worst = max(worst, rv_at(build([t], phi), t, phi) / target(t))
+                    if worst > 1.0 and not aniso:
+                        break
+                return worst
+
+            # Isotropic: one angle above its target decides that a resolution fails (the rest need
+            # not be built). Anisotropic: the worst azimuth is needed, so every angle is.
+            tried = {}
+            for resolution in (ANISO_RESOLUTIONS if aniso else _resolutions_within(memory_budget)):
+                by_phi = {phi: probe_rv(phi) for phi in probe_phis}
+                worst_phi, worst = max(by_phi.items(), key=lambda kv: kv[1])
+                tried[resolution] = worst
+                say(f"resolution {resolution}: single-bin rv {worst:.2f}x the target"
+                    + (" or more" if worst > 1 and not aniso else "")
+                    + (f" (at phi_i {np.degrees(worst_phi):.1f} deg)" if aniso else ""))
+                if worst <= 1.0:
                     break
-            return worst
+            if worst > 1.0 and not aniso:
+                # None reaches its target: the closest one. More cells are not always closer (aurora
+                # at theta_i 86: 48² 3.2x, 64² 8.0x; sharp files fail every resolution at the first
+                # probe angle, so they compare there), and fewer leave room for more bins.
+                resolution = min(tried, key=lambda r: (tried[r], -r))
+                say(f"resolution {resolution}: none reaches the target; this one comes closest")
+        elif aniso:
+            worst_phi = max(probe_phis, key=lambda phi: rv_at(build([np.radians(75.0)], phi), np.radians(75.0), phi))
+        phi_bins = None
+        if aniso:
+            count = phi_count
+            if count == "auto":
+                probes = [(np.radians(t), phi) for t in PHI_PROBE_DEG for phi in probe_phis]
+                for count in PHI_COUNTS:
+                    step = material.phi_period / count
+                    pairs = list(_parallel(lambda tp: build([tp[0]], phis=[tp[1], tp[1] + step]), probes))
+                    loss = max(rv_at(tab, t, phi + 0.5 * step) - 2.0 * rv_at(tab, t, phi)
+                               for tab, (t, phi) in zip(pairs, probes))
+                    say(f"phi bins {count}: the blend half-way loses {loss:.4f}")
+                    if loss <= 0.5 * tol:
+                        break
+            phi_bins = default_phi_bins(material, count)
+        per_bin = FLOATS_PER_CELL * 4 * resolution * resolution
+        budget = memory_budget
+        if phi_bins is not None:        # every theta bin once per azimuth, and the one closing the period
+            per_bin *= len(phi_bins) + 1
+            budget *= ANISO_BUDGET
+        max_bins = max(2, int(budget // per_bin))
 
-        # Isotropic: one angle above its target decides that a resolution fails (the rest need
-        # not be built). Anisotropic: the worst azimuth is needed, so every angle is.
-        tried = {}
-        for resolution in (ANISO_RESOLUTIONS if aniso else _resolutions_within(memory_budget)):
-            by_phi = {phi: probe_rv(phi) for phi in probe_phis}
-            worst_phi, worst = max(by_phi.items(), key=lambda kv: kv[1])
-            tried[resolution] = worst
-            log(f"resolution {resolution}: single-bin rv {worst:.2f}x the target"
-                + (" or more" if worst > 1 and not aniso else "")
-                + (f" (at phi_i {np.degrees(worst_phi):.1f} deg)" if aniso else ""))
+        bins = list(np.radians(np.linspace(0.0, theta_max_deg, first_bins)))
+        gap = np.radians(min_gap_deg)
+
+        def midpoint(lo, hi):     # interpolation is linear in cos(theta): test where it errs most
+            return float(np.arccos(0.5 * (np.cos(lo) + np.cos(hi))))
+
+        scores = {}
+        reached = {}        # per interval: the midpoint's rv over its target
+
+        def interval_loss(lo, hi):
+            """What interpolating between bins at lo and hi loses at the midpoint beyond what the
+            bins themselves reach, in units of the midpoint's target: the midpoint's rv above the
+            target or the better of the two bins' own rv (both measured on the same pair of bins: a
+            bin built at the midpoint costs as much as the pair, and would only be needed for this)."""
+            if hi - lo <= gap:
+                return 0.0
+            tab = build([lo, hi], worst_phi)
+            floor = min(rv_at(tab, lo, worst_phi), rv_at(tab, hi, worst_phi))
+            mid = midpoint(lo, hi)
+            rv_mid = rv_at(tab, mid, worst_phi)
+            reached[(lo, hi)] = rv_mid / target(mid)
+            return max(rv_mid - max(floor, target(mid)), 0.0) / target(mid)
+
+        while len(bins) < max_bins:
+            new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
+            # The new intervals' builds are independent: all of them at once, in threads.
+            scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
+            (lo, hi), worst = max(scores.items(), key=lambda kv: kv[1])
             if worst <= 1.0:
                 break
-        if worst > 1.0 and not aniso:
-            # None reaches its target: the closest one. More cells are not always closer (aurora
-            # at theta_i 86: 48² 3.2x, 64² 8.0x; sharp files fail every resolution at the first
-            # probe angle, so they compare there), and fewer leave room for more bins.
-            resolution = min(tried, key=lambda r: (tried[r], -r))
-            log(f"resolution {resolution}: none reaches the target; this one comes closest")
-    elif aniso:
-        worst_phi = max(probe_phis, key=lambda phi: rv_at(build([np.radians(75.0)], phi), np.radians(75.0), phi))
-    phi_bins = None
-    if aniso:
-        if phi_count == "auto":
-            probes = [(np.radians(t), phi) for t in PHI_PROBE_DEG for phi in probe_phis]
-            for phi_count in PHI_COUNTS:
-                step = material.phi_period / phi_count
-                pairs = list(_parallel(lambda tp: build([tp[0]], phis=[tp[1], tp[1] + step]), probes))
-                loss = max(rv_at(tab, t, phi + 0.5 * step) - 2.0 * rv_at(tab, t, phi)
-                           for tab, (t, phi) in zip(pairs, probes))
-                log(f"phi bins {phi_count}: the blend half-way loses {loss:.4f}")
-                if loss <= 0.5 * tol:
-                    break
-        phi_bins = default_phi_bins(material, phi_count)
-    per_bin = FLOATS_PER_CELL * 4 * resolution * resolution
-    if phi_bins is not None:        # every theta bin once per azimuth, and the one closing the period
-        per_bin *= len(phi_bins) + 1
-        memory_budget *= ANISO_BUDGET
-    max_bins = max(2, int(memory_budget // per_bin))
+            bins = sorted(bins + [midpoint(lo, hi)])
+            del scores[(lo, hi)]
+            say(f"bins {len(bins)}: split {np.degrees(lo):.2f}-{np.degrees(hi):.2f} deg "
+                f"(midpoint loss {worst:.2f}x its target)")
+        # What the plan reaches, to compare plans: the worst midpoint over its target (the
+        # intervals of the last split are scored too when the budget ended it).
+        if len(candidates) > 1:
+            new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
+            scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
+        intervals = list(zip(bins[:-1], bins[1:]))
+        return resolution, bins, phi_bins, worst_phi, max((reached.get(iv, 0.0) for iv in intervals), default=0.0)
 
-    bins = list(np.radians(np.linspace(0.0, theta_max_deg, first_bins)))
-    gap = np.radians(min_gap_deg)
-
-    def midpoint(lo, hi):     # interpolation is linear in cos(theta): test where it errs most
-        return float(np.arccos(0.5 * (np.cos(lo) + np.cos(hi))))
-
-    scores = {}
-
-    def interval_loss(lo, hi):
-        """What interpolating between bins at lo and hi loses at the midpoint beyond what the
-        bins themselves reach, in units of the midpoint's target: the midpoint's rv above the
-        target or the better of the two bins' own rv (both measured on the same pair of bins: a
-        bin built at the midpoint costs as much as the pair, and would only be needed for this)."""
-        if hi - lo <= gap:
-            return 0.0
-        tab = build([lo, hi], worst_phi)
-        floor = min(rv_at(tab, lo, worst_phi), rv_at(tab, hi, worst_phi))
-        mid = midpoint(lo, hi)
-        return max(rv_at(tab, mid, worst_phi) - max(floor, target(mid)), 0.0) / target(mid)
-
-    while len(bins) < max_bins:
-        new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
-        # The new intervals' builds are independent: all of them at once, in threads.
-        scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
-        (lo, hi), worst = max(scores.items(), key=lambda kv: kv[1])
-        if worst <= 1.0:
-            break
-        bins = sorted(bins + [midpoint(lo, hi)])
-        del scores[(lo, hi)]
-        log(f"bins {len(bins)}: split {np.degrees(lo):.2f}-{np.degrees(hi):.2f} deg "
-            f"(midpoint loss {worst:.2f}x its target)")
+    plan_resolution = resolution
+    plans = {}
+    for coords in candidates:
+        say = log if len(candidates) == 1 else (lambda text, c=coords: log(f"{c}: {text}"))
+        plans[coords] = plan(coords, say)
+    # The plan closest to its targets at its worst midpoint; when both reach them, the smaller.
+    coords = min(plans, key=lambda c: (max(plans[c][4], 1.0), len(plans[c][1]) * plans[c][0] ** 2))
+    resolution, bins, phi_bins, worst_phi, _ = plans[coords]
+    if len(candidates) > 1:
+        log(f"coordinates: {coords} (worst midpoint " + ", ".join(
+            f"{c} {p[4]:.2f}x" for c, p in plans.items()) + " its target)")
+    opts = dict(lobe_width=lobe_width, coords=coords, **options)
     log(f"tables: building {len(bins)} angles" + (f" x {len(phi_bins)} azimuths" if phi_bins is not None else ""))
     every = [0]
 

@@ -10,8 +10,9 @@ Bins: K over theta_i, times P over phi_i for anisotropic tables (P = 1 isotropic
 b = k P + p as in Tables. Layout (W = texture width, rows from the top of the image; texel
 (x, y) is read at s = (x + 0.5) / W, t = (y + 0.5) / H):
 
-    row 0                   header: (LAYOUT, K, R), (C, W, H), (P, phi period, halfvector
-                            coordinates (1) or not (0), their frame's angle)
+    row 0                   header: (LAYOUT, K, R), (C, W, H), (P, phi period, the coordinates
+                            (their index in tables.COORDS: 0 wo, 1 halfvector, 2 halfpolar),
+                            their frame's angle)
     row 1                   cos(theta_bin k) at x = k (red); phi_bin p at x = p (green)
     row 2                   theta guide: at x = g < W, (lo, hi) brackets k for cos theta_i in
                             [g / W, (g + 1) / W), then cos(theta_bin k), cos(theta_bin k + 1) for
@@ -45,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.tables import open_tables
+from ..core.tables import COORDS, open_tables
 from ..errors import FlowBSDFError
 from ..plumbing.exrio import write_rgba_exr
 from ..plumbing.files import file_hash
@@ -93,7 +94,7 @@ def texture_image(tables):
     img = np.zeros((height, width, 4), np.float64)
     img[0, 0, :3] = (LAYOUT, K, R)
     img[0, 1, :3] = (C, width, height)
-    img[0, 2] = (P, tables.phi_period, tables.coords == "halfvector", tables.frame_angle)
+    img[0, 2] = (P, tables.phi_period, COORDS.index(tables.coords), tables.frame_angle)
     cos_bins = np.cos(tables.theta_bins).astype(np.float32).astype(np.float64)
     img[1, :K, 0] = cos_bins
     img[1, :P, 1] = [0.0] if tables.phi_bins is None else tables.phi_bins

@@ -70,8 +70,8 @@ float exp_inverse_cdf(float u, float k)
     return clamp(x, 0.0, 1.0);
 }
 
-// The texture's header: 1 and (W, H, K, R, C, P, phi period, halfvector coordinates?, their
-// frame's angle) when it is a current export.
+// The texture's header: 1 and (W, H, K, R, C, P, phi period, the coordinates (0 "wo",
+// 1 "halfvector", 2 "halfpolar"), their frame's angle) when it is a current export.
 int read_header(string file, output float W, output float H, output int K, output int R,
                 output int C, output int NP, output float period, output int half, output float frame)
 {
@@ -83,7 +83,7 @@ int read_header(string file, output float W, output float H, output int K, outpu
     color h0 = fetch(file, W, H, 0, 0);      // (LAYOUT, K, R)
     color h1 = fetch(file, W, H, 1, 0);      // (C, W, H)
     float h2a = 0;
-    color h2 = fetch4(file, W, H, 2, 0, h2a);      // (P, phi period, halfvector?, frame angle)
+    color h2 = fetch4(file, W, H, 2, 0, h2a);      // (P, phi period, coordinates, frame angle)
     half = int(h2[2]);
     frame = h2a;
     K = int(h0[1]);
@@ -216,6 +216,29 @@ void half_to_ab(vector wi, vector wo, output float a, output float b, output flo
     jac = 4.0 * dot(wi, h) * cap;
 }
 
+// bake/core/halfvector.py polar_from_ab and polar_to_ab (isotropic halfpolar tables).
+vector polar_from_ab(vector wi, float a, float b, output float jac)
+{
+    float cap = half_cap(wi, b);
+    float one_minus_cos = a * cap;
+    float sin_h = sqrt(max(one_minus_cos * (2.0 - one_minus_cos), 0.0));
+    vector h = vector(sin_h * cos(b), sin_h * sin(b), 1.0 - one_minus_cos);
+    float cos_ih = dot(wi, h);
+    vector wo = 2.0 * cos_ih * h - wi;
+    wo[2] = max(wo[2], 0.0);
+    jac = 4.0 * cos_ih * cap;
+    return wo;
+}
+
+void polar_to_ab(vector wi, vector wo, output float a, output float b, output float jac)
+{
+    vector h = normalize(wi + wo);
+    b = mod(atan2(h[1], h[0]), 2.0 * M_PI);
+    float cap = half_cap(wi, b);
+    a = clamp((h[0] * h[0] + h[1] * h[1]) / (1.0 + h[2]) / cap, 0.0, 1.0);
+    jac = 4.0 * dot(wi, h) * cap;
+}
+
 vector turn_z(vector w, float angle)
 {
     float c = cos(angle), s = sin(angle);
@@ -274,10 +297,10 @@ void sample_tables(string file, float W, float H, int K, int R, int C, int NP, f
     float a = a0 + x * (a1 - a0);
     float b = b0 + y * (b1 - b0);
     pdf = cell[0] * exp_density(x, cell[1]) * exp_density(y, cell[2]) / ((a1 - a0) * (b1 - b0));
-    if (half) {     // h in the frame turned by whole periods and the lobe's axes
-        float ref = turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0)), jac;
+    if (half) {     // h in the frame turned by whole periods and the lobe's axes (halfpolar: wi's + pi)
+        float ref = (half == 2) ? phi_i + M_PI : turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0)), jac;
         vector wi = vector(sin_i * cos(phi_i - ref), sin_i * sin(phi_i - ref), cos_i);
-        wo = turn_z(half_from_ab(wi, a, b, jac), ref);
+        wo = turn_z((half == 2) ? polar_from_ab(wi, a, b, jac) : half_from_ab(wi, a, b, jac), ref);
         pdf /= jac;
         return;
     }
@@ -332,9 +355,12 @@ void eval_tables(string file, float W, float H, int K, int R, int C, int NP, flo
     float b = mod(atan2(wo[1], wo[0]) - phi_i, 2.0 * M_PI);     // as in sample_tables: phi_o = b + phi_i
     float jac = 1.0;
     if (half) {
-        float ref = turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0));
+        float ref = (half == 2) ? phi_i + M_PI : turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0));
         vector wi = vector(sin_i * cos(phi_i - ref), sin_i * sin(phi_i - ref), cos_i);
-        half_to_ab(wi, turn_z(wo, -ref), a, b, jac);
+        if (half == 2)
+            polar_to_ab(wi, turn_z(wo, -ref), a, b, jac);
+        else
+            half_to_ab(wi, turn_z(wo, -ref), a, b, jac);
     }
     // Row: the last i with a_i <= a; column: the last j with b_ij <= b. Each search starts from
     // its guide's bracket (blue, alpha of the row / column guide texels).
