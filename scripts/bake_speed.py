@@ -86,7 +86,7 @@ def main():
         kits.update(flow_kits(args.models, [int(g) for g in args.grids.split(",")]))
     print(f"load: {os.getloadavg()[0]:.2f} (1 min) at start, {os.cpu_count()} cores", flush=True)
     head = ["material"] + [f"{lab} s" for lab in kits] + (["old/new"] if args.baseline else []) + \
-        [f"{lab} res x bins" for lab in kits] + [f"{lab} MB" for lab in kits] + \
+        [f"{lab} res x bins, coords" for lab in kits] + [f"{lab} MB" for lab in kits] + \
         [f"{lab} rv {t} (/ideal)" for t in THETAS for lab in kits]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name in args.materials.split(","):
@@ -108,7 +108,7 @@ def main():
         row = [name.removesuffix("_rgb")] + [f"{best[lab]:.1f}" for lab in kits]
         if args.baseline:
             row.append(f"{best['old'] / best['new']:.2f}")
-        row += [f"{tab.rows} x {len(tab.theta_bins)}" for tab in tables.values()]
+        row += [f"{tab.rows} x {len(tab.theta_bins)} {getattr(tab, 'coords', 'wo')}" for tab in tables.values()]
         row += [f"{tab.nbytes / 2**20:.2f}" for tab in tables.values()]
         row += [f"{rv[lab][i]:.4f} ({rv[lab][i] / ideal_rv[i]:.2f})" for i in range(len(THETAS)) for lab in kits]
         lines.append("| " + " | ".join(row) + " |")

@@ -880,11 +880,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
         lobe_width = lobe_width_of(material, ideal)
     aniso = not material.isotropic
     tol = (ANISO_TOL if aniso else ISO_TOL) if tol is None else tol
-    if coords == "auto":
-        candidates = [None] if aniso else list(ISO_PLANNED)
-    else:
-        candidates = [coords]
-    cache = {}
+    candidates = ([None] if aniso else list(ISO_PLANNED)) if coords == "auto" else [coords]
+    cache = {}      # the probes' points per bin and coordinates (_Once), shared by the plans
 
     def rv_at(tab, theta, phi=0.0):
         return relative_variance(material, tab, spherical_dir(theta, phi), n=samples)[0]
@@ -899,7 +896,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
         return targets[theta]
 
     def plan(coords, say):
-        """(resolution, bins, phi_bins, worst_phi, worst interval loss) of the tables over coords."""
+        """(resolution, bins, phi_bins, worst_phi, the worst midpoint's rv over its target) of the
+        tables over coords (None: build_tables' default)."""
         opts = dict(lobe_width=lobe_width, cache=cache, coords=coords, **options)
         resolution = plan_resolution
 
