@@ -100,7 +100,9 @@ class BakeProgress(Step):
     textures and fit ("[svm]/[osl]/[fit] wrote"). Angles left: from how far the worst midpoint went down on a log scale, and how far
     the angle count went towards its cap; the time a split takes, measured. The build: a tenth
     of a split per angle (from the ideal tabulation's points; a flow's cost ~20x as much) until
-    its first "built" line, then its own pace. Lines pass through to the log."""
+    its first "built" line, then its own pace. An isotropic material is planned once per cell
+    layout (tabulate.ISO_PLANNED; its lines start "<coords>: "): each plan counts afresh, the
+    ones still to come as long as this one. Lines pass through to the log."""
     RESOLUTION = re.compile(r"resolution (\d+): single-bin rv ([0-9.eE+-]+)x the target")
     SPLIT = re.compile(r"bins (\d+): split .*\(midpoint loss ([0-9.eE+-]+)x its target\)")
     BUILDING = re.compile(r"tables: building (\d+) angles")
@@ -108,20 +110,35 @@ class BakeProgress(Step):
 
     def __init__(self, name, settings, clock=time.monotonic):
         import inspect
-        from bake.core.tabulate import FLOATS_PER_CELL, RESOLUTIONS, plan_tables
+        from bake.core.tabulate import FLOATS_PER_CELL, ISO_PLANNED, RESOLUTIONS, plan_tables
         super().__init__(clock)
         defaults = {k: v.default for k, v in inspect.signature(plan_tables).parameters.items()}
         get = lambda key: settings.get(key, defaults[key])        # noqa: E731
         self.name, self.resolutions, self.cell = name, RESOLUTIONS, FLOATS_PER_CELL * 4
-        self.resolution, self.first = get("resolution"), get("first_bins")
+        self.planned_resolution, self.first = get("resolution"), get("first_bins")
         self.target, self.budget = 1.0, get("memory_budget")     # the planner's scores are x its targets
-        self.stage, self.probed, self.bins = "prepare", 0, self.first
-        self.scores, self.events = [], []          # the planner's worst midpoint rv; times of its lines
+        self.layout_names = ISO_PLANNED
+        self.layout_of = re.compile("(" + "|".join(ISO_PLANNED) + "): (.*)$")
+        self.layouts, self.layout = 1, 0          # plans of this material (one until a line says more), this one
+        self._start_plan()
         self.build = None                          # [start time, parts built, parts, time of the last]
+
+    def _start_plan(self):
+        self.resolution, self.stage, self.probed, self.bins = self.planned_resolution, "prepare", 0, self.first
+        self.scores, self.events = [], []          # the planner's worst midpoint rv; times of its lines
+        self.plan_t0 = self.clock()
 
     def log(self, line):
         emit(line)
         text = line.split(": ", 1)[1] if line.startswith("[bake] ") and ": " in line else ""
+        m = self.layout_of.match(text)
+        if m:
+            self.layouts = len(self.layout_names)
+            layout = self.layout_names.index(m.group(1))
+            if layout != self.layout:
+                self.layout = layout
+                self._start_plan()
+            text = m.group(2)
         m = self.RESOLUTION.match(text)
         if m:
             self.stage, self.probed = "probe", self.resolutions.index(int(m.group(1))) + 1
@@ -167,10 +184,12 @@ class BakeProgress(Step):
     def estimate(self, now):
         who = f"Baking {self.name}"
         elapsed = now - self.t0
-        if self.stage == "prepare":
+        layout = f"layout {self.layout + 1} of {self.layouts}, " if self.layouts > 1 else ""
+        if self.stage == "prepare" and not self.layout:
             return 0.02, f"{who}: tabulating the material"
-        if self.stage == "probe":
-            return 0.05, f"{who}: choosing the table resolution ({self.probed} of {len(self.resolutions)})"
+        if self.stage in ("prepare", "probe"):
+            return (0.05 + 0.5 * self.layout / self.layouts,
+                    f"{who}: {layout}choosing the table resolution ({self.probed} of {len(self.resolutions)})")
         if self.stage == "derive":
             return 0.97, f"{who}: writing the node's textures and closure fit"
         if self.stage == "preview":
@@ -178,17 +197,19 @@ class BakeProgress(Step):
         if self.stage == "build":
             return self._build_estimate(now, who)
         if len(self.scores) < 3:
-            return 0.1, f"{who}: {self.bins} angles placed, estimating the time left"
+            return 0.1 + 0.4 * self.layout / self.layouts, f"{who}: {layout}{self.bins} angles placed, estimating the time left"
         split = self._split_seconds()
         left, capped = self.angles_left()
         total = self.bins + left
-        remaining = left * split + total * split / 10 + 3.0 - (now - self.events[-1])
+        plan_left = left * split - (now - self.events[-1])
+        later = (self.layouts - 1 - self.layout) * (now - self.plan_t0 + max(plan_left, 0.0))     # plans to come
+        remaining = plan_left + total * split / 10 + 3.0 + later
         if remaining <= 0:
             return None, f"{who}: finishing the tables ({total} angles)"
-        if left == 0:
+        if left == 0 and not later:
             words = f"{who}: building the tables for {total} angles, {time_left(remaining)}"
         else:
-            words = (f"{who}: {self.bins} of {'at most' if capped else 'about'} {total} angles, "
+            words = (f"{who}: {layout}{self.bins} of {'at most' if capped else 'about'} {total} angles, "
                      f"{time_left(remaining)}")
         return elapsed / (elapsed + remaining), words
 

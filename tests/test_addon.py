@@ -329,10 +329,13 @@ def test_progress_moves_within_one_material(tmp_path):
     import re
     inside = [(f, m) for f, m in seen if 0.0 < f < 1.0]
     assert inside and len({f for f, _ in inside}) >= 3, seen[-10:]
-    assert any(re.match(r"Baking plastic: \d+ of about \d+ angles, (about \d+ s|a few seconds) left$", m)
-               for _, m in inside), sorted({m for _, m in seen})
+    # an isotropic material is planned over each cell layout in turn (tabulate.ISO_PLANNED)
+    for layout in (1, 2):
+        assert any(re.match(rf"Baking plastic: layout {layout} of 2, \d+ of about \d+ angles, "
+                            r"(about \d+ s|a few seconds) left$", m) for _, m in inside), sorted({m for _, m in seen})
     assert not any(m.startswith("[bake]") for _, m in seen)
-    assert any(line.startswith("[bake] plastic: bins ") for line in job.lines)      # the log keeps them
+    assert any(line.startswith("[bake] plastic: halfpolar: bins ") for line in job.lines)      # the log keeps them
+    assert any(line.startswith("[bake] plastic: coordinates: ") for line in job.lines)
     fractions = [f for f, _ in seen]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
 
