@@ -197,7 +197,8 @@ class BakeProgress(Step):
         if self.stage == "build":
             return self._build_estimate(now, who)
         if len(self.scores) < 3:
-            return 0.1 + 0.4 * self.layout / self.layouts, f"{who}: {layout}{self.bins} angles placed, estimating the time left"
+            return (0.1 + 0.4 * self.layout / self.layouts,
+                    f"{who}: {layout}{self.bins} angles placed, estimating the time left")
         split = self._split_seconds()
         left, capped = self.angles_left()
         total = self.bins + left

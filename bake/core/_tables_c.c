@@ -415,47 +415,8 @@ FT_INLINE void half_cap(const ft_bin *B, const double *phi_h, double *cap) {
     }
 }
 
-/* halfvector.from_ab for a block (wi: B[k].wr), then warps.rotate_z back by phi_ref: wo (BLK, 3)
- * and jac = d omega_o / (da db) */
-FT_INLINE void half_from_ab(const ft_bin *B, const double *a, const double *b, double *wo, double *jac) {
-    double r[BLK], ang[BLK], u[BLK], v[BLK], phi[BLK], cap[BLK], c[BLK], sn[BLK], sh[BLK];
-    for (int k = 0; k < BLK; k++) {
-        const double x = 2.0 * a[k] - 1.0, y = b[k] / PI - 1.0;
-        const int wide = fabs(x) >= fabs(y);
-        r[k] = wide ? x : y;
-        const double safe = r[k] == 0.0 ? 1.0 : r[k];
-        ang[k] = wide ? QUARTER * (y / safe) : 2.0 * QUARTER - QUARTER * (x / safe);
-    }
-    FT_SIMD for (int k = 0; k < BLK; k++) u[k] = cos(ang[k]);
-    FT_SIMD for (int k = 0; k < BLK; k++) v[k] = sin(ang[k]);
-    for (int k = 0; k < BLK; k++) {
-        u[k] = r[k] * u[k];
-        v[k] = r[k] * v[k];
-    }
-    FT_SIMD for (int k = 0; k < BLK; k++) phi[k] = atan2(v[k], u[k]);
-    half_cap(B, phi, cap);
-    FT_SIMD for (int k = 0; k < BLK; k++) c[k] = cos(phi[k]);
-    FT_SIMD for (int k = 0; k < BLK; k++) sn[k] = sin(phi[k]);
-    for (int k = 0; k < BLK; k++) {
-        const double omc = (u[k] * u[k] + v[k] * v[k]) * cap[k];
-        const double q = omc * (2.0 - omc);
-        sh[k] = q < 0.0 ? 0.0 : q;
-        r[k] = omc;
-    }
-    FT_SIMD for (int k = 0; k < BLK; k++) sh[k] = sqrt(sh[k]);
-    for (int k = 0; k < BLK; k++) {
-        const double h0 = sh[k] * c[k], h1 = sh[k] * sn[k], h2 = 1.0 - r[k];
-        const double *w = B[k].wr;
-        const double d = (w[0] * h0 + w[1] * h1) + w[2] * h2;
-        const double x = 2.0 * d * h0 - w[0], y = 2.0 * d * h1 - w[1], z = 2.0 * d * h2 - w[2];
-        wo[3 * k] = B[k].cr * x - B[k].sr * y;
-        wo[3 * k + 1] = B[k].sr * x + B[k].cr * y;
-        wo[3 * k + 2] = z < 0.0 ? 0.0 : z;
-        jac[k] = 4.0 * d * cap[k];
-    }
-}
-
-/* halfvector.polar_from_ab for a block (wi: B[k].wr), then turned back by phi_ref: wo, jac */
+/* halfvector.polar_from_ab for a block (wi: B[k].wr), then turned back by phi_ref: wo, jac
+ * (the isotropic halfpolar tables' map; the concentric one ends in it) */
 FT_INLINE void polar_from_ab(const ft_bin *B, const double *a, const double *b, double *wo, double *jac) {
     double cap[BLK], c[BLK], sn[BLK], sh[BLK];
     half_cap(B, b, cap);
@@ -479,9 +440,31 @@ FT_INLINE void polar_from_ab(const ft_bin *B, const double *a, const double *b, 
     }
 }
 
-/* halfvector.polar_to_ab for a block of wo (turned by -phi_ref into the map's frame first) */
-FT_INLINE void polar_to_ab(const ft_bin *B, const double *wo, double *a, double *b, double *jac) {
-    double h[3][BLK], n[BLK], cap[BLK];
+/* halfvector.from_ab for a block (wi: B[k].wr), then warps.rotate_z back by phi_ref: wo (BLK, 3)
+ * and jac = d omega_o / (da db) */
+FT_INLINE void half_from_ab(const ft_bin *B, const double *a, const double *b, double *wo, double *jac) {
+    double r[BLK], ang[BLK], u[BLK], v[BLK], phi[BLK];
+    for (int k = 0; k < BLK; k++) {
+        const double x = 2.0 * a[k] - 1.0, y = b[k] / PI - 1.0;
+        const int wide = fabs(x) >= fabs(y);
+        r[k] = wide ? x : y;
+        const double safe = r[k] == 0.0 ? 1.0 : r[k];
+        ang[k] = wide ? QUARTER * (y / safe) : 2.0 * QUARTER - QUARTER * (x / safe);
+    }
+    FT_SIMD for (int k = 0; k < BLK; k++) u[k] = cos(ang[k]);
+    FT_SIMD for (int k = 0; k < BLK; k++) v[k] = sin(ang[k]);
+    for (int k = 0; k < BLK; k++) {
+        u[k] = r[k] * u[k];
+        v[k] = r[k] * v[k];
+    }
+    FT_SIMD for (int k = 0; k < BLK; k++) phi[k] = atan2(v[k], u[k]);
+    for (int k = 0; k < BLK; k++) r[k] = u[k] * u[k] + v[k] * v[k];     /* the disk point's radius^2 */
+    polar_from_ab(B, r, phi, wo, jac);
+}
+
+/* h = normalize(wi + wo) for a block of wo, turned by -phi_ref into the map's frame (wi: B[k].wr) */
+FT_INLINE void half_of(const ft_bin *B, const double *wo, double h[3][BLK]) {
+    double n[BLK];
     for (int k = 0; k < BLK; k++) {
         const double *o = wo + 3 * k, *w = B[k].wr;
         const double ox = B[k].cr * o[0] - (-B[k].sr) * o[1], oy = (-B[k].sr) * o[0] + B[k].cr * o[1];
@@ -493,6 +476,12 @@ FT_INLINE void polar_to_ab(const ft_bin *B, const double *wo, double *a, double 
     FT_SIMD for (int k = 0; k < BLK; k++) n[k] = sqrt(n[k]);
     for (int k = 0; k < BLK; k++)
         for (int i = 0; i < 3; i++) h[i][k] = h[i][k] / n[k];
+}
+
+/* halfvector.polar_to_ab for a block of wo (turned by -phi_ref into the map's frame first) */
+FT_INLINE void polar_to_ab(const ft_bin *B, const double *wo, double *a, double *b, double *jac) {
+    double h[3][BLK], cap[BLK];
+    half_of(B, wo, h);
     FT_SIMD for (int k = 0; k < BLK; k++) b[k] = atan2(h[1][k], h[0][k]);
     for (int k = 0; k < BLK; k++) {
         b[k] = isnan(b[k]) ? 0.0 : mod_two_pi(b[k]);      /* np.nan_to_num(np.mod(., 2 pi)) */
@@ -508,18 +497,8 @@ FT_INLINE void polar_to_ab(const ft_bin *B, const double *wo, double *a, double 
 
 /* halfvector.to_ab for a block of wo (turned by -phi_ref into the map's frame first): a, b, jac */
 FT_INLINE void half_to_ab(const ft_bin *B, const double *wo, double *a, double *b, double *jac) {
-    double h[3][BLK], n[BLK], phi[BLK], cap[BLK], rad[BLK], c[BLK], sn[BLK], t[BLK];
-    for (int k = 0; k < BLK; k++) {
-        const double *o = wo + 3 * k, *w = B[k].wr;
-        const double ox = B[k].cr * o[0] - (-B[k].sr) * o[1], oy = (-B[k].sr) * o[0] + B[k].cr * o[1];
-        h[0][k] = w[0] + ox;
-        h[1][k] = w[1] + oy;
-        h[2][k] = w[2] + o[2];
-        n[k] = (h[0][k] * h[0][k] + h[1][k] * h[1][k]) + h[2][k] * h[2][k];
-    }
-    FT_SIMD for (int k = 0; k < BLK; k++) n[k] = sqrt(n[k]);
-    for (int k = 0; k < BLK; k++)
-        for (int i = 0; i < 3; i++) h[i][k] = h[i][k] / n[k];
+    double h[3][BLK], phi[BLK], cap[BLK], rad[BLK], c[BLK], sn[BLK], t[BLK];
+    half_of(B, wo, h);
     FT_SIMD for (int k = 0; k < BLK; k++) phi[k] = atan2(h[1][k], h[0][k]);
     half_cap(B, phi, cap);
     for (int k = 0; k < BLK; k++)

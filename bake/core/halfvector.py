@@ -55,7 +55,11 @@ def from_ab(wi, a, b, frame=0.0):
     u, v = r * np.cos(angle), r * np.sin(angle)          # the disk point
     phi_h = np.arctan2(v, u)
     cap = _cap(wi, phi_h)
-    one_minus_cos = (u * u + v * v) * cap
+    return _mirror(wi, (u * u + v * v) * cap, phi_h, cap, frame)
+
+
+def _mirror(wi, one_minus_cos, phi_h, cap, frame):
+    """(wo turned back by frame, jac) of the half vector (1 - cos theta_h, phi_h) at wi (in the frame)."""
     sin_h = np.sqrt(np.maximum(one_minus_cos * (2.0 - one_minus_cos), 0.0))
     h = np.stack([sin_h * np.cos(phi_h), sin_h * np.sin(phi_h), 1.0 - one_minus_cos], axis=-1)
     cos_ih = np.sum(wi * h, axis=-1)
@@ -64,13 +68,18 @@ def from_ab(wi, a, b, frame=0.0):
     return rotate_z(wo, frame), 4.0 * cos_ih * cap
 
 
-def to_ab(wi, wo, frame=0.0):
-    """(a, b, jac) of directions wo at wi (both upper hemisphere), as from_ab's inverse."""
+def _half_of(wi, wo, frame):
+    """(wi, h = normalize(wi + wo)) in the frame turned by `frame`."""
     wo = rotate_z(np.asarray(wo, np.float64), -frame)
     wi = rotate_z(_per_point(wi, len(wo)), -frame)
     h = wi + wo
     with np.errstate(invalid="ignore", divide="ignore"):     # wo = -wi (below): callers give pdf 0
-        h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+        return wi, h / np.linalg.norm(h, axis=-1, keepdims=True)
+
+
+def to_ab(wi, wo, frame=0.0):
+    """(a, b, jac) of directions wo at wi (both upper hemisphere), as from_ab's inverse."""
+    wi, h = _half_of(wi, wo, frame)
     phi_h = np.arctan2(h[:, 1], h[:, 0])
     cap = _cap(wi, phi_h)
     radius = np.sqrt(np.clip((h[:, 0] ** 2 + h[:, 1] ** 2) / (1.0 + h[:, 2]) / cap, 0.0, 1.0))
@@ -97,22 +106,12 @@ def polar_from_ab(wi, a, b, frame=0.0):
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     wi = rotate_z(_per_point(wi, len(a)), -frame)
     cap = _cap(wi, b)
-    one_minus_cos = a * cap
-    sin_h = np.sqrt(np.maximum(one_minus_cos * (2.0 - one_minus_cos), 0.0))
-    h = np.stack([sin_h * np.cos(b), sin_h * np.sin(b), 1.0 - one_minus_cos], axis=-1)
-    cos_ih = np.sum(wi * h, axis=-1)
-    wo = 2.0 * cos_ih[:, None] * h - wi
-    wo[:, 2] = np.maximum(wo[:, 2], 0.0)
-    return rotate_z(wo, frame), 4.0 * cos_ih * cap
+    return _mirror(wi, a * cap, b, cap, frame)
 
 
 def polar_to_ab(wi, wo, frame=0.0):
     """(a, b, jac) of directions wo at wi, as polar_from_ab's inverse."""
-    wo = rotate_z(np.asarray(wo, np.float64), -frame)
-    wi = rotate_z(_per_point(wi, len(wo)), -frame)
-    h = wi + wo
-    with np.errstate(invalid="ignore", divide="ignore"):
-        h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    wi, h = _half_of(wi, wo, frame)
     b = np.mod(np.arctan2(h[:, 1], h[:, 0]), TWO_PI)
     cap = _cap(wi, b)
     a = np.nan_to_num(np.clip((h[:, 0] ** 2 + h[:, 1] ** 2) / (1.0 + h[:, 2]) / cap, 0.0, 1.0))

@@ -67,6 +67,8 @@ TWO_PI = 2.0 * np.pi
 # The cells' coordinates: (a, b) of wo, or halfvector.py's of h (concentric: anisotropic
 # tables; polar: isotropic ones)
 COORDS = ("wo", "halfvector", "halfpolar")
+H_MAPS = {"halfvector": (halfvector.from_ab, halfvector.to_ab),     # (a, b) <-> wo over h: (from_ab, to_ab)
+          "halfpolar": (halfvector.polar_from_ab, halfvector.polar_to_ab)}
 
 
 def to_ab(wo, phi_ref):
@@ -273,14 +275,14 @@ class Tables:
         pdf = m * exp_density(x, ka) * exp_density(y, kb) / ((a1 - a0) * (b1 - b0))
         a, b = a0 + x * (a1 - a0), b0 + y * (b1 - b0)
         if self.coords != "wo":
-            wo, jac = (halfvector.from_ab if self.coords == "halfvector" else halfvector.polar_from_ab)(wi, a, b, phi_ref)
+            wo, jac = H_MAPS[self.coords][0](wi, a, b, phi_ref)
             return wo, pdf / jac
         return from_ab(a, b, phi_ref), pdf
 
     def _locate(self, wi, wo):
         bins, phi_ref = self._bins(wi)
         if self.coords != "wo":
-            a, b, jac = (halfvector.to_ab if self.coords == "halfvector" else halfvector.polar_to_ab)(wi, wo, phi_ref)
+            a, b, jac = H_MAPS[self.coords][1](wi, wo, phi_ref)
         else:
             a, b, jac = *to_ab(wo, phi_ref), 1.0
         L = self._lerp

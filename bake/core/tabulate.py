@@ -859,11 +859,11 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     more than its target.
 
     Coordinates (isotropic): "auto" plans the tables over each of ISO_PLANNED and keeps the plan
-    whose worst midpoint is closest to its target (when both reach their targets: the smaller). Neither
-    wins everywhere: over the half vector a lobe stays put between bins, over wo a diffuse
-    base is the same at every theta_i (measured on the shared files, 2 MB: the worst of
-    theta_i 0/30/60/75/85 of 7 files 1.3-3x closer to the ideal over the half vector, paper
-    and colodur 3.5x and 2.7x further).
+    whose worst midpoint is closest to its target (when both reach their targets: the smaller).
+    Neither wins everywhere: over the half vector a lobe stays put between bins, over wo a
+    diffuse base is the same at every theta_i (measured on the shared files, 2 MB: the worst of
+    theta_i 0/30/60/75/85 1.3-3x closer to the ideal's rv over the half vector on 7 files,
+    the same on satin, 3.5x and 2.7x further on paper_white and colodur).
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
     (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins

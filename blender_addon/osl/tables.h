@@ -175,6 +175,21 @@ float half_cap(vector wi, float phi_h)
     return max(2.0 * s * s, 1e-30);
 }
 
+// bake/core/halfvector.py polar_from_ab: wo of polar coordinates (a, b) at wi (the map's frame),
+// and jac (isotropic halfpolar tables; the concentric map ends in it).
+vector polar_from_ab(vector wi, float a, float b, output float jac)
+{
+    float cap = half_cap(wi, b);
+    float one_minus_cos = a * cap;
+    float sin_h = sqrt(max(one_minus_cos * (2.0 - one_minus_cos), 0.0));
+    vector h = vector(sin_h * cos(b), sin_h * sin(b), 1.0 - one_minus_cos);
+    float cos_ih = dot(wi, h);
+    vector wo = 2.0 * cos_ih * h - wi;
+    wo[2] = max(wo[2], 0.0);
+    jac = 4.0 * cos_ih * cap;
+    return wo;
+}
+
 // bake/core/halfvector.py from_ab: wo of table coordinates (a, b) at wi (the map's frame), and
 // jac = d omega_o / (da db).
 vector half_from_ab(vector wi, float a, float b, output float jac)
@@ -186,16 +201,7 @@ vector half_from_ab(vector wi, float a, float b, output float jac)
         angle = M_PI_4 * ((x != 0.0) ? y / x : 0.0);
     }
     float u = r * cos(angle), v = r * sin(angle);
-    float phi_h = atan2(v, u);
-    float cap = half_cap(wi, phi_h);
-    float one_minus_cos = (u * u + v * v) * cap;
-    float sin_h = sqrt(max(one_minus_cos * (2.0 - one_minus_cos), 0.0));
-    vector h = vector(sin_h * cos(phi_h), sin_h * sin(phi_h), 1.0 - one_minus_cos);
-    float cos_ih = dot(wi, h);
-    vector wo = 2.0 * cos_ih * h - wi;
-    wo[2] = max(wo[2], 0.0);
-    jac = 4.0 * cos_ih * cap;
-    return wo;
+    return polar_from_ab(wi, u * u + v * v, atan2(v, u), jac);      // the disk point's radius^2 and angle
 }
 
 // bake/core/halfvector.py to_ab: (a, b) and jac of wo at wi (both in the map's frame).
@@ -216,20 +222,7 @@ void half_to_ab(vector wi, vector wo, output float a, output float b, output flo
     jac = 4.0 * dot(wi, h) * cap;
 }
 
-// bake/core/halfvector.py polar_from_ab and polar_to_ab (isotropic halfpolar tables).
-vector polar_from_ab(vector wi, float a, float b, output float jac)
-{
-    float cap = half_cap(wi, b);
-    float one_minus_cos = a * cap;
-    float sin_h = sqrt(max(one_minus_cos * (2.0 - one_minus_cos), 0.0));
-    vector h = vector(sin_h * cos(b), sin_h * sin(b), 1.0 - one_minus_cos);
-    float cos_ih = dot(wi, h);
-    vector wo = 2.0 * cos_ih * h - wi;
-    wo[2] = max(wo[2], 0.0);
-    jac = 4.0 * cos_ih * cap;
-    return wo;
-}
-
+// bake/core/halfvector.py polar_to_ab: (a, b) and jac of wo at wi (both in the map's frame).
 void polar_to_ab(vector wi, vector wo, output float a, output float b, output float jac)
 {
     vector h = normalize(wi + wo);
