@@ -428,6 +428,27 @@ def test_quadrature_nodes_are_from_ab_of_every_node():
     assert np.array_equal(_nodes(a0, a1, b0, b1, s, 0.7), from_ab(A, B, 0.7))
 
 
+
+@pytest.mark.parametrize("theta_deg", [0.0, 30.0, 85.0, 89.9])
+def test_halfpolar_quadrature_nodes_are_polar_from_ab_of_every_node(theta_deg):
+    """The halfpolar cells' quadrature directions and Jacobians (the cap and the azimuth's
+    sines once per b node: halfvector.polar_grid_from_ab) are bit for bit polar_from_ab of each
+    node of the a-major q x q rule, as Tables maps them (frame phi_i + pi)."""
+    from bake.core.halfvector import polar_from_ab
+    from bake.core.tabulate import _PolarFrame
+    rng = np.random.default_rng(7)
+    a0, b0 = rng.random(5) * 0.9, rng.random(5) * 5.0
+    a1, b1 = a0 + rng.random(5) * 0.1, b0 + rng.random(5) * 1.2
+    q = 6
+    s = (np.arange(q) + 0.5) / q
+    A = (a0[:, None] + np.repeat(s, q)[None, :] * (a1 - a0)[:, None]).ravel()
+    B = (b0[:, None] + np.tile(s, q)[None, :] * (b1 - b0)[:, None]).ravel()
+    wi = incident(theta_deg, np.radians(40.0))
+    wo, jac = _PolarFrame(wi, np.radians(40.0)).nodes(a0, a1, b0, b1, s)
+    want_wo, want_jac = polar_from_ab(wi, A, B, np.radians(40.0) + np.pi)
+    assert np.array_equal(wo, want_wo) and np.array_equal(jac, want_jac)
+
+
 def test_builds_in_threads_are_the_builds_of_one_thread(monkeypatch):
     """The baker builds bins, neighbourhoods' edges, source points and the planner's probes in
     threads (tabulate._parallel): the same plan and tables, bit for bit, as in one thread."""

@@ -109,6 +109,22 @@ def polar_from_ab(wi, a, b, frame=0.0):
     return _mirror(wi, a * cap, b, cap, frame)
 
 
+def polar_grid_from_ab(wi, a, b, frame=0.0):
+    """polar_from_ab at one wi on each cell's grid of nodes: a (cells, qa) x b (cells, qb), flat
+    in the order (cell, a node, b node). The same numbers as polar_from_ab on the repeated
+    nodes; the cap and the azimuth's sines, which depend on b alone, once per b node."""
+    wi = rotate_z(np.asarray(wi, np.float64), -frame)
+    cos_b, sin_b = np.cos(b), np.sin(b)
+    cap = np.maximum(2.0 * np.sin(0.25 * np.arctan2(wi[2], -(wi[0] * cos_b + wi[1] * sin_b))) ** 2, _TINY)
+    one_minus_cos = a[:, :, None] * cap[:, None, :]
+    sin_h = np.sqrt(np.maximum(one_minus_cos * (2.0 - one_minus_cos), 0.0))
+    h = (sin_h * cos_b[:, None, :], sin_h * sin_b[:, None, :], 1.0 - one_minus_cos)
+    cos_ih = wi[0] * h[0] + wi[1] * h[1] + wi[2] * h[2]
+    wo = np.stack([2.0 * cos_ih * h[k] - wi[k] for k in range(3)], axis=-1).reshape(-1, 3)
+    wo[:, 2] = np.maximum(wo[:, 2], 0.0)                  # the rim is the horizon (rounding)
+    return rotate_z(wo, frame), (4.0 * cos_ih * cap[:, None, :]).ravel()
+
+
 def polar_to_ab(wi, wo, frame=0.0):
     """(a, b, jac) of directions wo at wi, as polar_from_ab's inverse."""
     wi, h = _half_of(wi, wo, frame)

@@ -210,10 +210,9 @@ class _PolarFrame:
         self.wi, self.angle = wi, phi + np.pi
 
     def nodes(self, a0, a1, b0, b1, s):
-        q = len(s)
-        a = np.repeat(a0[:, None] + s[None, :] * (a1 - a0)[:, None], q, axis=1)
-        b = np.tile(b0[:, None] + s[None, :] * (b1 - b0)[:, None], (1, q))
-        return halfvector.polar_from_ab(self.wi, a.ravel(), b.ravel(), self.angle)
+        a = a0[:, None] + s[None, :] * (a1 - a0)[:, None]
+        b = b0[:, None] + s[None, :] * (b1 - b0)[:, None]
+        return halfvector.polar_grid_from_ab(self.wi, a, b, self.angle)
 
     def ab(self, wo):
         return halfvector.polar_to_ab(self.wi, wo, self.angle)[:2]
