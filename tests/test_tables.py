@@ -415,18 +415,22 @@ def test_cells_integrated_around_their_points_keep_their_mass_with_16_nodes(monk
     assert abs(out[16][1] - out[64][1]) <= 0.1 * out[64][1]
 
 
-def test_quadrature_nodes_are_from_ab_of_every_node():
-    """The quadrature's directions, with sines and cosines taken per a and b node
-    (tabulate._nodes), are bit for bit from_ab of each node of the a-major q x q rule."""
+def _cells_and_their_nodes(q=6):
+    """Five random cells, the q-node rule s, and the a-major q x q nodes (a, b) of every cell."""
     rng = np.random.default_rng(7)
     a0, b0 = rng.random(5) * 0.9, rng.random(5) * 5.0
     a1, b1 = a0 + rng.random(5) * 0.1, b0 + rng.random(5) * 1.2
-    q = 6
     s = (np.arange(q) + 0.5) / q
     A = (a0[:, None] + np.repeat(s, q)[None, :] * (a1 - a0)[:, None]).ravel()
     B = (b0[:, None] + np.tile(s, q)[None, :] * (b1 - b0)[:, None]).ravel()
-    assert np.array_equal(_nodes(a0, a1, b0, b1, s, 0.7), from_ab(A, B, 0.7))
+    return (a0, a1, b0, b1, s), A, B
 
+
+def test_quadrature_nodes_are_from_ab_of_every_node():
+    """The quadrature's directions, with sines and cosines taken per a and b node
+    (tabulate._nodes), are bit for bit from_ab of each node of the a-major q x q rule."""
+    cells, A, B = _cells_and_their_nodes()
+    assert np.array_equal(_nodes(*cells, 0.7), from_ab(A, B, 0.7))
 
 
 @pytest.mark.parametrize("theta_deg", [0.0, 30.0, 85.0, 89.9])
@@ -436,15 +440,9 @@ def test_halfpolar_quadrature_nodes_are_polar_from_ab_of_every_node(theta_deg):
     node of the a-major q x q rule, as Tables maps them (frame phi_i + pi)."""
     from bake.core.halfvector import polar_from_ab
     from bake.core.tabulate import _PolarFrame
-    rng = np.random.default_rng(7)
-    a0, b0 = rng.random(5) * 0.9, rng.random(5) * 5.0
-    a1, b1 = a0 + rng.random(5) * 0.1, b0 + rng.random(5) * 1.2
-    q = 6
-    s = (np.arange(q) + 0.5) / q
-    A = (a0[:, None] + np.repeat(s, q)[None, :] * (a1 - a0)[:, None]).ravel()
-    B = (b0[:, None] + np.tile(s, q)[None, :] * (b1 - b0)[:, None]).ravel()
+    cells, A, B = _cells_and_their_nodes()
     wi = incident(theta_deg, np.radians(40.0))
-    wo, jac = _PolarFrame(wi, np.radians(40.0)).nodes(a0, a1, b0, b1, s)
+    wo, jac = _PolarFrame(wi, np.radians(40.0)).nodes(*cells)
     want_wo, want_jac = polar_from_ab(wi, A, B, np.radians(40.0) + np.pi)
     assert np.array_equal(wo, want_wo) and np.array_equal(jac, want_jac)
 
