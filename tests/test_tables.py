@@ -281,6 +281,10 @@ def test_planner_keeps_the_coordinates_that_plan_closer():
         lines = []
         chosen = plan_tables(mat, ideal, log=lines.append, **plan)
         assert chosen.coords == want and any(line.startswith(f"coordinates: {want}") for line in lines), lines
+        # the wo plan (planned first) reaches the Lambert's targets: the half vector's plan stops
+        # where it has as many cells and still splits, as it could only end bigger
+        stopped = any(line.startswith("halfpolar: bins ") and "stopped" in line for line in lines)
+        assert stopped == (want == "wo"), lines
         other = plan_tables(mat, ideal, coords="halfpolar" if want == "wo" else "wo", **plan)
 
         def worst_between(tab):

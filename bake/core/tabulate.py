@@ -75,7 +75,7 @@ def _normalized(w):
 # measured with.
 SHARES = {"isotropic": (0.3, 0.4), "anisotropic": (0.02, 0.05)}
 ISO_COORDS = "wo"       # isotropic tables' default coordinates (tables.py)
-ISO_PLANNED = ("halfpolar", "wo")     # the coordinates plan_tables tries for isotropic tables
+ISO_PLANNED = ("wo", "halfpolar")     # the coordinates plan_tables tries for isotropic tables, in turn
 SEGMENT_EVEN = 0.25     # share of a row's (column's) cells split evenly among its segments
 
 
@@ -859,6 +859,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
 
     Coordinates (isotropic): "auto" plans the tables over each of ISO_PLANNED and keeps the plan
     whose worst midpoint is closest to its target (when both reach their targets: the smaller).
+    In turn: a plan stops once it has as many cells as an earlier one that reached its targets
+    and still splits (it could only end bigger: the same choice, sooner; paper_white, colodur).
     Neither wins everywhere: over the half vector a lobe stays put between bins, over wo a
     diffuse base is the same at every theta_i (measured on the shared files, 2 MB: the worst of
     theta_i 0/30/60/75/85 1.3-3x closer to the ideal's rv over the half vector on 7 files,
@@ -894,9 +896,11 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
             targets[theta] = max(ideal_ratio * rv_at(ideal, theta), 0.5 * tol)
         return targets[theta]
 
-    def plan(coords, say):
+    def plan(coords, say, cells_to_beat=None):
         """(resolution, bins, phi_bins, worst_phi, the worst midpoint's rv over its target) of the
-        tables over coords (None: build_tables' default)."""
+        tables over coords (None: build_tables' default). cells_to_beat: the cells of a plan that
+        reached its targets; once this one has as many and still splits, it ends bigger and
+        cannot be kept: it stops there (worst midpoint inf)."""
         opts = dict(lobe_width=lobe_width, cache=cache, coords=coords, **options)
         resolution = plan_resolution
 
@@ -989,6 +993,9 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
             (lo, hi), worst = max(scores.items(), key=lambda kv: kv[1])
             if worst <= 1.0:
                 break
+            if cells_to_beat is not None and len(bins) * resolution ** 2 >= cells_to_beat:
+                say(f"bins {len(bins)}: stopped, as many cells as a plan that reaches its targets")
+                return resolution, bins, phi_bins, worst_phi, np.inf
             bins = sorted(bins + [midpoint(lo, hi)])
             del scores[(lo, hi)]
             say(f"bins {len(bins)}: split {np.degrees(lo):.2f}-{np.degrees(hi):.2f} deg "
@@ -1005,7 +1012,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     plans = {}
     for coords in candidates:
         say = log if len(candidates) == 1 else (lambda text, c=coords: log(f"{c}: {text}"))
-        plans[coords] = plan(coords, say)
+        reached = [len(p[1]) * p[0] ** 2 for p in plans.values() if p[4] <= 1.0]
+        plans[coords] = plan(coords, say, min(reached, default=None))
     # The plan closest to its targets at its worst midpoint; when both reach them, the smaller.
     coords = min(plans, key=lambda c: (max(plans[c][4], 1.0), len(plans[c][1]) * plans[c][0] ** 2))
     resolution, bins, phi_bins, worst_phi, _ = plans[coords]
