@@ -33,8 +33,12 @@ _TINY = 1e-300
 
 def _cap(wi, phi_h):
     """1 - cos theta_max(phi_h): the valid cap's extent along phi_h, per direction."""
-    along = wi[:, 0] * np.cos(phi_h) + wi[:, 1] * np.sin(phi_h)
-    return np.maximum(2.0 * np.sin(0.25 * np.arctan2(wi[:, 2], -along)) ** 2, _TINY)   # no cancellation
+    return _cap_along(wi[:, 2], wi[:, 0] * np.cos(phi_h) + wi[:, 1] * np.sin(phi_h))
+
+
+def _cap_along(wi_z, along):
+    """_cap from wi's height and its component along phi_h."""
+    return np.maximum(2.0 * np.sin(0.25 * np.arctan2(wi_z, -along)) ** 2, _TINY)   # no cancellation
 
 
 def _per_point(wi, n):
@@ -115,7 +119,7 @@ def polar_grid_from_ab(wi, a, b, frame=0.0):
     nodes; the cap and the azimuth's sines, which depend on b alone, once per b node."""
     wi = rotate_z(np.asarray(wi, np.float64), -frame)
     cos_b, sin_b = np.cos(b), np.sin(b)
-    cap = np.maximum(2.0 * np.sin(0.25 * np.arctan2(wi[2], -(wi[0] * cos_b + wi[1] * sin_b))) ** 2, _TINY)
+    cap = _cap_along(wi[2], wi[0] * cos_b + wi[1] * sin_b)
     one_minus_cos = a[:, :, None] * cap[:, None, :]
     sin_h = np.sqrt(np.maximum(one_minus_cos * (2.0 - one_minus_cos), 0.0))
     h = (sin_h * cos_b[:, None, :], sin_h * sin_b[:, None, :], 1.0 - one_minus_cos)
