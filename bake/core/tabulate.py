@@ -860,7 +860,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     Coordinates (isotropic): "auto" plans the tables over each of ISO_PLANNED and keeps the plan
     whose worst midpoint is closest to its target (when both reach their targets: the smaller).
     In turn: a plan stops once it has as many cells as an earlier one that reached its targets
-    and still splits (it could only end bigger: the same choice, sooner; paper_white, colodur).
+    and still splits (it could only end bigger: the same choice, sooner; a Lambert bakes 2x
+    sooner, while the shared files' wo plans end above their targets and both plans run).
     Neither wins everywhere: over the half vector a lobe stays put between bins, over wo a
     diffuse base is the same at every theta_i (measured on the shared files, 2 MB: the worst of
     theta_i 0/30/60/75/85 1.3-3x closer to the ideal's rv over the half vector on 7 files,
