@@ -57,7 +57,7 @@ from pathlib import Path
 import bpy
 from bpy.app.handlers import persistent
 
-from . import lamps, world
+from . import lamps, sockets, world
 
 BACKENDS = ("osl", "svm", "fit", "auto")
 ENUM_ORDER = ("auto", "osl", "fit", "svm")     # the scene enum's items, as stored in files (append only)
@@ -751,11 +751,8 @@ def film_settings(scene):
 def _set_inputs(node, values):
     for name, value in values.items():
         sock = node.inputs.get(name)
-        if sock is None:
-            continue
-        current = sock.default_value
-        if (tuple(current) if hasattr(current, "__len__") and not isinstance(current, str) else current) != value:
-            sock.default_value = value
+        if sock is not None:
+            sockets.assign(sock, value)
 
 
 def sync(scene, refresh=False, bake_world=False):
@@ -798,8 +795,8 @@ def sync(scene, refresh=False, bake_world=False):
 def _set_switches(tree, backend):
     for name, on in ((SWITCH, backend == "osl"), (SWITCH_SVM, backend == "svm")):
         switch = tree.nodes.get(name)
-        if switch is not None and switch.outputs[0].default_value != float(on):
-            switch.outputs[0].default_value = float(on)
+        if switch is not None:
+            sockets.assign(switch.outputs[0], float(on))
 
 
 def _world_inputs(scene, folder, bake):

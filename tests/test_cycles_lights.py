@@ -16,7 +16,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon
 from blender_addon import node as lb  # noqa: E402
 
 ALBEDO = 0.8
-N, SPP, SEEDS = 16, 64, 6
+N, SPP, PARTS = 16, 64, 6
 
 
 @pytest.fixture(scope="module")
@@ -57,21 +57,38 @@ def _floor_scene(lambert, lamp_type, lamp_settings, location=(0.3, -0.2, 1.5), r
     return sc, floor, learned, diffuse, lamp
 
 
-def _renders(sc, obj, material):
+def _renders(sc, obj, material, film_u):
+    """`obj` with `material`, rendered PARTS times: (PARTS, H, W), the red channel."""
     obj.data.materials.clear()
     obj.data.materials.append(material)
-    return cs.render_seeds(sc, SEEDS)[..., 0]
+    setattr(sc, lb.FILM_PROP, film_u)
+    return (cs.render_seeds if film_u else cs.render_parts)(sc, PARTS)[..., 0]
+
+
+def _same_as_diffuse(sc, obj, learned, diffuse, film_u=False):
+    """`obj` renders the same with either material (_assert_same); returns both renders.
+    The learned material's renders are the parts of one render with hashed u on camera rays
+    (one shader compilation: a seed is an input of its OSL shader, 3-5 s to compile here),
+    or with `film_u` film-stratified u over PARTS seeds: its per-seed rotation is part of its
+    noise, which one seed's parts would hide (measured, the spot lamp: their spread 0.13x that
+    over seeds, z 4.4 rms between two seeds' parts; hashed u: 1.0x, z 1.0). Diffuse BSDF's
+    over seeds: Cycles stratifies its own sampling across one render's parts (the spot lamp:
+    z 1.34 between two seeds' parts)."""
+    mine = _renders(sc, obj, learned, film_u)
+    theirs = _renders(sc, obj, diffuse, True)
+    _assert_same(mine, theirs)
+    return mine, theirs
 
 
 def _assert_same(learned, diffuse):
-    """Per-pixel z-scores of the seed means (each side's variance from its seeds) and the
+    """Per-pixel z-scores of the means over renders (each side's variance from its renders) and the
     image mean within 4 standard errors (+ 0.2 %: the baked Lambertian's own error)."""
     ma, mb = learned.mean(0), diffuse.mean(0)
-    va, vb = learned.var(0, ddof=1) / SEEDS, diffuse.var(0, ddof=1) / SEEDS
+    va, vb = learned.var(0, ddof=1) / PARTS, diffuse.var(0, ddof=1) / PARTS
     lit = mb > 1e-3 * mb.max()
     z = (ma - mb)[lit] / np.sqrt(va + vb + (1e-4 * mb) ** 2)[lit]
     assert np.sqrt(np.mean(z ** 2)) < 2.0, np.sqrt(np.mean(z ** 2))
-    se = np.sqrt(learned.mean((1, 2)).var(ddof=1) / SEEDS + diffuse.mean((1, 2)).var(ddof=1) / SEEDS)
+    se = np.sqrt(learned.mean((1, 2)).var(ddof=1) / PARTS + diffuse.mean((1, 2)).var(ddof=1) / PARTS)
     assert abs(ma.mean() - mb.mean()) < 4 * se + 2e-3 * mb.mean(), (ma.mean(), mb.mean(), se)
     assert np.all(ma[~lit] < 2e-3 * mb.max() + 4 * np.sqrt(va[~lit]))
 
@@ -107,7 +124,7 @@ def test_learned_lambertian_is_diffuse_bsdf_under_each_lamp(lambert, name):
     sc, floor, learned, diffuse, _ = _floor_scene(lambert, lamp_type, settings)
     if name == "area-rect-coloured":
         sc.objects["lamp"].scale = (1.5, 0.7, 1.0)        # sizes and area follow the object's scale
-    _assert_same(_renders(sc, floor, learned), _renders(sc, floor, diffuse))
+    _same_as_diffuse(sc, floor, learned, diffuse)
 
 
 def test_camera_invisible_lamp_and_a_blocker(lambert):
@@ -120,7 +137,7 @@ def test_camera_invisible_lamp_and_a_blocker(lambert):
     lamp.visible_camera = False
     blocker = cs.add_plane(sc, cs.material_with(_diffuse, "blocker"), size=0.5)
     blocker.location = (0.2, -0.1, 0.7)
-    _assert_same(_renders(sc, floor, learned), _renders(sc, floor, diffuse))
+    _same_as_diffuse(sc, floor, learned, diffuse)
 
 
 def test_animated_lamp(lambert):
@@ -131,9 +148,9 @@ def test_animated_lamp(lambert):
         lamp.keyframe_insert("location", frame=frame)
         lamp.data.energy = energy
         lamp.data.keyframe_insert("energy", frame=frame)
-    for frame in (1, 2, 3):
+    for frame in (1, 3):        # (the frame between adds a shader compilation, no case)
         sc.frame_set(frame)
-        _assert_same(_renders(sc, floor, learned), _renders(sc, floor, diffuse))
+        _same_as_diffuse(sc, floor, learned, diffuse)
 
 
 def test_second_bounce_off_the_learned_floor(lambert):
@@ -147,7 +164,7 @@ def test_second_bounce_off_the_learned_floor(lambert):
     wall.rotation_euler = (np.pi, 0.0, 0.0)             # facing down, at the floor
     sc.camera.location.z = 1.0                           # between lamp and wall...
     sc.camera.rotation_euler = (np.pi, 0.0, 0.0)         # ...turned to look up at the wall
-    _assert_same(_renders(sc, floor, learned), _renders(sc, floor, diffuse))
+    _same_as_diffuse(sc, floor, learned, diffuse)
 
 
 def _sky_world(sc, elevation=0.5, rotation=1.0, strength=0.2):
@@ -194,10 +211,40 @@ def test_sun_in_a_sky_without_fireflies(lambert):
     script = bpy.data.node_groups["Learned BSDF: lambert"].nodes[lb.SCRIPT]
     assert script.inputs["SunNEE"].default_value == 1 and max(script.inputs["SunBase"].default_value) > 0
     assert script.inputs["WorldShare"].default_value > 0
-    mine, diffuse = _renders(sc, sphere, learned), _renders(sc, sphere, cs.material_with(_diffuse, "diffuse"))
-    _assert_same(mine, diffuse)
+    mine, diffuse = _same_as_diffuse(sc, sphere, learned, cs.material_with(_diffuse, "diffuse"), film_u=True)
     assert mine.var(0, ddof=1).mean() < 3 * diffuse.var(0, ddof=1).mean()
     assert mine.max() < 3 * diffuse.max()
+
+
+def test_a_sync_that_changes_nothing_updates_nothing(lambert):
+    """The handlers sync before every render and after every depsgraph update: where nothing
+    changed they write nothing, or Cycles compiles the OSL shader anew each time (measured 4-5 s
+    per render of this 16² scene) and the viewport's update handler feeds itself. Both back
+    ends' world inputs (the sun's floats, the SVM graph's world image) are in the group."""
+    sc = cs.reset(N, N, spp=1)
+    _sky_world(sc)
+    learned = bpy.data.materials.new("learned")
+    lb.assign_learned_bsdf(learned, "lambert", lambert)
+    cs.add_sphere(sc, learned, segments=16, rings=8)
+    script = bpy.data.node_groups["Learned BSDF: lambert"].nodes[lb.SCRIPT]
+    assert script.inputs["SunNEE"].default_value == 1 and lb._has_svm(script.id_data)
+    lb.sync(sc, refresh=True)
+    bpy.context.view_layer.update()
+    updated = []
+
+    def record(_scene, depsgraph):
+        updated.extend(u.id.name for u in depsgraph.updates)
+    bpy.app.handlers.depsgraph_update_post.append(record)
+    try:
+        for _ in range(2):
+            lb.sync(sc, refresh=True)
+            bpy.context.view_layer.update()
+        assert updated == []
+        sc.world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.3
+        bpy.context.view_layer.update()
+        assert sc.world.name in updated           # (the recorder sees what changes)
+    finally:
+        bpy.app.handlers.depsgraph_update_post.remove(record)
 
 
 @pytest.mark.parametrize("elevation,rotation", [(0.4, -2.2), (0.05, 1.0)])
@@ -293,8 +340,7 @@ def test_hdri_sun_by_next_event_estimation(lambert, tmp_path, interpolation, sun
         # (a Lambertian: its fit is all diffuse, so the map takes the matte material's share)
         assert script.inputs["EnvImage"].default_value == ""
         assert script.inputs["WorldShare"].default_value == pytest.approx(bw.SHARE_MATTE, abs=0.01)
-    mine, diffuse = _renders(sc, sphere, learned), _renders(sc, sphere, cs.material_with(_diffuse, "diffuse"))
-    _assert_same(mine, diffuse)
+    mine, diffuse = _same_as_diffuse(sc, sphere, learned, cs.material_with(_diffuse, "diffuse"), film_u=True)
     # (measured: 4.4x Diffuse's variance for the tiny sun, Linear, drawn from the bright pixels'
     # own map; 8.1x drawn from the whole map, a quarter of the draws lost in dim pixels; broad 3.7x)
     assert mine.var(0, ddof=1).mean() < 6 * diffuse.var(0, ddof=1).mean()
