@@ -576,6 +576,9 @@ def assign_learned_bsdf(material, name, tables_path, fit_path=None):
     tables_path = Path(bpy.path.abspath(str(tables_path)))
     fit_path = None if fit_path is None else Path(bpy.path.abspath(str(fit_path)))
     tree = _tree_for(name)
+    scene = bpy.context.scene
+    if scene is not None and scene.render.engine == 'CYCLES' and tables_path.is_file():
+        _world_inputs(scene, tables_path.parent, bake=True)     # the world's map first: one graph, with it
     _build_tree(tree, name, tables_path, fit_path)
     if material.node_tree is None:
         material.use_nodes = True
