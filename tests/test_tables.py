@@ -570,3 +570,20 @@ def test_planner_probes_with_the_ideal_and_builds_the_plan_from_the_source():
                       memory_budget=8 * 7 * 4 * 16 * 16, ideal_resolution=64)
     assert len(tab.theta_bins) > 3          # the probes split intervals, without asking the source
     assert sorted(asked) == sorted(round(float(t), 6) for t in np.degrees(tab.theta_bins))
+
+
+def test_planned_bins_include_the_measured_incident_angles(tmp_path):
+    """A measured file interpolates between the incident angles it was measured at (a kink in
+    theta_i at each): the planner starts from them as well as its evenly spaced bins (on
+    cm_military_green at 2 MB: the worst of 11 angles 3.56x -> 1.95x the ideal's rv)."""
+    from test_rgl import synthetic_fields
+    from bake.materials.rgl import RGLMaterial, write_tensor_file
+    mat = RGLMaterial(write_tensor_file(tmp_path / "m.bsdf", synthetic_fields(n_theta=5)))
+    measured = np.radians([22.5, 45.0, 67.5])           # (and 0, 90: the first bin, past the last)
+    assert np.allclose(mat.measured_theta_i[1:4], measured)
+    tab = plan_tables(mat, IdealSampler(mat, resolution=64), resolution=16, grid=96, samples=1 << 12,
+                      first_bins=2, memory_budget=16 * 7 * 4 * 16 * 16, coords="wo")
+    bins = np.asarray(tab.theta_bins, float)
+    assert all(np.min(np.abs(bins - t)) < 1e-6 for t in measured), np.degrees(bins)
+    lambert = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})
+    assert lambert.measured_theta_i is None

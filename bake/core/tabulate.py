@@ -852,7 +852,10 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     Resolution: the smallest of RESOLUTIONS whose single-bin tables reach their target at a
     few elevations (isotropic: a resolution's probe stops at its first failing elevation; when
     none does, the one that comes closest).
-    Bins: start from `first_bins` evenly spaced elevations; while the memory budget allows
+    Bins: start from `first_bins` evenly spaced elevations and, isotropic, the material's
+    measured incident angles (`measured_theta_i`: measured data interpolate between them, so
+    f·cos has a kink in theta_i at each, which interpolating across loses; measured at 2 MB on
+    cm_military_green: the worst of 11 angles 3.56x the ideal's rv -> 1.95x); while the memory budget allows
     another bin, split the interval whose interpolated midpoint loses most against the better
     of its two bins (interval_loss) relative to the midpoint's target, until no interval loses
     more than its target.
@@ -966,6 +969,11 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
 
         bins = list(np.radians(np.linspace(0.0, theta_max_deg, first_bins)))
         gap = np.radians(min_gap_deg)
+        if material.measured_theta_i is not None and not aniso:
+            for t in material.measured_theta_i:
+                if 0.0 < t <= np.radians(theta_max_deg) and min(abs(t - b) for b in bins) > gap:
+                    bins.append(float(t))
+            bins.sort()
 
         def midpoint(lo, hi):     # interpolation is linear in cos(theta): test where it errs most
             return float(np.arccos(0.5 * (np.cos(lo) + np.cos(hi))))

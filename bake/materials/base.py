@@ -26,6 +26,9 @@ class Material:
     # The rotational symmetry of an anisotropic BSDF: f(R wi, R wo) = f(wi, wo) for R the
     # rotation about the normal by phi_period (2 pi: none). Baked tables bin phi_i over it.
     phi_period = 2.0 * np.pi
+    # The incident elevations (radians) the data were measured at, between which eval
+    # interpolates (a kink in theta_i at each: planned tables put bins there); None: none.
+    measured_theta_i = None
 
     def eval(self, wi, wo):
         raise NotImplementedError
