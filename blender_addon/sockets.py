@@ -21,14 +21,12 @@ def _held(value, like):
 
 
 def assign(socket, value):
-    """Set socket.default_value to `value` unless it holds that value already; True when it wrote."""
+    """Set socket.default_value to `value` unless it holds that value already."""
     current = socket.default_value
-    current = current if isinstance(current, (str, bool, int, float)) else tuple(current)
-    if len(_tuple(current)) != len(_tuple(value)) or _held(value, current) != current:
+    if not isinstance(current, (str, bool, int, float)):
+        current, value = tuple(current), tuple(value)
+        if len(value) != len(current):
+            socket.default_value = value
+            return
+    if _held(value, current) != current:
         socket.default_value = value
-        return True
-    return False
-
-
-def _tuple(x):
-    return (x,) if isinstance(x, (str, bool, int, float)) else tuple(x)

@@ -382,7 +382,6 @@ class RGLMaterial(Material):
         self.description = bytes(f["description"]).decode("utf-8", "replace") \
             if "description" in f and f["description"].dtype == np.uint8 else ""
         self.theta_i = f["theta_i"].astype(np.float64)
-        self.measured_theta_i = self.theta_i
         self.phi_i = f["phi_i"].astype(np.float64)
         n_phi, n_theta = len(self.phi_i), len(self.theta_i)
         self.isotropic = n_phi == 1
@@ -408,6 +407,10 @@ class RGLMaterial(Material):
 
     def fingerprint(self):
         return self._sha256
+
+    @property
+    def measured_theta_i(self):
+        return self.theta_i
 
     @property
     def phi_period(self):
