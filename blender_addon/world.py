@@ -2,8 +2,8 @@
 
 `bake_world_map(scene, folder)` makes the world's equirectangular radiance map and writes the
 texture the shaders sample: an Environment Texture world straight from its image's texels
-(box-averaged: nothing missed); any other world — a Sky Texture, mixes, procedurals — by
-rendering it with Cycles (a temporary scene holding only a panoramic camera, so nothing
+(box-averaged: nothing missed), a world of one colour as that colour; any other world — a
+Sky Texture, mixes, procedurals — by rendering it with Cycles (a temporary scene holding only a panoramic camera, so nothing
 occludes the world). A Sky Texture's sun disc gets techniques of its own (`sun_of`): the SVM
 graph draws portal directions in its cone; the OSL shader lights it by next-event estimation
 with the disc's radiance fitted to a render of it (`bake_sun`: Cycles' own law, exact to 1e-4),
@@ -422,6 +422,36 @@ def image_radiance(scene, width=IMAGE_WIDTH, height=IMAGE_HEIGHT):
     return strength * sums / (np.diff(rows)[:, None, None] * np.diff(cols)[None, :, None])
 
 
+def constant_radiance(scene, width=WIDTH, height=HEIGHT):
+    """The radiance of a world that is one colour everywhere (a world without nodes, or whose
+    active output's Surface is a Background with nothing linked to it) as the map rendering it
+    would give: (height, width, 3); None for other worlds. Blender's default world and the
+    black one of a lamp-lit scene are such worlds: rendering their map took 2-4 s here."""
+    world = scene.world
+    tree = world.node_tree if world is not None else None
+    if world is None:
+        return None
+    if tree is None:
+        colour = tuple(world.color)
+    else:
+        outputs = [n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputWorld" and n.is_active_output]
+        surface = outputs[0].inputs["Surface"] if len(outputs) == 1 else None
+        if surface is None or not surface.is_linked:
+            return None if surface is None else _constant((0.0, 0.0, 0.0), width, height)
+        bg = surface.links[0].from_node
+        if (bg.bl_idname != "ShaderNodeBackground" or bg.mute or not surface.links[0].is_valid
+                or any(sock.is_linked for sock in bg.inputs)):
+            return None
+        strength = float(bg.inputs["Strength"].default_value)
+        colour = tuple(strength * c for c in bg.inputs["Color"].default_value[:3])
+    return _constant(colour, width, height)
+
+
+def _constant(colour, width, height):
+    import numpy as np
+    return np.broadcast_to(np.asarray(colour[:3], np.float64), (height, width, 3)).copy()
+
+
 def without_sun(radiance, sun):
     """An equirectangular map (render_world's) with a sun's disc (sun_of) painted over by the sky
     around it: the shaders sample the sun by a technique of its own, and the map's few pixels
@@ -459,6 +489,8 @@ def bake_world_map(scene, folder):
             (small_sun and (not bright_file.is_file() or "light" not in meta)):
         try:
             radiance = image_radiance(scene)
+            if radiance is None:
+                radiance = constant_radiance(scene)
             if radiance is None:
                 radiance = without_sun(render_world(scene), sun)
             wm = world_map.WorldMap(radiance)
