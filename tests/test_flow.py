@@ -452,7 +452,7 @@ def test_defensive_mixture_keeps_sample_pdf_and_invert_consistent(domain, tmp_pa
     grid = Disk().to_dir(np.random.default_rng(4).uniform(-0.7, 0.7, (500, 2)))
     assert np.all(model.pdf(wi, grid) >= 0.05 / (2 * np.pi) * (1 - 1e-12))
     from bake.quality.metrics import chi2_test
-    assert chi2_test(model, wi, n=100_000, res=(16, 16), seed=2, n_tests=2).passed
+    assert chi2_test(model, wi, n=40_000, res=(16, 16), seed=2, n_tests=2, crowd=256).passed     # (a smooth pdf)
     v1 = {k: v for k, v in net.meta(4).items()}
     v1["version"] = 1
     path = write_npz(tmp_path / "v1.npz", v1, net.arrays())

@@ -29,6 +29,7 @@ direction.
 `principled_params(fit)` maps a fit to one view-independent Principled BSDF (the
 baseline the acceptance script compares against).
 """
+import functools
 import json
 from pathlib import Path
 
@@ -87,6 +88,13 @@ def baked_albedo(tables, cos_i):
     return np.einsum("rc,rck->k", m, w)
 
 
+@functools.lru_cache(maxsize=4096)
+def _ggx_albedo_at(theta, alpha, seed):
+    """ggx_albedo at wi = (sin theta, 0, cos theta): the same for every material's knots (one
+    alpha grid), so a bake of several materials computes it once."""
+    return ggx_albedo(np.array([np.sin(theta), 0.0, np.cos(theta)]), alpha, seed=seed)
+
+
 def ggx_albedo(wi, alpha, n=1024, seed=0):
     rng = np.random.default_rng(seed)
     u = _stratified(n, rng)
@@ -116,7 +124,7 @@ def fit_knot(tables, theta, n=2048, seed=0, alphas=ALPHAS):
         g = np.concatenate([fixed_g, tables.eval(wi, wo_g) * wo_g[:, 2:3]])     # (N, 3) baked f cos
         ed = wo[:, 2] / np.pi
         es = ggx_fcos(wi, wo, alpha)
-        a_ggx = ggx_albedo(wi, alpha, seed=seed)
+        a_ggx = _ggx_albedo_at(float(theta), float(alpha), seed)
         z = es - a_ggx * ed
         r0 = g - albedo[None, :] * ed[:, None]
         zz = np.sum(w * z * z)
