@@ -587,3 +587,25 @@ def test_planned_bins_include_the_measured_incident_angles(tmp_path):
     assert all(np.min(np.abs(bins - t)) < 1e-6 for t in measured), np.degrees(bins)
     lambert = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})
     assert lambert.measured_theta_i is None
+
+
+def test_planner_splits_until_every_midpoint_is_within_half_its_target(monkeypatch):
+    """The planner stops splitting where no interval's midpoint loses more than SPLIT_LOSS (0.5)
+    times its target beyond its bins (a midpoint within 1.5x): here one interval lost 0.5-1x,
+    which the earlier rule (1.0) kept, and it is split."""
+    from bake.core import tabulate
+    mat = open_material({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.05})
+    ideal = IdealSampler(mat, resolution=32)
+    plan = dict(resolution=16, tol=0.5, grid=64, samples=1024, first_bins=3, coords="halfpolar")
+
+    def planned():
+        lines = []
+        tab = plan_tables(mat, ideal, log=lines.append, **plan)
+        done = [line for line in lines if " done, the worst midpoint loses " in line]
+        assert len(done) == 1, lines
+        return tab, float(done[0].split("loses ")[1].split("x")[0])
+    tab, loss = planned()
+    assert loss <= tabulate.SPLIT_LOSS == 0.5
+    monkeypatch.setattr(tabulate, "SPLIT_LOSS", 1.0)
+    looser, looser_loss = planned()
+    assert 0.5 < looser_loss <= 1.0 and len(looser.theta_bins) < len(tab.theta_bins)
