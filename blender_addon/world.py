@@ -434,7 +434,8 @@ def constant_radiance(scene, width=WIDTH, height=HEIGHT):
     if tree is None:
         colour = tuple(world.color)
     else:
-        outputs = [n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputWorld" and n.is_active_output]
+        outputs = [n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputWorld" and n.is_active_output
+                   and getattr(n, "target", "ALL") in ("ALL", "CYCLES")]
         surface = outputs[0].inputs["Surface"] if len(outputs) == 1 else None
         if surface is None or not surface.is_linked:
             return None if surface is None else _constant((0.0, 0.0, 0.0), width, height)
