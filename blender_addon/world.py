@@ -3,8 +3,8 @@
 `bake_world_map(scene, folder)` makes the world's equirectangular radiance map and writes the
 texture the shaders sample: an Environment Texture world straight from its image's texels
 (box-averaged: nothing missed), a world of one colour as that colour; any other world — a
-Sky Texture, mixes, procedurals — by rendering it with Cycles (a temporary scene holding only a panoramic camera, so nothing
-occludes the world). A Sky Texture's sun disc gets techniques of its own (`sun_of`): the SVM
+Sky Texture, mixes, procedurals — by rendering it with Cycles (a temporary scene holding only
+a panoramic camera, so nothing occludes the world). A Sky Texture's sun disc gets techniques of its own (`sun_of`): the SVM
 graph draws portal directions in its cone; the OSL shader lights it by next-event estimation
 with the disc's radiance fitted to a render of it (`bake_sun`: Cycles' own law, exact to 1e-4),
 and the map has the disc painted out (`without_sun`). The textures are named after the world's state (`world_key`):
@@ -424,32 +424,28 @@ def image_radiance(scene, width=IMAGE_WIDTH, height=IMAGE_HEIGHT):
 
 def constant_radiance(scene, width=WIDTH, height=HEIGHT):
     """The radiance of a world that is one colour everywhere (a world without nodes, or whose
-    active output's Surface is a Background with nothing linked to it) as the map rendering it
-    would give: (height, width, 3); None for other worlds. Blender's default world and the
-    black one of a lamp-lit scene are such worlds: rendering their map took 2-4 s here."""
+    Cycles output's Surface is unlinked or a Background with nothing linked to it) as the map
+    rendering it would give: (height, width, 3); None for other worlds. Blender's default world
+    and the black one of a lamp-lit scene are such worlds: rendering their map took 2-4 s here."""
+    import numpy as np
     world = scene.world
-    tree = world.node_tree if world is not None else None
     if world is None:
         return None
-    if tree is None:
-        colour = tuple(world.color)
-    else:
+    tree = world.node_tree
+    colour = tuple(world.color) if tree is None else (0.0, 0.0, 0.0)
+    if tree is not None:
         outputs = [n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputWorld" and n.is_active_output
                    and getattr(n, "target", "ALL") in ("ALL", "CYCLES")]
-        surface = outputs[0].inputs["Surface"] if len(outputs) == 1 else None
-        if surface is None or not surface.is_linked:
-            return None if surface is None else _constant((0.0, 0.0, 0.0), width, height)
-        bg = surface.links[0].from_node
-        if (bg.bl_idname != "ShaderNodeBackground" or bg.mute or not surface.links[0].is_valid
-                or any(sock.is_linked for sock in bg.inputs)):
+        if len(outputs) != 1:
             return None
-        strength = float(bg.inputs["Strength"].default_value)
-        colour = tuple(strength * c for c in bg.inputs["Color"].default_value[:3])
-    return _constant(colour, width, height)
-
-
-def _constant(colour, width, height):
-    import numpy as np
+        links = outputs[0].inputs["Surface"].links
+        if links:
+            bg = links[0].from_node
+            if (bg.bl_idname != "ShaderNodeBackground" or bg.mute or not links[0].is_valid
+                    or any(sock.is_linked for sock in bg.inputs)):
+                return None
+            strength = float(bg.inputs["Strength"].default_value)
+            colour = tuple(strength * c for c in bg.inputs["Color"].default_value[:3])
     return np.broadcast_to(np.asarray(colour[:3], np.float64), (height, width, 3)).copy()
 
 

@@ -330,18 +330,10 @@ def test_the_map_share_follows_the_material(lambert):
     assert lb._info(bpy.data.node_groups["Learned BSDF: lambert"])["matte"] == pytest.approx(1.0, abs=0.02)
 
 
-@pytest.mark.parametrize("interpolation,sun", slow_unless(
-    [("Linear", "tiny"), ("Closest", "tiny"), ("Linear", "broad")], default=[("Linear", "tiny")], unpack=True))
-def test_hdri_sun_by_next_event_estimation(lambert, tmp_path, interpolation, sun, render=True):
-    """An Environment Texture world with a tiny, very bright sun (2 x 2 texels): the shader reads
-    the image itself and lights the material by next-event estimation of the sun's pixels with
-    MIS (the image a control variate for Cycles' own world along escaping portal directions that
-    reach them; the dim sky is left to the portal), so the sphere is Cycles' Diffuse BSDF's
-    within MC error and its noise stays near Cycles' own (measured at 64 spp, 16^2: per-pixel
-    variance 4.4x (Linear) Diffuse's with the directions drawn from the bright pixels' own map,
-    8.1x from the whole map; with hashed next-event u 10.7x (Linear); drawn through the portal
-    from the map instead: 8500x at 24^2, with 1e3 fireflies). A broad sun (a patch 40x the sky) is drawn through the portal from the map
-    instead: no shadow rays, the same image."""
+def _hdri_sun_sphere(lambert, tmp_path, interpolation, sun):
+    """A learned Lambertian sphere under an Environment Texture world with a tiny (2 x 2 texels,
+    very bright) or a broad sun (a patch 40x the sky); checks the shader's world inputs for it
+    and returns (scene, sphere, learned material)."""
     import OpenEXR
     from blender_addon import world as bw
     h, w = 512, 1024
@@ -370,8 +362,22 @@ def test_hdri_sun_by_next_event_estimation(lambert, tmp_path, interpolation, sun
         # (a Lambertian: its fit is all diffuse, so the map takes the matte material's share)
         assert script.inputs["EnvImage"].default_value == ""
         assert script.inputs["WorldShare"].default_value == pytest.approx(bw.SHARE_MATTE, abs=0.01)
-    if not render:
-        return
+    return sc, sphere, learned
+
+
+@pytest.mark.parametrize("interpolation,sun", slow_unless(
+    [("Linear", "tiny"), ("Closest", "tiny"), ("Linear", "broad")], default=[("Linear", "tiny")], unpack=True))
+def test_hdri_sun_by_next_event_estimation(lambert, tmp_path, interpolation, sun):
+    """An Environment Texture world with a tiny, very bright sun (2 x 2 texels): the shader reads
+    the image itself and lights the material by next-event estimation of the sun's pixels with
+    MIS (the image a control variate for Cycles' own world along escaping portal directions that
+    reach them; the dim sky is left to the portal), so the sphere is Cycles' Diffuse BSDF's
+    within MC error and its noise stays near Cycles' own (measured at 64 spp, 16^2: per-pixel
+    variance 4.4x (Linear) Diffuse's with the directions drawn from the bright pixels' own map,
+    8.1x from the whole map; with hashed next-event u 10.7x (Linear); drawn through the portal
+    from the map instead: 8500x at 24^2, with 1e3 fireflies). A broad sun (a patch 40x the sky) is drawn through the portal from the map
+    instead: no shadow rays, the same image."""
+    sc, sphere, learned = _hdri_sun_sphere(lambert, tmp_path, interpolation, sun)
     mine, diffuse = _same_as_diffuse(sc, sphere, learned, cs.material_with(_diffuse, "diffuse"), film_u=True)
     # (measured: 4.4x Diffuse's variance for the tiny sun, Linear, drawn from the bright pixels'
     # own map; 8.1x drawn from the whole map, a quarter of the draws lost in dim pixels; broad 3.7x)
@@ -380,6 +386,7 @@ def test_hdri_sun_by_next_event_estimation(lambert, tmp_path, interpolation, sun
 
 
 def test_hdri_broad_sun_is_left_to_the_portal(lambert, tmp_path):
-    """The broad sun's inputs (test_hdri_sun_by_next_event_estimation renders it with -m slow:
-    the same image as Diffuse BSDF's, measured 3.7x its variance)."""
-    test_hdri_sun_by_next_event_estimation(lambert, tmp_path, "Linear", "broad", render=False)
+    """A broad sun is drawn through the portal from the map, not by next-event estimation (its
+    render runs with -m slow in test_hdri_sun_by_next_event_estimation: the same image as
+    Diffuse BSDF's, measured 3.7x its variance)."""
+    _hdri_sun_sphere(lambert, tmp_path, "Linear", "broad")
