@@ -1273,7 +1273,21 @@ def _cv_fcos(g, cv, wi, n, d):
     """What the control variate's closures render toward d, f_cv cos theta_o (colour): Cycles'
     Diffuse BSDF (colour cv["diffuse"]) and GGX Glossy BSDF (colour cv["specular"], roughness
     r = cv["roughness"]'s x, alpha = r^2) as bsdf_diffuse_eval and bsdf_microfacet_eval compute
-    them (no Fresnel, height-correlated G2), at wi and d about the normal n."""
+    them (no Fresnel, height-correlated G2), at wi and d about the normal n. (A node group, one
+    for every material: a mixture's branches each take it.)"""
+    return g.group(_cv_fcos_group(), Wi=wi, N=n, D=d, Diffuse=cv["diffuse"], Specular=cv["specular"],
+                   Roughness=cv["roughness"])[0]
+
+
+def _cv_fcos_group():
+    done, tree = _group(f"{GROUP_PREFIX}control variate f cos", [(name, "Vector") for name in
+                        ("Wi", "N", "D", "Diffuse", "Specular", "Roughness")], [("F cos", "Vector")])
+    if done:
+        return done
+    g = _Graph(tree)
+    inp = g.node("NodeGroupInput").outputs
+    wi, n, d = inp["Wi"], inp["N"], inp["D"]
+    cv = {"diffuse": inp["Diffuse"], "specular": inp["Specular"], "roughness": inp["Roughness"]}
     cos_i = g.dot(wi, n)
     cos_o = g.dot(d, n)
     above = g.math('MULTIPLY', g.math('GREATER_THAN', cos_i, 0.0), g.math('GREATER_THAN', cos_o, 0.0))
@@ -1290,7 +1304,9 @@ def _cv_fcos(g, cv, wi, n, d):
         return g.math('MULTIPLY', g.math('SUBTRACT', g.math('SQRT', g.math('MULTIPLY_ADD', alpha2, tan2, 1.0)), 1.0), 0.5)
     g2 = g.math('ADD', g.math('ADD', lam(cos_i), lam(cos_o)), 1.0)
     glossy = g.math('DIVIDE', g.math('MULTIPLY', ndf, above), g.math('MULTIPLY', g.math('MULTIPLY', cos_i, 4.0), g2))
-    return g.vmath('MULTIPLY_ADD', cv["specular"], g.combine(glossy, glossy, glossy), diffuse)
+    g.set(g.node("NodeGroupOutput").inputs["F cos"],
+          g.vmath('MULTIPLY_ADD', cv["specular"], g.combine(glossy, glossy, glossy), diffuse))
+    return tree
 
 
 def _cv_rest(g, cv, wi, n, d, weight, ok, q):

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import cycles_scenes as cs
+from conftest import slow_unless
 from bake.export import svm_export
 from bake.errors import FlowBSDFError
 from bake.core.tables import Tables, open_tables
@@ -478,7 +479,9 @@ def test_svm_film_stratified_u_is_unbiased_and_cuts_noise(svm, plastic):
     assert ratio < 0.2, ratio
 
 
-@pytest.mark.parametrize("mixture,cv", [(False, False), (True, False), (True, True)])
+# (the tables' graph alone with -m slow: the mixture's graph holds it as a branch, with less room)
+@pytest.mark.parametrize("mixture,cv", slow_unless([(False, False), (True, False), (True, True)],
+                                                   default=[(True, False), (True, True)], unpack=True))
 def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, plastic, capfd, tmp_path, mixture, cv):
     """The anisotropic graph (the larger tables' graph), alone and with the world mixture (map
     and sun), and the isotropic one with the mixture and the fit's control variate matched to a
