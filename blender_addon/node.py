@@ -20,8 +20,9 @@ installed, and materials append and link like any other. Its node tree, "Learned
   carries only the rest: Cycles' own light sampling of the world for most of the BSDF.
 - fit: Cycles closures (Diffuse BSDF + GGX Glossy BSDF) whose colours and roughness are
   piecewise-linear functions of the view angle (Layer Weight "Facing" = 1 - cos theta_i),
-  fitted at bake time (bake/export/closure_fit.py). Its parameters live in the node tree, so it
-  renders everywhere (Eevee, previews) even when the table files are gone; approximate.
+  fitted at bake time (bake/export/closure_fit.py). Its parameters live in a node group of the
+  .blend ("FlowBSDF fit: <hash>", shared by materials with the same fit), so it renders
+  everywhere (Eevee, previews) even when the table files are gone; approximate.
 
 Two Mix Shaders pick one: "FlowBSDF SVM backend" (fit or SVM), then "FlowBSDF backend"
 (that or OSL); with constant factors Cycles compiles only the chosen branch. The factors
@@ -367,24 +368,48 @@ def _piecewise(tree, x_socket, xs, values, loc):
     return out
 
 
+FIT_PARAMS = ("Diffuse", "Specular", "Roughness", "Control variate", "Matched share")
+
+
 def _fit_params(tree, fit, loc, cv=False):
-    """Sockets (kd, ks, (r, r, r)) of the fit's closures at the view angle (Layer Weight
-    "Facing" = 1 - |cos theta_i|), each piecewise linear in it; `cv`: and the control
-    variate's (beta_d, beta_s, s) and (s_m, s_m, s_m), its portal share where matched to a
-    light (matched_share)."""
+    """Sockets (kd, ks, (r, r, r)) of the fit's closures at the view angle, from the fit's
+    node group (_fit_group); `cv`: and the control variate's (beta_d, beta_s, s) and (s_m, s_m,
+    s_m), its portal share where matched to a light (matched_share)."""
+    node = tree.nodes.new("ShaderNodeGroup")
+    node.node_tree = _fit_group(fit)
+    node.location = loc
+    return tuple(node.outputs[name] for name in FIT_PARAMS[:5 if cv else 3])
+
+
+def _fit_group(fit):
+    """Node group "FlowBSDF fit: <hash>" of a fit's parameters at the view angle (Layer Weight
+    "Facing" = 1 - |cos theta_i|), each piecewise linear in it (FIT_PARAMS, vectors; the
+    control variate's two where the fit has them). Named after its content: materials with
+    the same fit share it. (A group of its own: every node added to a tree costs in
+    proportion to the tree's size, and each back end takes the parameters.)"""
+    import hashlib
+    from .svm import MATCHED_SHARE_MIN
+    payload = json.dumps([fit, MATCHED_ERROR_MAX, MATCHED_SHARE_MIN], sort_keys=True, default=str)
+    name = "FlowBSDF fit: " + hashlib.sha256(payload.encode()).hexdigest()[:12]
+    tree = bpy.data.node_groups.get(name)
+    if tree is not None:
+        return tree
+    tree = bpy.data.node_groups.new(name, "ShaderNodeTree")
+    columns = [fit["diffuse"], fit["specular"], [[r, r, r] for r in fit["roughness"]]]
+    if "cv" in fit:
+        columns += [fit["cv"], [[matched_share(e)] * 3 for e in fit["rel_error"]]]
+    for param in FIT_PARAMS[:len(columns)]:
+        if getattr(tree, "interface", None) is None:       # Blender < 4.0: the legacy API
+            tree.outputs.new("NodeSocketVector", param)
+        else:
+            tree.interface.new_socket(param, in_out="OUTPUT", socket_type="NodeSocketVector")
     facing = tree.nodes.new("ShaderNodeLayerWeight")
     facing.inputs["Blend"].default_value = 0.5          # Facing = 1 - |cos theta_i|
-    facing.location = loc
-    x = facing.outputs["Facing"]
-    xs = fit["x"]
-    params = (_piecewise(tree, x, xs, fit["diffuse"], (loc[0] + 200, loc[1])),
-              _piecewise(tree, x, xs, fit["specular"], (loc[0] + 200, loc[1] - 500)),
-              _piecewise(tree, x, xs, [[r, r, r] for r in fit["roughness"]], (loc[0] + 200, loc[1] - 1000)))
-    if cv:
-        params += (_piecewise(tree, x, xs, fit["cv"], (loc[0] + 200, loc[1] - 1500)),
-                   _piecewise(tree, x, xs, [[matched_share(e)] * 3 for e in fit["rel_error"]],
-                              (loc[0] + 200, loc[1] - 2000)))
-    return params
+    out = tree.nodes.new("NodeGroupOutput")
+    out.location = (3400, 0)
+    for k, values in enumerate(columns):
+        tree.links.new(_piecewise(tree, facing.outputs["Facing"], fit["x"], values, (200, -500 * k)), out.inputs[k])
+    return tree
 
 
 def matched_share(rel_error):

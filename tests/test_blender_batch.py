@@ -164,9 +164,12 @@ scene = bpy.context.scene
 result = {}
 
 def chain(socket):
-    # (base, [(x0, x1, diff)]) of a piecewise-linear vector built by node._piecewise
+    # (base, [(x0, x1, diff)]) of a piecewise-linear vector built by node._piecewise, in the
+    # fit's node group (node._fit_group)
+    link = socket.links[0]
+    inner = next(n for n in link.from_node.node_tree.nodes if n.bl_idname == "NodeGroupOutput")
     steps = []
-    node = socket.links[0].from_node
+    node = inner.inputs[link.from_socket.name].links[0].from_node
     while node.bl_idname == "ShaderNodeVectorMath":
         ramp = node.inputs[0].links[0].from_node
         steps.append((ramp.inputs["From Min"].default_value, ramp.inputs["From Max"].default_value,
