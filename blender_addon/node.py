@@ -325,17 +325,25 @@ def _tree_for(name):
 def _ensure_interface(tree):
     """The group's sockets: the BSDF output and the Tangent input (anisotropic tables' frame:
     world x when unlinked, projected onto the tangent plane by the shader)."""
+    if not _has_socket(tree, "BSDF", "OUTPUT"):
+        _new_socket(tree, "BSDF", "OUTPUT", "NodeSocketShader")
+    if not _has_socket(tree, "Tangent", "INPUT"):
+        _new_socket(tree, "Tangent", "INPUT", "NodeSocketVector").default_value = TANGENT
+
+
+def _has_socket(tree, name, in_out):
     if getattr(tree, "interface", None) is None:          # Blender < 4.0: the legacy API
-        if "BSDF" not in tree.outputs:
-            tree.outputs.new("NodeSocketShader", "BSDF")
-        if "Tangent" not in tree.inputs:
-            tree.inputs.new("NodeSocketVector", "Tangent").default_value = TANGENT
-        return
-    items = [i for i in tree.interface.items_tree if getattr(i, "item_type", "") == "SOCKET"]
-    if not any(i.name == "BSDF" and i.in_out == "OUTPUT" for i in items):
-        tree.interface.new_socket("BSDF", in_out="OUTPUT", socket_type="NodeSocketShader")
-    if not any(i.name == "Tangent" and i.in_out == "INPUT" for i in items):
-        tree.interface.new_socket("Tangent", in_out="INPUT", socket_type="NodeSocketVector").default_value = TANGENT
+        return name in (tree.inputs if in_out == "INPUT" else tree.outputs)
+    return any(getattr(i, "item_type", "") == "SOCKET" and i.name == name and i.in_out == in_out
+               for i in tree.interface.items_tree)
+
+
+def _new_socket(tree, name, in_out, kind):
+    """A new input or output socket of a node group (`in_out` "INPUT" or "OUTPUT", `kind` e.g.
+    "NodeSocketVector"), in Blender 4+ or the legacy API."""
+    if getattr(tree, "interface", None) is None:
+        return (tree.inputs if in_out == "INPUT" else tree.outputs).new(kind, name)
+    return tree.interface.new_socket(name, in_out=in_out, socket_type=kind)
 
 
 def _piecewise(tree, x_socket, xs, values, loc):
@@ -399,10 +407,7 @@ def _fit_group(fit):
     if "cv" in fit:
         columns += [fit["cv"], [[matched_share(e)] * 3 for e in fit["rel_error"]]]
     for param in FIT_PARAMS[:len(columns)]:
-        if getattr(tree, "interface", None) is None:       # Blender < 4.0: the legacy API
-            tree.outputs.new("NodeSocketVector", param)
-        else:
-            tree.interface.new_socket(param, in_out="OUTPUT", socket_type="NodeSocketVector")
+        _new_socket(tree, param, "OUTPUT", "NodeSocketVector")
     facing = tree.nodes.new("ShaderNodeLayerWeight")
     facing.inputs["Blend"].default_value = 0.5          # Facing = 1 - |cos theta_i|
     out = tree.nodes.new("NodeGroupOutput")

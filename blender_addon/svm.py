@@ -178,17 +178,19 @@ _MATH_ARITY = {**dict.fromkeys(('SQRT', 'INVERSE_SQRT', 'ABSOLUTE', 'EXPONENT', 
 
 class _Graph:
     """Adds nodes to a node tree in evaluation order (see the module docstring), laid out in
-    columns; inputs are sockets (linked) or constants (set)."""
+    columns; inputs are sockets (linked) or constants (set).
+
+    Every write to a node costs time in proportion to its tree's size (Blender updates the tree
+    after each: 0.15 ms at 50 nodes, 0.6-1.5 ms at 500): writes that change nothing are
+    skipped, and so are the inputs an operation does not read; the large stages are node
+    groups of their own (_tables_group, _cv_fcos_group, node._fit_group). Measured, assigning
+    a material (bpy 5.0.1, old and new code side by side): the test Lambertian 2.6-4.0 s ->
+    1.5-1.7 s; cm_military_green under a sky, a second assignment 7.2 -> 1.0 s (its tree 732
+    -> 277 nodes; the graph Cycles compiles the same)."""
 
     def __init__(self, tree, location=(0.0, 0.0)):
         self.tree, self.location, self.count = tree, location, 0
 
-    # Every write to a node costs time in proportion to its tree's size (Blender updates the
-    # tree after each: 0.15 ms at 50 nodes, 0.6-1.5 ms at 500): writes that change nothing
-    # are skipped, and so are the inputs an operation does not read; the largest stages are
-    # node groups of their own (_tables_sample_group, _tables_pdf_group). Measured, assigning
-    # the test Lambertian (bpy 5.0.1, one process each, side by side): 2.6-4.0 s -> 1.5-1.7 s,
-    # its tree 520 -> 356 nodes (574 either way once groups are expanded, as Cycles sees it).
     def node(self, kind, **props):
         node = self.tree.nodes.new(kind)
         for key, value in props.items():
@@ -815,59 +817,61 @@ def _world_pdf_group(wl, image):
 _WORLD_GROUPS = {"sample": _world_sample_group, "pdf": _world_pdf_group}
 
 
-def _tables_pdf_group(sampler):
-    """Group "tables pdf" of a sampler's texture: _inverse's pdf and f·cos ("F cos") at the
-    local direction (X, Y, Z) for Cos I (clamped to >= 0) and, anisotropic tables, Phi I. (A
-    group: Blender's node trees slow down with their node count, a mixture's branches
-    would double the tree's.)"""
+def _tables_group(sampler, kind, inputs, outputs, build):
+    """Group "tables <kind>" of a sampler's texture, inputs Cos I (clamped to >= 0), Phi I
+    (anisotropic tables) and `inputs`; build(g, sampler in the group, group inputs, cos_i,
+    phi_i) -> {output: socket}. (A group: every node added to a tree costs in proportion to
+    the tree's size (_Graph), and a material rebuilt on the same texture reuses it.)"""
     phi = [("Phi I", "Float")] if sampler.lay["P"] > 1 else []
-    done, tree = _group(f"{GROUP_PREFIX}tables pdf: {sampler.image.name}",
-                        [("Cos I", "Float")] + phi + [("X", "Float"), ("Y", "Float"), ("Z", "Float")],
-                        [("Pdf", "Float"), ("F cos", "Vector")])
+    done, tree = _group(f"{GROUP_PREFIX}tables {kind}: {sampler.image.name}", [("Cos I", "Float")] + phi + inputs,
+                        outputs)
     if done:
         return done
     g = _Graph(tree)
     inp = g.node("NodeGroupInput").outputs
-    pdf, fcos = _inverse(g, _Sampler(g, sampler.path, sampler.lay), inp["Cos I"], inp["Phi I"] if phi else None,
-                         (inp["X"], inp["Y"], inp["Z"]))
+    values = build(g, _Sampler(g, sampler.path, sampler.lay), inp, inp["Cos I"], inp["Phi I"] if phi else None)
     out = g.node("NodeGroupOutput")
-    g.set(out.inputs["Pdf"], pdf)
-    g.set(out.inputs["F cos"], fcos)
+    for name, value in values.items():
+        g.set(out.inputs[name], value)
     return tree
 
 
-def _tables_sample_group(sampler):
-    """Group "tables sample" of a sampler's texture: Tables.sample at U0, U1 for Cos I (clamped
-    to >= 0) and, anisotropic tables, Phi I: the local direction (X, Y, Z), the weight W and
-    the pdf per steradian. (A group, as "tables pdf": every node added to a tree costs in
-    proportion to the tree's size; and a material rebuilt on the same texture reuses it.)"""
-    phi = [("Phi I", "Float")] if sampler.lay["P"] > 1 else []
-    done, tree = _group(f"{GROUP_PREFIX}tables sample: {sampler.image.name}",
-                        [("Cos I", "Float")] + phi + [("U0", "Float"), ("U1", "Float")],
-                        [("X", "Float"), ("Y", "Float"), ("Z", "Float"), ("Weight", "Vector"), ("Pdf", "Float")])
-    if done:
-        return done
-    g = _Graph(tree)
-    inp = g.node("NodeGroupInput").outputs
-    inner = _Sampler(g, sampler.path, sampler.lay)
-    cos_i, phi_i = inp["Cos I"], inp["Phi I"] if phi else None
+def _tables_call(g, sampler, kind, cos_i, phi_i, **inputs):
+    """The outputs of the group `kind` (_TABLES_GROUPS) of the sampler's texture at these inputs."""
+    if phi_i is not None:
+        inputs["Phi I"] = phi_i
+    inputs_, outputs, build = _TABLES_GROUPS[kind]
+    return g.group(_tables_group(sampler, kind, inputs_, outputs, build), **{"Cos I": cos_i}, **inputs)
+
+
+def _pdf_in_group(g, inner, inp, cos_i, phi_i):
+    pdf, fcos = _inverse(g, inner, cos_i, phi_i, (inp["X"], inp["Y"], inp["Z"]))
+    return {"Pdf": pdf, "F cos": fcos}
+
+
+def _sample_in_group(g, inner, inp, cos_i, phi_i):
     inner.incident(cos_i, phi_i)
     a, b, weight, pdf = inner.sample(inp["U0"], inp["U1"])
     wo, jac = inner.direction(a, b, cos_i, phi_i)
     if jac is not None:
         pdf = g.math('DIVIDE', pdf, jac)
-    out = g.node("NodeGroupOutput")
-    for name, value in zip(("X", "Y", "Z", "Weight", "Pdf"), (*wo, weight, pdf)):
-        g.set(out.inputs[name], value)
-    return tree
+    return {"X": wo[0], "Y": wo[1], "Z": wo[2], "Weight": weight, "Pdf": pdf}
+
+
+# The per-texture groups: "pdf", _inverse's pdf and f·cos at the local direction (X, Y, Z);
+# "sample", Tables.sample at U0, U1: the local direction, the weight W and the pdf per steradian.
+_TABLES_GROUPS = {
+    "pdf": ([("X", "Float"), ("Y", "Float"), ("Z", "Float")], [("Pdf", "Float"), ("F cos", "Vector")],
+            _pdf_in_group),
+    "sample": ([("U0", "Float"), ("U1", "Float")],
+               [("X", "Float"), ("Y", "Float"), ("Z", "Float"), ("Weight", "Vector"), ("Pdf", "Float")],
+               _sample_in_group),
+}
 
 
 def _tables_sample(g, sampler, cos_i, phi_i, u0, u1):
     """(local direction (x, y, z), W, pdf per steradian) of the tables' sample at u0, u1."""
-    inputs = {"Cos I": cos_i, "U0": u0, "U1": u1}
-    if phi_i is not None:
-        inputs["Phi I"] = phi_i
-    out = g.group(_tables_sample_group(sampler), **inputs)
+    out = _tables_call(g, sampler, "sample", cos_i, phi_i, U0=u0, U1=u1)
     return (out["X"], out["Y"], out["Z"]), out["Weight"], out["Pdf"]
 
 
@@ -985,11 +989,8 @@ class _Mixture:
         # its own incident nodes (cos theta_i through a no-op unlike the other branches'): Cycles
         # would merge identical ones into nodes run before the branches, their results held
         # on the stack through every branch
-        inputs = {"Cos I": g.math('MAXIMUM', at["cos_i"], -2.0 if kind == "sun" else -1.0), "X": wo[0], "Y": wo[1],
-                  "Z": wo[2]}
-        if at["phi_i"] is not None:
-            inputs["Phi I"] = at["phi_i"]
-        out = g.group(_tables_pdf_group(sampler), **inputs)
+        out = _tables_call(g, sampler, "pdf", g.math('MAXIMUM', at["cos_i"], -2.0 if kind == "sun" else -1.0),
+                           at["phi_i"], X=wo[0], Y=wo[1], Z=wo[2])
         pdf, fcos = out["Pdf"], out["F cos"]
         q = g.math('MULTIPLY_ADD', self.c_tables, pdf, g.math('ADD', own, self.light_pdf(g, d, kind)))
         ok = _valid(g, at, wo[2], d)

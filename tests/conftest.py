@@ -57,15 +57,15 @@ def slow_unless(values, default, unpack=False):
             for v in values]
 
 
-# The files whose tests take longest, longest first (summed seconds of the default run on this
-# machine, session 26: cycles_lights 251, cycles 209, addon 153, svm 136, flow 108, tracer_lamps
-# 97, crash_safety 83, farm 80). Two workers take whole files (test.sh: --dist loadfile) in the
-# order collected (with --no-loadscope-reorder; xdist's default order, most tests first, left
-# test_cycles_lights.py near the end), so the run waited for one worker. Longest first, the
-# short files fill the gaps.
-LONGEST_FIRST = ("test_cycles_lights.py", "test_cycles.py", "test_addon.py", "test_svm.py", "test_flow.py",
-                 "test_tracer_lamps.py", "test_crash_safety.py", "test_farm.py", "test_aniso_tables.py",
-                 "test_tables.py", "test_pipeline.py", "test_blender_batch.py", "test_hard_cases.py")
+# The files whose tests take longest, longest first (summed seconds of the default run, fresh
+# clone, this machine, session 26's end: cycles 175, cycles_lights 162, addon 114, flow 104, svm
+# 96, tracer_lamps 88, tables 86, crash_safety 73, aniso_tables 69, farm 67). Two workers take
+# whole files (test.sh: --dist loadfile) in the order collected (with --no-loadscope-reorder;
+# xdist's default order, most tests first, left test_cycles_lights.py near the end), so the run
+# waited for one worker. Longest first, the short files fill the gaps.
+LONGEST_FIRST = ("test_cycles.py", "test_cycles_lights.py", "test_addon.py", "test_flow.py", "test_svm.py",
+                 "test_tracer_lamps.py", "test_tables.py", "test_crash_safety.py", "test_aniso_tables.py",
+                 "test_farm.py", "test_hard_cases.py", "test_pipeline.py", "test_blender_batch.py")
 
 
 def pytest_collection_modifyitems(config, items):

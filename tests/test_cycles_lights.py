@@ -375,8 +375,8 @@ def test_hdri_sun_by_next_event_estimation(lambert, tmp_path, interpolation, sun
     within MC error and its noise stays near Cycles' own (measured at 64 spp, 16^2: per-pixel
     variance 4.4x (Linear) Diffuse's with the directions drawn from the bright pixels' own map,
     8.1x from the whole map; with hashed next-event u 10.7x (Linear); drawn through the portal
-    from the map instead: 8500x at 24^2, with 1e3 fireflies). A broad sun (a patch 40x the sky) is drawn through the portal from the map
-    instead: no shadow rays, the same image."""
+    from the map instead: 8500x at 24^2, with 1e3 fireflies). A broad sun (a patch 40x the sky)
+    is drawn through the portal from the map instead: no shadow rays, the same image."""
     sc, sphere, learned = _hdri_sun_sphere(lambert, tmp_path, interpolation, sun)
     mine, diffuse = _same_as_diffuse(sc, sphere, learned, cs.material_with(_diffuse, "diffuse"), film_u=True)
     # (measured: 4.4x Diffuse's variance for the tiny sun, Linear, drawn from the bright pixels'
