@@ -127,6 +127,7 @@ from . import sockets
 
 CUTOFF = 1e-5           # Cycles' CLOSURE_WEIGHT_CUTOFF
 K_SMALL = 1e-4          # bake/core/tables.py _SMALL: the in-cell density's small-rate branch
+K_MAX = 30.0            # bake/core/tables.py K_MAX: the steepest in-cell rate
 TANGENT = (1.0, 0.0, 0.0)
 GRAPH_VERSION = 1       # in the node groups' names: a graph built by other code gets new groups
 GROUP_PREFIX = f"FlowBSDF SVM{GRAPH_VERSION} "
@@ -447,12 +448,13 @@ class _Sampler:
         return self.g.vmath('MULTIPLY_ADD', i, (0.0, -self.dv, 0.0), self.offset(self.origin, 0, 1))
 
     def cell(self, row, j, a0, a1, b0, b1):
-        """Cell j of the blended table's row at texel `row` (self.row): (mass, alpha, beta, W,
-        a1 - a0, b1 - b0)."""
+        """Cell j of the blended table's row at texel `row` (self.row): (mass, rate along a, rate
+        along b, W, a1 - a0, b1 - b0); the texture holds the leans, blended, then turned into rates."""
         g, lay = self.g, self.lay
         cell = self.at(self.offset(row, lay["x_cell"]), j, lay["cell_stride"])
-        m, ka, kb, wr, wg, wb = (self.quantity(cell, q) for q in range(_svm_export().CELL_QUANTITIES))
-        return m, ka, kb, g.combine(wr, wg, wb), g.math('SUBTRACT', a1, a0), g.math('SUBTRACT', b1, b0)
+        m, lean_a, lean_b, wr, wg, wb = (self.quantity(cell, q) for q in range(_svm_export().CELL_QUANTITIES))
+        return (m, _rate_of_lean(g, lean_a), _rate_of_lean(g, lean_b), g.combine(wr, wg, wb),
+                g.math('SUBTRACT', a1, a0), g.math('SUBTRACT', b1, b0))
 
     def pdf(self, m, x, ka, kb, y, da, db, ex_a=None, ex_b=None):
         """m exp_density(x, ka) exp_density(y, kb) / (da db) (bake/core/tables.py)."""
@@ -633,6 +635,14 @@ def _half_to_ab(g, wo, wi):
     a = g.math('MULTIPLY_ADD', x, 0.5, 0.5, clamp=True)
     b = g.math('MINIMUM', g.math('MAXIMUM', g.math('MULTIPLY_ADD', y, math.pi, math.pi), 0.0), 2.0 * math.pi)
     return a, b, g.math('MULTIPLY', g.math('MULTIPLY', g.dot(g.combine(*wi), h), cap), 4.0)
+
+
+def _rate_of_lean(g, y):
+    """bake/core/tables.py rate_of_lean: 2 y (3 - y^2) / (1 - y^2), clamped to K_MAX."""
+    yy = g.math('MULTIPLY', y, y)
+    k = g.math('DIVIDE', g.math('MULTIPLY', g.math('MULTIPLY', y, 2.0), g.math('SUBTRACT', 3.0, yy)),
+               g.math('SUBTRACT', 1.0, yy))
+    return g.math('MINIMUM', g.math('MAXIMUM', k, -K_MAX), K_MAX)
 
 
 def _expm1(g, k):

@@ -110,11 +110,11 @@ class BakeProgress(Step):
 
     def __init__(self, name, settings, clock=time.monotonic):
         import inspect
-        from bake.core.tabulate import FLOATS_PER_CELL, ISO_PLANNED, RESOLUTIONS, plan_tables
+        from bake.core.tabulate import BYTES_PER_CELL, ISO_PLANNED, RESOLUTIONS, plan_tables
         super().__init__(clock)
         defaults = {k: v.default for k, v in inspect.signature(plan_tables).parameters.items()}
         get = lambda key: settings.get(key, defaults[key])        # noqa: E731
-        self.name, self.resolutions, self.cell = name, RESOLUTIONS, FLOATS_PER_CELL * 4
+        self.name, self.resolutions, self.cell = name, RESOLUTIONS, BYTES_PER_CELL
         self.planned_resolution, self.first = get("resolution"), get("first_bins")
         self.target, self.budget = 1.0, get("memory_budget")     # the planner's scores are x its targets
         self.layout_names = ISO_PLANNED

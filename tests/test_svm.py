@@ -15,7 +15,7 @@ import cycles_scenes as cs
 from conftest import slow_unless
 from bake.export import svm_export
 from bake.errors import FlowBSDFError
-from bake.core.tables import Tables, open_tables
+from bake.core.tables import Tables, lean_of_rate, open_tables
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
 
@@ -29,7 +29,7 @@ def _synthetic(K, P, R=64, C=64, seed=0):
     a = np.sort(rng.random(lead + (R + 1,)), -1)
     b = np.sort(rng.random(lead + (R, C + 1)), -1) * 2 * np.pi
     mass = rng.random(lead + (R, C)) ** 4 + 1e-3
-    slopes = [rng.uniform(-30, 30, lead + (R, C)) for _ in range(2)]
+    slopes = [lean_of_rate(rng.uniform(-30, 30, lead + (R, C))) for _ in range(2)]
     return Tables(np.radians(np.linspace(0.0, 89.5, K)), a, b, mass, *slopes, rng.random(lead + (R, C, 3)),
                   phi_bins=None if P is None else np.arange(P) * np.pi / P, phi_period=np.pi if P else 2 * np.pi)
 

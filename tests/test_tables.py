@@ -9,9 +9,10 @@ from bake.core.ideal import IdealSampler
 from bake.materials import open_material
 from bake.materials.base import Material, as_dirs
 from bake.quality.metrics import chi2_test, relative_variance, relative_variance_ref
-from bake.core.tables import TWO_PI, Tables, exp_cdf, exp_density, exp_inverse_cdf, from_ab, open_tables, to_ab
-from bake.core.tabulate import (ISO_COORDS, _WoFrame, _finish_bin, _moments_around, _nodes, build_tables,
-                                exp_rate_for_mean, plan_tables)
+from bake.core.tables import (TWO_PI, Tables, exp_cdf, exp_density, exp_inverse_cdf, from_ab, open_tables,
+                              rate_of_lean, to_ab)
+from bake.core.tabulate import (BYTES_PER_CELL, ISO_COORDS, _WoFrame, _finish_bin, _moments_around, _nodes,
+                                build_tables, exp_rate_for_mean, plan_tables)
 from contract import assert_sampler_contract
 
 HARD = {
@@ -135,6 +136,41 @@ def test_unresolved_edges_are_found_on_either_side_and_across_rows():
     assert 3 in cells
 
 
+def test_bins_blend_leans_as_a_mixture_of_their_exponentials_does():
+    """Blending two bins blends the cells' leans, not their rates: the blended exponential's mean
+    is the mean of the mixture of the bins' exponentials (to rate_of_lean's 2 %), where a blend
+    of rates put a steep rate, fitted to one bin's flank, on the blended cell (bins at k = -30 and
+    0 half-way: mean 0.07 instead of the mixture's 0.27, and a density e^-15 at the far end)."""
+    from bake.core.tables import exp_mean, lean_of_rate
+    rng = np.random.default_rng(3)
+    k0, k1, t = rng.uniform(-30, 30, 4000), rng.uniform(-30, 30, 4000), rng.random(4000)
+    k0[:3], k1[:3], t[:3] = -30.0, 0.0, [0.1, 0.5, 0.9]
+    assert np.all(np.abs(rate_of_lean(lean_of_rate(k0)) - k0) < 1e-9 * 30)     # each bin keeps its rate
+    mixture = (1 - t) * exp_mean(k0) + t * exp_mean(k1)
+    blended = exp_mean(rate_of_lean((1 - t) * lean_of_rate(k0) + t * lean_of_rate(k1)))
+    assert np.max(np.abs(blended - mixture)) < 0.02
+    assert abs(exp_mean((1 - t[1]) * k0[1] + t[1] * k1[1]) - mixture[1]) > 0.15      # the rates' blend
+
+
+def test_a_steep_cell_blended_off_its_flank_keeps_the_rv_finite(rgl):
+    """cc_green_malachite's 2 MB plan (its 31 bins, 48², half vector): half-way between the bins at
+    88.81 and 89.15 deg one cell blended a rate of -30 (fitted to a flank in one bin) onto cells
+    displaced off that flank, and its density fell to ~1e-7 of f·cos's share there: rv 8.3e4 x
+    the ideal tabulation's at theta_i 89.0 (61.7 x at 88.9). Blending leans: 11-12 x at all three."""
+    from bake.materials.rgl import RGLMaterial
+    mat = RGLMaterial(rgl("cc_green_malachite_rgb"))
+    ideal = IdealSampler(mat, resolution=256)
+    bins = [0.0, 6.3061, 8.9227, 12.6314, 17.9, 28.4908, 35.8, 40.7613, 45.919, 50.6605, 53.7, 59.7094, 64.2914,
+            68.703, 71.6, 73.3118, 75.0084, 76.6916, 78.3633, 79.771, 81.1724, 82.5686, 83.9604, 85.3486, 86.0416,
+            86.734, 87.426, 88.1176, 88.8089, 89.1544, 89.5]
+    tab = build_tables(mat, ideal, np.radians(bins), 48, 48, lobe_width=0.1006, coords="halfpolar")
+    for deg in (88.9, 89.0, 89.1):
+        wi = incident(deg)
+        ratio = relative_variance_ref(mat, tab, wi, ideal, k=128, seed=7)[0] / \
+            relative_variance_ref(mat, ideal, wi, ideal, k=128, seed=7)[0]
+        assert ratio < 30, (deg, ratio)
+
+
 def test_cell_rate_stops_at_the_floor_of_f_cos():
     """Matching the first moment alone gives the flank cell b in [1, 1.5] beta = -24.6:
     its pdf at the floor end would be ~1e-8 of f·cos's share there (a heavy-tailed
@@ -144,7 +180,8 @@ def test_cell_rate_stops_at_the_floor_of_f_cos():
     mat, wi = FlankThenFloor(), incident(40.0)
     a_edges, b_edges, none = np.array([0.0, 0.5, 1.0]), np.array([[0.0, 1.0, 1.5, TWO_PI]] * 2), np.empty(0)
     prob, alpha, beta, w = _finish_bin(mat, wi, _WoFrame(0.0), a_edges, b_edges, none, none, none, 4, 1e-4)
-    assert np.all(np.abs(beta[:, 1]) <= np.log(1.001 / (1e-3 + np.exp(-60.0)))) and np.all(beta[:, 1] < -3)
+    rate = rate_of_lean(beta[:, 1])
+    assert np.all(np.abs(rate) <= np.log(1.001 / (1e-3 + np.exp(-60.0)) * 1.0001)) and np.all(rate < -3)
     tab = Tables([np.radians(40.0)], a_edges[None], b_edges[None], prob[None], alpha[None], beta[None], w[None])
     y = (np.arange(4096) + 0.5) / 4096
     wo = from_ab(np.full_like(y, 0.25), 1.0 + 0.5 * y, np.pi)
@@ -273,7 +310,7 @@ def test_planner_keeps_the_coordinates_that_plan_closer():
     """Isotropic plans try both coordinates: a sharp GGX keeps the half vector, where its lobe
     stays put between bins (16² x 10 bins: rv between bins 0.04 vs 1.95 over wo, measured), a
     Lambert keeps wo, the same at every theta_i, so fewer bins (3 vs 10)."""
-    plan = dict(resolution=16, grid=96, samples=1 << 12, first_bins=3, memory_budget=10 * 7 * 4 * 16 * 16)
+    plan = dict(resolution=16, grid=96, samples=1 << 12, first_bins=3, memory_budget=10 * BYTES_PER_CELL * 16 * 16)
     for spec, want in (({"kind": "analytic", "model": "ggx", "alpha": 0.02}, "halfpolar"),
                        ({"kind": "analytic", "model": "lambert", "albedo": 0.5}, "wo")):
         mat = open_material(spec)
@@ -381,8 +418,8 @@ def test_resolutions_leave_the_budget_room_for_enough_angles():
     """The resolution probe tries only resolutions whose tables fit MIN_BINS incident angles in
     the memory budget (a sharp file's 64² at 2 MB left 17 angles and lost up to 53x the ideal's rv
     between them); a budget too small for any of them leaves the choice to the probe."""
-    from bake.core.tabulate import FLOATS_PER_CELL, MIN_BINS, RESOLUTIONS, _resolutions_within
-    per_bin = lambda r: FLOATS_PER_CELL * 4 * r * r        # noqa: E731
+    from bake.core.tabulate import BYTES_PER_CELL, MIN_BINS, RESOLUTIONS, _resolutions_within
+    per_bin = lambda r: BYTES_PER_CELL * r * r        # noqa: E731
     for budget in (1_000_000, 2_000_000, 4_000_000, 16_000_000):
         within = _resolutions_within(budget)
         assert within == [r for r in RESOLUTIONS if budget // per_bin(r) >= MIN_BINS]
@@ -471,7 +508,7 @@ def test_builds_in_threads_are_the_builds_of_one_thread(monkeypatch):
     for workers in (1, 2):
         monkeypatch.setattr(fasttables, "_workers", lambda w=workers: w)
         out[workers] = plan_tables(mat, IdealSampler(mat, resolution=64), resolution=16, grid=96, samples=1 << 12,
-                                   first_bins=3, memory_budget=16 * 7 * 4 * 16 * 16)
+                                   first_bins=3, memory_budget=16 * BYTES_PER_CELL * 16 * 16)
     assert "flowbsdf-bake" in threads and "MainThread" in threads
     assert len(out[1].theta_bins) > 3           # the planner split intervals (its probes ran in threads)
     for f in fields:
@@ -567,7 +604,7 @@ def test_planner_probes_with_the_ideal_and_builds_the_plan_from_the_source():
             return ideal.pdf(wi, wo)
 
     tab = plan_tables(mat, Source(), resolution=16, grid=96, samples=1 << 12, first_bins=3,
-                      memory_budget=8 * 7 * 4 * 16 * 16, ideal_resolution=64)
+                      memory_budget=8 * BYTES_PER_CELL * 16 * 16, ideal_resolution=64)
     assert len(tab.theta_bins) > 3          # the probes split intervals, without asking the source
     assert sorted(asked) == sorted(round(float(t), 6) for t in np.degrees(tab.theta_bins))
 
@@ -582,7 +619,7 @@ def test_planned_bins_include_the_measured_incident_angles(tmp_path):
     measured = np.radians([22.5, 45.0, 67.5])           # (and 0, 90: the first bin, past the last)
     assert np.allclose(mat.measured_theta_i[1:4], measured)
     tab = plan_tables(mat, IdealSampler(mat, resolution=64), resolution=16, grid=96, samples=1 << 12,
-                      first_bins=2, memory_budget=16 * 7 * 4 * 16 * 16, coords="wo")
+                      first_bins=2, memory_budget=16 * BYTES_PER_CELL * 16 * 16, coords="wo")
     bins = np.asarray(tab.theta_bins, float)
     assert all(np.min(np.abs(bins - t)) < 1e-6 for t in measured), np.degrees(bins)
     lambert = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})

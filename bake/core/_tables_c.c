@@ -74,6 +74,7 @@ double sin(double) FT_VEC;
 static const double PI = 3.141592653589793;       /* np.pi */
 static const double TWO_PI = 6.283185307179586;   /* 2.0 * np.pi */
 static const double SMALL = 1e-4;                 /* tables._SMALL */
+static const double K_MAX = 30.0;                 /* tables.K_MAX */
 static const double QUARTER = 0.7853981633974483; /* halfvector.QUARTER, 0.25 * np.pi */
 static const double TINY = 1e-300;                /* halfvector._TINY */
 
@@ -91,8 +92,8 @@ typedef struct {
     const double *a;           /* (K, R+1)    _a */
     const double *b;           /* (K, R, C+1) _b */
     const double *m;           /* (K, R, C)   _m */
-    const double *alpha;       /* (K, R, C)   _alpha */
-    const double *beta;        /* (K, R, C)   _beta */
+    const double *alpha;       /* (K, R, C)   _alpha (leans) */
+    const double *beta;        /* (K, R, C)   _beta (leans) */
     const double *row_cdf;     /* (K, R+1)    _row_cdf */
     const double *col_cum;     /* (K, R, C+1) _col_cum */
     const float *weights;      /* (K, R, C, 3) weights */
@@ -118,6 +119,12 @@ FT_INLINE double mod_two_pi(double x) {
     if (ax >= TWO_PI) r = ax < 2.0 * TWO_PI ? x - copysign(TWO_PI, x) : fmod(x, TWO_PI);   /* rare */
     /* arithmetic, not a branch: the sign of r is a coin toss. r + 0.0 turns -0.0 into 0.0. */
     return r + TWO_PI * (double)(r < 0.0);
+}
+
+/* tables.rate_of_lean: the rate of a blended lean, in numpy's order of operations */
+FT_INLINE double rate_of_lean(double y) {
+    const double k = 2.0 * y * (3.0 - y * y) / (1.0 - y * y);
+    return k < -K_MAX ? -K_MAX : (k > K_MAX ? K_MAX : k);
 }
 
 /* The exponential per axis, for a block: rate_e (expm1(k), the one every exact branch
@@ -294,8 +301,8 @@ FT_INLINE int flatten(const ft_tables *T, const ft_bin *B, int with_weights, ft_
     }
     for (int64_t i = 0; i < cells; i++) {
         m[i] = lerp(T->m, B->kc + i, B->dc, B);
-        alpha[i] = lerp(T->alpha, B->kc + i, B->dc, B);
-        beta[i] = lerp(T->beta, B->kc + i, B->dc, B);
+        alpha[i] = rate_of_lean(lerp(T->alpha, B->kc + i, B->dc, B));    /* the flat view holds rates */
+        beta[i] = rate_of_lean(lerp(T->beta, B->kc + i, B->dc, B));
     }
     for (int64_t i0 = 0; i0 < cells; i0 += BLK) {   /* full blocks, as every other rate_e call */
         double ka[BLK], kb[BLK], e1[BLK], e2[BLK];
@@ -354,8 +361,8 @@ FT_INLINE void cell(const ft_view *V, const ft_bin *B, int64_t i, int64_t j, ft_
     c->b0 = AT(V->b, ib, B->db, *B);
     c->b1 = AT(V->b, ib + 1, B->db, *B);
     c->m = AT(V->m, ic, B->dc, *B);
-    c->ka = AT(V->alpha, ic, B->dc, *B);
-    c->kb = AT(V->beta, ic, B->dc, *B);
+    c->ka = flat ? V->alpha[ic] : rate_of_lean(lerp(V->alpha, ic, B->dc, B));
+    c->kb = flat ? V->beta[ic] : rate_of_lean(lerp(V->beta, ic, B->dc, B));
     c->ea = flat ? V->ea[ic] : 0.0;
     c->eb = flat ? V->eb[ic] : 0.0;
 }

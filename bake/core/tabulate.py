@@ -16,7 +16,7 @@ from ..errors import FlowBSDFError
 from .fasttables import one_blas_thread
 from .geometry import luminance, spherical_dir
 from . import halfvector
-from .tables import _SMALL, K_MAX, TWO_PI, Tables, _search, exp_density, to_ab
+from .tables import HALF_MAX, K_MAX, TWO_PI, Tables, _search, exp_density, exp_mean, lean_of_rate, to_ab
 
 A_MIN = 1e-4     # the least gap between row knots (keeps every segment of rows non-empty)
 B_MIN = 1e-4     # the same for column knots
@@ -30,8 +30,7 @@ def exp_rate_for_mean(mean):
     lo, hi = np.full(mean.shape, -K_MAX), np.full(mean.shape, K_MAX)
     for _ in range(60):
         k = 0.5 * (lo + hi)
-        ks = np.where(np.abs(k) < _SMALL, 1.0, k)
-        m = np.where(np.abs(k) < _SMALL, 0.5 + k / 12.0, 1.0 / (-np.expm1(-ks)) - 1.0 / ks)
+        m = exp_mean(k)
         lo, hi = np.where(m < mean, k, lo), np.where(m < mean, hi, k)
     return 0.5 * (lo + hi)
 
@@ -494,8 +493,9 @@ def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrat
     prob = (1.0 - floor) * share + floor * area / TWO_PI
     # Estimator weight per cell: its integral of f·cos over its probability (sum P W = albedo).
     w_rgb = rgb / prob[..., None]
-    f32 = lambda x: x.astype(np.float32)
-    return f32(prob), f32(alpha), f32(beta), f32(w_rgb)
+    f32, f16 = (lambda x: x.astype(np.float32)), (lambda x: x.astype(np.float16))
+    weights = f16(w_rgb) if np.all(np.abs(w_rgb) < HALF_MAX) else f32(w_rgb)
+    return f32(prob), f16(lean_of_rate(alpha)), f16(lean_of_rate(beta)), weights
 
 
 EDGE_JUMP = 30.0     # a cell's density at an edge this many times below its neighbour's across it: unresolved
@@ -803,20 +803,24 @@ ANISO_RESOLUTIONS = (16, 24, 32)
 # At theta_i 86 a 1:25 GGX needs 64 (32: 3.5x the ideal's rv half-way, 64: 1.3x; measured).
 PHI_COUNTS = (8, 16, 32, 64)
 PHI_PROBE_DEG = (80.0, 86.0)
-FLOATS_PER_CELL = 7      # mass, two rates, RGB weight, and (about) one column edge
+# A cell's bytes: its mass and (about) one column edge as float32, its two leans and RGB weight
+# as float16 (_finish_bin; 28 when all were float32: 2 MB now hold 1.56x the cells).
+BYTES_PER_CELL = 18
 ANISO_BUDGET = 4         # anisotropic tables' share of memory_budget, all their azimuths together
 
 
-# Isotropic resolutions leave the budget room for MIN_BINS incident angles: at 2 MB, 64² leaves 17
-# and sharp shared files lost 7-53x the ideal's rv between them (measured; 48 would exclude 64² at 4 MB,
-# which measured worse on malachite, ilm and irid at 48² x 62).
-MIN_BINS = 24
+# Isotropic resolutions leave the budget room for MIN_BINS incident angles: 64² x 17 (28-byte cells
+# at 2 MB) lost 7-53x the ideal's rv between bins on the sharp shared files, 64² x 27 (3.11 MB) still
+# 53x on satin_rosaline at 85 deg, where 48² x 31 lost 6x (measured); 36 excludes 64² from 2 MB of
+# 18-byte cells (27 angles) and keeps it at 4 MB (54), where 64² x 34 beat 48² x 62 of 28-byte cells
+# on malachite, ilm and irid.
+MIN_BINS = 36
 
 
 def _resolutions_within(memory_budget):
     """RESOLUTIONS whose tables fit MIN_BINS incident angles in the budget (all of them when
     not even the smallest does: the budget then decides alone)."""
-    fits = [r for r in RESOLUTIONS if memory_budget // (FLOATS_PER_CELL * 4 * r * r) >= MIN_BINS]
+    fits = [r for r in RESOLUTIONS if memory_budget // (BYTES_PER_CELL * r * r) >= MIN_BINS]
     return fits or list(RESOLUTIONS)
 
 
@@ -966,7 +970,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
                     if loss <= 0.5 * tol:
                         break
             phi_bins = default_phi_bins(material, count)
-        per_bin = FLOATS_PER_CELL * 4 * resolution * resolution
+        per_bin = BYTES_PER_CELL * resolution * resolution
         budget = memory_budget
         if phi_bins is not None:        # every theta bin once per azimuth, and the one closing the period
             per_bin *= len(phi_bins) + 1

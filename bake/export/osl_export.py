@@ -18,7 +18,7 @@ b = k P + p as in Tables. Layout (W = texture width, rows from the top of the im
                             [g / W, (g + 1) / W), then cos(theta_bin k), cos(theta_bin k + 1) for
                             k = min(lo, K - 2) (what the shader needs when hi = lo + 1)
     rows 3 + b R + i        bin b, table row i: cell j at x = j holds W_bij (RGB)
-    rows 3 + B R + b R + i  bin b, table row i: cell j holds (mass, alpha, beta)
+    rows 3 + B R + b R + i  bin b, table row i: cell j holds (mass, lean a, lean b) (Tables.alpha, beta)
     corner block (k, p), k = 0 .. max(K - 1, 1) - 1, first row 3 + 2 B R + (k P + p)(3 + 3 R):
         +0          row CDF, x = 0..R
         +1          a edges, x = 0..R

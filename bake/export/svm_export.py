@@ -40,7 +40,7 @@ second). Layout 1 (W x H texels):
                              [g, g + 1) / GC, lowered likewise
         row 1 + i, x = XC + SC j   records [column cumsum(i, j), b edge(i, j)], j = 0 .. NC - 1,
                              NC = max(C + 1, 2^col_steps, 2^ceil(log2 C)) (8 past the end)
-        row 1 + i, x = XX + SX j   records [mass, alpha, beta, W red, W green, W blue] of
+        row 1 + i, x = XX + SX j   records [mass, lean a, lean b, W red, W green, W blue] of
                              cell (i, j), j < C
       SR = SC = 2 / (4 / NB) texels (1 isotropic, 2 anisotropic), SX = 6 NB / 4.
 
@@ -82,7 +82,7 @@ META_KEY = "flowbsdf_svm"
 MAX_SIDE = 16384
 PAST_END = 8.0          # a record value above any target (CDFs and a <= 1, b <= 2 pi)
 UNUSED = 1e30           # a bin guide threshold no value reaches
-CELL_QUANTITIES = 6     # mass, alpha, beta, W red, W green, W blue
+CELL_QUANTITIES = 6     # mass, lean a, lean b (Tables.alpha, beta), W red, W green, W blue
 
 
 def export_path(tables_path, digest):

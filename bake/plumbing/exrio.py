@@ -1,4 +1,4 @@
-"""Float32 OpenEXR files with JSON metadata, written atomically: the tables (named 2D arrays,
+"""OpenEXR files with JSON metadata, written atomically: the tables (named 2D float32 or float16 arrays,
 `write_exr`/`read_exr`) and the RGBA textures the Blender back ends read (`write_rgba_exr`)."""
 import json
 from pathlib import Path
@@ -12,13 +12,15 @@ META_KEY = "flowbsdf"
 
 
 def write_exr(path, arrays, meta):
-    """One part per array (2D float32, ZIP: lossless), metadata as JSON in the first header.
-    Written to a temporary file in the same folder and renamed, so a crash leaves no broken file."""
+    """One part per array (2D, ZIP: lossless; float16 arrays as half, others as float32), metadata
+    as JSON in the first header. Written to a temporary file in the same folder and renamed, so a
+    crash leaves no broken file."""
     path = Path(path)
     import OpenEXR
     parts = []
     for i, (name, array) in enumerate(arrays.items()):
-        array = np.ascontiguousarray(array, dtype=np.float32)
+        array = np.asarray(array)
+        array = np.ascontiguousarray(array, dtype=np.float16 if array.dtype == np.float16 else np.float32)
         if array.ndim != 2 or array.size == 0:
             raise ValueError(f"{name}: EXR parts hold non-empty 2D arrays, got shape {array.shape}")
         header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
@@ -65,6 +67,6 @@ def read_exr(path):
     if not isinstance(meta, dict):
         raise FlowBSDFError(f"table metadata is not a JSON object (got {type(meta).__name__})", path)
     for name, a in arrays.items():
-        if a.dtype != np.float32:
-            raise FlowBSDFError(f"part {name!r} is {a.dtype}, tables are float32", path)
+        if a.dtype not in (np.float32, np.float16):
+            raise FlowBSDFError(f"part {name!r} is {a.dtype}, tables are float32 (and float16)", path)
     return arrays, meta

@@ -4,6 +4,7 @@
 
 #define LAYOUT 5
 #define K_SMALL 1e-4
+#define K_MAX 30.0
 
 float fetch1(string file, float W, float H, int x, int y)
 {
@@ -154,7 +155,14 @@ void blend_bins(string file, float W, float H, int K, int R, int NP, float perio
     base = 3 + 2 * K * NP * R + (k * NP + p) * (3 + 3 * R);
 }
 
-// Cell (i, j) of the blended table: its weight W (baked f cos / pdf) and (mass, alpha, beta).
+// bake/core/tables.py rate_of_lean: the exponential's rate of a blended lean.
+float rate_of_lean(float y)
+{
+    return clamp(2.0 * y * (3.0 - y * y) / (1.0 - y * y), -K_MAX, K_MAX);
+}
+
+// Cell (i, j) of the blended table: its weight W (baked f cos / pdf) and (mass, rate along a,
+// rate along b): the texture holds the leans, blended, then turned into rates.
 void blend_cell(string file, float W, float H, int B, int R, int bins[4], float w[4], int i, int j,
                 output color weight, output color cell)
 {
@@ -166,6 +174,8 @@ void blend_cell(string file, float W, float H, int B, int R, int bins[4], float 
             weight += w[c] * fetch(file, W, H, j, 3 + bins[c] * R + i);
         }
     }
+    cell[1] = rate_of_lean(cell[1]);
+    cell[2] = rate_of_lean(cell[2]);
 }
 
 // bake/core/halfvector.py: 1 - cos theta_max(phi_h), the valid cap of h along phi_h at wi.
