@@ -254,6 +254,20 @@ def test_file_round_trip_and_corruption(tables, tmp_path, coords):
     u = np.random.default_rng(3).random((1000, 2))
     np.testing.assert_array_equal(back.sample(wi, u)[0], tab.sample(wi, u)[0])
     assert not list(tmp_path.glob(".*.tmp")), "a temporary file left behind"
+    # The builder's leans and weights are float16 in memory and in the file (18 bytes a cell with
+    # the column edges: BYTES_PER_CELL), the edges and masses float32.
+    assert [x.dtype for x in (back.alpha, back.beta, back.weights)] == [np.float16] * 3
+    assert [x.dtype for x in (back.a_edges, back.b_edges, back.mass)] == [np.float32] * 3
+    cells = back.mass.size
+    assert back.nbytes == cells * BYTES_PER_CELL + back.a_edges.nbytes + back.b_edges[..., :1].nbytes
+    # Weights beyond float16's range stay float32 (never inf), and come back so.
+    big = Tables(tab.theta_bins, tab.a_edges, tab.b_edges, tab.mass, tab.alpha, tab.beta,
+                 tab.weights.astype(np.float32) * 1e5, coords=coords)
+    big.save(tmp_path / "big.exr")
+    assert open_tables(tmp_path / "big.exr").weights.dtype == np.float32
+    _, _, _, w = _finish_bin(mat, wi, _WoFrame(0.7), np.array([0.0, 1.0]), np.array([[0.0, TWO_PI]]),
+                             *([np.empty(0)] * 3), 4, 1e-4)
+    assert w.dtype == np.float16
 
     truncated = tmp_path / "truncated.exr"
     truncated.write_bytes(path.read_bytes()[:500])

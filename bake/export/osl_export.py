@@ -51,7 +51,7 @@ from ..errors import FlowBSDFError
 from ..plumbing.exrio import write_rgba_exr
 from ..plumbing.files import file_hash
 
-LAYOUT = 5
+LAYOUT = 6      # 6: cells hold leans (Tables.alpha, beta), turned into rates after the blend
 META_KEY = "flowbsdf_osl"
 
 

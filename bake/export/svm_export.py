@@ -77,7 +77,7 @@ from ..errors import FlowBSDFError
 from ..plumbing.exrio import write_rgba_exr
 from .osl_export import _guide, ensure_export
 
-LAYOUT = 1
+LAYOUT = 2      # 2: cells hold leans (Tables.alpha, beta), turned into rates after the blend
 META_KEY = "flowbsdf_svm"
 MAX_SIDE = 16384
 PAST_END = 8.0          # a record value above any target (CDFs and a <= 1, b <= 2 pi)

@@ -2,7 +2,7 @@
 // evaluation. A port of bake/core/tables.py's Tables.sample and Tables._locate (the numpy reference).
 // Every texel is fetched with "interp", "closest" and zero derivatives, so values come back exact.
 
-#define LAYOUT 5
+#define LAYOUT 6
 #define K_SMALL 1e-4
 #define K_MAX 30.0
 
