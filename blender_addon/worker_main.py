@@ -110,11 +110,11 @@ class BakeProgress(Step):
 
     def __init__(self, name, settings, clock=time.monotonic):
         import inspect
-        from bake.core.tabulate import BYTES_PER_CELL, ISO_PLANNED, RESOLUTIONS, plan_tables
+        from bake.core.tabulate import ISO_PLANNED, RESOLUTIONS, bin_bytes, plan_tables
         super().__init__(clock)
         defaults = {k: v.default for k, v in inspect.signature(plan_tables).parameters.items()}
         get = lambda key: settings.get(key, defaults[key])        # noqa: E731
-        self.name, self.resolutions, self.cell = name, RESOLUTIONS, BYTES_PER_CELL
+        self.name, self.resolutions, self.bin_bytes = name, RESOLUTIONS, bin_bytes
         self.planned_resolution, self.first = get("resolution"), get("first_bins")
         self.target, self.budget = 1.0, get("memory_budget")     # the planner's scores are x its targets
         self.layout_names = ISO_PLANNED
@@ -167,7 +167,7 @@ class BakeProgress(Step):
         self.report()
 
     def max_bins(self):
-        return max(2, int(self.budget // (self.cell * self.resolution ** 2))) if self.resolution else None
+        return max(2, int(self.budget // self.bin_bytes(self.resolution))) if self.resolution else None
 
     def angles_left(self):
         """(angles the planner will still add, True when that is the memory cap)."""

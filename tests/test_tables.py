@@ -12,7 +12,7 @@ from bake.quality.metrics import chi2_test, relative_variance, relative_variance
 from bake.core.tables import (TWO_PI, Tables, exp_cdf, exp_density, exp_inverse_cdf, from_ab, open_tables,
                               rate_of_lean, to_ab)
 from bake.core.tabulate import (BYTES_PER_CELL, ISO_COORDS, _WoFrame, _finish_bin, _moments_around, _nodes,
-                                build_tables, exp_rate_for_mean, plan_tables)
+                                bin_bytes, build_tables, exp_rate_for_mean, plan_tables)
 from contract import assert_sampler_contract
 
 HARD = {
@@ -324,7 +324,7 @@ def test_planner_keeps_the_coordinates_that_plan_closer():
     """Isotropic plans try both coordinates: a sharp GGX keeps the half vector, where its lobe
     stays put between bins (16² x 10 bins: rv between bins 0.04 vs 1.95 over wo, measured), a
     Lambert keeps wo, the same at every theta_i, so fewer bins (3 vs 10)."""
-    plan = dict(resolution=16, grid=96, samples=1 << 12, first_bins=3, memory_budget=10 * BYTES_PER_CELL * 16 * 16)
+    plan = dict(resolution=16, grid=96, samples=1 << 12, first_bins=3, memory_budget=10 * bin_bytes(16))
     for spec, want in (({"kind": "analytic", "model": "ggx", "alpha": 0.02}, "halfpolar"),
                        ({"kind": "analytic", "model": "lambert", "albedo": 0.5}, "wo")):
         mat = open_material(spec)
@@ -432,8 +432,8 @@ def test_resolutions_leave_the_budget_room_for_enough_angles():
     """The resolution probe tries only resolutions whose tables fit MIN_BINS incident angles in
     the memory budget (a sharp file's 64² at 2 MB left 17 angles and lost up to 53x the ideal's rv
     between them); a budget too small for any of them leaves the choice to the probe."""
-    from bake.core.tabulate import BYTES_PER_CELL, MIN_BINS, RESOLUTIONS, _resolutions_within
-    per_bin = lambda r: BYTES_PER_CELL * r * r        # noqa: E731
+    from bake.core.tabulate import MIN_BINS, RESOLUTIONS, _resolutions_within
+    per_bin = bin_bytes
     for budget in (1_000_000, 2_000_000, 4_000_000, 16_000_000):
         within = _resolutions_within(budget)
         assert within == [r for r in RESOLUTIONS if budget // per_bin(r) >= MIN_BINS]
@@ -522,7 +522,7 @@ def test_builds_in_threads_are_the_builds_of_one_thread(monkeypatch):
     for workers in (1, 2):
         monkeypatch.setattr(fasttables, "_workers", lambda w=workers: w)
         out[workers] = plan_tables(mat, IdealSampler(mat, resolution=64), resolution=16, grid=96, samples=1 << 12,
-                                   first_bins=3, memory_budget=16 * BYTES_PER_CELL * 16 * 16)
+                                   first_bins=3, memory_budget=16 * bin_bytes(16))
     assert "flowbsdf-bake" in threads and "MainThread" in threads
     assert len(out[1].theta_bins) > 3           # the planner split intervals (its probes ran in threads)
     for f in fields:
@@ -618,8 +618,9 @@ def test_planner_probes_with_the_ideal_and_builds_the_plan_from_the_source():
             return ideal.pdf(wi, wo)
 
     tab = plan_tables(mat, Source(), resolution=16, grid=96, samples=1 << 12, first_bins=3,
-                      memory_budget=8 * BYTES_PER_CELL * 16 * 16, ideal_resolution=64)
+                      memory_budget=8 * bin_bytes(16), ideal_resolution=64)
     assert len(tab.theta_bins) > 3          # the probes split intervals, without asking the source
+    assert tab.nbytes <= 8 * bin_bytes(16) < tab.nbytes + bin_bytes(16)     # the budget, in bytes held
     assert sorted(asked) == sorted(round(float(t), 6) for t in np.degrees(tab.theta_bins))
 
 
@@ -633,7 +634,7 @@ def test_planned_bins_include_the_measured_incident_angles(tmp_path):
     measured = np.radians([22.5, 45.0, 67.5])           # (and 0, 90: the first bin, past the last)
     assert np.allclose(mat.measured_theta_i[1:4], measured)
     tab = plan_tables(mat, IdealSampler(mat, resolution=64), resolution=16, grid=96, samples=1 << 12,
-                      first_bins=2, memory_budget=16 * BYTES_PER_CELL * 16 * 16, coords="wo")
+                      first_bins=2, memory_budget=16 * bin_bytes(16), coords="wo")
     bins = np.asarray(tab.theta_bins, float)
     assert all(np.min(np.abs(bins - t)) < 1e-6 for t in measured), np.degrees(bins)
     lambert = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})

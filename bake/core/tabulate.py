@@ -806,6 +806,12 @@ PHI_PROBE_DEG = (80.0, 86.0)
 # A cell's bytes: its mass and (about) one column edge as float32, its two leans and RGB weight
 # as float16 (_finish_bin; 28 when all were float32: 2 MB now hold 1.56x the cells).
 BYTES_PER_CELL = 18
+
+
+def bin_bytes(resolution):
+    """The bytes of one incident bin of resolution² cells: BYTES_PER_CELL each, and the edges
+    beyond one a cell (each row's last column edge, the row edges)."""
+    return BYTES_PER_CELL * resolution * resolution + 4 * (2 * resolution + 1)
 ANISO_BUDGET = 4         # anisotropic tables' share of memory_budget, all their azimuths together
 
 
@@ -820,7 +826,7 @@ MIN_BINS = 36
 def _resolutions_within(memory_budget):
     """RESOLUTIONS whose tables fit MIN_BINS incident angles in the budget (all of them when
     not even the smallest does: the budget then decides alone)."""
-    fits = [r for r in RESOLUTIONS if memory_budget // (BYTES_PER_CELL * r * r) >= MIN_BINS]
+    fits = [r for r in RESOLUTIONS if memory_budget // bin_bytes(r) >= MIN_BINS]
     return fits or list(RESOLUTIONS)
 
 
@@ -975,7 +981,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
                     if loss <= 0.5 * tol:
                         break
             phi_bins = default_phi_bins(material, count)
-        per_bin = BYTES_PER_CELL * resolution * resolution
+        per_bin = bin_bytes(resolution)
         budget = memory_budget
         if phi_bins is not None:        # every theta bin once per azimuth, and the one closing the period
             per_bin *= len(phi_bins) + 1
