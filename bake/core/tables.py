@@ -154,7 +154,7 @@ def lean_of_rate(rate):
     lo, hi = np.full(k.shape, -1.0), np.full(k.shape, 1.0)
     for _ in range(60):
         y = 0.5 * (lo + hi)
-        below = 2.0 * y * (3.0 - y * y) / (1.0 - y * y) < k
+        below = 2.0 * y * (3.0 - y * y) / (1.0 - y * y) < k    # unclipped: k = +-K_MAX has a root
         lo, hi = np.where(below, y, lo), np.where(below, hi, y)
     return 0.5 * (lo + hi)
 

@@ -806,13 +806,13 @@ PHI_PROBE_DEG = (80.0, 86.0)
 # A cell's bytes: its mass and (about) one column edge as float32, its two leans and RGB weight
 # as float16 (_finish_bin; 28 when all were float32: 2 MB now hold 1.56x the cells).
 BYTES_PER_CELL = 18
+ANISO_BUDGET = 4         # anisotropic tables' share of memory_budget, all their azimuths together
 
 
 def bin_bytes(resolution):
     """The bytes of one incident bin of resolution² cells: BYTES_PER_CELL each, and the edges
     beyond one a cell (each row's last column edge, the row edges)."""
     return BYTES_PER_CELL * resolution * resolution + 4 * (2 * resolution + 1)
-ANISO_BUDGET = 4         # anisotropic tables' share of memory_budget, all their azimuths together
 
 
 # Isotropic resolutions leave the budget room for MIN_BINS incident angles: 64² x 17 (28-byte cells
