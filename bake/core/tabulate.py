@@ -891,9 +891,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     and still splits (it could only end bigger: the same choice, sooner; a Lambert bakes 2x
     sooner, while the shared files' wo plans end above their targets and both plans run).
     Neither wins everywhere: over the half vector a lobe stays put between bins, over wo a
-    diffuse base is the same at every theta_i (measured on the shared files, 2 MB: the worst of
-    theta_i 0/30/60/75/85 1.3-3x closer to the ideal's rv over the half vector on 7 files,
-    the same on satin, 3.5x and 2.7x further on paper_white and colodur).
+    diffuse base is the same at every theta_i (2 MB plans: the half vector for all 10 shared
+    files since its columns split at the quarter turns; wo for a Lambert and a plastic of alpha 0.3).
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
     (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
