@@ -893,8 +893,9 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     and still splits (it could only end bigger: the same choice, sooner; a Lambert bakes 2x
     sooner, while the shared files' wo plans end above their targets and both plans run).
     Neither wins everywhere: over the half vector a lobe stays put between bins, over wo a
-    diffuse base is the same at every theta_i (2 MB plans: the half vector for all 10 shared
-    files since its columns split at the quarter turns; wo for a Lambert and a plastic of alpha 0.3).
+    diffuse base is the same at every theta_i (2 MB plans: the half vector for 9 of the 10 shared
+    files since its columns split at the quarter turns, wo for colodur_napoli_4f, a Lambert and a
+    plastic of alpha 0.3).
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
     (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
