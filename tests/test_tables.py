@@ -659,7 +659,7 @@ def test_halfpolar_columns_split_at_the_quarter_turns(monkeypatch):
     b = tab._b[0].astype(np.float64)
     for knot in (0.5 * np.pi, np.pi, 1.5 * np.pi):
         assert np.all(np.min(np.abs(b - knot), axis=1) < 1e-6), knot
-    monkeypatch.setattr(tabulate, "QUARTER_COL_KNOTS", tabulate.CENTRE_COL_KNOTS)
+    monkeypatch.setitem(tabulate.COL_KNOTS, "halfpolar", tabulate.COL_KNOTS["halfvector"])
     _, without = rv()
     assert with_knots < 0.6 * without, (with_knots, without)
 

@@ -21,11 +21,12 @@ from .tables import HALF_MAX, K_MAX, TWO_PI, Tables, _search, exp_density, exp_m
 A_MIN = 1e-4     # the least gap between row knots (keeps every segment of rows non-empty)
 B_MIN = 1e-4     # the same for column knots
 CENTRE_ROW_KNOTS = np.array([0.0, 0.5, 1.0])       # halfvector coordinates: through the centre
-CENTRE_COL_KNOTS = np.array([0.0, np.pi, TWO_PI])
-# Halfpolar columns also split at the quarter turns: at grazing wi the rows' mass crowds into
-# the azimuths across the plane of incidence, and 48² cells straddling b = pi/2 and 3 pi/2 lost
-# 2-5x the ideal's rv at theta_i 85 (halving malachite's 3.8x and paper's 2.6x, on the bin).
-QUARTER_COL_KNOTS = np.array([0.0, 0.5 * np.pi, np.pi, 1.5 * np.pi, TWO_PI])
+# Column knots of the half vector's coordinates (wo's follow the lobe per row: lobe_col_knots).
+# Halfpolar columns also split at the quarter turns: at grazing wi the rows' mass crowds into the
+# azimuths across the plane of incidence, where 48² cells straddling b = pi/2 and 3 pi/2 lost
+# 2-5x the ideal's rv (theta_i 85 on the bin: malachite 3.8 -> 2.5x, paper_white 2.6 -> 0.8x).
+COL_KNOTS = {"halfvector": np.array([0.0, np.pi, TWO_PI]),
+             "halfpolar": np.array([0.0, 0.5 * np.pi, np.pi, 1.5 * np.pi, TWO_PI])}
 
 
 def exp_rate_for_mean(mean):
@@ -751,7 +752,7 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
         row = np.clip(np.searchsorted(a_edges[k], a, side="right") - 1, 0, rows - 1)
         a_mid = 0.5 * (a_edges[k][:-1].astype(np.float64) + a_edges[k][1:])
         knots = (np.stack([lobe_col_knots(m, lobe_width) for m in a_mid]) if coords == "wo"
-                 else np.tile(QUARTER_COL_KNOTS if coords == "halfpolar" else CENTRE_COL_KNOTS, (rows, 1)))
+                 else np.tile(COL_KNOTS[coords], (rows, 1)))
         seg, r = _normalize_rows(b, knots, row)
         # segment s of row i: group i * n + s
         by_row.append((knots, _by_segment(row * (knots.shape[1] - 1) + seg, r, w, rows * (knots.shape[1] - 1))))
