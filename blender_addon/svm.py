@@ -28,8 +28,9 @@ Per shading point:
 - theta_i and phi_i bins through the texture's bin guides, the corner block's header
   gives the blend weights; the row search on u0 and the column search on u1 (v = u1 x the
   row's mass) run a fixed number of branchless steps from their guide's bracket; the
-  cell's exponential inverse CDFs give the point in the cell (both branches of
-  exp_inverse_cdf computed and one selected by multiplying with 0 / 1: exact, no NaN);
+  cell's profiles give the point in the cell: the piece by comparisons with the pieces'
+  cumulative masses, then its exponential's inverse CDF (both branches of exp_inverse_cdf
+  computed and one selected by multiplying with 0 / 1: exact, no NaN);
   the direction goes to world space by the frame.
 - Color = W when cos theta_i > 0 and the direction is above the geometric surface, else 0
   (the path ends). Cycles drops a closure whose mean weight is below 1e-5 (bsdf_ray_portal
@@ -107,7 +108,7 @@ outputs keep stack slots for the whole shader).
 
 `tables_pdf_graph` adds the sampler's inverse (Tables._locate): at a given direction, the
 pdf and the baked f·cos, from branchless searches of the blended a edges (the row) and b
-edges (the column) and the cell's exponential densities: what one-sample MIS with another
+edges (the column) and the cell's profile densities: what one-sample MIS with another
 sampling strategy (e.g. the world map) needs.
 
 `build_svm_probe` builds the sampler (or its inverse, or the world mixture) on inputs read
@@ -127,7 +128,6 @@ from . import sockets
 
 CUTOFF = 1e-5           # Cycles' CLOSURE_WEIGHT_CUTOFF
 K_SMALL = 1e-4          # bake/core/tables.py _SMALL: the in-cell density's small-rate branch
-K_MAX = 30.0            # bake/core/tables.py K_MAX: the steepest in-cell rate
 TANGENT = (1.0, 0.0, 0.0)
 GRAPH_VERSION = 2       # in the node groups' names: a graph built by other code gets new groups
 GROUP_PREFIX = f"FlowBSDF SVM{GRAPH_VERSION} "
@@ -447,20 +447,18 @@ class _Sampler:
         """Texel (0, 1 + i) of the block: table row i's guide, then its records."""
         return self.g.vmath('MULTIPLY_ADD', i, (0.0, -self.dv, 0.0), self.offset(self.origin, 0, 1))
 
-    def cell(self, row, j, a0, a1, b0, b1):
-        """Cell j of the blended table's row at texel `row` (self.row): (mass, rate along a, rate
-        along b, W, a1 - a0, b1 - b0); the texture holds the leans, blended, then turned into rates."""
-        g, lay = self.g, self.lay
-        cell = self.at(self.offset(row, lay["x_cell"]), j, lay["cell_stride"])
-        m, lean_a, lean_b, wr, wg, wb = (self.quantity(cell, q) for q in range(_svm_export().CELL_QUANTITIES))
-        return (m, _rate_of_lean(g, lean_a), _rate_of_lean(g, lean_b), g.combine(wr, wg, wb),
-                g.math('SUBTRACT', a1, a0), g.math('SUBTRACT', b1, b0))
+    def cell(self, row, j):
+        """Cell j of the blended table's row at texel `row` (self.row): a function giving its
+        quantity n (svm_export.CELL_QUANTITIES: mass, the a and b profiles' node values, W), each
+        read where it is first needed, so few values are alive at once (the SVM stack)."""
+        cell = self.at(self.offset(row, self.lay["x_cell"]), j, self.lay["cell_stride"])
+        return lambda n: self.quantity(cell, n)
 
-    def pdf(self, m, x, ka, kb, y, da, db, ex_a=None, ex_b=None):
-        """m exp_density(x, ka) exp_density(y, kb) / (da db) (bake/core/tables.py)."""
-        g = self.g
-        dens = g.math('MULTIPLY', _exp_density(g, x, ka, ex_a), _exp_density(g, y, kb, ex_b))
-        return g.math('DIVIDE', g.math('MULTIPLY', m, dens), g.math('MULTIPLY', da, db))
+    @staticmethod
+    def _axes(quantity):
+        """(the a profile's node-value indices, the b profile's, W's) of a cell's quantities."""
+        nodes = (_svm_export().CELL_QUANTITIES - 4) // 2
+        return range(1, 1 + nodes), range(1 + nodes, 1 + 2 * nodes), range(1 + 2 * nodes, 4 + 2 * nodes)
 
     def sample(self, u0, u1):
         """Tables.sample after `incident`: (a, b, weight W (colour), pdf) for sockets u0, u1."""
@@ -480,14 +478,20 @@ class _Sampler:
         j = self.search(self.guide_lo(row, u1, lay["col_guide"]), v, cols, sc, lay["col_steps"], 0, C - 1)
         rec = self.at(cols, j, sc)
         d0, b0, b1 = self.quantity(rec, 0), self.quantity(rec, 1), self.quantity(self.offset(rec, sc), 1)
-        m, ka, kb, weight, da, db = self.cell(row, j, a0, a1, b0, b1)
-        # the point in the cell
-        x, ex_a = _exp_inverse_cdf(g, g.math('DIVIDE', g.math('SUBTRACT', u0, c0), g.math('SUBTRACT', c1, c0),
-                                             clamp=True), ka)
-        y, ex_b = _exp_inverse_cdf(g, g.math('DIVIDE', g.math('SUBTRACT', v, d0), m, clamp=True), kb)
-        a = g.math('MULTIPLY_ADD', x, da, a0)
+        q = self.cell(row, j)
+        on_a, on_b, on_w = self._axes(q)
+        m = q(0)
+        # the point in the cell, and its density along each axis
+        x, dens_a = _profile_sample(g, g.math('DIVIDE', g.math('SUBTRACT', u0, c0), g.math('SUBTRACT', c1, c0),
+                                              clamp=True), _profile(g, [q(n) for n in on_a]))
+        a = g.math('MULTIPLY_ADD', x, g.math('SUBTRACT', a1, a0), a0)
+        y, dens_b = _profile_sample(g, g.math('DIVIDE', g.math('SUBTRACT', v, d0), m, clamp=True),
+                                    _profile(g, [q(n) for n in on_b]))
+        db = g.math('SUBTRACT', b1, b0)
         b = g.math('MULTIPLY_ADD', y, db, b0)
-        return a, b, weight, self.pdf(m, x, ka, kb, y, da, db, ex_a, ex_b)
+        pdf = g.math('DIVIDE', g.math('MULTIPLY', m, g.math('MULTIPLY', dens_a, dens_b)),
+                     g.math('MULTIPLY', g.math('SUBTRACT', a1, a0), db))
+        return a, b, g.combine(*(q(n) for n in on_w)), pdf
 
     def locate(self, a, b):
         """Tables._locate after `incident`: (pdf, W (colour)) at table coordinates a, b."""
@@ -502,10 +506,15 @@ class _Sampler:
         j = self.search(0.0, b, cols, sc, _log2(C), 1, C - 1)
         rec = self.at(cols, j, sc)
         b0, b1 = self.quantity(rec, 1), self.quantity(self.offset(rec, sc), 1)
-        m, ka, kb, weight, da, db = self.cell(row, j, a0, a1, b0, b1)
-        x = g.math('DIVIDE', g.math('SUBTRACT', a, a0), da, clamp=True)
-        y = g.math('DIVIDE', g.math('SUBTRACT', b, b0), db, clamp=True)
-        return self.pdf(m, x, ka, kb, y, da, db), weight
+        q = self.cell(row, j)
+        on_a, on_b, on_w = self._axes(q)
+        da, db = g.math('SUBTRACT', a1, a0), g.math('SUBTRACT', b1, b0)
+        dens_a = _profile_density(g, g.math('DIVIDE', g.math('SUBTRACT', a, a0), da, clamp=True),
+                                  _profile(g, [q(n) for n in on_a]))
+        dens_b = _profile_density(g, g.math('DIVIDE', g.math('SUBTRACT', b, b0), db, clamp=True),
+                                  _profile(g, [q(n) for n in on_b]))
+        pdf = g.math('DIVIDE', g.math('MULTIPLY', q(0), g.math('MULTIPLY', dens_a, dens_b)), g.math('MULTIPLY', da, db))
+        return pdf, g.combine(*(q(n) for n in on_w))
 
 
 def _log2(n):
@@ -637,12 +646,76 @@ def _half_to_ab(g, wo, wi):
     return a, b, g.math('MULTIPLY', g.math('MULTIPLY', g.dot(g.combine(*wi), h), cap), 4.0)
 
 
-def _rate_of_lean(g, y):
-    """bake/core/tables.py rate_of_lean: 2 y (3 - y^2) / (1 - y^2), clamped to K_MAX."""
-    yy = g.math('MULTIPLY', y, y)
-    k = g.math('DIVIDE', g.math('MULTIPLY', g.math('MULTIPLY', y, 2.0), g.math('SUBTRACT', 3.0, yy)),
-               g.math('SUBTRACT', 1.0, yy))
-    return g.math('MINIMUM', g.math('MAXIMUM', k, -K_MAX), K_MAX)
+def _log_mean(g, v0, v1):
+    """bake/core/tables.py _log_mean: (v1 - v0) / log(v1 / v0), its series where they are close."""
+    r = g.math('DIVIDE', v1, v0)
+    lr = g.math('LOGARITHM', r, math.e)
+    small = g.math('LESS_THAN', g.math('ABSOLUTE', lr), 1e-3)
+    exact = g.math('MULTIPLY', v0, g.math('DIVIDE', g.math('SUBTRACT', r, 1.0), lr))
+    series = g.math('MULTIPLY_ADD', lr, g.math('MULTIPLY_ADD', lr, 1.0 / 6.0, 0.5), 1.0)
+    return g.select(small, g.math('MULTIPLY', v0, series), exact)
+
+
+def _profile(g, nodes):
+    """A cell's blended profile along one axis: its node values, the pieces' masses and their
+    total (bake/core/tables.py profile_parts)."""
+    n = len(nodes) - 1
+    masses = [g.math('MULTIPLY', _log_mean(g, nodes[k], nodes[k + 1]), 1.0 / n) for k in range(n)]
+    total = masses[0]
+    for mk in masses[1:]:
+        total = g.math('ADD', total, mk)
+    return nodes, masses, total
+
+
+def _pick(g, steps, values):
+    """values[k] for k = the number of the 0 / 1 sockets `steps` that are 1 (a prefix of them)."""
+    out = values[0]
+    for step, value in zip(steps, values[1:]):
+        out = g.select(step, value, out)
+    return out
+
+
+def _profile_piece(g, steps, nodes):
+    """The piece's end values and its log rate."""
+    v0, v1 = _pick(g, steps, nodes[:-1]), _pick(g, steps, nodes[1:])
+    return v0, v1, g.math('LOGARITHM', g.math('DIVIDE', v1, v0), math.e)
+
+
+def _profile_sample(g, u, profile):
+    """bake/core/tables.py profile_inverse_cdf, and the profile's density there (profile_density,
+    from the piece found: its start value, rate and place t)."""
+    nodes, masses, total = profile
+    n = len(masses)
+    target = g.math('MULTIPLY', u, total)
+    cum, steps = [], []
+    c = masses[0]
+    for k in range(1, n):
+        cum.append(c)
+        steps.append(g.math('SUBTRACT', 1.0, g.math('LESS_THAN', target, c)))      # cum_k <= target
+        c = g.math('ADD', c, masses[k])
+    prev = _pick(g, steps, [0.0] + cum)
+    mk = _pick(g, steps, masses)
+    v0, v1, rate = _profile_piece(g, steps, nodes)
+    t, _ = _exp_inverse_cdf(g, g.math('DIVIDE', g.math('SUBTRACT', target, prev), mk, clamp=True), rate)
+    k = steps[0]
+    for step in steps[1:]:
+        k = g.math('ADD', k, step)
+    density = g.math('DIVIDE', g.math('MULTIPLY', v0, g.math('EXPONENT', g.math('MULTIPLY', t, rate))), total)
+    return g.math('DIVIDE', g.math('ADD', k, t), float(n)), density
+
+
+def _profile_density(g, x, profile):
+    """bake/core/tables.py profile_density."""
+    nodes, masses, total = profile
+    n = len(masses)
+    s = g.math('MULTIPLY', x, float(n))
+    steps = [g.math('SUBTRACT', 1.0, g.math('LESS_THAN', s, float(k))) for k in range(1, n)]
+    k = steps[0]
+    for step in steps[1:]:
+        k = g.math('ADD', k, step)
+    t = g.math('SUBTRACT', s, k, clamp=True)
+    v0, v1, rate = _profile_piece(g, steps, nodes)
+    return g.math('DIVIDE', g.math('MULTIPLY', v0, g.math('EXPONENT', g.math('MULTIPLY', t, rate))), total)
 
 
 def _expm1(g, k):
@@ -670,14 +743,6 @@ def _exp_inverse_cdf(g, u, k):
     ex = _expm1(g, k)
     exact = g.math('DIVIDE', _log1p(g, g.math('MULTIPLY', u, ex)), k)
     return g.select(_small(g, k), series, exact, clamp=True), ex
-
-
-def _exp_density(g, x, k, ex=None):
-    """bake/core/tables.py exp_density, both branches, one selected (ex: e^k - 1 when known)."""
-    ex = _expm1(g, k) if ex is None else ex
-    series = g.math('MULTIPLY_ADD', k, g.math('SUBTRACT', x, 0.5), 1.0)
-    exact = g.math('DIVIDE', g.math('MULTIPLY', k, g.math('EXPONENT', g.math('MULTIPLY', k, x))), ex)
-    return g.select(_small(g, k), series, exact)
 
 
 # ------------------------------------------------------------------------------ the world

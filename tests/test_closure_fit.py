@@ -151,7 +151,7 @@ def test_the_inverse_guides_bracket_the_edge_searches(tmp_path, glossy):
     K, R, C = len(glossy.theta_bins), glossy.rows, glossy.cols
     rng = np.random.default_rng(1)
     for k in range(max(K - 1, 1)):
-        base = 3 + 2 * K * R + k * (3 + 3 * R)
+        base = 3 + 4 * K * R + k * (3 + 3 * R)
         for _ in range(200):
             w = rng.random(4) * np.array([1, 1, 0, 0])     # isotropic: two bins
             w /= w.sum()

@@ -237,9 +237,12 @@ def test_osl_sampler_is_tables_sample_anisotropic(aniso_tables, coords, tmp_path
         weight = tab.eval(wi, wo) * wo[:, 2:3] / pdf[:, None]
         wo_osl = 2.0 * _probe(tex, n, theta, 0, phi) - 1.0
         err = np.abs(wo_osl - wo).max(axis=1)
-        assert err.max() < 3e-4 and np.median(err) < 2e-5, (theta_deg, phi_deg, err.max(), np.median(err))
+        # 4e-4: profiles' pieces are steeper than one exponential per cell (measured 3.6e-4 over wo)
+        assert err.max() < 4e-4 and np.median(err) < 2e-5, (theta_deg, phi_deg, err.max(), np.median(err))
         np.testing.assert_allclose(_probe(tex, n, theta, 1, phi), weight, rtol=2e-5, atol=1e-7)
-        np.testing.assert_allclose(_probe(tex, n, theta, 2, phi)[:, 0], pdf, rtol=1e-3)
+        # rtol 2e-3: a profile's piece is steeper than one exponential per cell was, and float32
+        # rounds the sample's place in its cell alike (measured 1.4e-3 at 1 of 576 over wo)
+        np.testing.assert_allclose(_probe(tex, n, theta, 2, phi)[:, 0], pdf, rtol=2e-3)
     _assert_osl_eval_is_numpy(tex, tab, [(0.0, 0.0), (30.0, 10.0), (70.0, 170.0), (60.0, 300.0)])
 
 

@@ -262,7 +262,7 @@ def test_env_var_disables_the_library():
     """FLOWBSDF_NO_C=1: bake imports, says why in one line, and the tables sample with numpy."""
     code = ("import numpy as np; from bake.core import fasttables as f; from bake.core.tables import Tables; "
             "t = Tables([0.0], [[0, 0.5, 1]], [[[0, 3, 6.3], [0, 3, 6.3]]], np.ones((1, 2, 2)), "
-            "np.zeros((1, 2, 2)), np.zeros((1, 2, 2)), np.ones((1, 2, 2, 3))); "
+            "np.zeros((1, 2, 2, 3)), np.zeros((1, 2, 2, 3)), np.ones((1, 2, 2, 3))); "
             "wo, p = t.sample([0, 0, 1], np.random.default_rng(0).random((10, 2))); "
             "print(f.AVAILABLE, '|', f.REASON, '|', bool(np.all(p > 0)))")
     env = {**os.environ, "FLOWBSDF_NO_C": "1"}
@@ -314,9 +314,10 @@ def brushed(tmp_path_factory):
 def test_c_matches_numpy_on_anisotropic_halfvector_tables(brushed):
     """The four-bin blend over theta_i x phi_i and the half vector's map, in C: numpy's results
     at one wi per call and at a new wi per sample (across the period's turns, on and between
-    bins, below the horizon). rtol 1e-7: the map's conditioning (~1 / (wi.h)) lifts libm's
-    last-bit differences from numpy's, the more so toward grazing wi (measured: 4e-11 on
-    samples, up to 4.4e-9 on pdf() of random wo, 2.3e-8 at theta_i = 90 exactly)."""
+    bins, below the horizon). rtol 1e-6: the map's conditioning (~1 / (wi.h)) lifts libm's
+    last-bit differences from numpy's, the more so toward grazing wi, and a cell's profile turns
+    a point's place in its cell into pdf by its slope (measured: 4e-11 on samples, up to 5e-7 on
+    pdf() of random wo, at 1 of 4000; 4.4e-9 with one exponential per cell)."""
     tab = brushed
     ref = Tables(tab.theta_bins, tab.a_edges, tab.b_edges, tab.mass, tab.alpha, tab.beta, tab.weights,
                  backend="numpy", phi_bins=tab.phi_bins, phi_period=tab.phi_period, coords=tab.coords,
@@ -334,6 +335,6 @@ def test_c_matches_numpy_on_anisotropic_halfvector_tables(brushed):
         np.testing.assert_allclose(pdf_c, pdf_r, rtol=1e-9, atol=0)
         for wo in (wo_r, sphere(rng, n), SPECIAL_WO):
             wi_ = wi if np.ndim(wi) == 1 else wi[:len(wo)]
-            np.testing.assert_allclose(fast("pdf", tab, wi_, wo), ref.pdf(wi_, wo), rtol=1e-7, atol=0)
+            np.testing.assert_allclose(fast("pdf", tab, wi_, wo), ref.pdf(wi_, wo), rtol=1e-6, atol=0)
             np.testing.assert_allclose(fast("invert", tab, wi_, wo), ref.invert(wi_, wo), rtol=1e-7, atol=1e-11)
-            np.testing.assert_allclose(fast("eval", tab, wi_, wo), ref.eval(wi_, wo), rtol=1e-7, atol=0)
+            np.testing.assert_allclose(fast("eval", tab, wi_, wo), ref.eval(wi_, wo), rtol=1e-6, atol=0)

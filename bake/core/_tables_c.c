@@ -1,7 +1,7 @@
 /* The C fast path of bake/core/tables.py's Tables: sample, pdf, invert, eval.
  *
  * A transcription of the numpy reference (Tables.sample/_locate/pdf/invert/eval,
- * exp_cdf/exp_inverse_cdf/exp_density, to_ab/from_ab, _search, _bins): the same formulas
+ * the profiles' and exponentials' CDFs, to_ab/from_ab, _search, _bins): the same formulas
  * in the same order of operations, the same branches, clipping and small-rate series, so
  * results agree with numpy to a few ulps (only libm's transcendental functions may round
  * differently from numpy's). One thread, no Python API: loaded with ctypes by
@@ -16,9 +16,8 @@
  *   new wi, the sign in mod 2 pi): with a new wi per sample, those mispredicted branches
  *   alone made sample and pdf 1.3x slower (measured).
  * - One wi per call ("flat" mode): when every sample shares wi and there are many, the
- *   interpolated table of that wi (the same lerps numpy evaluates per sample) and expm1 of
- *   every cell's rates are computed once; the samples then read them. Same values, bit for
- *   bit, as computing them per sample.
+ *   interpolated table of that wi (the same lerps numpy evaluates per sample) is computed
+ *   once; the samples then read it. Same values, bit for bit, as computing them per sample.
  *
  * Build with -ffp-contract=off (no fused multiply-add: it would round the interpolations
  * differently from numpy) and never with -ffast-math.
@@ -51,6 +50,7 @@
 #define FT_VEC __attribute__((simd("notinbranch")))
 double exp(double) FT_VEC;
 double expm1(double) FT_VEC;
+double log(double) FT_VEC;
 double log1p(double) FT_VEC;
 double atan2(double, double) FT_VEC;
 double asin(double) FT_VEC;
@@ -69,16 +69,18 @@ double sin(double) FT_VEC;
 #endif
 
 /* Bumped whenever ft_tables or a signature changes (bake/core/fasttables.py checks it). */
-#define FT_ABI 3
+#define FT_ABI 4
 
 static const double PI = 3.141592653589793;       /* np.pi */
 static const double TWO_PI = 6.283185307179586;   /* 2.0 * np.pi */
 static const double SMALL = 1e-4;                 /* tables._SMALL */
-static const double K_MAX = 30.0;                 /* tables.K_MAX */
 static const double QUARTER = 0.7853981633974483; /* halfvector.QUARTER, 0.25 * np.pi */
 static const double TINY = 1e-300;                /* halfvector._TINY */
 
 #define BLK 16      /* samples per block (see the header) */
+#define NSEG 3      /* tables.NSEG: a profile's pieces */
+#define NN 4        /* and its node values */
+static const double LOG_MEAN_SERIES = 1e-3;       /* tables.LOG_MEAN_SERIES */
 
 /* The Tables, as bake/core/fasttables.py passes them (C-contiguous arrays). Anisotropic
  * tables (P > 1, halfvector coordinates only): bins k P + p, the phi axis closed (the last
@@ -92,8 +94,8 @@ typedef struct {
     const double *a;           /* (K, R+1)    _a */
     const double *b;           /* (K, R, C+1) _b */
     const double *m;           /* (K, R, C)   _m */
-    const double *alpha;       /* (K, R, C)   _alpha (leans) */
-    const double *beta;        /* (K, R, C)   _beta (leans) */
+    const double *alpha;       /* (K, R, C, NN) _alpha (the a profiles' node values, normalized) */
+    const double *beta;        /* (K, R, C, NN) _beta (the b profiles') */
     const double *row_cdf;     /* (K, R+1)    _row_cdf */
     const double *col_cum;     /* (K, R, C+1) _col_cum */
     const float *weights;      /* (K, R, C, 3) weights */
@@ -121,15 +123,9 @@ FT_INLINE double mod_two_pi(double x) {
     return r + TWO_PI * (double)(r < 0.0);
 }
 
-/* tables.rate_of_lean: the rate of a blended lean, in numpy's order of operations */
-FT_INLINE double rate_of_lean(double y) {
-    const double k = 2.0 * y * (3.0 - y * y) / (1.0 - y * y);
-    return k < -K_MAX ? -K_MAX : (k > K_MAX ? K_MAX : k);
-}
-
-/* The exponential per axis, for a block: rate_e (expm1(k), the one every exact branch
- * needs; 0 when unused, |k| < SMALL) and exp_cdf, exp_inverse_cdf, exp_density of
- * tables.py (e = rate_e(k)). Each computes its libm function for every lane in a loop of
+/* The exponential of a profile's piece, for a block: rate_e (expm1(k), the one every exact
+ * branch needs; 0 when unused, |k| < SMALL) and exp_cdf, exp_inverse_cdf of tables.py
+ * (e = rate_e(k)). Each computes its libm function for every lane in a loop of
  * its own (vector lanes; a call under a branch would not vectorize), then selects. */
 FT_INLINE void rate_e(const double *k, double *e) {
     double t[BLK];
@@ -151,11 +147,85 @@ FT_INLINE void exp_inverse_cdf(const double *u, const double *k, const double *e
         out[q] = clip01(fabs(k[q]) < SMALL ? u[q] - 0.5 * k[q] * (u[q] * u[q] - u[q]) : t[q] / k[q]);
 }
 
-FT_INLINE void exp_density(const double *x, const double *k, const double *e, double *out) {
-    double t[BLK];
-    FT_SIMD for (int q = 0; q < BLK; q++) t[q] = exp(k[q] * x[q]);
-    for (int q = 0; q < BLK; q++)
-        out[q] = fabs(k[q]) < SMALL ? 1.0 + k[q] * (x[q] - 0.5) : k[q] * t[q] / e[q];
+/* The profiles of a block's cells (tables.profile_parts, profile_inverse_cdf, profile_density,
+ * profile_cdf): node values V[n][lane]. Each libm call in a loop of its own, as above. */
+FT_INLINE void profile_parts(const double V[NN][BLK], double M[NSEG][BLK], double *tot, double LR[NSEG][BLK]) {
+    for (int n = 0; n < NSEG; n++) {
+        double r[BLK];
+        for (int q = 0; q < BLK; q++) r[q] = V[n + 1][q] / V[n][q];
+        FT_SIMD for (int q = 0; q < BLK; q++) LR[n][q] = log(r[q]);
+        for (int q = 0; q < BLK; q++) {
+            const double lr = LR[n][q];
+            const double lm = fabs(lr) < LOG_MEAN_SERIES ? 1.0 + lr * (0.5 + lr / 6.0) : (r[q] - 1.0) / lr;
+            M[n][q] = V[n][q] * lm / NSEG;
+        }
+    }
+    for (int q = 0; q < BLK; q++) tot[q] = (M[0][q] + M[1][q]) + M[2][q];
+}
+
+/* A piece's start value and log rate, per lane (piece k[q]): the log profile_parts took */
+FT_INLINE void piece_rate(const double V[NN][BLK], const double LR[NSEG][BLK], const int64_t *k, double *v0,
+                          double *rate) {
+    for (int q = 0; q < BLK; q++) {
+        v0[q] = V[k[q]][q];
+        rate[q] = LR[k[q]][q];
+    }
+}
+
+/* tables.profile_sample: the place x and the density there (from the piece found) */
+FT_INLINE void profile_sample(const double *u, const double V[NN][BLK], double *out, double *dens) {
+    double M[NSEG][BLK], LR[NSEG][BLK], tot[BLK], target[BLK], prev[BLK], rem[BLK], v0[BLK], rate[BLK], e[BLK],
+        t[BLK], g[BLK];
+    int64_t k[BLK];
+    profile_parts(V, M, tot, LR);
+    for (int q = 0; q < BLK; q++) {
+        target[q] = clip01(u[q]) * tot[q];
+        const double c0 = M[0][q], c1 = c0 + M[1][q];
+        k[q] = (int64_t)(c0 <= target[q]) + (int64_t)(c1 <= target[q]);
+        prev[q] = k[q] == 0 ? 0.0 : (k[q] == 1 ? c0 : c1);
+    }
+    piece_rate(V, LR, k, v0, rate);
+    for (int q = 0; q < BLK; q++) rem[q] = clip01((target[q] - prev[q]) / M[k[q]][q]);
+    rate_e(rate, e);
+    exp_inverse_cdf(rem, rate, e, t);
+    FT_SIMD for (int q = 0; q < BLK; q++) g[q] = exp(t[q] * rate[q]);
+    for (int q = 0; q < BLK; q++) {
+        out[q] = ((double)k[q] + t[q]) / NSEG;
+        dens[q] = v0[q] * g[q] / tot[q];
+    }
+}
+
+/* tables._piece: piece k and place t of x */
+FT_INLINE void piece_of(const double *x, int64_t *k, double *t) {
+    for (int q = 0; q < BLK; q++) {
+        const double f = floor(x[q] * NSEG);
+        k[q] = f < 0.0 ? 0 : (f > NSEG - 1 ? NSEG - 1 : (int64_t)f);
+        t[q] = clip01(x[q] * NSEG - (double)k[q]);
+    }
+}
+
+FT_INLINE void profile_density(const double *x, const double V[NN][BLK], double *out) {
+    double M[NSEG][BLK], LR[NSEG][BLK], tot[BLK], t[BLK], v0[BLK], rate[BLK], g[BLK];
+    int64_t k[BLK];
+    profile_parts(V, M, tot, LR);
+    piece_of(x, k, t);
+    piece_rate(V, LR, k, v0, rate);
+    FT_SIMD for (int q = 0; q < BLK; q++) g[q] = exp(t[q] * rate[q]);
+    for (int q = 0; q < BLK; q++) out[q] = v0[q] * g[q] / tot[q];
+}
+
+FT_INLINE void profile_cdf(const double *x, const double V[NN][BLK], double *out) {
+    double M[NSEG][BLK], LR[NSEG][BLK], tot[BLK], t[BLK], v0[BLK], rate[BLK], e[BLK], c[BLK];
+    int64_t k[BLK];
+    profile_parts(V, M, tot, LR);
+    piece_of(x, k, t);
+    piece_rate(V, LR, k, v0, rate);
+    rate_e(rate, e);
+    exp_cdf(t, rate, e, c);
+    for (int q = 0; q < BLK; q++) {
+        const double start = k[q] == 0 ? 0.0 : (k[q] == 1 ? M[0][q] : M[0][q] + M[1][q]);
+        out[q] = (start + M[k[q]][q] * c[q]) / tot[q];
+    }
 }
 
 /* ------------------------------------------------------------------------ bins, views */
@@ -173,12 +243,12 @@ typedef struct {
 } ft_bin;
 
 /* The arrays the kernels read: the Tables' (interpolated per sample) or, in flat mode,
- * one wi's interpolated table, with expm1 of the rates (ea, eb) and float64 weights. */
+ * one wi's interpolated table, with float64 weights. */
 typedef struct {
     int64_t R, C, half;                /* half: ft_tables.coords (1, 2: over h) */
     const double *a, *b, *m, *alpha, *beta, *row_cdf, *col_cum;
     const float *w32;                  /* interpolated mode */
-    const double *ea, *eb, *w64;       /* flat mode (w64 only for eval) */
+    const double *w64;                 /* flat mode (only for eval) */
 } ft_view;
 
 /* Tables._bins for one wi, from theta, phi (geometry.theta_phi), cos(theta) (unused when
@@ -286,11 +356,11 @@ FT_INLINE double lerp32(const float *x, ptrdiff_t off, const ptrdiff_t *d, const
 /* The flat view of one wi (bin B) into buf; returns 0 when out of memory. */
 FT_INLINE int flatten(const ft_tables *T, const ft_bin *B, int with_weights, ft_view *V, double **buf) {
     const int64_t R = T->R, C = T->C, rows = R + 1, edges = R * (C + 1), cells = R * C;
-    double *p = malloc(sizeof(double) * (size_t)(2 * rows + 2 * edges + (5 + (with_weights ? 3 : 0)) * cells));
+    double *p = malloc(sizeof(double) * (size_t)(2 * rows + 2 * edges + (1 + 2 * NN + (with_weights ? 3 : 0)) * cells));
     if (!p) return 0;
     *buf = p;
     double *a = p, *row_cdf = a + rows, *b = row_cdf + rows, *col_cum = b + edges, *m = col_cum + edges;
-    double *alpha = m + cells, *beta = alpha + cells, *ea = beta + cells, *eb = ea + cells, *w = eb + cells;
+    double *alpha = m + cells, *beta = alpha + NN * cells, *w = beta + NN * cells;
     for (int64_t i = 0; i < rows; i++) {
         a[i] = lerp(T->a, B->ka + i, B->da, B);
         row_cdf[i] = lerp(T->row_cdf, B->ka + i, B->da, B);
@@ -299,30 +369,18 @@ FT_INLINE int flatten(const ft_tables *T, const ft_bin *B, int with_weights, ft_
         b[i] = lerp(T->b, B->kb + i, B->db, B);
         col_cum[i] = lerp(T->col_cum, B->kb + i, B->db, B);
     }
-    for (int64_t i = 0; i < cells; i++) {
-        m[i] = lerp(T->m, B->kc + i, B->dc, B);
-        alpha[i] = rate_of_lean(lerp(T->alpha, B->kc + i, B->dc, B));    /* the flat view holds rates */
-        beta[i] = rate_of_lean(lerp(T->beta, B->kc + i, B->dc, B));
-    }
-    for (int64_t i0 = 0; i0 < cells; i0 += BLK) {   /* full blocks, as every other rate_e call */
-        double ka[BLK], kb[BLK], e1[BLK], e2[BLK];
-        for (int k = 0; k < BLK; k++) {
-            ka[k] = i0 + k < cells ? alpha[i0 + k] : 0.0;
-            kb[k] = i0 + k < cells ? beta[i0 + k] : 0.0;
-        }
-        rate_e(ka, e1);
-        rate_e(kb, e2);
-        for (int k = 0; k < BLK && i0 + k < cells; k++) {
-            ea[i0 + k] = e1[k];
-            eb[i0 + k] = e2[k];
-        }
+    const ptrdiff_t dn[3] = {NN * B->dc[0], NN * B->dc[1], NN * B->dc[2]};
+    for (int64_t i = 0; i < cells; i++) m[i] = lerp(T->m, B->kc + i, B->dc, B);
+    for (int64_t i = 0; i < NN * cells; i++) {
+        alpha[i] = lerp(T->alpha, NN * B->kc + i, dn, B);
+        beta[i] = lerp(T->beta, NN * B->kc + i, dn, B);
     }
     if (with_weights) {
         const ptrdiff_t d3[3] = {3 * B->dc[0], 3 * B->dc[1], 3 * B->dc[2]};
         for (int64_t i = 0; i < 3 * cells; i++)
             w[i] = lerp32(T->weights, 3 * B->kc + i, d3, B);
     }
-    *V = (ft_view){R, C, T->coords, a, b, m, alpha, beta, row_cdf, col_cum, NULL, ea, eb, with_weights ? w : NULL};
+    *V = (ft_view){R, C, T->coords, a, b, m, alpha, beta, row_cdf, col_cum, NULL, with_weights ? w : NULL};
     return 1;
 }
 
@@ -350,60 +408,53 @@ FT_INLINE void search_block(const double *value, int64_t n, const double *x, con
 }
 
 typedef struct {
-    double a0, a1, b0, b1, m, ka, kb, ea, eb;
+    double a0, a1, b0, b1, m, pa[NN], pb[NN];
 } ft_cell;
 
-/* Tables._cell; the rates' expm1 come from the flat view, or from rates_block */
+/* Tables._cell: edges, mass and the blended profiles' node values */
 FT_INLINE void cell(const ft_view *V, const ft_bin *B, int64_t i, int64_t j, ft_cell *c, const int flat) {
     const ptrdiff_t ia = B->ka + i, ib = B->kb + i * (V->C + 1) + j, ic = B->kc + i * V->C + j;
+    const ptrdiff_t dn[3] = {NN * B->dc[0], NN * B->dc[1], NN * B->dc[2]};
     c->a0 = AT(V->a, ia, B->da, *B);
     c->a1 = AT(V->a, ia + 1, B->da, *B);
     c->b0 = AT(V->b, ib, B->db, *B);
     c->b1 = AT(V->b, ib + 1, B->db, *B);
     c->m = AT(V->m, ic, B->dc, *B);
-    c->ka = flat ? V->alpha[ic] : rate_of_lean(lerp(V->alpha, ic, B->dc, B));
-    c->kb = flat ? V->beta[ic] : rate_of_lean(lerp(V->beta, ic, B->dc, B));
-    c->ea = flat ? V->ea[ic] : 0.0;
-    c->eb = flat ? V->eb[ic] : 0.0;
-}
-
-/* expm1 of the interpolated rates of a block's cells (interpolated mode) */
-FT_INLINE void rates_block(ft_cell *cells, const int flat) {
-    if (flat) return;
-    double ka[BLK], kb[BLK], ea[BLK], eb[BLK];
-    for (int k = 0; k < BLK; k++) {
-        ka[k] = cells[k].ka;
-        kb[k] = cells[k].kb;
-    }
-    rate_e(ka, ea);
-    rate_e(kb, eb);
-    for (int k = 0; k < BLK; k++) {
-        cells[k].ea = ea[k];
-        cells[k].eb = eb[k];
+    for (int n = 0; n < NN; n++) {
+        c->pa[n] = AT(V->alpha, NN * ic + n, dn, *B);
+        c->pb[n] = AT(V->beta, NN * ic + n, dn, *B);
     }
 }
 
 /* Per-lane cell data in arrays (SoA): what the vector loops read */
 typedef struct {
-    double a0[BLK], a1[BLK], b0[BLK], b1[BLK], m[BLK], ka[BLK], kb[BLK], ea[BLK], eb[BLK];
+    double a0[BLK], a1[BLK], b0[BLK], b1[BLK], m[BLK], pa[NN][BLK], pb[NN][BLK];
 } ft_cells;
 
 FT_INLINE void cells_of(const ft_view *V, const ft_bin *B, const int64_t *I, const int64_t *J, ft_cells *S,
                         const int flat) {
     ft_cell c[BLK];
     for (int k = 0; k < BLK; k++) cell(V, &B[k], I[k], J[k], &c[k], flat);
-    rates_block(c, flat);
     for (int k = 0; k < BLK; k++) {
-        S->a0[k] = c[k].a0; S->a1[k] = c[k].a1; S->b0[k] = c[k].b0; S->b1[k] = c[k].b1;
-        S->m[k] = c[k].m; S->ka[k] = c[k].ka; S->kb[k] = c[k].kb; S->ea[k] = c[k].ea; S->eb[k] = c[k].eb;
+        S->a0[k] = c[k].a0; S->a1[k] = c[k].a1; S->b0[k] = c[k].b0; S->b1[k] = c[k].b1; S->m[k] = c[k].m;
+        for (int n = 0; n < NN; n++) {
+            S->pa[n][k] = c[k].pa[n];
+            S->pb[n][k] = c[k].pb[n];
+        }
     }
+}
+
+/* the cell's density from its profiles' densities at the sampled place */
+FT_INLINE void sampled_density(const ft_cells *S, const double *DX, const double *DY, double *P) {
+    for (int k = 0; k < BLK; k++)
+        P[k] = S->m[k] * DX[k] * DY[k] / ((S->a1[k] - S->a0[k]) * (S->b1[k] - S->b0[k]));
 }
 
 /* the cell's density at in-cell (X, Y) */
 FT_INLINE void density_block(const ft_cells *S, const double *X, const double *Y, double *P) {
     double dx[BLK], dy[BLK];
-    exp_density(X, S->ka, S->ea, dx);
-    exp_density(Y, S->kb, S->eb, dy);
+    profile_density(X, S->pa, dx);
+    profile_density(Y, S->pb, dy);
     for (int k = 0; k < BLK; k++)
         P[k] = S->m[k] * dx[k] * dy[k] / ((S->a1[k] - S->a0[k]) * (S->b1[k] - S->b0[k]));
 }
@@ -570,8 +621,9 @@ FT_INLINE void sample_block(const ft_view *V, const ft_bin *B, const double *u, 
         X[k] = clip01(X[k]);
         Y[k] = clip01(Y[k] / S.m[k]);
     }
-    exp_inverse_cdf(X, S.ka, S.ea, X);
-    exp_inverse_cdf(Y, S.kb, S.eb, Y);
+    double DX[BLK], DY[BLK];
+    profile_sample(X, S.pa, X, DX);
+    profile_sample(Y, S.pb, Y, DY);
     if (V->half) {
         double jac[BLK];
         for (int k = 0; k < BLK; k++) {
@@ -580,7 +632,7 @@ FT_INLINE void sample_block(const ft_view *V, const ft_bin *B, const double *u, 
         }
         if (V->half == 2) polar_from_ab(B, A, Bv, wo, jac);
         else half_from_ab(B, A, Bv, wo, jac);
-        density_block(&S, X, Y, pdf);
+        sampled_density(&S, DX, DY, pdf);
         for (int k = 0; k < BLK; k++) pdf[k] = pdf[k] / jac[k];
         return;
     }
@@ -600,7 +652,7 @@ FT_INLINE void sample_block(const ft_view *V, const ft_bin *B, const double *u, 
         wo[3 * k + 1] = sn[k] * ss[k];
         wo[3 * k + 2] = 1.0 - A[k];
     }
-    density_block(&S, X, Y, pdf);
+    sampled_density(&S, DX, DY, pdf);
 }
 
 /* Tables._locate for one block of wo: cell (I, J), in-cell X, Y, and the cells */
@@ -665,8 +717,8 @@ FT_INLINE void invert_block(const ft_view *V, const ft_bin *B, const double *wo,
     double X[BLK], Y[BLK], jac[BLK];
     ft_cells S;
     locate_block(V, B, wo, I, J, X, Y, &S, jac, flat);
-    exp_cdf(X, S.ka, S.ea, X);
-    exp_cdf(Y, S.kb, S.eb, Y);
+    profile_cdf(X, S.pa, X);
+    profile_cdf(Y, S.pb, Y);
     for (int k = 0; k < BLK; k++) {
         const ptrdiff_t row = B[k].kb + I[k] * (C + 1);
         const double c0 = AT(V->row_cdf, B[k].ka + I[k], B[k].da, B[k]);
@@ -729,7 +781,7 @@ FT_CLONES static void run(int kind, const ft_tables *T, int64_t n, const double 
     const int in_w = kind == SAMPLE ? 2 : 3, out_w = kind == SAMPLE ? 3 : (kind == PDF ? 1 : (kind == INVERT ? 2 : 3));
     ft_bin B[BLK];
     ft_view V = {T->R, T->C, T->coords, T->a, T->b, T->m, T->alpha, T->beta, T->row_cdf, T->col_cum, T->weights,
-                 NULL, NULL, NULL};
+                 NULL};
     double *buf = NULL;
     double pad_wi[3 * BLK], pad_in[IN * BLK], pad_out[OUT * BLK], pad_out2[BLK];
     if (n <= 0) return;

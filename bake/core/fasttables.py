@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-ABI = 3                       # FT_ABI in _tables_c.c
+ABI = 4                       # FT_ABI in _tables_c.c
 COORDS = ("wo", "halfvector", "halfpolar")     # tables.COORDS in the order of ft_tables.coords
 HERE = Path(__file__).resolve().parent
 SOURCE = HERE / "_tables_c.c"
@@ -191,7 +191,7 @@ def _struct(tab):
     P = 1 if tab.phi_bins is None else len(tab.phi_bins)
     B = K * P                     # the working arrays' bins: k P + p
     shapes = [(theta, (K,)), (a, (B, R + 1)), (row_cdf, (B, R + 1)), (b, (B, R, C + 1)), (col_cum, (B, R, C + 1)),
-              (m, (B, R, C)), (alpha, (B, R, C)), (beta, (B, R, C)), (weights.reshape(-1, R, C, 3), (B, R, C, 3))]
+              (m, (B, R, C)), (alpha, (B, R, C, 4)), (beta, (B, R, C, 4)), (weights.reshape(-1, R, C, 3), (B, R, C, 3))]
     if K < 1 or R < 1 or C < 1 or any(x.shape != shape for x, shape in shapes):
         return None
     cos_bins = np.cos(theta)      # numpy's cos, as Tables._bins computes it

@@ -4,13 +4,17 @@ Per incident bin, the table is an adaptive piecewise density on the hemisphere: 
 a = 1 - cos(theta_o) and, in each row, C columns in b = phi_o - phi_i (the azimuth relative
 to wi's plane; the mirror direction sits at b = pi, so the specular lobe never straddles
 the seam); da db = d omega. Cell (i, j) holds mass m_ij, spread over it with a separable
-exponential density: in local coordinates x, y in [0, 1],
-q(x, y) = e_ka(x) e_kb(y), e_k(x) = k e^(k x) / (e^k - 1) (uniform at k = 0), |k| <= K_MAX,
-so that an exponential follows a lobe's flank across a cell where a linear slope cannot:
+density: in local coordinates x, y in [0, 1], q(x, y) = p_a(x) p_b(y), each a *profile*:
+NSEG pieces, log-linear between NSEG + 1 node values (each piece an exponential e_k(t) =
+k e^(k t) / (e^k - 1), no steeper than K_MAX across a whole cell). An exponential follows a
+lobe's flank where a linear slope cannot, and the pieces meet continuously, so a profile
+also holds a knee inside a cell (a flank running into a flat tail) that one exponential
+cannot (a cell's rv excess over the ideal tabulation sat in such rows: on the bin, 48²,
+the seven cells 2 MB plans missed went from 1.96-3.70x the ideal's rv to 0.92-1.27x):
 
     sample:  u0 -> row by the row CDF, u1 -> column by the row's CDF, the two remainders
-             -> x, y by the exponentials' inverse CDFs (exp_inverse_cdf),
-    pdf:     m_ij e_ka(x) e_kb(y) / ((a_{i+1} - a_i)(b_{i,j+1} - b_{i,j})),
+             -> x, y by the profiles' inverse CDFs (the piece, then its exponential's),
+    pdf:     m_ij p_a(x) p_b(y) / ((a_{i+1} - a_i)(b_{i,j+1} - b_{i,j})),
     invert:  find the cell (binary search), evaluate the CDFs,
 
 are exact and mutually consistent to float precision. The cells tile the whole hemisphere
@@ -19,7 +23,7 @@ horizon.
 
 How the cells are chosen and filled is tabulate.py's job: edges are quantiles of a
 stratified set of directions from a source sampler (the trained flow, or the ideal
-tabulation), anchored to the specular direction; masses, rates and RGB weights are
+tabulation), anchored to the specular direction; masses, profiles and RGB weights are
 integrated from the true f·cos per cell by refined quadrature, so the tables follow the
 material whatever the source's quality.
 
@@ -28,20 +32,15 @@ stay increasing (a convex combination of increasing lists), interpolated masses 
 distribution, so every wi gets an exact table, and a lobe moves with theta_i instead of
 fading between two positions (a displacement interpolation).
 
-The exponentials are stored by their lean, not their rate: lean = 2 x (mean of x) - 1 in
-(-1, 1), about linear in the rate near 0 and saturating where the rate is steep
-(rate_of_lean, a rational function: cheap on every back end). Leans are what the bins blend,
-then turned into a rate. A blend of rates put one bin's steep rate (a cell fitted to a flank,
-k = -30) on the blended cell, displaced off that flank: its density fell e^-17 below the
-cell's other end where f·cos was not small (measured, cc_green_malachite 2 MB tables at
-theta_i 89.0 deg: rv 8.5e4 x the ideal tabulation's; blending leans: 11.8 x). A lean is the
-mean of a mixture of the bins' exponentials (to rate_of_lean's accuracy), so the blend
-leans as the mixture does; each bin alone keeps its fitted rate (lean_of_rate inverts
-rate_of_lean).
+A profile is stored as the logs of its nodes 1..NSEG over node 0; each bin's is normalized
+to integrate to 1 (profile_nodes) and the bins blend node values: at the nodes the blended
+density is the mixture of the bins' (the blend follows the mixture, never a steep piece
+displaced off the flank it was fitted to: blending exponentials' rates did that, e^-17 below
+f·cos, rv 8.5e4 x the ideal's on a measured file; leans, then node values, followed the mixture).
 
-Storage: edges and masses float32; leans and RGB weights float16 as the builder makes them
-(weights beyond float16's range stay float32): 18 bytes a cell where all float32 took 28, so a
-memory budget holds 1.56x the cells. The stored values define the sampler, whatever their type.
+Storage: edges and masses float32; the profiles' logs and the RGB weights float16 as the
+builder makes them (weights beyond float16's range stay float32): 26 bytes a cell. The stored
+values define the sampler, whatever their type.
 
 Anisotropic materials (`phi_bins`): bins over theta_i x phi_i, the phi_i bins increasing
 azimuths within one period P of the material's rotational symmetry (`phi_period`, 2 pi
@@ -77,7 +76,7 @@ try:        # the optional C fast path (never required: Blender imports bake/ wi
 except Exception:   # noqa: BLE001
     _fasttables = None
 
-FORMAT_VERSION = 2      # 2: alpha and beta hold the exponentials' leans (1: their rates)
+FORMAT_VERSION = 3      # 3: alpha and beta hold profiles (2: exponentials' leans, 1: their rates)
 TWO_PI = 2.0 * np.pi
 # The cells' coordinates: (a, b) of wo, or halfvector.py's of h (concentric: anisotropic
 # tables; polar: isotropic ones)
@@ -126,9 +125,79 @@ def exp_density(x, k):
 
 HALF_MAX = 65504.0      # the largest float16
 
+# A cell's profile along each axis: NSEG log-linear pieces through NSEG + 1 node values, stored
+# as the logs of nodes 1..NSEG over node 0 (alpha along a, beta along b: (..., NSEG) float16).
+NSEG = 3
+
+
+def profile_nodes(logs):
+    """Node values (..., NSEG + 1) of stored logs (..., NSEG), normalized to integrate to 1."""
+    L = np.concatenate([np.zeros(logs.shape[:-1] + (1,)), np.asarray(logs, np.float64)], axis=-1)
+    V = np.exp(L - L.max(axis=-1, keepdims=True))
+    flat = V.reshape(-1, NSEG + 1)
+    return (flat / profile_parts(flat)[1][:, None]).reshape(V.shape)
+
+
+LOG_MEAN_SERIES = 1e-3      # |log(v1 / v0)| below which the log mean takes its series (float32 back ends)
+
+
+def _log_mean(v0, v1):
+    """(v1 - v0) / log(v1 / v0); where the log is small, v0 (1 + l / 2 + l^2 / 6) (error l^3 / 24):
+    (r - 1) / log r there lost 0.4 % in OSL's float32 (measured)."""
+    r = v1 / v0
+    lr = np.log(r)
+    small = np.abs(lr) < LOG_MEAN_SERIES
+    return v0 * np.where(small, 1.0 + lr * (0.5 + lr / 6.0), (r - 1.0) / np.where(small, 1.0, lr))
+
+
+def profile_parts(V):
+    """Per cell (rows of V, node values > 0): the pieces' masses (N, NSEG) and total."""
+    M = _log_mean(V[:, :-1], V[:, 1:]) / NSEG
+    return M, M.sum(axis=1)
+
+
+def profile_inverse_cdf(u, V):
+    return profile_sample(u, V)[0]
+
+
+def profile_sample(u, V):
+    """(the place x of u under the profiles V, and their density there, from the piece found)."""
+    M, tot = profile_parts(V)
+    C = np.cumsum(M, axis=1)
+    target = np.clip(u, 0.0, 1.0) * tot
+    k = np.minimum(np.sum(C[:, :-1] <= target[:, None], axis=1), NSEG - 1)
+    prev = np.where(k > 0, np.take_along_axis(C, np.maximum(k - 1, 0)[:, None], 1)[:, 0], 0.0)
+    Mk = np.take_along_axis(M, k[:, None], 1)[:, 0]
+    v0 = np.take_along_axis(V, k[:, None], 1)[:, 0]
+    v1 = np.take_along_axis(V, (k + 1)[:, None], 1)[:, 0]
+    rate = np.log(v1 / v0)
+    t = exp_inverse_cdf(np.clip((target - prev) / Mk, 0.0, 1.0), rate)
+    return (k + t) / NSEG, v0 * np.exp(t * rate) / tot
+
+
+def _piece(x, V):
+    k = np.clip(np.floor(x * NSEG).astype(np.int64), 0, NSEG - 1)
+    t = np.clip(x * NSEG - k, 0.0, 1.0)
+    v0 = np.take_along_axis(V, k[:, None], 1)[:, 0]
+    v1 = np.take_along_axis(V, (k + 1)[:, None], 1)[:, 0]
+    return k, t, v0, v1
+
+
+def profile_density(x, V):
+    k, t, v0, v1 = _piece(x, V)
+    return v0 * np.exp(t * np.log(v1 / v0)) / profile_parts(V)[1]
+
+
+def profile_cdf(x, V):
+    M, tot = profile_parts(V)
+    k, t, v0, v1 = _piece(x, V)
+    C = np.concatenate([np.zeros((len(V), 1)), np.cumsum(M, axis=1)], axis=1)
+    return (np.take_along_axis(C, k[:, None], 1)[:, 0]
+            + np.take_along_axis(M, k[:, None], 1)[:, 0] * exp_cdf(t, np.log(v1 / v0))) / tot
+
 
 def _stored(x):
-    """An array as Tables keeps it: float16 when given so (the builder's leans and weights,
+    """An array as Tables keeps it: float16 when given so (the builder's profiles and weights,
     tabulate._finish_bin), else float32."""
     x = np.asarray(x)
     return x if x.dtype == np.float16 else x.astype(np.float32)
@@ -140,23 +209,11 @@ def exp_mean(k):
     return np.where(np.abs(k) < _SMALL, 0.5 + k / 12.0, 1.0 / (-np.expm1(-ks)) - 1.0 / ks)
 
 
-def rate_of_lean(lean):
-    """The exponential's rate of a lean in (-1, 1): 2 y (3 - y^2) / (1 - y^2), within 2 % of
-    the rate whose density has the mean (1 + y) / 2 (a Pade inverse of the Langevin function;
-    monotone, odd), clipped to K_MAX. Every back end computes it in this order."""
-    y = np.asarray(lean, np.float64)
-    return np.clip(2.0 * y * (3.0 - y * y) / (1.0 - y * y), -K_MAX, K_MAX)
-
-
-def lean_of_rate(rate):
-    """The lean whose rate_of_lean is `rate` (|rate| <= K_MAX), by bisection."""
-    k = np.clip(np.asarray(rate, np.float64), -K_MAX, K_MAX)
-    lo, hi = np.full(k.shape, -1.0), np.full(k.shape, 1.0)
-    for _ in range(60):
-        y = 0.5 * (lo + hi)
-        below = 2.0 * y * (3.0 - y * y) / (1.0 - y * y) < k    # unclipped: k = +-K_MAX has a root
-        lo, hi = np.where(below, y, lo), np.where(below, hi, y)
-    return 0.5 * (lo + hi)
+def _valid_profiles(alpha, beta, mass_shape):
+    """Profiles' logs (alpha, beta) with one axis of NSEG more than mass (file arrays: the same
+    shape as mass, NSEG times as wide), finite, within +-K_MAX (a piece's bound times NSEG)."""
+    return all(np.shape(x) in ((*mass_shape, NSEG), (*mass_shape[:-1], mass_shape[-1] * NSEG))
+               and np.all(np.isfinite(x)) and np.all(np.abs(x) <= K_MAX * 1.01) for x in (alpha, beta))
 
 
 def _search(value, n, edge_at):
@@ -177,8 +234,8 @@ def _search(value, n, edge_at):
 class Tables:
     """The baked sampler of one material: bins over theta_i, and over phi_i when anisotropic.
 
-    Isotropic arrays: a_edges (K, R+1), b_edges (K, R, C+1), mass/alpha/beta (K, R, C),
-    weights (K, R, C, 3). Anisotropic ones (phi_bins given, P of them) have a phi axis
+    Isotropic arrays: a_edges (K, R+1), b_edges (K, R, C+1), mass (K, R, C), alpha/beta (K, R, C,
+    NSEG) (the profiles' logs), weights (K, R, C, 3). Anisotropic ones (phi_bins given, P of them) have a phi axis
     after the theta axis: a_edges (K, P, R+1), and so on. `coords`: what (a, b) are (COORDS).
     """
 
@@ -200,11 +257,12 @@ class Tables:
         self.a_edges = np.asarray(a_edges, np.float32)     # (K, [P,] R+1)
         self.b_edges = np.asarray(b_edges, np.float32)     # (K, [P,] R, C+1)
         self.mass = np.asarray(mass, np.float32)           # (K, [P,] R, C)
-        self.alpha = _stored(alpha)                        # (K, [P,] R, C) the exponential's lean along a
-        self.beta = _stored(beta)                          # (K, [P,] R, C) the exponential's lean along b
+        self.alpha = _stored(alpha)                        # (K, [P,] R, C, NSEG) the profile along a (logs)
+        self.beta = _stored(beta)                          # (K, [P,] R, C, NSEG) the profile along b
         self.weights = _stored(weights)                    # (K, [P,] R, C, 3)
-        if np.any(np.abs(self.alpha) >= 1) or np.any(np.abs(self.beta) >= 1):
-            raise FlowBSDFError("alpha and beta are leans in (-1, 1) (lean_of_rate of a rate)")
+        if not _valid_profiles(self.alpha, self.beta, np.shape(mass)):
+            raise FlowBSDFError(f"alpha and beta are profiles: the logs of {NSEG} nodes over the first, "
+                                f"within +-{K_MAX:g}, one more axis than mass")
         self.meta = dict(meta or {})
         self.backend = backend      # "auto" (C when available, see _fast), "numpy", "c"
         self.rows = self.a_edges.shape[-1] - 1
@@ -218,8 +276,8 @@ class Tables:
         # (float32(2 pi) exceeds 2 pi, which would wrap the last column's end onto the first).
         self._a[:, 0], self._a[:, -1] = 0.0, 1.0
         self._b[..., 0], self._b[..., -1] = 0.0, TWO_PI
-        self._alpha = flat(self.alpha, 2).astype(np.float64)
-        self._beta = flat(self.beta, 2).astype(np.float64)
+        self._alpha = profile_nodes(flat(self.alpha, 3))     # node values, normalized per bin
+        self._beta = profile_nodes(flat(self.beta, 3))
         self._w = flat(self.weights, 3).astype(np.float32)
         m = flat(self.mass, 2).astype(np.float64)
         m /= m.sum(axis=(1, 2), keepdims=True)
@@ -303,13 +361,12 @@ class Tables:
         return out
 
     def _cell(self, bins, i, j):
-        """Edges, probability and rates of cell (i, j) of the interpolated table (the rates of
-        the blended leans)."""
+        """Edges, probability and the blended profiles' node values of cell (i, j) of the
+        interpolated table."""
         L = self._lerp
         a0, a1 = L(self._a, bins, i), L(self._a, bins, i + 1)
         b0, b1 = L(self._b, bins, i, j), L(self._b, bins, i, j + 1)
-        return (a0, a1, b0, b1, L(self._m, bins, i, j), rate_of_lean(L(self._alpha, bins, i, j)),
-                rate_of_lean(L(self._beta, bins, i, j)))
+        return a0, a1, b0, b1, L(self._m, bins, i, j), L(self._alpha, bins, i, j), L(self._beta, bins, i, j)
 
     def sample(self, wi, u):
         if (fast := self._fast) is not None and (out := fast.sample(self, wi, u)) is not None:
@@ -323,10 +380,10 @@ class Tables:
         v = u[:, 1] * (c1 - c0)
         j = _search(v, self.cols, lambda m: L(self._col_cum, bins, i, m))
         d0 = L(self._col_cum, bins, i, j)
-        a0, a1, b0, b1, m, ka, kb = self._cell(bins, i, j)
-        x = exp_inverse_cdf(np.clip((u[:, 0] - c0) / (c1 - c0), 0.0, 1.0), ka)
-        y = exp_inverse_cdf(np.clip((v - d0) / m, 0.0, 1.0), kb)
-        pdf = m * exp_density(x, ka) * exp_density(y, kb) / ((a1 - a0) * (b1 - b0))
+        a0, a1, b0, b1, m, pa, pb = self._cell(bins, i, j)
+        x, dx = profile_sample(np.clip((u[:, 0] - c0) / (c1 - c0), 0.0, 1.0), pa)
+        y, dy = profile_sample(np.clip((v - d0) / m, 0.0, 1.0), pb)
+        pdf = m * dx * dy / ((a1 - a0) * (b1 - b0))
         a, b = a0 + x * (a1 - a0), b0 + y * (b1 - b0)
         if self.coords != "wo":
             wo, jac = H_MAPS[self.coords][0](wi, a, b, phi_ref)
@@ -342,11 +399,11 @@ class Tables:
         L = self._lerp
         i = _search(a, self.rows, lambda m: L(self._a, bins, m))
         j = _search(b, self.cols, lambda m: L(self._b, bins, i, m))
-        a0, a1, b0, b1, m, ka, kb = self._cell(bins, i, j)
+        a0, a1, b0, b1, m, pa, pb = self._cell(bins, i, j)
         x = np.clip((a - a0) / (a1 - a0), 0.0, 1.0)
         y = np.clip((b - b0) / (b1 - b0), 0.0, 1.0)
-        pdf = m * exp_density(x, ka) * exp_density(y, kb) / ((a1 - a0) * (b1 - b0)) / jac
-        return bins, i, j, x, y, ka, kb, pdf
+        pdf = m * profile_density(x, pa) * profile_density(y, pb) / ((a1 - a0) * (b1 - b0)) / jac
+        return bins, i, j, x, y, pa, pb, pdf
 
     def pdf(self, wi, wo):
         if (fast := self._fast) is not None and (out := fast.pdf(self, wi, wo)) is not None:
@@ -359,12 +416,12 @@ class Tables:
         if (fast := self._fast) is not None and (out := fast.invert(self, wi, wo)) is not None:
             return out      # C fast path; the numpy reference follows
         wi, wo = as_dirs(wi, wo)
-        bins, i, j, x, y, ka, kb, _ = self._locate(wi, wo)
+        bins, i, j, x, y, pa, pb, _ = self._locate(wi, wo)
         L = self._lerp
         c0, c1 = L(self._row_cdf, bins, i), L(self._row_cdf, bins, i + 1)
         d0, d1 = L(self._col_cum, bins, i, j), L(self._col_cum, bins, i, j + 1)
-        u1 = c0 + exp_cdf(x, ka) * (c1 - c0)
-        u2 = (d0 + exp_cdf(y, kb) * (d1 - d0)) / (c1 - c0)
+        u1 = c0 + profile_cdf(x, pa) * (c1 - c0)
+        u2 = (d0 + profile_cdf(y, pb) * (d1 - d0)) / (c1 - c0)
         return np.stack([u1, u2], axis=-1)
 
     def eval(self, wi, wo):
@@ -388,8 +445,9 @@ class Tables:
             meta.update(phi_bins=[float(x) for x in self.phi_bins], phi_period=self.phi_period)
         if self.coords != "wo":
             meta.update(coords=self.coords, frame_angle=self.frame_angle)
+        per = {"mass": 1, "alpha": NSEG, "beta": NSEG}
         write_exr(path, {"a_edges": self.a_edges.reshape(B, R + 1), "b_edges": self.b_edges.reshape(B * R, C + 1),
-                         **{n: getattr(self, n).reshape(B * R, C) for n in self.ARRAYS},
+                         **{n: getattr(self, n).reshape(B * R, C * per[n]) for n in self.ARRAYS},
                          "weights": self.weights.reshape(B * R, C * 3)}, meta)
 
 
@@ -445,8 +503,9 @@ def open_tables(path):
                             "re-bake it", path)
     K, P = len(theta_bins), 1 if phi_bins is None else len(phi_bins)
     B = K * P
+    per = [1, NSEG, NSEG]
     shapes = [a.shape, b.shape, w.shape] + [c.shape for c in cells]
-    if shapes != [(B, R + 1), (B * R, C + 1), (B * R, C * 3)] + [(B * R, C)] * len(cells):
+    if shapes != [(B, R + 1), (B * R, C + 1), (B * R, C * 3)] + [(B * R, C * n) for n in per]:
         raise FlowBSDFError(f"table shapes {shapes} do not match {K} x {P} bins of {R}x{C}", path)
     if any(x.dtype != np.float32 for x in (a, b, cells[0])):
         raise FlowBSDFError("table edges and masses must be float32: corrupt file", path)
@@ -454,10 +513,11 @@ def open_tables(path):
         raise FlowBSDFError("table holds NaN or inf", path)
     mass, alpha, beta = cells
     if (np.any(np.diff(a, axis=1) <= 0) or np.any(np.diff(b, axis=1) <= 0) or np.any(mass <= 0)
-            or np.any(np.abs(alpha) >= 1) or np.any(np.abs(beta) >= 1)):
-        raise FlowBSDFError("table edges not increasing, masses not positive or leans out of "
+            or not _valid_profiles(alpha, beta, mass.shape)):
+        raise FlowBSDFError("table edges not increasing, masses not positive or profiles out of "
                             "range: corrupt file", path)
     lead = (K,) if phi_bins is None else (K, P)
     return Tables(theta_bins, a.reshape(*lead, R + 1), b.reshape(*lead, R, C + 1),
-                  *(c.reshape(*lead, R, C) for c in cells), w.reshape(*lead, R, C, 3), meta,
+                  mass.reshape(*lead, R, C), *(c.reshape(*lead, R, C, NSEG) for c in (alpha, beta)),
+                  w.reshape(*lead, R, C, 3), meta,
                   phi_bins=phi_bins, phi_period=period, coords=coords, frame_angle=float(meta.get("frame_angle", 0.0)))

@@ -1,10 +1,10 @@
 """Building baked tables (see tables.py for what they are) from a material and a source sampler.
 
 Edges are quantiles of a stratified set of the source's directions, anchored to the
-specular direction and pooled over neighbouring incident bins; masses, exponential rates
-and RGB weights are integrated from the true f·cos per cell (refined until the cell's
-quadrature settles and agrees with the source points that fall in it). A cell's rates match
-its first moments, bounded by the log range of its own f·cos along each axis.
+specular direction and pooled over neighbouring incident bins; masses, profiles and RGB
+weights are integrated from the true f·cos per cell (refined until the cell's quadrature
+settles and agrees with the source points that fall in it). A cell's profile along each axis
+runs through its marginal density at the profile's nodes (_profile_logs).
 """
 import os
 import threading
@@ -16,7 +16,7 @@ from ..errors import FlowBSDFError
 from .fasttables import one_blas_thread
 from .geometry import luminance, spherical_dir
 from . import halfvector
-from .tables import HALF_MAX, K_MAX, TWO_PI, Tables, _search, exp_density, exp_mean, lean_of_rate, to_ab
+from .tables import HALF_MAX, K_MAX, NSEG, TWO_PI, Tables, _search, exp_density, exp_mean, to_ab
 
 A_MIN = 1e-4     # the least gap between row knots (keeps every segment of rows non-empty)
 B_MIN = 1e-4     # the same for column knots
@@ -275,8 +275,12 @@ def _closing_turn(period):
     def turn(column):
         a_edges, b_edges, mass, alpha, beta, weights = column
         flip = lambda x: x[:, ::-1, ::-1]         # noqa: E731 (rows and columns reversed, per bin)
+
+        def flip_profile(logs):      # the cells reversed, and each profile's nodes: logs over the new first
+            nodes = np.concatenate([np.zeros(logs.shape[:-1] + (1,), logs.dtype), logs], axis=-1)[..., ::-1]
+            return flip(nodes[..., 1:] - nodes[..., :1])
         return (np.float32(1.0) - a_edges[:, ::-1], np.float32(TWO_PI) - b_edges[:, ::-1, ::-1], flip(mass),
-                -flip(alpha), -flip(beta), weights[:, ::-1, ::-1])
+                flip_profile(alpha), flip_profile(beta), weights[:, ::-1, ::-1])
     return turn
 
 
@@ -385,6 +389,90 @@ def _rate_bound(marginal, at):
         return np.where(span > 0, np.log(hi / lo) / span, np.inf)
 
 
+def _profile_logs(marginal, at):
+    """Per cell, the logs of node values 1..NSEG over node 0 of a profile (log-linear between
+    NSEG + 1 nodes) through the marginal density at its positive nodes `at` (others: none;
+    flat beyond the end ones). Uniform where fewer than two nodes are positive."""
+    xs = np.arange(NSEG + 1) / NSEG
+    good = np.isfinite(at) & np.isfinite(marginal) & (marginal > 0)
+    pos = np.where(good, at, np.inf)
+    order = np.argsort(pos, axis=1)
+    pos = np.take_along_axis(pos, order, 1)
+    val = np.log(np.take_along_axis(np.where(good, marginal, 1.0), order, 1))
+    count = good.sum(axis=1)
+    L = np.zeros((len(marginal), NSEG + 1))
+    last = np.maximum(count - 1, 0)
+    for k, x in enumerate(xs):
+        i1 = np.clip(np.sum(pos < x, axis=1), 1, np.maximum(last, 1))
+        p0 = np.take_along_axis(pos, (i1 - 1)[:, None], 1)[:, 0]
+        p1 = np.take_along_axis(pos, np.minimum(i1, pos.shape[1] - 1)[:, None], 1)[:, 0]
+        m0 = np.take_along_axis(val, (i1 - 1)[:, None], 1)[:, 0]
+        m1 = np.take_along_axis(val, np.minimum(i1, pos.shape[1] - 1)[:, None], 1)[:, 0]
+        with np.errstate(invalid="ignore"):
+            w = np.clip(np.nan_to_num((x - p0) / np.maximum(p1 - p0, 1e-300)), 0.0, 1.0)
+        L[:, k] = np.where(count >= 2, (1 - w) * m0 + w * m1, 0.0)
+    L = _piece_masses_kept(L, pos, np.exp(val), count)
+    # No piece steeper than K_MAX across a whole cell (the exponential's bound): nodes raised to
+    # the envelope max_j (L_j - K_MAX |k - j| / NSEG). Steeper pieces amplify the float32
+    # rounding of a point's place in its cell on the render back ends (0.4 % in pdf, measured).
+    k = np.arange(NSEG + 1)
+    L = np.max(L[:, None, :] - (K_MAX / NSEG) * np.abs(k[:, None] - k[None, :])[None], axis=2)
+    # On a grid of 1/64: every difference of two stored logs (within +-K_MAX) is then a float16
+    # too, so a profile reversed (the closing turn of halfvector tables) is exact.
+    return np.round((L[:, 1:] - L[:, :1]) * 64.0) / 64.0
+
+
+PIECE_POINTS = 8        # points per piece where _piece_masses_kept reads the marginal
+
+
+def _piece_masses_kept(L, pos, val, count):
+    """Node logs L (cells, NSEG + 1) raised where a piece holds less than the marginal's mass
+    over it (read at PIECE_POINTS per piece, linear between its samples `pos`, `val`, sorted,
+    count of them valid, log-linear between them (exact on exponential flanks: linear overstated
+    convex ones), flat beyond the end ones): the piece's lower end, until the masses
+    agree. Points alone undershoot a density that falls linearly to 0 (a Lambertian's last
+    row, f·cos ~ cos): log-linear from 0.34 to 0.004 of the row's start put 1/6 of f·cos
+    near the horizon (measured) and half the piece's mass; raising its end holds the mass."""
+    n = len(L)
+    Q = pos.shape[1]
+    last = np.maximum(count - 1, 0)
+    x = ((np.arange(NSEG * PIECE_POINTS) + 0.5) / (NSEG * PIECE_POINTS))[None, :].repeat(n, 0)
+    i1 = np.clip(np.sum(pos[:, None, :] < x[:, :, None], axis=2), 1, np.maximum(last, 1)[:, None])
+    p0 = np.take_along_axis(pos, i1 - 1, 1)
+    p1 = np.take_along_axis(pos, np.minimum(i1, Q - 1), 1)
+    v0 = np.take_along_axis(val, i1 - 1, 1)
+    v1 = np.take_along_axis(val, np.minimum(i1, Q - 1), 1)
+    with np.errstate(invalid="ignore"):
+        w = np.clip(np.nan_to_num((x - p0) / np.maximum(p1 - p0, 1e-300)), 0.0, 1.0)
+    true = np.exp((1 - w) * np.log(v0) + w * np.log(v1)).reshape(n, NSEG, PIECE_POINTS).mean(axis=2) / NSEG
+    ok = count >= 2
+    for k in range(NSEG):
+        lo_first = L[:, k] <= L[:, k + 1]
+        lo, hi = np.where(lo_first, L[:, k], L[:, k + 1]), np.maximum(L[:, k], L[:, k + 1])
+        vh = np.exp(hi)
+        want = true[:, k] * NSEG
+
+        def mass(l):
+            return _log_mean_np(np.exp(l), vh)
+        short = ok & (mass(lo) < want * (1 - 1e-3))
+        if not np.any(short):
+            continue
+        a, b = lo.copy(), hi.copy()
+        for _ in range(40):
+            mid = 0.5 * (a + b)
+            below = mass(mid) < want
+            a, b = np.where(below, mid, a), np.where(below, b, mid)
+        raised = np.where(short, b, lo)
+        L[:, k] = np.where(lo_first, raised, L[:, k])
+        L[:, k + 1] = np.where(lo_first, L[:, k + 1], raised)
+    return L
+
+
+def _log_mean_np(v0, v1):
+    from .tables import _log_mean
+    return _log_mean(v0, v1)
+
+
 def _cell_moments(material, wi, a_edges, b_edges, frame, q, point_mass, box=None, rtol=0.02, q_max=64,
                   q_around=16):
     """Cell moments by a midpoint rule refined (q, 2q, 4q, ...) per cell until two levels
@@ -405,7 +493,10 @@ def _cell_moments(material, wi, a_edges, b_edges, frame, q, point_mass, box=None
     point_mass = point_mass.ravel()
 
     def rule(moments, at_a, at_b):
-        return moments[:4] + (_rate_bound(moments[4], at_a), _rate_bound(moments[5], at_b))
+        at_a = np.broadcast_to(at_a, moments[4].shape)
+        at_b = np.broadcast_to(at_b, moments[5].shape)
+        return moments[:4] + (_rate_bound(moments[4], at_a), _rate_bound(moments[5], at_b),
+                              _profile_logs(moments[4], at_a), _profile_logs(moments[5], at_b))
 
     def uniform(moments, q):
         nodes = (np.arange(q) + 0.5) / q
@@ -432,13 +523,13 @@ def _cell_moments(material, wi, a_edges, b_edges, frame, q, point_mass, box=None
             new = rule(around[:6], *around[6:])
             for o, v in zip(out, new):
                 o[short] = v
-    mass, mx, my, rgb, bound_a, bound_b = out
+    mass, mx, my, rgb, bound_a, bound_b, prof, prof_b = out
     with np.errstate(divide="ignore", invalid="ignore"):
         mx = np.where(mass > 0, mx / mass, 0.5)
         my = np.where(mass > 0, my / mass, 0.5)
     shape = (rows, cols)
     return tuple(x.reshape(shape) for x in (mass, mx, my)) + (rgb.reshape(shape + (3,)),) + \
-        tuple(x.reshape(shape) for x in (bound_a, bound_b))
+        tuple(x.reshape(shape) for x in (bound_a, bound_b)) + tuple(x.reshape(shape + (NSEG,)) for x in (prof, prof_b))
 
 
 def _points(material, source, wi, grid, frame, gamma):
@@ -459,7 +550,7 @@ def _points(material, source, wi, grid, frame, gamma):
 
 
 def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrature, floor):
-    """Per cell mass, exponential rates and RGB weight for one incident direction."""
+    """Per cell mass, profiles (logs) and RGB weight for one incident direction."""
     rows, cols = b_edges.shape[0], b_edges.shape[1] - 1
     row = np.clip(np.searchsorted(a_edges, a, side="right") - 1, 0, rows - 1)
     col = _find_cols(b_edges, row, b)
@@ -470,10 +561,10 @@ def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrat
         np.minimum.at(box[2 * k], cell[has], v[has])
         np.maximum.at(box[2 * k + 1], cell[has], v[has])
     point_mass = np.bincount(cell, weights=point_mass, minlength=rows * cols)
-    mass, mx, my, rgb, bound_a, bound_b = _cell_moments(material, wi, a_edges, b_edges, frame, quadrature,
-                                                         point_mass, box)
-    # Exponential rates matching each cell's first moments along a and b, no steeper than
-    # the cell's own f·cos: a rate fitted to a flank must not keep decaying past a floor.
+    mass, mx, my, rgb, bound_a, bound_b, prof, prof_b = _cell_moments(material, wi, a_edges, b_edges, frame, quadrature,
+                                                               point_mass, box)
+    # Exponential rates matching each cell's first moments along a and b, no steeper than the
+    # cell's own f·cos: what _unresolved_edges compares across edges (the profiles are kept).
     alpha = np.clip(exp_rate_for_mean(mx), -bound_a, bound_a)
     beta = np.clip(exp_rate_for_mean(my), -bound_b, bound_b)
     cells, strip = _unresolved_edges(a_edges, b_edges, mass, alpha, beta)
@@ -490,6 +581,8 @@ def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrat
         bound_b[r, c] = _rate_bound(along_b[found], at_b[found])
         alpha[r, c] = np.clip(exp_rate_for_mean(mx[r, c]), -bound_a[r, c], bound_a[r, c])
         beta[r, c] = np.clip(exp_rate_for_mean(my[r, c]), -bound_b[r, c], bound_b[r, c])
+        prof[r, c] = _profile_logs(along_a[found], at_a[found])
+        prof_b[r, c] = _profile_logs(along_b[found], at_b[found])
     # A floor of uniform density keeps pdf > 0 everywhere, so the table never loses a
     # direction where f·cos > 0 (unbiased whatever the quadrature missed).
     area = np.diff(a_edges.astype(np.float64))[:, None] * np.diff(b_edges.astype(np.float64), axis=1)
@@ -500,7 +593,7 @@ def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrat
     w_rgb = rgb / prob[..., None]
     f32, f16 = (lambda x: x.astype(np.float32)), (lambda x: x.astype(np.float16))
     weights = f16(w_rgb) if np.all(np.abs(w_rgb) < HALF_MAX) else f32(w_rgb)
-    return f32(prob), f16(lean_of_rate(alpha)), f16(lean_of_rate(beta)), weights
+    return f32(prob), f16(prof), f16(prof_b), weights
 
 
 EDGE_JUMP = 30.0     # a cell's density at an edge this many times below its neighbour's across it: unresolved
@@ -808,9 +901,9 @@ ANISO_RESOLUTIONS = (16, 24, 32)
 # At theta_i 86 a 1:25 GGX needs 64 (32: 3.5x the ideal's rv half-way, 64: 1.3x; measured).
 PHI_COUNTS = (8, 16, 32, 64)
 PHI_PROBE_DEG = (80.0, 86.0)
-# A cell's bytes: its mass and (about) one column edge as float32, its two leans and RGB weight
-# as float16 (_finish_bin; 28 when all were float32: 2 MB now hold 1.56x the cells).
-BYTES_PER_CELL = 18
+# A cell's bytes: its mass and (about) one column edge as float32, its two profiles (NSEG logs
+# each) and RGB weight as float16 (_finish_bin; 18 with one exponential's lean per axis).
+BYTES_PER_CELL = 26
 ANISO_BUDGET = 4         # anisotropic tables' share of memory_budget, all their azimuths together
 
 
@@ -824,8 +917,10 @@ def bin_bytes(resolution):
 # at 2 MB) lost 7-53x the ideal's rv between bins on the sharp shared files, 64² x 27 (3.11 MB) still
 # 53x on satin_rosaline at 85 deg, where 48² x 31 lost 6x (measured); 36 excludes 64² from 2 MB of
 # 18-byte cells (27 angles) and keeps it at 4 MB (54), where 64² x 34 beat 48² x 62 of 28-byte cells
-# on malachite, ilm and irid.
-MIN_BINS = 36
+# on malachite, ilm and irid. With 26-byte cells (profiles) 33 keeps 48² at 2 MB (33 angles: 46
+# of the 50 acceptance cells within 1.5x the ideal's rv; on satin_rosaline and chm_mint 32² x
+# 54-74 held 5 of their 10 cells, 48² x 33 held 6) and 64² at 4 MB (37).
+MIN_BINS = 33
 
 
 def _resolutions_within(memory_budget):

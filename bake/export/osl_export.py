@@ -18,8 +18,11 @@ b = k P + p as in Tables. Layout (W = texture width, rows from the top of the im
                             [g / W, (g + 1) / W), then cos(theta_bin k), cos(theta_bin k + 1) for
                             k = min(lo, K - 2) (what the shader needs when hi = lo + 1)
     rows 3 + b R + i        bin b, table row i: cell j at x = j holds W_bij (RGB)
-    rows 3 + B R + b R + i  bin b, table row i: cell j holds (mass, lean a, lean b) (Tables.alpha, beta)
-    corner block (k, p), k = 0 .. max(K - 1, 1) - 1, first row 3 + 2 B R + (k P + p)(3 + 3 R):
+    rows 3 + (1 + q) B R + b R + i, q = 0, 1, 2
+                            bin b, table row i: cell j holds (mass, a0, a1), (a2, a3, b0), (b1,
+                            b2, b3): the mass and the profiles' node values along a and b
+                            (Tables._alpha, _beta: normalized per bin)
+    corner block (k, p), k = 0 .. max(K - 1, 1) - 1, first row 3 + 4 B R + (k P + p)(3 + 3 R):
         +0          row CDF, x = 0..R
         +1          a edges, x = 0..R
         +2 + i      column cumulative sums of row i, x = 0..C
@@ -51,7 +54,7 @@ from ..errors import FlowBSDFError
 from ..plumbing.exrio import write_rgba_exr
 from ..plumbing.files import file_hash
 
-LAYOUT = 6      # 6: cells hold leans (Tables.alpha, beta), turned into rates after the blend
+LAYOUT = 7      # 7: cells hold profiles (Tables.alpha, beta: NSEG + 1 node values per axis), three texels a cell
 META_KEY = "flowbsdf_osl"
 
 
@@ -90,7 +93,7 @@ def texture_image(tables):
     B = K * P
     KP = max(K - 1, 1)
     width = max(C + 1, R + 1, K, P, 3)
-    height = 3 + 2 * B * R + KP * P * (3 + 3 * R)
+    height = 3 + 4 * B * R + KP * P * (3 + 3 * R)
     img = np.zeros((height, width, 4), np.float64)
     img[0, 0, :3] = (LAYOUT, K, R)
     img[0, 1, :3] = (C, width, height)
@@ -106,12 +109,13 @@ def texture_image(tables):
     k = np.clip(img[2, :, 0].astype(int), 0, max(K - 2, 0))
     img[2, :, 2], img[2, :, 3] = cos_bins[k], cos_bins[np.minimum(k + 1, K - 1)]
     img[3:3 + B * R, :C, :3] = tables._w.reshape(B * R, C, 3)
-    cells = np.stack([tables._m, tables._alpha, tables._beta], axis=-1)      # (B, R, C, 3)
-    img[3 + B * R:3 + 2 * B * R, :C, :3] = cells.reshape(B * R, C, 3)
+    cells = np.concatenate([tables._m[..., None], tables._alpha, tables._beta], axis=-1)     # (B, R, C, 9)
+    for q in range(3):
+        img[3 + (1 + q) * B * R:3 + (2 + q) * B * R, :C, :3] = cells[..., 3 * q:3 * q + 3].reshape(B * R, C, 3)
     f32 = lambda x: np.asarray(x, np.float32).astype(np.float64)      # noqa: E731  (what the shader reads)
     for k in range(KP):
         for p in range(P):
-            base = 3 + 2 * B * R + (k * P + p) * (3 + 3 * R)
+            base = 3 + 4 * B * R + (k * P + p) * (3 + 3 * R)
             k1, p1 = min(k + 1, K - 1), (p + 1) % P
             blend = [k * P + p, k1 * P + p, k * P + p1, k1 * P + p1]
             for ch, b in enumerate(blend):

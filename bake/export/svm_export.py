@@ -40,9 +40,10 @@ second). Layout 1 (W x H texels):
                              [g, g + 1) / GC, lowered likewise
         row 1 + i, x = XC + SC j   records [column cumsum(i, j), b edge(i, j)], j = 0 .. NC - 1,
                              NC = max(C + 1, 2^col_steps, 2^ceil(log2 C)) (8 past the end)
-        row 1 + i, x = XX + SX j   records [mass, lean a, lean b, W red, W green, W blue] of
-                             cell (i, j), j < C
-      SR = SC = 2 / (4 / NB) texels (1 isotropic, 2 anisotropic), SX = 6 NB / 4.
+        row 1 + i, x = XX + SX j   records [mass, the a profile's NSEG + 1 node values, the b
+                             profile's, W red, W green, W blue] of cell (i, j), j < C (the
+                             node values normalized per bin: Tables._alpha, _beta)
+      SR = SC = 2 / (4 / NB) texels (1 isotropic, 2 anisotropic), SX = CELL_QUANTITIES NB / 4.
 
 The graph's binary searches are branchless: lo moves forward by 2^(n-1), ..., 1 where the
 blended record there is <= the target. The sampler's (CDFs) start from their guide's lo,
@@ -73,16 +74,17 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.tables import NSEG
 from ..errors import FlowBSDFError
 from ..plumbing.exrio import write_rgba_exr
 from .osl_export import _guide, ensure_export
 
-LAYOUT = 2      # 2: cells hold leans (Tables.alpha, beta), turned into rates after the blend
+LAYOUT = 3      # 3: cells hold profiles (Tables.alpha, beta: NSEG + 1 node values per axis, normalized)
 META_KEY = "flowbsdf_svm"
 MAX_SIDE = 16384
 PAST_END = 8.0          # a record value above any target (CDFs and a <= 1, b <= 2 pi)
 UNUSED = 1e30           # a bin guide threshold no value reaches
-CELL_QUANTITIES = 6     # mass, lean a, lean b (Tables.alpha, beta), W red, W green, W blue
+CELL_QUANTITIES = 1 + 2 * (NSEG + 1) + 3     # mass, the a and b profiles' node values, W red, W green, W blue
 
 
 def export_path(tables_path, digest):
@@ -210,8 +212,8 @@ def texture_image(tables):
             b[:C + 1] = tables._b[bins, i].T
             row[xc:xc + sc * n_col] = _records([cum, b], nb, n_col).reshape(-1, 4)
             w = tables._w[bins, i].astype(np.float64)                  # (nb, C, 3)
-            cells = [tables._m[bins, i].T, tables._alpha[bins, i].T, tables._beta[bins, i].T,
-                     w[..., 0].T, w[..., 1].T, w[..., 2].T]
+            cells = ([tables._m[bins, i].T] + [tables._alpha[bins, i, :, n].T for n in range(NSEG + 1)]
+                     + [tables._beta[bins, i, :, n].T for n in range(NSEG + 1)] + [w[..., 0].T, w[..., 1].T, w[..., 2].T])
             row[xx:xx + sx * C] = _records(cells, nb, C).reshape(-1, 4)
 
     layout = {"layout": LAYOUT, "K": K, "P": P, "R": R, "C": C, "NB": nb, "period": period,

@@ -2,9 +2,9 @@
 // evaluation. A port of bake/core/tables.py's Tables.sample and Tables._locate (the numpy reference).
 // Every texel is fetched with "interp", "closest" and zero derivatives, so values come back exact.
 
-#define LAYOUT 6
+#define LAYOUT 7
+#define NSEG 3
 #define K_SMALL 1e-4
-#define K_MAX 30.0
 
 float fetch1(string file, float W, float H, int x, int y)
 {
@@ -52,14 +52,6 @@ float expm1_(float x)
     return (abs(x) < 1e-5) ? x + 0.5 * x * x : exp(x) - 1.0;
 }
 
-// The in-cell density k e^(k x) / (e^k - 1) on [0, 1] (bake/core/tables.py exp_density).
-float exp_density(float x, float k)
-{
-    if (abs(k) < K_SMALL)
-        return 1.0 + k * (x - 0.5);
-    return k * exp(k * x) / expm1_(k);
-}
-
 // Inverse CDF of the in-cell density k e^(k x) / (e^k - 1) on [0, 1] (bake/core/tables.py).
 float exp_inverse_cdf(float u, float k)
 {
@@ -69,6 +61,50 @@ float exp_inverse_cdf(float u, float k)
     else
         x = log1p_(u * expm1_(k)) / k;
     return clamp(x, 0.0, 1.0);
+}
+
+// bake/core/tables.py _log_mean: (v1 - v0) / log(v1 / v0), its series where they are close.
+float log_mean(float v0, float v1)
+{
+    float r = v1 / v0;
+    float lr = log(r);
+    return (abs(lr) < 1e-3) ? v0 * (1.0 + lr * (0.5 + lr / 6.0)) : v0 * ((r - 1.0) / lr);
+}
+
+// bake/core/tables.py profile_parts: the pieces' masses of a profile's node values, and their total.
+float profile_parts(float V[4], output float M[3])
+{
+    for (int k = 0; k < NSEG; k++)
+        M[k] = log_mean(V[k], V[k + 1]) / NSEG;
+    return M[0] + M[1] + M[2];
+}
+
+// bake/core/tables.py profile_inverse_cdf: the piece whose CDF brackets u, then its exponential.
+float profile_inverse_cdf(float u, float V[4])
+{
+    float M[3];
+    float target = clamp(u, 0.0, 1.0) * profile_parts(V, M);
+    int k = 0;
+    float prev = 0.0, c = M[0];
+    for (int n = 1; n < NSEG; n++) {
+        if (c <= target) {
+            k = n;
+            prev = c;
+        }
+        c += M[n];
+    }
+    float t = exp_inverse_cdf(clamp((target - prev) / M[k], 0.0, 1.0), log(V[k + 1] / V[k]));
+    return (k + t) / NSEG;
+}
+
+// bake/core/tables.py profile_density.
+float profile_density(float x, float V[4])
+{
+    float M[3];
+    float total = profile_parts(V, M);
+    int k = clamp(int(floor(x * NSEG)), 0, NSEG - 1);
+    float t = clamp(x * NSEG - k, 0.0, 1.0);
+    return V[k] * exp(t * log(V[k + 1] / V[k])) / total;
 }
 
 // The texture's header: 1 and (W, H, K, R, C, P, phi period, the coordinates (0 "wo",
@@ -152,30 +188,28 @@ void blend_bins(string file, float W, float H, int K, int R, int NP, float perio
     bins[1] = k1 * NP + p;
     bins[2] = k * NP + p1;
     bins[3] = k1 * NP + p1;
-    base = 3 + 2 * K * NP * R + (k * NP + p) * (3 + 3 * R);
+    base = 3 + 4 * K * NP * R + (k * NP + p) * (3 + 3 * R);
 }
 
-// bake/core/tables.py rate_of_lean: the exponential's rate of a blended lean.
-float rate_of_lean(float y)
-{
-    return clamp(2.0 * y * (3.0 - y * y) / (1.0 - y * y), -K_MAX, K_MAX);
-}
-
-// Cell (i, j) of the blended table: its weight W (baked f cos / pdf) and (mass, rate along a,
-// rate along b): the texture holds the leans, blended, then turned into rates.
+// Cell (i, j) of the blended table: its weight W (baked f cos / pdf), mass and profiles along a
+// and b (node values): three texels a cell, (mass, a0, a1), (a2, a3, b0), (b1, b2, b3).
 void blend_cell(string file, float W, float H, int B, int R, int bins[4], float w[4], int i, int j,
-                output color weight, output color cell)
+                output color weight, output float mass, output float pa[4], output float pb[4])
 {
-    cell = 0;
+    color q0 = 0, q1 = 0, q2 = 0;
     weight = 0;
     for (int c = 0; c < 4; c++) {
         if (w[c] > 0.0) {
-            cell += w[c] * fetch(file, W, H, j, 3 + B * R + bins[c] * R + i);
+            int y = 3 + B * R + bins[c] * R + i;
+            q0 += w[c] * fetch(file, W, H, j, y);
+            q1 += w[c] * fetch(file, W, H, j, y + B * R);
+            q2 += w[c] * fetch(file, W, H, j, y + 2 * B * R);
             weight += w[c] * fetch(file, W, H, j, 3 + bins[c] * R + i);
         }
     }
-    cell[1] = rate_of_lean(cell[1]);
-    cell[2] = rate_of_lean(cell[2]);
+    mass = q0[0];
+    pa[0] = q0[1]; pa[1] = q0[2]; pa[2] = q1[0]; pa[3] = q1[1];
+    pb[0] = q1[2]; pb[1] = q2[0]; pb[2] = q2[1]; pb[3] = q2[2];
 }
 
 // bake/core/halfvector.py: 1 - cos theta_max(phi_h), the valid cap of h along phi_h at wi.
@@ -293,13 +327,13 @@ void sample_tables(string file, float W, float H, int K, int R, int C, int NP, f
     float a1 = fetch_blend(file, W, H, i + 1, base + 1, w);
     float b0 = fetch_blend(file, W, H, j, base + 2 + R + i, w);
     float b1 = fetch_blend(file, W, H, j + 1, base + 2 + R + i, w);
-    color cell;
-    blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, cell);
-    float x = exp_inverse_cdf(clamp((u0 - c0) / (c1 - c0), 0.0, 1.0), cell[1]);
-    float y = exp_inverse_cdf(clamp((v - d0) / cell[0], 0.0, 1.0), cell[2]);
+    float mass, pa[4], pb[4];
+    blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, mass, pa, pb);
+    float x = profile_inverse_cdf(clamp((u0 - c0) / (c1 - c0), 0.0, 1.0), pa);
+    float y = profile_inverse_cdf(clamp((v - d0) / mass, 0.0, 1.0), pb);
     float a = a0 + x * (a1 - a0);
     float b = b0 + y * (b1 - b0);
-    pdf = cell[0] * exp_density(x, cell[1]) * exp_density(y, cell[2]) / ((a1 - a0) * (b1 - b0));
+    pdf = mass * profile_density(x, pa) * profile_density(y, pb) / ((a1 - a0) * (b1 - b0));
     if (half) {     // h in the frame turned by whole periods and the lobe's axes (halfpolar: wi's + pi)
         float ref = (half == 2) ? phi_i + M_PI : turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0)), jac;
         vector wi = vector(sin_i * cos(phi_i - ref), sin_i * sin(phi_i - ref), cos_i);
@@ -374,10 +408,11 @@ void eval_tables(string file, float W, float H, int K, int R, int C, int NP, flo
     int brow = base + 2 + R + i;
     guide = fetch4(file, W, H, clamp(int(b * (C / (2.0 * M_PI))), 0, C - 1), base + 3 + 2 * R + i, alpha);
     int j = edge_search(file, W, H, brow, C, int(guide[2]), int(alpha), w, b, b0, b1);
-    color weight, cell;
-    blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, cell);
+    color weight;
+    float mass, pa[4], pb[4];
+    blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, mass, pa, pb);
     float x = clamp((a - a0) / (a1 - a0), 0.0, 1.0);
     float y = clamp((b - b0) / (b1 - b0), 0.0, 1.0);
-    pdf = cell[0] * exp_density(x, cell[1]) * exp_density(y, cell[2]) / ((a1 - a0) * (b1 - b0)) / jac;
+    pdf = mass * profile_density(x, pa) * profile_density(y, pb) / ((a1 - a0) * (b1 - b0)) / jac;
     fcos = weight * pdf;
 }
