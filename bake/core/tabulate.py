@@ -16,7 +16,7 @@ from ..errors import FlowBSDFError
 from .fasttables import one_blas_thread
 from .geometry import luminance, spherical_dir
 from . import halfvector
-from .tables import HALF_MAX, K_MAX, NSEG, TWO_PI, Tables, _search, exp_density, exp_mean, to_ab
+from .tables import HALF_MAX, K_MAX, NSEG, TWO_PI, Tables, _log_mean, _search, exp_density, exp_mean, to_ab
 
 A_MIN = 1e-4     # the least gap between row knots (keeps every segment of rows non-empty)
 B_MIN = 1e-4     # the same for column knots
@@ -453,7 +453,7 @@ def _piece_masses_kept(L, pos, val, count):
         want = true[:, k] * NSEG
 
         def mass(l):
-            return _log_mean_np(np.exp(l), vh)
+            return _log_mean(np.exp(l), vh)
         short = ok & (mass(lo) < want * (1 - 1e-3))
         if not np.any(short):
             continue
@@ -466,11 +466,6 @@ def _piece_masses_kept(L, pos, val, count):
         L[:, k] = np.where(lo_first, raised, L[:, k])
         L[:, k + 1] = np.where(lo_first, L[:, k + 1], raised)
     return L
-
-
-def _log_mean_np(v0, v1):
-    from .tables import _log_mean
-    return _log_mean(v0, v1)
 
 
 def _cell_moments(material, wi, a_edges, b_edges, frame, q, point_mass, box=None, rtol=0.02, q_max=64,
@@ -604,7 +599,8 @@ STRIP_NODES = 16
 def _unresolved_edges(a_edges, b_edges, mass, alpha, beta):
     """Cells whose density at an edge falls EDGE_JUMP times below their neighbour's across it
     (f·cos is continuous: the cell's rule stepped over the flank of a lobe that crosses the
-    edge, and its exponential leans away from it), with a strip along that edge per cell (boxes
+    edge, and the exponential matching its moments leans away from it), with a strip along that
+    edge per cell (boxes
     lo_a, hi_a, lo_b, hi_b for _moments_around). Measured: a cell 64 deg wide beside the
     specular peak at theta_i 85 held 1/4 of its mass, leaning the wrong way: q/p ~1e-5 at the
     flank, rv 0.83 where the ideal tabulation has 6e-4."""
