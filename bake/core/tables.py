@@ -10,7 +10,8 @@ k e^(k t) / (e^k - 1), no steeper than K_MAX across a whole cell). An exponentia
 lobe's flank where a linear slope cannot, and the pieces meet continuously, so a profile
 also holds a knee inside a cell (a flank running into a flat tail) that one exponential
 cannot (a cell's rv excess over the ideal tabulation sat in such rows: on the bin, 48²,
-the seven cells 2 MB plans missed went from 1.96-3.70x the ideal's rv to 0.92-1.27x):
+the cells 2 MB plans missed went from 1.96-3.70x the ideal's rv to 1.06-1.32x, each piece
+keeping the marginal's mass, tabulate._piece_masses_kept):
 
     sample:  u0 -> row by the row CDF, u1 -> column by the row's CDF, the two remainders
              -> x, y by the profiles' inverse CDFs (the piece, then its exponential's),
