@@ -128,6 +128,7 @@ from . import sockets
 
 CUTOFF = 1e-5           # Cycles' CLOSURE_WEIGHT_CUTOFF
 K_SMALL = 1e-4          # bake/core/tables.py _SMALL: the in-cell density's small-rate branch
+LOG_MEAN_SERIES = 1e-3  # bake/core/tables.py LOG_MEAN_SERIES: the log mean's series below it
 TANGENT = (1.0, 0.0, 0.0)
 GRAPH_VERSION = 2       # in the node groups' names: a graph built by other code gets new groups
 GROUP_PREFIX = f"FlowBSDF SVM{GRAPH_VERSION} "
@@ -319,6 +320,9 @@ class _Sampler:
         self.dv = 1.0 / self.lay["height"]
         self.rpt = 4 // self.lay["NB"]          # records per texel: record q at texel q // rpt, slot q % rpt
         self.offsets = {}
+        # a cell's quantities (svm_export.CELL_QUANTITIES): mass, the a and b profiles' node values, W
+        n = (_svm_export().CELL_QUANTITIES - 4) // 2
+        self.on_a, self.on_b, self.on_w = range(1, 1 + n), range(1 + n, 1 + 2 * n), range(1 + 2 * n, 4 + 2 * n)
 
     def fetch(self, uv):
         tex = self.g.node("ShaderNodeTexImage", image=self.image, interpolation='Closest', extension='EXTEND')
@@ -454,12 +458,6 @@ class _Sampler:
         cell = self.at(self.offset(row, self.lay["x_cell"]), j, self.lay["cell_stride"])
         return lambda n: self.quantity(cell, n)
 
-    @staticmethod
-    def _axes(quantity):
-        """(the a profile's node-value indices, the b profile's, W's) of a cell's quantities."""
-        nodes = (_svm_export().CELL_QUANTITIES - 4) // 2
-        return range(1, 1 + nodes), range(1 + nodes, 1 + 2 * nodes), range(1 + 2 * nodes, 4 + 2 * nodes)
-
     def sample(self, u0, u1):
         """Tables.sample after `incident`: (a, b, weight W (colour), pdf) for sockets u0, u1."""
         g, lay = self.g, self.lay
@@ -479,19 +477,18 @@ class _Sampler:
         rec = self.at(cols, j, sc)
         d0, b0, b1 = self.quantity(rec, 0), self.quantity(rec, 1), self.quantity(self.offset(rec, sc), 1)
         q = self.cell(row, j)
-        on_a, on_b, on_w = self._axes(q)
         m = q(0)
         # the point in the cell, and its density along each axis
         x, dens_a = _profile_sample(g, g.math('DIVIDE', g.math('SUBTRACT', u0, c0), g.math('SUBTRACT', c1, c0),
-                                              clamp=True), _profile(g, [q(n) for n in on_a]))
+                                              clamp=True), _profile(g, [q(n) for n in self.on_a]))
         a = g.math('MULTIPLY_ADD', x, g.math('SUBTRACT', a1, a0), a0)
         y, dens_b = _profile_sample(g, g.math('DIVIDE', g.math('SUBTRACT', v, d0), m, clamp=True),
-                                    _profile(g, [q(n) for n in on_b]))
+                                    _profile(g, [q(n) for n in self.on_b]))
         db = g.math('SUBTRACT', b1, b0)
         b = g.math('MULTIPLY_ADD', y, db, b0)
         pdf = g.math('DIVIDE', g.math('MULTIPLY', m, g.math('MULTIPLY', dens_a, dens_b)),
                      g.math('MULTIPLY', g.math('SUBTRACT', a1, a0), db))
-        return a, b, g.combine(*(q(n) for n in on_w)), pdf
+        return a, b, g.combine(*(q(n) for n in self.on_w)), pdf
 
     def locate(self, a, b):
         """Tables._locate after `incident`: (pdf, W (colour)) at table coordinates a, b."""
@@ -507,14 +504,13 @@ class _Sampler:
         rec = self.at(cols, j, sc)
         b0, b1 = self.quantity(rec, 1), self.quantity(self.offset(rec, sc), 1)
         q = self.cell(row, j)
-        on_a, on_b, on_w = self._axes(q)
         da, db = g.math('SUBTRACT', a1, a0), g.math('SUBTRACT', b1, b0)
         dens_a = _profile_density(g, g.math('DIVIDE', g.math('SUBTRACT', a, a0), da, clamp=True),
-                                  _profile(g, [q(n) for n in on_a]))
+                                  _profile(g, [q(n) for n in self.on_a]))
         dens_b = _profile_density(g, g.math('DIVIDE', g.math('SUBTRACT', b, b0), db, clamp=True),
-                                  _profile(g, [q(n) for n in on_b]))
+                                  _profile(g, [q(n) for n in self.on_b]))
         pdf = g.math('DIVIDE', g.math('MULTIPLY', q(0), g.math('MULTIPLY', dens_a, dens_b)), g.math('MULTIPLY', da, db))
-        return pdf, g.combine(*(q(n) for n in on_w))
+        return pdf, g.combine(*(q(n) for n in self.on_w))
 
 
 def _log2(n):
@@ -650,7 +646,7 @@ def _log_mean(g, v0, v1):
     """bake/core/tables.py _log_mean: (v1 - v0) / log(v1 / v0), its series where they are close."""
     r = g.math('DIVIDE', v1, v0)
     lr = g.math('LOGARITHM', r, math.e)
-    small = g.math('LESS_THAN', g.math('ABSOLUTE', lr), 1e-3)
+    small = g.math('LESS_THAN', g.math('ABSOLUTE', lr), LOG_MEAN_SERIES)
     exact = g.math('MULTIPLY', v0, g.math('DIVIDE', g.math('SUBTRACT', r, 1.0), lr))
     series = g.math('MULTIPLY_ADD', lr, g.math('MULTIPLY_ADD', lr, 1.0 / 6.0, 0.5), 1.0)
     return g.select(small, g.math('MULTIPLY', v0, series), exact)
@@ -682,8 +678,8 @@ def _profile_piece(g, steps, nodes):
 
 
 def _profile_sample(g, u, profile):
-    """bake/core/tables.py profile_inverse_cdf, and the profile's density there (profile_density,
-    from the piece found: its start value, rate and place t)."""
+    """bake/core/tables.py profile_sample: the place of u and the profile's density there (from
+    the piece found: its start value, rate and place t)."""
     nodes, masses, total = profile
     n = len(masses)
     target = g.math('MULTIPLY', u, total)

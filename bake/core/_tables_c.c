@@ -147,7 +147,7 @@ FT_INLINE void exp_inverse_cdf(const double *u, const double *k, const double *e
         out[q] = clip01(fabs(k[q]) < SMALL ? u[q] - 0.5 * k[q] * (u[q] * u[q] - u[q]) : t[q] / k[q]);
 }
 
-/* The profiles of a block's cells (tables.profile_parts, profile_inverse_cdf, profile_density,
+/* The profiles of a block's cells (tables.profile_parts, profile_sample, profile_density,
  * profile_cdf): node values V[n][lane]. Each libm call in a loop of its own, as above. */
 FT_INLINE void profile_parts(const double V[NN][BLK], double M[NSEG][BLK], double *tot, double LR[NSEG][BLK]) {
     for (int n = 0; n < NSEG; n++) {

@@ -157,10 +157,6 @@ def profile_parts(V):
     return M, M.sum(axis=1)
 
 
-def profile_inverse_cdf(u, V):
-    return profile_sample(u, V)[0]
-
-
 def profile_sample(u, V):
     """(the place x of u under the profiles V, and their density there, from the piece found)."""
     M, tot = profile_parts(V)
@@ -211,10 +207,10 @@ def exp_mean(k):
 
 
 def _valid_profiles(alpha, beta, mass_shape):
-    """Profiles' logs (alpha, beta) with one axis of NSEG more than mass (file arrays: the same
-    shape as mass, NSEG times as wide), finite, within +-K_MAX (a piece's bound times NSEG)."""
-    return all(np.shape(x) in ((*mass_shape, NSEG), (*mass_shape[:-1], mass_shape[-1] * NSEG))
-               and np.all(np.isfinite(x)) and np.all(np.abs(x) <= K_MAX * 1.01) for x in (alpha, beta))
+    """Profiles' logs (alpha, beta) with one axis of NSEG more than mass, finite, within +-K_MAX
+    (a piece's bound times NSEG)."""
+    return all(np.shape(x) == (*mass_shape, NSEG) and np.all(np.isfinite(x)) and np.all(np.abs(x) <= K_MAX * 1.01)
+               for x in (alpha, beta))
 
 
 def _search(value, n, edge_at):
@@ -261,7 +257,7 @@ class Tables:
         self.alpha = _stored(alpha)                        # (K, [P,] R, C, NSEG) the profile along a (logs)
         self.beta = _stored(beta)                          # (K, [P,] R, C, NSEG) the profile along b
         self.weights = _stored(weights)                    # (K, [P,] R, C, 3)
-        if not _valid_profiles(self.alpha, self.beta, np.shape(mass)):
+        if not _valid_profiles(self.alpha, self.beta, np.shape(mass)):     # (..., R, C) and (..., R, C, NSEG)
             raise FlowBSDFError(f"alpha and beta are profiles: the logs of {NSEG} nodes over the first, "
                                 f"within +-{K_MAX:g}, one more axis than mass")
         self.meta = dict(meta or {})
@@ -514,7 +510,7 @@ def open_tables(path):
         raise FlowBSDFError("table holds NaN or inf", path)
     mass, alpha, beta = cells
     if (np.any(np.diff(a, axis=1) <= 0) or np.any(np.diff(b, axis=1) <= 0) or np.any(mass <= 0)
-            or not _valid_profiles(alpha, beta, mass.shape)):
+            or not _valid_profiles(alpha.reshape(*mass.shape, NSEG), beta.reshape(*mass.shape, NSEG), mass.shape)):
         raise FlowBSDFError("table edges not increasing, masses not positive or profiles out of "
                             "range: corrupt file", path)
     lead = (K,) if phi_bins is None else (K, P)

@@ -400,18 +400,8 @@ def _profile_logs(marginal, at):
     pos = np.take_along_axis(pos, order, 1)
     val = np.log(np.take_along_axis(np.where(good, marginal, 1.0), order, 1))
     count = good.sum(axis=1)
-    L = np.zeros((len(marginal), NSEG + 1))
-    last = np.maximum(count - 1, 0)
-    for k, x in enumerate(xs):
-        i1 = np.clip(np.sum(pos < x, axis=1), 1, np.maximum(last, 1))
-        p0 = np.take_along_axis(pos, (i1 - 1)[:, None], 1)[:, 0]
-        p1 = np.take_along_axis(pos, np.minimum(i1, pos.shape[1] - 1)[:, None], 1)[:, 0]
-        m0 = np.take_along_axis(val, (i1 - 1)[:, None], 1)[:, 0]
-        m1 = np.take_along_axis(val, np.minimum(i1, pos.shape[1] - 1)[:, None], 1)[:, 0]
-        with np.errstate(invalid="ignore"):
-            w = np.clip(np.nan_to_num((x - p0) / np.maximum(p1 - p0, 1e-300)), 0.0, 1.0)
-        L[:, k] = np.where(count >= 2, (1 - w) * m0 + w * m1, 0.0)
-    L = _piece_masses_kept(L, pos, np.exp(val), count)
+    L = _log_interp(pos, val, count, xs)
+    L = _piece_masses_kept(L, pos, val, count)
     # No piece steeper than K_MAX across a whole cell (the exponential's bound): nodes raised to
     # the envelope max_j (L_j - K_MAX |k - j| / NSEG). Steeper pieces amplify the float32
     # rounding of a point's place in its cell on the render back ends (0.4 % in pdf, measured).
@@ -422,29 +412,32 @@ def _profile_logs(marginal, at):
     return np.round((L[:, 1:] - L[:, :1]) * 64.0) / 64.0
 
 
+def _log_interp(pos, logs, count, x):
+    """Per cell, the logs of its marginal at the places x (m,): linear between its samples'
+    logs (`pos` sorted, the first `count` valid; log-linear in the density, exact on an
+    exponential flank), flat beyond the end ones; 0 where fewer than two are valid."""
+    Q = pos.shape[1]
+    i1 = np.clip(np.sum(pos[:, None, :] < x[None, :, None], axis=2), 1, np.maximum(count - 1, 1)[:, None])
+    p0, p1 = np.take_along_axis(pos, i1 - 1, 1), np.take_along_axis(pos, np.minimum(i1, Q - 1), 1)
+    m0, m1 = np.take_along_axis(logs, i1 - 1, 1), np.take_along_axis(logs, np.minimum(i1, Q - 1), 1)
+    with np.errstate(invalid="ignore"):
+        w = np.clip(np.nan_to_num((x[None, :] - p0) / np.maximum(p1 - p0, 1e-300)), 0.0, 1.0)
+    return np.where((count >= 2)[:, None], (1 - w) * m0 + w * m1, 0.0)
+
+
 PIECE_POINTS = 8        # points per piece where _piece_masses_kept reads the marginal
 
 
-def _piece_masses_kept(L, pos, val, count):
+def _piece_masses_kept(L, pos, logs, count):
     """Node logs L (cells, NSEG + 1) raised where a piece holds less than the marginal's mass
-    over it (read at PIECE_POINTS per piece, linear between its samples `pos`, `val`, sorted,
-    count of them valid, log-linear between them (exact on exponential flanks: linear overstated
-    convex ones), flat beyond the end ones): the piece's lower end, until the masses
+    over it (the marginal read at PIECE_POINTS per piece by _log_interp of its samples' logs;
+    linear between values overstated convex flanks): the piece's lower end, until the masses
     agree. Points alone undershoot a density that falls linearly to 0 (a Lambertian's last
     row, f·cos ~ cos): log-linear from 0.34 to 0.004 of the row's start put 1/6 of f·cos
     near the horizon (measured) and half the piece's mass; raising its end holds the mass."""
     n = len(L)
-    Q = pos.shape[1]
-    last = np.maximum(count - 1, 0)
-    x = ((np.arange(NSEG * PIECE_POINTS) + 0.5) / (NSEG * PIECE_POINTS))[None, :].repeat(n, 0)
-    i1 = np.clip(np.sum(pos[:, None, :] < x[:, :, None], axis=2), 1, np.maximum(last, 1)[:, None])
-    p0 = np.take_along_axis(pos, i1 - 1, 1)
-    p1 = np.take_along_axis(pos, np.minimum(i1, Q - 1), 1)
-    v0 = np.take_along_axis(val, i1 - 1, 1)
-    v1 = np.take_along_axis(val, np.minimum(i1, Q - 1), 1)
-    with np.errstate(invalid="ignore"):
-        w = np.clip(np.nan_to_num((x - p0) / np.maximum(p1 - p0, 1e-300)), 0.0, 1.0)
-    true = np.exp((1 - w) * np.log(v0) + w * np.log(v1)).reshape(n, NSEG, PIECE_POINTS).mean(axis=2) / NSEG
+    x = (np.arange(NSEG * PIECE_POINTS) + 0.5) / (NSEG * PIECE_POINTS)
+    true = np.exp(_log_interp(pos, logs, count, x)).reshape(n, NSEG, PIECE_POINTS).mean(axis=2) / NSEG
     ok = count >= 2
     for k in range(NSEG):
         lo_first = L[:, k] <= L[:, k + 1]
@@ -567,15 +560,11 @@ def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrat
         # Integrated again in a strip along that edge: the mass the rule's nodes stepped over.
         r, c = np.divmod(cells, cols)
         a_e, b_e = a_edges.astype(np.float64), b_edges.astype(np.float64)
-        m, sx, sy, c_rgb, along_a, along_b, at_a, at_b = _moments_around(
+        m, _, _, c_rgb, along_a, along_b, at_a, at_b = _moments_around(
             material, wi, frame, a_e[r], a_e[r + 1], b_e[r, c], b_e[r, c + 1], strip, STRIP_NODES)
         found = m > 1.25 * mass.flat[cells]      # materially more: else the first rule stands
-        r, c, m = r[found], c[found], m[found]
-        mass[r, c], mx[r, c], my[r, c], rgb[r, c] = m, sx[found] / m, sy[found] / m, c_rgb[found]
-        bound_a[r, c] = _rate_bound(along_a[found], at_a[found])
-        bound_b[r, c] = _rate_bound(along_b[found], at_b[found])
-        alpha[r, c] = np.clip(exp_rate_for_mean(mx[r, c]), -bound_a[r, c], bound_a[r, c])
-        beta[r, c] = np.clip(exp_rate_for_mean(my[r, c]), -bound_b[r, c], bound_b[r, c])
+        r, c = r[found], c[found]
+        mass[r, c], rgb[r, c] = m[found], c_rgb[found]
         prof[r, c] = _profile_logs(along_a[found], at_a[found])
         prof_b[r, c] = _profile_logs(along_b[found], at_b[found])
     # A floor of uniform density keeps pdf > 0 everywhere, so the table never loses a
@@ -600,8 +589,7 @@ def _unresolved_edges(a_edges, b_edges, mass, alpha, beta):
     """Cells whose density at an edge falls EDGE_JUMP times below their neighbour's across it
     (f·cos is continuous: the cell's rule stepped over the flank of a lobe that crosses the
     edge, and the exponential matching its moments leans away from it), with a strip along that
-    edge per cell (boxes
-    lo_a, hi_a, lo_b, hi_b for _moments_around). Measured: a cell 64 deg wide beside the
+    edge per cell (boxes lo_a, hi_a, lo_b, hi_b for _moments_around). Measured: a cell 64 deg wide beside the
     specular peak at theta_i 85 held 1/4 of its mass, leaning the wrong way: q/p ~1e-5 at the
     flank, rv 0.83 where the ideal tabulation has 6e-4."""
     rows, cols = mass.shape

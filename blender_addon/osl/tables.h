@@ -4,6 +4,7 @@
 
 #define LAYOUT 7
 #define NSEG 3
+#define LOG_MEAN_SERIES 1e-3
 #define K_SMALL 1e-4
 
 float fetch1(string file, float W, float H, int x, int y)
@@ -68,7 +69,7 @@ float log_mean(float v0, float v1)
 {
     float r = v1 / v0;
     float lr = log(r);
-    return (abs(lr) < 1e-3) ? v0 * (1.0 + lr * (0.5 + lr / 6.0)) : v0 * ((r - 1.0) / lr);
+    return (abs(lr) < LOG_MEAN_SERIES) ? v0 * (1.0 + lr * (0.5 + lr / 6.0)) : v0 * ((r - 1.0) / lr);
 }
 
 // bake/core/tables.py profile_parts: the pieces' masses of a profile's node values, and their total.
@@ -79,11 +80,13 @@ float profile_parts(float V[4], output float M[3])
     return M[0] + M[1] + M[2];
 }
 
-// bake/core/tables.py profile_inverse_cdf: the piece whose CDF brackets u, then its exponential.
-float profile_inverse_cdf(float u, float V[4])
+// bake/core/tables.py profile_sample: the piece whose CDF brackets u, then its exponential; and
+// the profile's density there, from that piece.
+float profile_sample(float u, float V[4], output float density)
 {
     float M[3];
-    float target = clamp(u, 0.0, 1.0) * profile_parts(V, M);
+    float total = profile_parts(V, M);
+    float target = clamp(u, 0.0, 1.0) * total;
     int k = 0;
     float prev = 0.0, c = M[0];
     for (int n = 1; n < NSEG; n++) {
@@ -93,7 +96,9 @@ float profile_inverse_cdf(float u, float V[4])
         }
         c += M[n];
     }
-    float t = exp_inverse_cdf(clamp((target - prev) / M[k], 0.0, 1.0), log(V[k + 1] / V[k]));
+    float rate = log(V[k + 1] / V[k]);
+    float t = exp_inverse_cdf(clamp((target - prev) / M[k], 0.0, 1.0), rate);
+    density = V[k] * exp(t * rate) / total;
     return (k + t) / NSEG;
 }
 
@@ -329,11 +334,12 @@ void sample_tables(string file, float W, float H, int K, int R, int C, int NP, f
     float b1 = fetch_blend(file, W, H, j + 1, base + 2 + R + i, w);
     float mass, pa[4], pb[4];
     blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, mass, pa, pb);
-    float x = profile_inverse_cdf(clamp((u0 - c0) / (c1 - c0), 0.0, 1.0), pa);
-    float y = profile_inverse_cdf(clamp((v - d0) / mass, 0.0, 1.0), pb);
+    float dx, dy;
+    float x = profile_sample(clamp((u0 - c0) / (c1 - c0), 0.0, 1.0), pa, dx);
+    float y = profile_sample(clamp((v - d0) / mass, 0.0, 1.0), pb, dy);
     float a = a0 + x * (a1 - a0);
     float b = b0 + y * (b1 - b0);
-    pdf = mass * profile_density(x, pa) * profile_density(y, pb) / ((a1 - a0) * (b1 - b0));
+    pdf = mass * dx * dy / ((a1 - a0) * (b1 - b0));
     if (half) {     // h in the frame turned by whole periods and the lobe's axes (halfpolar: wi's + pi)
         float ref = (half == 2) ? phi_i + M_PI : turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0)), jac;
         vector wi = vector(sin_i * cos(phi_i - ref), sin_i * sin(phi_i - ref), cos_i);
