@@ -588,7 +588,9 @@ def _numpy_mixture(tab, wm, world, theta_i, phi_i, u):
     """The portal direction's mixture (learned_bsdf.osl, build_svm_sampler with `world`) at a
     shading point of normal z (also the geometric normal) and wi at (theta_i, phi_i), isotropic
     tables, in float64: (direction, weight, q, technique, ok) per u. Each technique's own
-    sample uses its own density in q (a direction on a pixel or cone edge may round out of it)."""
+    sample uses its own density in q (a direction on a pixel or cone edge may round out of it).
+    Also per u: whether the tables' u sits on a cell's CDF edge (within 1e-6 it takes either
+    cell: float32 and float64 may part there, each a correct sample of its own density)."""
     c_world = world["WorldShare"] if wm is not None else 0.0
     c_sun = world["SunShare"] if world["SunCos"] < 1.0 else 0.0
     c_tables = 1.0 - c_world - c_sun
@@ -610,10 +612,15 @@ def _numpy_mixture(tab, wm, world, theta_i, phi_i, u):
     if drawn.any():
         d[drawn], p = wm.sample(np.stack([u0[drawn], (u1[drawn] - c_sun) / c_world], 1))
         own[drawn] = c_world * p
+    tie = np.zeros(len(u), bool)
     if rest.any():
         t1 = np.minimum((u1[rest] - c_sun - c_world) / c_tables, 1.0 - 2.0 ** -24)
-        wo, _ = tab.sample(np.tile(wi_local, (rest.sum(), 1)), np.stack([u0[rest], t1], 1))
+        wis = np.tile(wi_local, (rest.sum(), 1))
+        wo, p = tab.sample(wis, np.stack([u0[rest], t1], 1))
         d[rest] = wo[:, :1] * tx + wo[:, 1:2] * ty + wo[:, 2:] * n
+        for step in ((1e-6, 0.0), (-1e-6, 0.0), (0.0, 1e-6), (0.0, -1e-6)):
+            near = np.clip(np.stack([u0[rest], t1], 1) + step, 0.0, 1.0 - 2.0 ** -24)
+            tie[rest] |= np.abs(tab.sample(wis, near)[1] / p - 1.0) > 1e-3
     wo = np.stack([d @ tx, d @ ty, d @ n], 1)
     wis = np.tile(wi_local, (len(u), 1))
     p_tables = tab.pdf(wis, wo)
@@ -624,7 +631,7 @@ def _numpy_mixture(tab, wm, world, theta_i, phi_i, u):
     if c_sun > 0:
         q += np.where(sun, 0.0, cone * (d @ axis >= world["SunCos"]))
     ok = (wo[:, 2] > 0) & (d[:, 2] > 0)
-    return d, np.where(ok[:, None], fcos / q[:, None], 0.0), q, technique, ok
+    return d, np.where(ok[:, None], fcos / q[:, None], 0.0), q, technique, ok, tie
 
 
 def _on_pixel_edge(wm, d, within=1e-4):
@@ -660,19 +667,20 @@ def _assert_mixture_is_numpy(svm, tables_path, folder, world, wm, build):
     shown, weight, extra = _render_probe(svm, lambda tree, probe: build(tree, texture, probe), inputs, folder)
     x = inputs.astype(np.float64)
     ref = [_numpy_mixture(tab, wm, world, np.arccos(x[i * len(u), 2]), x[i * len(u), 3], u) for i in range(len(angles))]
-    d, ref_weight, q, technique, ok = (np.concatenate(r) for r in zip(*ref))
+    d, ref_weight, q, technique, ok, tie = (np.concatenate(r) for r in zip(*ref))
     assert np.array_equal(extra[:, 1], technique) and np.array_equal(extra[:, 2], ok)
     techniques = {0} | ({1} if wm is not None else set()) | ({2} if world["SunShare"] > 0 else set())
     assert set(technique) == techniques
     assert ok.mean() > 0.5
     assert np.abs(2.0 * shown - 1.0 - d).max() < 3e-4
     # directions on a map pixel's edge may read either pixel's density (float32 vs float64)
-    edge = _on_pixel_edge(wm, d) if wm is not None else np.zeros(len(d), bool)
+    # and a table sample whose u sits on a cell's CDF edge may take either cell (the plastic's
+    # rows split at the centre, where the 12-grid's u1 rescaled by c_tables 0.75 lands: 1 %
+    # apart, measured; away from such edges the graph's q is numpy's to 4e-5)
+    edge = (_on_pixel_edge(wm, d) if wm is not None else np.zeros(len(d), bool)) | tie
     assert edge.mean() < 0.02
-    # rtol 1.5e-2: the tables' pdf at a direction the map or the sun drew, from its place in a
-    # cell in float32, times the profile's slope there (measured up to 1.0e-2 at 3 of 816)
-    np.testing.assert_allclose(extra[~edge, 0], q[~edge], rtol=1.5e-2)
-    np.testing.assert_allclose(weight[~edge], ref_weight[~edge], rtol=1.5e-2, atol=1e-7)
+    np.testing.assert_allclose(extra[~edge, 0], q[~edge], rtol=2e-3)
+    np.testing.assert_allclose(weight[~edge], ref_weight[~edge], rtol=2e-3, atol=1e-7)
     return d, technique
 
 
