@@ -747,3 +747,46 @@ def test_planner_splits_until_every_midpoint_is_within_half_its_target(monkeypat
     monkeypatch.setattr(tabulate, "SPLIT_LOSS", 1.0)
     looser, looser_loss = planned()
     assert 0.5 < looser_loss <= 1.0 and len(looser.theta_bins) < len(tab.theta_bins)
+
+
+class FadingLobes(Material):
+    """f·cos: two lobes fixed in wo, the first fading out as the second fades in over theta_i
+    30-60 deg, on a floor of 1e-3."""
+    A, B = spherical_dir(np.radians(30.0), np.pi), spherical_dir(np.radians(60.0), 0.5 * np.pi)
+
+    def eval(self, wi, wo):
+        wi, wo = as_dirs(wi, wo)
+        s = np.clip((np.arccos(np.clip(wi[:, 2], -1.0, 1.0)) - np.radians(30.0)) / np.radians(30.0), 0.0, 1.0)
+
+        def lobe(c):
+            return np.exp(-np.sum((wo - c) ** 2, axis=1) / 0.02)
+        g = 1e-3 + (1.0 - s) * lobe(self.A) + s * lobe(self.B)
+        return np.repeat((g / np.maximum(wo[:, 2], 1e-12))[:, None], 3, axis=1) * (wo[:, 2:3] > 0)
+
+
+@pytest.mark.parametrize("case", ["fading lobes", "moving lobe"])
+def test_planner_chooses_the_layout_that_interpolates_better(case):
+    """One layout for all bins mixes two bins cell by cell, which holds lobes that fade out and in
+    between them; a layout pooled with the neighbours' follows a lobe that moves (here a plastic's
+    mirror lobe, over wo without lobe zones). The planner keeps the one whose tables are closer to
+    the ideal, and its tables lose less at their intervals' midpoints than the other layout's
+    (measured: fading 0.005 vs 0.152 at 38.7 deg, the ideal 0.085; moving: typical excess 5.8x
+    vs 7.5x)."""
+    from bake.core.tabulate import build_tables
+    mat = FadingLobes() if case == "fading lobes" else open_material(
+        {"kind": "analytic", "model": "plastic", "albedo": 0.1, "alpha": 0.05})
+    ideal = IdealSampler(mat, resolution=32)
+    lines = []
+    tab = plan_tables(mat, ideal, log=lines.append, resolution=16, tol=0.1, grid=64, samples=1024, first_bins=3,
+                      coords="wo", lobe_width=None, memory_budget=16 * 16 * 26 * 5)
+    assert tab.meta["window"] == (None if case == "fading lobes" else 1), lines
+    other = build_tables(mat, ideal, tab.theta_bins, 16, 16, grid=64, coords="wo", lobe_width=None,
+                         window=1 if tab.meta["window"] is None else None)
+
+    def rv(sampler, theta):
+        return relative_variance_ref(mat, sampler, spherical_dir(theta, 0.0), ideal, k=64, seed=0)[0]
+    mids = np.arccos(0.5 * (np.cos(tab.theta_bins[:-1]) + np.cos(tab.theta_bins[1:])))
+    ours, theirs = (np.array([rv(s, m) for m in mids]) for s in (tab, other))
+    assert len(mids) >= 3 and ours.sum() < theirs.sum(), (ours, theirs)
+    if case == "fading lobes":
+        assert np.max(theirs / ours) > 3.0, (ours, theirs)

@@ -52,24 +52,36 @@ def relative_variance_ref(material, sampler, wi, reference, k=512, seed=0):
     reference's rate. The tail share is the largest single point's share of the integral: ~1/k²
     for a smooth integrand, near 1 when one point decides the value (rv then grows with k).
     """
-    rng = np.random.default_rng(seed)
-    grid = (np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="ij"), axis=-1).reshape(-1, 2)
-            + rng.random((k * k, 2))) / k
-    wi = np.asarray(wi, float)
-    wo, h = reference.sample(wi, grid)
-    ok = (h > 0) & (wo[:, 2] > 0) & np.isfinite(h)
-    wo, h = wo[ok], h[ok]
-    g = luminance(material.eval(wi, wo)) * wo[:, 2]
-    albedo = np.sum(g / h) / len(grid)
-    if albedo <= 0.0:
-        return math.inf, 1.0
-    q = sampler.pdf(wi, wo)
-    if np.any((q <= 0) & (g > 0)):
-        return math.inf, 1.0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        terms = np.where(g > 0, g * g / (h * q), 0.0)
-    total = np.sum(terms)
-    return float(total / len(grid) / albedo ** 2 - 1.0), float(np.max(terms) / total)
+    return ReferencePoints(material, wi, reference, k, seed).rv(sampler)
+
+
+class ReferencePoints:
+    """relative_variance_ref's draws at one wi (the reference's directions, its pdf h and g there),
+    kept to measure several samplers on: the material's evaluation is the costly part."""
+
+    def __init__(self, material, wi, reference, k=512, seed=0):
+        rng = np.random.default_rng(seed)
+        grid = (np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="ij"), axis=-1).reshape(-1, 2)
+                + rng.random((k * k, 2))) / k
+        self.wi = np.asarray(wi, float)
+        wo, h = reference.sample(self.wi, grid)
+        ok = (h > 0) & (wo[:, 2] > 0) & np.isfinite(h)
+        self.wo, self.h, self.count = wo[ok], h[ok], len(grid)
+        self.g = luminance(material.eval(self.wi, self.wo)) * self.wo[:, 2]
+        self.albedo = np.sum(self.g / self.h) / self.count
+
+    def rv(self, sampler):
+        """(rv, tail share) of `sampler` on these draws."""
+        if self.albedo <= 0.0:
+            return math.inf, 1.0
+        g, h = self.g, self.h
+        q = sampler.pdf(self.wi, self.wo)
+        if np.any((q <= 0) & (g > 0)):
+            return math.inf, 1.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            terms = np.where(g > 0, g * g / (h * q), 0.0)
+        total = np.sum(terms)
+        return float(total / self.count / self.albedo ** 2 - 1.0), float(np.max(terms) / total)
 
 
 # ---------------------------------------------------------------------------- chi-square
