@@ -1194,7 +1194,7 @@ def _layout_window(material, ideal, bins, resolution, opts, cache, tol, ref_side
     bins = np.asarray(bins)
     mids = np.arccos(0.5 * (np.cos(bins[:-1]) + np.cos(bins[1:])))
     angles = np.concatenate([bins, mids])
-    # theta_i each angle stands for: a bin half of each interval beside it, a midpoint half its own
+    # theta_i each angle stands for: a bin the quarter of each interval beside it, a midpoint the middle half
     widths = np.concatenate([np.diff(bins, prepend=bins[0]) + np.diff(bins, append=bins[-1]), 2.0 * np.diff(bins)]) / 4.0
     log(f"layout: comparing {len(LAYOUT_WINDOWS)} cell layouts on {len(bins)} angles")
     draws = list(_parallel(lambda t: ReferencePoints(material, spherical_dir(t, 0.0), ideal, ref_side, 0), angles))
