@@ -97,7 +97,7 @@ class BakeProgress(Step):
     angle the planner adds ("bins N: split ... (midpoint loss Sx its target)") until the worst
     midpoint reaches its target (S <= 1) or the memory budget caps the angles, then the tables'
     build ("tables: building N angles", "tables: built K of N", about ten of them), after the
-    comparison of cell layouts ("layout: comparing"; isotropic), and the node's
+    comparison of cell placements between bins ("between bins: comparing"; isotropic), and the node's
     textures and fit ("[svm]/[osl]/[fit] wrote"). Angles left: from how far the worst midpoint went down on a log scale, and how far
     the angle count went towards its cap; the time a split takes, measured. The build: a tenth
     of a split per angle (from the ideal tabulation's points; a flow's cost ~20x as much) until
@@ -106,7 +106,7 @@ class BakeProgress(Step):
     ones still to come as long as this one. Lines pass through to the log."""
     RESOLUTION = re.compile(r"resolution (\d+): single-bin rv ([0-9.eE+-]+)x the target")
     SPLIT = re.compile(r"bins (\d+): split .*\(midpoint loss ([0-9.eE+-]+)x its target\)")
-    LAYOUT = re.compile(r"layout: comparing (\d+) cell layouts")
+    PLACEMENTS = re.compile(r"between bins: comparing (\d+) cell placements")
     BUILDING = re.compile(r"tables: building (\d+) angles")
     BUILT = re.compile(r"tables: built (\d+) of (\d+)")
 
@@ -154,8 +154,8 @@ class BakeProgress(Step):
             self.bins = int(m.group(1))
             self.scores.append(float(m.group(2)))
             self.events.append(self.clock())
-        elif self.LAYOUT.match(text):
-            self.stage = "layout"
+        elif self.PLACEMENTS.match(text):
+            self.stage = "placements"
         elif self.BUILDING.match(text):
             self.bins = int(self.BUILDING.match(text).group(1))
             self.stage, self.build = "build", [self.clock(), 0, None, None]
@@ -200,8 +200,8 @@ class BakeProgress(Step):
             return 0.98, f"{who}: rendering a preview"
         if self.stage == "build":
             return self._build_estimate(now, who)
-        if self.stage == "layout":
-            return None, f"{who}: comparing cell layouts on {self.bins} angles"
+        if self.stage == "placements":
+            return None, f"{who}: comparing two cell placements across {self.bins} angles"
         if len(self.scores) < 3:
             return (0.1 + 0.4 * self.layout / self.layouts,
                     f"{who}: {layout}{self.bins} angles placed, estimating the time left")

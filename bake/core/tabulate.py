@@ -1003,7 +1003,6 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     aniso = not material.isotropic
     tol = (ANISO_TOL if aniso else ISO_TOL) if tol is None else tol
     candidates = ([None] if aniso else list(ISO_PLANNED)) if coords == "auto" else [coords]
-    ref_side = max(int(round(np.sqrt(samples))), 1)
     cache = {}      # the probes' points per bin and coordinates (_Once), shared by the plans
 
     def rv_at(tab, theta, phi=0.0):
@@ -1153,8 +1152,9 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
         log(f"coordinates: {coords} (midpoints over their targets, typical / worst: " + ", ".join(
             f"{c} {p[4][1]:.2f}x / {p[4][0]:.2f}x" for c, p in plans.items()) + ")")
     opts = dict(lobe_width=lobe_width, coords=coords, **options)
+    compared = None
     if phi_bins is None and "window" not in options:
-        opts["window"] = _layout_window(material, ideal, bins, resolution, opts, cache, tol, ref_side, log)
+        opts["window"], compared = _layout_window(material, ideal, bins, resolution, opts, cache, tol, samples, log)
     log(f"tables: building {len(bins)} angles" + (f" x {len(phi_bins)} azimuths" if phi_bins is not None else ""))
     every = [0]
 
@@ -1162,9 +1162,12 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
         if done == total or done * 10 // total > every[0]:
             every[0] = done * 10 // total
             log(f"tables: built {done} of {total}")
-    # From the source's own points: a fresh cache (the probes' holds the ideal's).
-    tables = build_tables(material, source, bins, resolution, resolution, phi_bins=phi_bins,
-                          **{**opts, "cache": {}, "progress": built})
+    if source is ideal and compared is not None:       # the comparison built them from the source's points
+        tables = compared
+        built(len(bins), len(bins))
+    else:   # from the source's own points: the probes' are the ideal's
+        tables = build_tables(material, source, bins, resolution, resolution, phi_bins=phi_bins,
+                              **{**opts, "cache": cache if source is ideal else {}, "progress": built})
     tables.meta.update(resolution=resolution, lobe_width=lobe_width, tol=tol, ideal_ratio=ideal_ratio,
                        window=opts.get("window", 1))
     if phi_bins is not None:
@@ -1183,30 +1186,32 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
 LAYOUT_WINDOWS = (1, None)
 
 
-def _layout_window(material, ideal, bins, resolution, opts, cache, tol, ref_side, log):
-    """The one of LAYOUT_WINDOWS whose tables (from the ideal's points) are typically closest to
-    the ideal over the bins and their intervals' midpoints: the geometric mean, weighted by
-    theta_i, of the tables' rv over the ideal's (at least tol / 2) where above 1, each rv drawn
-    from the ideal (ReferencePoints: the draws shared by both layouts)."""
+def _layout_window(material, ideal, bins, resolution, opts, cache, tol, samples, log):
+    """(window, its tables from the ideal's points; None when not compared): the one of
+    LAYOUT_WINDOWS whose tables are typically closest to the ideal over the bins and their
+    intervals' midpoints: the geometric mean, weighted by theta_i, of the tables' rv over the
+    ideal's (at least tol / 2) where above 1, each rv from `samples` of the ideal's draws
+    (ReferencePoints: the draws shared by both layouts)."""
     from ..quality.metrics import ReferencePoints
     if len(bins) < 3:
-        return LAYOUT_WINDOWS[0]
+        return LAYOUT_WINDOWS[0], None
+    side = max(int(round(np.sqrt(samples))), 1)
     bins = np.asarray(bins)
     mids = np.arccos(0.5 * (np.cos(bins[:-1]) + np.cos(bins[1:])))
     angles = np.concatenate([bins, mids])
     # theta_i each angle stands for: a bin the quarter of each interval beside it, a midpoint the middle half
     widths = np.concatenate([np.diff(bins, prepend=bins[0]) + np.diff(bins, append=bins[-1]), 2.0 * np.diff(bins)]) / 4.0
-    log(f"layout: comparing {len(LAYOUT_WINDOWS)} cell layouts on {len(bins)} angles")
-    draws = list(_parallel(lambda t: ReferencePoints(material, spherical_dir(t, 0.0), ideal, ref_side, 0), angles))
+    log(f"between bins: comparing {len(LAYOUT_WINDOWS)} cell placements on {len(bins)} angles")
+    draws = list(_parallel(lambda t: ReferencePoints(material, spherical_dir(t, 0.0), ideal, side, 0), angles))
     floors = np.array([max(d.rv(ideal)[0], 0.5 * tol) for d in draws])
-
-    def excess(window):
-        tab = build_tables(material, ideal, bins, resolution, resolution, **{**opts, "window": window, "cache": cache})
-        ratios = np.array([d.rv(tab)[0] for d in draws]) / floors
-        return float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=widths)))
-    found = {w: excess(w) for w in LAYOUT_WINDOWS}
+    built, found = {}, {}
+    for window in LAYOUT_WINDOWS:
+        built[window] = build_tables(material, ideal, bins, resolution, resolution,
+                                     **{**opts, "window": window, "cache": cache})
+        ratios = np.array([d.rv(built[window])[0] for d in draws]) / floors
+        found[window] = float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=widths)))
     best = min(LAYOUT_WINDOWS, key=lambda w: found[w])
-    log("layout: " + ", ".join(f"{'one for all bins' if w is None else f'pooled with {w} neighbour'} {e:.2f}x"
-                               for w, e in found.items())
+    log("between bins: " + ", ".join(f"{'one placement for all bins' if w is None else f'pooled with {w} neighbour'} "
+                                     f"{e:.2f}x" for w, e in found.items())
         + f" the ideal's rv (typical excess): {'one for all bins' if best is None else 'pooled with neighbours'}")
-    return best
+    return best, built[best]
