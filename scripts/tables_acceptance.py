@@ -5,7 +5,7 @@
 
 Per material: plan and bake the tables (from the ideal tabulation, or with --models from
 the trained flow DIR/<name>.flow.npz: the product's path), then at theta_i in
-{0, 30, 60, 75, 85}: rv (metrics.relative_variance_ref: 512^2 directions from the ideal
+{0, 30, 60, 75, 85}: rv (metrics.ReferencePoints: 512^2 directions from the ideal
 tabulation; the direct estimate from 2^18 of the sampler's own samples beside it, rv_direct),
 lost fraction, chi-square (Šidák over all 50
 cells), invert(sample(u)) error, pdf(sample) error; memory; bake time; and the rv over the ideal
@@ -29,7 +29,7 @@ from bake.core.geometry import incident
 from bake.core.ideal import IdealSampler
 from bake.materials import open_material
 from bake.materials.rgl import SHARED_FILES, shared_dir
-from bake.quality.metrics import chi2_test, relative_variance_ref, sample_weights
+from bake.quality.metrics import ReferencePoints, chi2_test, sample_weights
 from bake.core.tables import open_tables
 from bake.core.tabulate import plan_tables
 from bake.quality.bench import random_incident, samples_per_second
@@ -78,8 +78,9 @@ def main():
         ratios = []
         for theta in THETAS:
             wi = incident(theta)
-            rv, tail = relative_variance_ref(mat, tab, wi, ideal, k=512, seed=7)
-            ratios.append(rv / relative_variance_ref(mat, ideal, wi, ideal, k=512, seed=7)[0])
+            draws = ReferencePoints(mat, wi, ideal, k=512, seed=7)       # the ideal's directions, for both rvs
+            rv, tail = draws.rv(tab)
+            ratios.append(rv / draws.rv(ideal)[0])
             row = dict(material=name, theta=theta, rv=rv, tail=tail, ideal_ratio=ratios[-1], nbytes=tab.nbytes)
             line.append(f"{rv:.4f}{'!' if tail > 0.01 else ''}")
             if not args.no_checks:
@@ -96,8 +97,8 @@ def main():
             rows.append(row)
         line.append(" ".join(f"{r:.2f}" for r in ratios) + f" ({sum(r <= 1.5 for r in ratios)}/{len(ratios)})")
         if args.sweep:
-            sweep = np.array([relative_variance_ref(mat, tab, incident(t), ideal, k=128, seed=7)[0]
-                              / relative_variance_ref(mat, ideal, incident(t), ideal, k=128, seed=7)[0] for t in SWEEP])
+            sweep = np.array([d.rv(tab)[0] / d.rv(ideal)[0]
+                              for d in (ReferencePoints(mat, incident(t), ideal, k=128, seed=7) for t in SWEEP)])
             line.append(f"above 1.5x {np.sum(sweep > 1.5)}, 20x {np.sum(sweep > 20)}, worst {sweep.max():.3g} "
                         f"at {SWEEP[sweep.argmax()]:.1f}")
         print("| " + " | ".join(line) + " |", flush=True)
@@ -109,7 +110,7 @@ def main():
                 w = sample_weights(mat, peer, incident(theta), 1 << 18, seed=7)
                 wo, pdf = peer.sample(incident(theta), np.random.default_rng(11).random((1 << 16, 2)))
                 peer_rows.append(dict(material=name, theta=theta,
-                                      rv=relative_variance_ref(mat, peer, incident(theta), ideal, k=512, seed=7)[0],
+                                      rv=ReferencePoints(mat, incident(theta), ideal, k=512, seed=7).rv(peer)[0],
                                       rv_direct=w.var() / w.mean() ** 2,
                                       lost=np.mean((pdf <= 0) | (wo[:, 2] <= 0))))
             print(f"  {name} mitsuba rv: " + ", ".join(f"{r['rv']:.4f}" for r in peer_rows[-len(THETAS):]), flush=True)
