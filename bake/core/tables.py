@@ -448,17 +448,31 @@ class Tables:
                          "weights": self.weights.reshape(B * R, C * 3)}, meta)
 
 
-def _bins_of(meta, key, path, hi, lo=0.0, closed=True):
-    """The increasing list meta[key] within [lo, hi] (hi excluded unless closed), or FlowBSDFError."""
+def _bins_of(meta, key, path, hi, lo=0.0, closed=True, groups=False):
+    """The increasing list meta[key] within [lo, hi] (hi excluded unless closed), or FlowBSDFError.
+    groups: an inner angle may appear twice, the boundary of two layout groups (groups_ok)."""
     try:
         bins = np.asarray(meta[key], np.float64)
     except (TypeError, ValueError):
         bins = np.array([np.nan])
-    if (bins.ndim != 1 or len(bins) < 1 or not np.all(np.isfinite(bins)) or np.any(np.diff(bins) <= 0)
+    if (bins.ndim != 1 or len(bins) < 1 or not np.all(np.isfinite(bins))
+            or not (groups_ok(bins) if groups else np.all(np.diff(bins) > 0))
             or bins[0] < lo or (bins[-1] > hi if closed else bins[-1] >= hi)):
         raise FlowBSDFError(f"{key} {meta[key]!r} must be increasing angles in [{lo:g}, {hi:g}"
-                            f"{']' if closed else ')'}: corrupt file", path)
+                            f"{']' if closed else ')'}{' (an inner one at most twice)' if groups else ''}: "
+                            "corrupt file", path)
     return bins
+
+
+def groups_ok(theta_bins):
+    """theta_bins increasing, where an inner angle may appear twice: the last bin of one layout
+    group and the first of the next (tabulate.join_groups). theta_i below it blends the lower
+    group's bins, at or above it the upper group's: bins are found by the count of those <= theta_i,
+    so the empty interval between the two is never used (not at the ends: past the last bin the
+    last interval is used, and it must not be empty)."""
+    d = np.diff(np.asarray(theta_bins, np.float64))
+    return bool(np.all(d >= 0) and (len(d) == 0 or (d[0] > 0 and d[-1] > 0))
+                and not np.any((d[:-1] == 0) & (d[1:] == 0)))
 
 
 def _phi_period(meta, path):
@@ -481,7 +495,7 @@ def open_tables(path):
         R, C = int(meta["rows"]), int(meta["cols"])
         a, b, w = arrays["a_edges"], arrays["b_edges"], arrays["weights"]
         cells = [arrays[n] for n in Tables.ARRAYS]
-        theta_bins = _bins_of(meta, "theta_bins", path, 0.5 * np.pi)
+        theta_bins = _bins_of(meta, "theta_bins", path, 0.5 * np.pi, groups=meta.get("phi_bins") is None)
     except KeyError as e:
         raise FlowBSDFError(f"table file is incomplete (truncated or damaged?): {e} is missing", path) from None
     except (TypeError, ValueError) as e:

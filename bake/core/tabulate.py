@@ -779,6 +779,22 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
                   coords=coords, frame_angle=frame_angle)
 
 
+def join_groups(groups):
+    """One isotropic Tables of consecutive layout groups (Tables of the same resolution and
+    coordinates, each built on its own: its own cells per segment and layout), each group's first
+    bin at the previous group's last angle: theta_i below a boundary is sampled from the lower
+    group, at or above it from the upper one (tables.groups_ok), a choice by wi alone."""
+    first = groups[0]
+    for lower, upper in zip(groups[:-1], groups[1:]):
+        if (upper.rows, upper.cols, upper.coords) != (first.rows, first.cols, first.coords) or upper.anisotropic:
+            raise FlowBSDFError("layout groups must be isotropic tables of one resolution and coordinates")
+        if upper.theta_bins[0] != lower.theta_bins[-1] or len(upper.theta_bins) < 2 or len(lower.theta_bins) < 2:
+            raise FlowBSDFError("each layout group starts at the previous one's last angle, two bins or more each")
+    return Tables(np.concatenate([g.theta_bins for g in groups]),
+                  *(np.concatenate([getattr(g, n) for g in groups]) for n in ("a_edges", "b_edges", "mass", "alpha", "beta", "weights")),
+                  coords=first.coords)
+
+
 def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, cols, grid, lobe_width, gamma, row_share, col_share,
                   quadrature, floor, window, cache, step, weighted):
     """The bins at the elevations theta_bins and azimuth phi: a_edges, b_edges, mass, alpha,
