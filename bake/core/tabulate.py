@@ -1171,6 +1171,11 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     compared = None
     if phi_bins is None and "window" not in options:
         opts["window"], compared = _layout_window(material, ideal, bins, resolution, opts, cache, tol, samples, log)
+        if compared is not None:
+            grouped = _group_split(material, ideal, bins, resolution, opts, cache, tol, samples, log,
+                                   max(2, int(memory_budget // bin_bytes(resolution))), compared)
+            if grouped is not None:
+                compared, bins = grouped, list(grouped.theta_bins)
     log(f"tables: building {len(bins)} angles" + (f" x {len(phi_bins)} azimuths" if phi_bins is not None else ""))
     every = [0]
 
@@ -1231,3 +1236,52 @@ def _layout_window(material, ideal, bins, resolution, opts, cache, tol, samples,
                                      f"{e:.2f}x" for w, e in found.items())
         + f" the ideal's rv (typical excess): {'one for all bins' if best is None else 'pooled with neighbours'}")
     return best, built[best]
+
+
+GROUP_SPLITS_DEG = (55.0, 65.0, 75.0)
+
+
+def _group_split(material, ideal, bins, resolution, opts, cache, tol, samples, log, max_bins, current):
+    """Tables of two layout groups (join_groups: bins up to a boundary, and from it, each built
+    alone with one layout for all its bins) at the planned bin nearest one of GROUP_SPLITS_DEG,
+    when typically closer to the ideal than `current` over the plan's bins and midpoints (as
+    _layout_window measures); None otherwise. The repeated bin is paid for with the bin of the
+    narrowest span when the budget is full."""
+    from ..quality.metrics import ReferencePoints
+    bins = list(bins)
+    K = len(bins)
+    if K < 6:
+        return None
+    side = max(int(round(np.sqrt(samples))), 1)
+    b = np.asarray(bins)
+    mids = np.arccos(0.5 * (np.cos(b[:-1]) + np.cos(b[1:])))
+    angles = np.concatenate([b, mids])
+    widths = np.concatenate([np.diff(b, prepend=b[0]) + np.diff(b, append=b[-1]), 2.0 * np.diff(b)]) / 4.0
+    draws = list(_parallel(lambda t: ReferencePoints(material, spherical_dir(t, 0.0), ideal, side, 0), angles))
+    floors = np.array([max(d.rv(ideal)[0], 0.5 * tol) for d in draws])
+
+    def typical(tab):
+        r = np.array([d.rv(tab)[0] for d in draws]) / floors
+        return float(np.exp(np.average(np.log(np.maximum(r, 1.0)), weights=widths)))
+    best, found = typical(current), None
+    log(f"layout groups: one group {best:.2f}x")
+    tried = set()
+    for deg in GROUP_SPLITS_DEG:
+        j = int(np.clip(np.argmin(np.abs(b - np.radians(deg))), 2, K - 3))
+        if j in tried:
+            continue
+        tried.add(j)
+        kept = list(bins)
+        if K + 1 > max_bins:
+            free = [k for k in range(1, K - 1) if abs(k - j) > 1]
+            k = min(free, key=lambda k: bins[k + 1] - bins[k - 1])
+            kept.pop(k)
+        jj = kept.index(bins[j])
+        groups = [build_tables(material, ideal, part, resolution, resolution, **{**opts, "window": None, "cache": cache})
+                  for part in (kept[:jj + 1], kept[jj:])]
+        tab = join_groups(groups)
+        e = typical(tab)
+        log(f"layout groups: split at {np.degrees(bins[j]):.2f} deg {e:.2f}x")
+        if e < best:
+            best, found = e, tab
+    return found
