@@ -382,3 +382,18 @@ def lambert_tables(folder, albedo=0.8):
     path = Path(folder) / "lambert.exr"
     tab.save(path)
     return path
+
+
+def grouped_tables(source, name, folder):
+    """16 x 16-cell tables of two layout groups joined at 50 deg (bins 0, 30, 50 | 50, 70, 89.9;
+    tabulate.join_groups), saved as <folder>/<name>.exr."""
+    from bake.core.ideal import IdealSampler
+    from bake.materials import open_material
+    from bake.core.tabulate import build_tables, join_groups
+    mat = open_material(source)
+    ideal = IdealSampler(mat, resolution=64)
+    tab = join_groups([build_tables(mat, ideal, np.radians(b), rows=16, cols=16, grid=96, window=None)
+                       for b in ([0.0, 30.0, 50.0], [50.0, 70.0, 89.9])])
+    tab.meta["material"] = name
+    tab.save(folder / f"{name}.exr")
+    return folder / f"{name}.exr"

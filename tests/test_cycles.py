@@ -96,6 +96,27 @@ def test_osl_sampler_is_tables_sample(baked, name):
         np.testing.assert_allclose(pdf_osl, pdf, rtol=1e-3)
 
 
+def test_osl_sampler_on_layout_groups(tmp_path):
+    """Tables of two layout groups joined at 50 deg (the angle twice in theta_bins): OSL samples
+    as numpy just below and just above the boundary (same u -> same wo and pdf; at the boundary
+    itself float32 and float64 may fall on either side)."""
+    from bake.core.tables import open_tables
+    path = cs.grouped_tables({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.15}, "grouped", tmp_path)
+    tab = open_tables(path)
+    tab.backend = "numpy"
+    tex = ensure_osl_export(path)
+    n = 24
+    iy, ix = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    u = np.stack([(ix.ravel() + 0.5) / n, (iy.ravel() + 0.5) / n], 1)
+    for deg in (49.0, 49.99, 50.01, 51.0):
+        theta = np.radians(deg)
+        wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
+        wo, pdf = tab.sample(wi, u)
+        err = np.abs(2.0 * _probe(tex, n, theta, 0) - 1.0 - wo).max(axis=1)
+        assert err.max() < 3e-4, (deg, err.max())
+        np.testing.assert_allclose(_probe(tex, n, theta, 2)[:, 0], pdf, rtol=1e-3, err_msg=str(deg))
+
+
 def _hemisphere_directions(n):
     """The probe's directions for modes 3 and 4: z = u0, phi = 2 pi u1 at the pixel centres."""
     iy, ix = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")

@@ -189,6 +189,16 @@ def test_svm_sampler_is_tables_sample_anisotropic(svm, brushed, tmp_path, monkey
     _assert_probe_is_numpy(svm, brushed, angles, tmp_path)
 
 
+def test_svm_sampler_on_layout_groups(svm, tmp_path):
+    """Tables of two layout groups joined at 50 deg (the angle twice in theta_bins): the graph
+    samples as numpy just below and just above the boundary. (At the boundary itself float32 and
+    float64 may fall on either side: each back end is then one group's density, sampled and
+    evaluated alike.)"""
+    path = cs.grouped_tables(PLASTIC, "grouped", tmp_path)
+    angles = [(t, 0.0) for t in (30.0, 49.0, 49.99, 50.01, 51.0, 89.9)]
+    _assert_probe_is_numpy(svm, path, angles, tmp_path)
+
+
 @pytest.mark.parametrize("K,P", [(1, None), (2, 3)])
 def test_svm_sampler_on_odd_synthetic_tables(svm, K, P, tmp_path):
     """Random tables of odd shapes: one theta bin (no blend), 3 phi bins, 8 x 12 cells (not
