@@ -1187,10 +1187,16 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
         tables = compared
         built(len(bins), len(bins))
     else:   # from the source's own points: the probes' are the ideal's
-        tables = build_tables(material, source, bins, resolution, resolution, phi_bins=phi_bins,
-                              **{**opts, "cache": cache if source is ideal else {}, "progress": built})
+        kw = {**opts, "cache": cache if source is ideal else {}, "progress": built}
+        cut = [j + 1 for j in range(len(bins) - 1) if bins[j] == bins[j + 1]]       # layout groups' boundaries
+        if cut:
+            tables = join_groups([build_tables(material, source, part, resolution, resolution, **{**kw, "window": None})
+                                  for part in np.split(np.asarray(bins), cut)])
+        else:
+            tables = build_tables(material, source, bins, resolution, resolution, phi_bins=phi_bins, **kw)
     tables.meta.update(resolution=resolution, lobe_width=lobe_width, tol=tol, ideal_ratio=ideal_ratio,
-                       window=opts.get("window", 1))
+                       window=opts.get("window", 1),
+                       groups=int(np.sum(np.diff(tables.theta_bins) == 0)) + 1)
     if phi_bins is not None:
         tables.meta.update(phi_count=len(phi_bins), planned_at_phi=float(worst_phi))
     return tables
