@@ -97,7 +97,8 @@ class BakeProgress(Step):
     angle the planner adds ("bins N: split ... (midpoint loss Sx its target)") until the worst
     midpoint reaches its target (S <= 1) or the memory budget caps the angles, then the tables'
     build ("tables: building N angles", "tables: built K of N", about ten of them), after the
-    comparison of cell placements between bins ("between bins: comparing"; isotropic), and the node's
+    comparison of cell placements between bins ("between bins: comparing N", "placement K of N";
+    isotropic: layouts and layout groups, tabulate._between_bins), and the node's
     textures and fit ("[svm]/[osl]/[fit] wrote"). Angles left: from how far the worst midpoint went down on a log scale, and how far
     the angle count went towards its cap; the time a split takes, measured. The build: a tenth
     of a split per angle (from the ideal tabulation's points; a flow's cost ~20x as much) until
@@ -107,6 +108,7 @@ class BakeProgress(Step):
     RESOLUTION = re.compile(r"resolution (\d+): single-bin rv ([0-9.eE+-]+)x the target")
     SPLIT = re.compile(r"bins (\d+): split .*\(midpoint loss ([0-9.eE+-]+)x its target\)")
     PLACEMENTS = re.compile(r"between bins: comparing (\d+) cell placements")
+    PLACED = re.compile(r"between bins: placement (\d+) of (\d+)")
     BUILDING = re.compile(r"tables: building (\d+) angles")
     BUILT = re.compile(r"tables: built (\d+) of (\d+)")
 
@@ -155,7 +157,9 @@ class BakeProgress(Step):
             self.scores.append(float(m.group(2)))
             self.events.append(self.clock())
         elif self.PLACEMENTS.match(text):
-            self.stage = "placements"
+            self.stage, self.placed = "placements", [0, int(self.PLACEMENTS.match(text).group(1))]
+        elif self.PLACED.match(text):
+            self.stage, self.placed = "placements", [int(n) for n in self.PLACED.match(text).groups()]
         elif self.BUILDING.match(text):
             self.bins = int(self.BUILDING.match(text).group(1))
             self.stage, self.build = "build", [self.clock(), 0, None, None]
@@ -201,7 +205,8 @@ class BakeProgress(Step):
         if self.stage == "build":
             return self._build_estimate(now, who)
         if self.stage == "placements":
-            return None, f"{who}: comparing two cell placements across {self.bins} angles"
+            done, total = self.placed
+            return None, f"{who}: comparing cell placements across {self.bins} angles ({done} of {total} done)"
         if len(self.scores) < 3:
             return (0.1 + 0.4 * self.layout / self.layouts,
                     f"{who}: {layout}{self.bins} angles placed, estimating the time left")

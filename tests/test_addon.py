@@ -299,8 +299,10 @@ def test_bake_progress_in_words_from_the_planner_log(monkeypatch):
     assert (int(m2.group(2)) if m2.group(3) == "min" else 0) <= before - 1, (words, lines[-1])
     # The comparison of cell placements between bins (isotropic): words, the bar held where it was.
     held = progress.done
-    feed(140.0, "[bake] MilitaryGreen: between bins: comparing 2 cell placements on 17 angles")
-    assert lines[-1] == f"[step {held:.3f}] Baking MilitaryGreen: comparing two cell placements across 17 angles", lines[-1]
+    feed(140.0, "[bake] MilitaryGreen: between bins: comparing 5 cell placements on 17 angles")
+    assert lines[-1] == f"[step {held:.3f}] Baking MilitaryGreen: comparing cell placements across 17 angles (0 of 5 done)", lines[-1]
+    feed(144.0, "[bake] MilitaryGreen: between bins: placement 3 of 5, two groups split at 55.10 deg: 1.21x the ideal's rv")
+    assert lines[-1] == f"[step {held:.3f}] Baking MilitaryGreen: comparing cell placements across 17 angles (3 of 5 done)", lines[-1]
     # The tables' build (from a flow's points it may take longer than the planning): its own pace.
     feed(150.0, "[bake] MilitaryGreen: tables: building 34 angles")
     assert "building the tables (0 of 34 angles done" in lines[-1], lines[-1]

@@ -1000,8 +1000,9 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
 
     Layout (isotropic, unless `window` is given): the planned bins' tables are built from the
     ideal with each of LAYOUT_WINDOWS (a bin's layout pooled with its neighbours', or one for all
-    bins) and the one typically closer to the ideal at the bins and midpoints is kept
-    (_layout_window; tables.meta["window"]). The interval probes above pool the pair alone.
+    bins) and split into two layout groups at a few angles (each group its own cells), and the
+    one typically closest to the ideal at the bins and midpoints is kept (_between_bins;
+    tables.meta["window"], ["groups"]). The interval probes above pool the pair alone.
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
     (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
@@ -1170,12 +1171,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     opts = dict(lobe_width=lobe_width, coords=coords, **options)
     compared = None
     if phi_bins is None and "window" not in options:
-        opts["window"], compared = _layout_window(material, ideal, bins, resolution, opts, cache, tol, samples, log)
-        if compared is not None:
-            grouped = _group_split(material, ideal, bins, resolution, opts, cache, tol, samples, log,
-                                   max(2, int(memory_budget // bin_bytes(resolution))), compared)
-            if grouped is not None:
-                compared, bins = grouped, list(grouped.theta_bins)
+        opts["window"], bins, compared = _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, log,
+                                                       max(2, int(memory_budget // bin_bytes(resolution))))
     log(f"tables: building {len(bins)} angles" + (f" x {len(phi_bins)} azimuths" if phi_bins is not None else ""))
     every = [0]
 
@@ -1189,9 +1186,12 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     else:   # from the source's own points: the probes' are the ideal's
         kw = {**opts, "cache": cache if source is ideal else {}, "progress": built}
         cut = [j + 1 for j in range(len(bins) - 1) if bins[j] == bins[j + 1]]       # layout groups' boundaries
-        if cut:
-            tables = join_groups([build_tables(material, source, part, resolution, resolution, **{**kw, "window": None})
-                                  for part in np.split(np.asarray(bins), cut)])
+        if cut:     # each group on its own (one layout for all its bins), counted as one build
+            parts = np.split(np.asarray(bins), cut)
+            starts = np.cumsum([0] + [len(part) for part in parts])
+            tables = join_groups([build_tables(material, source, part, resolution, resolution, **{
+                **kw, "window": None, "progress": lambda done, _, s=s: built(s + done, len(bins))})
+                for part, s in zip(parts, starts)])
         else:
             tables = build_tables(material, source, bins, resolution, resolution, phi_bins=phi_bins, **kw)
     tables.meta.update(resolution=resolution, lobe_width=lobe_width, tol=tol, ideal_ratio=ideal_ratio,
@@ -1211,83 +1211,57 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
 # angles of a sweep above 1.5x the ideal's rv 468 -> 429 of 1350. At 4 MB: satin at 75 4.3x ->
 # 0.5x, chm at 85 3.1x -> 1.5x (all 50 acceptance cells within 1.5x; 48 before), sweep 295 -> 205.
 LAYOUT_WINDOWS = (1, None)
-
-
-def _layout_window(material, ideal, bins, resolution, opts, cache, tol, samples, log):
-    """(window, its tables from the ideal's points; None when not compared): the one of
-    LAYOUT_WINDOWS whose tables are typically closest to the ideal over the bins and their
-    intervals' midpoints: the geometric mean, weighted by theta_i, of the tables' rv over the
-    ideal's (at least tol / 2) where above 1, each rv from `samples` of the ideal's draws
-    (ReferencePoints: the draws shared by both layouts)."""
-    from ..quality.metrics import ReferencePoints
-    if len(bins) < 3:
-        return LAYOUT_WINDOWS[0], None
-    side = max(int(round(np.sqrt(samples))), 1)
-    bins = np.asarray(bins)
-    mids = np.arccos(0.5 * (np.cos(bins[:-1]) + np.cos(bins[1:])))
-    angles = np.concatenate([bins, mids])
-    # theta_i each angle stands for: a bin the quarter of each interval beside it, a midpoint the middle half
-    widths = np.concatenate([np.diff(bins, prepend=bins[0]) + np.diff(bins, append=bins[-1]), 2.0 * np.diff(bins)]) / 4.0
-    log(f"between bins: comparing {len(LAYOUT_WINDOWS)} cell placements on {len(bins)} angles")
-    draws = list(_parallel(lambda t: ReferencePoints(material, spherical_dir(t, 0.0), ideal, side, 0), angles))
-    floors = np.array([max(d.rv(ideal)[0], 0.5 * tol) for d in draws])
-    built, found = {}, {}
-    for window in LAYOUT_WINDOWS:
-        built[window] = build_tables(material, ideal, bins, resolution, resolution,
-                                     **{**opts, "window": window, "cache": cache})
-        ratios = np.array([d.rv(built[window])[0] for d in draws]) / floors
-        found[window] = float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=widths)))
-    best = min(LAYOUT_WINDOWS, key=lambda w: found[w])
-    log("between bins: " + ", ".join(f"{'one placement for all bins' if w is None else f'pooled with {w} neighbour'} "
-                                     f"{e:.2f}x" for w, e in found.items())
-        + f" the ideal's rv (typical excess): {'one for all bins' if best is None else 'pooled with neighbours'}")
-    return best, built[best]
-
-
 GROUP_SPLITS_DEG = (55.0, 65.0, 75.0)
 
 
-def _group_split(material, ideal, bins, resolution, opts, cache, tol, samples, log, max_bins, current):
-    """Tables of two layout groups (join_groups: bins up to a boundary, and from it, each built
-    alone with one layout for all its bins) at the planned bin nearest one of GROUP_SPLITS_DEG,
-    when typically closer to the ideal than `current` over the plan's bins and midpoints (as
-    _layout_window measures); None otherwise. The repeated bin is paid for with the bin of the
-    narrowest span when the budget is full."""
+def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, log, max_bins):
+    """(window, bins, their tables from the ideal's points; None when not compared): of the ways
+    to place cells between the planned bins, the one whose tables are typically closest to the
+    ideal over the bins and their intervals' midpoints: the geometric mean, weighted by theta_i,
+    of the tables' rv over the ideal's (at least tol / 2) where above 1, each rv from `samples`
+    of the ideal's draws (ReferencePoints: the same draws for every candidate).
+
+    The candidates: each of LAYOUT_WINDOWS (a bin's layout pooled with its neighbours', or one
+    for all bins), and two layout groups (join_groups: the bins up to the planned bin nearest one
+    of GROUP_SPLITS_DEG, and from it, each built alone with one layout for all its bins: its own
+    cells per segment, not shared out by the weight of bins far away; window None). A group's
+    repeated bin is paid for with the bin of the narrowest span when the budget is full."""
     from ..quality.metrics import ReferencePoints
-    bins = list(bins)
-    K = len(bins)
-    if K < 6:
-        return None
+    if len(bins) < 3:
+        return LAYOUT_WINDOWS[0], bins, None
     side = max(int(round(np.sqrt(samples))), 1)
     b = np.asarray(bins)
     mids = np.arccos(0.5 * (np.cos(b[:-1]) + np.cos(b[1:])))
     angles = np.concatenate([b, mids])
+    # theta_i each angle stands for: a bin the quarter of each interval beside it, a midpoint the middle half
     widths = np.concatenate([np.diff(b, prepend=b[0]) + np.diff(b, append=b[-1]), 2.0 * np.diff(b)]) / 4.0
+
+    def build(part, window):
+        return build_tables(material, ideal, part, resolution, resolution, **{**opts, "window": window, "cache": cache})
+
+    candidates = [(("one placement for all bins" if w is None else f"pooled with {w} neighbour"), w, list(bins),
+                   lambda w=w: build(list(bins), w)) for w in LAYOUT_WINDOWS]
+    splits = sorted({int(np.clip(np.argmin(np.abs(b - np.radians(deg))), 2, len(b) - 3)) for deg in GROUP_SPLITS_DEG}
+                    ) if len(b) >= 6 else []
+    for j in splits:
+        kept = list(bins)
+        if len(bins) + 1 > max_bins:
+            free = [k for k in range(1, len(bins) - 1) if abs(k - j) > 1]
+            kept.pop(min(free, key=lambda k: bins[k + 1] - bins[k - 1]))
+        jj = kept.index(bins[j])
+        grouped = kept[:jj + 1] + kept[jj:]
+        candidates.append((f"two groups split at {np.degrees(bins[j]):.2f} deg", None, grouped,
+                           lambda lo=kept[:jj + 1], hi=kept[jj:]: join_groups([build(lo, None), build(hi, None)])))
+    log(f"between bins: comparing {len(candidates)} cell placements on {len(bins)} angles")
     draws = list(_parallel(lambda t: ReferencePoints(material, spherical_dir(t, 0.0), ideal, side, 0), angles))
     floors = np.array([max(d.rv(ideal)[0], 0.5 * tol) for d in draws])
-
-    def typical(tab):
-        r = np.array([d.rv(tab)[0] for d in draws]) / floors
-        return float(np.exp(np.average(np.log(np.maximum(r, 1.0)), weights=widths)))
-    best, found = typical(current), None
-    log(f"layout groups: one group {best:.2f}x")
-    tried = set()
-    for deg in GROUP_SPLITS_DEG:
-        j = int(np.clip(np.argmin(np.abs(b - np.radians(deg))), 2, K - 3))
-        if j in tried:
-            continue
-        tried.add(j)
-        kept = list(bins)
-        if K + 1 > max_bins:
-            free = [k for k in range(1, K - 1) if abs(k - j) > 1]
-            k = min(free, key=lambda k: bins[k + 1] - bins[k - 1])
-            kept.pop(k)
-        jj = kept.index(bins[j])
-        groups = [build_tables(material, ideal, part, resolution, resolution, **{**opts, "window": None, "cache": cache})
-                  for part in (kept[:jj + 1], kept[jj:])]
-        tab = join_groups(groups)
-        e = typical(tab)
-        log(f"layout groups: split at {np.degrees(bins[j]):.2f} deg {e:.2f}x")
-        if e < best:
-            best, found = e, tab
-    return found
+    best = None
+    for n, (label, window, placed, make) in enumerate(candidates, 1):
+        tables = make()
+        ratios = np.array([d.rv(tables)[0] for d in draws]) / floors
+        excess = float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=widths)))
+        log(f"between bins: placement {n} of {len(candidates)}, {label}: {excess:.2f}x the ideal's rv (typical excess)")
+        if best is None or excess < best[0]:
+            best = (excess, label, window, placed, tables)
+    log(f"between bins: {best[1]}")
+    return best[2:]
