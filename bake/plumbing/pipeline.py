@@ -28,7 +28,8 @@ BUILDER_VERSION = 10     # 2: cells that miss a hard-edged sliver of mass are in
                          # 7: measured files' own incident angles among the first bins (Material.measured_theta_i)
                          # 8: split while a midpoint loses over half its target (tabulate.SPLIT_LOSS)
                          # 9: isotropic: one cell layout for all bins where that interpolates closer (tabulate.LAYOUT_WINDOWS)
-                         # 10: isotropic: two layout groups (a repeated boundary bin) where that interpolates closer (tabulate._between_bins)
+                         # 10: isotropic: two layout groups (a repeated boundary bin) where that interpolates closer (tabulate._between_bins);
+                         #     a ridge on the plane of incidence integrated beside it (tabulate._ridge_edges)
 BAKE_KEYS = {"source", "tol", "ideal_ratio", "memory_budget", "resolution", "grid", "lobe_width", "samples", "first_bins",
              "ideal_resolution", "phi_count"}
 SOURCES = ("auto", "flow", "ideal")
