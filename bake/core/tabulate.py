@@ -1234,7 +1234,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
             tables = build_tables(material, source, bins, resolution, resolution, phi_bins=phi_bins, **kw)
     tables.meta.update(resolution=resolution, lobe_width=lobe_width, tol=tol, ideal_ratio=ideal_ratio,
                        window=opts.get("window", 1),
-                       groups=int(np.sum(np.diff(tables.theta_bins) == 0)) + 1)
+                       groups=int(np.sum(np.diff(bins) == 0)) + 1)
     if phi_bins is not None:
         tables.meta.update(phi_count=len(phi_bins), planned_at_phi=float(worst_phi))
     return tables
