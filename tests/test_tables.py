@@ -836,9 +836,9 @@ def test_planner_splits_into_layout_groups_where_that_is_closer():
     """A near-mirror plastic (albedo 0.9, alpha 0.01): the diffuse base holds most of f·cos at
     low theta_i, the mirror lobe at grazing; one layout for all bins shares each lobe segment's
     cells out by the weight of all of them. Two layout groups (each built alone, joined at a
-    repeated bin) are typically closer to the ideal (the planner's own estimate, measured: 2.17x
-    against 2.52x for one layout, 3.07x for the neighbours'; rv summed over theta_i 2.5..82.5 by 5,
-    k=64 from the ideal's draws: 0.218 against 0.227 and 2.84). The planner keeps them within the budget, and from a source
+    repeated bin) are typically closer to the ideal (the planner's own estimate, measured: 2.21x
+    against 2.40x for one layout, 3.09x for the neighbours'; rv summed over theta_i 2.5..87.5 by 5,
+    k=64 from the ideal's draws: 0.226 against 0.350 and 2.82). The planner keeps them within the budget, and from a source
     other than the ideal (as a flow) builds each group from the source's points (at each planned
     angle once) and joins them: one density just below and above the boundary (contract,
     chi-square), each side its own group's."""
@@ -866,7 +866,7 @@ def test_planner_splits_into_layout_groups_where_that_is_closer():
                                                      for s in lines) if m}
     chosen = lines[[s.startswith("tables: building") for s in lines].index(True) - 1].split(": ", 1)[1]
     assert chosen.startswith("two groups") and found[chosen] == min(found.values()), (chosen, found)
-    assert found[chosen] < 0.9 * found["one placement for all bins"], found
+    assert found[chosen] < 0.95 * found["one placement for all bins"], found
     boundary = bins[np.flatnonzero(np.diff(bins) == 0)[0]]
     assert sorted(set(asked)) == sorted(set(round(float(b), 6) for b in bins)) and len(asked) == len(set(asked))
     cut = int(np.flatnonzero(np.diff(bins) == 0)[0]) + 1
@@ -957,3 +957,39 @@ def test_a_ridge_on_the_plane_of_incidence_gets_its_mass(coords, monkeypatch):
     assert_sampler_contract(tab, wi, np.random.default_rng(2).random((1 << 14, 2)), pdf_rtol=1e-6, invert_atol=1e-6)
     monkeypatch.setattr(tabulate, "_ridge_edges", lambda *a, **k: (np.zeros(0, np.int64), None))
     assert np.all(weights()[1] > 1000.0)            # without the check: the ridge is missed
+
+
+class NormalFade(Material):
+    """f·cos: a floor of 0.05 cos, plus a lobe fixed in wo at theta_o 25 deg that fades out over
+    theta_i 0-6 deg: a feature near the normal, inside an interval whose midpoint in cos(theta)
+    lies far above its middle angle (0-45 deg: at 31.4)."""
+    A = spherical_dir(np.radians(25.0), np.pi)
+
+    def eval(self, wi, wo):
+        wi, wo = as_dirs(wi, wo)
+        s = np.clip(1.0 - np.degrees(np.arccos(np.clip(wi[:, 2], -1.0, 1.0))) / 6.0, 0.0, 1.0)
+        g = 0.05 * wo[:, 2] + s * np.exp(-np.sum((wo - self.A) ** 2, axis=1) / 0.01)
+        return np.repeat((g / np.maximum(wo[:, 2], 1e-12))[:, None], 3, axis=1) * (wo[:, 2:3] > 0)
+
+
+def test_planner_probes_near_normal_intervals_at_their_middle_angle(monkeypatch):
+    """Interpolation is linear in cos(theta_i), so an interval is probed at its cos-midpoint; near
+    the normal that sits far above the middle angle (0-12.7 deg: 9.0), where chm_mint at 2 MB lost
+    3.9x while 3.5 deg lost 8x. There the middle angle is probed too, and a split goes where the
+    loss was larger: a feature fading out over theta_i 0-6 deg gets bins at 5.6 and 11.2 deg and
+    rv <= 0.006 at 1-5 deg (measured); probed at cos-midpoints only, the bins stay at 0 and 15.5,
+    rv 0.013-0.089 at 2-5 deg."""
+    from bake.core import tabulate
+    mat = NormalFade()
+    ideal = IdealSampler(mat, resolution=64)
+
+    def planned():
+        tab = plan_tables(mat, ideal, resolution=16, tol=0.01, grid=64, samples=1024, first_bins=3, coords="wo",
+                          lobe_width=None, memory_budget=16 * 16 * 26 * 7, window=1)
+        return tab, np.array([relative_variance_ref(mat, tab, spherical_dir(np.radians(d), 0.0), ideal, k=64, seed=1)[0]
+                              for d in (2.0, 3.0, 4.0, 5.0)])
+    tab, rv = planned()
+    assert 0.0 < tab.theta_bins[1] < np.radians(8.0) and rv.max() < 0.01, (np.degrees(tab.theta_bins), rv)
+    monkeypatch.setattr(tabulate, "PROBE_APART", np.inf)
+    cos_only, rv_cos_only = planned()
+    assert cos_only.theta_bins[1] > np.radians(12.0) and rv_cos_only.max() > 3.0 * rv.max(), rv_cos_only

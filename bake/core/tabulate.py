@@ -982,6 +982,9 @@ BROAD = 0.3     # lobes wider than this (radians) get no lobe zones: cells follo
 # against the ideal, 2 MB: paper_white 2.46x -> 1.55x, 1.05 -> 1.24 MB; colodur 4.36x -> 2.80x,
 # 1.36 -> 1.79 MB; 4 MB paper_white 7.87x -> 2.43x); the files that fill the budget plan alike.
 SPLIT_LOSS = 0.5
+# An interval's middle angle is probed too where its cos-midpoint sits this far above it (near
+# the normal: interval_loss's probes).
+PROBE_APART = np.radians(1.0)
 
 
 def lobe_width_of(material, ideal):
@@ -1017,7 +1020,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     measured incident angles (`measured_theta_i`: measured data interpolate between them, so
     f·cos has a kink in theta_i at each, which interpolating across loses; measured at 2 MB on
     cm_military_green: the worst of 11 angles 3.56x the ideal's rv -> 1.95x); while the memory budget allows
-    another bin, split the interval whose interpolated midpoint loses most against the better
+    another bin, split the interval whose interpolated midpoint (its cos-midpoint, near the normal
+    also its middle angle: the one that loses more) loses most against the better
     of its two bins (interval_loss) relative to the midpoint's target, until no interval loses
     more than SPLIT_LOSS times its target.
 
@@ -1159,14 +1163,15 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
             return (mid, half) if mid - half > PROBE_APART else (mid,)
 
         scores = {}
-        reached = {}        # per interval: the midpoint's rv over its target
+        reached = {}        # per interval: the midpoint's rv over its target (the probe that lost most)
         split_at = {}       # per interval: the probe that lost most, where a split puts its bin
 
         def interval_loss(lo, hi):
             """What interpolating between bins at lo and hi loses at the midpoint beyond what the
             bins themselves reach, in units of the midpoint's target: the midpoint's rv above the
             target or the better of the two bins' own rv (both measured on the same pair of bins: a
-            bin built at the midpoint costs as much as the pair, and would only be needed for this)."""
+            bin built at the midpoint costs as much as the pair, and would only be needed for this).
+            The midpoint: of probes(lo, hi), the one that loses most (split_at)."""
             if hi - lo <= gap:
                 return 0.0
             tab = build([lo, hi], worst_phi)
@@ -1259,9 +1264,6 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
 # 2.2x, at 75 7.1x -> 4.5x; colodur_napoli_4f at 85 deg 1.3x -> 1.7x (its typical excess lower);
 # angles of a sweep above 1.5x the ideal's rv 468 -> 429 of 1350. At 4 MB: satin at 75 4.3x ->
 # 0.5x, chm at 85 3.1x -> 1.5x (all 50 acceptance cells within 1.5x; 48 before), sweep 295 -> 205.
-PROBE_APART = np.radians(1.0)     # an interval's middle angle probed too when its cos-midpoint is this far above
-
-
 LAYOUT_WINDOWS = (1, None)
 GROUP_SPLITS_DEG = (55.0, 65.0, 75.0)
 
