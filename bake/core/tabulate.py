@@ -646,9 +646,8 @@ def _ridge_edges(material, wi, frame, a_e, b_e, mass, q=4):
     theta_i 89.9 has one within 0.001 deg of the plane from theta_o 89.9 to the horizon, which a
     row of the 4 MB tables missed: rv 0.25 where the ideal's is 0.0026, weights 2400x the albedo.
     Returns (cells, boxes) as _unresolved_edges does, the strip RIDGE of the cell wide."""
-    rows, cols = mass.shape
-    width = np.diff(b_e, axis=1)
-    mean = mass / (np.diff(a_e)[:, None] * width)
+    cols = mass.shape[1]
+    mean = mass / (np.diff(a_e)[:, None] * np.diff(b_e, axis=1))
     near = lambda b, planes: np.any([np.abs(b - x) < 1e-6 for x in planes], axis=0)      # noqa: E731
     found = []
     for edge, on in (("b0", near(b_e[:, :-1], PLANE_B[:2])), ("b1", near(b_e[:, 1:], PLANE_B[1:]))):
@@ -831,6 +830,21 @@ def join_groups(groups):
     return Tables(np.concatenate([g.theta_bins for g in groups]),
                   *(np.concatenate([getattr(g, n) for g in groups]) for n in ("a_edges", "b_edges", "mass", "alpha", "beta", "weights")),
                   coords=first.coords)
+
+
+def build_grouped(material, source, theta_bins, resolution, progress=None, **options):
+    """build_tables at theta_bins, where an angle given twice splits them into layout groups:
+    each built on its own with one layout for all its bins (window None) and joined
+    (join_groups); `progress` counts the groups' bins as one build."""
+    cut = [j + 1 for j in range(len(theta_bins) - 1) if theta_bins[j] == theta_bins[j + 1]]
+    if not cut:
+        return build_tables(material, source, theta_bins, resolution, resolution, progress=progress, **options)
+    parts = np.split(np.asarray(theta_bins), cut)
+    starts = np.cumsum([0] + [len(part) for part in parts])
+    return join_groups([build_tables(material, source, part, resolution, resolution, **{
+        **options, "window": None,
+        "progress": progress and (lambda done, _, s=s: progress(s + done, len(theta_bins)))})
+        for part, s in zip(parts, starts)])
 
 
 def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, cols, grid, lobe_width, gamma, row_share, col_share,
@@ -1238,16 +1252,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
         tables = compared
         built(len(bins), len(bins))
     else:   # from the source's own points: the probes' are the ideal's
-        kw = {**opts, "cache": cache if source is ideal else {}, "progress": built}
-        cut = [j + 1 for j in range(len(bins) - 1) if bins[j] == bins[j + 1]]       # layout groups' boundaries
-        if cut:     # each group on its own (one layout for all its bins), counted as one build
-            parts = np.split(np.asarray(bins), cut)
-            starts = np.cumsum([0] + [len(part) for part in parts])
-            tables = join_groups([build_tables(material, source, part, resolution, resolution, **{
-                **kw, "window": None, "progress": lambda done, _, s=s: built(s + done, len(bins))})
-                for part, s in zip(parts, starts)])
-        else:
-            tables = build_tables(material, source, bins, resolution, resolution, phi_bins=phi_bins, **kw)
+        tables = build_grouped(material, source, bins, resolution, phi_bins=phi_bins, progress=built,
+                               **{**opts, "cache": cache if source is ideal else {}})
     tables.meta.update(resolution=resolution, lobe_width=lobe_width, tol=tol, ideal_ratio=ideal_ratio,
                        window=opts.get("window", 1),
                        groups=int(np.sum(np.diff(bins) == 0)) + 1)
@@ -1290,11 +1296,8 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
     # theta_i each angle stands for: a bin the quarter of each interval beside it, a midpoint the middle half
     widths = np.concatenate([np.diff(b, prepend=b[0]) + np.diff(b, append=b[-1]), 2.0 * np.diff(b)]) / 4.0
 
-    def build(part, window):
-        return build_tables(material, ideal, part, resolution, resolution, **{**opts, "window": window, "cache": cache})
-
-    candidates = [(("one placement for all bins" if w is None else f"pooled with {w} neighbour"), w, list(bins),
-                   lambda w=w: build(list(bins), w)) for w in LAYOUT_WINDOWS]
+    candidates = [("one placement for all bins" if w is None else f"pooled with {w} neighbour", w, list(bins))
+                  for w in LAYOUT_WINDOWS]
     splits = sorted({int(np.clip(np.argmin(np.abs(b - np.radians(deg))), 2, len(b) - 3)) for deg in GROUP_SPLITS_DEG}
                     ) if len(b) >= 6 else []
     for j in splits:
@@ -1303,15 +1306,13 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
             free = [k for k in range(1, len(bins) - 1) if abs(k - j) > 1]
             kept.pop(min(free, key=lambda k: bins[k + 1] - bins[k - 1]))
         jj = kept.index(bins[j])
-        grouped = kept[:jj + 1] + kept[jj:]
-        candidates.append((f"two groups split at {np.degrees(bins[j]):.2f} deg", None, grouped,
-                           lambda lo=kept[:jj + 1], hi=kept[jj:]: join_groups([build(lo, None), build(hi, None)])))
+        candidates.append((f"two groups split at {np.degrees(bins[j]):.2f} deg", None, kept[:jj + 1] + kept[jj:]))
     log(f"between bins: comparing {len(candidates)} cell placements on {len(bins)} angles")
     draws = list(_parallel(lambda t: ReferencePoints(material, spherical_dir(t, 0.0), ideal, side, 0), angles))
     floors = np.array([max(d.rv(ideal)[0], 0.5 * tol) for d in draws])
     best = None
-    for n, (label, window, placed, make) in enumerate(candidates, 1):
-        tables = make()
+    for n, (label, window, placed) in enumerate(candidates, 1):
+        tables = build_grouped(material, ideal, placed, resolution, **{**opts, "window": window, "cache": cache})
         ratios = np.array([d.rv(tables)[0] for d in draws]) / floors
         excess = float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=widths)))
         log(f"between bins: placement {n} of {len(candidates)}, {label}: {excess:.2f}x the ideal's rv (typical excess)")
