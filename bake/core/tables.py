@@ -64,6 +64,8 @@ Per cell the table also keeps the RGB estimator weight W = integral of f·cos ov
 cell / its share of the target; `eval` returns W·pdf/cos, the baked BSDF the Cycles back
 ends render (their weight f·cos / pdf is W exactly).
 """
+import functools
+
 import numpy as np
 
 from ..errors import FlowBSDFError
@@ -435,17 +437,173 @@ class Tables:
     # -- files -----------------------------------------------------------------------
 
     def save(self, path):
-        B, R, C = len(self._a), self.rows, self.cols       # B bins: K, or K x P
         meta = {**self.meta, "format": "flowbsdf-tables", "format_version": FORMAT_VERSION,
-                "theta_bins": [float(x) for x in self.theta_bins], "rows": R, "cols": C}
+                "theta_bins": [float(x) for x in self.theta_bins], "rows": self.rows, "cols": self.cols}
         if self.anisotropic:
             meta.update(phi_bins=[float(x) for x in self.phi_bins], phi_period=self.phi_period)
         if self.coords != "wo":
             meta.update(coords=self.coords, frame_angle=self.frame_angle)
-        per = {"mass": 1, "alpha": NSEG, "beta": NSEG}
-        write_exr(path, {"a_edges": self.a_edges.reshape(B, R + 1), "b_edges": self.b_edges.reshape(B * R, C + 1),
-                         **{n: getattr(self, n).reshape(B * R, C * per[n]) for n in self.ARRAYS},
-                         "weights": self.weights.reshape(B * R, C * 3)}, meta)
+        write_exr(path, _file_arrays(self), meta)
+
+
+    # -- per working bin, its own rows and columns (MixedTables pads to the largest) ----------
+
+    @property
+    def bin_rows(self):
+        return np.full(len(self._a), self.rows, np.int64)
+
+    @property
+    def bin_cols(self):
+        return np.full(len(self._a), self.cols, np.int64)
+
+
+# A padded working entry (MixedTables) past a group's own rows or columns: above every value a
+# search compares with it, so a search finds the last entry at or below its target among the
+# group's own (a finite value: blending it with weight 0 must give 0, not NaN).
+PAD = 1e30
+MIXED_FORMAT_VERSION = 4    # the file of a MixedTables: its parts' arrays side by side
+
+
+class MixedTables:
+    """Isotropic tables in layout groups of their own resolutions (cells per bin): consecutive
+    `parts`, each a Tables over its own bins, each part's first bin at the previous part's last
+    angle. theta_i below a boundary is sampled from the lower part, at or above it from the
+    upper one (the rule of groups within one Tables, groups_ok): the parts never blend, so each
+    is exact on its own and together they are one exact sampler. An easy range of theta_i then
+    spends less memory on cells and the hard one more (plan_tables).
+
+    The back ends that read whole arrays (the OSL and SVM textures) see the parts joined, padded
+    to the largest part's rows and columns: the working copies below, with `bin_rows` and
+    `bin_cols` each bin's own, and PAD past them."""
+
+    name = "tables"
+    normalized = True
+    anisotropic = False
+    phi_bins = None
+    phi_period = TWO_PI
+    frame_angle = 0.0
+
+    def __init__(self, parts, meta=None, backend="auto"):
+        parts = list(parts)
+        if len(parts) < 2 or any(not isinstance(p, Tables) or p.anisotropic for p in parts):
+            raise FlowBSDFError("mixed tables join two or more isotropic Tables")
+        if len({p.coords for p in parts}) != 1:
+            raise FlowBSDFError("the parts of mixed tables share their coordinates")
+        for lower, upper in zip(parts[:-1], parts[1:]):
+            if len(lower.theta_bins) < 2 or len(upper.theta_bins) < 2 or upper.theta_bins[0] != lower.theta_bins[-1]:
+                raise FlowBSDFError("each part of mixed tables starts at the previous one's last angle, "
+                                    "two bins or more each")
+        self.parts = parts
+        self.coords = parts[0].coords
+        self.theta_bins = np.concatenate([p.theta_bins for p in parts])
+        self.bounds = np.array([p.theta_bins[0] for p in parts[1:]])
+        self.rows = max(p.rows for p in parts)
+        self.cols = max(p.cols for p in parts)
+        self.meta = dict(meta or {})
+        self.backend = backend
+
+    @property
+    def backend(self):
+        return self.parts[0].backend
+
+    @backend.setter
+    def backend(self, value):
+        for p in self.parts:
+            p.backend = value
+
+    @property
+    def nbytes(self):
+        return sum(p.nbytes for p in self.parts)
+
+    def _each(self, method, wi, x):
+        """method of the part each wi falls in, per sample (x: the other argument, (N, ...))."""
+        x = np.atleast_2d(np.asarray(x, np.float64))
+        wi, _ = as_dirs(wi, np.empty((len(x), 3)))
+        part = np.searchsorted(self.bounds, theta_phi(wi)[0], side="right")
+        if np.all(part == part[0]):
+            return getattr(self.parts[part[0]], method)(wi, x)
+        outs = None
+        for p in np.unique(part):
+            sel = part == p
+            got = getattr(self.parts[p], method)(wi[sel], x[sel])
+            got = got if isinstance(got, tuple) else (got,)
+            if outs is None:
+                outs = [np.empty((len(x),) + g.shape[1:], g.dtype) for g in got]
+            for o, g in zip(outs, got):
+                o[sel] = g
+        return tuple(outs) if len(outs) > 1 else outs[0]
+
+    def sample(self, wi, u):
+        return self._each("sample", wi, u)
+
+    def pdf(self, wi, wo):
+        return self._each("pdf", wi, wo)
+
+    def invert(self, wi, wo):
+        return self._each("invert", wi, wo)
+
+    def eval(self, wi, wo):
+        return self._each("eval", wi, wo)
+
+    # -- the parts joined, padded to the largest (the textures' exporters) ------------------
+
+    def _joined(self, name, pad):
+        """The parts' working copy `name` side by side, each padded with `pad` to the largest."""
+        out = []
+        for p in self.parts:
+            x = getattr(p, name)
+            shape = list(x.shape)
+            shape[1] = self.rows + (name in ("_a", "_row_cdf"))
+            if x.ndim > 2:
+                shape[2] = self.cols + (name in ("_b", "_col_cum"))
+            y = np.full(shape, pad, x.dtype)
+            y[tuple(slice(0, n) for n in x.shape)] = x
+            out.append(y)
+        return np.concatenate(out)
+
+    _a = functools.cached_property(lambda self: self._joined("_a", PAD))
+    _row_cdf = functools.cached_property(lambda self: self._joined("_row_cdf", PAD))
+    _b = functools.cached_property(lambda self: self._joined("_b", PAD))
+    _col_cum = functools.cached_property(lambda self: self._joined("_col_cum", PAD))
+    _m = functools.cached_property(lambda self: self._joined("_m", 0.0))
+    _alpha = functools.cached_property(lambda self: self._joined("_alpha", 1.0))
+    _beta = functools.cached_property(lambda self: self._joined("_beta", 1.0))
+    _w = functools.cached_property(lambda self: self._joined("_w", 0.0))
+
+    @property
+    def bin_rows(self):
+        return np.concatenate([p.bin_rows for p in self.parts])
+
+    @property
+    def bin_cols(self):
+        return np.concatenate([p.bin_cols for p in self.parts])
+
+    # -- files -----------------------------------------------------------------------
+
+    def save(self, path):
+        meta = {**self.meta, "format": "flowbsdf-tables", "format_version": MIXED_FORMAT_VERSION,
+                "theta_bins": [float(x) for x in self.theta_bins], "rows": self.rows, "cols": self.cols,
+                "parts": [{"bins": len(p.theta_bins), "rows": p.rows, "cols": p.cols} for p in self.parts]}
+        if self.coords != "wo":
+            meta["coords"] = self.coords
+        arrays = {}
+        for n, p in enumerate(self.parts):
+            arrays.update({f"{name}{_suffix(n)}": x for name, x in _file_arrays(p).items()})
+        write_exr(path, arrays, meta)
+
+
+def _suffix(part):
+    """The file's array names of part n of mixed tables: a_edges, ..., a_edges.1, ..."""
+    return f".{part}" if part else ""
+
+
+def _file_arrays(tab):
+    """The 2D arrays a table file holds for tab (one part of mixed tables, or the whole)."""
+    B, R, C = len(tab._a), tab.rows, tab.cols
+    per = {"mass": 1, "alpha": NSEG, "beta": NSEG}
+    return {"a_edges": tab.a_edges.reshape(B, R + 1), "b_edges": tab.b_edges.reshape(B * R, C + 1),
+            **{n: getattr(tab, n).reshape(B * R, C * per[n]) for n in tab.ARRAYS},
+            "weights": tab.weights.reshape(B * R, C * 3)}
 
 
 def _bins_of(meta, key, path, hi, lo=0.0, closed=True, groups=False):
@@ -485,21 +643,38 @@ def _phi_period(meta, path):
 
 
 def open_tables(path):
+    """The Tables (or MixedTables) of a table file; FlowBSDFError saying what is wrong with it."""
     arrays, meta = read_exr(path)
     if meta.get("format") != "flowbsdf-tables":
         raise FlowBSDFError("not a FlowBSDF table file", path)
-    if meta.get("format_version") != FORMAT_VERSION:
+    if meta.get("format_version") not in (FORMAT_VERSION, MIXED_FORMAT_VERSION):
         raise FlowBSDFError(f"table format version {meta.get('format_version')} "
-                            f"(this FlowBSDF reads version {FORMAT_VERSION}); re-bake it", path)
+                            f"(this FlowBSDF reads versions {FORMAT_VERSION} and {MIXED_FORMAT_VERSION}); "
+                            "re-bake it", path)
     try:
-        R, C = int(meta["rows"]), int(meta["cols"])
-        a, b, w = arrays["a_edges"], arrays["b_edges"], arrays["weights"]
-        cells = [arrays[n] for n in Tables.ARRAYS]
         theta_bins = _bins_of(meta, "theta_bins", path, 0.5 * np.pi, groups=meta.get("phi_bins") is None)
+        if meta["format_version"] == FORMAT_VERSION:
+            return _open_part(arrays, meta, path, "", theta_bins, int(meta["rows"]), int(meta["cols"]), meta)
+        parts = meta["parts"]
+        counts = [int(p["bins"]) for p in parts]
+        if (meta.get("phi_bins") is not None or len(parts) < 2 or sum(counts) != len(theta_bins)
+                or any(c < 2 for c in counts)):
+            raise FlowBSDFError(f"mixed tables' parts {parts!r} do not cover their {len(theta_bins)} isotropic "
+                                "bins: corrupt file", path)
+        starts = np.cumsum([0] + counts)
+        return MixedTables([_open_part(arrays, meta, path, _suffix(n), theta_bins[s:s + c], int(p["rows"]),
+                                       int(p["cols"]), {})
+                            for n, (p, s, c) in enumerate(zip(parts, starts, counts))], meta)
     except KeyError as e:
         raise FlowBSDFError(f"table file is incomplete (truncated or damaged?): {e} is missing", path) from None
     except (TypeError, ValueError) as e:
         raise FlowBSDFError(f"table metadata is malformed: {e}", path) from None
+
+
+def _open_part(arrays, meta, path, suffix, theta_bins, R, C, own_meta):
+    """The Tables of the arrays named <name><suffix> (a whole file: suffix "")."""
+    a, b, w = arrays["a_edges" + suffix], arrays["b_edges" + suffix], arrays["weights" + suffix]
+    cells = [arrays[n + suffix] for n in Tables.ARRAYS]
     phi_bins, period = None, TWO_PI
     if meta.get("phi_bins") is not None:       # anisotropic: bins over phi_i within one period
         period = _phi_period(meta, path)
@@ -530,5 +705,5 @@ def open_tables(path):
     lead = (K,) if phi_bins is None else (K, P)
     return Tables(theta_bins, a.reshape(*lead, R + 1), b.reshape(*lead, R, C + 1),
                   mass.reshape(*lead, R, C), *(c.reshape(*lead, R, C, NSEG) for c in (alpha, beta)),
-                  w.reshape(*lead, R, C, 3), meta,
+                  w.reshape(*lead, R, C, 3), own_meta,
                   phi_bins=phi_bins, phi_period=period, coords=coords, frame_angle=float(meta.get("frame_angle", 0.0)))

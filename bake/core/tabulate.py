@@ -16,7 +16,7 @@ from ..errors import FlowBSDFError
 from .fasttables import one_blas_thread
 from .geometry import luminance, spherical_dir
 from . import halfvector
-from .tables import HALF_MAX, K_MAX, NSEG, TWO_PI, Tables, _log_mean, _search, exp_density, exp_mean, to_ab
+from .tables import HALF_MAX, K_MAX, NSEG, TWO_PI, MixedTables, Tables, _log_mean, _search, exp_density, exp_mean, to_ab
 
 A_MIN = 1e-4     # the least gap between row knots (keeps every segment of rows non-empty)
 B_MIN = 1e-4     # the same for column knots
@@ -817,34 +817,54 @@ def build_tables(material, source, theta_bins, rows=64, cols=64, grid=512, lobe_
 
 
 def join_groups(groups):
-    """One isotropic Tables of consecutive layout groups (Tables of the same resolution and
-    coordinates, each built on its own: its own cells per segment and layout), each group's first
-    bin at the previous group's last angle: theta_i below a boundary is sampled from the lower
-    group, at or above it from the upper one (tables.groups_ok), a choice by wi alone."""
-    first = groups[0]
+    """One isotropic sampler of consecutive layout groups (Tables of the same coordinates, each
+    built on its own: its own cells per segment and layout), each group's first bin at the
+    previous group's last angle: theta_i below a boundary is sampled from the lower group, at or
+    above it from the upper one (tables.groups_ok), a choice by wi alone. Neighbours of one
+    resolution join into one Tables; groups of several resolutions make MixedTables."""
     for lower, upper in zip(groups[:-1], groups[1:]):
-        if (upper.rows, upper.cols, upper.coords) != (first.rows, first.cols, first.coords) or upper.anisotropic:
-            raise FlowBSDFError("layout groups must be isotropic tables of one resolution and coordinates")
+        if upper.coords != lower.coords or upper.anisotropic or lower.anisotropic:
+            raise FlowBSDFError("layout groups must be isotropic tables of the same coordinates")
         if upper.theta_bins[0] != lower.theta_bins[-1] or len(upper.theta_bins) < 2 or len(lower.theta_bins) < 2:
             raise FlowBSDFError("each layout group starts at the previous one's last angle, two bins or more each")
-    return Tables(np.concatenate([g.theta_bins for g in groups]),
-                  *(np.concatenate([getattr(g, n) for g in groups]) for n in ("a_edges", "b_edges", "mass", "alpha", "beta", "weights")),
-                  coords=first.coords)
+    runs = [[groups[0]]]
+    for g in groups[1:]:
+        if (g.rows, g.cols) == (runs[-1][-1].rows, runs[-1][-1].cols):
+            runs[-1].append(g)
+        else:
+            runs.append([g])
+    parts = [run[0] if len(run) == 1 else
+             Tables(np.concatenate([g.theta_bins for g in run]),
+                    *(np.concatenate([getattr(g, n) for g in run]) for n in ("a_edges", "b_edges", "mass", "alpha", "beta", "weights")),
+                    coords=run[0].coords)
+             for run in runs]
+    return parts[0] if len(parts) == 1 else MixedTables(parts)
+
+
+def group_sizes(theta_bins, resolution):
+    """(the bins split into their layout groups at each angle given twice, each group's resolution):
+    `resolution` one for all, or one per group."""
+    cut = [j + 1 for j in range(len(theta_bins) - 1) if theta_bins[j] == theta_bins[j + 1]]
+    parts = np.split(np.asarray(theta_bins, np.float64), cut)
+    sizes = [resolution] * len(parts) if np.ndim(resolution) == 0 else list(resolution)
+    if len(sizes) != len(parts):
+        raise FlowBSDFError(f"{len(sizes)} resolutions for {len(parts)} layout groups")
+    return parts, sizes
 
 
 def build_grouped(material, source, theta_bins, resolution, progress=None, **options):
     """build_tables at theta_bins, where an angle given twice splits them into layout groups:
-    each built on its own with one layout for all its bins (window None) and joined
-    (join_groups); `progress` counts the groups' bins as one build."""
-    cut = [j + 1 for j in range(len(theta_bins) - 1) if theta_bins[j] == theta_bins[j + 1]]
-    if not cut:
-        return build_tables(material, source, theta_bins, resolution, resolution, progress=progress, **options)
-    parts = np.split(np.asarray(theta_bins), cut)
+    each built on its own with one layout for all its bins (window None) at its resolution (one
+    for all, or one per group) and joined (join_groups); `progress` counts the groups' bins as
+    one build."""
+    parts, sizes = group_sizes(theta_bins, resolution)
+    if len(parts) == 1:
+        return build_tables(material, source, theta_bins, sizes[0], sizes[0], progress=progress, **options)
     starts = np.cumsum([0] + [len(part) for part in parts])
-    return join_groups([build_tables(material, source, part, resolution, resolution, **{
+    return join_groups([build_tables(material, source, part, r, r, **{
         **options, "window": None,
         "progress": progress and (lambda done, _, s=s: progress(s + done, len(theta_bins)))})
-        for part, s in zip(parts, starts)])
+        for part, r, s in zip(parts, sizes, starts)])
 
 
 def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, cols, grid, lobe_width, gamma, row_share, col_share,
