@@ -397,3 +397,18 @@ def grouped_tables(source, name, folder):
     tab.meta["material"] = name
     tab.save(folder / f"{name}.exr")
     return folder / f"{name}.exr"
+
+
+def mixed_tables(source, name, folder):
+    """Tables of two layout groups of their own resolutions joined at 50 deg (bins 0, 30, 50 at
+    12 x 16 cells | 50, 70, 89.9 at 24 x 20: tables.MixedTables), saved as <folder>/<name>.exr."""
+    from bake.core.ideal import IdealSampler
+    from bake.materials import open_material
+    from bake.core.tabulate import build_tables, join_groups
+    mat = open_material(source)
+    ideal = IdealSampler(mat, resolution=64)
+    tab = join_groups([build_tables(mat, ideal, np.radians(b), rows=r, cols=c, grid=96, window=None)
+                       for b, r, c in (([0.0, 30.0, 50.0], 12, 16), ([50.0, 70.0, 89.9], 24, 20))])
+    tab.meta["material"] = name
+    tab.save(folder / f"{name}.exr")
+    return folder / f"{name}.exr"
