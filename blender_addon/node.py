@@ -75,7 +75,7 @@ OSL_SOURCE = Path(__file__).resolve().parent / "osl" / "learned_bsdf.osl"
 NEUTRAL = (0.5, 0.5, 0.5)
 # The fit file format (bake/export/closure_fit.py: load_fit, FIT_VERSION), read here without numpy.
 FIT_FORMAT = "flowbsdf-closure-fit"
-OSL_LAYOUT = 7          # the OSL texture's layout (bake/export/osl_export.LAYOUT): part of its file name
+OSL_LAYOUT = 8          # the OSL texture's layout (bake/export/osl_export.LAYOUT): part of its file name
 FIT_VERSION = 4
 
 

@@ -353,15 +353,15 @@ class _Sampler:
         return self.g.vmath('MULTIPLY_ADD', index, (stride * self.du, 0.0, 0.0), base)
 
     def search(self, lo, target, base, stride, steps, q, last):
-        """The last index <= `last` whose quantity q is <= target, from lo (branchless, `steps`
-        halvings). The end record (a total) can round to <= a target near its value: `last`
-        caps the result there."""
+        """The last index <= `last` (a socket or a number) whose quantity q is <= target, from
+        lo (branchless, `steps` halvings). The end record (a total) can round to <= a target near
+        its value: `last` caps the result there."""
         alpha, weights = self.blend(q)
         base = self.offset(base, q // self.rpt)
         for s in reversed(range(steps)):
             lo = self.g.group(_step_group(self.image, alpha), Lo=lo, Target=target, Base=base,
                               Stride=(stride * self.du, 0.0, 0.0), Half=float(2 ** s), **weights)[0]
-        return self.g.math('MINIMUM', lo, float(last))
+        return self.g.math('MINIMUM', lo, last)
 
     def guide_lo(self, base, u, count):
         """The guide's lo for u in [0, 1] (entries at base + g texels, g < count)."""
@@ -384,7 +384,9 @@ class _Sampler:
 
     def incident(self, cos_i, phi_i):
         """The corner block of the incident bins at sockets cos theta_i (>= 0) and phi_i (None
-        for isotropic tables), and the blend weights (self.origin, self.weights)."""
+        for isotropic tables), the blend weights and the last row and column of the corner's
+        own table (self.origin, self.weights, self.last: from the block's header for isotropic
+        tables, whose bins may differ in size, MixedTables)."""
         g, lay = self.g, self.lay
         K, P, nx = lay["K"], lay["P"], lay["blocks_per_row"]
         bw, bh = lay["block"]
@@ -407,6 +409,7 @@ class _Sampler:
         self.origin = g.combine(g.math('MULTIPLY_ADD', bcol, bw * self.du, 0.5 * self.du),
                                 g.math('MULTIPLY_ADD', brow, -bh * self.dv, 1.0 - 1.5 * self.dv))
         head, head_a = self.fetch(self.origin)
+        self.last = (lay["R"] - 1.0, lay["C"] - 1.0) if P > 1 else (g.dot(head, Z), head_a)
         t = s = 0.0
         if K > 1:
             c_k, c_k1 = g.dot(head, X), g.dot(head, Y)
@@ -461,11 +464,11 @@ class _Sampler:
     def sample(self, u0, u1):
         """Tables.sample after `incident`: (a, b, weight W (colour), pdf) for sockets u0, u1."""
         g, lay = self.g, self.lay
-        R, C, sr, sc = lay["R"], lay["C"], lay["row_stride"], lay["col_stride"]
+        sr, sc = lay["row_stride"], lay["col_stride"]
         # row i: the last with CDF(i) <= u0
         rows = self.rows()
         i = self.search(self.guide_lo(self.offset(self.origin, 1), u0, lay["row_guide"]), u0, rows, sr,
-                        lay["row_steps"], 0, R - 1)
+                        lay["row_steps"], 0, self.last[0])
         rec = self.at(rows, i, sr)
         rec1 = self.offset(rec, sr)
         c0, a0, c1, a1 = (self.quantity(r, q) for r, q in ((rec, 0), (rec, 1), (rec1, 0), (rec1, 1)))
@@ -473,7 +476,7 @@ class _Sampler:
         # column j of row i: the last with cumsum(i, j) <= v
         row = self.row(i)
         cols = self.offset(row, lay["x_col"])
-        j = self.search(self.guide_lo(row, u1, lay["col_guide"]), v, cols, sc, lay["col_steps"], 0, C - 1)
+        j = self.search(self.guide_lo(row, u1, lay["col_guide"]), v, cols, sc, lay["col_steps"], 0, self.last[1])
         rec = self.at(cols, j, sc)
         d0, b0, b1 = self.quantity(rec, 0), self.quantity(rec, 1), self.quantity(self.offset(rec, sc), 1)
         q = self.cell(row, j)
@@ -495,12 +498,12 @@ class _Sampler:
         g, lay = self.g, self.lay
         R, C, sr, sc = lay["R"], lay["C"], lay["row_stride"], lay["col_stride"]
         rows = self.rows()
-        i = self.search(0.0, a, rows, sr, _log2(R), 1, R - 1)
+        i = self.search(0.0, a, rows, sr, _log2(R), 1, self.last[0])
         rec = self.at(rows, i, sr)
         a0, a1 = self.quantity(rec, 1), self.quantity(self.offset(rec, sr), 1)
         row = self.row(i)
         cols = self.offset(row, lay["x_col"])
-        j = self.search(0.0, b, cols, sc, _log2(C), 1, C - 1)
+        j = self.search(0.0, b, cols, sc, _log2(C), 1, self.last[1])
         rec = self.at(cols, j, sc)
         b0, b1 = self.quantity(rec, 1), self.quantity(self.offset(rec, sc), 1)
         q = self.cell(row, j)

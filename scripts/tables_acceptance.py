@@ -49,6 +49,7 @@ def main():
     p.add_argument("--no-checks", action="store_true", help="no chi-square, round trip or lost fraction")
     p.add_argument("--mitsuba", action="store_true", help="Mitsuba's measured sampler beside ours")
     p.add_argument("--speed", action="store_true", help="throughput, one thread, side by side")
+    p.add_argument("--verbose", action="store_true", help="print the planner's log")
     args = p.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -69,7 +70,7 @@ def main():
                 source = load_model(Path(args.models) / f"{name}.flow.npz")
             else:
                 source = IdealSampler(mat)
-            tab = plan_tables(mat, source, **({"memory_budget": int(args.budget * 1e6)} if args.budget else {}))
+            tab = plan_tables(mat, source, log=(lambda s: print("  plan:", s, flush=True)) if args.verbose else None, **({"memory_budget": int(args.budget * 1e6)} if args.budget else {}))
             tab.meta["seconds"] = round(time.perf_counter() - t0, 1)
             tab.save(path)
             tab = open_tables(path)

@@ -167,6 +167,63 @@ def test_the_inverse_guides_bracket_the_edge_searches(tmp_path, glossy):
             assert lo <= j < hi, (k, b, j, lo, hi)
 
 
+def test_osl_texture_of_mixed_resolutions_reads_each_bins_own_table(tmp_path):
+    """MixedTables (12 x 16 cells for bins 0, 30, 50 | 24 x 20 for 50, 70, 89.9), laid out as
+    24 x 20 per bin, padded: each corner's count texel holds its own rows and columns, and its
+    guides bracket the sampler's and the inverse's searches, for any blend of its two bins, within
+    them (hi <= R_b, C_b: no search reads padding). Corner 2 (50 | 50 deg, never used) joins the
+    two sizes: it is read within the smaller's."""
+    import cycles_scenes as cs
+    from bake.core.tables import open_tables
+    from bake.export.osl_export import texture_image
+    tab = open_tables(cs.mixed_tables({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.15},
+                                      "mixed", tmp_path))
+    img = texture_image(tab).astype(np.float64)
+    K, R, C = len(tab.theta_bins), tab.rows, tab.cols
+    assert (K, R, C) == (6, 24, 20)
+    rng = np.random.default_rng(4)
+    for k, (rb, cb) in enumerate([(12, 16)] * 3 + [(24, 20)] * 2):
+        base = 3 + 4 * K * R + k * (3 + 3 * R)
+        assert tuple(img[base + 2 + 2 * R, R, :2]) == (rb, cb)
+        assert img[base + 2 + 2 * R, :R, [1, 3]].max() <= rb
+        assert img[base + 3 + 2 * R:base + 3 + 2 * R + rb, :C, [1, 3]].max() <= cb
+        if k == 2:
+            continue
+        for _ in range(300):
+            w = np.array([1.0 - (t := rng.random()), t, 0.0, 0.0])
+            u0, u1, a, b = rng.random(), rng.random(), rng.random(), rng.random() * 2 * np.pi
+            cdf = img[base, :rb + 1] @ w
+            i = np.nonzero(cdf[:rb] <= u0)[0].max()
+            lo, hi = img[base + 2 + 2 * R, min(int(u0 * R), R - 1), :2]
+            assert lo <= i < hi <= rb, (k, u0, i, lo, hi)
+            cum = img[base + 2 + i, :cb + 1] @ w
+            j = np.nonzero(cum[:cb] <= u1 * cum[cb])[0].max()
+            lo, hi = img[base + 3 + 2 * R + i, min(int(u1 * C), C - 1), :2]
+            assert lo <= j < hi <= cb, (k, u1, j, lo, hi)
+            edges = img[base + 1, :rb + 1] @ w
+            i = np.nonzero(edges[:rb] <= a)[0].max()
+            lo, hi = img[base + 2 + 2 * R, min(int(a * R), R - 1), 2:4]
+            assert lo <= i < hi <= rb, (k, a, i, lo, hi)
+            edges = img[base + 2 + R + i, :cb + 1] @ w
+            j = np.nonzero(edges[:cb] <= b)[0].max()
+            lo, hi = img[base + 3 + 2 * R + i, min(int(b * C / (2 * np.pi)), C - 1), 2:4]
+            assert lo <= j < hi <= cb, (k, b, j, lo, hi)
+
+
+def test_mixed_tables_get_their_derived_files(tmp_path):
+    """MixedTables: bake_derived writes both textures and the fit, whose baked albedo at theta_i
+    is that of the part theta_i falls in (at and above the 50 deg boundary the upper one)."""
+    import cycles_scenes as cs
+    from bake.core.tables import open_tables
+    path = cs.mixed_tables({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.15}, "mixed", tmp_path)
+    tab = open_tables(path)
+    for deg, part in ((30.0, 0), (49.9, 0), (50.0, 1), (70.0, 1)):
+        cos_i = np.cos(np.radians(deg))
+        np.testing.assert_array_equal(closure_fit.baked_albedo(tab, cos_i), closure_fit.baked_albedo(tab.parts[part], cos_i))
+    osl, fit = bake_derived(path)
+    assert osl.is_file() and fit.is_file() and len(list(tmp_path.glob("mixed.svm*.exr"))) == 1
+
+
 def test_guides_bracket_the_search_for_any_blend():
     """The OSL texture's guides: for u in [g, g + 1) / count, the index the shader searches
     (the last i with the blended cumulative sum <= u x the blended total) lies in the guide's

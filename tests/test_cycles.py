@@ -117,6 +117,48 @@ def test_osl_sampler_on_layout_groups(tmp_path):
         np.testing.assert_allclose(_probe(tex, n, theta, 2)[:, 0], pdf, rtol=1e-3, err_msg=str(deg))
 
 
+def test_osl_sampler_on_mixed_resolutions(tmp_path):
+    """MixedTables (12 x 16 cells for bins 0, 30, 50 | 24 x 20 for 50, 70, 89.9; the texture lays
+    them out as 24 x 20 per bin, padded): OSL samples and evaluates as numpy within each part and
+    on both sides of their boundary. At grazing wo (cos theta_o ~1e-8 in the probe: a = 1 in
+    float32, on the last a edge, outside the inverse guide's bracket) the search falls back to the
+    corner's own rows and finds the last row (an R of 24 there found the 12-row part's padding:
+    pdf 0)."""
+    from bake.core.geometry import incident
+    from bake.core.tables import MixedTables, open_tables
+    path = cs.mixed_tables(SPECS["plastic"], "mixed", tmp_path)
+    tab = open_tables(path)
+    tab.backend = "numpy"
+    assert isinstance(tab, MixedTables) and [(p.rows, p.cols) for p in tab.parts] == [(12, 16), (24, 20)]
+    tex = ensure_osl_export(path)
+    n = 24
+    iy, ix = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    u = np.stack([(ix.ravel() + 0.5) / n, (iy.ravel() + 0.5) / n], 1)
+    for deg in (0.0, 17.0, 30.0, 49.0, 49.99, 50.01, 51.0, 70.0, 89.9):
+        theta = np.radians(deg)
+        wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
+        wo, pdf = tab.sample(wi, u)
+        weight = tab.eval(wi, wo) * wo[:, 2:3] / pdf[:, None]
+        err = np.abs(2.0 * _probe(tex, n, theta, 0) - 1.0 - wo).max(axis=1)
+        assert err.max() < 3e-4 and np.median(err) < 2e-5, (deg, err.max(), np.median(err))
+        np.testing.assert_allclose(_probe(tex, n, theta, 1), weight, rtol=2e-5, atol=1e-7, err_msg=str(deg))
+        np.testing.assert_allclose(_probe(tex, n, theta, 2)[:, 0], pdf, rtol=1e-3, err_msg=str(deg))
+    # (phi_i 7 deg: at 0 the probe's azimuths fall on b edges of the 12 x 16 part, within 5e-8,
+    # where float32 and float64 take either cell: 0.6 % apart)
+    _assert_osl_eval_is_numpy(tex, tab, [(t, 7.0) for t in (17.0, 49.0, 51.0, 80.0)])
+    scale = np.float32(1e-8)
+    wo = _hemisphere_directions(n)
+    wo[:, 2] = (wo[:, 2].astype(np.float32) * scale).astype(np.float64)
+    wo[:, :2] /= np.linalg.norm(wo[:, :2], axis=1, keepdims=True)
+    for deg in (30.0, 70.0):
+        wi, theta, phi = incident(deg, np.radians(7.0)), np.radians(deg), np.radians(7.0)
+        pdf = tab.pdf(wi, wo)
+        assert pdf.min() > 0
+        np.testing.assert_allclose(_probe(tex, n, theta, 3, phi, ProbeZ=scale)[:, 0], pdf, rtol=1e-3, err_msg=str(deg))
+        np.testing.assert_allclose(_probe(tex, n, theta, 4, phi, ProbeZ=scale), tab.eval(wi, wo) * wo[:, 2:3],
+                                   rtol=1e-3, atol=1e-12, err_msg=str(deg))
+
+
 def _hemisphere_directions(n):
     """The probe's directions for modes 3 and 4: z = u0, phi = 2 pi u1 at the pixel centres."""
     iy, ix = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")

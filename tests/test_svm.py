@@ -199,6 +199,54 @@ def test_svm_sampler_on_layout_groups(svm, tmp_path):
     _assert_probe_is_numpy(svm, path, angles, tmp_path)
 
 
+@pytest.fixture(scope="module")
+def mixed(tmp_path_factory):
+    """MixedTables: 12 x 16 cells for bins 0, 30, 50 | 24 x 20 for 50, 70, 89.9 (the texture lays
+    them out as 24 x 20 per bin, padded)."""
+    return cs.mixed_tables(PLASTIC, "mixed", tmp_path_factory.mktemp("svm_mixed"))
+
+
+MIXED_ANGLES = (0.0, 17.0, 30.0, 49.0, 49.99, 50.01, 51.0, 70.0, 89.9)
+
+
+def test_svm_sampler_on_mixed_resolutions(svm, mixed, tmp_path):
+    """Tables of two layout groups of their own resolutions (MixedTables): the graph samples as
+    numpy within each part, on both sides of the boundary and at the extremes of u (the
+    searches capped at each corner's own last row and column, from its header)."""
+    tab = open_tables(mixed)
+    assert [(p.rows, p.cols) for p in tab.parts] == [(12, 16), (24, 20)]
+    img, lay = svm_export.texture_image(tab)
+    assert (lay["R"], lay["C"]) == (24, 20)
+    heads = [img[1 + lay["block"][1] * (c // lay["blocks_per_row"]), lay["block"][0] * (c % lay["blocks_per_row"])]
+             for c in range(lay["corners"])]
+    # corners 0, 1 in the 12 x 16 part; 2 at the boundary (50 | 50: never used, the smaller); 3, 4 in the other
+    assert [tuple(h[2:]) for h in heads] == [(11, 15)] * 3 + [(23, 19)] * 2
+    _assert_probe_is_numpy(svm, mixed, [(t, 0.0) for t in MIXED_ANGLES], tmp_path)
+
+
+def test_svm_pdf_on_mixed_resolutions(svm, mixed, tmp_path):
+    """The inverse (pdf and baked f·cos at a direction) on MixedTables as numpy's, within each part
+    and on both sides of the boundary: at directions sampled from the tables, uniform ones, and
+    on the last row and column of each bin's own table (a = 1 in float32 at cos theta_o 1e-8;
+    b = 2 pi at phi_o -1e-7), where the searches must stop at the bin's own end (the largest
+    part's read the 12 x 16 part's padding: pdf 0)."""
+    tab = open_tables(mixed)
+    tab.backend = "numpy"
+    rng = np.random.default_rng(2)
+    m = 48
+    rows = []
+    for t in MIXED_ANGLES:
+        theta = np.radians(t)
+        wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
+        sampled, _ = tab.sample(wi, rng.random((m, 2)))
+        phi = np.linspace(-np.pi, np.pi, m, endpoint=False) + 0.01
+        cos_o = np.concatenate([sampled[:, 2], rng.random(m), np.full(m, 1e-8), rng.random(m)])
+        phi_o = np.concatenate([np.arctan2(sampled[:, 1], sampled[:, 0]), rng.uniform(-np.pi, np.pi, m), phi,
+                                np.full(m, -1e-7)])
+        rows.append(np.column_stack([cos_o, phi_o, np.full(4 * m, np.cos(theta)), np.zeros(4 * m)]))
+    _assert_inverse_is_numpy(svm, mixed, tab, np.concatenate(rows).astype(np.float32), tmp_path)
+
+
 @pytest.mark.parametrize("K,P", [(1, None), (2, 3)])
 def test_svm_sampler_on_odd_synthetic_tables(svm, K, P, tmp_path):
     """Random tables of odd shapes: one theta bin (no blend), 3 phi bins, 8 x 12 cells (not
@@ -230,8 +278,13 @@ def test_svm_pdf_is_tables_pdf(svm, which, request, tmp_path):
     uniform = np.stack([rng.uniform(-np.pi, np.pi, n), rng.random(n)], 1)      # (phi, cos) uniform in solid angle
     cos_o = np.where(np.arange(n) % 2 == 0, sampled[:, 2], uniform[:, 1])
     phi_o = np.where(np.arange(n) % 2 == 0, np.arctan2(sampled[:, 1], sampled[:, 0]), uniform[:, 0])
-    inputs = np.stack([cos_o, phi_o, cos_i, phi_i], 1).astype(np.float32)
-    pdf, fcos, zero = _probe(svm, svm_export.ensure_svm_export(path), inputs, tmp_path, inverse=True)
+    _assert_inverse_is_numpy(svm, path, tab, np.stack([cos_o, phi_o, cos_i, phi_i], 1).astype(np.float32), tmp_path)
+
+
+def _assert_inverse_is_numpy(svm, path, tab, inputs, folder):
+    """The graph's inverse at probe inputs (cos theta_o, phi_o, cos theta_i, phi_i): numpy's
+    Tables.pdf and Tables.eval x cos theta_o at the same (float32) directions, rtol 1e-3."""
+    pdf, fcos, zero = _probe(svm, svm_export.ensure_svm_export(path), inputs, folder, inverse=True)
     x = inputs.astype(np.float64)
     sin = lambda c: np.sqrt(1.0 - c ** 2)      # noqa: E731
     wi = np.stack([sin(x[:, 2]) * np.cos(x[:, 3]), sin(x[:, 2]) * np.sin(x[:, 3]), x[:, 2]], 1)

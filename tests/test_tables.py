@@ -832,6 +832,59 @@ def test_layout_groups_joined_at_a_repeated_angle(tmp_path):
         join_groups([lower, build_tables(mat, ideal, np.radians([60.0, 89.9]), 16, 16, grid=96)])
 
 
+def test_layout_groups_of_their_own_resolutions(tmp_path):
+    """Groups of different resolutions (12 x 16 cells below 50 deg, 24 x 20 above) join into
+    MixedTables: one density on each side of the boundary in numpy and C (contract and
+    chi-square), each side its own group's (pdf equal to that group's alone); the file keeps
+    both resolutions (and costs their cells, not the largest's for every bin); a part missing
+    from the file, or parts that do not cover the bins, are refused with a clear error."""
+    from bake.core.tables import MixedTables, open_tables
+    from bake.core.tabulate import build_grouped, build_tables, join_groups
+    from bake.plumbing.exrio import read_exr, write_exr
+    mat = open_material({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.15})
+    ideal = IdealSampler(mat, resolution=48)
+    lower = build_tables(mat, ideal, np.radians([0.0, 30.0, 50.0]), 12, 16, grid=96, window=None)
+    upper = build_tables(mat, ideal, np.radians([50.0, 70.0, 89.9]), 24, 20, grid=96, window=None)
+    tab = join_groups([lower, upper])
+    assert isinstance(tab, MixedTables) and (tab.rows, tab.cols) == (24, 20)
+    assert tab.nbytes == lower.nbytes + upper.nbytes
+    path = tmp_path / "mixed.exr"
+    tab.save(path)
+    u = np.random.default_rng(4).random((1 << 15, 2))
+    for backend in ("numpy", "c"):
+        loaded = open_tables(path)
+        assert isinstance(loaded, MixedTables) and [(p.rows, p.cols) for p in loaded.parts] == [(12, 16), (24, 20)]
+        loaded.backend = backend
+        for deg in (10.0, 49.0, 50.0 - 1e-7, 50.0, 51.0, 89.95):
+            wi = spherical_dir(np.radians(deg), 0.3)
+            assert_sampler_contract(loaded, wi, u, pdf_rtol=1e-6, invert_atol=1e-6,
+                                    chi2=dict(n=200_000, n_tests=12), where=f"{backend} {deg}")
+        wo = lower.sample(spherical_dir(np.radians(49.0), 0.3), u[:512])[0]
+        for deg, group in ((50.0 - 1e-6, lower), (50.0 + 1e-6, upper)):
+            wi = spherical_dir(np.radians(deg), 0.3)
+            np.testing.assert_allclose(loaded.pdf(wi, wo), group.pdf(wi, wo), rtol=1e-6, err_msg=f"{backend} {deg}")
+            np.testing.assert_allclose(loaded.eval(wi, wo), group.eval(wi, wo), rtol=1e-6)
+        # one call, wi on both sides: each sample from its own group
+        wis = np.stack([spherical_dir(np.radians(d), 0.3) for d in np.linspace(1.0, 89.0, 512)])
+        got, pdf = loaded.sample(wis, u[:512])
+        below = np.degrees(np.arccos(wis[:, 2])) < 50.0
+        np.testing.assert_allclose(got[below], lower.sample(wis[below], u[:512][below])[0], atol=1e-12)
+        np.testing.assert_allclose(pdf[~below], upper.sample(wis[~below], u[:512][~below])[1], rtol=1e-9)
+    arrays, meta = read_exr(path)
+    for name, change in (("a_edges.1", lambda a, m: a.pop("a_edges.1")),
+                         ("parts", lambda a, m: m["parts"].pop())):
+        a, m = dict(arrays), {**meta, "parts": [dict(p) for p in meta["parts"]]}
+        change(a, m)
+        write_exr(tmp_path / "bad.exr", a, m)
+        with pytest.raises(FlowBSDFError, match="missing|cover"):
+            open_tables(tmp_path / "bad.exr")
+    # the planner's entry: a resolution per group
+    built = build_grouped(mat, ideal, np.radians([0.0, 30.0, 50.0, 50.0, 70.0, 89.9]), [12, 24], grid=96)
+    assert isinstance(built, MixedTables) and [p.rows for p in built.parts] == [12, 24]
+    with pytest.raises(FlowBSDFError, match="resolutions"):
+        build_grouped(mat, ideal, np.radians([0.0, 30.0, 50.0, 50.0, 70.0, 89.9]), [12, 24, 32], grid=96)
+
+
 def test_planner_splits_into_layout_groups_where_that_is_closer():
     """A near-mirror plastic (albedo 0.9, alpha 0.01): the diffuse base holds most of f·cos at
     low theta_i, the mirror lobe at grazing; one layout for all bins shares each lobe segment's

@@ -1217,6 +1217,20 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
             loss, reached[(lo, hi)], split_at[(lo, hi)] = max(losses)
             return loss
 
+        def extend(placed, more, above):
+            """placed plus up to `more` splits of its intervals at or above `above`, the worst first
+            (the upper group of a split whose lower group took smaller cells: _between_bins)."""
+            placed = list(placed)
+            for _ in range(more):
+                new = [iv for iv in zip(placed[:-1], placed[1:]) if iv not in scores and iv[0] >= above]
+                scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
+                upper = [(scores[iv], iv) for iv in zip(placed[:-1], placed[1:]) if iv[0] >= above]
+                worst, iv = max(upper, default=(0.0, None))
+                if worst <= SPLIT_LOSS:
+                    break
+                placed = sorted(placed + [split_at[iv]])
+            return placed
+
         while len(bins) < max_bins:
             new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
             # The new intervals' builds are independent: all of them at once, in threads.
@@ -1227,7 +1241,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
                 break
             if cells_to_beat is not None and len(bins) * resolution ** 2 >= cells_to_beat:
                 say(f"bins {len(bins)}: stopped, as many cells as a plan that reaches its targets")
-                return resolution, bins, phi_bins, worst_phi, (np.inf, np.inf)
+                return resolution, bins, phi_bins, worst_phi, (np.inf, np.inf), extend
             bins = sorted(bins + [split_at[(lo, hi)]])
             del scores[(lo, hi)]
             say(f"bins {len(bins)}: split {np.degrees(lo):.2f}-{np.degrees(hi):.2f} deg "
@@ -1241,7 +1255,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
         ratios = np.array([reached.get(iv, 0.0) for iv in intervals])
         widths = np.diff(bins)
         excess = float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=widths))) if len(bins) > 1 else 1.0
-        return resolution, bins, phi_bins, worst_phi, (float(ratios.max(initial=0.0)), excess)
+        return resolution, bins, phi_bins, worst_phi, (float(ratios.max(initial=0.0)), excess), extend
 
     plan_resolution = resolution
     plans = {}
@@ -1252,15 +1266,15 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     # The plan closest to its targets over its midpoints' typical excess; when both reach them,
     # the smaller.
     coords = min(plans, key=lambda c: (plans[c][4][1], len(plans[c][1]) * plans[c][0] ** 2))
-    resolution, bins, phi_bins, worst_phi, _ = plans[coords]
+    resolution, bins, phi_bins, worst_phi, _, extend = plans[coords]
     if len(candidates) > 1:
         log(f"coordinates: {coords} (midpoints over their targets, typical / worst: " + ", ".join(
             f"{c} {p[4][1]:.2f}x / {p[4][0]:.2f}x" for c, p in plans.items()) + ")")
     opts = dict(lobe_width=lobe_width, coords=coords, **options)
     compared = None
     if phi_bins is None and "window" not in options:
-        opts["window"], bins, compared = _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, log,
-                                                       max(2, int(memory_budget // bin_bytes(resolution))))
+        opts["window"], bins, resolution, compared = _between_bins(material, ideal, bins, resolution, opts, cache, tol,
+                                                                   samples, log, memory_budget, extend)
     log(f"tables: building {len(bins)} angles" + (f" x {len(phi_bins)} azimuths" if phi_bins is not None else ""))
     every = [0]
 
@@ -1274,7 +1288,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     else:   # from the source's own points: the probes' are the ideal's
         tables = build_grouped(material, source, bins, resolution, phi_bins=phi_bins, progress=built,
                                **{**opts, "cache": cache if source is ideal else {}})
-    tables.meta.update(resolution=resolution, lobe_width=lobe_width, tol=tol, ideal_ratio=ideal_ratio,
+    tables.meta.update(resolution=resolution if np.ndim(resolution) == 0 else [int(r) for r in resolution], lobe_width=lobe_width, tol=tol, ideal_ratio=ideal_ratio,
                        window=opts.get("window", 1),
                        groups=int(np.sum(np.diff(bins) == 0)) + 1)
     if phi_bins is not None:
@@ -1294,49 +1308,73 @@ LAYOUT_WINDOWS = (1, None)
 GROUP_SPLITS_DEG = (55.0, 65.0, 75.0)
 
 
-def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, log, max_bins):
-    """(window, bins, their tables from the ideal's points; None when not compared): of the ways
-    to place cells between the planned bins, the one whose tables are typically closest to the
-    ideal over the bins and their intervals' midpoints: the geometric mean, weighted by theta_i,
-    of the tables' rv over the ideal's (at least tol / 2) where above 1, each rv from `samples`
-    of the ideal's draws (ReferencePoints: the same draws for every candidate).
+def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, log, memory_budget, extend):
+    """(window, bins, resolution (one, or one per group), their tables from the ideal's points;
+    None when not compared): of the ways to place cells between the planned bins, the one whose
+    tables are typically closest to the ideal over the bins and their intervals' midpoints: the
+    geometric mean, weighted by theta_i, of the tables' rv over the ideal's (at least tol / 2)
+    where above 1, each rv from `samples` of the ideal's draws (ReferencePoints: the same draws
+    for every candidate).
 
     The candidates: each of LAYOUT_WINDOWS (a bin's layout pooled with its neighbours', or one
     for all bins), and two layout groups (join_groups: the bins up to the planned bin nearest one
     of GROUP_SPLITS_DEG, and from it, each built alone with one layout for all its bins: its own
     cells per segment, not shared out by the weight of bins far away; window None). A group's
-    repeated bin is paid for with the bin of the narrowest span when the budget is full."""
+    repeated bin is paid for with the bin of the narrowest span when the budget is full.
+    Each split is tried also with groups of their own resolutions (MixedTables): the lower group
+    one step coarser (of RESOLUTIONS) and the memory it frees spent above, on more bins where the
+    plan's intervals lose most (`extend`, the plan's split loop) or on a step finer cells for the
+    upper group's bins (as many as the budget keeps, the narrowest spans dropped)."""
     from ..quality.metrics import ReferencePoints
     if len(bins) < 3:
-        return LAYOUT_WINDOWS[0], bins, None
+        return LAYOUT_WINDOWS[0], bins, resolution, None
     side = max(int(round(np.sqrt(samples))), 1)
     b = np.asarray(bins)
-    mids = np.arccos(0.5 * (np.cos(b[:-1]) + np.cos(b[1:])))
-    angles = np.concatenate([b, mids])
-    # theta_i each angle stands for: a bin the quarter of each interval beside it, a midpoint the middle half
-    widths = np.concatenate([np.diff(b, prepend=b[0]) + np.diff(b, append=b[-1]), 2.0 * np.diff(b)]) / 4.0
+    # The bins, and in each interval its midpoint and quarter points in cos(theta) (where a
+    # candidate with more bins puts them: it is measured between its bins too), each standing
+    # for theta_i half-way to its neighbours.
+    c0, c1 = np.cos(b[:-1]), np.cos(b[1:])
+    angles = np.sort(np.concatenate([b] + [np.arccos((1 - f) * c0 + f * c1) for f in (0.25, 0.5, 0.75)]))
+    widths = 0.5 * (np.diff(angles, prepend=angles[0]) + np.diff(angles, append=angles[-1]))
 
-    candidates = [("one placement for all bins" if w is None else f"pooled with {w} neighbour", w, list(bins))
+    candidates = [("one placement for all bins" if w is None else f"pooled with {w} neighbour", w, list(bins), resolution)
                   for w in LAYOUT_WINDOWS]
     splits = sorted({int(np.clip(np.argmin(np.abs(b - np.radians(deg))), 2, len(b) - 3)) for deg in GROUP_SPLITS_DEG}
                     ) if len(b) >= 6 else []
+    max_bins = max(2, int(memory_budget // bin_bytes(resolution)))
+    coarser = [r for r in RESOLUTIONS if r < resolution][-1:]
+    finer = [r for r in RESOLUTIONS if r > resolution][:1]
     for j in splits:
         kept = list(bins)
         if len(bins) + 1 > max_bins:
             free = [k for k in range(1, len(bins) - 1) if abs(k - j) > 1]
             kept.pop(min(free, key=lambda k: bins[k + 1] - bins[k - 1]))
         jj = kept.index(bins[j])
-        candidates.append((f"two groups split at {np.degrees(bins[j]):.2f} deg", None, kept[:jj + 1] + kept[jj:]))
+        at = f"{np.degrees(bins[j]):.2f} deg"
+        candidates.append((f"two groups split at {at}", None, kept[:jj + 1] + kept[jj:], resolution))
+        for lo_res in coarser:
+            lower, room = list(bins[:j + 1]), memory_budget - (j + 1) * bin_bytes(lo_res)
+            upper = extend(bins[j:], int(room // bin_bytes(resolution)) - (len(bins) - j), bins[j])
+            if len(upper) > len(bins) - j:
+                candidates.append((f"two groups split at {at}, {lo_res}² cells below, {len(upper) - len(bins) + j} "
+                                   "more bins above", None, lower + upper, [lo_res, resolution]))
+            for hi_res in finer:
+                upper = list(bins[j:])
+                while len(upper) > 3 and len(upper) * bin_bytes(hi_res) > room:
+                    upper.pop(min(range(1, len(upper) - 1), key=lambda k: upper[k + 1] - upper[k - 1]))
+                if len(upper) * bin_bytes(hi_res) <= room:
+                    candidates.append((f"two groups split at {at}, {lo_res}² cells below, {hi_res}² above",
+                                       None, lower + upper, [lo_res, hi_res]))
     log(f"between bins: comparing {len(candidates)} cell placements on {len(bins)} angles")
     draws = list(_parallel(lambda t: ReferencePoints(material, spherical_dir(t, 0.0), ideal, side, 0), angles))
     floors = np.array([max(d.rv(ideal)[0], 0.5 * tol) for d in draws])
     best = None
-    for n, (label, window, placed) in enumerate(candidates, 1):
-        tables = build_grouped(material, ideal, placed, resolution, **{**opts, "window": window, "cache": cache})
+    for n, (label, window, placed, res) in enumerate(candidates, 1):
+        tables = build_grouped(material, ideal, placed, res, **{**opts, "window": window, "cache": cache})
         ratios = np.array([d.rv(tables)[0] for d in draws]) / floors
         excess = float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=widths)))
         log(f"between bins: placement {n} of {len(candidates)}, {label}: {excess:.2f}x the ideal's rv (typical excess)")
         if best is None or excess < best[0]:
-            best = (excess, label, window, placed, tables)
+            best = (excess, label, window, placed, res, tables)
     log(f"between bins: {best[1]}")
     return best[2:]

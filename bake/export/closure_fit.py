@@ -82,6 +82,8 @@ def baked_albedo(tables, cos_i):
     interpolated table (what a furnace render of the OSL back end converges to)."""
     theta = float(np.arccos(np.clip(cos_i, -1.0, 1.0)))
     wi = np.array([[np.sin(theta), 0.0, np.cos(theta)]])
+    if hasattr(tables, "parts"):        # MixedTables: the part theta_i falls in
+        tables = tables.parts[np.searchsorted(tables.bounds, theta, side="right")]
     bins, _ = tables._bins(wi)
     m = tables._lerp(tables._m, bins)[0]
     w = tables._lerp(tables._w.astype(np.float64), bins)[0]

@@ -7,7 +7,11 @@ zero derivatives, so every value comes back bit-exact. Everything is precomputed
 and column sums in float64 then stored as float32, the outer edges exactly 0, 1 and 0, 2 pi.
 
 Bins: K over theta_i, times P over phi_i for anisotropic tables (P = 1 isotropic), bin
-b = k P + p as in Tables. Layout (W = texture width, rows from the top of the image; texel
+b = k P + p as in Tables. R x C is the largest bin's table: the bins of MixedTables (layout
+groups of their own resolutions) are its padded working copies (PAD past a bin's own R_b + 1
+edges and cumulative sums, masses and weights 0, profile nodes 1), laid out as one table of
+R x C cells each, and the shader reads only a bin's own entries (the guides and the count texel
+below bound its searches). Layout (W = texture width, rows from the top of the image; texel
 (x, y) is read at s = (x + 0.5) / W, t = (y + 0.5) / H):
 
     row 0                   header: (LAYOUT, K, R), (C, W, H), (P, phi period, the coordinates
@@ -29,15 +33,20 @@ b = k P + p as in Tables. Layout (W = texture width, rows from the top of the im
         +2 + R + i  b edges of row i, x = 0..C
         +2 + 2 R    row guide: at x = g < G_R = R, (lo, hi) brackets the row for u0 in [g, g + 1) / R
                     (red, green), and the row of a = 1 - cos theta_o in [g, g + 1) / R among the
-                    a edges (blue, alpha: the inverse's search, eval_tables)
-        +3 + 2 R + i  column guide of row i: at x = g < G_C = C, (lo, hi) brackets the column for
-                    u1 in [g, g + 1) / C (red, green), and the column of b in [g, g + 1) 2 pi / C
+                    a edges (blue, alpha: the inverse's search, eval_tables); at x = R the count
+                    texel (R_b, C_b): the corner's own rows and columns (edge_search's fallback)
+        +3 + 2 R + i  column guide of row i < R_b: at x = g < G_C = C, (lo, hi) brackets the column
+                    for u1 in [g, g + 1) / C (red, green), and the column of b in [g, g + 1) 2 pi / C
                     among the row's b edges (blue, alpha)
       with the four bins a sample blends in its channels: red (k, p), green (k + 1, p), blue
       (k, p + 1), alpha (k + 1, p + 1) (p + 1 wrapping to 0; k + 1 clipped to K - 1), so one
       fetch gives all four ends of the blend. A guide's bracket holds for any blend of the four
       (for every bin: its value at lo is below the fraction, at hi above it), so the shader's
-      binary searches start from it: one fetch instead of log2(R) or log2(C).
+      binary searches start from it: one fetch instead of log2(R) or log2(C). Guides come from
+      the corner's own entries (own_size), so lo < hi <= R_b (C_b): a search, and the entries
+      it reads at lo and lo + 1, stay within them. (The corner at the boundary of two layout
+      groups, two bins at one angle that are never blended, may join bins of two sizes: it is
+      read within the smaller's.)
 
 The file is named after the table file's content hash (`<stem>.osl-<hash12>.exr` next to
 the tables) and carries the full hash in its metadata: a changed table gets a new export
@@ -54,7 +63,7 @@ from ..errors import FlowBSDFError
 from ..plumbing.exrio import write_rgba_exr
 from ..plumbing.files import file_hash
 
-LAYOUT = 7      # 7: cells hold profiles (Tables.alpha, beta: NSEG + 1 node values per axis), three texels a cell
+LAYOUT = 8      # 8: tables of mixed resolutions (each corner's own rows and columns: its guides, its count texel)
 META_KEY = "flowbsdf_osl"
 
 
@@ -84,6 +93,13 @@ def _guide(cum, totals, count):
     # One index more on each side: the shader's target carries float32 rounding (its column
     # target u1 (c1 - c0) comes from the row CDF, not from the row's own sums).
     return np.stack([np.maximum(lo - 1, 0), np.minimum(hi + 1, n)], axis=1).astype(np.float64)
+
+
+def own_size(tables, bins):
+    """A corner's rows and columns: its bins' own (MixedTables pads its parts' to the largest).
+    Its bins share them, but at the boundary of two parts (two bins at one angle, never blended):
+    that corner's searches stay within the smaller's."""
+    return int(tables.bin_rows[bins].min()), int(tables.bin_cols[bins].min())
 
 
 def texture_image(tables):
@@ -123,11 +139,13 @@ def texture_image(tables):
                 img[base + 1, :R + 1, ch] = tables._a[b]
                 img[base + 2:base + 2 + R, :C + 1, ch] = tables._col_cum[b]
                 img[base + 2 + R:base + 2 + 2 * R, :C + 1, ch] = tables._b[b]
-            row_cdf, a_edges = f32(tables._row_cdf[blend]), f32(tables._a[blend])
+            rb, cb = own_size(tables, blend)
+            row_cdf, a_edges = f32(tables._row_cdf[blend, :rb + 1]), f32(tables._a[blend, :rb + 1])
             img[base + 2 + 2 * R, :R, :2] = _guide(row_cdf, row_cdf[:, -1], R)
             img[base + 2 + 2 * R, :R, 2:] = _guide(a_edges, np.ones(4), R)
-            for i in range(R):
-                col_cum, b_edges = f32(tables._col_cum[blend, i]), f32(tables._b[blend, i])
+            img[base + 2 + 2 * R, R, :2] = (rb, cb)
+            for i in range(rb):
+                col_cum, b_edges = f32(tables._col_cum[blend, i, :cb + 1]), f32(tables._b[blend, i, :cb + 1])
                 img[base + 3 + 2 * R + i, :C, :2] = _guide(col_cum, col_cum[:, -1], C)
                 img[base + 3 + 2 * R + i, :C, 2:] = _guide(b_edges, np.full(4, 2.0 * np.pi), C)
     return img.astype(np.float32)

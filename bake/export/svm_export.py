@@ -15,7 +15,12 @@ b = k P + p as in Tables. A sample blends NB bins: NB = 2 isotropic, (k, k + 1);
 anisotropic, (k, p), (k + 1, p), (k, p + 1), (k + 1, p + 1) (p + 1 wrapping to 0, k + 1
 clipped to K - 1). A *record* is one quantity at those NB bins, in that channel order:
 records pack 4 / NB to a texel (isotropic: red, green = the first record; blue, alpha = the
-second). Layout 1 (W x H texels):
+second). R x C is the largest bin's table: the bins of MixedTables (isotropic layout groups of
+their own resolutions) are its padded working copies (PAD, 1e30, past a bin's own R_b + 1 edges
+and cumulative sums; masses and weights 0, profile nodes 1), laid out as one table of R x C
+cells each; a corner's own R_b x C_b (its bins share it: the corner at the boundary of two
+groups, two bins at one angle that are never blended, takes the smaller) bounds its guides and
+its searches. Layout (W x H texels):
 
     row 0, global bin guides (a guide over a value v: entry g holds (t1, t2, t3, n), and the
     number of bin starts <= v is n - sum_j [v < t_j] for every v the graph puts in entry g
@@ -29,15 +34,18 @@ second). Layout 1 (W x H texels):
     with BH = R + 1, at block column c mod NX, block row c // NX (texel origin
     (BW (c mod NX), 1 + BH (c // NX))). Within a block:
         row 0, x = 0         header: (cos theta_k, cos theta_k+1, start_p, end_p) (start_p =
-                             phi_bin p - phi_bin 0, end_p the next start or the period)
+                             phi_bin p - phi_bin 0, end_p the next start or the period);
+                             isotropic tables: (cos theta_k, cos theta_k+1, R_b - 1, C_b - 1)
         row 0, x = 1 + g     row guide, g < GR: (lo, hi) brackets the row for u0 in
-                             [g, g + 1) / GR (osl_export._guide), lo lowered so that
-                             lo + 2^row_steps - 1 stays within the records
+                             [g, g + 1) / GR (osl_export._guide over the corner's own R_b + 1
+                             entries), lo lowered so that lo + 2^row_steps - 1 stays within
+                             the records
         row 0, x = XR + SR i records [row CDF(i), a edge(i)], i = 0 .. NR - 1, NR = max(R + 1,
                              2^row_steps, 2^ceil(log2 R)) (8 past the end: a branchless search,
                              the sampler's from its guide or the pdf's from 0, never stops there)
         row 1 + i, x = g     column guide of table row i, g < GC: (lo, hi) for u1 in
-                             [g, g + 1) / GC, lowered likewise
+                             [g, g + 1) / GC (over the row's own C_b + 1 entries; (0, 0) for
+                             i >= R_b), lowered likewise
         row 1 + i, x = XC + SC j   records [column cumsum(i, j), b edge(i, j)], j = 0 .. NC - 1,
                              NC = max(C + 1, 2^col_steps, 2^ceil(log2 C)) (8 past the end)
         row 1 + i, x = XX + SX j   records [mass, the a profile's NSEG + 1 node values, the b
@@ -49,7 +57,9 @@ The graph's binary searches are branchless: lo moves forward by 2^(n-1), ..., 1 
 blended record there is <= the target. The sampler's (CDFs) start from their guide's lo,
 n = row_steps or col_steps (the guides' widest bracket over all corners, fixed when the
 graph is built); the pdf's (the inverse, on the a and b edges) start from 0 over all R
-(C). Results are capped at R - 1 (C - 1): a blended total can round to <= a target near it.
+(C) (PAD and PAST_END records are above every target). Results are capped at the corner's
+R_b - 1 (C_b - 1; read from the header, isotropic tables; R - 1 and C - 1 anisotropic): a
+blended total can round to <= a target near it.
 
 Every side stays within MAX_SIDE (16384, the GPU texture limit of some devices): blocks
 wrap into rows of NX blocks; tables too large for that raise FlowBSDFError. (64 x 64 cells:
@@ -77,9 +87,9 @@ import numpy as np
 from ..core.tables import NSEG
 from ..errors import FlowBSDFError
 from ..plumbing.exrio import write_rgba_exr
-from .osl_export import _guide, ensure_export
+from .osl_export import _guide, ensure_export, own_size
 
-LAYOUT = 3      # 3: cells hold profiles (Tables.alpha, beta: NSEG + 1 node values per axis, normalized)
+LAYOUT = 4      # 4: tables of mixed resolutions (isotropic headers hold the corner's last row and column)
 META_KEY = "flowbsdf_svm"
 MAX_SIDE = 16384
 PAST_END = 8.0          # a record value above any target (CDFs and a <= 1, b <= 2 pi)
@@ -149,14 +159,16 @@ def texture_image(tables):
         k1, p1 = min(k + 1, K - 1), (p + 1) % P
         return [k * P + p, k1 * P + p, k * P + p1, k1 * P + p1][:nb]
 
-    # Guides per corner (and row), from the float32 values the graph reads.
+    # Guides per corner (and row), from the float32 values the graph reads: each corner's own
+    # rows and columns (rows past them: never reached, lo = hi = 0).
+    sizes = [own_size(tables, blend(k, p)) for k, p in corners]
     row_guides, col_guides = [], []
-    for k, p in corners:
-        cdf = _f32(tables._row_cdf[blend(k, p)])
+    for (k, p), (rb, cb) in zip(corners, sizes):
+        cdf = _f32(tables._row_cdf[blend(k, p), :rb + 1])
         row_guides.append(_guide(cdf, cdf[:, -1], R))
         for i in range(R):
-            cum = _f32(tables._col_cum[blend(k, p), i])
-            col_guides.append(_guide(cum, cum[:, -1], C))
+            cum = _f32(tables._col_cum[blend(k, p), i, :cb + 1])
+            col_guides.append(_guide(cum, cum[:, -1], C) if i < rb else np.zeros((C, 2)))
     row_steps, col_steps = _steps(row_guides), _steps(col_guides)
     # records for the widest search: the sampler's from its guides, the pdf's over all R (C)
     n_row = max(R + 1, 2 ** max(row_steps, _full_steps(R)))
@@ -196,7 +208,10 @@ def texture_image(tables):
         x0, y0 = bw * (c % nx), 1 + bh * (c // nx)
         block = img[y0:y0 + bh, x0:x0 + bw]
         bins = blend(k, p)
-        block[0, 0] = (cos_bins[k], cos_bins[min(k + 1, K - 1)], starts[p], ends[p])
+        if P > 1:
+            block[0, 0] = (cos_bins[k], cos_bins[min(k + 1, K - 1)], starts[p], ends[p])
+        else:
+            block[0, 0] = (cos_bins[k], cos_bins[min(k + 1, K - 1)], sizes[c][0] - 1, sizes[c][1] - 1)
         block[0, 1:1 + R, :2] = lowered(row_guides[c], n_row, row_steps)
         cdf = np.full((n_row, nb), PAST_END)
         cdf[:R + 1] = tables._row_cdf[bins].T

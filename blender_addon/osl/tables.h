@@ -2,7 +2,7 @@
 // evaluation. A port of bake/core/tables.py's Tables.sample and Tables._locate (the numpy reference).
 // Every texel is fetched with "interp", "closest" and zero derivatives, so values come back exact.
 
-#define LAYOUT 7
+#define LAYOUT 8
 #define NSEG 3
 #define LOG_MEAN_SERIES 1e-3
 #define K_SMALL 1e-4
@@ -352,32 +352,49 @@ void sample_tables(string file, float W, float H, int K, int R, int C, int NP, f
     wo = vector(s * cos(b + phi_i), s * sin(b + phi_i), 1.0 - a);
 }
 
+// The last k in [lo, hi) with blended edge_k <= x among the edges of texture row y (binary
+// search), its edge and the next one. (Its last reads at lo and hi = lo + 1 are kept, not re-read.)
+int bracket_search(string file, float W, float H, int y, int lo_guide, int hi_guide, float w[4], float x,
+                   output float e0, output float e1)
+{
+    int lo = lo_guide, hi = hi_guide;
+    e0 = -1.0;
+    e1 = -1.0;
+    while (hi - lo > 1) {
+        int mid = (lo + hi) / 2;
+        float e = fetch_blend(file, W, H, mid, y, w);
+        if (e <= x) { lo = mid; e0 = e; } else { hi = mid; e1 = e; }
+    }
+    if (e0 < 0.0)
+        e0 = fetch_blend(file, W, H, lo, y, w);
+    if (e1 < 0.0 || hi != lo + 1)
+        e1 = fetch_blend(file, W, H, lo + 1, y, w);
+    return lo;
+}
+
 // The last k < n with blended edge_k <= x among the edges of texture row y (x = 0 .. n), its
 // edge and the next one: searched within the guide's bracket [lo, hi), the whole row should
-// float rounding put x outside it. (The search's last reads at lo and hi = lo + 1 are the
-// bracket's edges: kept, not re-read.)
+// float rounding put x outside it.
 int edge_search(string file, float W, float H, int y, int n, int lo_guide, int hi_guide, float w[4], float x,
                 output float e0, output float e1)
 {
-    int lo = lo_guide, hi = hi_guide;
-    for (int pass = 0; pass < 2; pass++) {
-        e0 = -1.0;
-        e1 = -1.0;
-        while (hi - lo > 1) {
-            int mid = (lo + hi) / 2;
-            float e = fetch_blend(file, W, H, mid, y, w);
-            if (e <= x) { lo = mid; e0 = e; } else { hi = mid; e1 = e; }
-        }
-        if (e0 < 0.0)
-            e0 = fetch_blend(file, W, H, lo, y, w);
-        if (e1 < 0.0 || hi != lo + 1)
-            e1 = fetch_blend(file, W, H, lo + 1, y, w);
-        if ((e0 <= x || lo == 0) && (x < e1 || lo == n - 1))
-            break;
-        lo = 0;
-        hi = n;
-    }
-    return lo;
+    int k = bracket_search(file, W, H, y, lo_guide, hi_guide, w, x, e0, e1);
+    if ((e0 <= x || k == 0) && (x < e1 || k == n - 1))
+        return k;
+    return bracket_search(file, W, H, y, 0, n, w, x, e0, e1);
+}
+
+// edge_search among a corner's own edges (x = 0 .. n, n its rows (axis 0) or columns (axis 1)
+// from its count texel, x = R of the row guide's row): the count is read only when the guide's
+// bracket is not enough (x outside it, or x on the last edge).
+int own_edge_search(string file, float W, float H, int y, int R, int base, int axis, int lo_guide, int hi_guide,
+                    float w[4], float x, output float e0, output float e1)
+{
+    int k = bracket_search(file, W, H, y, lo_guide, hi_guide, w, x, e0, e1);
+    if ((e0 <= x || k == 0) && x < e1)
+        return k;
+    color count = fetch(file, W, H, R, base + 2 + 2 * R);
+    return edge_search(file, W, H, y, int(count[axis]), k, k + 1, w, x, e0, e1);
 }
 
 // The tables' pdf (per steradian) and baked f cos (= the cell's weight x pdf) at a direction
@@ -410,10 +427,10 @@ void eval_tables(string file, float W, float H, int K, int R, int C, int NP, flo
     float a0, a1, b0, b1;
     float alpha = 0;
     color guide = fetch4(file, W, H, clamp(int(a * R), 0, R - 1), base + 2 + 2 * R, alpha);
-    int i = edge_search(file, W, H, base + 1, R, int(guide[2]), int(alpha), w, a, a0, a1);
+    int i = own_edge_search(file, W, H, base + 1, R, base, 0, int(guide[2]), int(alpha), w, a, a0, a1);
     int brow = base + 2 + R + i;
     guide = fetch4(file, W, H, clamp(int(b * (C / (2.0 * M_PI))), 0, C - 1), base + 3 + 2 * R + i, alpha);
-    int j = edge_search(file, W, H, brow, C, int(guide[2]), int(alpha), w, b, b0, b1);
+    int j = own_edge_search(file, W, H, brow, R, base, 1, int(guide[2]), int(alpha), w, b, b0, b1);
     color weight;
     float mass, pa[4], pb[4];
     blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, mass, pa, pb);
