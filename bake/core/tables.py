@@ -515,11 +515,15 @@ class MixedTables:
     def nbytes(self):
         return sum(p.nbytes for p in self.parts)
 
+    def part_at(self, theta_i):
+        """The index of the part that samples theta_i (array or scalar)."""
+        return np.searchsorted(self.bounds, theta_i, side="right")
+
     def _each(self, method, wi, x):
         """method of the part each wi falls in, per sample (x: the other argument, (N, ...))."""
         x = np.atleast_2d(np.asarray(x, np.float64))
         wi, _ = as_dirs(wi, np.empty((len(x), 3)))
-        part = np.searchsorted(self.bounds, theta_phi(wi)[0], side="right")
+        part = self.part_at(theta_phi(wi)[0])
         if np.all(part == part[0]):
             return getattr(self.parts[part[0]], method)(wi, x)
         outs = None

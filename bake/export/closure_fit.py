@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.geometry import luminance
-from ..core.tables import open_tables
+from ..core.tables import MixedTables, open_tables
 from ..errors import FlowBSDFError
 from ..materials.analytic import ggx_ndf, ggx_lambda, ggx_reflection_pdf, ggx_sample_reflection
 from ..plumbing.exrio import write_rgba_exr
@@ -82,8 +82,8 @@ def baked_albedo(tables, cos_i):
     interpolated table (what a furnace render of the OSL back end converges to)."""
     theta = float(np.arccos(np.clip(cos_i, -1.0, 1.0)))
     wi = np.array([[np.sin(theta), 0.0, np.cos(theta)]])
-    if hasattr(tables, "parts"):        # MixedTables: the part theta_i falls in
-        tables = tables.parts[np.searchsorted(tables.bounds, theta, side="right")]
+    if isinstance(tables, MixedTables):        # the part theta_i falls in
+        tables = tables.parts[tables.part_at(theta)]
     bins, _ = tables._bins(wi)
     m = tables._lerp(tables._m, bins)[0]
     w = tables._lerp(tables._w.astype(np.float64), bins)[0]
