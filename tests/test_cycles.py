@@ -363,6 +363,22 @@ def test_osl_furnace_gives_the_baked_albedo(baked, name):
     _assert_furnace(img[inner], np.array(ref), np.array(var), spp)
 
 
+def test_osl_furnace_on_mixed_resolutions(tmp_path):
+    """MixedTables (12 x 16 cells below 50 deg, 24 x 20 above) through the add-on's node: a
+    sphere under a white sky, each pixel the baked albedo at its view angle, the pixels' on
+    both sides of the boundary."""
+    from bake.core.tables import open_tables
+    path = cs.mixed_tables({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.15}, "mixed", tmp_path)
+    tab = open_tables(path)
+    spp = 256
+    img, normal, inner, node, sc = _furnace(path, spp, "osl")
+    assert lb.node_status(node, sc) == "OSL"
+    cos = normal[inner][:, 2]
+    assert np.sum(cos > np.cos(np.radians(50.0))) > 20 and np.sum(cos < np.cos(np.radians(50.0))) > 20
+    ref, var = zip(*(_albedo_and_variance(tab, np.array([np.sqrt(1.0 - c * c), 0.0, c])) for c in cos))
+    _assert_furnace(img[inner], np.array(ref), np.array(var), spp)
+
+
 def test_fit_furnace_gives_the_fitted_albedo(baked):
     """The fit back end in Cycles (SVM closures) reflects what the fit file says it does."""
     path = baked["gold"]

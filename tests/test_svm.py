@@ -439,6 +439,18 @@ def test_svm_furnace_gives_the_baked_albedo(svm, plastic):
     cs.assert_furnace(img[inner], np.array(ref), np.array(var), spp)
 
 
+def test_svm_furnace_on_mixed_resolutions(svm, mixed):
+    """MixedTables in a white furnace, OSL off: each pixel the baked albedo at its view angle,
+    the pixels' on both sides of the 50 deg boundary."""
+    tab = open_tables(mixed)
+    spp = 256
+    img, normal, inner = _svm_furnace(svm, svm_export.ensure_svm_export(mixed), spp)
+    cos = normal[inner][:, 2]
+    assert np.sum(cos > np.cos(np.radians(50.0))) > 20 and np.sum(cos < np.cos(np.radians(50.0))) > 20
+    ref, var = zip(*(cs.albedo_and_variance(tab, np.array([np.sqrt(1.0 - c * c), 0.0, c])) for c in cos))
+    cs.assert_furnace(img[inner], np.array(ref), np.array(var), spp)
+
+
 def test_svm_furnace_anisotropic_with_a_tangent(svm, brushed):
     """Anisotropic tables with the Tangent input linked: each pixel is the baked albedo at its
     wi in the frame of the tangent projected onto the tangent plane."""
