@@ -798,6 +798,21 @@ def test_planner_chooses_the_layout_that_interpolates_better(case):
         assert np.max(theirs / ours) > 3.0, (ours, theirs)
 
 
+def _assert_groups_apart_at_50(tab, lower, upper, u, degrees, rtol):
+    """Tables of two layout groups joined at 50 deg: one density at each of `degrees` (contract
+    and chi-square, Šidák over 2 x their count), each side of the boundary its own group's (pdf
+    and eval)."""
+    for deg in degrees:
+        wi = spherical_dir(np.radians(deg), 0.3)
+        assert_sampler_contract(tab, wi, u, pdf_rtol=1e-6, invert_atol=1e-6,
+                                chi2=dict(n=200_000, n_tests=2 * len(degrees)), where=f"{tab.backend} {deg}")
+    wo = lower.sample(spherical_dir(np.radians(49.0), 0.3), u[:512])[0]
+    for deg, group in ((50.0 - 1e-6, lower), (50.0 + 1e-6, upper)):
+        wi = spherical_dir(np.radians(deg), 0.3)
+        np.testing.assert_allclose(tab.pdf(wi, wo), group.pdf(wi, wo), rtol=rtol, err_msg=f"{tab.backend} {deg}")
+        np.testing.assert_allclose(tab.eval(wi, wo), group.eval(wi, wo), rtol=rtol, err_msg=f"{tab.backend} {deg}")
+
+
 def test_layout_groups_joined_at_a_repeated_angle(tmp_path):
     """Two layout groups (each built on its own) joined at a boundary angle that appears twice:
     sample and pdf stay one density just below, at and above it, in numpy and C (contract and
@@ -817,14 +832,7 @@ def test_layout_groups_joined_at_a_repeated_angle(tmp_path):
     for backend in ("numpy", "c"):
         loaded = open_tables(path)
         loaded.backend = backend
-        for deg in (49.0, 50.0 - 1e-7, 50.0, 50.0 + 1e-7, 51.0):
-            wi = spherical_dir(np.radians(deg), 0.3)
-            assert_sampler_contract(loaded, wi, u, pdf_rtol=1e-6, invert_atol=1e-6,
-                                    chi2=dict(n=200_000, n_tests=10), where=f"{backend} {deg}")
-        wo = lower.sample(spherical_dir(np.radians(49.0), 0.3), u[:512])[0]
-        for deg, group in ((50.0 - 1e-6, lower), (50.0 + 1e-6, upper)):
-            wi = spherical_dir(np.radians(deg), 0.3)
-            np.testing.assert_allclose(loaded.pdf(wi, wo), group.pdf(wi, wo), rtol=1e-4, err_msg=f"{backend} {deg}")
+        _assert_groups_apart_at_50(loaded, lower, upper, u, (49.0, 50.0 - 1e-7, 50.0, 50.0 + 1e-7, 51.0), rtol=1e-4)
     assert groups_ok(np.radians([0, 30, 50, 50, 70, 89.9]))
     for bad in ([0, 30, 50, 50, 50, 89.9], [0, 0, 30, 89.9], [0, 30, 89.9, 89.9], [0, 50, 30, 89.9]):
         assert not groups_ok(np.radians(bad)), bad
@@ -855,15 +863,7 @@ def test_layout_groups_of_their_own_resolutions(tmp_path):
         loaded = open_tables(path)
         assert isinstance(loaded, MixedTables) and [(p.rows, p.cols) for p in loaded.parts] == [(12, 16), (24, 20)]
         loaded.backend = backend
-        for deg in (10.0, 49.0, 50.0 - 1e-7, 50.0, 51.0, 89.95):
-            wi = spherical_dir(np.radians(deg), 0.3)
-            assert_sampler_contract(loaded, wi, u, pdf_rtol=1e-6, invert_atol=1e-6,
-                                    chi2=dict(n=200_000, n_tests=12), where=f"{backend} {deg}")
-        wo = lower.sample(spherical_dir(np.radians(49.0), 0.3), u[:512])[0]
-        for deg, group in ((50.0 - 1e-6, lower), (50.0 + 1e-6, upper)):
-            wi = spherical_dir(np.radians(deg), 0.3)
-            np.testing.assert_allclose(loaded.pdf(wi, wo), group.pdf(wi, wo), rtol=1e-6, err_msg=f"{backend} {deg}")
-            np.testing.assert_allclose(loaded.eval(wi, wo), group.eval(wi, wo), rtol=1e-6)
+        _assert_groups_apart_at_50(loaded, lower, upper, u, (10.0, 49.0, 50.0 - 1e-7, 50.0, 51.0, 89.95), rtol=1e-6)
         # one call, wi on both sides: each sample from its own group
         wis = np.stack([spherical_dir(np.radians(d), 0.3) for d in np.linspace(1.0, 89.0, 512)])
         got, pdf = loaded.sample(wis, u[:512])
@@ -942,19 +942,45 @@ def test_planner_splits_into_layout_groups_where_that_is_closer():
         np.testing.assert_allclose(tab.pdf(wi, wo), group.pdf(wi, wo), rtol=1e-6, err_msg=f"{deg}")
 
 
-class GlossAtGrazing(Material):
-    """f·cos: a broad lobe fixed in wo below theta_i 55 deg, fading into a narrow mirror lobe by
-    65 deg (a floor of 1e-3): coarse cells hold the low angles, the high ones need bins."""
-    C = spherical_dir(np.radians(30.0), 0.5 * np.pi)
+class MirrorTakesOver(Material):
+    """f·cos: a broad lobe fixed in wo below theta_i START deg, fading into a narrow mirror lobe
+    by START + 10 (a floor of 1e-3)."""
+    START, C, BROAD, NARROW = 20.0, spherical_dir(np.radians(50.0), 0.5 * np.pi), 0.05, 0.002
 
     def eval(self, wi, wo):
         wi, wo = as_dirs(wi, wo)
-        s = np.clip((np.degrees(np.arccos(np.clip(wi[:, 2], -1.0, 1.0))) - 55.0) / 10.0, 0.0, 1.0)
+        s = np.clip((np.degrees(np.arccos(np.clip(wi[:, 2], -1.0, 1.0))) - self.START) / 10.0, 0.0, 1.0)
 
         def lobe(c, width):
             return np.exp(-np.sum((wo - c) ** 2, axis=1) / width)
-        g = 1e-3 + (1.0 - s) * lobe(self.C, 0.3) + s * 20.0 * lobe(wi * np.array([-1.0, -1.0, 1.0]), 0.003)
+        g = 1e-3 + (1.0 - s) * lobe(self.C, self.BROAD) + s * 20.0 * lobe(wi * np.array([-1.0, -1.0, 1.0]), self.NARROW)
         return np.repeat((g / np.maximum(wo[:, 2], 1e-12))[:, None], 3, axis=1) * (wo[:, 2:3] > 0)
+
+
+class GlossAtGrazing(MirrorTakesOver):
+    """The handover at 55-65 deg, from a broader lobe: coarse cells hold the low angles, the
+    high ones need bins."""
+    START, C, BROAD, NARROW = 55.0, spherical_dir(np.radians(30.0), 0.5 * np.pi), 0.3, 0.003
+
+
+def test_planner_keeps_one_layout_where_groups_are_not_closer():
+    """Where the material changes below the groups' candidate boundaries (55-75 deg), two groups
+    only lose the low group's cells to its change (the planner's estimate, measured: 1.67x
+    against 1.40x for one layout for all bins): it keeps one group, and the tables are that
+    layout's build."""
+    from bake.core.tabulate import build_tables
+    mat = MirrorTakesOver()
+    ideal = IdealSampler(mat, resolution=128)
+    lines = []
+    opts = dict(resolution=16, grid=64, coords="wo", lobe_width=0.15)
+    tab = plan_tables(mat, ideal, log=lines.append, tol=0.002, samples=1024, first_bins=7, theta_max_deg=85.0,
+                      memory_budget=16 * 16 * 26 * 12, **opts)
+    tried = [s for s in lines if "two groups split" in s]
+    assert tried and tab.meta["groups"] == 1 and len(np.unique(tab.theta_bins)) == len(tab.theta_bins), lines
+    assert lines[[s.startswith("tables: building") for s in lines].index(True) - 1] == "between bins: one placement for all bins"
+    same = build_tables(mat, ideal, tab.theta_bins, 16, 16, grid=64, coords="wo", lobe_width=0.15, window=None)
+    for name in ("a_edges", "b_edges", "mass", "weights"):
+        assert np.array_equal(getattr(same, name), getattr(tab, name)), name
 
 
 def test_planner_gives_layout_groups_their_own_resolutions(monkeypatch):
@@ -980,41 +1006,6 @@ def test_planner_gives_layout_groups_their_own_resolutions(monkeypatch):
     ours, theirs = (sum(relative_variance_ref(mat, s, spherical_dir(t, 0.0), ideal, k=64, seed=1)[0] for t in angles)
                     for s in (tab, one))
     assert ours < 0.5 * theirs, (ours, theirs)
-
-
-class MirrorTakesOver(Material):
-    """f·cos: a broad lobe fixed in wo below theta_i 20 deg, fading into a narrow mirror lobe by
-    30 deg (a floor of 1e-3)."""
-    C = spherical_dir(np.radians(50.0), 0.5 * np.pi)
-
-    def eval(self, wi, wo):
-        wi, wo = as_dirs(wi, wo)
-        s = np.clip((np.degrees(np.arccos(np.clip(wi[:, 2], -1.0, 1.0))) - 20.0) / 10.0, 0.0, 1.0)
-
-        def lobe(c, width):
-            return np.exp(-np.sum((wo - c) ** 2, axis=1) / width)
-        g = 1e-3 + (1.0 - s) * lobe(self.C, 0.05) + s * 20.0 * lobe(wi * np.array([-1.0, -1.0, 1.0]), 0.002)
-        return np.repeat((g / np.maximum(wo[:, 2], 1e-12))[:, None], 3, axis=1) * (wo[:, 2:3] > 0)
-
-
-def test_planner_keeps_one_layout_where_groups_are_not_closer():
-    """Where the material changes below the groups' candidate boundaries (55-75 deg), two groups
-    only lose the low group's cells to its change (the planner's estimate, measured: 1.67x
-    against 1.40x for one layout for all bins): it keeps one group, and the tables are that
-    layout's build."""
-    from bake.core.tabulate import build_tables
-    mat = MirrorTakesOver()
-    ideal = IdealSampler(mat, resolution=128)
-    lines = []
-    opts = dict(resolution=16, grid=64, coords="wo", lobe_width=0.15)
-    tab = plan_tables(mat, ideal, log=lines.append, tol=0.002, samples=1024, first_bins=7, theta_max_deg=85.0,
-                      memory_budget=16 * 16 * 26 * 12, **opts)
-    tried = [s for s in lines if "two groups split" in s]
-    assert tried and tab.meta["groups"] == 1 and len(np.unique(tab.theta_bins)) == len(tab.theta_bins), lines
-    assert lines[[s.startswith("tables: building") for s in lines].index(True) - 1] == "between bins: one placement for all bins"
-    same = build_tables(mat, ideal, tab.theta_bins, 16, 16, grid=64, coords="wo", lobe_width=0.15, window=None)
-    for name in ("a_edges", "b_edges", "mass", "weights"):
-        assert np.array_equal(getattr(same, name), getattr(tab, name)), name
 
 
 class RidgeOnPlane(Material):
