@@ -1374,7 +1374,7 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
     # Groups of their own resolutions are tried at the split whose groups of one resolution came
     # closest (measured on the shared files at 2 MB, all three splits each: the mixed candidate
     # that won was at that split or tied with it), two builds instead of six.
-    total = len(candidates) + (len(coarser) * (1 + len(finer)) if splits else 0)
+    total = len(candidates) + (len(coarser) * (1 + len(finer)) if splits else 0)     # at most
     log(f"between bins: comparing {total} cell placements on {len(bins)} angles")
     draws = list(_parallel(lambda t: ReferencePoints(material, spherical_dir(t, 0.0), ideal, side, 0), angles))
     floors = np.array([max(d.rv(ideal)[0], 0.5 * tol) for d in draws])
@@ -1394,7 +1394,9 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
 
     for candidate in candidates:
         compare(*candidate)
-    for candidate in mixed(best_split[1]) if best_split else []:
+    more = mixed(best_split[1]) if best_split else []
+    total = len(candidates) + len(more)     # announced as at most this many: now known
+    for candidate in more:
         compare(*candidate)
     log(f"between bins: {best[1]}")
     return best[2:]
