@@ -1077,8 +1077,10 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     Layout (isotropic, unless `window` is given): the planned bins' tables are built from the
     ideal with each of LAYOUT_WINDOWS (a bin's layout pooled with its neighbours', or one for all
     bins) and split into two layout groups at a few angles (each group its own cells), and the
-    one typically closest to the ideal at the bins and midpoints is kept (_between_bins;
-    tables.meta["window"], ["groups"]). The interval probes above pool the pair alone.
+    one typically closest to the ideal at the bins and between them is kept (_between_bins;
+    tables.meta["window"], ["groups"]); the best split is also tried with the lower group at
+    coarser cells and the memory it frees spent above (MixedTables; meta["resolution"] then lists
+    both). The interval probes above pool the pair alone.
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
     (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
@@ -1288,7 +1290,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     else:   # from the source's own points: the probes' are the ideal's
         tables = build_grouped(material, source, bins, resolution, phi_bins=phi_bins, progress=built,
                                **{**opts, "cache": cache if source is ideal else {}})
-    tables.meta.update(resolution=resolution if np.ndim(resolution) == 0 else [int(r) for r in resolution], lobe_width=lobe_width, tol=tol, ideal_ratio=ideal_ratio,
+    tables.meta.update(resolution=resolution if np.ndim(resolution) == 0 else [int(r) for r in resolution],
+                       lobe_width=lobe_width, tol=tol, ideal_ratio=ideal_ratio,
                        window=opts.get("window", 1),
                        groups=int(np.sum(np.diff(bins) == 0)) + 1)
     if phi_bins is not None:
