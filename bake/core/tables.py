@@ -522,10 +522,10 @@ class MixedTables:
     def _each(self, method, wi, x):
         """method of the part each wi falls in, per sample (x: the other argument, (N, ...))."""
         x = np.atleast_2d(np.asarray(x, np.float64))
+        if np.shape(wi) in ((3,), (1, 3)):     # one direction: one part, wi passed on as it is
+            return getattr(self.parts[int(self.part_at(theta_phi(np.reshape(wi, (1, 3)))[0][0]))], method)(wi, x)
         wi, _ = as_dirs(wi, np.empty((len(x), 3)))
         part = self.part_at(theta_phi(wi)[0])
-        if np.all(part == part[0]):
-            return getattr(self.parts[part[0]], method)(wi, x)
         outs = None
         for p in np.unique(part):
             sel = part == p
