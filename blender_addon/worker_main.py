@@ -114,11 +114,11 @@ class BakeProgress(Step):
 
     def __init__(self, name, settings, clock=time.monotonic):
         import inspect
-        from bake.core.tabulate import ISO_PLANNED, RESOLUTIONS, bin_bytes, plan_tables
+        from bake.core.tabulate import ISO_PLANNED, RESOLUTIONS, bins_within, plan_tables
         super().__init__(clock)
         defaults = {k: v.default for k, v in inspect.signature(plan_tables).parameters.items()}
         get = lambda key: settings.get(key, defaults[key])        # noqa: E731
-        self.name, self.resolutions, self.bin_bytes = name, RESOLUTIONS, bin_bytes
+        self.name, self.resolutions, self.bins_within = name, RESOLUTIONS, bins_within
         self.planned_resolution, self.first = get("resolution"), get("first_bins")
         self.target, self.budget = 1.0, get("memory_budget")     # the planner's scores are x its targets
         self.layout_names = ISO_PLANNED
@@ -175,7 +175,7 @@ class BakeProgress(Step):
         self.report()
 
     def max_bins(self):
-        return max(2, int(self.budget // self.bin_bytes(self.resolution))) if self.resolution else None
+        return self.bins_within(self.budget, self.resolution) if self.resolution else None
 
     def angles_left(self):
         """(angles the planner will still add, True when that is the memory cap)."""

@@ -276,8 +276,9 @@ def test_bake_progress_in_words_from_the_planner_log(monkeypatch):
     assert steps[-1][1] == "[step 0.050] Baking MilitaryGreen: choosing the table resolution (1 of 5)"
     for t, r in ((9, 24), (10, 32), (13, 48), (18, 64)):
         feed(float(t), f"[bake] MilitaryGreen: resolution {r}: single-bin rv 4.05x the target or more")
-    from bake.core.tabulate import bin_bytes
-    assert progress.resolution == 64 and progress.max_bins() == 4_000_000 // bin_bytes(64) == 37     # 64² cells and their edges in 4 MB
+    from bake.core.tabulate import bin_bytes, layout_bytes
+    assert progress.resolution == 64 and progress.max_bins() == 44      # 64² cells in 4 MB, beside two layouts' edges
+    assert 44 * bin_bytes(64) + 2 * layout_bytes(64) <= 4_000_000 < 45 * bin_bytes(64) + 2 * layout_bytes(64)
     scores = [228.5, 141, 104, 73, 55, 54, 42.25, 21.85, 15.5, 9.9, 9.1]      # x the target
     for k, score in enumerate(scores):
         feed(30.0 + 10 * k, f"[bake] MilitaryGreen: bins {7 + k}: split 1.00-2.00 deg (midpoint loss {score}x its target)")

@@ -11,8 +11,8 @@ from bake.materials.base import Material, as_dirs
 from bake.quality.metrics import chi2_test, relative_variance, relative_variance_ref
 from bake.core.tables import (K_MAX, NSEG, TWO_PI, Tables, exp_cdf, exp_density, exp_inverse_cdf, from_ab,
                               open_tables, profile_cdf, profile_density, profile_nodes, profile_sample, to_ab)
-from bake.core.tabulate import (BYTES_PER_CELL, ISO_COORDS, _WoFrame, _finish_bin, _moments_around, _nodes,
-                                bin_bytes, build_tables, exp_rate_for_mean, lobe_width_of, plan_tables)
+from bake.core.tabulate import (CELL_BYTES, ISO_COORDS, _WoFrame, _finish_bin, _moments_around, _nodes,
+                                bin_bytes, build_tables, layout_bytes, exp_rate_for_mean, lobe_width_of, plan_tables)
 from contract import assert_sampler_contract
 
 HARD = {
@@ -271,6 +271,35 @@ def test_quality_on_a_sharp_lobe():
         assert rv < relative_variance(mat, ideal, incident(theta), n=100_000)[0] * 10
 
 
+def test_bins_of_one_layout_store_their_edges_once(tables, tmp_path):
+    from bake.plumbing.exrio import read_exr, write_exr
+    mat, own = tables["sheen/halfpolar"]
+    one = build_tables(mat, IdealSampler(mat, resolution=128), BINS, rows=24, cols=24, grid=256, lobe_width=0.1,
+                       coords="halfpolar", window=None)
+    # One placement for all bins: one layout, but at 89.5 deg, where the lobe's rings (the row
+    # knots the placement is relative to) reach the horizon.
+    index, first = one.layouts
+    assert list(first) == [0, len(BINS) - 1] and list(index) == [0] * (len(BINS) - 1) + [1]
+    assert one.nbytes == own.nbytes - (len(BINS) - 2) * layout_bytes(24)
+    one.save(tmp_path / "one.exr")
+    arrays, meta = read_exr(tmp_path / "one.exr")
+    assert arrays["a_edges"].shape == (2, 25) and arrays["b_edges"].shape == (48, 25)
+    assert meta["layouts"] == list(index) and meta["format_version"] == 5
+    back = open_tables(tmp_path / "one.exr")
+    assert back.nbytes == one.nbytes
+    wi = incident(63, 0.2)
+    u = np.random.default_rng(5).random((2000, 2))
+    wo, pdf = one.sample(wi, u)[:2]
+    np.testing.assert_array_equal(back.sample(wi, u)[0], wo)
+    np.testing.assert_array_equal(back.pdf(wi, wo), one.pdf(wi, wo))
+    # A file of format 3 (the edges in every bin, no layouts) reads as before.
+    old = {**arrays, "a_edges": arrays["a_edges"][index], "b_edges": arrays["b_edges"].reshape(2, 24, 25)[index].reshape(-1, 25)}
+    write_exr(tmp_path / "v3.exr", old, {k: v for k, v in meta.items() if k != "layouts"} | {"format_version": 3})
+    v3 = open_tables(tmp_path / "v3.exr")
+    np.testing.assert_array_equal(v3.pdf(wi, wo), one.pdf(wi, wo))
+    assert v3.nbytes == one.nbytes        # the same tables, the same size as they are stored now
+
+
 @pytest.mark.parametrize("coords", ["wo", "halfpolar"])
 def test_file_round_trip_and_corruption(tables, tmp_path, coords):
     mat, tab = tables[f"sheen/{coords}"]
@@ -283,12 +312,13 @@ def test_file_round_trip_and_corruption(tables, tmp_path, coords):
     u = np.random.default_rng(3).random((1000, 2))
     np.testing.assert_array_equal(back.sample(wi, u)[0], tab.sample(wi, u)[0])
     assert not list(tmp_path.glob(".*.tmp")), "a temporary file left behind"
-    # The builder's leans and weights are float16 in memory and in the file (18 bytes a cell with
-    # the column edges: BYTES_PER_CELL), the edges and masses float32.
+    # The builder's profiles and weights are float16 in memory and in the file (with the mass, 22
+    # bytes a cell in each bin: CELL_BYTES), the edges (once per layout) and masses float32.
     assert [x.dtype for x in (back.alpha, back.beta, back.weights)] == [np.float16] * 3
     assert [x.dtype for x in (back.a_edges, back.b_edges, back.mass)] == [np.float32] * 3
-    cells = back.mass.size
-    assert back.nbytes == cells * BYTES_PER_CELL + back.a_edges.nbytes + back.b_edges[..., :1].nbytes
+    layouts = len(back.layouts[1])
+    assert layouts == len(BINS)      # a bin's layout pooled with its neighbours': each bin its own
+    assert back.nbytes == back.mass.size * CELL_BYTES + layouts * layout_bytes(24)
     # Weights beyond float16's range stay float32 (never inf), and come back so.
     big = Tables(tab.theta_bins, tab.a_edges, tab.b_edges, tab.mass, tab.alpha, tab.beta,
                  tab.weights.astype(np.float32) * 1e5, coords=coords)
@@ -463,12 +493,14 @@ def test_resolutions_leave_the_budget_room_for_enough_angles():
     the memory budget (a sharp file's 64² at 2 MB left 17 angles and lost up to 53x the ideal's rv
     between them); a budget too small for any of them leaves the choice to the probe."""
     from bake.core.tabulate import MIN_BINS, RESOLUTIONS, _resolutions_within
-    per_bin = bin_bytes
+
+    def need(r):     # MIN_BINS of r² cells, beside two layout groups' edges
+        return MIN_BINS * bin_bytes(r) + 2 * layout_bytes(r)
     for budget in (1_000_000, 2_000_000, 4_000_000, 16_000_000):
-        within = _resolutions_within(budget)
-        assert within == [r for r in RESOLUTIONS if budget // per_bin(r) >= MIN_BINS]
-    assert _resolutions_within(MIN_BINS * per_bin(32)) == [16, 24, 32]
-    assert _resolutions_within(MIN_BINS * per_bin(32) - 1) == [16, 24]
+        assert _resolutions_within(budget) == [r for r in RESOLUTIONS if budget >= need(r)]
+    assert _resolutions_within(2_000_000)[-1] == 48 and _resolutions_within(4_000_000)[-1] == 64
+    assert _resolutions_within(need(32)) == [16, 24, 32]
+    assert _resolutions_within(need(32) - 1) == [16, 24]
     assert _resolutions_within(1) == list(RESOLUTIONS)
 
 
@@ -778,7 +810,7 @@ def test_planner_chooses_the_layout_that_interpolates_better(case):
     ideal = IdealSampler(mat, resolution=32)
     lines = []
     tab = plan_tables(mat, ideal, log=lines.append, resolution=16, tol=0.1, grid=64, samples=1024, first_bins=3,
-                      coords="wo", lobe_width=None, memory_budget=16 * 16 * 26 * 5)
+                      coords="wo", lobe_width=None, memory_budget=4 * (bin_bytes(16) + layout_bytes(16)))
     assert tab.meta["window"] == (None if case == "fading lobes" else 1), lines
     assert tab.meta["groups"] == 1 and len(tab.theta_bins) < 6, lines        # layout groups: tried from 6 bins on
     other = build_tables(mat, ideal, tab.theta_bins, 16, 16, grid=64, coords="wo", lobe_width=None,
@@ -878,6 +910,19 @@ def test_layout_groups_of_their_own_resolutions(tmp_path):
         write_exr(tmp_path / "bad.exr", a, m)
         with pytest.raises(FlowBSDFError, match="missing|cover"):
             open_tables(tmp_path / "bad.exr")
+    # Each part's edges once per layout (format 6: one each here); a file of format 4 (the edges in
+    # every bin, no layouts) reads alike.
+    assert meta["format_version"] == 6 and [p["layouts"] for p in meta["parts"]] == [[0] * 3, [0] * 3]
+    old = dict(arrays)
+    for n, p in enumerate((lower, upper)):
+        at = f".{n}" if n else ""
+        old["a_edges" + at] = np.repeat(arrays["a_edges" + at], 3, axis=0)
+        old["b_edges" + at] = np.tile(arrays["b_edges" + at], (3, 1))
+    write_exr(tmp_path / "v4.exr", old, {**meta, "format_version": 4, "parts": [
+        {k: v for k, v in p.items() if k != "layouts"} for p in meta["parts"]]})
+    wi = spherical_dir(np.radians(61.0), 0.3)
+    wo = tab.sample(wi, u[:999])[0]
+    np.testing.assert_array_equal(open_tables(tmp_path / "v4.exr").pdf(wi, wo), tab.pdf(wi, wo))
     # the planner's entry: a resolution per group
     built = build_grouped(mat, ideal, np.radians([0.0, 30.0, 50.0, 50.0, 70.0, 89.9]), [12, 24], grid=96)
     assert isinstance(built, MixedTables) and [p.rows for p in built.parts] == [12, 24]
@@ -889,10 +934,10 @@ def test_planner_splits_into_layout_groups_where_that_is_closer():
     """A near-mirror plastic (albedo 0.9, alpha 0.01): the diffuse base holds most of f·cos at
     low theta_i, the mirror lobe at grazing; one layout for all bins shares each lobe segment's
     cells out by the weight of all of them. Two layout groups (each built alone, joined at a
-    repeated bin) are typically closer to the ideal (the planner's own estimate, measured: 2.21x
-    against 2.40x for one layout, 3.09x for the neighbours'), and so they are measured apart from
-    it: rv summed over theta_i 2.5..87.5 by 5 (k=64 from the ideal's draws) 0.226 against 0.350
-    for one layout on the same bins. The planner keeps them within the budget, and from a source
+    repeated bin) are typically closer to the ideal (the planner's own estimate, measured: 2.41x
+    against 2.48x for one layout, 3.00x for the neighbours'), and so they are measured apart from
+    it: rv summed over theta_i 2.5..87.5 by 5 (k=64 from the ideal's draws) 0.251 against 0.320
+    for one layout on the same bins (0.249 against 0.297-0.320 at budgets of 17-21 bins). The planner keeps them within the budget, and from a source
     other than the ideal (as a flow) builds each group from the source's points (at each planned
     angle once) and joins them: one density just below and above the boundary (contract,
     chi-square), each side its own group's."""
@@ -910,7 +955,7 @@ def test_planner_splits_into_layout_groups_where_that_is_closer():
         def pdf(self, wi, wo):
             return ideal.pdf(wi, wo)
 
-    lines, budget = [], 150_000
+    lines, budget = [], 127_000
     tab = plan_tables(mat, Source(), log=lines.append, resolution=16, tol=0.01, grid=96, samples=1024, first_bins=7,
                       coords="halfpolar", memory_budget=budget, ideal_resolution=64)
     bins = np.degrees(tab.theta_bins)
@@ -925,7 +970,7 @@ def test_planner_splits_into_layout_groups_where_that_is_closer():
                               lobe_width=tab.meta["lobe_width"])
     ours, theirs = (sum(relative_variance_ref(mat, s, spherical_dir(t, 0.0), ideal, k=64, seed=1)[0] for t in angles)
                     for s in (tab, one_layout))
-    assert ours < 0.8 * theirs, (ours, theirs)
+    assert ours < 0.85 * theirs, (ours, theirs)
     boundary = bins[np.flatnonzero(np.diff(bins) == 0)[0]]
     assert sorted(set(asked)) == sorted(set(round(float(b), 6) for b in bins)) and len(asked) == len(set(asked))
     cut = int(np.flatnonzero(np.diff(bins) == 0)[0]) + 1
@@ -974,7 +1019,7 @@ def test_planner_keeps_one_layout_where_groups_are_not_closer():
     lines = []
     opts = dict(resolution=16, grid=64, coords="wo", lobe_width=0.15)
     tab = plan_tables(mat, ideal, log=lines.append, tol=0.002, samples=1024, first_bins=7, theta_max_deg=85.0,
-                      memory_budget=16 * 16 * 26 * 12, **opts)
+                      memory_budget=11 * bin_bytes(16) + 2 * layout_bytes(16), **opts)
     tried = [s for s in lines if "two groups split" in s]
     assert tried and tab.meta["groups"] == 1 and len(np.unique(tab.theta_bins)) == len(tab.theta_bins), lines
     assert lines[[s.startswith("tables: building") for s in lines].index(True) - 1] == "between bins: one placement for all bins"
@@ -995,7 +1040,7 @@ def test_planner_gives_layout_groups_their_own_resolutions(monkeypatch):
     mat = GlossAtGrazing()
     ideal = IdealSampler(mat, resolution=64)
     settings = dict(resolution=24, tol=0.01, grid=96, samples=1024, first_bins=7, coords="halfpolar",
-                    memory_budget=150_000, ideal_resolution=64)
+                    memory_budget=125_000, ideal_resolution=64)
     tab = plan_tables(mat, ideal, **settings)
     assert isinstance(tab, MixedTables) and [p.rows for p in tab.parts] == [16, 24], tab.meta
     assert tab.meta["resolution"] == [16, 24] and tab.nbytes <= settings["memory_budget"]
@@ -1075,7 +1120,7 @@ def test_planner_probes_near_normal_intervals_at_their_middle_angle(monkeypatch)
 
     def planned():
         tab = plan_tables(mat, ideal, resolution=16, tol=0.01, grid=64, samples=1024, first_bins=3, coords="wo",
-                          lobe_width=None, memory_budget=16 * 16 * 26 * 7, window=1)
+                          lobe_width=None, memory_budget=6 * (bin_bytes(16) + layout_bytes(16)), window=1)
         return tab, np.array([relative_variance_ref(mat, tab, spherical_dir(np.radians(d), 0.0), ideal, k=64, seed=1)[0]
                               for d in (2.0, 3.0, 4.0, 5.0)])
     tab, rv = planned()

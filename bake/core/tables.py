@@ -40,8 +40,10 @@ displaced off the flank it was fitted to: blending exponentials' rates did that,
 f·cos, rv 8.5e4 x the ideal's on a measured file; leans, then node values, followed the mixture).
 
 Storage: edges and masses float32; the profiles' logs and the RGB weights float16 as the
-builder makes them (weights beyond float16's range stay float32): 26 bytes a cell. The stored
-values define the sampler, whatever their type.
+builder makes them (weights beyond float16's range stay float32): 22 bytes a cell in each bin,
+and its edges (4 more) once per layout: bins whose cells are placed alike (a layout group's,
+tabulate._build_column) keep one copy in the file and in `nbytes` (`layouts`). The stored values
+define the sampler, whatever their type.
 
 Anisotropic materials (`phi_bins`): bins over theta_i x phi_i, the phi_i bins increasing
 azimuths within one period P of the material's rotational symmetry (`phi_period`, 2 pi
@@ -79,7 +81,9 @@ try:        # the optional C fast path (never required: Blender imports bake/ wi
 except Exception:   # noqa: BLE001
     _fasttables = None
 
-FORMAT_VERSION = 3      # 3: alpha and beta hold profiles (2: exponentials' leans, 1: their rates)
+# 5: the cell edges once per layout, "layouts" naming each bin's (3: once per bin; alpha and beta
+# hold profiles since 3, 2 held exponentials' leans, 1 their rates)
+FORMAT_VERSION = 5
 TWO_PI = 2.0 * np.pi
 # The cells' coordinates: (a, b) of wo, or halfvector.py's of h (concentric: anisotropic
 # tables; polar: isotropic ones)
@@ -309,8 +313,22 @@ class Tables:
     # -----------------------------------------------------------------------------------
 
     @property
+    def layouts(self):
+        """(each working bin's layout, the first bin of each layout): bins whose cell edges are
+        the same (a layout group's: tabulate.join_groups) share one layout, stored once."""
+        B = len(self._a)
+        a, b = self.a_edges.reshape(B, -1), self.b_edges.reshape(B, -1)
+        index, first = np.empty(B, np.int64), {}
+        for k in range(B):
+            index[k] = first.setdefault(a[k].tobytes() + b[k].tobytes(), k)
+        starts = np.unique(index)
+        return np.searchsorted(starts, index), starts
+
+    @property
     def nbytes(self):
-        return sum(x.nbytes for x in (self.a_edges, self.b_edges, self.mass, self.alpha, self.beta, self.weights))
+        """The bytes the tables hold as stored: the cells' arrays, the edges once per layout."""
+        edges = (self.a_edges.nbytes + self.b_edges.nbytes) // len(self._a) * len(self.layouts[1])
+        return edges + sum(x.nbytes for x in (self.mass, self.alpha, self.beta, self.weights))
 
     def _bins(self, wi):
         """Per sample: the bins to blend, (N, n) indices on the working copies' bin axis and
@@ -443,7 +461,8 @@ class Tables:
             meta.update(phi_bins=[float(x) for x in self.phi_bins], phi_period=self.phi_period)
         if self.coords != "wo":
             meta.update(coords=self.coords, frame_angle=self.frame_angle)
-        write_exr(path, _file_arrays(self), meta)
+        arrays, meta["layouts"] = _file_arrays(self)
+        write_exr(path, arrays, meta)
 
 
     # -- per working bin, its own rows and columns (MixedTables pads to the largest) ----------
@@ -461,7 +480,8 @@ class Tables:
 # search compares with it, so a search finds the last entry at or below its target among the
 # group's own (a finite value: blending it with weight 0 must give 0, not NaN).
 PAD = 1e30
-MIXED_FORMAT_VERSION = 4    # the file of a MixedTables: its parts' arrays side by side
+MIXED_FORMAT_VERSION = 6    # the file of a MixedTables: its parts' arrays side by side (4: edges once per bin)
+READS = {3: "plain", 4: "mixed", FORMAT_VERSION: "plain", MIXED_FORMAT_VERSION: "mixed"}
 
 
 class MixedTables:
@@ -591,8 +611,9 @@ class MixedTables:
         if self.coords != "wo":
             meta["coords"] = self.coords
         arrays = {}
-        for n, p in enumerate(self.parts):
-            arrays.update({f"{name}{_suffix(n)}": x for name, x in _file_arrays(p).items()})
+        for n, (p, about) in enumerate(zip(self.parts, meta["parts"])):
+            own, about["layouts"] = _file_arrays(p)
+            arrays.update({f"{name}{_suffix(n)}": x for name, x in own.items()})
         write_exr(path, arrays, meta)
 
 
@@ -602,12 +623,15 @@ def _suffix(part):
 
 
 def _file_arrays(tab):
-    """The 2D arrays a table file holds for tab (one part of mixed tables, or the whole)."""
+    """The 2D arrays a table file holds for tab (one part of mixed tables, or the whole), the
+    edges once per layout, and each bin's layout (a list)."""
     B, R, C = len(tab._a), tab.rows, tab.cols
+    index, first = tab.layouts
     per = {"mass": 1, "alpha": NSEG, "beta": NSEG}
-    return {"a_edges": tab.a_edges.reshape(B, R + 1), "b_edges": tab.b_edges.reshape(B * R, C + 1),
+    return {"a_edges": tab.a_edges.reshape(B, R + 1)[first],
+            "b_edges": tab.b_edges.reshape(B, R, C + 1)[first].reshape(len(first) * R, C + 1),
             **{n: getattr(tab, n).reshape(B * R, C * per[n]) for n in tab.ARRAYS},
-            "weights": tab.weights.reshape(B * R, C * 3)}
+            "weights": tab.weights.reshape(B * R, C * 3)}, [int(i) for i in index]
 
 
 def _bins_of(meta, key, path, hi, lo=0.0, closed=True, groups=False):
@@ -651,14 +675,15 @@ def open_tables(path):
     arrays, meta = read_exr(path)
     if meta.get("format") != "flowbsdf-tables":
         raise FlowBSDFError("not a FlowBSDF table file", path)
-    if meta.get("format_version") not in (FORMAT_VERSION, MIXED_FORMAT_VERSION):
-        raise FlowBSDFError(f"table format version {meta.get('format_version')} "
-                            f"(this FlowBSDF reads versions {FORMAT_VERSION} and {MIXED_FORMAT_VERSION}); "
-                            "re-bake it", path)
+    version = meta.get("format_version")
+    if isinstance(version, bool) or version not in READS:
+        raise FlowBSDFError(f"table format version {version} (this FlowBSDF reads versions "
+                            f"{', '.join(map(str, sorted(READS)))}); re-bake it", path)
     try:
         theta_bins = _bins_of(meta, "theta_bins", path, 0.5 * np.pi, groups=meta.get("phi_bins") is None)
-        if meta["format_version"] == FORMAT_VERSION:
-            return _open_part(arrays, meta, path, "", theta_bins, int(meta["rows"]), int(meta["cols"]), meta)
+        if READS[version] == "plain":
+            return _open_part(arrays, meta, path, "", theta_bins, int(meta["rows"]), int(meta["cols"]), meta,
+                              meta["layouts"] if version > 3 else None)
         parts = meta["parts"]
         counts = [int(p["bins"]) for p in parts]
         if (meta.get("phi_bins") is not None or len(parts) < 2 or sum(counts) != len(theta_bins)
@@ -667,7 +692,7 @@ def open_tables(path):
                                 "bins: corrupt file", path)
         starts = np.cumsum([0] + counts)
         return MixedTables([_open_part(arrays, meta, path, _suffix(n), theta_bins[s:s + c], int(p["rows"]),
-                                       int(p["cols"]), {})
+                                       int(p["cols"]), {}, p["layouts"] if version > 4 else None)
                             for n, (p, s, c) in enumerate(zip(parts, starts, counts))], meta)
     except KeyError as e:
         raise FlowBSDFError(f"table file is incomplete (truncated or damaged?): {e} is missing", path) from None
@@ -675,8 +700,9 @@ def open_tables(path):
         raise FlowBSDFError(f"table metadata is malformed: {e}", path) from None
 
 
-def _open_part(arrays, meta, path, suffix, theta_bins, R, C, own_meta):
-    """The Tables of the arrays named <name><suffix> (a whole file: suffix "")."""
+def _open_part(arrays, meta, path, suffix, theta_bins, R, C, own_meta, layouts=None):
+    """The Tables of the arrays named <name><suffix> (a whole file: suffix ""); layouts: each
+    bin's row of the edges (None: one per bin)."""
     a, b, w = arrays["a_edges" + suffix], arrays["b_edges" + suffix], arrays["weights" + suffix]
     cells = [arrays[n + suffix] for n in Tables.ARRAYS]
     phi_bins, period = None, TWO_PI
@@ -694,9 +720,17 @@ def _open_part(arrays, meta, path, suffix, theta_bins, R, C, own_meta):
     K, P = len(theta_bins), 1 if phi_bins is None else len(phi_bins)
     B = K * P
     per = [1, NSEG, NSEG]
-    shapes = [a.shape, b.shape, w.shape] + [c.shape for c in cells]
-    if shapes != [(B, R + 1), (B * R, C + 1), (B * R, C * 3)] + [(B * R, C * n) for n in per]:
+    shapes = [w.shape] + [c.shape for c in cells]
+    if shapes != [(B * R, C * 3)] + [(B * R, C * n) for n in per]:
         raise FlowBSDFError(f"table shapes {shapes} do not match {K} x {P} bins of {R}x{C}", path)
+    layouts = np.arange(B) if layouts is None else np.asarray(layouts)
+    L = len(a)
+    if (layouts.shape != (B,) or layouts.dtype.kind not in "iu" or np.any(layouts < 0)
+            or not np.array_equal(np.unique(layouts), np.arange(L))):
+        raise FlowBSDFError(f"layouts {layouts.tolist()!r} must name one of the {L} stored cell layouts for each "
+                            f"of the {B} bins, each layout used: corrupt file", path)
+    if [a.shape, b.shape] != [(L, R + 1), (L * R, C + 1)]:
+        raise FlowBSDFError(f"table edge shapes {[a.shape, b.shape]} do not match {L} layouts of {R}x{C}", path)
     if any(x.dtype != np.float32 for x in (a, b, cells[0])):
         raise FlowBSDFError("table edges and masses must be float32: corrupt file", path)
     if not all(np.all(np.isfinite(x)) for x in (a, b, w, *cells)):
@@ -707,6 +741,7 @@ def _open_part(arrays, meta, path, suffix, theta_bins, R, C, own_meta):
         raise FlowBSDFError("table edges not increasing, masses not positive or profiles out of "
                             "range: corrupt file", path)
     lead = (K,) if phi_bins is None else (K, P)
+    a, b = a[layouts], b.reshape(L, R, C + 1)[layouts]
     return Tables(theta_bins, a.reshape(*lead, R + 1), b.reshape(*lead, R, C + 1),
                   mass.reshape(*lead, R, C), *(c.reshape(*lead, R, C, NSEG) for c in (alpha, beta)),
                   w.reshape(*lead, R, C, 3), own_meta,

@@ -867,6 +867,12 @@ def build_grouped(material, source, theta_bins, resolution, progress=None, **opt
         for part, r, s in zip(parts, sizes, starts)])
 
 
+def _row_knots(wi, theta, coords, lobe_width):
+    """The row knots of a bin's layout at wi (elevation theta): its edges are placed relative to them."""
+    return (CENTRE_ROW_KNOTS if coords == "halfvector" else polar_lobe_knots(wi, lobe_width)
+            if coords == "halfpolar" else lobe_knots(theta, lobe_width))
+
+
 def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, cols, grid, lobe_width, gamma, row_share, col_share,
                   quadrature, floor, window, cache, step, weighted):
     """The bins at the elevations theta_bins and azimuth phi: a_edges, b_edges, mass, alpha,
@@ -893,8 +899,7 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
                                     _Once(_points, material, source, wi, grid, frame, gamma))
                    for t, wi, frame in zip(theta_bins, wis, frames)]
     points = list(_parallel(_Once.get, entries))
-    row_knots = [CENTRE_ROW_KNOTS if coords == "halfvector" else polar_lobe_knots(wi, lobe_width)
-                 if coords == "halfpolar" else lobe_knots(t, lobe_width) for t, wi in zip(theta_bins, wis)]
+    row_knots = [_row_knots(wi, t, coords, lobe_width) for t, wi in zip(theta_bins, wis)]
     n_seg = len(row_knots[0]) - 1
     by_seg = [_by_segment(*_normalize(p[0], k), p[2], n_seg) for p, k in zip(points, row_knots)]
     window = K if window is None else window
@@ -978,32 +983,45 @@ ANISO_RESOLUTIONS = (16, 24, 32)
 # At theta_i 86 a 1:25 GGX needs 64 (32: 3.5x the ideal's rv half-way, 64: 1.3x; measured).
 PHI_COUNTS = (8, 16, 32, 64)
 PHI_PROBE_DEG = (80.0, 86.0)
-# A cell's bytes: its mass and (about) one column edge as float32, its two profiles (NSEG logs
-# each) and RGB weight as float16 (_finish_bin; 18 with one exponential's lean per axis).
-BYTES_PER_CELL = 26
+# A cell's bytes in every bin: its mass as float32, its two profiles (NSEG logs each) and RGB
+# weight as float16 (_finish_bin). Its edges belong to the bin's layout, stored once for all the
+# bins that share it (Tables.layouts: a layout group's bins, one layout for all bins).
+CELL_BYTES = 22
 ANISO_BUDGET = 4         # anisotropic tables' share of memory_budget, all their azimuths together
 
 
 def bin_bytes(resolution):
-    """The bytes of one incident bin of resolution² cells: BYTES_PER_CELL each, and the edges
-    beyond one a cell (each row's last column edge, the row edges)."""
-    return BYTES_PER_CELL * resolution * resolution + 4 * (2 * resolution + 1)
+    """The bytes of one incident bin's resolution² cells (their edges aside: layout_bytes)."""
+    return CELL_BYTES * resolution * resolution
+
+
+def layout_bytes(resolution):
+    """The bytes of one layout of resolution² cells: its edges as float32 (each row's columns,
+    the rows), stored once for the bins that share it."""
+    return 4 * (resolution * (resolution + 1) + resolution + 1)
+
+
+def bins_within(memory_budget, resolution, layouts=2):
+    """How many incident bins of resolution² cells fit the budget beside `layouts` layouts
+    (2: two layout groups, what _between_bins mostly keeps); at least 2."""
+    return max(2, int((memory_budget - layouts * layout_bytes(resolution)) // bin_bytes(resolution)))
 
 
 # Isotropic resolutions leave the budget room for MIN_BINS incident angles: 64² x 17 (28-byte cells
 # at 2 MB) lost 7-53x the ideal's rv between bins on the sharp shared files, 64² x 27 (3.11 MB) still
 # 53x on satin_rosaline at 85 deg, where 48² x 31 lost 6x (measured); 36 excludes 64² from 2 MB of
 # 18-byte cells (27 angles) and keeps it at 4 MB (54), where 64² x 34 beat 48² x 62 of 28-byte cells
-# on malachite, ilm and irid. With 26-byte cells (profiles) 33 keeps 48² at 2 MB (33 angles: 46
-# of the 50 acceptance cells within 1.5x the ideal's rv; on satin_rosaline and chm_mint 32² x
-# 54-74 held 5 of their 10 cells, 48² x 33 held 6) and 64² at 4 MB (37).
+# on malachite, ilm and irid. With 26-byte cells (profiles, the edges in every bin) 33 kept 48² at
+# 2 MB (33 angles: 46 of the 50 acceptance cells within 1.5x the ideal's rv; on satin_rosaline and
+# chm_mint 32² x 54-74 held 5 of their 10 cells, 48² x 33 held 6) and 64² at 4 MB (37); with the
+# edges once per layout (22 bytes a cell in each bin) the same: 48² x 39 at 2 MB, 64² x 44 at 4 MB.
 MIN_BINS = 33
 
 
 def _resolutions_within(memory_budget):
     """RESOLUTIONS whose tables fit MIN_BINS incident angles in the budget (all of them when
     not even the smallest does: the budget then decides alone)."""
-    fits = [r for r in RESOLUTIONS if memory_budget // bin_bytes(r) >= MIN_BINS]
+    fits = [r for r in RESOLUTIONS if bins_within(memory_budget, r) >= MIN_BINS]
     return fits or list(RESOLUTIONS)
 
 
@@ -1172,12 +1190,17 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
                     if loss <= 0.5 * tol:
                         break
             phi_bins = default_phi_bins(material, count)
-        per_bin = bin_bytes(resolution)
-        budget = memory_budget
-        if phi_bins is not None:        # every theta bin once per azimuth, and the one closing the period
-            per_bin *= len(phi_bins) + 1
-            budget *= ANISO_BUDGET
-        max_bins = max(2, int(budget // per_bin))
+        window = options.get("window")
+        if phi_bins is None:    # at most (a bin's layout may be its own: fits)
+            max_bins = bins_within(memory_budget, resolution)
+        else:       # every theta bin once per azimuth, and the one closing the period, each its own layout
+            per_bin = (bin_bytes(resolution) + layout_bytes(resolution)) * (len(phi_bins) + 1)
+            max_bins = max(2, int(memory_budget * ANISO_BUDGET // per_bin))
+
+        def fits(bins):     # isotropic: their tables and, unless a window is given, a second group's layout
+            return phi_bins is not None or groups_bytes(
+                [(bins, resolution)], coords or ISO_COORDS, lobe_width, window) + (
+                layout_bytes(resolution) if window is None and "window" not in options else 0) <= memory_budget
 
         bins = list(np.radians(np.linspace(0.0, theta_max_deg, first_bins)))
         gap = np.radians(min_gap_deg)
@@ -1219,19 +1242,19 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
             loss, reached[(lo, hi)], split_at[(lo, hi)] = max(losses)
             return loss
 
-        def extend(placed, more, above):
-            """placed plus up to `more` splits of its intervals at or above `above`, the worst first
-            (the upper group of a split whose lower group took smaller cells: _between_bins)."""
+        def extend(placed, room, above):
+            """placed plus splits of its intervals at or above `above`, the worst first, while
+            room(bins) says they fit (the upper group of a split whose lower group took smaller
+            cells: _between_bins)."""
             placed = list(placed)
-            for _ in range(more):
+            while True:
                 new = [iv for iv in zip(placed[:-1], placed[1:]) if iv not in scores and iv[0] >= above]
                 scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
                 upper = [(scores[iv], iv) for iv in zip(placed[:-1], placed[1:]) if iv[0] >= above]
                 worst, iv = max(upper, default=(0.0, None))
-                if worst <= SPLIT_LOSS:
-                    break
+                if worst <= SPLIT_LOSS or not room(sorted(placed + [split_at[iv]])):
+                    return placed
                 placed = sorted(placed + [split_at[iv]])
-            return placed
 
         while len(bins) < max_bins:
             new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
@@ -1244,6 +1267,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
             if cells_to_beat is not None and len(bins) * resolution ** 2 >= cells_to_beat:
                 say(f"bins {len(bins)}: stopped, as many cells as a plan that reaches its targets")
                 return resolution, bins, phi_bins, worst_phi, (np.inf, np.inf), extend
+            if not fits(sorted(bins + [split_at[(lo, hi)]])):
+                break
             bins = sorted(bins + [split_at[(lo, hi)]])
             del scores[(lo, hi)]
             say(f"bins {len(bins)}: split {np.degrees(lo):.2f}-{np.degrees(hi):.2f} deg "
@@ -1277,6 +1302,9 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     if phi_bins is None and "window" not in options:
         opts["window"], bins, resolution, compared = _between_bins(material, ideal, bins, resolution, opts, cache, tol,
                                                                    samples, log, memory_budget, extend)
+    elif phi_bins is None:      # the layout given: as many bins as its layouts leave room for
+        (bins, _), = _fit([(bins, resolution)], memory_budget, window=options["window"], coords=coords or ISO_COORDS,
+                          lobe_width=lobe_width)
     log(f"tables: building {len(bins)} angles" + (f" x {len(phi_bins)} azimuths" if phi_bins is not None else ""))
     every = [0]
 
@@ -1311,6 +1339,34 @@ LAYOUT_WINDOWS = (1, None)
 GROUP_SPLITS_DEG = (55.0, 65.0, 75.0)
 
 
+def groups_bytes(groups, coords, lobe_width, window):
+    """The bytes (Tables.nbytes) of isotropic tables in layout groups [(bins, resolution), ...]:
+    with one placement for a group's bins (window None) the bins whose row knots agree share one
+    layout (their edges are placed alike relative to them; the lobe's rings reach the horizon
+    at grazing incidence), else each bin has its own."""
+    total = 0
+    for bins, res in groups:
+        layouts = len(bins) if window is not None else len(
+            {_row_knots(spherical_dir(t, 0.0), t, coords, lobe_width).tobytes() for t in bins})
+        total += len(bins) * bin_bytes(res) + layouts * layout_bytes(res)
+    return total
+
+
+def _fit(groups, memory_budget, keep=(), **layout):
+    """groups [(bins, resolution), ...] without the inner bins of the narrowest spans (each dropped
+    bin's neighbours the closest), never a group's ends or those in `keep`, until their tables
+    fit the budget (groups_bytes; layout: its coords, lobe_width, window)."""
+    groups = [(list(bins), res) for bins, res in groups]
+    while groups_bytes(groups, **layout) > memory_budget:
+        free = [(b[k + 1] - b[k - 1], g, k) for g, (b, _) in enumerate(groups)
+                for k in range(1, len(b) - 1) if b[k] not in keep]
+        if not free:
+            break
+        _, g, k = min(free)
+        groups[g][0].pop(k)
+    return groups
+
+
 def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, log, memory_budget, extend):
     """(window, bins, resolution (one, or one per group), their tables from the ideal's points;
     None when not compared): of the ways to place cells between the planned bins, the one whose
@@ -1323,7 +1379,8 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
     for all bins), and two layout groups (join_groups: the bins up to the planned bin nearest one
     of GROUP_SPLITS_DEG, and from it, each built alone with one layout for all its bins: its own
     cells per segment, not shared out by the weight of bins far away; window None). A group's
-    repeated bin is paid for with the bin of the narrowest span when the budget is full.
+    repeated bin is paid for with the bin of the narrowest span when the budget is full, the
+    neighbours' pooled layouts (one per bin) with as many as they need.
     The split whose groups came closest is tried also with groups of their own resolutions
     (MixedTables): the lower group one step coarser (of RESOLUTIONS) and the memory it frees spent
     above, on more bins where the plan's intervals lose most (`extend`, the plan's split loop) or on a step finer cells for the
@@ -1340,38 +1397,41 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
     angles = np.sort(np.concatenate([b] + [np.arccos((1 - f) * c0 + f * c1) for f in (0.25, 0.5, 0.75)]))
     widths = 0.5 * (np.diff(angles, prepend=angles[0]) + np.diff(angles, append=angles[-1]))
 
-    candidates = [("one placement for all bins" if w is None else f"pooled with {w} neighbour", w, list(bins), resolution,
-                   None) for w in LAYOUT_WINDOWS]
+    # The bins planned beside two layouts: a candidate whose bins need more drops the bins of the
+    # narrowest spans (a bin's layout pooled with its neighbours' is its own; a group's repeated
+    # bin is one more).
+    layout = dict(coords=opts.get("coords") or ISO_COORDS, lobe_width=opts.get("lobe_width"))
+    candidates = []
+    for w in LAYOUT_WINDOWS:
+        (placed, _), = _fit([(bins, resolution)], memory_budget, window=w, **layout)
+        candidates.append(("one placement for all bins" if w is None else f"pooled with {w} neighbour", w, placed,
+                           resolution, None))
     splits = sorted({int(np.clip(np.argmin(np.abs(b - np.radians(deg))), 2, len(b) - 3)) for deg in GROUP_SPLITS_DEG}
                     ) if len(b) >= 6 else []
-    max_bins = max(2, int(memory_budget // bin_bytes(resolution)))
     coarser = [r for r in RESOLUTIONS if r < resolution][-1:]
     finer = [r for r in RESOLUTIONS if r > resolution][:1]
     for j in splits:
-        kept = list(bins)
-        if len(bins) + 1 > max_bins:
-            free = [k for k in range(1, len(bins) - 1) if abs(k - j) > 1]
-            kept.pop(min(free, key=lambda k: bins[k + 1] - bins[k - 1]))
-        jj = kept.index(bins[j])
-        candidates.append((f"two groups split at {np.degrees(bins[j]):.2f} deg", None, kept[:jj + 1] + kept[jj:],
-                           resolution, j))
+        (lower, _), (upper, _) = _fit([(bins[:j + 1], resolution), (bins[j:], resolution)], memory_budget,
+                                      keep=(bins[j - 1], bins[j + 1]), window=None, **layout)
+        candidates.append((f"two groups split at {np.degrees(bins[j]):.2f} deg", None, lower + upper, resolution, j))
 
     def mixed(j):
         """The candidates of groups of their own resolutions split at bin j."""
         out, at = [], f"{np.degrees(bins[j]):.2f} deg"
         for lo_res in coarser:
-            lower, room = list(bins[:j + 1]), memory_budget - (j + 1) * bin_bytes(lo_res)
-            upper = extend(bins[j:], int(room // bin_bytes(resolution)) - (len(bins) - j), bins[j])
+            lower = list(bins[:j + 1])
+
+            def room(upper):
+                return groups_bytes([(lower, lo_res), (upper, resolution)], window=None, **layout) <= memory_budget
+            upper = extend(bins[j:], room, bins[j])
             if len(upper) > len(bins) - j:
                 out.append((f"two groups split at {at}, {lo_res}² cells below, {len(upper) - len(bins) + j} "
                             "more bins above", None, lower + upper, [lo_res, resolution], j))
             for hi_res in finer:
-                upper = list(bins[j:])
-                while len(upper) > 3 and len(upper) * bin_bytes(hi_res) > room:
-                    upper.pop(min(range(1, len(upper) - 1), key=lambda k: upper[k + 1] - upper[k - 1]))
-                if len(upper) * bin_bytes(hi_res) <= room:
+                groups = _fit([(lower, lo_res), (bins[j:], hi_res)], memory_budget, keep=lower, window=None, **layout)
+                if groups_bytes(groups, window=None, **layout) <= memory_budget and len(groups[1][0]) >= 3:
                     out.append((f"two groups split at {at}, {lo_res}² cells below, {hi_res}² above",
-                                None, lower + upper, [lo_res, hi_res], j))
+                                None, lower + groups[1][0], [lo_res, hi_res], j))
         return out
 
     # Groups of their own resolutions are tried at the split whose groups of one resolution came

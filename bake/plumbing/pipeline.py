@@ -20,7 +20,7 @@ from ..errors import FlowBSDFError
 from .files import file_hash, remove_stale_temps
 
 # Bumped when the construction changes in a way that should rebuild existing tables.
-BUILDER_VERSION = 11     # 2: cells that miss a hard-edged sliver of mass are integrated around their points
+BUILDER_VERSION = 12     # 2: cells that miss a hard-edged sliver of mass are integrated around their points
                          # 3: isotropic plans aim at the ideal tabulation's rv (tabulate.plan_tables)
                          # 4: when no resolution reaches its target, the closest one (not the largest)
                          # 5: cells per lobe segment by weight, an even share of every segment (tabulate.SHARES)
@@ -32,6 +32,7 @@ BUILDER_VERSION = 11     # 2: cells that miss a hard-edged sliver of mass are in
                          #     a ridge on the plane of incidence integrated beside it (tabulate._ridge_edges)
                          # 11: isotropic: layout groups of their own resolutions (tables.MixedTables), placements
                          #     compared at quarter points too
+                         # 12: bins placed alike store their edges once (tables.Tables.layouts): the budget keeps more bins
 BAKE_KEYS = {"source", "tol", "ideal_ratio", "memory_budget", "resolution", "grid", "lobe_width", "samples", "first_bins",
              "ideal_resolution", "phi_count"}
 SOURCES = ("auto", "flow", "ideal")
