@@ -12,7 +12,7 @@ from bake.quality.metrics import chi2_test, relative_variance, relative_variance
 from bake.core.tables import (K_MAX, NSEG, TWO_PI, Tables, exp_cdf, exp_density, exp_inverse_cdf, from_ab,
                               open_tables, profile_cdf, profile_density, profile_nodes, profile_sample, to_ab)
 from bake.core.tabulate import (CELL_BYTES, ISO_COORDS, _WoFrame, _finish_bin, _moments_around, _nodes,
-                                bin_bytes, build_tables, layout_bytes, exp_rate_for_mean, lobe_width_of, plan_tables)
+                                bin_bytes, build_tables, groups_bytes, layout_bytes, exp_rate_for_mean, lobe_width_of, plan_tables)
 from contract import assert_sampler_contract
 
 HARD = {
@@ -281,6 +281,9 @@ def test_bins_of_one_layout_store_their_edges_once(tables, tmp_path):
     index, first = one.layouts
     assert list(first) == [0, len(BINS) - 1] and list(index) == [0] * (len(BINS) - 1) + [1]
     assert one.nbytes == own.nbytes - (len(BINS) - 2) * layout_bytes(24)
+    # the planner's count of the bytes, before building (groups_bytes: the bins' row knots)
+    assert groups_bytes([(BINS, 24)], "halfpolar", 0.1, None) == one.nbytes
+    assert groups_bytes([(BINS, 24)], "halfpolar", 0.1, 1) == own.nbytes
     one.save(tmp_path / "one.exr")
     arrays, meta = read_exr(tmp_path / "one.exr")
     assert arrays["a_edges"].shape == (2, 25) and arrays["b_edges"].shape == (48, 25)

@@ -868,9 +868,13 @@ def build_grouped(material, source, theta_bins, resolution, progress=None, **opt
 
 
 def _row_knots(wi, theta, coords, lobe_width):
-    """The row knots of a bin's layout at wi (elevation theta): its edges are placed relative to them."""
-    return (CENTRE_ROW_KNOTS if coords == "halfvector" else polar_lobe_knots(wi, lobe_width)
-            if coords == "halfpolar" else lobe_knots(theta, lobe_width))
+    """The row knots of a bin's layout at wi (elevation theta): its edges are placed relative to
+    them. Rounded to float32, as the edges are stored: bins whose knots differ by less (the half
+    vector's rings move by ~1e-17 with theta_i) get the same edges from the same placement, one
+    layout (groups_bytes counts them so)."""
+    knots = (CENTRE_ROW_KNOTS if coords == "halfvector" else polar_lobe_knots(wi, lobe_width)
+             if coords == "halfpolar" else lobe_knots(theta, lobe_width))
+    return np.asarray(knots, np.float32).astype(np.float64)
 
 
 def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, cols, grid, lobe_width, gamma, row_share, col_share,
