@@ -26,7 +26,7 @@ def manifest(tmp_path, albedo=0.5, extra="", bake=FAST):
     return load_manifest(path)
 
 
-def test_bake_skips_current_and_rebuilds_changed(tmp_path):
+def test_bake_skips_current_and_rebuilds_changed(tmp_path, monkeypatch):
     out = tmp_path / "out"
     log = []
     m = manifest(tmp_path)
@@ -41,12 +41,20 @@ def test_bake_skips_current_and_rebuilds_changed(tmp_path):
     changed = manifest(tmp_path, albedo=0.6)                 # the material changed
     assert open_current_tables(changed.materials[0], out, changed.path) is None, "stale tables used"
     assert bake_manifest(changed, out, log=log.append) == [table_path(out, "matte")]
+    assert f"[bake] matte: {table_path(out, 'matte')} is out of date (the material changed): baking it again" in log
     assert open_current_tables(changed.materials[0], out, changed.path) is not None
 
     resettled = manifest(tmp_path, albedo=0.6, bake=FAST.replace("tol = 0.5", "tol = 0.4"))
     assert open_current_tables(resettled.materials[0], out, resettled.path) is None
     assert bake_manifest(resettled, out, log=log.append) == [table_path(out, "matte")]
+    assert any("out of date (the bake settings changed)" in line for line in log)
     assert not list((out / "tables").glob(".*")), "temporary files left behind"
+    # Tables of an older table builder (an update of FlowBSDF): baked again, saying why.
+    from bake.plumbing import pipeline
+    builder = pipeline.BUILDER_VERSION
+    monkeypatch.setattr(pipeline, "BUILDER_VERSION", builder + 1)
+    assert bake_manifest(resettled, out, log=log.append) == [table_path(out, "matte")]
+    assert any(f"(the table builder {builder} -> {builder + 1} changed)" in line for line in log), log
 
 
 def test_a_bake_is_reproducible(tmp_path):

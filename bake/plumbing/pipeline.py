@@ -92,6 +92,16 @@ def inputs_of(material, settings, model_file):
     return inputs, hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()
 
 
+def _changed(old, new):
+    """What differs between a table file's recorded inputs and today's (inputs_of), in words."""
+    if not isinstance(old, dict):
+        return "its inputs are not recorded"
+    words = {"material": "the material", "settings": "the bake settings", "model": "the trained model",
+             "format": f"the table format {old.get('format')} -> {new['format']}",
+             "builder": f"the table builder {old.get('builder')} -> {new['builder']}"}
+    return ", ".join(words.get(k, k) for k in new if old.get(k) != new[k]) + " changed"
+
+
 def tables_use_model(settings):
     """Whether the tables are built from the material's trained model: only with source "flow".
     "auto" and "ideal" build them from the ideal tabulation (f·cos tabulated per incident angle):
@@ -133,8 +143,10 @@ def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
     path = table_path(out_dir, entry.name)
     if not force and path.is_file():
         try:
-            if open_tables(path).meta.get("inputs_hash") == digest:
+            old = open_tables(path).meta
+            if old.get("inputs_hash") == digest:
                 return path, "current"
+            log(f"[bake] {entry.name}: {path} is out of date ({_changed(old.get('inputs'), inputs)}): baking it again")
         except FlowBSDFError:
             pass       # unreadable or foreign: rebuild it
     source, used = _choose_source(material, settings, model_file)
