@@ -1194,17 +1194,20 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
                     if loss <= 0.5 * tol:
                         break
             phi_bins = default_phi_bins(material, count)
-        window = options.get("window")
         if phi_bins is None:    # at most (a bin's layout may be its own: fits)
             max_bins = bins_within(memory_budget, resolution)
         else:       # every theta bin once per azimuth, and the one closing the period, each its own layout
             per_bin = (bin_bytes(resolution) + layout_bytes(resolution)) * (len(phi_bins) + 1)
             max_bins = max(2, int(memory_budget * ANISO_BUDGET // per_bin))
+        # Without a window given, _between_bins may split the bins into two groups: room for the
+        # second group's layout is kept.
+        second = 0 if "window" in options else layout_bytes(resolution)
 
-        def fits(bins):     # isotropic: their tables and, unless a window is given, a second group's layout
-            return phi_bins is not None or groups_bytes(
-                [(bins, resolution)], coords or ISO_COORDS, lobe_width, window) + (
-                layout_bytes(resolution) if window is None and "window" not in options else 0) <= memory_budget
+        def fits(bins):
+            if phi_bins is not None:
+                return True
+            return groups_bytes([(bins, resolution)], coords or ISO_COORDS, lobe_width,
+                                options.get("window")) + second <= memory_budget
 
         bins = list(np.radians(np.linspace(0.0, theta_max_deg, first_bins)))
         gap = np.radians(min_gap_deg)
