@@ -318,11 +318,14 @@ class Tables:
         the same (a layout group's: tabulate.join_groups) share one layout, stored once."""
         B = len(self._a)
         a, b = self.a_edges.reshape(B, -1), self.b_edges.reshape(B, -1)
-        index, first = np.empty(B, np.int64), {}
+        seen, index, first = {}, np.empty(B, np.int64), []
         for k in range(B):
-            index[k] = first.setdefault(a[k].tobytes() + b[k].tobytes(), k)
-        starts = np.unique(index)
-        return np.searchsorted(starts, index), starts
+            key = a[k].tobytes() + b[k].tobytes()
+            if key not in seen:
+                seen[key] = len(first)
+                first.append(k)
+            index[k] = seen[key]
+        return index, np.array(first, np.int64)
 
     @property
     def nbytes(self):
@@ -481,7 +484,9 @@ class Tables:
 # group's own (a finite value: blending it with weight 0 must give 0, not NaN).
 PAD = 1e30
 MIXED_FORMAT_VERSION = 6    # the file of a MixedTables: its parts' arrays side by side (4: edges once per bin)
-READS = {3: "plain", 4: "mixed", FORMAT_VERSION: "plain", MIXED_FORMAT_VERSION: "mixed"}
+# The formats this FlowBSDF reads: (kind, whether the edges are stored once per layout)
+READS = {3: ("plain", False), 4: ("mixed", False), FORMAT_VERSION: ("plain", True),
+         MIXED_FORMAT_VERSION: ("mixed", True)}
 
 
 class MixedTables:
@@ -681,9 +686,10 @@ def open_tables(path):
                             f"{', '.join(map(str, sorted(READS)))}); re-bake it", path)
     try:
         theta_bins = _bins_of(meta, "theta_bins", path, 0.5 * np.pi, groups=meta.get("phi_bins") is None)
-        if READS[version] == "plain":
+        kind, shared = READS[version]
+        if kind == "plain":
             return _open_part(arrays, meta, path, "", theta_bins, int(meta["rows"]), int(meta["cols"]), meta,
-                              meta["layouts"] if version > 3 else None)
+                              meta["layouts"] if shared else None)
         parts = meta["parts"]
         counts = [int(p["bins"]) for p in parts]
         if (meta.get("phi_bins") is not None or len(parts) < 2 or sum(counts) != len(theta_bins)
@@ -692,7 +698,7 @@ def open_tables(path):
                                 "bins: corrupt file", path)
         starts = np.cumsum([0] + counts)
         return MixedTables([_open_part(arrays, meta, path, _suffix(n), theta_bins[s:s + c], int(p["rows"]),
-                                       int(p["cols"]), {}, p["layouts"] if version > 4 else None)
+                                       int(p["cols"]), {}, p["layouts"] if shared else None)
                             for n, (p, s, c) in enumerate(zip(parts, starts, counts))], meta)
     except KeyError as e:
         raise FlowBSDFError(f"table file is incomplete (truncated or damaged?): {e} is missing", path) from None
