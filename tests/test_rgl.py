@@ -431,3 +431,42 @@ def test_single_wi_eval_reuses_its_incident_tables_per_wi(tmp_path):
     for t in range(20):         # bounded
         used.eval(spherical_dir(np.radians(t), 0.0), wo)
     assert len(used._incidents) <= 16
+
+
+def test_warped_coords_are_where_eval_reads_rgb_both_ways(tmp_path):
+    """WarpedCoords at one wi: to_s is where eval reads the rgb table (a file whose rgb is s_x
+    itself, ndf 1 and sigma 1/4, evaluates to s_x / cos theta_o), from_s inverts it (s back to
+    1e-9 where a direction is reached), the Jacobian d omega / d s agrees with finite
+    differences, and over s it covers the hemisphere: the integral of the reached part is 2 pi."""
+    from bake.materials.rgl import WarpedCoords
+    f = synthetic_fields(n_vndf=16, n_rgb=8)
+    n_rgb = f["rgb"].shape[-1]
+    f["rgb"][:] = (np.arange(n_rgb) / (n_rgb - 1))[None, None, None, None, :]    # rgb(s) = s_x
+    f["ndf"][:] = 1.0
+    f["sigma"][:] = 0.25
+    mat = RGLMaterial(write_tensor_file(tmp_path / "ramp.bsdf", f))
+    rng = np.random.default_rng(5)
+    side = 256
+    grid = (np.stack(np.meshgrid(np.arange(side), np.arange(side), indexing="ij"), -1).reshape(-1, 2) + 0.5) / side
+    for theta in np.radians([0.3, 30.0, 60.0, 85.0]):
+        wi = spherical_dir(theta, 0.7)
+        warp = WarpedCoords(mat, wi)
+        wo = spherical_dir(np.arccos(rng.uniform(0.02, 1.0, 3000)), rng.uniform(-np.pi, np.pi, 3000))
+        s, jac = warp.to_s(wo)
+        np.testing.assert_allclose(mat.eval(wi, wo)[:, 0] * wo[:, 2], s[:, 0], rtol=1e-6, atol=1e-7)
+        back, jac_back = warp.from_s(s)
+        np.testing.assert_allclose(back, wo, atol=1e-7)
+        np.testing.assert_allclose(jac_back, jac, rtol=1e-7)
+        # d omega / d s = 1 / |det d s / d omega| on the tangent plane of wo
+        t1 = normalize(np.cross(wo, [0.0, 0.0, 1.0]))
+        t2 = np.cross(wo, t1)
+        eps = 1e-6
+        d1 = (warp.to_s(normalize(wo + eps * t1))[0] - warp.to_s(normalize(wo - eps * t1))[0]) / (2 * eps)
+        d2 = (warp.to_s(normalize(wo + eps * t2))[0] - warp.to_s(normalize(wo - eps * t2))[0]) / (2 * eps)
+        np.testing.assert_allclose(1.0 / np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]), jac, rtol=1e-4)
+        wo_grid, jac_grid = warp.from_s(grid)
+        reached = jac_grid > 0
+        assert (wo_grid[reached, 2] > 0).all() and (wo_grid[~reached, 2] <= 0).all()
+        s_back = warp.to_s(wo_grid[reached])[0]
+        assert np.max(np.abs(s_back - grid[reached])) < 1e-9
+        assert abs(np.mean(jac_grid) / (2 * np.pi) - 1.0) < 0.01

@@ -262,6 +262,23 @@ def _continuous_warp_table(data):
     return t.reshape(-1, 9)
 
 
+def _warp_to_s(t, fx, fy):
+    """The continuous Marginal2D warp's inverse at (fx, fy) within patches whose rows of
+    _continuous_warp_table are t (N, 9): (s x, s y, zero rows, the warp's density there in index
+    units: d s / d(x, y) over the index square)."""
+    v00, v10, v01, v11, cc0, cc1, r0, r1, m0 = t.T
+    gy = 1.0 - fy
+    row_total = gy * r0 + fy * r1
+    zero = row_total == 0  # a zero row: 0/0 (see RGLMaterial's docstring)
+    if zero.any():
+        row_total = np.where(zero, 1.0, row_total)
+    c0 = gy * v00 + fy * v01
+    c1 = gy * v10 + fy * v11
+    sx = (fx * (c0 + 0.5 * fx * (c1 - c0)) + gy * cc0 + fy * cc1) / row_total
+    sy = fy * (r0 + 0.5 * fy * (r1 - r0)) + m0
+    return sx, sy, zero, (1.0 - fx) * c0 + fx * c1
+
+
 def _corner_table(data):
     """(S, ny, nx, C) -> (S * (ny-1) * (nx-1), 4 * C): corners v00, v10, v01, v11 of every patch."""
     d = np.asarray(data, dtype=np.float64)
@@ -531,16 +548,7 @@ class RGLMaterial(Material):
             t = self._gather(self._vndf, combos, patch, (nx - 1) * (ny - 1))
         else:
             t = np.take(incident["vndf"], patch, axis=0)
-        v00, v10, v01, v11, cc0, cc1, r0, r1, m0 = t.T
-        gy = 1.0 - fy
-        row_total = gy * r0 + fy * r1
-        zero = row_total == 0  # a zero row: 0/0 (see the class docstring)
-        if zero.any():
-            row_total[zero] = 1.0
-        c0 = gy * v00 + fy * v01
-        c1 = gy * v10 + fy * v11
-        sx = (fx * (c0 + 0.5 * fx * (c1 - c0)) + gy * cc0 + fy * cc1) / row_total
-        sy = fy * (r0 + 0.5 * fy * (r1 - r0)) + m0
+        sx, sy, zero, _ = _warp_to_s(t, fx, fy)
 
         # 5. RGB at the warped position.
         ry, rx = self._rgb_shape
@@ -577,3 +585,79 @@ class RGLMaterial(Material):
                 rows *= np.asarray(w)[..., None]
             acc = rows if acc is None else acc.__iadd__(rows)
         return acc
+
+
+class WarpedCoords:
+    """An isotropic RGL file's own coordinates at one wi: s in [0, 1]², where eval reads its
+    `rgb` table (step 4), both ways, with d omega_o / d s.
+
+    The file blends its measured theta_i slices at fixed s (rgb and the warp's tables alike), so a
+    feature of f·cos that moves with theta_i over wo or the half vector stays put over s: blending
+    two incident angles' targets over s loses far less between them (scripts/blend_probe.py).
+    from_s inverts the warp: the marginal row by its CDF, then the column within the row, each
+    position within its patch the root of the bilinear density's quadratic CDF; to_s is eval's
+    step 4. The half vector follows from u_m = (sqrt(2 theta_h / pi), (phi_h - phi_i + pi) / 2 pi)
+    and wo = reflect(wi, h): d omega_o / d s = 4 (wi . h) sin theta_h (pi u_x) (2 pi) / p(u_m), p
+    the warp's density. Some s give no direction above the horizon (h facing away from wi, or
+    wo below it): from_s returns them with wo_z <= 0 and jac 0.
+    """
+
+    def __init__(self, material, wi):
+        if not material.isotropic:
+            raise FlowBSDFError("WarpedCoords: isotropic RGL files only")
+        self.wi = np.asarray(wi, np.float64)
+        incident = material._incident(self.wi)
+        self.phi_i = incident["phi_i"]
+        self.ny, self.nx = material._vndf_shape
+        self.patches = incident["vndf"].reshape(self.ny - 1, self.nx - 1, 9)
+
+    def _jac(self, u_x, h, density):
+        """d omega_o / d s at half vectors h (u_m x = u_x), the warp's density (index units) there."""
+        theta_h = u_x * u_x * (0.5 * np.pi)
+        d_omega_d_u = 4.0 * np.abs(h @ self.wi) * np.sin(theta_h) * (np.pi * u_x) * (2.0 * np.pi)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(density > 0, d_omega_d_u / (density * (self.nx - 1) * (self.ny - 1)), np.inf)
+
+    def to_s(self, wo):
+        """(s (N, 2), d omega_o / d s: inf where the warp has no density)."""
+        wo = np.atleast_2d(np.asarray(wo, np.float64))
+        h = self.wi[None, :] + wo
+        h /= np.linalg.norm(h, axis=1, keepdims=True)
+        u_x = _theta2u(_elevation(h[:, 0], h[:, 1], h[:, 2]))
+        u_y = _phi2u(np.arctan2(h[:, 1], h[:, 0]) - self.phi_i)
+        u_y -= np.floor(u_y)
+        px, fx = _patch(u_x, self.nx)
+        py, fy = _patch(u_y, self.ny)
+        sx, sy, zero, density = _warp_to_s(self.patches[py, px], fx, fy)
+        return np.stack([sx, sy], axis=-1), self._jac(u_x, h, np.where(zero, 0.0, density))
+
+    @staticmethod
+    def _root(slope_half, start, d):
+        """x in [0, 1] with start x + slope_half x² = d, stably (d >= 0)."""
+        root = np.sqrt(np.maximum(start * start + 4.0 * slope_half * d, 0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.clip(np.nan_to_num(2.0 * d / (start + root)), 0.0, 1.0)
+
+    def from_s(self, s):
+        """(wo (N, 3), d omega_o / d s); s that reach no direction: wo_z <= 0, jac 0."""
+        s = np.atleast_2d(np.asarray(s, np.float64))
+        rows = self.patches[:, 0]
+        py = np.clip(np.searchsorted(rows[:, 8], s[:, 1], side="right") - 1, 0, self.ny - 2)
+        r0, r1 = rows[py, 6], rows[py, 7]
+        fy = self._root(0.5 * (r1 - r0), r0, s[:, 1] - rows[py, 8])
+        gy = 1.0 - fy
+        starts = gy[:, None] * self.patches[py, :, 4] + fy[:, None] * self.patches[py, :, 5]   # each patch's CDF
+        target = s[:, 0] * (gy * r0 + fy * r1)
+        px = np.clip(np.sum(starts <= target[:, None], axis=1) - 1, 0, self.nx - 2)
+        v = self.patches[py, px]
+        c0, c1 = gy * v[:, 0] + fy * v[:, 2], gy * v[:, 1] + fy * v[:, 3]
+        fx = self._root(0.5 * (c1 - c0), c0, target - starts[np.arange(len(px)), px])
+        u_x, u_y = (px + fx) / (self.nx - 1), (py + fy) / (self.ny - 1)
+        theta_h, phi_h = u_x * u_x * (0.5 * np.pi), u_y * (2.0 * np.pi) - np.pi + self.phi_i
+        h = np.stack([np.sin(theta_h) * np.cos(phi_h), np.sin(theta_h) * np.sin(phi_h), np.cos(theta_h)], axis=-1)
+        cos_ih = h @ self.wi
+        wo = 2.0 * cos_ih[:, None] * h - self.wi[None, :]
+        reached = (cos_ih > 0) & (wo[:, 2] > 0)
+        wo[~reached, 2] = np.minimum(wo[~reached, 2], 0.0)
+        jac = self._jac(u_x, h, (1.0 - fx) * c0 + fx * c1)
+        return wo, np.where(reached & np.isfinite(jac), jac, 0.0)
