@@ -433,11 +433,14 @@ def test_single_wi_eval_reuses_its_incident_tables_per_wi(tmp_path):
     assert len(used._incidents) <= 16
 
 
-def test_warped_coords_are_where_eval_reads_rgb_both_ways(tmp_path):
+@pytest.mark.parametrize("horizon", [False, True])
+def test_warped_coords_are_where_eval_reads_rgb_both_ways(horizon, tmp_path):
     """WarpedCoords at one wi: to_s is where eval reads the rgb table (a file whose rgb is s_x
-    itself, ndf 1 and sigma 1/4, evaluates to s_x / cos theta_o), from_s inverts it (s back to
-    1e-9 where a direction is reached), the Jacobian d omega / d s agrees with finite
-    differences, and over s it covers the hemisphere: the integral of the reached part is 2 pi."""
+    itself, ndf 1 and sigma 1/4, evaluates to s_x / cos theta_o; with `horizon`, s_x over its
+    value at the horizon), from_s inverts it (s back to 1e-9 where a direction is reached), the
+    Jacobian d omega / d s agrees with finite differences, and over s it covers the hemisphere:
+    the integral of the reached part is 2 pi. With `horizon` every s reaches a direction above
+    the horizon (this file's warp has no zero rows) and s_x = 1 is the horizon."""
     from bake.materials.rgl import WarpedCoords
     f = synthetic_fields(n_vndf=16, n_rgb=8)
     n_rgb = f["rgb"].shape[-1]
@@ -450,10 +453,11 @@ def test_warped_coords_are_where_eval_reads_rgb_both_ways(tmp_path):
     grid = (np.stack(np.meshgrid(np.arange(side), np.arange(side), indexing="ij"), -1).reshape(-1, 2) + 0.5) / side
     for theta in np.radians([0.3, 30.0, 60.0, 85.0]):
         wi = spherical_dir(theta, 0.7)
-        warp = WarpedCoords(mat, wi)
+        warp = WarpedCoords(mat, wi, horizon=horizon)
         wo = spherical_dir(np.arccos(rng.uniform(0.02, 1.0, 3000)), rng.uniform(-np.pi, np.pi, 3000))
         s, jac = warp.to_s(wo)
-        np.testing.assert_allclose(mat.eval(wi, wo)[:, 0] * wo[:, 2], s[:, 0], rtol=1e-6, atol=1e-7)
+        rim = WarpedCoords(mat, wi).to_s(wo)[0][:, 0] / s[:, 0] if horizon else 1.0
+        np.testing.assert_allclose(mat.eval(wi, wo)[:, 0] * wo[:, 2], s[:, 0] * rim, rtol=1e-6, atol=1e-7)
         back, jac_back = warp.from_s(s)
         np.testing.assert_allclose(back, wo, atol=1e-7)
         np.testing.assert_allclose(jac_back, jac, rtol=1e-7)
@@ -470,3 +474,7 @@ def test_warped_coords_are_where_eval_reads_rgb_both_ways(tmp_path):
         s_back = warp.to_s(wo_grid[reached])[0]
         assert np.max(np.abs(s_back - grid[reached])) < 1e-9
         assert abs(np.mean(jac_grid) / (2 * np.pi) - 1.0) < 0.01
+        if horizon:
+            assert reached.all()
+            rim_wo = warp.from_s(np.stack([np.full(64, 1.0 - 1e-12), np.linspace(0.01, 0.99, 64)], -1))[0]
+            np.testing.assert_allclose(rim_wo[:, 2], 0.0, atol=1e-5)

@@ -600,12 +600,18 @@ class WarpedCoords:
     and wo = reflect(wi, h): d omega_o / d s = 4 (wi . h) sin theta_h (pi u_x) (2 pi) / p(u_m), p
     the warp's density. Some s give no direction above the horizon (h facing away from wi, or
     wo below it): from_s returns them with wo_z <= 0 and jac 0.
+
+    horizon=True: s_x over its value at the horizon in the row s_y (s'_x = 1 is the horizon at
+    every wi; wi.h > 0 wherever wo is above it), so that directions carried at fixed s' from
+    one wi to another stay above the horizon; d omega / d s' = d omega / d s times that value.
+    Along the half vector's azimuth delta from wi's, the horizon is at theta_h =
+    atan2(cos theta_i, -sin theta_i cos delta) / 2 (2 cos theta_h (wi . h) = cos theta_i).
     """
 
-    def __init__(self, material, wi):
+    def __init__(self, material, wi, horizon=False):
         if not material.isotropic:
             raise FlowBSDFError("WarpedCoords: isotropic RGL files only")
-        self.wi = np.asarray(wi, np.float64)
+        self.wi, self.horizon = np.asarray(wi, np.float64), horizon
         incident = material._incident(self.wi)
         self.phi_i = incident["phi_i"]
         self.ny, self.nx = material._vndf_shape
@@ -618,6 +624,18 @@ class WarpedCoords:
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(density > 0, d_omega_d_u / (density * (self.nx - 1) * (self.ny - 1)), np.inf)
 
+    def _rim(self, py, fy):
+        """s_x at the horizon in rows (py, fy): 1 without `horizon`."""
+        if not self.horizon:
+            return np.ones_like(fy)
+        cos_i = self.wi[2]
+        sin_i = np.sqrt(max(1.0 - cos_i * cos_i, 0.0))
+        delta = ((py + fy) / (self.ny - 1)) * (2.0 * np.pi) - np.pi
+        theta_h = 0.5 * np.arctan2(cos_i, -sin_i * np.cos(delta))
+        px, fx = _patch(_theta2u(theta_h), self.nx)
+        rim = _warp_to_s(self.patches[py, px], fx, fy)[0]
+        return np.clip(rim, 1e-300, 1.0)
+
     def to_s(self, wo):
         """(s (N, 2), d omega_o / d s: inf where the warp has no density)."""
         wo = np.atleast_2d(np.asarray(wo, np.float64))
@@ -629,7 +647,8 @@ class WarpedCoords:
         px, fx = _patch(u_x, self.nx)
         py, fy = _patch(u_y, self.ny)
         sx, sy, zero, density = _warp_to_s(self.patches[py, px], fx, fy)
-        return np.stack([sx, sy], axis=-1), self._jac(u_x, h, np.where(zero, 0.0, density))
+        rim = self._rim(py, fy)
+        return np.stack([np.minimum(sx / rim, 1.0), sy], axis=-1), self._jac(u_x, h, np.where(zero, 0.0, density)) * rim
 
     @staticmethod
     def _root(slope_half, start, d):
@@ -646,8 +665,9 @@ class WarpedCoords:
         r0, r1 = rows[py, 6], rows[py, 7]
         fy = self._root(0.5 * (r1 - r0), r0, s[:, 1] - rows[py, 8])
         gy = 1.0 - fy
+        rim = self._rim(py, fy)
         starts = gy[:, None] * self.patches[py, :, 4] + fy[:, None] * self.patches[py, :, 5]   # each patch's CDF
-        target = s[:, 0] * (gy * r0 + fy * r1)
+        target = s[:, 0] * rim * (gy * r0 + fy * r1)
         px = np.clip(np.sum(starts <= target[:, None], axis=1) - 1, 0, self.nx - 2)
         v = self.patches[py, px]
         c0, c1 = gy * v[:, 0] + fy * v[:, 2], gy * v[:, 1] + fy * v[:, 3]
@@ -659,5 +679,5 @@ class WarpedCoords:
         wo = 2.0 * cos_ih[:, None] * h - self.wi[None, :]
         reached = (cos_ih > 0) & (wo[:, 2] > 0)
         wo[~reached, 2] = np.minimum(wo[~reached, 2], 0.0)
-        jac = self._jac(u_x, h, (1.0 - fx) * c0 + fx * c1)
+        jac = self._jac(u_x, h, (1.0 - fx) * c0 + fx * c1) * rim
         return wo, np.where(reached & np.isfinite(jac), jac, 0.0)
