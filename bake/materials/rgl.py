@@ -458,6 +458,12 @@ class RGLMaterial(Material):
             out[sl] = self._eval_chunk(wi[sl], wo[sl], incident)
         return out
 
+    @property
+    def warp_nbytes(self):
+        """The bytes of the file's `vndf` warp data as it stores it (float32): what a sampler
+        that carries directions along the file's coordinates (WarpedCoords) reads besides."""
+        return 4 * self._slices * self._vndf_shape[0] * self._vndf_shape[1]
+
     def _eval_c(self, wo, incident):
         """eval for one wi in C (bake/core/_tables_c.c ft_rgl_eval: the numpy _eval_chunk
         transcribed, to a few ulps), or None without the C library."""
