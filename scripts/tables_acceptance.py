@@ -61,7 +61,8 @@ def main():
     n_tests = len(names) * len(THETAS)
     rows, peer_rows, speed_lines = [], [], []
     print("| material | cells | bins | MB | bake s | " + " | ".join(f"rv {t}" for t in THETAS)
-          + " | rv / ideal rv (within 1.5x) |" + (" sweep |" if args.sweep else ""), flush=True)
+          + " | rv / ideal rv (within 1.5x) |" + (" sweep |" if args.sweep else "")
+          + (" the fixed-cell blend |" if args.carried else ""), flush=True)
     for name in names:
         mat = open_material(shared_dir() / f"{name}.bsdf")
         path = out / f"{name}.exr"
@@ -81,15 +82,17 @@ def main():
         ideal = IdealSampler(mat)
         seconds = tab.meta.get("seconds", 0)
         rows_, bins_ = tab.rows, len(tab.theta_bins)
+        plain = tab         # with --carried, measured beside on the same draws
         if args.carried:
             tab = CarriedTables(tab, mat)
         line = [name, f"{rows_}", f"{bins_}", f"{tab.nbytes / 1e6:.2f}", f"{seconds:.0f}"]
-        ratios = []
+        ratios, plain_ratios = [], []
         for theta in THETAS:
             wi = incident(theta)
             draws = ReferencePoints(mat, wi, ideal, k=512, seed=7)       # the ideal's directions, for both rvs
             rv, tail = draws.rv(tab)
             ratios.append(rv / draws.rv(ideal)[0])
+            plain_ratios.append(draws.rv(plain)[0] / draws.rv(ideal)[0])
             row = dict(material=name, theta=theta, rv=rv, tail=tail, ideal_ratio=ratios[-1], nbytes=tab.nbytes)
             line.append(f"{rv:.4f}{'!' if tail > 0.01 else ''}")
             if not args.no_checks:
@@ -106,10 +109,16 @@ def main():
             rows.append(row)
         line.append(" ".join(f"{r:.2f}" for r in ratios) + f" ({sum(r <= 1.5 for r in ratios)}/{len(ratios)})")
         if args.sweep:
-            sweep = np.array([d.rv(tab)[0] / d.rv(ideal)[0]
-                              for d in (ReferencePoints(mat, incident(t), ideal, k=128, seed=7) for t in SWEEP)])
+            both = np.array([(d.rv(tab)[0] / d.rv(ideal)[0], d.rv(plain)[0] / d.rv(ideal)[0])
+                             for d in (ReferencePoints(mat, incident(t), ideal, k=128, seed=7) for t in SWEEP)])
+            sweep = both[:, 0]
             line.append(f"above 1.5x {np.sum(sweep > 1.5)}, 20x {np.sum(sweep > 20)}, worst {sweep.max():.3g} "
                         f"at {SWEEP[sweep.argmax()]:.1f}")
+        if args.carried:        # the same tables' fixed-cell blend, on the same draws
+            line.append("plain: " + " ".join(f"{r:.2f}" for r in plain_ratios)
+                        + f" ({sum(r <= 1.5 for r in plain_ratios)}/{len(plain_ratios)})"
+                        + (f", sweep above 1.5x {np.sum(both[:, 1] > 1.5)}, worst {both[:, 1].max():.3g} at "
+                           f"{SWEEP[both[:, 1].argmax()]:.1f}" if args.sweep else ""))
         print("| " + " | ".join(line) + " |", flush=True)
         peer = None
         if args.mitsuba:
