@@ -18,8 +18,10 @@ already in DIR are loaded instead of baked. --mitsuba: Mitsuba's `measured` samp
 same file in the same run (rv with the same sample count, lost fraction). --speed: sample,
 pdf and sample+pdf per second on one thread, one wi per call and a new wi per sample, for
 the tables and (with --mitsuba) Mitsuba, side by side. --carried: the same tables blended along
-the file's own coordinates (bake/core/carried.py) instead of at fixed cells; MB then counts the
-file's warp data beside the tables. Prints Markdown tables and a summary.
+the file's own coordinates (bake/core/carried.py) instead of at fixed cells, in the intervals
+where that does better at their midpoint (carried.choose_intervals, as the planner decides; tables
+planned without it are decided here); MB then counts the file's warp data beside the tables; --plan-carried plans the bins for that blend too. Prints
+Markdown tables and a summary.
 """
 import argparse
 import time
@@ -27,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bake.core.carried import CarriedTables
+from bake.core.carried import CarriedTables, choose_intervals
 from bake.core.geometry import incident
 from bake.core.ideal import IdealSampler
 from bake.materials import open_material
@@ -54,7 +56,9 @@ def main():
     p.add_argument("--speed", action="store_true", help="throughput, one thread, side by side")
     p.add_argument("--verbose", action="store_true", help="print the planner's log")
     p.add_argument("--carried", action="store_true", help="blend the bins along the file's own coordinates")
+    p.add_argument("--plan-carried", action="store_true", help="plan for that blend too (plan_tables blend='carried')")
     args = p.parse_args()
+    args.carried = args.carried or args.plan_carried
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     names = args.materials.split(",")
@@ -75,7 +79,8 @@ def main():
                 source = load_model(Path(args.models) / f"{name}.flow.npz")
             else:
                 source = IdealSampler(mat)
-            tab = plan_tables(mat, source, log=(lambda s: print("  plan:", s, flush=True)) if args.verbose else None, **({"memory_budget": int(args.budget * 1e6)} if args.budget else {}))
+            tab = plan_tables(mat, source, log=(lambda s: print("  plan:", s, flush=True)) if args.verbose else None, **({"memory_budget": int(args.budget * 1e6)} if args.budget else {}),
+                              blend="carried" if args.plan_carried else "fixed")
             tab.meta["seconds"] = round(time.perf_counter() - t0, 1)
             tab.save(path)
             tab = open_tables(path)
@@ -84,7 +89,10 @@ def main():
         rows_, bins_ = tab.rows, len(tab.theta_bins)
         plain = tab         # with --carried, measured beside on the same draws
         if args.carried:
+            if "carried" not in tab.meta:       # planned without it: which intervals carry, as the planner decides
+                tab.meta["carried"] = choose_intervals(mat, tab, ideal)
             tab = CarriedTables(tab, mat)
+            print(f"  {name}: {int(tab.carried.sum())} of {len(tab.carried)} intervals carried", flush=True)
         line = [name, f"{rows_}", f"{bins_}", f"{tab.nbytes / 1e6:.2f}", f"{seconds:.0f}"]
         ratios, plain_ratios = [], []
         for theta in THETAS:

@@ -70,3 +70,40 @@ def test_carrying_follows_a_feature_the_bins_blend_away(rgl):
     floor = draws.rv(ideal)[0]
     plain, carried = draws.rv(tables)[0] / floor, draws.rv(CarriedTables(tables, mat))[0] / floor
     assert plain > 2.0 and carried < 1.5, (plain, carried)
+
+
+def test_planner_plans_for_the_carried_blend(synthetic):
+    """plan_tables(blend="carried") measures its probes on carried tables and says so in the
+    tables' meta; a material it cannot carry, or an unknown blend, is refused before any build."""
+    from bake.core.tabulate import plan_tables
+    mat, _ = synthetic
+    ideal = IdealSampler(mat, resolution=64)
+    tables = plan_tables(mat, ideal, memory_budget=120_000, blend="carried", samples=1 << 12, first_bins=3,
+                         resolution=16, coords="halfpolar", window=None)
+    assert tables.meta["blend"] == "carried"
+    assert_sampler_contract(CarriedTables(tables, mat), spherical_dir(np.radians(50.0), 0.2),
+                            np.random.default_rng(3).random((5000, 2)), pdf_rtol=1e-9)
+    with pytest.raises(FlowBSDFError, match="isotropic RGL"):
+        plan_tables(Lambert(0.5), IdealSampler(Lambert(0.5)), blend="carried")
+    with pytest.raises(FlowBSDFError, match="blend"):
+        plan_tables(mat, ideal, blend="displaced")
+
+
+def test_intervals_that_do_not_carry_are_the_fixed_cell_blend(synthetic):
+    """An interval flagged not to carry samples the tables themselves (the same wo and pdf); the
+    flags are one per interval (a wrong count is refused); choose_intervals gives one per interval."""
+    from bake.core.carried import choose_intervals
+    mat, tables = synthetic
+    mixed = CarriedTables(tables, mat, carried=[False, True])
+    u = np.random.default_rng(5).random((3000, 2))
+    low, high = spherical_dir(np.radians(25.0), 0.4), spherical_dir(np.radians(70.0), 0.4)
+    wo, pdf = mixed.sample(low, u)
+    plain_wo, plain_pdf = tables.sample(low, u)
+    np.testing.assert_allclose(wo, plain_wo, atol=1e-12)        # wi rebuilt from its angles: rounding
+    np.testing.assert_allclose(pdf, plain_pdf, rtol=1e-9)
+    assert_sampler_contract(mixed, high, u, pdf_rtol=1e-9)
+    assert not np.allclose(mixed.pdf(high, wo), tables.pdf(high, wo))      # 70 deg carries
+    with pytest.raises(FlowBSDFError, match="one flag per interval"):
+        CarriedTables(tables, mat, carried=[True])
+    flags = choose_intervals(mat, tables, IdealSampler(mat, resolution=64), side=32)
+    assert len(flags) == 2 and all(isinstance(f, bool) for f in flags)

@@ -19,6 +19,12 @@ d omega / d s, p_j bin j's table at its own angle, the weights the tables' own (
 cos theta_i). At a bin this is the bin's table itself. Measured on chm_mint's 2 MB tables (rv
 over the ideal's, 512² draws): 85 deg 2.05x -> 0.88x, 30 deg 0.83x -> 0.37x, 60 deg 1.16x -> 0.95x.
 
+Near grazing the file's warp degenerates (its 90 deg slice holds no half vectors facing away from
+wi) and carrying can lose to the fixed-cell blend (2 MB tables: colodur_napoli_4f at 89.7 deg 2.6x
+-> 21x), so each interval between bins carries or not (`carried`, one flag per interval of
+theta_bins; tables.meta["carried"]): `choose_intervals` measures both blends at each interval's
+cos-midpoint and keeps the better.
+
 The sampler is exact (sample and pdf agree, nothing lost where W_wi reaches every s), but not
 invertible: the mixture's choice takes part of the first uniform.
 """
@@ -35,13 +41,22 @@ class CarriedTables:
     name = "tables-carried"
     normalized = True
 
-    def __init__(self, tables, material):
+    def __init__(self, tables, material, carried=None):
+        """carried: per interval of tables.theta_bins, whether it carries (default:
+        tables.meta["carried"], else every interval)."""
         if not isinstance(material, RGLMaterial) or not material.isotropic:
             raise FlowBSDFError("carried tables need an isotropic RGL material (its own coordinates)")
         if getattr(tables, "anisotropic", False):
             raise FlowBSDFError("carried tables blend isotropic tables")
         self.tables, self.material = tables, material
         self._warps = {}
+        if tables is not None:
+            if carried is None:
+                carried = tables.meta.get("carried", [True] * (len(tables.theta_bins) - 1))
+            self.carried = np.asarray(carried, bool)
+            if self.carried.shape != (max(len(tables.theta_bins) - 1, 0),):
+                raise FlowBSDFError(f"carried: one flag per interval of the tables' {len(tables.theta_bins)} bins, "
+                                    f"not {self.carried.shape}")
 
     @property
     def nbytes(self):
@@ -57,20 +72,25 @@ class CarriedTables:
         return self._warps[key]
 
     def _bins(self, theta):
-        """(the part of the tables that serves theta, [(theta_j, weight)] of its two bins)."""
-        part = self.tables
+        """(the part of the tables that serves theta, [(theta_j, weight)] of its two bins, whether
+        their interval carries)."""
+        part, start = self.tables, 0
         if isinstance(part, MixedTables):
-            part = part.parts[int(part.part_at(theta))]
+            p = int(part.part_at(theta))
+            start = sum(len(q.theta_bins) for q in part.parts[:p])
+            part = part.parts[p]
         bins = part.theta_bins
         if len(bins) == 1:
-            return part, [(bins[0], 1.0)]
+            return part, [(bins[0], 1.0)], True
         k = int(np.clip(np.searchsorted(bins, theta, side="right") - 1, 0, len(bins) - 2))
         c = np.cos(bins)
         t = float(np.clip((c[k] - np.cos(theta)) / (c[k] - c[k + 1]), 0.0, 1.0))
-        return part, [(bins[k], 1.0 - t), (bins[k + 1], t)]
+        return part, [(bins[k], 1.0 - t), (bins[k + 1], t)], bool(self.carried[start + k])
 
     def _pdf_one(self, theta, phi, wo):
-        part, bins = self._bins(theta)
+        part, bins, carries = self._bins(theta)
+        if not carries:
+            return part.pdf(spherical_dir(theta, phi), wo)
         s, jac = self._warp(theta, phi).to_s(wo)
         out = np.zeros(len(wo))
         for theta_j, w in bins:
@@ -83,7 +103,9 @@ class CarriedTables:
         return np.where(wo[:, 2] > 0, out, 0.0)
 
     def _sample_one(self, theta, phi, u):
-        part, bins = self._bins(theta)
+        part, bins, carries = self._bins(theta)
+        if not carries:
+            return part.sample(spherical_dir(theta, phi), u)
         u = u.copy()
         first = np.ones(len(u), bool)
         if len(bins) == 2 and 0.0 < bins[0][1] < 1.0:
@@ -126,3 +148,21 @@ class CarriedTables:
 
     def pdf(self, wi, wo):
         return self._per_wi(self._pdf_one, wi, wo)
+
+
+def choose_intervals(material, tables, ideal, side=128, seed=0):
+    """Per interval of tables.theta_bins: True where carrying reaches a lower rv than the fixed-cell
+    blend at its cos-midpoint (metrics.ReferencePoints: side² of the ideal's draws there). Intervals
+    of no width (a layout group's boundary, never blended) carry."""
+    from ..quality.metrics import ReferencePoints
+    from .tabulate import _parallel
+    bins = np.asarray(tables.theta_bins)
+    carried = CarriedTables(tables, material, carried=[True] * (len(bins) - 1))
+
+    def better(k):
+        if bins[k + 1] <= bins[k]:
+            return True
+        mid = float(np.arccos(0.5 * (np.cos(bins[k]) + np.cos(bins[k + 1]))))
+        draws = ReferencePoints(material, spherical_dir(mid, 0.0), ideal, side, seed)
+        return draws.rv(carried)[0] <= draws.rv(tables)[0]
+    return [bool(b) for b in _parallel(better, range(len(bins) - 1))]

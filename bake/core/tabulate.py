@@ -1055,7 +1055,7 @@ def lobe_width_of(material, ideal):
 @one_blas_thread()
 def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio=1.0, resolution=None,
                 first_bins=6, theta_max_deg=89.9, min_gap_deg=0.2, samples=1 << 14, lobe_width="auto",
-                ideal_resolution=256, log=None, phi_count="auto", coords="auto", **options):
+                ideal_resolution=256, log=None, phi_count="auto", coords="auto", blend="fixed", **options):
     """Tables with only the resolution and incident bins this material needs.
 
     The probes build tables from the ideal tabulation's points (`ideal`: the plan depends on
@@ -1104,6 +1104,10 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     coarser cells and the memory it frees spent above (MixedTables; meta["resolution"] then lists
     both). The interval probes above pool the pair alone.
 
+    blend: how the tables will be sampled between bins, which the probes measure: "fixed" (Tables:
+    at fixed cells) or "carried" (an isotropic RGL file's tables carried along its own coordinates,
+    bake/core/carried.py: the bins may lie further apart; numpy only, tables.meta["blend"]).
+
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
     (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
     at each theta_i of PHI_PROBE_DEG loses at most the bin's own rv plus tol / 2 (at 4 azimuths). The
@@ -1114,6 +1118,9 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     from ..quality.metrics import relative_variance
     from .ideal import IdealSampler
     log = log or (lambda *_: None)
+    if blend not in ("fixed", "carried"):
+        raise FlowBSDFError(f"blend {blend!r}: 'fixed' or 'carried'")
+    carry = _carrier(material) if blend == "carried" else (lambda tables: tables)
     ideal = source if isinstance(source, IdealSampler) else IdealSampler(material, resolution=ideal_resolution)
     if lobe_width == "auto":
         lobe_width = lobe_width_of(material, ideal)
@@ -1145,7 +1152,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
         def build(thetas, phi=0.0, phis=None):     # a probe; phis: all azimuths, else the single azimuth phi
             if aniso:
                 phis = [phi] if phis is None else phis
-            return build_tables(material, ideal, thetas, resolution, resolution, phi_bins=phis, **opts)
+            return carry(build_tables(material, ideal, thetas, resolution, resolution, phi_bins=phis, **opts))
 
         probe_phis = list(np.arange(4) * (material.phi_period / 4)) if aniso else [0.0]
         worst_phi = 0.0
@@ -1308,7 +1315,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     compared = None
     if phi_bins is None and "window" not in options:
         opts["window"], bins, resolution, compared = _between_bins(material, ideal, bins, resolution, opts, cache, tol,
-                                                                   samples, log, memory_budget, extend)
+                                                                   samples, log, memory_budget, extend, carry)
     elif phi_bins is None:      # the layout given: as many bins as its layouts leave room for
         (bins, _), = _fit([(bins, resolution)], memory_budget, window=options["window"], coords=coords or ISO_COORDS,
                           lobe_width=lobe_width)
@@ -1325,10 +1332,14 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     else:   # from the source's own points: the probes' are the ideal's
         tables = build_grouped(material, source, bins, resolution, phi_bins=phi_bins, progress=built,
                                **{**opts, "cache": cache if source is ideal else {}})
+    if blend == "carried":
+        from .carried import choose_intervals
+        tables.meta["carried"] = choose_intervals(material, tables, ideal)
+        log(f"carried: {sum(tables.meta['carried'])} of {len(tables.meta['carried'])} intervals carry")
     tables.meta.update(resolution=resolution if np.ndim(resolution) == 0 else [int(r) for r in resolution],
                        lobe_width=lobe_width, tol=tol, ideal_ratio=ideal_ratio,
                        window=opts.get("window", 1),
-                       groups=int(np.sum(np.diff(bins) == 0)) + 1)
+                       groups=int(np.sum(np.diff(bins) == 0)) + 1, blend=blend)
     if phi_bins is not None:
         tables.meta.update(phi_count=len(phi_bins), planned_at_phi=float(worst_phi))
     return tables
@@ -1374,7 +1385,18 @@ def _fit(groups, memory_budget, keep=(), **layout):
     return groups
 
 
-def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, log, memory_budget, extend):
+def _carrier(material):
+    """tables -> their CarriedTables (the planner's probes measure the blend the tables will have)."""
+    from .carried import CarriedTables
+    CarriedTables(None, material)       # refuses a material it cannot carry, before any build
+
+    def carry(tables):
+        return CarriedTables(tables, material)
+    return carry
+
+
+def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, log, memory_budget, extend,
+                  carry=lambda tables: tables):
     """(window, bins, resolution (one, or one per group), their tables from the ideal's points;
     None when not compared): of the ways to place cells between the planned bins, the one whose
     tables are typically closest to the ideal over the bins and their intervals' midpoints: the
@@ -1454,7 +1476,7 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
         nonlocal best, best_split, n
         n += 1
         tables = build_grouped(material, ideal, placed, res, **{**opts, "window": window, "cache": cache})
-        ratios = np.array([d.rv(tables)[0] for d in draws]) / floors
+        ratios = np.array([d.rv(carry(tables))[0] for d in draws]) / floors
         excess = float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=widths)))
         log(f"between bins: placement {n} of {total}, {label}: {excess:.2f}x the ideal's rv (typical excess)")
         if best is None or excess < best[0]:
