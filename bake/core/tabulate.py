@@ -1022,10 +1022,15 @@ def bins_within(memory_budget, resolution, layouts=2):
 MIN_BINS = 33
 
 
-def _resolutions_within(memory_budget):
-    """RESOLUTIONS whose tables fit MIN_BINS incident angles in the budget (all of them when
+# Carried tables (carried.py) hold between bins further apart: chm_mint's plan over 32² cells was
+# done (every midpoint within its target) at 27 bins where the fixed-cell blend's filled 64.
+MIN_BINS_CARRIED = 24
+
+
+def _resolutions_within(memory_budget, min_bins=MIN_BINS):
+    """RESOLUTIONS whose tables fit min_bins incident angles in the budget (all of them when
     not even the smallest does: the budget then decides alone)."""
-    fits = [r for r in RESOLUTIONS if bins_within(memory_budget, r) >= MIN_BINS]
+    fits = [r for r in RESOLUTIONS if bins_within(memory_budget, r) >= min_bins]
     return fits or list(RESOLUTIONS)
 
 
@@ -1106,7 +1111,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
 
     blend: how the tables will be sampled between bins, which the probes measure: "fixed" (Tables:
     at fixed cells) or "carried" (an isotropic RGL file's tables carried along its own coordinates,
-    bake/core/carried.py: the bins may lie further apart; numpy only, tables.meta["blend"]).
+    bake/core/carried.py: the bins may lie further apart, the budget counts the file's warp data and
+    the resolutions need room for MIN_BINS_CARRIED bins; numpy only, tables.meta["blend"]).
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
     (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
@@ -1121,6 +1127,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     if blend not in ("fixed", "carried"):
         raise FlowBSDFError(f"blend {blend!r}: 'fixed' or 'carried'")
     carry = _carrier(material) if blend == "carried" else (lambda tables: tables)
+    if blend == "carried":      # the file's warp data is read beside the tables: within the budget
+        memory_budget -= material.warp_nbytes
     ideal = source if isinstance(source, IdealSampler) else IdealSampler(material, resolution=ideal_resolution)
     if lobe_width == "auto":
         lobe_width = lobe_width_of(material, ideal)
@@ -1170,7 +1178,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
             # Isotropic: one angle above its target decides that a resolution fails (the rest need
             # not be built). Anisotropic: the worst azimuth is needed, so every angle is.
             tried = {}
-            for resolution in (ANISO_RESOLUTIONS if aniso else _resolutions_within(memory_budget)):
+            for resolution in (ANISO_RESOLUTIONS if aniso else _resolutions_within(
+                    memory_budget, MIN_BINS_CARRIED if blend == "carried" else MIN_BINS)):
                 by_phi = {phi: probe_rv(phi) for phi in probe_phis}
                 worst_phi, worst = max(by_phi.items(), key=lambda kv: kv[1])
                 tried[resolution] = worst
