@@ -3,6 +3,7 @@
     sampler        the sampler contract; every sampler by name (open_sampler)
     flow           the learned flow sampler: a trained model (.flow.npz) run exactly
     tables         baked tables (.exr): an exact, table-speed sampler per material
+    carried        an RGL file's tables blended along the file's own coordinates (numpy only)
     fasttables     the tables' optional C fast path (_tables_c.c, loaded with ctypes)
     tabulate       building tables from a material and a source sampler
     ideal          the ideal sampler: f·cos tabulated finely per incident direction
