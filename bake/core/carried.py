@@ -37,6 +37,12 @@ from .geometry import spherical_dir, theta_phi
 from .tables import MixedTables
 
 
+def check_carriable(material):
+    """FlowBSDFError unless the material has coordinates of its own to carry tables along."""
+    if not isinstance(material, RGLMaterial) or not material.isotropic:
+        raise FlowBSDFError("carried tables need an isotropic RGL material (its own coordinates)")
+
+
 class CarriedTables:
     name = "tables-carried"
     normalized = True
@@ -44,19 +50,17 @@ class CarriedTables:
     def __init__(self, tables, material, carried=None):
         """carried: per interval of tables.theta_bins, whether it carries (default:
         tables.meta["carried"], else every interval)."""
-        if not isinstance(material, RGLMaterial) or not material.isotropic:
-            raise FlowBSDFError("carried tables need an isotropic RGL material (its own coordinates)")
+        check_carriable(material)
         if getattr(tables, "anisotropic", False):
             raise FlowBSDFError("carried tables blend isotropic tables")
         self.tables, self.material = tables, material
         self._warps = {}
-        if tables is not None:
-            if carried is None:
-                carried = tables.meta.get("carried", [True] * (len(tables.theta_bins) - 1))
-            self.carried = np.asarray(carried, bool)
-            if self.carried.shape != (max(len(tables.theta_bins) - 1, 0),):
-                raise FlowBSDFError(f"carried: one flag per interval of the tables' {len(tables.theta_bins)} bins, "
-                                    f"not {self.carried.shape}")
+        if carried is None:
+            carried = tables.meta.get("carried", [True] * (len(tables.theta_bins) - 1))
+        self.carried = np.asarray(carried, bool)
+        if self.carried.shape != (max(len(tables.theta_bins) - 1, 0),):
+            raise FlowBSDFError(f"carried: one flag per interval of the tables' {len(tables.theta_bins)} bins, "
+                                f"not {self.carried.shape}")
 
     @property
     def nbytes(self):

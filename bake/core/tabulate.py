@@ -1396,8 +1396,8 @@ def _fit(groups, memory_budget, keep=(), **layout):
 
 def _carrier(material):
     """tables -> their CarriedTables (the planner's probes measure the blend the tables will have)."""
-    from .carried import CarriedTables
-    CarriedTables(None, material)       # refuses a material it cannot carry, before any build
+    from .carried import CarriedTables, check_carriable
+    check_carriable(material)       # before any build
 
     def carry(tables):
         return CarriedTables(tables, material)
