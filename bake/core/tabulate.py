@@ -1112,7 +1112,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     blend: how the tables will be sampled between bins, which the probes measure: "fixed" (Tables:
     at fixed cells) or "carried" (an isotropic RGL file's tables carried along its own coordinates,
     bake/core/carried.py: the bins may lie further apart, the budget counts the file's warp data and
-    the resolutions need room for MIN_BINS_CARRIED bins; numpy only, tables.meta["blend"]).
+    the resolutions need room for MIN_BINS_CARRIED bins; numpy only; tables.meta["blend"] and
+    ["carried"], absent for "fixed", whose tables stay as before, byte for byte).
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
     (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
@@ -1348,7 +1349,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     tables.meta.update(resolution=resolution if np.ndim(resolution) == 0 else [int(r) for r in resolution],
                        lobe_width=lobe_width, tol=tol, ideal_ratio=ideal_ratio,
                        window=opts.get("window", 1),
-                       groups=int(np.sum(np.diff(bins) == 0)) + 1, blend=blend)
+                       groups=int(np.sum(np.diff(bins) == 0)) + 1, **({"blend": blend} if blend != "fixed" else {}))
     if phi_bins is not None:
         tables.meta.update(phi_count=len(phi_bins), planned_at_phi=float(worst_phi))
     return tables
