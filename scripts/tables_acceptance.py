@@ -20,8 +20,8 @@ pdf and sample+pdf per second on one thread, one wi per call and a new wi per sa
 the tables and (with --mitsuba) Mitsuba, side by side. --carried: the same tables blended along
 the file's own coordinates (bake/core/carried.py) instead of at fixed cells, in the intervals
 where that does better at their midpoint (carried.choose_intervals, as the planner decides; tables
-planned without it are decided here); MB then counts the file's warp data beside the tables; --plan-carried plans the bins for that blend too. Prints
-Markdown tables and a summary.
+planned without it are decided here); MB then counts the file's warp data beside the tables;
+--plan-carried plans the bins for that blend too. Prints Markdown tables and a summary.
 """
 import argparse
 import time
@@ -85,22 +85,22 @@ def main():
             tab.save(path)
             tab = open_tables(path)
         ideal = IdealSampler(mat)
-        seconds = tab.meta.get("seconds", 0)
-        rows_, bins_ = tab.rows, len(tab.theta_bins)
-        plain = tab         # with --carried, measured beside on the same draws
+        plain = tab         # with --carried: the fixed-cell blend, measured beside on the same draws
         if args.carried:
             if "carried" not in tab.meta:       # planned without it: which intervals carry, as the planner decides
                 tab.meta["carried"] = choose_intervals(mat, tab, ideal)
             tab = CarriedTables(tab, mat)
             print(f"  {name}: {int(tab.carried.sum())} of {len(tab.carried)} intervals carried", flush=True)
-        line = [name, f"{rows_}", f"{bins_}", f"{tab.nbytes / 1e6:.2f}", f"{seconds:.0f}"]
+        line = [name, f"{plain.rows}", f"{len(plain.theta_bins)}", f"{tab.nbytes / 1e6:.2f}",
+                f"{plain.meta.get('seconds', 0):.0f}"]
         ratios, plain_ratios = [], []
         for theta in THETAS:
             wi = incident(theta)
             draws = ReferencePoints(mat, wi, ideal, k=512, seed=7)       # the ideal's directions, for both rvs
             rv, tail = draws.rv(tab)
             ratios.append(rv / draws.rv(ideal)[0])
-            plain_ratios.append(draws.rv(plain)[0] / draws.rv(ideal)[0])
+            if args.carried:
+                plain_ratios.append(draws.rv(plain)[0] / draws.rv(ideal)[0])
             row = dict(material=name, theta=theta, rv=rv, tail=tail, ideal_ratio=ratios[-1], nbytes=tab.nbytes)
             line.append(f"{rv:.4f}{'!' if tail > 0.01 else ''}")
             if not args.no_checks:
@@ -117,7 +117,7 @@ def main():
             rows.append(row)
         line.append(" ".join(f"{r:.2f}" for r in ratios) + f" ({sum(r <= 1.5 for r in ratios)}/{len(ratios)})")
         if args.sweep:
-            both = np.array([(d.rv(tab)[0] / d.rv(ideal)[0], d.rv(plain)[0] / d.rv(ideal)[0])
+            both = np.array([[d.rv(x)[0] / d.rv(ideal)[0] for x in ((tab, plain) if args.carried else (tab,))]
                              for d in (ReferencePoints(mat, incident(t), ideal, k=128, seed=7) for t in SWEEP)])
             sweep = both[:, 0]
             line.append(f"above 1.5x {np.sum(sweep > 1.5)}, 20x {np.sum(sweep > 20)}, worst {sweep.max():.3g} "

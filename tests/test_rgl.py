@@ -456,8 +456,11 @@ def test_warped_coords_are_where_eval_reads_rgb_both_ways(horizon, tmp_path):
         warp = WarpedCoords(mat, wi, horizon=horizon)
         wo = spherical_dir(np.arccos(rng.uniform(0.02, 1.0, 3000)), rng.uniform(-np.pi, np.pi, 3000))
         s, jac = warp.to_s(wo)
-        rim = WarpedCoords(mat, wi).to_s(wo)[0][:, 0] / s[:, 0] if horizon else 1.0
-        np.testing.assert_allclose(mat.eval(wi, wo)[:, 0] * wo[:, 2], s[:, 0] * rim, rtol=1e-6, atol=1e-7)
+        s_file = WarpedCoords(mat, wi).to_s(wo)[0]
+        np.testing.assert_allclose(mat.eval(wi, wo)[:, 0] * wo[:, 2], s_file[:, 0], rtol=1e-6, atol=1e-7)
+        np.testing.assert_array_equal(s[:, 1], s_file[:, 1])        # the row is the file's
+        if horizon:     # s_x over its value at the rim (<= 1)
+            assert np.all(s[:, 0] >= s_file[:, 0] - 1e-12) and np.any(s[:, 0] > s_file[:, 0] * 1.01)
         back, jac_back = warp.from_s(s)
         np.testing.assert_allclose(back, wo, atol=1e-7)
         np.testing.assert_allclose(jac_back, jac, rtol=1e-7)

@@ -127,6 +127,8 @@ class CarriedTables:
             wo_j, _ = part.sample(spherical_dir(theta_j, phi), u[chosen])
             s, _ = self._warp(theta_j, phi).to_s(wo_j)
             wo[chosen], _ = self._warp(theta, phi).from_s(s)
+        # The pdf from wo as pdf() computes it (not from s and the bins' densities already at hand):
+        # the round trip s -> wo -> s is exact only to ~1e-9, and MIS needs pdf(wo) itself.
         return wo, self._pdf_one(theta, phi, wo)
 
     def _per_wi(self, fn, wi, x):

@@ -654,6 +654,7 @@ class WarpedCoords:
         py, fy = _patch(u_y, self.ny)
         sx, sy, zero, density = _warp_to_s(self.patches[py, px], fx, fy)
         rim = self._rim(py, fy)
+        # sx / rim exceeds 1 only by rounding, for wo on the horizon itself
         return np.stack([np.minimum(sx / rim, 1.0), sy], axis=-1), self._jac(u_x, h, np.where(zero, 0.0, density)) * rim
 
     @staticmethod
