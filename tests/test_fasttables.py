@@ -338,3 +338,37 @@ def test_c_matches_numpy_on_anisotropic_halfvector_tables(brushed):
             np.testing.assert_allclose(fast("pdf", tab, wi_, wo), ref.pdf(wi_, wo), rtol=1e-6, atol=0)
             np.testing.assert_allclose(fast("invert", tab, wi_, wo), ref.invert(wi_, wo), rtol=1e-7, atol=1e-11)
             np.testing.assert_allclose(fast("eval", tab, wi_, wo), ref.eval(wi_, wo), rtol=1e-6, atol=0)
+
+
+@needs_c
+@pytest.mark.parametrize("horizon", [False, True])
+def test_warped_coords_in_c_match_numpy(horizon, tmp_path):
+    """rgl.WarpedCoords' to_s and from_s in C (ft_warp_to_s / ft_warp_from_s) against the numpy
+    reference on a synthetic RGL file with a row of empty patches: the same s, directions and Jacobians to
+    1e-9, the same unreached s and infinite Jacobians, at five incident angles."""
+    from bake.materials.rgl import RGLMaterial, WarpedCoords, write_tensor_file
+    from test_rgl import synthetic_fields
+    f = synthetic_fields(n_vndf=16, n_rgb=8)
+    f["vndf"][0, :, 4:6, :] = 0.0          # a patch row of no density
+    mat = RGLMaterial(write_tensor_file(tmp_path / "w.bsdf", f))
+    rng = np.random.default_rng(3)
+    for theta in np.radians([0.0, 25.0, 60.0, 85.0, 89.9]):
+        wi = spherical_dir(theta, 0.9)
+        ref = WarpedCoords(mat, wi, horizon=horizon, stored=True, backend="numpy")
+        c = WarpedCoords(mat, wi, horizon=horizon, stored=True)
+        wo = spherical_dir(np.arccos(rng.uniform(0.0, 1.0, 4000)), rng.uniform(-np.pi, np.pi, 4000))
+        s_ref, jac_ref = ref.to_s(wo)
+        s_c, jac_c = fasttables.warp_to_s(c, wo)
+        np.testing.assert_allclose(s_c, s_ref, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(np.isfinite(jac_c), np.isfinite(jac_ref))
+        assert not np.isfinite(jac_ref).all()       # the zero row is hit
+        fin = np.isfinite(jac_ref)
+        np.testing.assert_allclose(jac_c[fin], jac_ref[fin], rtol=1e-9)
+        s = np.concatenate([rng.random((4000, 2)), [[0.0, 0.0], [1.0, 1.0], [1.0, 0.0], [0.0, 1.0]]])
+        wo_ref, jac_ref = ref.from_s(s)
+        wo_c, jac_c = fasttables.warp_from_s(c, s)
+        np.testing.assert_allclose(wo_c, wo_ref, rtol=0, atol=1e-9)
+        rim = np.abs(wo_ref[:, 2]) < 1e-12      # s_x = 1 with `horizon`: on the horizon, reached or not by rounding
+        assert rim.sum() <= (2 if horizon else 0)
+        np.testing.assert_allclose(jac_c[~rim], jac_ref[~rim], rtol=1e-9, atol=0)
+        np.testing.assert_array_equal(jac_c[~rim] > 0, jac_ref[~rim] > 0)

@@ -481,3 +481,24 @@ def test_warped_coords_are_where_eval_reads_rgb_both_ways(horizon, tmp_path):
             assert reached.all()
             rim_wo = warp.from_s(np.stack([np.full(64, 1.0 - 1e-12), np.linspace(0.01, 0.99, 64)], -1))[0]
             np.testing.assert_allclose(rim_wo[:, 2], 0.0, atol=1e-5)
+
+
+def test_stored_warp_is_half_the_bytes_and_the_files_coordinates(tmp_path):
+    """stored_warp keeps the file's vndf in float16 over each slice's maximum: half the bytes, the
+    same support (a value too small for float16 stays nonzero), and coordinates within float16's
+    rounding of the file's (s to 2e-3 at four incident angles)."""
+    from bake.materials.rgl import WarpedCoords
+    f = synthetic_fields(n_vndf=16, n_rgb=8)
+    f["vndf"][0, 1, 3, 3] = 1e-30 * f["vndf"][0, 1].max()     # below float16's smallest, over the maximum
+    f["vndf"][0, 2, 5, :] = 0.0
+    mat = RGLMaterial(write_tensor_file(tmp_path / "w.bsdf", f))
+    stored = mat.stored_warp
+    assert stored.dtype == np.float16 and mat.warp_nbytes == stored.nbytes == f["vndf"].nbytes // 2
+    np.testing.assert_array_equal(stored > 0, f["vndf"].reshape(stored.shape) > 0)
+    rng = np.random.default_rng(2)
+    for theta in np.radians([0.0, 35.0, 70.0, 88.0]):
+        wi = spherical_dir(theta, -0.4)
+        wo = spherical_dir(np.arccos(rng.uniform(0.02, 1.0, 2000)), rng.uniform(-np.pi, np.pi, 2000))
+        s_file = WarpedCoords(mat, wi, horizon=True).to_s(wo)[0]
+        s_stored = WarpedCoords(mat, wi, horizon=True, stored=True).to_s(wo)[0]
+        assert 0 < np.max(np.abs(s_stored - s_file)) < 2e-3

@@ -69,7 +69,7 @@ double sin(double) FT_VEC;
 #endif
 
 /* Bumped whenever ft_tables or a signature changes (bake/core/fasttables.py checks it). */
-#define FT_ABI 4
+#define FT_ABI 5
 
 static const double PI = 3.141592653589793;       /* np.pi */
 static const double TWO_PI = 6.283185307179586;   /* 2.0 * np.pi */
@@ -954,4 +954,123 @@ FT_EXPORT void ft_rgl_eval(int64_t n, const double *wo, const double *par, const
                            int64_t vnx, const double *rgb, int64_t ry, int64_t rx, const double *ndf, int64_t nny,
                            int64_t nnx, double *out) {
     rgl_run(n, wo, par, vndf, vny, vnx, rgb, ry, rx, ndf, nny, nnx, out);
+}
+
+/* ------------------------------------------------------------------- an RGL file's coordinates
+ *
+ * rgl.WarpedCoords.to_s / from_s for one wi, transcribed (same formulas and order of operations,
+ * to a few ulps): the file's continuous Marginal2D warp over the half vector's u_m, with s_x over
+ * its horizon value when `horizon`. One sample at a time; the searches in from_s are bisections
+ * over monotone values, which find the same index as numpy's counts. carried.CarriedTables calls
+ * them through WarpedCoords (the bins' tables through ft_sample and ft_pdf). */
+typedef struct {
+    int64_t ny, nx, horizon;
+    double wx, wy, wz, phi_i;
+    const double *patches;     /* ((ny-1) (nx-1), 9): _continuous_warp_table of this wi */
+} ft_warp;
+
+FT_INLINE double theta2u(double theta) { return sqrt(theta * (2.0 / PI)); }
+
+/* _warp_to_s within patch t at (fx, fy): s x (over the row total), s y, zero row, density */
+FT_INLINE void warp_within(const double *t, double fx, double fy, double *sx, double *sy, int *zero, double *density) {
+    const double gy = 1.0 - fy;
+    double row_total = gy * t[6] + fy * t[7];
+    *zero = row_total == 0.0;
+    if (*zero) row_total = 1.0;
+    const double c0 = gy * t[0] + fy * t[2], c1 = gy * t[1] + fy * t[3];
+    *sx = (fx * (c0 + 0.5 * fx * (c1 - c0)) + gy * t[4] + fy * t[5]) / row_total;
+    *sy = fy * (t[6] + 0.5 * fy * (t[7] - t[6])) + t[8];
+    *density = (1.0 - fx) * c0 + fx * c1;
+}
+
+/* WarpedCoords._rim: s x at the horizon in row (py, fy), 1 without `horizon` */
+FT_INLINE double warp_rim(const ft_warp *W, int64_t py, double fy) {
+    if (!W->horizon) return 1.0;
+    const double cos_i = W->wz, sin_i = sqrt(fmax(1.0 - cos_i * cos_i, 0.0));
+    const double delta = (((double)py + fy) / (double)(W->ny - 1)) * TWO_PI - PI;
+    const double theta_h = 0.5 * atan2(cos_i, -sin_i * cos(delta));
+    int64_t px;
+    double fx, sx, sy, density;
+    int zero;
+    rgl_patch(theta2u(theta_h), W->nx, &px, &fx);
+    warp_within(W->patches + 9 * (py * (W->nx - 1) + px), fx, fy, &sx, &sy, &zero, &density);
+    return sx < 1e-300 ? 1e-300 : (sx > 1.0 ? 1.0 : sx);
+}
+
+/* WarpedCoords._jac: d omega_o / d s at half vector h (u_m x = u_x), the warp's density there */
+FT_INLINE double warp_jac(const ft_warp *W, double u_x, const double *h, double density) {
+    const double theta_h = u_x * u_x * (0.5 * PI);
+    const double cos_ih = fabs(h[0] * W->wx + h[1] * W->wy + h[2] * W->wz);
+    const double d_omega_d_u = 4.0 * cos_ih * sin(theta_h) * (PI * u_x) * TWO_PI;
+    return density > 0.0 ? d_omega_d_u / (density * (double)(W->nx - 1) * (double)(W->ny - 1)) : INFINITY;
+}
+
+/* WarpedCoords._root: x in [0, 1] with start x + slope_half x² = d */
+FT_INLINE double warp_root(double slope_half, double start, double d) {
+    const double root = sqrt(fmax(start * start + 4.0 * slope_half * d, 0.0));
+    const double x = 2.0 * d / (start + root);
+    return isnan(x) ? 0.0 : clip01(x);
+}
+
+FT_EXPORT void ft_warp_to_s(const ft_warp *W, int64_t n, const double *wo, double *s, double *jac) {
+    for (int64_t k = 0; k < n; k++) {
+        double h[3] = {W->wx + wo[3 * k], W->wy + wo[3 * k + 1], W->wz + wo[3 * k + 2]};
+        const double norm = sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2]);
+        h[0] /= norm, h[1] /= norm, h[2] /= norm;
+        const double dist = sqrt(h[0] * h[0] + h[1] * h[1] + (h[2] - 1.0) * (h[2] - 1.0));
+        const double u_x = theta2u(2.0 * asin(fmin(0.5 * dist, 1.0)));
+        double u_y = (atan2(h[1], h[0]) - W->phi_i + PI) * (0.5 / PI);
+        u_y -= floor(u_y);
+        int64_t px, py;
+        double fx, fy, sx, sy, density;
+        int zero;
+        rgl_patch(u_x, W->nx, &px, &fx);
+        rgl_patch(u_y, W->ny, &py, &fy);
+        warp_within(W->patches + 9 * (py * (W->nx - 1) + px), fx, fy, &sx, &sy, &zero, &density);
+        const double rim = warp_rim(W, py, fy);
+        s[2 * k] = fmin(sx / rim, 1.0);
+        s[2 * k + 1] = sy;
+        jac[k] = warp_jac(W, u_x, h, zero ? 0.0 : density) * rim;
+    }
+}
+
+FT_EXPORT void ft_warp_from_s(const ft_warp *W, int64_t n, const double *s, double *wo, double *jac) {
+    const int64_t ny = W->ny, nx = W->nx, row = 9 * (nx - 1);
+    for (int64_t k = 0; k < n; k++) {
+        const double s_x = s[2 * k], s_y = s[2 * k + 1];
+        int64_t lo = 0, hi = ny - 1;       /* the last row with m0 <= s_y: m0 of rows [0, lo] <= s_y */
+        if (!(W->patches[8] <= s_y)) hi = 0;
+        while (hi - lo > 1) {
+            const int64_t mid = (lo + hi) / 2;
+            if (W->patches[mid * row + 8] <= s_y) lo = mid; else hi = mid;
+        }
+        const int64_t py = lo;
+        const double *r = W->patches + py * row;
+        const double r0 = r[6], r1 = r[7];
+        const double fy = warp_root(0.5 * (r1 - r0), r0, s_y - r[8]), gy = 1.0 - fy;
+        const double rim = warp_rim(W, py, fy);
+        const double target = s_x * rim * (gy * r0 + fy * r1);
+        lo = 0, hi = nx - 1;               /* the last patch whose start <= target */
+        if (!(gy * r[4] + fy * r[5] <= target)) hi = 0;
+        while (hi - lo > 1) {
+            const int64_t mid = (lo + hi) / 2;
+            if (gy * r[9 * mid + 4] + fy * r[9 * mid + 5] <= target) lo = mid; else hi = mid;
+        }
+        const int64_t px = lo;
+        const double *v = r + 9 * px;
+        const double c0 = gy * v[0] + fy * v[2], c1 = gy * v[1] + fy * v[3];
+        const double fx = warp_root(0.5 * (c1 - c0), c0, target - (gy * v[4] + fy * v[5]));
+        const double u_x = ((double)px + fx) / (double)(nx - 1), u_y = ((double)py + fy) / (double)(ny - 1);
+        const double theta_h = u_x * u_x * (0.5 * PI), phi_h = u_y * TWO_PI - PI + W->phi_i;
+        const double h[3] = {sin(theta_h) * cos(phi_h), sin(theta_h) * sin(phi_h), cos(theta_h)};
+        const double cos_ih = h[0] * W->wx + h[1] * W->wy + h[2] * W->wz;
+        double *o = wo + 3 * k;
+        o[0] = 2.0 * cos_ih * h[0] - W->wx;
+        o[1] = 2.0 * cos_ih * h[1] - W->wy;
+        o[2] = 2.0 * cos_ih * h[2] - W->wz;
+        const int reached = cos_ih > 0.0 && o[2] > 0.0;
+        if (!reached) o[2] = fmin(o[2], 0.0);
+        const double j = warp_jac(W, u_x, h, (1.0 - fx) * c0 + fx * c1) * rim;
+        jac[k] = reached && isfinite(j) ? j : 0.0;
+    }
 }
