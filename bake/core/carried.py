@@ -92,20 +92,34 @@ class CarriedTables:
         t = float(np.clip((c[k] - np.cos(theta)) / (c[k] - c[k + 1]), 0.0, 1.0))
         return part, [(bins[k], 1.0 - t), (bins[k + 1], t)], bool(self.carried[start + k])
 
-    def _pdf_one(self, theta, phi, wo):
+    def _carry_back(self, theta, phi, wo, value, shape=()):
+        """sum_j w_j value(part, wi_j, wo_j) J_j / J_wi, wo_j = W_j^-1(W_wi(wo)): a density of the
+        bins (pdf, or f cos: shape (3,)) carried to wi; on an interval that does not carry, value at
+        wi itself."""
         part, bins, carries = self._bins(theta)
         if not carries:
-            return part.pdf(spherical_dir(theta, phi), wo)
+            return value(part, spherical_dir(theta, phi), wo)
         s, jac = self._warp(theta, phi).to_s(wo)
-        out = np.zeros(len(wo))
+        out = np.zeros((len(wo),) + shape)
         for theta_j, w in bins:
             if w <= 0.0:
                 continue
             wo_j, jac_j = self._warp(theta_j, phi).from_s(s)
             ok = (jac_j > 0) & np.isfinite(jac)
             if ok.any():
-                out[ok] += w * part.pdf(spherical_dir(theta_j, phi), wo_j[ok]) * jac_j[ok] / jac[ok]
-        return np.where(wo[:, 2] > 0, out, 0.0)
+                ratio = (jac_j[ok] / jac[ok]).reshape((-1,) + (1,) * len(shape))
+                out[ok] += w * value(part, spherical_dir(theta_j, phi), wo_j[ok]) * ratio
+        return out
+
+    def _pdf_one(self, theta, phi, wo):
+        pdf = self._carry_back(theta, phi, wo, lambda part, wi, w: part.pdf(wi, w))
+        return np.where(wo[:, 2] > 0, pdf, 0.0)
+
+    def _eval_one(self, theta, phi, wo):
+        """The baked f carried as f cos: sum_j w_j f_j(wo_j) cos_j J_j / J_wi / cos theta_o."""
+        fcos = self._carry_back(theta, phi, wo, lambda part, wi, w: part.eval(wi, w) * w[:, 2:3], (3,))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(wo[:, 2:3] > 0, fcos / wo[:, 2:3], 0.0)
 
     def _sample_one(self, theta, phi, u):
         part, bins, carries = self._bins(theta)
@@ -158,6 +172,11 @@ class CarriedTables:
 
     def pdf(self, wi, wo):
         return self._per_wi(self._pdf_one, wi, wo)
+
+    def eval(self, wi, wo):
+        """The tables' baked f (RGB) carried like the pdf: what a renderer that samples these
+        tables weighs its samples by (eval cos / pdf), as Tables.eval is for the fixed-cell blend."""
+        return self._per_wi(self._eval_one, wi, wo)
 
 
 def choose_intervals(material, tables, ideal, side=128, seed=0):
