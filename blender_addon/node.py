@@ -76,6 +76,7 @@ NEUTRAL = (0.5, 0.5, 0.5)
 # The fit file format (bake/export/closure_fit.py: load_fit, FIT_VERSION), read here without numpy.
 FIT_FORMAT = "flowbsdf-closure-fit"
 OSL_LAYOUT = 8          # the OSL texture's layout (bake/export/osl_export.LAYOUT): part of its file name
+CARRY_LAYOUT = 1        # the carried blend's texture's (bake/export/carry_export.CARRY_LAYOUT)
 FIT_VERSION = 4
 
 
@@ -156,6 +157,14 @@ def _osl_texture(tables_path):
 def _texture_path(tables_path, digest):
     """The OSL texture's name beside the tables (bake/export/osl_export.export_path, without numpy)."""
     return tables_path.with_name(f"{tables_path.stem}.osl{OSL_LAYOUT}-{digest[:12]}.exr")
+
+
+def _carry_texture(tables_path):
+    """The carried blend's texture the bake wrote beside a table file (its name carries the tables'
+    hash: bake/export/carry_export.export_path), or "" (tables that do not carry, or not yet baked)."""
+    tables_path = Path(tables_path)
+    path = tables_path.with_name(f"{tables_path.stem}.carry{CARRY_LAYOUT}-{_file_hash(tables_path)[:12]}.exr")
+    return str(path) if path.is_file() else ""
 
 
 def svm_available():
@@ -546,6 +555,7 @@ def _build_tree(tree, name, tables_path, fit_path):
         script.name = script.label = SCRIPT
         script.location = (2200, 300)
         script.inputs["Tables"].default_value = osl_texture
+        script.inputs["Carried"].default_value = info["carry_texture"] = _carry_texture(tables_path)
         links.new(fit_out, script.inputs["Fallback"])
         links.new(group_in.outputs["Tangent"], script.inputs["Tangent"])
         script["flowbsdf_src"] = _source_hash()
@@ -743,8 +753,11 @@ def _refresh_export(tree):
         info["problems"] = f"no OSL texture: {e}"
         _store(tree, info)
         return
-    if texture != script.inputs["Tables"].default_value:     # OSL reads absolute paths only
-        script.inputs["Tables"].default_value = texture
+    carried, socket = _carry_texture(tables), script.inputs.get("Carried")     # (a script of an older shader: none)
+    if texture != script.inputs["Tables"].default_value or (socket is not None and carried != socket.default_value):
+        script.inputs["Tables"].default_value = texture     # OSL reads absolute paths only
+        if socket is not None:
+            socket.default_value = info["carry_texture"] = carried
         info["osl_texture"] = texture
         _store(tree, info)
 

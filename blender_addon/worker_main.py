@@ -403,7 +403,7 @@ def cmd_bake(args):
                 path, status = bake_entry(entry, args.out, manifest.path, log=progress.log)
                 if path is not None:        # the node's OSL texture and closure fit, beside the tables
                     from bake.export.osl_export import bake_derived
-                    bake_derived(path, log=progress.log)
+                    bake_derived(path, material=entry.open(), log=progress.log)
                     write_preview(entry, manifest, args.out, path, log=progress.log)
         except FlowBSDFError as e:
             failures.append(f"{entry.name}: {e}")

@@ -19,9 +19,10 @@ same file in the same run (rv with the same sample count, lost fraction). --spee
 pdf and sample+pdf per second on one thread, one wi per call and a new wi per sample, for
 the tables and (with --mitsuba) Mitsuba, side by side. --carried: the same tables blended along
 the file's own coordinates (bake/core/carried.py) instead of at fixed cells, in the intervals
-where that does better at their midpoint (carried.choose_intervals, as the planner decides; tables
-planned without it are decided here); MB then counts the file's warp data beside the tables;
---plan-carried plans the bins for that blend too. Prints Markdown tables and a summary.
+where that does better at their midpoint (carried.choose_intervals, as `flowbsdf bake` decides:
+plan_tables carry_flags, the fixed blend's plan within the budget less the file's warp data;
+--reuse'd tables without flags are decided here); MB then counts the file's warp data beside the
+tables; --plan-carried plans the bins for that blend too. Prints Markdown tables and a summary.
 """
 import argparse
 import time
@@ -80,7 +81,8 @@ def main():
             else:
                 source = IdealSampler(mat)
             tab = plan_tables(mat, source, log=(lambda s: print("  plan:", s, flush=True)) if args.verbose else None, **({"memory_budget": int(args.budget * 1e6)} if args.budget else {}),
-                              blend="carried" if args.plan_carried else "fixed")
+                              blend="carried" if args.plan_carried else "fixed",
+                              carry_flags=args.carried and not args.plan_carried)
             tab.meta["seconds"] = round(time.perf_counter() - t0, 1)
             tab.save(path)
             tab = open_tables(path)

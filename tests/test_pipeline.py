@@ -10,6 +10,7 @@ from bake.plumbing.manifest import load_manifest
 from bake.export.osl_export import LAYOUT
 from bake.plumbing.pipeline import bake_manifest, open_current_tables, table_path
 from bake.core.tables import open_tables
+from bake.plumbing.files import file_hash
 
 FAST = "bake = { resolution = 16, tol = 0.5, grid = 96, samples = 2048, first_bins = 3, ideal_resolution = 48 }"
 
@@ -166,3 +167,36 @@ def test_bake_writes_readable_files_and_the_node_products_and_clears_dead_tempor
     names = sorted(p.name for p in path.parent.iterdir())
     assert names[:3] == ["matte.exr", "matte.fit.json", "matte.match.exr"], names
     assert names[3].startswith(f"matte.osl{LAYOUT}-"), names
+
+
+def test_a_measured_file_bakes_which_intervals_carry(tmp_path):
+    """An isotropic RGL file's bake says per interval whether carrying along the file's coordinates
+    samples closer (tables.meta["carried"]), writes the carried blend's texture for the OSL node, and
+    the `tables` sampler (the reference tracer's, the report's) is then the carried blend;
+    `carry = false` bakes the tables alone and removes the texture."""
+    from bake.core.carried import CarriedTables
+    from bake.core.sampler import open_sampler
+    from bake.export.carry_export import read_export
+    from bake.materials.rgl import write_tensor_file
+    from test_rgl import synthetic_fields
+    write_tensor_file(tmp_path / "s.bsdf", synthetic_fields(n_theta=5))
+    out = tmp_path / "out"
+    text = '[[material]]\nname = "s"\nsource = "s.bsdf"\n' + FAST.replace("}", ", memory_budget = 40000 }")
+    m = load_manifest_text(tmp_path, text)
+    bake_manifest(m, out, log=lambda line: None)
+    path = table_path(out, "s")
+    tables = open_tables(path)
+    flags = tables.meta["carried"]
+    assert len(flags) == len(tables.theta_bins) - 1 >= 2
+    (texture,) = (out / "tables").glob("s.carry*-*.exr")
+    image, meta = read_export(texture)
+    assert meta["tables_hash"] == file_hash(path)
+    np.testing.assert_array_equal(image[0, 2 + 5:2 + 5 + len(flags), 1], np.asarray(flags, np.float32))
+    sampler = open_sampler("tables", m.materials[0].open(), entry=m.materials[0], out_dir=out, manifest_path=m.path)
+    assert isinstance(sampler, CarriedTables) and list(sampler.carried) == flags
+
+    m = load_manifest_text(tmp_path, text.replace("}", ", carry = false }"))
+    bake_manifest(m, out, log=lambda line: None)
+    assert "carried" not in open_tables(path).meta and not list((out / "tables").glob("s.carry*"))
+    with pytest.raises(FlowBSDFError, match="carry = 'yes'"):
+        bake_manifest(load_manifest_text(tmp_path, text.replace("}", ", carry = 'yes' }")), out)

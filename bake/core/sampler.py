@@ -22,7 +22,8 @@ The kinds `open_sampler` knows (`ggx-fit`, the report's old label, is an alias o
     ideal           the ideal tabulation, exact per distinct wi (bake/core/ideal.py IdealSampler)
     ideal-binned    the ideal tabulation at fixed incident bins, 1 degree apart (FineIdeal): what
                     renders use, where every pixel has its own wi
-    tables          the baked tables of a manifest entry (<out_dir>/tables/<name>.exr, current only)
+    tables          the baked tables of a manifest entry (<out_dir>/tables/<name>.exr, current only;
+                    carried where they say so: bake/core/carried.py, as the OSL back end renders them)
     flow            the trained flow of a manifest entry (<out_dir>/models/<name>.flow.npz)
 
 RENDER_KINDS are the names the reference tracer, `flowbsdf render/compare` and a manifest's
@@ -81,13 +82,13 @@ def open_sampler(kind, material, entry=None, out_dir="out", ideal=None, manifest
     if kind == "ideal-binned":
         return FineIdeal(material, **options)
     if kind == "tables":
-        return _current_tables(entry, out_dir, manifest_path)
+        return _current_tables(entry, out_dir, manifest_path, material)
     if kind == "flow":
         return _flow(entry, out_dir)
     raise FlowBSDFError(f"unknown sampler {kind!r} (one of {', '.join(KINDS)})")
 
 
-def _current_tables(entry, out_dir, manifest_path):
+def _current_tables(entry, out_dir, manifest_path, material):
     from ..plumbing.pipeline import open_current_tables, table_path
     path = table_path(out_dir, entry.name)
     if not Path(path).is_file():
@@ -96,6 +97,9 @@ def _current_tables(entry, out_dir, manifest_path):
     if tables is None:
         raise StaleTables(f"the tables of {entry.name!r} are stale (the material, model or "
                             "bake settings changed): run flowbsdf bake", path)
+    if tables.meta.get("carried") is not None:      # blended along the file's coordinates, as OSL renders them
+        from .carried import CarriedTables
+        return CarriedTables(tables, material)
     return tables
 
 

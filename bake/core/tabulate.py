@@ -1060,7 +1060,8 @@ def lobe_width_of(material, ideal):
 @one_blas_thread()
 def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio=1.0, resolution=None,
                 first_bins=6, theta_max_deg=89.9, min_gap_deg=0.2, samples=1 << 14, lobe_width="auto",
-                ideal_resolution=256, log=None, phi_count="auto", coords="auto", blend="fixed", **options):
+                ideal_resolution=256, log=None, phi_count="auto", coords="auto", blend="fixed",
+                carry_flags=False, **options):
     """Tables with only the resolution and incident bins this material needs.
 
     The probes build tables from the ideal tabulation's points (`ideal`: the plan depends on
@@ -1114,6 +1115,10 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     bake/core/carried.py: the bins may lie further apart, the budget counts the file's warp data and
     the resolutions need room for MIN_BINS_CARRIED bins; numpy only; tables.meta["blend"] and
     ["carried"], absent for "fixed", whose tables stay as before, byte for byte).
+    carry_flags: with the fixed blend's plan, also say per interval whether carrying samples closer
+    (tables.meta["carried"], carried.choose_intervals: a back end that can carry, OSL, does so
+    there; the others blend at fixed cells, what the plan was made for); the budget counts the
+    file's warp data as for "carried". Isotropic RGL files only.
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
     (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
@@ -1128,7 +1133,9 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     if blend not in ("fixed", "carried"):
         raise FlowBSDFError(f"blend {blend!r}: 'fixed' or 'carried'")
     carry = _carrier(material) if blend == "carried" else (lambda tables: tables)
-    if blend == "carried":      # the file's warp data is read beside the tables: within the budget
+    if blend == "carried" or carry_flags:      # the file's warp data is read beside the tables: within the budget
+        from .carried import check_carriable
+        check_carriable(material)
         memory_budget -= material.warp_nbytes
     ideal = source if isinstance(source, IdealSampler) else IdealSampler(material, resolution=ideal_resolution)
     if lobe_width == "auto":
@@ -1342,7 +1349,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     else:   # from the source's own points: the probes' are the ideal's
         tables = build_grouped(material, source, bins, resolution, phi_bins=phi_bins, progress=built,
                                **{**opts, "cache": cache if source is ideal else {}})
-    if blend == "carried":
+    if blend == "carried" or carry_flags:
         from .carried import choose_intervals
         tables.meta["carried"] = choose_intervals(material, tables, ideal)
         log(f"carried: {sum(tables.meta['carried'])} of {len(tables.meta['carried'])} intervals carry")

@@ -86,6 +86,32 @@ def read_export(path):
     return img, json.loads(raw)
 
 
+def is_current(path, digest):
+    try:
+        _, meta = read_export(path)
+    except FlowBSDFError:
+        return False
+    return meta.get("tables_hash") == digest and meta.get("layout") == CARRY_LAYOUT
+
+
 def write_carry_export(path, material, tables, carried, digest):
     write_rgba_exr(path, carry_image(material, tables, carried), META_KEY,
                    {"layout": CARRY_LAYOUT, "tables_hash": digest, "material": material.fingerprint()})
+
+
+def ensure_carry_export(tables_path, material, log=None):
+    """The carry texture of a table file whose meta says which intervals carry (made from
+    `material`, the file the tables were baked from), rebuilt when missing or stale; None (and
+    no carry texture left beside them) for tables that do not carry."""
+    from ..core.tables import open_tables
+    from .osl_export import ensure_export
+    tables_path = Path(tables_path)
+    carried = open_tables(tables_path).meta.get("carried")
+    if carried is None:
+        for old in tables_path.parent.glob(f"{tables_path.stem}.carry*-*.exr"):
+            old.unlink(missing_ok=True)
+        return None
+
+    def write(path, tables, digest):
+        write_carry_export(path, material, tables, carried, digest)
+    return ensure_export(tables_path, "carry", export_path, is_current, write, log)

@@ -205,11 +205,15 @@ def ensure_osl_export(tables_path, log=None):
     return ensure_export(tables_path, "osl", export_path, is_current, write, log)
 
 
-def bake_derived(tables_path, log=None):
+def bake_derived(tables_path, material=None, log=None):
     """What the Blender node needs beside a table file: its OSL texture, its SVM texture
-    (bake/export/svm_export.py) and its closure fit (each rebuilt only when missing or stale).
-    Called by the bake pipeline; returns (OSL texture, fit)."""
+    (bake/export/svm_export.py), its closure fit and, given the material it was baked from, the
+    carried blend's texture where its meta says which intervals carry (bake/export/carry_export.py;
+    each rebuilt only when missing or stale). Called by the bake pipeline; returns (OSL texture, fit)."""
     from .closure_fit import ensure_fit
     from .svm_export import ensure_svm_export
     ensure_svm_export(tables_path, log=log)
+    if material is not None:
+        from .carry_export import ensure_carry_export
+        ensure_carry_export(tables_path, material, log=log)
     return ensure_osl_export(tables_path, log=log), ensure_fit(tables_path, log=log)

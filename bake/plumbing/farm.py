@@ -284,7 +284,7 @@ def _task(manifest_path, name, out_dir, train, stage, report):
         report.progress(start, f"{name}: baking tables")
         path, status = bake_entry(entry, out_dir, manifest.path, log=report.log)
         report.progress(start + (100 - start) * 0.8, f"{name}: tables {status}; fit, OSL and SVM textures")
-        bake_derived(path, log=report.log)
+        bake_derived(path, material=material, log=report.log)
         report.log(f"[{'wrote' if status == 'baked' else 'skip'}] {path}"
                    + (" is up to date" if status == "current" else ""))
     report.progress(100, f"{name}: done")

@@ -20,7 +20,7 @@ from ..errors import FlowBSDFError
 from .files import file_hash, remove_stale_temps
 
 # Bumped when the construction changes in a way that should rebuild existing tables.
-BUILDER_VERSION = 12     # 2: cells that miss a hard-edged sliver of mass are integrated around their points
+BUILDER_VERSION = 13     # 2: cells that miss a hard-edged sliver of mass are integrated around their points
                          # 3: isotropic plans aim at the ideal tabulation's rv (tabulate.plan_tables)
                          # 4: when no resolution reaches its target, the closest one (not the largest)
                          # 5: cells per lobe segment by weight, an even share of every segment (tabulate.SHARES)
@@ -33,8 +33,9 @@ BUILDER_VERSION = 12     # 2: cells that miss a hard-edged sliver of mass are in
                          # 11: isotropic: layout groups of their own resolutions (tables.MixedTables), placements
                          #     compared at quarter points too
                          # 12: bins placed alike store their edges once (tables.Tables.layouts): the budget keeps more bins
+                         # 13: isotropic RGL files: which intervals carry (tables.meta["carried"], bake setting `carry`)
 BAKE_KEYS = {"source", "tol", "ideal_ratio", "memory_budget", "resolution", "grid", "lobe_width", "samples", "first_bins",
-             "ideal_resolution", "phi_count"}
+             "ideal_resolution", "phi_count", "carry"}
 SOURCES = ("auto", "flow", "ideal")
 
 
@@ -55,7 +56,12 @@ def bake_settings(entry, manifest_path):
     source = settings.setdefault("source", "auto")
     if source not in SOURCES:
         raise FlowBSDFError(f"material {entry.name!r}: bake source must be one of {SOURCES}", manifest_path)
+    if not isinstance(settings.get("carry", True), bool):
+        raise FlowBSDFError(f"material {entry.name!r}: bake setting carry = {settings['carry']!r} is not true or false",
+                            manifest_path)
     for key, value in settings.items():
+        if key == "carry":
+            continue
         problem = _check_setting(key, value)
         if problem:
             raise FlowBSDFError(f"material {entry.name!r}: bake setting {key} = {value!r} {problem}",
@@ -151,8 +157,9 @@ def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
             pass       # unreadable or foreign: rebuild it
     source, used = _choose_source(material, settings, model_file)
     t0 = time.perf_counter()
-    options = {k: v for k, v in settings.items() if k not in ("source", "ideal_resolution")}
+    options = {k: v for k, v in settings.items() if k not in ("source", "ideal_resolution", "carry")}
     tables = plan_tables(material, source, ideal_resolution=settings.get("ideal_resolution", 256),
+                         carry_flags=settings.get("carry", True) and carriable(material),
                          log=lambda s: log(f"[bake] {entry.name}: {s}"), **options)
     # Nothing of the run (its time, the machine) goes into the file: the same inputs give the
     # same bytes, so the textures named by the file's hash and the node graphs built on them
@@ -164,12 +171,22 @@ def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
     return path, "baked"
 
 
+def carriable(material):
+    """Whether the material's tables can be carried along its own coordinates (bake/core/carried.py)."""
+    from ..core.carried import check_carriable
+    try:
+        check_carriable(material)
+        return True
+    except FlowBSDFError:
+        return False
+
+
 def bake_with_derived(entry, out_dir, manifest_path, force=False, log=print):
     """bake_entry, then what the Blender node needs beside the tables (OSL and SVM textures,
-    closure fit: osl_export.bake_derived)."""
+    closure fit, the carried blend's texture: osl_export.bake_derived)."""
     from ..export.osl_export import bake_derived
     path, status = bake_entry(entry, out_dir, manifest_path, force=force, log=log)
-    bake_derived(path, log=log)
+    bake_derived(path, material=entry.open(), log=log)
     return path, status
 
 
