@@ -297,7 +297,7 @@ def _trees():
             yield tree
 
 
-PATH_KEYS = ("tables", "fit", "osl_texture", "svm_texture")
+PATH_KEYS = ("tables", "fit", "osl_texture", "svm_texture", "carry_texture")
 
 
 def _info(tree):
@@ -714,7 +714,8 @@ def _resolve(scene, tree, limits=None):
     svm_ok = _has_svm(tree) and os.path.isfile(info.get("svm_texture", ""))
     notes = lamps.limits(scene) if limits is None else limits
     if osl_ok and backend in ("osl", "auto"):
-        return "osl", "OSL" + (f" (warning: {'; '.join(notes)})" if notes else "")
+        carried = ", carried blend" if os.path.isfile(info.get("carry_texture", "")) else ""
+        return "osl", "OSL" + carried + (f" (warning: {'; '.join(notes)})" if notes else "")
     lit = lamps.scene_lamps(scene)
     unlit = (f"lamps ({', '.join(ob.name for ob in lit[:3])}{', ...' if len(lit) > 3 else ''}) are lit "
              f"only by the OSL back end ({osl_why})") if lit else ""

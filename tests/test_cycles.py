@@ -834,7 +834,7 @@ def test_osl_furnace_carried_gives_the_blended_albedo(carried_textures, tmp_path
         lb.set_backend(sc, "osl")
         cs.add_plane(sc, material, size=40.0).rotation_euler = (0.0, np.radians(deg), 0.0)
         img = cs.render(sc).reshape(-1, 3)
-        assert lb.node_status(node, sc) == "OSL"
+        assert lb.node_status(node, sc) == "OSL, carried blend"
         assert node.node_tree.nodes[lb.SCRIPT].inputs["Carried"].default_value == str(texture)
         theta = np.radians(deg)
         _, bins, carries = sampler._bins(theta)

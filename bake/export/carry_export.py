@@ -75,6 +75,8 @@ def read_export(path):
     """(image (H, W, 4) float32, metadata) of a carry texture; FlowBSDFError if it is not one."""
     import OpenEXR
     path = Path(path)
+    if not path.is_file():
+        raise FlowBSDFError("carry texture not found", path)
     try:
         f = OpenEXR.File(str(path))
         raw = f.header().get(META_KEY)
