@@ -67,16 +67,16 @@ class OverS:
     """The histogram densities over s (cells²) of f·cos at `parts` [(wi, weight)], as a pdf at wm."""
 
     def __init__(self, mat, ideal, wm, parts, cells):
-        self.warp, self.cells, self.hists = WarpedCoords(mat, wm), cells, []
+        self.warp, self.wm, self.cells, self.hists = WarpedCoords(mat), wm, cells, []
         for wi, w in parts:
             d = ReferencePoints(mat, wi, ideal, 1536, 11)
-            s, _ = WarpedCoords(mat, wi).to_s(d.wo)
+            s, _ = self.warp.to_s(wi, d.wo)
             hist, _, _ = np.histogram2d(s[:, 0], s[:, 1], bins=cells, range=[[0, 1], [0, 1]], weights=d.g / d.h)
             hist = hist / hist.sum() * cells * cells
             self.hists.append((np.maximum(hist, 1e-3 * hist.mean()), w))   # every cell positive
 
     def pdf(self, wi, wo):
-        s, jac = self.warp.to_s(wo)
+        s, jac = self.warp.to_s(self.wm, wo)
         i, j = (np.clip((s * self.cells).astype(int), 0, self.cells - 1)).T
         return sum(w * h[i, j] for h, w in self.hists) / jac
 

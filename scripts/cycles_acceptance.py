@@ -9,8 +9,8 @@ triangle mesh and normals, camera and environment file) and rendered by bake/tra
 baked tables as sampler, BSDF-only (mis=False).
 
 The tracer always evaluates its scene material's `eval`. Two references are rendered:
-  - "baked": the scene material replaced by the baked tables' BSDF (Tables.eval), i.e.
-    exactly what the OSL back end renders (weight = baked f cos / pdf = the cell's weight);
+  - "baked": the scene material replaced by the baked tables' BSDF (Tables.eval; CarriedTables.eval
+    where they carry), i.e. exactly what the OSL back end renders (weight = baked f cos / pdf = the cell's weight);
     OSL must match it within MC error (per-pixel z-scores, and the mean over the sphere with
     its standard error). MSEs of OSL, closure fit and Principled fit are against it.
   - "true": the manifest material's own eval (tables sampling): the baked-vs-true difference
@@ -76,7 +76,8 @@ def make_env(path, kind="soft", w=256, h=128):
 
 
 class BakedBSDF:
-    """The baked tables' BSDF as a tracer material (eval = Tables.eval)."""
+    """The baked tables' BSDF as a tracer material (eval = Tables.eval, or CarriedTables.eval where
+    the tables carry: bake/core/carried.as_rendered)."""
 
     def __init__(self, tables, true_material):
         self.tables = tables
@@ -157,7 +158,9 @@ def trace(scene_path, manifest, tables, which, spp, seed=1, workers=1, mis=False
     (which="baked") or the true material (which="true"); `seconds`: as many passes as fit.
     Returns (image, per-pixel variance of the mean, per-sample variance, seconds)."""
     from bake.tracer import load_scene, render
+    from bake.core.carried import as_rendered
     scene = load_scene(scene_path, manifest=manifest)
+    tables = as_rendered(tables, next(m.material for m in scene.materials if m.learned))     # what OSL renders
     if which == "baked":
         scene.materials = [dataclasses.replace(m, material=BakedBSDF(tables, m.material)) if m.learned else m
                            for m in scene.materials]
@@ -321,7 +324,7 @@ def write(rows, args):
              "reference, per row), "
              "scene exported by blender_addon/validate.export_scene. Pixels: the sphere's interior (no "
              "silhouette pixels, cos view > 0.05). MSE: mean over those pixels and RGB.", "",
-             "- **baked ref**: tracer with the scene material's eval = Tables.eval (what the OSL back end "
+             "- **baked ref**: tracer with the scene material's eval = the tables' (carried where they carry: what the OSL back end "
              f"renders). OSL: {OSL_SEEDS} renders (Cycles seeds); MSE = their mean MSE (one render at the spp). "
              f"OSL z: per-pixel (mean of the renders - ref) / sqrt(var_OSL + var_ref), var_OSL from the seeds' "
              f"spread ({OSL_SEEDS - 1} dof: rms z ~ {np.sqrt((OSL_SEEDS - 1) / (OSL_SEEDS - 3)):.2f} and a few "

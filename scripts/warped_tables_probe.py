@@ -32,24 +32,15 @@ class Warps:
     """WarpedCoords per wi, and the (a, b) <-> wo maps Tables and the builder call."""
 
     def __init__(self, material):
-        self.material, self.at = material, {}
-
-    def warp(self, wi):
-        wi = np.atleast_2d(wi)
-        if not np.allclose(wi, wi[0]):
-            raise ValueError("the probe samples one wi per call")
-        key = tuple(np.round(wi[0], 15))
-        if key not in self.at:
-            self.at[key] = WarpedCoords(self.material, np.asarray(key))
-        return self.at[key]
+        self.coords = WarpedCoords(material)
 
     def from_ab(self, wi, a, b, phi_ref=None):
-        wo, jac = self.warp(wi).from_s(np.stack([np.ravel(a), np.ravel(b) / TWO_PI], axis=-1))
+        wo, jac = self.coords.from_s(wi, np.stack([np.ravel(a), np.ravel(b) / TWO_PI], axis=-1))
         wo[jac <= 0] = (0.0, 0.0, -1.0)          # lost: below the horizon
         return wo, np.where(jac > 0, jac / TWO_PI, np.inf)       # d omega / d(a, b)
 
     def to_ab(self, wi, wo, phi_ref=None):
-        s, jac = self.warp(wi).to_s(wo)
+        s, jac = self.coords.to_s(wi, wo)
         s = np.clip(np.nan_to_num(s), 0.0, 1.0)
         return s[:, 0], s[:, 1] * TWO_PI, jac / TWO_PI
 

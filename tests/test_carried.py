@@ -127,7 +127,7 @@ def test_carried_eval_is_the_bins_f_cos_carried(synthetic):
         wo, pdf = sampler.sample(wi, rng.random((1 << 17, 2)))
         x = sampler.eval(wi, wo).mean(axis=1) * wo[:, 2] / pdf
         assert np.isfinite(x).all()
-        s = WarpedCoords(mat, wi, horizon=True, stored=True).to_s(wo)[0]
+        s = WarpedCoords(mat, horizon=True, stored=True).to_s(wi, wo)[0]
         quarter = (s[:, 0] >= 0.5) + 2 * (s[:, 1] >= 0.5)
         xq = x[:, None] * (quarter[:, None] == np.arange(4))
         return xq.mean(axis=0), xq.std(axis=0) / np.sqrt(len(x))

@@ -345,7 +345,8 @@ def test_c_matches_numpy_on_anisotropic_halfvector_tables(brushed):
 def test_warped_coords_in_c_match_numpy(horizon, tmp_path):
     """rgl.WarpedCoords' to_s and from_s in C (ft_warp_to_s / ft_warp_from_s) against the numpy
     reference on a synthetic RGL file with a row of empty patches: the same s, directions and Jacobians to
-    1e-9, the same unreached s and infinite Jacobians, at five incident angles."""
+    1e-9, the same unreached s and infinite Jacobians, at five incident angles and with an incident
+    direction per sample."""
     from bake.materials.rgl import RGLMaterial, WarpedCoords, write_tensor_file
     from test_rgl import synthetic_fields
     f = synthetic_fields(n_vndf=16, n_rgb=8)
@@ -354,21 +355,34 @@ def test_warped_coords_in_c_match_numpy(horizon, tmp_path):
     rng = np.random.default_rng(3)
     for theta in np.radians([0.0, 25.0, 60.0, 85.0, 89.9]):
         wi = spherical_dir(theta, 0.9)
-        ref = WarpedCoords(mat, wi, horizon=horizon, stored=True, backend="numpy")
-        c = WarpedCoords(mat, wi, horizon=horizon, stored=True)
+        ref = WarpedCoords(mat, horizon=horizon, stored=True, backend="numpy")
+        c = WarpedCoords(mat, horizon=horizon, stored=True)
         wo = spherical_dir(np.arccos(rng.uniform(0.0, 1.0, 4000)), rng.uniform(-np.pi, np.pi, 4000))
-        s_ref, jac_ref = ref.to_s(wo)
-        s_c, jac_c = fasttables.warp_to_s(c, wo)
+        s_ref, jac_ref = ref.to_s(wi, wo)
+        s_c, jac_c = fasttables.warp_to_s(c, wi, wo)
         np.testing.assert_allclose(s_c, s_ref, rtol=0, atol=1e-12)
         np.testing.assert_array_equal(np.isfinite(jac_c), np.isfinite(jac_ref))
         assert not np.isfinite(jac_ref).all()       # the zero row is hit
         fin = np.isfinite(jac_ref)
         np.testing.assert_allclose(jac_c[fin], jac_ref[fin], rtol=1e-9)
         s = np.concatenate([rng.random((4000, 2)), [[0.0, 0.0], [1.0, 1.0], [1.0, 0.0], [0.0, 1.0]]])
-        wo_ref, jac_ref = ref.from_s(s)
-        wo_c, jac_c = fasttables.warp_from_s(c, s)
+        wo_ref, jac_ref = ref.from_s(wi, s)
+        wo_c, jac_c = fasttables.warp_from_s(c, wi, s)
         np.testing.assert_allclose(wo_c, wo_ref, rtol=0, atol=1e-9)
         rim = np.abs(wo_ref[:, 2]) < 1e-12      # s_x = 1 with `horizon`: on the horizon, reached or not by rounding
         assert rim.sum() <= (2 if horizon else 0)
         np.testing.assert_allclose(jac_c[~rim], jac_ref[~rim], rtol=1e-9, atol=0)
         np.testing.assert_array_equal(jac_c[~rim] > 0, jac_ref[~rim] > 0)
+    # an incident direction per sample (each its own slices), as a renderer asks
+    wi = spherical_dir(np.radians(rng.uniform(0.0, 89.9, 4000)), rng.uniform(-np.pi, np.pi, 4000))
+    wo = spherical_dir(np.arccos(rng.uniform(0.0, 1.0, 4000)), rng.uniform(-np.pi, np.pi, 4000))
+    (s_ref, jac_ref), (s_c, jac_c) = ref.to_s(wi, wo), fasttables.warp_to_s(c, wi, wo)
+    fin = np.isfinite(jac_ref)
+    np.testing.assert_allclose(s_c, s_ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(jac_c[fin], jac_ref[fin], rtol=1e-9)
+    (wo_ref, jac_ref), (wo_c, jac_c) = ref.from_s(wi, s_ref), fasttables.warp_from_s(c, wi, s_ref)
+    reached = jac_ref > 0        # (s of the empty rows reach nothing: where, is a tie of equal CDF values)
+    assert reached.mean() > 0.9
+    np.testing.assert_array_equal(jac_c > 0, reached)
+    np.testing.assert_allclose(wo_c[reached], wo_ref[reached], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(jac_c, jac_ref, rtol=1e-9, atol=1e-300)

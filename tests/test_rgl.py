@@ -453,33 +453,33 @@ def test_warped_coords_are_where_eval_reads_rgb_both_ways(horizon, tmp_path):
     grid = (np.stack(np.meshgrid(np.arange(side), np.arange(side), indexing="ij"), -1).reshape(-1, 2) + 0.5) / side
     for theta in np.radians([0.3, 30.0, 60.0, 85.0]):
         wi = spherical_dir(theta, 0.7)
-        warp = WarpedCoords(mat, wi, horizon=horizon)
+        warp = WarpedCoords(mat, horizon=horizon)
         wo = spherical_dir(np.arccos(rng.uniform(0.02, 1.0, 3000)), rng.uniform(-np.pi, np.pi, 3000))
-        s, jac = warp.to_s(wo)
-        s_file = WarpedCoords(mat, wi).to_s(wo)[0]
+        s, jac = warp.to_s(wi, wo)
+        s_file = WarpedCoords(mat).to_s(wi, wo)[0]
         np.testing.assert_allclose(mat.eval(wi, wo)[:, 0] * wo[:, 2], s_file[:, 0], rtol=1e-6, atol=1e-7)
         np.testing.assert_array_equal(s[:, 1], s_file[:, 1])        # the row is the file's
         if horizon:     # s_x over its value at the rim (<= 1)
             assert np.all(s[:, 0] >= s_file[:, 0] - 1e-12) and np.any(s[:, 0] > s_file[:, 0] * 1.01)
-        back, jac_back = warp.from_s(s)
+        back, jac_back = warp.from_s(wi, s)
         np.testing.assert_allclose(back, wo, atol=1e-7)
         np.testing.assert_allclose(jac_back, jac, rtol=1e-7)
         # d omega / d s = 1 / |det d s / d omega| on the tangent plane of wo
         t1 = normalize(np.cross(wo, [0.0, 0.0, 1.0]))
         t2 = np.cross(wo, t1)
         eps = 1e-6
-        d1 = (warp.to_s(normalize(wo + eps * t1))[0] - warp.to_s(normalize(wo - eps * t1))[0]) / (2 * eps)
-        d2 = (warp.to_s(normalize(wo + eps * t2))[0] - warp.to_s(normalize(wo - eps * t2))[0]) / (2 * eps)
+        d1 = (warp.to_s(wi, normalize(wo + eps * t1))[0] - warp.to_s(wi, normalize(wo - eps * t1))[0]) / (2 * eps)
+        d2 = (warp.to_s(wi, normalize(wo + eps * t2))[0] - warp.to_s(wi, normalize(wo - eps * t2))[0]) / (2 * eps)
         np.testing.assert_allclose(1.0 / np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]), jac, rtol=1e-4)
-        wo_grid, jac_grid = warp.from_s(grid)
+        wo_grid, jac_grid = warp.from_s(wi, grid)
         reached = jac_grid > 0
         assert (wo_grid[reached, 2] > 0).all() and (wo_grid[~reached, 2] <= 0).all()
-        s_back = warp.to_s(wo_grid[reached])[0]
+        s_back = warp.to_s(wi, wo_grid[reached])[0]
         assert np.max(np.abs(s_back - grid[reached])) < 1e-9
         assert abs(np.mean(jac_grid) / (2 * np.pi) - 1.0) < 0.01
         if horizon:
             assert reached.all()
-            rim_wo = warp.from_s(np.stack([np.full(64, 1.0 - 1e-12), np.linspace(0.01, 0.99, 64)], -1))[0]
+            rim_wo = warp.from_s(wi, np.stack([np.full(64, 1.0 - 1e-12), np.linspace(0.01, 0.99, 64)], -1))[0]
             np.testing.assert_allclose(rim_wo[:, 2], 0.0, atol=1e-5)
 
 
@@ -499,6 +499,6 @@ def test_stored_warp_is_half_the_bytes_and_the_files_coordinates(tmp_path):
     for theta in np.radians([0.0, 35.0, 70.0, 88.0]):
         wi = spherical_dir(theta, -0.4)
         wo = spherical_dir(np.arccos(rng.uniform(0.02, 1.0, 2000)), rng.uniform(-np.pi, np.pi, 2000))
-        s_file = WarpedCoords(mat, wi, horizon=True).to_s(wo)[0]
-        s_stored = WarpedCoords(mat, wi, horizon=True, stored=True).to_s(wo)[0]
+        s_file = WarpedCoords(mat, horizon=True).to_s(wi, wo)[0]
+        s_stored = WarpedCoords(mat, horizon=True, stored=True).to_s(wi, wo)[0]
         assert 0 < np.max(np.abs(s_stored - s_file)) < 2e-3

@@ -69,7 +69,7 @@ double sin(double) FT_VEC;
 #endif
 
 /* Bumped whenever ft_tables or a signature changes (bake/core/fasttables.py checks it). */
-#define FT_ABI 5
+#define FT_ABI 6
 
 static const double PI = 3.141592653589793;       /* np.pi */
 static const double TWO_PI = 6.283185307179586;   /* 2.0 * np.pi */
@@ -958,20 +958,50 @@ FT_EXPORT void ft_rgl_eval(int64_t n, const double *wo, const double *par, const
 
 /* ------------------------------------------------------------------- an RGL file's coordinates
  *
- * rgl.WarpedCoords.to_s / from_s for one wi, transcribed (same formulas and order of operations,
- * to a few ulps): the file's continuous Marginal2D warp over the half vector's u_m, with s_x over
- * its horizon value when `horizon`. One sample at a time; the searches in from_s are bisections
- * over monotone values, which find the same index as numpy's counts. carried.CarriedTables calls
- * them through WarpedCoords (the bins' tables through ft_sample and ft_pdf). */
+ * rgl.WarpedCoords.to_s / from_s, transcribed (same formulas and order of operations, to a few
+ * ulps): the file's continuous Marginal2D warp over the half vector's u_m at each sample's wi (its
+ * two theta_i slices' patches blended as they are read), with s_x over its horizon value when
+ * `horizon`. The searches in from_s are bisections over monotone values, which find the same
+ * index as numpy's. carried.CarriedTables calls them through WarpedCoords (the bins' tables
+ * through ft_sample and ft_pdf). */
 typedef struct {
-    int64_t ny, nx, horizon;
-    double wx, wy, wz, phi_i;
-    const double *patches;     /* ((ny-1) (nx-1), 9): _continuous_warp_table of this wi */
+    int64_t ny, nx, S, horizon;
+    const double *theta_i;     /* (S) the slices' incident angles */
+    const double *tables;      /* (S, ny-1, nx-1, 9): _continuous_warp_table per slice */
 } ft_warp;
+
+typedef struct {               /* one sample's incident direction and its two slices */
+    double wx, wy, wz, phi_i, w0, w1;
+    const double *t0, *t1;
+} ft_wi;
 
 FT_INLINE double theta2u(double theta) { return sqrt(theta * (2.0 / PI)); }
 
-/* _warp_to_s within patch t at (fx, fy): s x (over the row total), s y, zero row, density */
+FT_INLINE void warp_incident(const ft_warp *W, const double *wi, ft_wi *I) {
+    I->wx = wi[0], I->wy = wi[1], I->wz = wi[2];
+    const double dist = sqrt(wi[0] * wi[0] + wi[1] * wi[1] + (wi[2] - 1.0) * (wi[2] - 1.0));
+    const double theta = 2.0 * asin(fmin(0.5 * dist, 1.0));
+    I->phi_i = atan2(wi[1], wi[0]);
+    int64_t i = 0;
+    double w1 = 0.0;
+    if (W->S > 1) {            /* rgl._param_weights: Mitsuba's find_interval, linear in the angle */
+        for (int64_t k = 1; k < W->S - 1; k++) i += theta > W->theta_i[k];
+        const double p0 = W->theta_i[i], p1 = W->theta_i[i + 1];
+        w1 = fmin(fmax((theta - p0) / (p1 - p0), 0.0), 1.0);
+    }
+    const int64_t patches = 9 * (W->ny - 1) * (W->nx - 1);
+    I->w0 = 1.0 - w1, I->w1 = w1;
+    I->t0 = W->tables + i * patches;
+    I->t1 = W->tables + (W->S > 1 ? i + 1 : i) * patches;
+}
+
+/* the blended patch (py, px) */
+FT_INLINE void warp_patch(const ft_warp *W, const ft_wi *I, int64_t py, int64_t px, double *v) {
+    const int64_t at = 9 * (py * (W->nx - 1) + px);
+    for (int k = 0; k < 9; k++) v[k] = I->t0[at + k] * I->w0 + I->t1[at + k] * I->w1;
+}
+
+/* _warp_to_s within patch v at (fx, fy): s x (over the row total), s y, zero row, density */
 FT_INLINE void warp_within(const double *t, double fx, double fy, double *sx, double *sy, int *zero, double *density) {
     const double gy = 1.0 - fy;
     double row_total = gy * t[6] + fy * t[7];
@@ -984,23 +1014,24 @@ FT_INLINE void warp_within(const double *t, double fx, double fy, double *sx, do
 }
 
 /* WarpedCoords._rim: s x at the horizon in row (py, fy), 1 without `horizon` */
-FT_INLINE double warp_rim(const ft_warp *W, int64_t py, double fy) {
+FT_INLINE double warp_rim(const ft_warp *W, const ft_wi *I, int64_t py, double fy) {
     if (!W->horizon) return 1.0;
-    const double cos_i = W->wz, sin_i = sqrt(fmax(1.0 - cos_i * cos_i, 0.0));
+    const double cos_i = I->wz, sin_i = sqrt(fmax(1.0 - cos_i * cos_i, 0.0));
     const double delta = (((double)py + fy) / (double)(W->ny - 1)) * TWO_PI - PI;
     const double theta_h = 0.5 * atan2(cos_i, -sin_i * cos(delta));
     int64_t px;
-    double fx, sx, sy, density;
+    double fx, sx, sy, density, v[9];
     int zero;
     rgl_patch(theta2u(theta_h), W->nx, &px, &fx);
-    warp_within(W->patches + 9 * (py * (W->nx - 1) + px), fx, fy, &sx, &sy, &zero, &density);
+    warp_patch(W, I, py, px, v);
+    warp_within(v, fx, fy, &sx, &sy, &zero, &density);
     return sx < 1e-300 ? 1e-300 : (sx > 1.0 ? 1.0 : sx);
 }
 
 /* WarpedCoords._jac: d omega_o / d s at half vector h (u_m x = u_x), the warp's density there */
-FT_INLINE double warp_jac(const ft_warp *W, double u_x, const double *h, double density) {
+FT_INLINE double warp_jac(const ft_warp *W, const ft_wi *I, double u_x, const double *h, double density) {
     const double theta_h = u_x * u_x * (0.5 * PI);
-    const double cos_ih = fabs(h[0] * W->wx + h[1] * W->wy + h[2] * W->wz);
+    const double cos_ih = fabs(h[0] * I->wx + h[1] * I->wy + h[2] * I->wz);
     const double d_omega_d_u = 4.0 * cos_ih * sin(theta_h) * (PI * u_x) * TWO_PI;
     return density > 0.0 ? d_omega_d_u / (density * (double)(W->nx - 1) * (double)(W->ny - 1)) : INFINITY;
 }
@@ -1012,65 +1043,76 @@ FT_INLINE double warp_root(double slope_half, double start, double d) {
     return isnan(x) ? 0.0 : clip01(x);
 }
 
-FT_EXPORT void ft_warp_to_s(const ft_warp *W, int64_t n, const double *wo, double *s, double *jac) {
+FT_EXPORT void ft_warp_to_s(const ft_warp *W, int64_t n, const double *wi, int64_t wi_stride, const double *wo,
+                            double *s, double *jac) {
     for (int64_t k = 0; k < n; k++) {
-        double h[3] = {W->wx + wo[3 * k], W->wy + wo[3 * k + 1], W->wz + wo[3 * k + 2]};
+        ft_wi I;
+        warp_incident(W, wi + k * wi_stride, &I);
+        double h[3] = {I.wx + wo[3 * k], I.wy + wo[3 * k + 1], I.wz + wo[3 * k + 2]};
         const double norm = sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2]);
         h[0] /= norm, h[1] /= norm, h[2] /= norm;
         const double dist = sqrt(h[0] * h[0] + h[1] * h[1] + (h[2] - 1.0) * (h[2] - 1.0));
         const double u_x = theta2u(2.0 * asin(fmin(0.5 * dist, 1.0)));
-        double u_y = (atan2(h[1], h[0]) - W->phi_i + PI) * (0.5 / PI);
+        double u_y = (atan2(h[1], h[0]) - I.phi_i + PI) * (0.5 / PI);
         u_y -= floor(u_y);
         int64_t px, py;
-        double fx, fy, sx, sy, density;
+        double fx, fy, sx, sy, density, v[9];
         int zero;
         rgl_patch(u_x, W->nx, &px, &fx);
         rgl_patch(u_y, W->ny, &py, &fy);
-        warp_within(W->patches + 9 * (py * (W->nx - 1) + px), fx, fy, &sx, &sy, &zero, &density);
-        const double rim = warp_rim(W, py, fy);
+        warp_patch(W, &I, py, px, v);
+        warp_within(v, fx, fy, &sx, &sy, &zero, &density);
+        const double rim = warp_rim(W, &I, py, fy);
         s[2 * k] = fmin(sx / rim, 1.0);
         s[2 * k + 1] = sy;
-        jac[k] = warp_jac(W, u_x, h, zero ? 0.0 : density) * rim;
+        jac[k] = warp_jac(W, &I, u_x, h, zero ? 0.0 : density) * rim;
     }
 }
 
-FT_EXPORT void ft_warp_from_s(const ft_warp *W, int64_t n, const double *s, double *wo, double *jac) {
-    const int64_t ny = W->ny, nx = W->nx, row = 9 * (nx - 1);
+FT_EXPORT void ft_warp_from_s(const ft_warp *W, int64_t n, const double *wi, int64_t wi_stride, const double *s,
+                              double *wo, double *jac) {
+    const int64_t ny = W->ny, nx = W->nx;
     for (int64_t k = 0; k < n; k++) {
+        ft_wi I;
+        warp_incident(W, wi + k * wi_stride, &I);
         const double s_x = s[2 * k], s_y = s[2 * k + 1];
-        int64_t lo = 0, hi = ny - 1;       /* the last row with m0 <= s_y: m0 of rows [0, lo] <= s_y */
-        if (!(W->patches[8] <= s_y)) hi = 0;
+        double r[9], v[9];
+        int64_t lo = 0, hi = ny - 1;       /* the last row with m0 <= s_y (0 when none) */
+        warp_patch(W, &I, 0, 0, r);
+        if (!(r[8] <= s_y)) hi = 0;
         while (hi - lo > 1) {
             const int64_t mid = (lo + hi) / 2;
-            if (W->patches[mid * row + 8] <= s_y) lo = mid; else hi = mid;
+            warp_patch(W, &I, mid, 0, r);
+            if (r[8] <= s_y) lo = mid; else hi = mid;
         }
         const int64_t py = lo;
-        const double *r = W->patches + py * row;
+        warp_patch(W, &I, py, 0, r);
         const double r0 = r[6], r1 = r[7];
         const double fy = warp_root(0.5 * (r1 - r0), r0, s_y - r[8]), gy = 1.0 - fy;
-        const double rim = warp_rim(W, py, fy);
+        const double rim = warp_rim(W, &I, py, fy);
         const double target = s_x * rim * (gy * r0 + fy * r1);
-        lo = 0, hi = nx - 1;               /* the last patch whose start <= target */
+        lo = 0, hi = nx - 1;               /* the last patch whose start <= target (0 when none) */
         if (!(gy * r[4] + fy * r[5] <= target)) hi = 0;
         while (hi - lo > 1) {
             const int64_t mid = (lo + hi) / 2;
-            if (gy * r[9 * mid + 4] + fy * r[9 * mid + 5] <= target) lo = mid; else hi = mid;
+            warp_patch(W, &I, py, mid, v);
+            if (gy * v[4] + fy * v[5] <= target) lo = mid; else hi = mid;
         }
         const int64_t px = lo;
-        const double *v = r + 9 * px;
+        warp_patch(W, &I, py, px, v);
         const double c0 = gy * v[0] + fy * v[2], c1 = gy * v[1] + fy * v[3];
         const double fx = warp_root(0.5 * (c1 - c0), c0, target - (gy * v[4] + fy * v[5]));
         const double u_x = ((double)px + fx) / (double)(nx - 1), u_y = ((double)py + fy) / (double)(ny - 1);
-        const double theta_h = u_x * u_x * (0.5 * PI), phi_h = u_y * TWO_PI - PI + W->phi_i;
+        const double theta_h = u_x * u_x * (0.5 * PI), phi_h = u_y * TWO_PI - PI + I.phi_i;
         const double h[3] = {sin(theta_h) * cos(phi_h), sin(theta_h) * sin(phi_h), cos(theta_h)};
-        const double cos_ih = h[0] * W->wx + h[1] * W->wy + h[2] * W->wz;
+        const double cos_ih = h[0] * I.wx + h[1] * I.wy + h[2] * I.wz;
         double *o = wo + 3 * k;
-        o[0] = 2.0 * cos_ih * h[0] - W->wx;
-        o[1] = 2.0 * cos_ih * h[1] - W->wy;
-        o[2] = 2.0 * cos_ih * h[2] - W->wz;
+        o[0] = 2.0 * cos_ih * h[0] - I.wx;
+        o[1] = 2.0 * cos_ih * h[1] - I.wy;
+        o[2] = 2.0 * cos_ih * h[2] - I.wz;
         const int reached = cos_ih > 0.0 && o[2] > 0.0;
         if (!reached) o[2] = fmin(o[2], 0.0);
-        const double j = warp_jac(W, u_x, h, (1.0 - fx) * c0 + fx * c1) * rim;
+        const double j = warp_jac(W, &I, u_x, h, (1.0 - fx) * c0 + fx * c1) * rim;
         jac[k] = reached && isfinite(j) ? j : 0.0;
     }
 }

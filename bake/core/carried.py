@@ -32,7 +32,6 @@ invertible: the mixture's choice takes part of the first uniform.
 import numpy as np
 
 from ..errors import FlowBSDFError
-from ..materials.base import as_dirs
 from ..materials.rgl import RGLMaterial, WarpedCoords
 from .geometry import spherical_dir, theta_phi
 from .tables import MixedTables
@@ -42,6 +41,12 @@ def check_carriable(material):
     """FlowBSDFError unless the material has coordinates of its own to carry tables along."""
     if not isinstance(material, RGLMaterial) or not material.isotropic:
         raise FlowBSDFError("carried tables need an isotropic RGL material (its own coordinates)")
+
+
+def as_rendered(tables, material):
+    """The tables as Cycles' OSL back end renders them: carried (CarriedTables) where their meta says
+    which intervals carry (`flowbsdf bake` of a measured file), else the tables themselves."""
+    return tables if tables.meta.get("carried") is None else CarriedTables(tables, material)
 
 
 class CarriedTables:
@@ -55,7 +60,7 @@ class CarriedTables:
         if getattr(tables, "anisotropic", False):
             raise FlowBSDFError("carried tables blend isotropic tables")
         self.tables, self.material = tables, material
-        self._warps = {}
+        self.warp = WarpedCoords(material, horizon=True, stored=True)
         if carried is None:
             carried = tables.meta.get("carried", [True] * (len(tables.theta_bins) - 1))
         self.carried = np.asarray(carried, bool)
@@ -68,115 +73,96 @@ class CarriedTables:
         """The tables' bytes and the file's stored warp data, which carrying needs at render time."""
         return self.tables.nbytes + self.material.warp_nbytes
 
-    def _warp(self, theta, phi):
-        key = (float(theta), float(phi))
-        if key not in self._warps:
-            if len(self._warps) > 64:
-                self._warps.clear()
-            self._warps[key] = WarpedCoords(self.material, spherical_dir(theta, phi), horizon=True, stored=True)
-        return self._warps[key]
+    def _parts(self, wi, n):
+        """(part, index of its first bin among tables.theta_bins, the samples it serves) for the
+        parts of MixedTables (the tables themselves otherwise); wi as (n, 3)."""
+        wi = np.broadcast_to(np.asarray(wi, np.float64), (n, 3))
+        if not isinstance(self.tables, MixedTables):
+            return [(self.tables, 0, np.arange(n))], wi
+        which = self.tables.part_at(theta_phi(wi)[0])
+        starts = np.cumsum([0] + [len(q.theta_bins) for q in self.tables.parts])
+        return [(q, starts[p], np.flatnonzero(which == p)) for p, q in enumerate(self.tables.parts)], wi
 
-    def _bins(self, theta):
-        """(the part of the tables that serves theta, [(theta_j, weight)] of its two bins, whether
-        their interval carries)."""
-        part, start = self.tables, 0
-        if isinstance(part, MixedTables):
-            p = int(part.part_at(theta))
-            start = sum(len(q.theta_bins) for q in part.parts[:p])
-            part = part.parts[p]
-        bins = part.theta_bins
+    def _interval(self, part, start, wi):
+        """Per sample: its two bins' angles (n, 2), their weights (n, 2) and whether it carries."""
+        theta, phi = theta_phi(wi)
+        bins = np.asarray(part.theta_bins)
         if len(bins) == 1:
-            return part, [(bins[0], 1.0)], True
-        k = int(np.clip(np.searchsorted(bins, theta, side="right") - 1, 0, len(bins) - 2))
+            return np.repeat(bins[:1], 2)[None].repeat(len(wi), 0), np.tile([1.0, 0.0], (len(wi), 1)), \
+                np.ones(len(wi), bool), phi
+        k = np.clip(np.searchsorted(bins, theta, side="right") - 1, 0, len(bins) - 2)
         c = np.cos(bins)
-        t = float(np.clip((c[k] - np.cos(theta)) / (c[k] - c[k + 1]), 0.0, 1.0))
-        return part, [(bins[k], 1.0 - t), (bins[k + 1], t)], bool(self.carried[start + k])
+        t = np.clip((c[k] - np.cos(theta)) / (c[k] - c[k + 1]), 0.0, 1.0)
+        return np.stack([bins[k], bins[k + 1]], 1), np.stack([1.0 - t, t], 1), self.carried[start + k], phi
 
-    def _carry_back(self, theta, phi, wo, value, shape=()):
+    def _carry_back(self, wi, wo, value, shape=()):
         """sum_j w_j value(part, wi_j, wo_j) J_j / J_wi, wo_j = W_j^-1(W_wi(wo)): a density of the
-        bins (pdf, or f cos: shape (3,)) carried to wi; on an interval that does not carry, value at
+        bins (pdf, or f cos: shape (3,)) carried to wi; where the interval does not carry, value at
         wi itself."""
-        part, bins, carries = self._bins(theta)
-        if not carries:
-            return value(part, spherical_dir(theta, phi), wo)
-        s, jac = self._warp(theta, phi).to_s(wo)
+        wo = np.atleast_2d(np.asarray(wo, np.float64))
         out = np.zeros((len(wo),) + shape)
-        for theta_j, w in bins:
-            if w <= 0.0:
+        parts, wi = self._parts(wi, len(wo))
+        for part, start, idx in parts:
+            thetas, weights, carries, phi = self._interval(part, start, wi[idx])
+            plain, car = idx[~carries], idx[carries]
+            if len(plain):
+                out[plain] = value(part, wi[plain], wo[plain])
+            if not len(car):
                 continue
-            wo_j, jac_j = self._warp(theta_j, phi).from_s(s)
-            ok = (jac_j > 0) & np.isfinite(jac)
-            if ok.any():
-                ratio = (jac_j[ok] / jac[ok]).reshape((-1,) + (1,) * len(shape))
-                out[ok] += w * value(part, spherical_dir(theta_j, phi), wo_j[ok]) * ratio
+            s, jac = self.warp.to_s(wi[car], wo[car])
+            for j in (0, 1):
+                w = weights[carries, j]
+                sel = np.flatnonzero(w > 0)
+                wi_j = spherical_dir(thetas[carries, j][sel], phi[carries][sel])
+                wo_j, jac_j = self.warp.from_s(wi_j, s[sel])
+                ok = (jac_j > 0) & np.isfinite(jac[sel])
+                if ok.any():
+                    ratio = (w[sel][ok] * jac_j[ok] / jac[sel][ok]).reshape((-1,) + (1,) * len(shape))
+                    out[car[sel[ok]]] += value(part, wi_j[ok], wo_j[ok]) * ratio
         return out
 
-    def _pdf_one(self, theta, phi, wo):
-        pdf = self._carry_back(theta, phi, wo, lambda part, wi, w: part.pdf(wi, w))
+    def pdf(self, wi, wo):
+        wo = np.atleast_2d(np.asarray(wo, np.float64))
+        pdf = self._carry_back(wi, wo, lambda part, wi_j, wo_j: part.pdf(wi_j, wo_j))
         return np.where(wo[:, 2] > 0, pdf, 0.0)
 
-    def _eval_one(self, theta, phi, wo):
-        """The baked f carried as f cos: sum_j w_j f_j(wo_j) cos_j J_j / J_wi / cos theta_o."""
-        fcos = self._carry_back(theta, phi, wo, lambda part, wi, w: part.eval(wi, w) * w[:, 2:3], (3,))
+    def eval(self, wi, wo):
+        """The tables' baked f (RGB) carried like the pdf, as f cos (sum_j w_j f_j(wo_j) cos_j J_j /
+        J_wi / cos theta_o): what a renderer that samples these tables weighs its samples by (eval
+        cos / pdf), as Tables.eval is for the fixed-cell blend."""
+        wo = np.atleast_2d(np.asarray(wo, np.float64))
+        fcos = self._carry_back(wi, wo, lambda part, wi_j, wo_j: part.eval(wi_j, wo_j) * wo_j[:, 2:3], (3,))
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(wo[:, 2:3] > 0, fcos / wo[:, 2:3], 0.0)
 
-    def _sample_one(self, theta, phi, u):
-        part, bins, carries = self._bins(theta)
-        if not carries:
-            return part.sample(spherical_dir(theta, phi), u)
-        u = u.copy()
-        first = np.ones(len(u), bool)
-        if len(bins) == 2 and 0.0 < bins[0][1] < 1.0:
-            w0 = bins[0][1]
-            first = u[:, 0] < w0
-            u[:, 0] = np.where(first, u[:, 0] / w0, (u[:, 0] - w0) / (1.0 - w0))
-            u[:, 0] = np.clip(u[:, 0], 0.0, np.nextafter(1.0, 0.0))
-        elif len(bins) == 2 and bins[0][1] == 0.0:
-            first[:] = False
-        wo = np.empty((len(u), 3))
-        for j, chosen in ((0, first), (1, ~first)):
-            if not chosen.any():
+    def sample(self, wi, u):
+        u = np.atleast_2d(np.asarray(u, np.float64))
+        wo, pdf = np.empty((len(u), 3)), np.empty(len(u))
+        carried = np.zeros(len(u), bool)
+        parts, wi = self._parts(wi, len(u))
+        for part, start, idx in parts:
+            thetas, weights, carries, phi = self._interval(part, start, wi[idx])
+            plain, car = idx[~carries], idx[carries]
+            carried[car] = True
+            if len(plain):
+                wo[plain], pdf[plain] = part.sample(wi[plain], u[plain])
+            if not len(car):
                 continue
-            theta_j = bins[j][0]
-            wo_j, _ = part.sample(spherical_dir(theta_j, phi), u[chosen])
-            s, _ = self._warp(theta_j, phi).to_s(wo_j)
-            wo[chosen], _ = self._warp(theta, phi).from_s(s)
+            # bin j of the two by the first uniform, split by the weights (and rescaled)
+            w0, v = weights[carries, 0], u[car].copy()
+            first = v[:, 0] < w0
+            with np.errstate(divide="ignore", invalid="ignore"):
+                v[:, 0] = np.where(first, v[:, 0] / w0, (v[:, 0] - w0) / (1.0 - w0))
+            v[:, 0] = np.clip(v[:, 0], 0.0, np.nextafter(1.0, 0.0))
+            wi_j = spherical_dir(np.where(first, thetas[carries, 0], thetas[carries, 1]), phi[carries])
+            wo_j, _ = part.sample(wi_j, v)
+            s, _ = self.warp.to_s(wi_j, wo_j)
+            wo[car], _ = self.warp.from_s(wi[car], s)
         # The pdf from wo as pdf() computes it (not from s and the bins' densities already at hand):
         # the round trip s -> wo -> s is exact only to ~1e-9, and MIS needs pdf(wo) itself.
-        return wo, self._pdf_one(theta, phi, wo)
-
-    def _per_wi(self, fn, wi, x):
-        """fn(theta, phi, x of the samples at that wi) for each distinct wi."""
-        x = np.atleast_2d(np.asarray(x, np.float64))
-        if np.ndim(wi) == 1:
-            theta, phi = theta_phi(np.asarray(wi, np.float64)[None])
-            return fn(float(theta[0]), float(phi[0]), x)
-        wi, _ = as_dirs(wi, np.empty((len(x), 3)))
-        theta, phi = theta_phi(wi)
-        keys, inverse = np.unique(np.stack([theta, phi], axis=1), axis=0, return_inverse=True)
-        inverse = np.ravel(inverse)
-        outs = None
-        for g, (t, p) in enumerate(keys):
-            sel = inverse == g
-            got = fn(t, p, x[sel])
-            got = got if isinstance(got, tuple) else (got,)
-            if outs is None:
-                outs = [np.empty((len(x),) + r.shape[1:]) for r in got]
-            for o, r in zip(outs, got):
-                o[sel] = r
-        return tuple(outs) if len(outs) > 1 else outs[0]
-
-    def sample(self, wi, u):
-        return self._per_wi(self._sample_one, wi, u)
-
-    def pdf(self, wi, wo):
-        return self._per_wi(self._pdf_one, wi, wo)
-
-    def eval(self, wi, wo):
-        """The tables' baked f (RGB) carried like the pdf: what a renderer that samples these
-        tables weighs its samples by (eval cos / pdf), as Tables.eval is for the fixed-cell blend."""
-        return self._per_wi(self._eval_one, wi, wo)
+        if carried.any():
+            pdf[carried] = self.pdf(wi[carried], wo[carried])
+        return wo, pdf
 
 
 def choose_intervals(material, tables, ideal, side=128, seed=0):

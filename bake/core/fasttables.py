@@ -8,7 +8,7 @@
                 (the caller then runs the numpy reference)
     rgl_eval(params, vndf, rgb, ndf, wo)
                 an RGL material's f for one wi (RGLMaterial.eval's hot loop, for the baker)
-    warp_to_s(warp, wo), warp_from_s(warp, s)
+    warp_to_s(warp, wi, wo), warp_from_s(warp, wi, s)
                 rgl.WarpedCoords' to_s and from_s (the carried tables' hot loop)
 
 The C code is a transcription of the numpy reference in tables.py (same formulas, same
@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-ABI = 5                       # FT_ABI in _tables_c.c
+ABI = 6                       # FT_ABI in _tables_c.c
 COORDS = ("wo", "halfvector", "halfpolar")     # tables.COORDS in the order of ft_tables.coords
 HERE = Path(__file__).resolve().parent
 SOURCE = HERE / "_tables_c.c"
@@ -61,8 +61,8 @@ class _Tables(ctypes.Structure):
 
 
 class _Warp(ctypes.Structure):
-    _fields_ = [(name, ctypes.c_int64) for name in ("ny", "nx", "horizon")] + [
-        (name, ctypes.c_double) for name in ("wx", "wy", "wz", "phi_i")] + [("patches", ctypes.c_void_p)]
+    _fields_ = [(name, ctypes.c_int64) for name in ("ny", "nx", "S", "horizon")] + [
+        (name, ctypes.c_void_p) for name in ("theta_i", "tables")]
 
 
 def source_sha():
@@ -84,7 +84,7 @@ def _open(path, want_sha):
         fn.argtypes = [ctypes.POINTER(_Tables), i64, ptr, i64, ptr, ptr] + ([ptr] if name == "ft_sample" else [])
     for name in ("ft_warp_to_s", "ft_warp_from_s"):
         getattr(lib, name).restype = None
-        getattr(lib, name).argtypes = [ctypes.POINTER(_Warp), i64, ptr, ptr, ptr]
+        getattr(lib, name).argtypes = [ctypes.POINTER(_Warp), i64, ptr, i64, ptr, ptr, ptr]
     lib.ft_rgl_eval.restype = None
     lib.ft_rgl_eval.argtypes = [i64, ptr, ptr, ptr, i64, i64, ptr, i64, i64, ptr, i64, i64, ptr]
     return lib
@@ -283,31 +283,34 @@ def rgl_eval(params, vndf, vndf_shape, rgb, rgb_shape, ndf, wo):
     return out
 
 
-def _warp_call(warp, name, x, width):
+def _warp_call(warp, name, wi, x, width):
     lib = _lib if _loaded else load()
     if lib is None:
         return None
     x = np.ascontiguousarray(np.atleast_2d(np.asarray(x, np.float64)))
     if x.ndim != 2 or x.shape[1] != width:
         return None
-    patches = np.ascontiguousarray(warp.patches, np.float64)
-    if patches.shape != (warp.ny - 1, warp.nx - 1, 9):
+    wi, stride = _wi_arg(wi, len(x))
+    S = len(warp.theta_i)
+    if wi is None or warp.tables.shape != (S, warp.ny - 1, warp.nx - 1, 9) or warp.tables.dtype != np.float64 \
+            or not warp.tables.flags.c_contiguous:
         return None
-    args = _Warp(warp.ny, warp.nx, int(warp.horizon), *map(float, warp.wi), float(warp.phi_i), patches.ctypes.data)
+    args = _Warp(warp.ny, warp.nx, S, int(warp.horizon), warp.theta_i.ctypes.data, warp.tables.ctypes.data)
     out = np.empty((len(x), 5 - width))
     jac = np.empty(len(x))
-    getattr(lib, name)(ctypes.byref(args), len(x), x.ctypes.data, out.ctypes.data, jac.ctypes.data)
+    getattr(lib, name)(ctypes.byref(args), len(x), wi.ctypes.data, stride, x.ctypes.data, out.ctypes.data,
+                       jac.ctypes.data)
     return out, jac
 
 
-def warp_to_s(warp, wo):
+def warp_to_s(warp, wi, wo):
     """rgl.WarpedCoords.to_s in C: (s, jac), or None without the library."""
-    return _warp_call(warp, "ft_warp_to_s", wo, 3)
+    return _warp_call(warp, "ft_warp_to_s", wi, wo, 3)
 
 
-def warp_from_s(warp, s):
+def warp_from_s(warp, wi, s):
     """rgl.WarpedCoords.from_s in C: (wo, jac), or None without the library."""
-    return _warp_call(warp, "ft_warp_from_s", s, 2)
+    return _warp_call(warp, "ft_warp_from_s", wi, s, 2)
 
 
 def _workers():

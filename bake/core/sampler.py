@@ -97,10 +97,8 @@ def _current_tables(entry, out_dir, manifest_path, material):
     if tables is None:
         raise StaleTables(f"the tables of {entry.name!r} are stale (the material, model or "
                             "bake settings changed): run flowbsdf bake", path)
-    if tables.meta.get("carried") is not None:      # blended along the file's coordinates, as OSL renders them
-        from .carried import CarriedTables
-        return CarriedTables(tables, material)
-    return tables
+    from .carried import as_rendered
+    return as_rendered(tables, material)
 
 
 def _flow(entry, out_dir):

@@ -618,8 +618,9 @@ class RGLMaterial(Material):
 
 
 class WarpedCoords:
-    """An isotropic RGL file's own coordinates at one wi: s in [0, 1]², where eval reads its
-    `rgb` table (step 4), both ways, with d omega_o / d s.
+    """An isotropic RGL file's own coordinates s in [0, 1]², where eval reads its `rgb` table
+    (step 4), both ways, with d omega_o / d s, for one incident direction per sample (wi (N, 3) or
+    one (3,)).
 
     The file blends its measured theta_i slices at fixed s (rgb and the warp's tables alike), so a
     feature of f·cos that moves with theta_i over wo or the half vector stays put over s: blending
@@ -629,7 +630,8 @@ class WarpedCoords:
     step 4. The half vector follows from u_m = (sqrt(2 theta_h / pi), (phi_h - phi_i + pi) / 2 pi)
     and wo = reflect(wi, h): d omega_o / d s = 4 (wi . h) sin theta_h (pi u_x) (2 pi) / p(u_m), p
     the warp's density. Some s give no direction above the horizon (h facing away from wi, or
-    wo below it): from_s returns them with wo_z <= 0 and jac 0.
+    wo below it): from_s returns them with wo_z <= 0 and jac 0. A sample's patches are its two
+    theta_i slices' blended as eval blends them (_incident), patch by patch as they are read.
 
     stored=True: the warp of the file's stored_warp (float16), what a carrying sampler keeps.
     backend "auto": the C fast path where it loads (fasttables.warp_to_s / warp_from_s, the same
@@ -642,58 +644,67 @@ class WarpedCoords:
     atan2(cos theta_i, -sin theta_i cos delta) / 2 (2 cos theta_h (wi . h) = cos theta_i).
     """
 
-    def __init__(self, material, wi, horizon=False, stored=False, backend="auto"):
+    def __init__(self, material, horizon=False, stored=False, backend="auto"):
         if not material.isotropic:
             raise FlowBSDFError("WarpedCoords: isotropic RGL files only")
-        self.wi, self.horizon = np.asarray(wi, np.float64), horizon
-        incident = material._incident(self.wi)
-        self.phi_i = incident["phi_i"]
+        self.horizon, self.backend = horizon, backend
         self.ny, self.nx = material._vndf_shape
-        patches = incident["vndf"]
-        if stored:
-            table = material._stored_warp_table()
-            patches = sum(table[s] * w for s, w in material._combos(self.phi_i, incident["theta_i"]))
-        self.patches = np.ascontiguousarray(patches.reshape(self.ny - 1, self.nx - 1, 9))
-        self.backend = backend
+        table = material._stored_warp_table() if stored else material._vndf.reshape(material._slices, -1, 9)
+        self.tables = np.ascontiguousarray(table.reshape(material._slices, self.ny - 1, self.nx - 1, 9))
+        self.theta_i = np.ascontiguousarray(material.theta_i, np.float64)
 
-    def _jac(self, u_x, h, density):
+    def _incident(self, wi, n):
+        """Per sample: wi (n, 3), its phi_i, and a function (py, px) -> the blended patches' rows."""
+        wi = np.broadcast_to(np.asarray(wi, np.float64), (n, 3))
+        weights = _param_weights(self.theta_i, _elevation(wi[:, 0], wi[:, 1], wi[:, 2]))
+        (s0, w0), (s1, w1) = weights if len(weights) == 2 else (weights[0], (0, 0.0))
+        w0, w1 = (np.broadcast_to(np.asarray(w, np.float64), (n,))[:, None] for w in (w0, w1))
+
+        def patch(py, px):
+            return self.tables[s0, py, px] * w0 + self.tables[s1, py, px] * w1
+        return wi, np.arctan2(wi[:, 1], wi[:, 0]), patch
+
+    def _jac(self, wi, u_x, h, density):
         """d omega_o / d s at half vectors h (u_m x = u_x), the warp's density (index units) there."""
         theta_h = u_x * u_x * (0.5 * np.pi)
-        d_omega_d_u = 4.0 * np.abs(h @ self.wi) * np.sin(theta_h) * (np.pi * u_x) * (2.0 * np.pi)
+        cos_ih = h[:, 0] * wi[:, 0] + h[:, 1] * wi[:, 1] + h[:, 2] * wi[:, 2]
+        d_omega_d_u = 4.0 * np.abs(cos_ih) * np.sin(theta_h) * (np.pi * u_x) * (2.0 * np.pi)
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(density > 0, d_omega_d_u / (density * (self.nx - 1) * (self.ny - 1)), np.inf)
 
-    def _rim(self, py, fy):
+    def _rim(self, wi, patch, py, fy):
         """s_x at the horizon in rows (py, fy): 1 without `horizon`."""
         if not self.horizon:
             return np.ones_like(fy)
-        cos_i = self.wi[2]
-        sin_i = np.sqrt(max(1.0 - cos_i * cos_i, 0.0))
+        cos_i = wi[:, 2]
+        sin_i = np.sqrt(np.maximum(1.0 - cos_i * cos_i, 0.0))
         delta = ((py + fy) / (self.ny - 1)) * (2.0 * np.pi) - np.pi
         theta_h = 0.5 * np.arctan2(cos_i, -sin_i * np.cos(delta))
         px, fx = _patch(_theta2u(theta_h), self.nx)
-        rim = _warp_to_s(self.patches[py, px], fx, fy)[0]
+        rim = _warp_to_s(patch(py, px), fx, fy)[0]
         return np.clip(rim, 1e-300, 1.0)
 
-    def to_s(self, wo):
+    def to_s(self, wi, wo):
         """(s (N, 2), d omega_o / d s: inf where the warp has no density)."""
         wo = np.atleast_2d(np.asarray(wo, np.float64))
         if self.backend == "auto":
             from ..core import fasttables
-            fast = fasttables.warp_to_s(self, wo)
+            fast = fasttables.warp_to_s(self, wi, wo)
             if fast is not None:
                 return fast
-        h = self.wi[None, :] + wo
+        wi, phi_i, patch = self._incident(wi, len(wo))
+        h = wi + wo
         h /= np.linalg.norm(h, axis=1, keepdims=True)
         u_x = _theta2u(_elevation(h[:, 0], h[:, 1], h[:, 2]))
-        u_y = _phi2u(np.arctan2(h[:, 1], h[:, 0]) - self.phi_i)
+        u_y = _phi2u(np.arctan2(h[:, 1], h[:, 0]) - phi_i)
         u_y -= np.floor(u_y)
         px, fx = _patch(u_x, self.nx)
         py, fy = _patch(u_y, self.ny)
-        sx, sy, zero, density = _warp_to_s(self.patches[py, px], fx, fy)
-        rim = self._rim(py, fy)
+        sx, sy, zero, density = _warp_to_s(patch(py, px), fx, fy)
+        rim = self._rim(wi, patch, py, fy)
         # sx / rim exceeds 1 only by rounding, for wo on the horizon itself
-        return np.stack([np.minimum(sx / rim, 1.0), sy], axis=-1), self._jac(u_x, h, np.where(zero, 0.0, density)) * rim
+        return (np.stack([np.minimum(sx / rim, 1.0), sy], axis=-1),
+                self._jac(wi, u_x, h, np.where(zero, 0.0, density)) * rim)
 
     @staticmethod
     def _root(slope_half, start, d):
@@ -702,32 +713,50 @@ class WarpedCoords:
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.clip(np.nan_to_num(2.0 * d / (start + root)), 0.0, 1.0)
 
-    def from_s(self, s):
+    @staticmethod
+    def _last_at_most(n, value, x):
+        """Per sample, the last i in [0, n - 1] with value(i) <= x (0 when none): a bisection over
+        values that rise with i (the same index as counting them)."""
+        lo = np.zeros(len(x), np.intp)
+        hi = np.where(value(lo) <= x, n, 0)
+        while np.any(busy := hi - lo > 1):
+            mid = (lo + hi) // 2
+            below = busy & (value(mid) <= x)
+            lo = np.where(below, mid, lo)
+            hi = np.where(busy & ~below, mid, hi)
+        return lo
+
+    def from_s(self, wi, s):
         """(wo (N, 3), d omega_o / d s); s that reach no direction: wo_z <= 0, jac 0."""
         s = np.atleast_2d(np.asarray(s, np.float64))
         if self.backend == "auto":
             from ..core import fasttables
-            fast = fasttables.warp_from_s(self, s)
+            fast = fasttables.warp_from_s(self, wi, s)
             if fast is not None:
                 return fast
-        rows = self.patches[:, 0]
-        py = np.clip(np.searchsorted(rows[:, 8], s[:, 1], side="right") - 1, 0, self.ny - 2)
-        r0, r1 = rows[py, 6], rows[py, 7]
-        fy = self._root(0.5 * (r1 - r0), r0, s[:, 1] - rows[py, 8])
+        wi, phi_i, patch = self._incident(wi, len(s))
+        first = np.zeros(len(s), np.intp)
+        py = self._last_at_most(self.ny - 1, lambda i: patch(i, first)[:, 8], s[:, 1])
+        row = patch(py, first)
+        r0, r1 = row[:, 6], row[:, 7]
+        fy = self._root(0.5 * (r1 - r0), r0, s[:, 1] - row[:, 8])
         gy = 1.0 - fy
-        rim = self._rim(py, fy)
-        starts = gy[:, None] * self.patches[py, :, 4] + fy[:, None] * self.patches[py, :, 5]   # each patch's CDF
+        rim = self._rim(wi, patch, py, fy)
         target = s[:, 0] * rim * (gy * r0 + fy * r1)
-        px = np.clip(np.sum(starts <= target[:, None], axis=1) - 1, 0, self.nx - 2)
-        v = self.patches[py, px]
+
+        def start(px):          # the conditional CDF at patch px's left edge
+            v = patch(py, px)
+            return gy * v[:, 4] + fy * v[:, 5]
+        px = self._last_at_most(self.nx - 1, start, target)
+        v = patch(py, px)
         c0, c1 = gy * v[:, 0] + fy * v[:, 2], gy * v[:, 1] + fy * v[:, 3]
-        fx = self._root(0.5 * (c1 - c0), c0, target - starts[np.arange(len(px)), px])
+        fx = self._root(0.5 * (c1 - c0), c0, target - (gy * v[:, 4] + fy * v[:, 5]))
         u_x, u_y = (px + fx) / (self.nx - 1), (py + fy) / (self.ny - 1)
-        theta_h, phi_h = u_x * u_x * (0.5 * np.pi), u_y * (2.0 * np.pi) - np.pi + self.phi_i
+        theta_h, phi_h = u_x * u_x * (0.5 * np.pi), u_y * (2.0 * np.pi) - np.pi + phi_i
         h = np.stack([np.sin(theta_h) * np.cos(phi_h), np.sin(theta_h) * np.sin(phi_h), np.cos(theta_h)], axis=-1)
-        cos_ih = h @ self.wi
-        wo = 2.0 * cos_ih[:, None] * h - self.wi[None, :]
+        cos_ih = h[:, 0] * wi[:, 0] + h[:, 1] * wi[:, 1] + h[:, 2] * wi[:, 2]
+        wo = 2.0 * cos_ih[:, None] * h - wi
         reached = (cos_ih > 0) & (wo[:, 2] > 0)
         wo[~reached, 2] = np.minimum(wo[~reached, 2], 0.0)
-        jac = self._jac(u_x, h, (1.0 - fx) * c0 + fx * c1) * rim
+        jac = self._jac(wi, u_x, h, (1.0 - fx) * c0 + fx * c1) * rim
         return wo, np.where(reached & np.isfinite(jac), jac, 0.0)
