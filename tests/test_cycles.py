@@ -837,10 +837,11 @@ def test_osl_furnace_carried_gives_the_blended_albedo(carried_textures, tmp_path
         assert lb.node_status(node, sc) == "OSL, carried blend"
         assert node.node_tree.nodes[lb.SCRIPT].inputs["Carried"].default_value == str(texture)
         theta = np.radians(deg)
-        _, bins, carries = sampler._bins(theta)
-        assert carries and len(bins) == 2
-        ref = sum(w * _albedo_and_variance(tab, np.array([np.sin(t), 0.0, np.cos(t)]))[0] for t, w in bins)
         wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
+        thetas, weights, carries, _ = sampler._interval(tab, 0, wi[None])
+        assert carries[0] and np.all(weights[0] > 0)
+        ref = sum(w * _albedo_and_variance(tab, np.array([np.sin(t), 0.0, np.cos(t)]))[0]
+                  for t, w in zip(thetas[0], weights[0]))
         wo, pdf = sampler.sample(wi, rng.random((1 << 16, 2)))
         sigma = np.sqrt((sampler.eval(wi, wo) * wo[:, 2:3] / pdf[:, None]).var(axis=0) / (spp * n * n))
         fixed = _albedo_and_variance(tab, wi)[0]

@@ -3,7 +3,8 @@
 // table is carried to theta_i at fixed s, the measured file's own coordinates (its warp's inverse
 // at the half vector, s_x over its horizon value: rgl.WarpedCoords(horizon=True)):
 //     sample: bin j of the two with its weight (u0 split by the weights), wo_j from bin j's table,
-//             wo = W_i^-1(W_j(wo_j)); its pdf and f cos from wo, as eval does
+//             wo = W_i^-1(W_j(wo_j)); its pdf and f cos as eval's sum, bin j's term from the
+//             chain's own values (the numpy reference re-derives it from wo: the same to float32)
 //     eval:   sum_j w_j {pdf, f cos}_j(W_j^-1(W_i(wo))) J_j / J_i,  J = d omega / d s
 // Elsewhere (at a bin, on an interval that does not carry, without a carry texture) the tables'
 // own fixed-cell blend (tables.h). Isotropic tables only: the local frame has phi_i = 0.
@@ -276,7 +277,7 @@ void sample_bsdf(string file, float W, float H, int K, int R, int C, int NP, flo
         sample_tables(file, W, H, K, R, C, NP, period, half, frame, cos_i, phi_i, u0, u1, wo, weight, pdf);
         return;
     }
-    int j = (u0 < w[0]) ? 0 : 1;
+    int j = (u0 < w[0]) ? 0 : 1, o = 1 - j;
     float u = (j == 0) ? u0 / w[0] : (u0 - w[0]) / w[1];
     vector wo_j;
     color weight_j;
@@ -285,7 +286,31 @@ void sample_bsdf(string file, float W, float H, int K, int R, int C, int NP, flo
                   clamp(u, 0.0, 0.99999994), u1, wo_j, weight_j, pdf_j);
     carry_to_s(c, cos(theta_j[j]), theta_j[j], wo_j, s_x, s_y, jac_j);
     carry_from_s(c, cos_i, acos(cos_i), s_x, s_y, wo, jac);
-    color fcos;
-    eval_bsdf(file, W, H, K, R, C, NP, period, half, frame, carried, c, cos_i, phi_i, wo, fcos, pdf);
+    if (jac_j <= 0.0) {     // no warp density at wo_j (rare): the pdf as eval_bsdf reads it at wo
+        color fcos;
+        eval_bsdf(file, W, H, K, R, C, NP, period, half, frame, carried, c, cos_i, phi_i, wo, fcos, pdf);
+        weight = (pdf > 0.0) ? fcos / pdf : color(0);
+        return;
+    }
+    // eval_bsdf at wo, from the sampling chain's own values for bin j (its table's pdf and weight
+    // at wo_j, d omega / d s both ways): one carry and one table lookup less
+    pdf = 0;
+    weight = 0;
+    if (jac <= 0.0)
+        return;         // s reaches no direction above the horizon at theta_i: lost
+    color fcos = w[j] * weight_j * pdf_j * (jac_j / jac);
+    pdf = w[j] * pdf_j * (jac_j / jac);
+    if (w[o] > 0.0) {
+        vector wo_o;
+        float jac_o, pdf_o;
+        color fcos_o;
+        carry_from_s(c, cos(theta_j[o]), theta_j[o], s_x, s_y, wo_o, jac_o);
+        if (jac_o > 0.0) {
+            eval_tables(file, W, H, K, R, C, NP, period, half, frame, fetch1(file, W, H, bins[o], 1), 0.0,
+                        wo_o, fcos_o, pdf_o);
+            pdf += w[o] * pdf_o * (jac_o / jac);
+            fcos += w[o] * fcos_o * (jac_o / jac);
+        }
+    }
     weight = (pdf > 0.0) ? fcos / pdf : color(0);
 }
