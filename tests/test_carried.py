@@ -139,3 +139,19 @@ def test_carried_eval_is_the_bins_f_cos_carried(synthetic):
     got, err = per_quarter(carried, spherical_dir(theta, phi))
     want = (1 - t) * a_lo + t * a_hi
     assert np.all(np.abs(got - want) < 5 * np.sqrt(err ** 2 + ((1 - t) * e_lo) ** 2 + (t * e_hi) ** 2)), (got, want)
+
+
+def test_the_fixed_plan_carries_unless_the_warp_would_crowd_the_budget(synthetic):
+    """plan_tables(carry_flags=True): the fixed blend's plan with a flag per interval, its budget
+    less the file's warp data; a budget the warp would take over half of (a preview bake) plans
+    the tables alone, saying why."""
+    from bake.core.tabulate import plan_tables
+    mat, _ = synthetic
+    ideal = IdealSampler(mat, resolution=64)
+    opts = dict(samples=1 << 12, first_bins=3, resolution=16, coords="halfpolar", window=None)
+    tables = plan_tables(mat, ideal, memory_budget=120_000, carry_flags=True, **opts)
+    assert len(tables.meta["carried"]) == len(tables.theta_bins) - 1 and "blend" not in tables.meta
+    assert tables.nbytes <= 120_000 - mat.warp_nbytes
+    log = []
+    tables = plan_tables(mat, ideal, memory_budget=2 * mat.warp_nbytes - 1, carry_flags=True, log=log.append, **opts)
+    assert "carried" not in tables.meta and any("carried blend off" in line for line in log), log

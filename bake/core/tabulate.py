@@ -1118,7 +1118,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     carry_flags: with the fixed blend's plan, also say per interval whether carrying samples closer
     (tables.meta["carried"], carried.choose_intervals: a back end that can carry, OSL, does so
     there; the others blend at fixed cells, what the plan was made for); the budget counts the
-    file's warp data as for "carried". Isotropic RGL files only.
+    file's warp data as for "carried", and where that data would take over half of it (a preview
+    bake), the tables do not carry. Isotropic RGL files only.
 
     Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
     (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
@@ -1136,7 +1137,12 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     if blend == "carried" or carry_flags:      # the file's warp data is read beside the tables: within the budget
         from .carried import check_carriable
         check_carriable(material)
-        memory_budget -= material.warp_nbytes
+        if blend == "fixed" and material.warp_nbytes > memory_budget / 2:
+            log(f"carried blend off: the file's warp data ({material.warp_nbytes / 1e6:.2f} MB) would take over "
+                f"half the memory budget ({memory_budget / 1e6:.2f} MB)")
+            carry_flags = False
+        else:
+            memory_budget -= material.warp_nbytes
     ideal = source if isinstance(source, IdealSampler) else IdealSampler(material, resolution=ideal_resolution)
     if lobe_width == "auto":
         lobe_width = lobe_width_of(material, ideal)
