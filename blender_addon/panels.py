@@ -205,6 +205,8 @@ def draw_material(layout, mat, context):
     col.prop(s, "preset")
     col.prop(s, "bake_quality")
     col.prop(s, "tables_from")
+    if s.source_kind == "FILE":
+        col.prop(s, "carried")
     col = layout.column(align=True)
     col.operator("flowbsdf.bake", text="Bake", icon="RENDER_STILL").only_active = True
     col.operator("flowbsdf.train_bake", text="Train + Bake", icon="PLAY").only_active = True

@@ -72,7 +72,8 @@ def manifest_entry(material):
     s = material.flowbsdf
     return {"name": manifest_name(material), "source": source_spec(material), "domain": s.domain.lower(),
             "train": {"preset": s.preset.lower()},
-            "bake": {**BAKE_QUALITY[s.bake_quality], "source": "flow" if s.tables_from == "MODEL" else "auto"}}
+            "bake": {**BAKE_QUALITY[s.bake_quality], "source": "flow" if s.tables_from == "MODEL" else "auto",
+                     **({"carry": s.carried} if s.source_kind == "FILE" else {})}}
 
 
 class FlowBSDFMaterial(bpy.types.PropertyGroup):
@@ -103,6 +104,11 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
          "cells (Final: under a minute on 2 cores)"),
         ("MODEL", "Trained model", "Its trained flow model places the cells (the paper's route; Final: 2-4 min; "
          "Train + Bake or Load Model first). The cells' masses come from the material either way")])
+    carried: bpy.props.BoolProperty(
+        name="Carried blend", default=True,
+        description="Measured (RGL) files: blend the tables between incident angles along the file's own "
+                    "coordinates where that samples closer (OSL; about 3x its shading time there). Off: at "
+                    "fixed cells, as the GPU's SVM graph renders them")
     bake_quality: bpy.props.EnumProperty(name="Tables", default="FINAL", items=[
         ("DRAFT", "Draft", "Tiny tables, seconds: layout and tests"),
         ("PREVIEW", "Preview", "Coarser tables for look-dev"),
