@@ -17,13 +17,12 @@ so a patch's nine numbers (rgl._continuous_warp_table) are four fetches a slice:
 the row's last vertex (the rows' totals) and the marginal. Every value is numpy's float32 bit for
 bit. Named after the tables' content hash like the other exports (`<stem>.carry<layout>-<hash12>.exr`).
 """
-import json
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import FlowBSDFError
-from ..plumbing.exrio import write_rgba_exr
+from ..plumbing.exrio import read_rgba_exr, write_rgba_exr
 
 CARRY_LAYOUT = 1
 META_KEY = "flowbsdf_carry"
@@ -73,19 +72,7 @@ def carry_image(material, tables, carried):
 
 def read_export(path):
     """(image (H, W, 4) float32, metadata) of a carry texture; FlowBSDFError if it is not one."""
-    import OpenEXR
-    path = Path(path)
-    if not path.is_file():
-        raise FlowBSDFError("carry texture not found", path)
-    try:
-        f = OpenEXR.File(str(path))
-        raw = f.header().get(META_KEY)
-        img = f.channels()["RGBA"].pixels
-    except Exception as e:      # noqa: BLE001  (missing, foreign or broken files)
-        raise FlowBSDFError(f"not a readable FlowBSDF carry texture ({e})", path) from None
-    if raw is None:
-        raise FlowBSDFError("an OpenEXR file, but not a FlowBSDF carry texture", path)
-    return img, json.loads(raw)
+    return read_rgba_exr(path, META_KEY, "carry texture")
 
 
 def is_current(path, digest):

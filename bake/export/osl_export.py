@@ -53,14 +53,13 @@ the tables) and carries the full hash in its metadata: a changed table gets a ne
 file (OpenImageIO caches textures by name, so a rewritten file of the same name could be
 served stale inside a running Blender), and older exports of the same tables are removed.
 """
-import json
 from pathlib import Path
 
 import numpy as np
 
 from ..core.tables import COORDS, open_tables
 from ..errors import FlowBSDFError
-from ..plumbing.exrio import write_rgba_exr
+from ..plumbing.exrio import read_rgba_exr, write_rgba_exr
 from ..plumbing.files import file_hash
 
 LAYOUT = 8      # 8: tables of mixed resolutions (each corner's own rows and columns: its guides, its count texel)
@@ -153,20 +152,7 @@ def texture_image(tables):
 
 def read_export(path):
     """(image (H, W, 4) float32, metadata) of an export file; FlowBSDFError if it is not one."""
-    path = Path(path)
-    if not path.is_file():
-        raise FlowBSDFError("OSL texture not found", path)
-    import OpenEXR
-    try:
-        f = OpenEXR.File(str(path))
-        raw = f.header().get(META_KEY)
-        ch = f.channels()
-        img = ch["RGBA"].pixels
-    except Exception as e:      # noqa: BLE001  (foreign or broken files)
-        raise FlowBSDFError(f"not a readable FlowBSDF OSL texture ({e})", path) from None
-    if raw is None:
-        raise FlowBSDFError("an OpenEXR file, but not a FlowBSDF OSL texture", path)
-    return img, json.loads(raw)
+    return read_rgba_exr(path, META_KEY, "OSL texture")
 
 
 def is_current(path, digest):

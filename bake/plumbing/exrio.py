@@ -45,6 +45,24 @@ def write_rgba_exr(path, image, meta_key, meta):
         OpenEXR.File(header, {"RGBA": np.ascontiguousarray(image)}).write(tmp)
 
 
+def read_rgba_exr(path, meta_key, what):
+    """(image (H, W, 4) float32, metadata) of an RGBA texture written by write_rgba_exr with
+    `meta_key`; FlowBSDFError naming `what` ("OSL texture", ...) if it is missing or not one."""
+    path = Path(path)
+    if not path.is_file():
+        raise FlowBSDFError(f"{what} not found", path)
+    import OpenEXR
+    try:
+        f = OpenEXR.File(str(path))
+        raw = f.header().get(meta_key)
+        img = f.channels()["RGBA"].pixels
+    except Exception as e:      # noqa: BLE001  (foreign or broken files)
+        raise FlowBSDFError(f"not a readable FlowBSDF {what} ({e})", path) from None
+    if raw is None:
+        raise FlowBSDFError(f"an OpenEXR file, but not a FlowBSDF {what}", path)
+    return img, json.loads(raw)
+
+
 def read_exr(path):
     """(arrays by part name, metadata dict); FlowBSDFError naming the file on any problem."""
     path = Path(path)

@@ -215,14 +215,38 @@ void carry_from_s(Carry c, float cos_i, float theta, float s_x, float s_y, outpu
     jac = (cos_ih > 0.0 && wo[2] > 0.0) ? carry_jac(c, wi, u_x, h, (1.0 - fx) * c0 + fx * c1) * rim : 0.0;
 }
 
-// Whether theta_i carries: its interval's flag, above its first bin (past the last bin too: its
-// directions carried on, as CarriedTables does).
-int carry_interval(Carry c, int bins[4], float w[4], output float theta0, output float theta1)
+// Whether theta_i carries (with a carry texture: its interval's flag, above its first bin, past
+// the last bin too: its directions carried on, as CarriedTables does), and its two bins, their
+// weights and angles.
+int carries(string file, float W, float H, int K, int R, int NP, float period, int half, int carried, Carry c,
+            float cos_i, float phi_i, output int bins[4], output float w[4], output float theta[2])
 {
-    theta0 = fetch1(c.file, c.W, c.H, 2 + c.S + bins[0], 0);
-    theta1 = fetch1(c.file, c.W, c.H, 2 + c.S + bins[1], 0);
+    if (!carried)
+        return 0;
+    int base;
+    float turn;
+    blend_bins(file, W, H, K, R, NP, period, half, cos_i, phi_i, bins, w, base, turn);
+    theta[0] = fetch1(c.file, c.W, c.H, 2 + c.S + bins[0], 0);
+    theta[1] = fetch1(c.file, c.W, c.H, 2 + c.S + bins[1], 0);
     color flag = fetch(c.file, c.W, c.H, 2 + c.S + bins[0], 0);
     return flag[1] > 0.5 && w[1] > 0.0 && bins[1] == bins[0] + 1;
+}
+
+// Adds bin q's term of the carried sum at s: w_q {pdf, f cos}_q(W_q^-1(s)) J_q / J (J: d omega / d s
+// at theta_i).
+void carry_term(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
+                float frame, Carry c, int bin, float theta_q, float w_q, float s_x, float s_y, float jac,
+                output color fcos, output float pdf)
+{
+    vector wo_q;
+    float jac_q, pdf_q;
+    color fcos_q;
+    carry_from_s(c, cos(theta_q), theta_q, s_x, s_y, wo_q, jac_q);
+    if (jac_q > 0.0) {
+        eval_tables(file, W, H, K, R, C, NP, period, half, frame, fetch1(file, W, H, bin, 1), 0.0, wo_q, fcos_q, pdf_q);
+        pdf += w_q * pdf_q * (jac_q / jac);
+        fcos += w_q * fcos_q * (jac_q / jac);
+    }
 }
 
 // eval_tables, carried where the interval carries: pdf per steradian and baked f cos at wo.
@@ -232,11 +256,7 @@ void eval_bsdf(string file, float W, float H, int K, int R, int C, int NP, float
 {
     int bins[4];
     float w[4], theta_j[2];
-    int base;
-    float turn;
-    if (carried)
-        blend_bins(file, W, H, K, R, NP, period, half, cos_i, phi_i, bins, w, base, turn);
-    if (!carried || !carry_interval(c, bins, w, theta_j[0], theta_j[1])) {
+    if (!carries(file, W, H, K, R, NP, period, half, carried, c, cos_i, phi_i, bins, w, theta_j)) {
         eval_tables(file, W, H, K, R, C, NP, period, half, frame, cos_i, phi_i, wo, fcos, pdf);
         return;
     }
@@ -248,18 +268,10 @@ void eval_bsdf(string file, float W, float H, int K, int R, int C, int NP, float
     carry_to_s(c, cos_i, acos(cos_i), wo, s_x, s_y, jac);
     if (jac <= 0.0)
         return;
-    for (int q = 0; q < 2; q++) {
-        vector wo_j;
-        float jac_j, pdf_j;
-        color fcos_j;
-        carry_from_s(c, cos(theta_j[q]), theta_j[q], s_x, s_y, wo_j, jac_j);
-        if (jac_j > 0.0) {
-            eval_tables(file, W, H, K, R, C, NP, period, half, frame, fetch1(file, W, H, bins[q], 1), 0.0,
-                        wo_j, fcos_j, pdf_j);
-            pdf += w[q] * pdf_j * (jac_j / jac);
-            fcos += w[q] * fcos_j * (jac_j / jac);
-        }
-    }
+    for (int q = 0; q < 2; q++)
+        if (w[q] > 0.0)
+            carry_term(file, W, H, K, R, C, NP, period, half, frame, c, bins[q], theta_j[q], w[q], s_x, s_y, jac,
+                       fcos, pdf);
 }
 
 // sample_tables, carried where the interval carries: wo, its weight (baked f cos / pdf) and pdf.
@@ -269,11 +281,7 @@ void sample_bsdf(string file, float W, float H, int K, int R, int C, int NP, flo
 {
     int bins[4];
     float w[4], theta_j[2];
-    int base;
-    float turn;
-    if (carried)
-        blend_bins(file, W, H, K, R, NP, period, half, cos_i, phi_i, bins, w, base, turn);
-    if (!carried || !carry_interval(c, bins, w, theta_j[0], theta_j[1])) {
+    if (!carries(file, W, H, K, R, NP, period, half, carried, c, cos_i, phi_i, bins, w, theta_j)) {
         sample_tables(file, W, H, K, R, C, NP, period, half, frame, cos_i, phi_i, u0, u1, wo, weight, pdf);
         return;
     }
@@ -300,17 +308,8 @@ void sample_bsdf(string file, float W, float H, int K, int R, int C, int NP, flo
         return;         // s reaches no direction above the horizon at theta_i: lost
     color fcos = w[j] * weight_j * pdf_j * (jac_j / jac);
     pdf = w[j] * pdf_j * (jac_j / jac);
-    if (w[o] > 0.0) {
-        vector wo_o;
-        float jac_o, pdf_o;
-        color fcos_o;
-        carry_from_s(c, cos(theta_j[o]), theta_j[o], s_x, s_y, wo_o, jac_o);
-        if (jac_o > 0.0) {
-            eval_tables(file, W, H, K, R, C, NP, period, half, frame, fetch1(file, W, H, bins[o], 1), 0.0,
-                        wo_o, fcos_o, pdf_o);
-            pdf += w[o] * pdf_o * (jac_o / jac);
-            fcos += w[o] * fcos_o * (jac_o / jac);
-        }
-    }
+    if (w[o] > 0.0)
+        carry_term(file, W, H, K, R, C, NP, period, half, frame, c, bins[o], theta_j[o], w[o], s_x, s_y, jac,
+                   fcos, pdf);
     weight = (pdf > 0.0) ? fcos / pdf : color(0);
 }
