@@ -194,6 +194,9 @@ def test_a_measured_file_bakes_which_intervals_carry(tmp_path):
     np.testing.assert_array_equal(image[0, 2 + 5:2 + 5 + len(flags), 1], np.asarray(flags, np.float32))
     sampler = open_sampler("tables", m.materials[0].open(), entry=m.materials[0], out_dir=out, manifest_path=m.path)
     assert isinstance(sampler, CarriedTables) and list(sampler.carried) == flags
+    from bake.quality.report import manifest_samplers      # the report compares them as they render
+    report = manifest_samplers(m.materials[0], m.materials[0].open(), out, m.path, steps=(), log=lambda line: None)
+    assert isinstance(report["tables"], CarriedTables) and "plain (equal memory)" in report
 
     m = load_manifest_text(tmp_path, text.replace("}", ", carry = false }"))
     bake_manifest(m, out, log=lambda line: None)

@@ -426,10 +426,11 @@ def manifest_samplers(entry, material, out_dir, manifest_path, steps=(2, 4, 8), 
     if tables is not None:
         from ..core.tabulate import build_tables
         samplers["tables"] = tables
-        half = max(tables.rows // 2, 4)
+        own = getattr(tables, "tables", tables)     # carried tables (bake/core/carried.py): their tables
+        half = max(own.rows // 2, 4)
         samplers[f"tables {half}x{half}"] = build_tables(
-            material, ideal, tables.theta_bins, half, half, lobe_width=tables.meta.get("lobe_width"))
-        samplers["plain (equal memory)"] = BinnedIdeal.with_memory(material, tables.theta_bins, tables.nbytes)
+            material, ideal, own.theta_bins, half, half, lobe_width=own.meta.get("lobe_width"))
+        samplers["plain (equal memory)"] = BinnedIdeal.with_memory(material, own.theta_bins, tables.nbytes)
     path = entry.source_path()
     if path is not None and path.suffix.lower() == ".bsdf":
         try:
