@@ -1,5 +1,6 @@
 """Tables of a measured RGL file blended along the file's own coordinates: each of the two
-incident bins' tables carried to wi at fixed s, then mixed (numpy; issue 22, item 4).
+incident bins' tables carried to wi at fixed s, then mixed (issue 22, item 4). The numpy
+reference (the warp in C: rgl.WarpedCoords); Cycles' OSL back end: blender_addon/osl/carried.h.
 
 Tables (tables.py) blend their two nearest bins at fixed cell coordinates. Where f·cos has a
 feature that moves with theta_i faster than the bins follow, the blend half-way holds two
@@ -26,8 +27,10 @@ wi) and carrying can lose to the fixed-cell blend (2 MB tables: colodur_napoli_4
 theta_bins; tables.meta["carried"]): `choose_intervals` measures both blends at each interval's
 cos-midpoint and keeps the better.
 
-The sampler is exact (sample and pdf agree, nothing lost where W_wi reaches every s), but not
-invertible: the mixture's choice takes part of the first uniform.
+`flowbsdf bake` flags the intervals of a measured file's tables (plan_tables carry_flags) and
+`as_rendered` gives the sampler OSL renders. The sampler is exact (sample and pdf agree, nothing
+lost where W_wi reaches every s), but not invertible: the mixture's choice takes part of the first
+uniform.
 """
 import numpy as np
 
