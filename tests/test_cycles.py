@@ -768,8 +768,13 @@ def test_osl_carried_blend_is_numpy(carried_textures):
     CarriedTables: the same wo for the same u, the same pdf and weight, and the same pdf and baked
     f cos all over the hemisphere; on an interval that does not carry, at a bin and past the last
     bin, the tables' own blend."""
+    import re
     from bake.core.carried import CarriedTables
     from bake.core.tables import open_tables
+    from bake.export.carry_export import CARRY_LAYOUT, CARRY_SLICES
+    src = lb.shader_source()
+    assert lb.CARRY_LAYOUT == CARRY_LAYOUT and re.search(rf"^#define CARRY_LAYOUT {CARRY_LAYOUT}\b", src, re.M)
+    assert re.search(rf"^#define CARRY_SLICES {CARRY_SLICES}\b", src, re.M)
     mat, tables_path, tex, carry = carried_textures
     tab = open_tables(tables_path)
     n = 32

@@ -25,6 +25,7 @@ from ..errors import FlowBSDFError
 from ..plumbing.exrio import read_rgba_exr, write_rgba_exr
 
 CARRY_LAYOUT = 1
+CARRY_SLICES = 16       # carried.h's CARRY_SLICES: the shader reads the slices' angles once, into an array
 META_KEY = "flowbsdf_carry"
 
 
@@ -43,6 +44,8 @@ def carry_image(material, tables, carried):
     if carried.shape != (max(len(bins) - 1, 0),):
         raise FlowBSDFError(f"carried: one flag per interval of the tables' {len(bins)} bins, not {carried.shape}")
     S = material._slices
+    if S > CARRY_SLICES:
+        raise FlowBSDFError(f"the carried blend's texture holds at most {CARRY_SLICES} theta_i slices, the file has {S}")
     ny, nx = material._vndf_shape
     t = material._stored_warp_table().reshape(S, ny - 1, nx - 1, 9)
     W, H = nx + 1, 1 + S * (ny - 1)

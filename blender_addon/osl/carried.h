@@ -10,11 +10,13 @@
 // own fixed-cell blend (tables.h). Isotropic tables only: the local frame has phi_i = 0.
 
 #define CARRY_LAYOUT 1
+#define CARRY_SLICES 16     // the most theta_i slices a file may have here (RGL files: 8)
 
 struct Carry {
     string file;
     float W, H;
     int S, ny, nx, K;
+    float theta_i[CARRY_SLICES];    // the slices' incident angles, read once with the header
 };
 
 // 1 and the header when `file` is a carry texture of tables with K bins.
@@ -33,7 +35,11 @@ int carry_header(string file, int K, output Carry c)
     c.ny = int(h0[2]);
     c.nx = int(nx);
     c.K = int(h1[2]);
-    return int(h0[0]) == CARRY_LAYOUT && c.K == K && c.S >= 1 && c.ny >= 2 && c.nx >= 2
+    if (c.S < 1 || c.S > CARRY_SLICES)
+        return 0;
+    for (int s = 0; s < c.S; s++)
+        c.theta_i[s] = fetch1(file, c.W, c.H, 2 + s, 0);
+    return int(h0[0]) == CARRY_LAYOUT && c.K == K && c.ny >= 2 && c.nx >= 2
         && int(h1[0]) == res[0] && int(h1[1]) == res[1];
 }
 
@@ -45,10 +51,9 @@ void carry_slices(Carry c, float theta, output int s0, output float t)
     if (c.S == 1)
         return;
     for (int s = 1; s < c.S - 1; s++)
-        if (fetch1(c.file, c.W, c.H, 2 + s, 0) < theta)
+        if (c.theta_i[s] < theta)
             s0 += 1;
-    float p0 = fetch1(c.file, c.W, c.H, 2 + s0, 0), p1 = fetch1(c.file, c.W, c.H, 3 + s0, 0);
-    t = clamp((theta - p0) / (p1 - p0), 0.0, 1.0);
+    t = clamp((theta - c.theta_i[s0]) / (c.theta_i[s0 + 1] - c.theta_i[s0]), 0.0, 1.0);
 }
 
 // Texel x of patch row y, blended over the two slices (alpha in a).
