@@ -105,7 +105,7 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
         ("MODEL", "Trained model", "Its trained flow model places the cells (the paper's route; Final: 2-4 min; "
          "Train + Bake or Load Model first). The cells' masses come from the material either way")])
     carried: bpy.props.BoolProperty(
-        name="Carried blend", default=True,
+        name="Carried", default=True,
         description="Measured (RGL) files: blend the tables between incident angles along the file's own "
                     "coordinates where that samples closer (OSL: 5-7x its shading time there). Off: at "
                     "fixed cells, as the GPU's SVM graph renders them")

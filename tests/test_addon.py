@@ -888,7 +888,7 @@ def test_scan_measured_file_material(addon, tmp_path, rgl):
 
 def test_a_measured_file_carries_unless_the_artist_turns_it_off(addon, tmp_path):
     """A material from a file bakes with the carried blend (the manifest's `carry`, the panel's
-    "Carried blend"), off when unticked; an analytic material's entry does not mention it."""
+    "Carried"), off when unticked; an analytic material's entry does not mention it."""
     from blender_addon.props import manifest_entry
     mat = one_learned_object(tmp_path, "measured")
     mat.flowbsdf.source_kind = "FILE"
