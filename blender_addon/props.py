@@ -107,7 +107,7 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
     carried: bpy.props.BoolProperty(
         name="Carried", default=True,
         description="Measured (RGL) files: blend the tables between incident angles along the file's own "
-                    "coordinates where that samples closer (OSL: 5-7x its shading time there). Off: at "
+                    "coordinates where that samples closer (OSL: 5-8x its shading time there). Off: at "
                     "fixed cells, as the GPU's SVM graph renders them")
     bake_quality: bpy.props.EnumProperty(name="Tables", default="FINAL", items=[
         ("DRAFT", "Draft", "Tiny tables, seconds: layout and tests"),
