@@ -77,7 +77,8 @@ NEUTRAL = (0.5, 0.5, 0.5)
 FIT_FORMAT = "flowbsdf-closure-fit"
 OSL_LAYOUT = 8          # the OSL texture's layout (bake/export/osl_export.LAYOUT): part of its file name
 CARRY_LAYOUT = 1        # the carried blend's texture's (bake/export/carry_export.CARRY_LAYOUT)
-FIT_VERSION = 4
+FIT_VERSION = 5
+FIT_LOBES = 3           # the fit's GGX lobes (bake/export/closure_fit.LOBES): a vector socket holds their r or a
 
 
 def _bake_mod(name):
@@ -113,7 +114,7 @@ def load_fit(path):
         raise ValueError(f"closure fit unreadable ({e}): {path}") from None
     if not isinstance(fit, dict) or fit.get("format") != FIT_FORMAT or fit.get("version") != FIT_VERSION:
         raise ValueError(f"not a current FlowBSDF closure fit, re-bake: {path}")
-    for key in ("x", "diffuse", "specular", "roughness", "rel_error", "cv"):
+    for key in ("x", "diffuse", "specular", "roughness", "anisotropy", "rel_error", "cv"):
         if key not in fit:
             raise ValueError(f"closure fit without {key!r}: {path}")
     if fit.get("match") and path.with_name(fit["match"]).is_file():
@@ -385,17 +386,25 @@ def _piecewise(tree, x_socket, xs, values, loc):
     return out
 
 
-FIT_PARAMS = ("Diffuse", "Specular", "Roughness", "Control variate", "Matched share")
+FIT_PARAMS = ("Diffuse", "Specular 1", "Specular 2", "Specular 3", "Roughness", "Anisotropy",
+              "Control variate", "Matched share")
 
 
 def _fit_params(tree, fit, loc, cv=False):
-    """Sockets (kd, ks, (r, r, r)) of the fit's closures at the view angle, from the fit's
-    node group (_fit_group); `cv`: and the control variate's (beta_d, beta_s, s) and (s_m, s_m,
-    s_m), its portal share where matched to a light (matched_share)."""
+    """The fit's parameters at the view angle, from its node group (_fit_group): {"kd": colour,
+    "ks": [colour per lobe], "roughness": (r_1, r_2, r_3), "anisotropy": (a_1, a_2, a_3),
+    "view_aligned": how many lobes take the view's tangent}; `cv`: and "cv" (beta_d, beta_s, s),
+    "matched" (s_m, s_m, s_m), the control variate's (svm.py)."""
     node = tree.nodes.new("ShaderNodeGroup")
     node.node_tree = _fit_group(fit)
     node.location = loc
-    return tuple(node.outputs[name] for name in FIT_PARAMS[:5 if cv else 3])
+    out = node.outputs
+    params = {"kd": out["Diffuse"], "ks": [out[f"Specular {j + 1}"] for j in range(FIT_LOBES)],
+              "roughness": out["Roughness"], "anisotropy": out["Anisotropy"],
+              "view_aligned": int(fit.get("view_aligned", 0))}
+    if cv:
+        params.update(cv=out["Control variate"], matched=out["Matched share"])
+    return params
 
 
 def _fit_group(fit):
@@ -412,7 +421,8 @@ def _fit_group(fit):
     if tree is not None:
         return tree
     tree = bpy.data.node_groups.new(name, "ShaderNodeTree")
-    columns = [fit["diffuse"], fit["specular"], [[r, r, r] for r in fit["roughness"]]]
+    columns = ([fit["diffuse"]] + [[knot[j] for knot in fit["specular"]] for j in range(FIT_LOBES)]
+               + [fit["roughness"], fit["anisotropy"]])
     if "cv" in fit:
         columns += [fit["cv"], [[matched_share(e)] * 3 for e in fit["rel_error"]]]
     for param in FIT_PARAMS[:len(columns)]:
@@ -444,27 +454,80 @@ def matched_share(rel_error):
 MATCHED_ERROR_MAX = 0.1
 
 
-def _closures(tree, kd, ks, kr, loc):
-    """A Diffuse BSDF (colour kd) plus a GGX Glossy BSDF (colour ks, roughness kr's x)."""
+def _closures(tree, params, loc, scale_d=None, scale_s=None):
+    """The fit's closures: a Diffuse BSDF (colour kd) plus a GGX Glossy BSDF per lobe (colour
+    ks_j, roughness r_j, anisotropy a_j; the first params["view_aligned"] with the view's
+    tangent: view_tangent). `scale_d`, `scale_s`: colours multiplying kd and every ks_j (the
+    SVM back end's control variate)."""
     nodes, links = tree.nodes, tree.links
+    x, y = loc[0] + 3000, loc[1]
+
+    def scaled(colour, scale, at):
+        if scale is None:
+            return colour
+        mul = nodes.new("ShaderNodeVectorMath")
+        mul.operation = 'MULTIPLY'
+        mul.location = at
+        links.new(colour, mul.inputs[0])
+        links.new(scale, mul.inputs[1])
+        return mul.outputs[0]
     diffuse = nodes.new("ShaderNodeBsdfDiffuse")
-    diffuse.location = (loc[0] + 3400, loc[1])
-    glossy = nodes.new("ShaderNodeBsdfAnisotropic")     # "Glossy BSDF" in Blender >= 4.0
-    glossy.distribution = 'GGX'
-    glossy.location = (loc[0] + 3400, loc[1] - 500)
-    sep = nodes.new("ShaderNodeSeparateXYZ")
-    sep.location = (loc[0] + 3200, loc[1] - 1000)
-    links.new(kr, sep.inputs[0])
-    links.new(sep.outputs[0], glossy.inputs["Roughness"])
-    if "Anisotropy" in glossy.inputs:
-        glossy.inputs["Anisotropy"].default_value = 0.0
-    links.new(kd, diffuse.inputs["Color"])
-    links.new(ks, glossy.inputs["Color"])
-    add = nodes.new("ShaderNodeAddShader")
-    add.location = (loc[0] + 3600, loc[1] - 200)
-    links.new(diffuse.outputs[0], add.inputs[0])
-    links.new(glossy.outputs[0], add.inputs[1])
-    return add.outputs[0]
+    diffuse.location = (x + 400, y)
+    links.new(scaled(params["kd"], scale_d, (x + 200, y)), diffuse.inputs["Color"])
+    out = diffuse.outputs[0]
+    rough = nodes.new("ShaderNodeSeparateXYZ")
+    rough.location = (x, y - 300)
+    links.new(params["roughness"], rough.inputs[0])
+    aniso = nodes.new("ShaderNodeSeparateXYZ")
+    aniso.location = (x, y - 500)
+    links.new(params["anisotropy"], aniso.inputs[0])
+    tangent = view_tangent(tree, (x - 400, y - 700)) if params["view_aligned"] else None
+    for j, ks in enumerate(params["ks"]):
+        glossy = nodes.new("ShaderNodeBsdfAnisotropic")     # "Glossy BSDF" in Blender >= 4.0
+        glossy.distribution = 'GGX'
+        glossy.location = (x + 400, y - 300 * (j + 1))
+        links.new(scaled(ks, scale_s, (x + 200, y - 300 * (j + 1))), glossy.inputs["Color"])
+        links.new(rough.outputs[j], glossy.inputs["Roughness"])
+        if j < params["view_aligned"] and "Anisotropy" in glossy.inputs:
+            links.new(aniso.outputs[j], glossy.inputs["Anisotropy"])
+            links.new(tangent, glossy.inputs["Tangent"])
+        elif "Anisotropy" in glossy.inputs:
+            glossy.inputs["Anisotropy"].default_value = 0.0
+        add = nodes.new("ShaderNodeAddShader")
+        add.location = (x + 600, y - 300 * j - 150)
+        links.new(out, add.inputs[0])
+        links.new(glossy.outputs[0], add.inputs[1])
+        out = add.outputs[0]
+    return out
+
+
+# A direction no shading normal is parallel to in practice: the view tangent's fallback.
+_TANGENT_NUDGE = (0.36, 0.48, 0.8)
+
+
+def view_tangent(tree, loc):
+    """The view direction projected onto the shading surface, I - (I.N) N (Geometry's Incoming
+    and Normal), plus 1e-6 N x _TANGENT_NUDGE: Cycles normalises cross(N, T), which for a zero
+    tangent (a head-on view, where the fit's anisotropy is 0 anyway) would be NaN."""
+    nodes, links = tree.nodes, tree.links
+    geometry = nodes.new("ShaderNodeNewGeometry")
+    geometry.location = loc
+    incoming, normal = geometry.outputs["Incoming"], geometry.outputs["Normal"]
+
+    def vmath(op, at, *inputs):
+        node = nodes.new("ShaderNodeVectorMath")
+        node.operation = op
+        node.location = (loc[0] + 200 * at, loc[1])
+        for socket, value in zip(node.inputs, inputs):
+            if isinstance(value, tuple):
+                socket.default_value = value
+            else:
+                links.new(value, socket)
+        return node.outputs["Value" if op == 'DOT_PRODUCT' else "Vector"]
+    i_dot_n = vmath('DOT_PRODUCT', 1, incoming, normal)
+    projected = vmath('SUBTRACT', 3, incoming, vmath('MULTIPLY', 2, normal, i_dot_n))
+    nudge = vmath('CROSS_PRODUCT', 4, normal, _TANGENT_NUDGE)
+    return vmath('MULTIPLY_ADD', 5, nudge, (1e-6, 1e-6, 1e-6), projected)
 
 
 def _build_fit(tree, fit, loc=(-1400, -400)):
@@ -475,7 +538,7 @@ def _build_fit(tree, fit, loc=(-1400, -400)):
         diffuse.location = (loc[0] + 3400, loc[1])
         diffuse.inputs["Color"].default_value = (*NEUTRAL, 1.0)
         return diffuse.outputs[0]
-    return _closures(tree, *_fit_params(tree, fit, loc), loc)
+    return _closures(tree, _fit_params(tree, fit, loc), loc)
 
 
 def _svm_backend(tree, svm_texture, fit, tangent, world_inputs, loc=(-1400, -3000)):
@@ -489,10 +552,10 @@ def _svm_backend(tree, svm_texture, fit, tangent, world_inputs, loc=(-1400, -300
     match = fit.get("match_path") if fit and any(matched_share(e) > 0.0 for e in fit["rel_error"]) else None
     if not (has_betas or match) or not svm.control_variate_wanted(svm_texture, fit):
         return svm.build_svm_sampler(tree, svm_texture, tangent, location=loc, world=world_inputs)
-    kd, ks, kr, betas, matched = _fit_params(tree, fit, (loc[0], loc[1] + 1600), cv=True)
-    cv = {"fit": (kd, ks), "roughness": kr, "betas": betas, "matched_share": matched,
+    params = _fit_params(tree, fit, (loc[0], loc[1] + 1600), cv=True)
+    cv = {"fit": params, "betas": params["cv"], "matched_share": params["matched"],
           "has_betas": has_betas, "match_image": match,
-          "closures": lambda kd, ks: _closures(tree, kd, ks, kr, (loc[0], loc[1] + 1600))}
+          "closures": lambda sd, ss: _closures(tree, params, (loc[0], loc[1] + 1600), sd, ss)}
     return svm.build_svm_sampler(tree, svm_texture, tangent, location=loc, world=world_inputs, cv=cv)
 
 
@@ -538,7 +601,8 @@ def _build_tree(tree, name, tables_path, fit_path):
     fit_out = _build_fit(tree, fit)
     info = {"material": name, "tables": str(tables_path), "fit": str(fit_path or ""),
             "osl_texture": osl_texture, "svm_texture": svm_texture, "has_fit": fit is not None,
-            "has_osl": with_osl, "fit_error": float(max(fit["rel_error"])) if fit else -1.0,
+            "has_osl": with_osl, "fit_error": float(fit.get("error", -1.0)) if fit else -1.0,
+            "fit_error_of": fit.get("l1_of", "") if fit else "", "fit_version": FIT_VERSION if fit else 0,
             "matte": world.matte_fraction(fit),
             "problems": "; ".join(problems)}
     shader = fit_out
@@ -588,7 +652,8 @@ def upgrade(tree):
     """Rebuild a group made where a back end could not be built and can be here (OSL where
     Cycles compiles it, the SVM graph where Blender has the Ray Portal BSDF), or by an add-on
     whose OSL shader differs (its bytecode would not read the current texture layout and
-    would render the fallback). Returns True when it rebuilt the group."""
+    would render the fallback) or whose fit is of another version (refit from the tables, the
+    SVM back end's match image with it). Returns True when it rebuilt the group."""
     if tree.library is not None:
         return False
     info = _info(tree)
@@ -597,9 +662,12 @@ def upgrade(tree):
     script = tree.nodes.get(SCRIPT)
     stale_osl = osl_compiler_available() and (script is None or script.get("flowbsdf_src") != _source_hash())
     missing_svm = svm_available() and not _has_svm(tree) and Path(info["tables"]).is_file()
-    if not (stale_osl or missing_svm):
+    # a fit of an older version (made by an older add-on): refit from the tables where they are
+    stale_fit = info.get("has_fit") and info.get("fit_version", 0) != FIT_VERSION and Path(info["tables"]).is_file()
+    if not (stale_osl or missing_svm or stale_fit):
         return False
-    _build_tree(tree, info["material"], Path(info["tables"]), Path(info["fit"]) if info.get("fit") else None)
+    fit = Path(info["fit"]) if info.get("fit") and not stale_fit else None
+    _build_tree(tree, info["material"], Path(info["tables"]), fit)
     return True
 
 
@@ -693,7 +761,8 @@ def _resolve(scene, tree, limits=None):
     backend = backend_of(scene)
     fit = "fit" if info.get("has_fit") else "neutral grey (no fit)"
     if info.get("has_fit") and info.get("fit_error", -1.0) >= 0:
-        fit_note = f"; the fit is off by up to {100 * info['fit_error']:.0f} %"
+        of = "measured material" if info.get("fit_error_of") == "file" else "baked tables"
+        fit_note = f"; it differs by ~{100 * info['fit_error']:.0f} % from the {of}"
     else:
         fit_note = ""
 

@@ -1287,10 +1287,11 @@ def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, locat
     the tables, the world map and the sun (module docstring); update_world changes them.
     Without a world map or sun to draw from (None, shares 0, no readable map), the graph is
     the tables' alone.
-    `cv`: a control variate f_cv, the fit's Cycles closures (node._svm_backend: "fit" (kd, ks)
-    colour sockets, "roughness" its x, of a Diffuse and a GGX Glossy BSDF; "betas" (beta_d,
-    beta_s, s) and "matched_share" (s_m in x) sockets; "has_betas"; "match_image" (the fit's
-    match image path or None); "closures" (kd, ks) -> the closures' shader): a shading point
+    `cv`: a control variate f_cv, the fit's Cycles closures (node._svm_backend: "fit" its
+    parameters' sockets (node._fit_params: kd, ks per lobe, roughness, anisotropy) of a Diffuse
+    and GGX Glossy BSDFs; "betas" (beta_d, beta_s, s) and "matched_share" (s_m in x) sockets;
+    "has_betas"; "match_image" (the fit's match image path or None); "closures" (scale_d,
+    scale_s) -> the closures' shader, kd and each ks scaled by those colours): a shading point
     takes the closures (colours beta kd, beta ks, weight 1 / (1 - s)) with probability 1 - s,
     else the portal carrying f - f_cv with weight (f - f_cv) cos / (q s), as two portals (its
     positive and negative channels); matched to the world's light where it has one.
@@ -1323,9 +1324,9 @@ def _cv_switched(g, cv, world, matched):
     if not matched and not cv["has_betas"]:
         return None
     on = node.outputs[0]
-    kd, ks = cv["fit"]
-    return dict(cv, on=on, matching=matched, diffuse=g.scale(kd, g.dot(cv["betas"], X)),
-                specular=g.scale(ks, g.dot(cv["betas"], Y)),
+    beta_d, beta_s = g.dot(cv["betas"], X), g.dot(cv["betas"], Y)
+    return dict(cv, on=on, matching=matched, diffuse=g.combine(beta_d, beta_d, beta_d),
+                specular=g.combine(beta_s, beta_s, beta_s),
                 s=g.math('SUBTRACT', 1.0, g.math('MULTIPLY', on, g.math('SUBTRACT', 1.0, g.dot(cv["betas"], Z)))))
 
 
@@ -1346,41 +1347,64 @@ def _cv_pick(g, cv, u0):
 
 def _cv_fcos(g, cv, wi, n, d):
     """What the control variate's closures render toward d, f_cv cos theta_o (colour): Cycles'
-    Diffuse BSDF (colour cv["diffuse"]) and GGX Glossy BSDF (colour cv["specular"], roughness
-    r = cv["roughness"]'s x, alpha = r^2) as bsdf_diffuse_eval and bsdf_microfacet_eval compute
-    them (no Fresnel, height-correlated G2), at wi and d about the normal n. (A node group, one
-    for every material: a mixture's branches each take it.)"""
-    return g.group(_cv_fcos_group(), Wi=wi, N=n, D=d, Diffuse=cv["diffuse"], Specular=cv["specular"],
-                   Roughness=cv["roughness"])[0]
+    Diffuse BSDF (colour kd scaled by cv["diffuse"]) and the fit's GGX Glossy BSDFs (colours
+    ks_j scaled by cv["specular"], roughness r_j, anisotropy a_j, the tangent along the view:
+    node.view_tangent) as bsdf_diffuse_eval and bsdf_microfacet_eval compute them (no Fresnel,
+    height-correlated G2), at wi and d about the normal n. (A node group, one for every
+    material: a mixture's branches each take it.)"""
+    fit = cv["fit"]
+    inputs = {f"Specular {j + 1}": g.vmath('MULTIPLY', ks, cv["specular"]) for j, ks in enumerate(fit["ks"])}
+    return g.group(_cv_fcos_group(len(fit["ks"])), Wi=wi, N=n, D=d, Diffuse=g.vmath('MULTIPLY', fit["kd"], cv["diffuse"]),
+                   Roughness=fit["roughness"], Anisotropy=fit["anisotropy"], **inputs)[0]
 
 
-def _cv_fcos_group():
-    done, tree = _group(f"{GROUP_PREFIX}control variate f cos", [(name, "Vector") for name in
-                        ("Wi", "N", "D", "Diffuse", "Specular", "Roughness")], [("F cos", "Vector")])
+def _cv_fcos_group(lobes):
+    names = ["Wi", "N", "D", "Diffuse"] + [f"Specular {j + 1}" for j in range(lobes)] + ["Roughness", "Anisotropy"]
+    done, tree = _group(f"{GROUP_PREFIX}control variate f cos, {lobes} view-aligned lobes",
+                        [(name, "Vector") for name in names], [("F cos", "Vector")])
     if done:
         return done
     g = _Graph(tree)
     inp = g.node("NodeGroupInput").outputs
     wi, n, d = inp["Wi"], inp["N"], inp["D"]
-    cv = {"diffuse": inp["Diffuse"], "specular": inp["Specular"], "roughness": inp["Roughness"]}
     cos_i = g.dot(wi, n)
     cos_o = g.dot(d, n)
     above = g.math('MULTIPLY', g.math('GREATER_THAN', cos_i, 0.0), g.math('GREATER_THAN', cos_o, 0.0))
-    diffuse = g.scale(cv["diffuse"], g.math('MULTIPLY', g.math('MAXIMUM', cos_o, 0.0), 1.0 / math.pi))
-    r = g.math('MINIMUM', g.math('MAXIMUM', g.dot(cv["roughness"], X), 0.0), 1.0)
-    alpha2 = g.math('POWER', r, 4.0)
-    cos_h = g.dot(g.vmath('NORMALIZE', g.vmath('ADD', wi, d)), n)
-    cos_h2 = g.math('MINIMUM', g.math('MULTIPLY', cos_h, cos_h), 1.0)
-    den = g.math('MULTIPLY_ADD', alpha2, cos_h2, g.math('SUBTRACT', 1.0, cos_h2))
-    ndf = g.math('DIVIDE', alpha2, g.math('MULTIPLY', g.math('MULTIPLY', den, den), math.pi))
+    out = g.scale(inp["Diffuse"], g.math('MULTIPLY', g.math('MAXIMUM', cos_o, 0.0), 1.0 / math.pi))
+    # Cycles' frame of an anisotropic closure (make_orthonormals_tangent): y = normalize(N x T),
+    # x = y x N, T the view's tangent (node.view_tangent: wi less its normal part, nudged)
+    tangent = g.vmath('MULTIPLY_ADD', g.vmath('CROSS_PRODUCT', n, (0.36, 0.48, 0.8)), (1e-6, 1e-6, 1e-6),
+                      g.vmath('SUBTRACT', wi, g.scale(n, cos_i)))
+    fy = g.vmath('NORMALIZE', g.vmath('CROSS_PRODUCT', n, tangent))
+    fx = g.vmath('CROSS_PRODUCT', fy, n)
+    h = g.vmath('NORMALIZE', g.vmath('ADD', wi, d))
+    local = {"h": (g.dot(h, fx), g.dot(h, fy), g.dot(h, n)), "i": (g.dot(wi, fx), g.dot(wi, fy), cos_i),
+             "o": (g.dot(d, fx), g.dot(d, fy), cos_o)}
+    sep_r = g.node("ShaderNodeSeparateXYZ")
+    g.set(sep_r.inputs[0], inp["Roughness"])
+    sep_a = g.node("ShaderNodeSeparateXYZ")
+    g.set(sep_a.inputs[0], inp["Anisotropy"])
+    for j in range(lobes):
+        r = g.math('MINIMUM', g.math('MAXIMUM', sep_r.outputs[j], 0.0), 1.0)
+        alpha = g.math('MULTIPLY', r, r)
+        a = g.math('MINIMUM', g.math('MAXIMUM', sep_a.outputs[j], -0.99), 0.99)
+        neg = g.math('LESS_THAN', a, 0.0)
+        # svm closure.h: a < 0: (alpha / (1 + a), alpha (1 + a)), else (alpha (1 - a), alpha / (1 - a))
+        ax = g.select(neg, g.math('DIVIDE', alpha, g.math('ADD', 1.0, a)), g.math('MULTIPLY', alpha, g.math('SUBTRACT', 1.0, a)))
+        ay = g.select(neg, g.math('MULTIPLY', alpha, g.math('ADD', 1.0, a)), g.math('DIVIDE', alpha, g.math('SUBTRACT', 1.0, a)))
+        hx, hy, hz = local["h"]
+        q = g.math('ADD', g.math('ADD', g.math('POWER', g.math('DIVIDE', hx, ax), 2.0),
+                                  g.math('POWER', g.math('DIVIDE', hy, ay), 2.0)), g.math('MULTIPLY', hz, hz))
+        ndf = g.math('DIVIDE', 1.0 / math.pi, g.math('MULTIPLY', g.math('MULTIPLY', ax, ay), g.math('MULTIPLY', q, q)))
 
-    def lam(c):     # bsdf_lambda<GGX>: 0.5 (sqrt(1 + alpha2 max(1 / c^2 - 1, 0)) - 1)
-        tan2 = g.math('MAXIMUM', g.math('SUBTRACT', g.math('DIVIDE', 1.0, g.math('MULTIPLY', c, c)), 1.0), 0.0)
-        return g.math('MULTIPLY', g.math('SUBTRACT', g.math('SQRT', g.math('MULTIPLY_ADD', alpha2, tan2, 1.0)), 1.0), 0.5)
-    g2 = g.math('ADD', g.math('ADD', lam(cos_i), lam(cos_o)), 1.0)
-    glossy = g.math('DIVIDE', g.math('MULTIPLY', ndf, above), g.math('MULTIPLY', g.math('MULTIPLY', cos_i, 4.0), g2))
-    g.set(g.node("NodeGroupOutput").inputs["F cos"],
-          g.vmath('MULTIPLY_ADD', cv["specular"], g.combine(glossy, glossy, glossy), diffuse))
+        def lam(v, ax=ax, ay=ay):    # bsdf_lambda<GGX>: 0.5 (sqrt(1 + (ax^2 vx^2 + ay^2 vy^2) / vz^2) - 1)
+            t2 = g.math('DIVIDE', g.math('ADD', g.math('POWER', g.math('MULTIPLY', ax, v[0]), 2.0),
+                                          g.math('POWER', g.math('MULTIPLY', ay, v[1]), 2.0)), g.math('MULTIPLY', v[2], v[2]))
+            return g.math('MULTIPLY', g.math('SUBTRACT', g.math('SQRT', g.math('ADD', t2, 1.0)), 1.0), 0.5)
+        g2 = g.math('ADD', g.math('ADD', lam(local["i"]), lam(local["o"])), 1.0)
+        glossy = g.math('DIVIDE', g.math('MULTIPLY', ndf, above), g.math('MULTIPLY', g.math('MULTIPLY', cos_i, 4.0), g2))
+        out = g.vmath('MULTIPLY_ADD', inp[f"Specular {j + 1}"], g.combine(glossy, glossy, glossy), out)
+    g.set(g.node("NodeGroupOutput").inputs["F cos"], out)
     return tree
 
 
@@ -1463,15 +1487,14 @@ def _cv_matched(g, cv, at, axis):
     (matched_share 0)."""
     wo = tuple(g.dot(axis, v) for v in (at["tx"], at["ty"], at["n"]))
     beta = _match_lookup(g, cv["match_image"], at["cos_i"], wo)
-    kd, ks = cv["fit"]
     share = g.dot(cv["matched_share"], X)
     # (between a knot matched and one not, the share falls to 0: off below the least share)
     on = g.math('MULTIPLY', g.math('GREATER_THAN', wo[2], 0.05),
                 g.math('MULTIPLY', g.math('GREATER_THAN', share, 0.99 * MATCHED_SHARE_MIN), cv["on"]))
     off = g.math('SUBTRACT', 1.0, on)
     return dict(cv, matched=on, s=g.math('MULTIPLY_ADD', on, share, g.math('MULTIPLY', cv["s"], off)),
-                diffuse=g.vmath('MULTIPLY_ADD', g.scale(kd, on), beta, g.scale(cv["diffuse"], off)),
-                specular=g.vmath('MULTIPLY_ADD', g.scale(ks, on), beta, g.scale(cv["specular"], off)))
+                diffuse=g.vmath('MULTIPLY_ADD', g.combine(on, on, on), beta, g.scale(cv["diffuse"], off)),
+                specular=g.vmath('MULTIPLY_ADD', g.combine(on, on, on), beta, g.scale(cv["specular"], off)))
 
 
 def _match_lookup(g, path, cos_v, wo):

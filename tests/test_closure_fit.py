@@ -39,35 +39,121 @@ def test_ggx_closure_matches_the_analytic_ggx():
     np.testing.assert_allclose(closure_fit.ggx_fcos(wi, wo, 0.3), mat.eval(wi, wo)[:, 0] * wo[:, 2], rtol=1e-9)
 
 
+def test_anisotropic_ggx_closure_matches_the_analytic_ggx():
+    """ggx_fcos(alpha, a) is Cycles' Glossy GGX with Anisotropy a (svm closure.h: alpha_x =
+    alpha (1 - a), alpha_y = alpha / (1 - a); a < 0 the other way round), tangent x."""
+    rng = np.random.default_rng(0)
+    wi = np.array([np.sin(0.9), 0.0, np.cos(0.9)])
+    wo = rng.normal(size=(1000, 3))
+    wo[:, 2] = np.abs(wo[:, 2])
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    for a, (ax, ay) in ((0.5, (0.1, 0.4)), (-0.5, (0.4, 0.1))):
+        assert np.allclose(closure_fit.alphas_xy(0.2, a), (ax, ay))
+        mat = open_material({"kind": "analytic", "model": "ggx", "alpha_x": ax, "alpha_y": ay})
+        np.testing.assert_allclose(closure_fit.ggx_fcos(wi, wo, 0.2, a), mat.eval(wi, wo)[:, 0] * wo[:, 2], rtol=1e-9)
+
+
+def test_lobe_albedos_at_the_knots_come_from_the_table():
+    """The fit's albedo equality rests on the lobes' albedos: at the knots the shipped table
+    (scripts/ggx_albedo_table.py, current grid) gives them within 0.5 % of a 2^16-sample
+    estimate with other samples (measured: up to 0.45 % at 4096 samples, 2.5 % at 1024)."""
+    closure_fit._ALBEDOS.clear()
+    with np.load(closure_fit.ALBEDO_TABLE) as z:
+        assert np.array_equal(z["alphas"], closure_fit.ALPHAS) and np.array_equal(z["anisotropy"], closure_fit.ANISOTROPY)
+        assert np.array_equal(z["knots_deg"], closure_fit.KNOTS_DEG)
+    rng = np.random.default_rng(8)
+    for _ in range(12):
+        deg = float(rng.choice(closure_fit.KNOTS_DEG))
+        al, an = float(rng.choice(closure_fit.ALPHAS)), float(rng.choice(closure_fit.ANISOTROPY))
+        got = closure_fit._ggx_albedos(np.radians(deg), [al], [an])[0]
+        assert (np.radians(deg), al, an) in closure_fit._ALBEDOS
+        fine = closure_fit._ggx_albedos(np.radians(deg), [al], [an], n=1 << 16, seed=5, cache=False)[0]
+        assert abs(got - fine) <= 5e-3 * fine + 1e-6, (deg, al, an, got, fine)
+
+
+def test_simplex_least_squares_is_the_constrained_optimum():
+    """_simplex_lsq: k >= 0, a . k = albedo, and no feasible point does better (random
+    problems, 4000 random feasible points each)."""
+    rng = np.random.default_rng(3)
+    c, h, kk = 5, 3, 4
+    m = rng.normal(size=(c, h, 12, kk))
+    gram = np.einsum("chnk,chnl->chkl", m, m)
+    rhs = rng.normal(size=(c, h, kk))
+    a = rng.uniform(0.3, 1.0, (c, kk))
+    albedo = np.array([0.8, 0.5, 0.2])
+    k = closure_fit._simplex_lsq(gram, rhs, a, albedo)
+    assert np.all(k >= 0)
+    np.testing.assert_allclose(np.einsum("ck,chk->ch", a, k), np.broadcast_to(albedo, (c, h)), rtol=1e-9)
+
+    def obj(x):
+        return 0.5 * np.einsum("...k,chkl,...l->...", x, gram, x) - np.einsum("chk,...k->...", rhs, x)
+    best = 0.5 * np.einsum("chk,chkl,chl->ch", k, gram, k) - np.einsum("chk,chk->ch", rhs, k)
+    for ci in range(c):
+        for hi in range(h):
+            x = rng.dirichlet(np.ones(kk), 4000) * albedo[hi] / a[ci]        # on the constraint, >= 0
+            vals = 0.5 * np.einsum("nk,kl,nl->n", x, gram[ci, hi], x) - x @ rhs[ci, hi]
+            assert best[ci, hi] <= vals.min() + 1e-12, (ci, hi)
+
+
 def test_lambert_fits_to_pure_diffuse(lambert):
     fit = closure_fit.fit_closures(lambert, knots_deg=KNOTS)
     for kd, ks, albedo, err in zip(fit["diffuse"], fit["specular"], fit["albedo"], fit["rel_error"]):
         np.testing.assert_allclose(kd, albedo, atol=0.01)
-        assert max(ks) < 0.01
+        assert np.max(ks) < 0.01
         assert err < 0.05
     np.testing.assert_allclose(fit["albedo"][0], [0.8, 0.5, 0.2], rtol=0.01)
     assert fit["x"][-1] == 1.0 and fit["x"] == sorted(fit["x"])
+    assert fit["l1_of"] == "tables" and fit["error"] < 0.05
+
+
+def _fit_albedo(fit, wi, n=200000, seed=1):
+    """eval_fit's albedo by Monte Carlo over a mixture of the cosine and the fit's lobes."""
+    from bake.materials.analytic import ggx_reflection_pdf, ggx_sample_reflection
+    rng = np.random.default_rng(seed)
+    _, _, alpha, aniso = closure_fit.params_at(fit, wi[2])
+    parts = [closure_fit._cosine(rng.random((n, 2)))]
+    axy = [closure_fit.alphas_xy(al, an) for al, an in zip(alpha, aniso)]
+    parts += [ggx_sample_reflection(wi, ax, ay, rng.random((n, 2))) for ax, ay in axy]
+    wo = np.concatenate(parts)
+    q = (np.maximum(wo[:, 2], 0) / np.pi + sum(ggx_reflection_pdf(wi, wo, ax, ay) for ax, ay in axy)) / len(parts)
+    ok = q > 0
+    return np.sum(closure_fit.eval_fit(fit, wi, wo[ok]) * wo[ok, 2:3] / q[ok, None], axis=0) / len(wo)
 
 
 def test_glossy_fit_finds_the_lobe_and_keeps_the_albedo(glossy):
     fit = closure_fit.fit_closures(glossy, knots_deg=KNOTS)
-    a0 = fit["alpha"][0]
+    ks = np.array(fit["specular"][0])
+    main = int(np.argmax(ks.sum(1)))
+    a0 = fit["roughness"][0][main] ** 2
     assert 0.1 < a0 < 0.22, a0
-    ks, kd = np.array(fit["specular"][0]), np.array(fit["diffuse"][0])
-    assert np.all(ks > 5 * kd), (ks, kd)
+    kd = np.array(fit["diffuse"][0])
+    assert np.all(ks.sum(0) > 5 * kd), (ks, kd)
     np.testing.assert_allclose(fit["fit_albedo"], fit["albedo"], rtol=1e-6)
-    # eval_fit is what the node renders: its albedo (MC over the cosine) is the fitted one.
-    rng = np.random.default_rng(1)
-    for deg, albedo in zip(fit["theta_deg"][:2], fit["albedo"][:2]):
+    # eval_fit is what the node renders: its albedo (MC) is the fitted one, at a knot and between
+    for deg in (0.0, 45.0, 60.0):
         wi = np.array([np.sin(np.radians(deg)), 0.0, np.cos(np.radians(deg))])
-        from bake.materials.analytic import ggx_reflection_pdf, ggx_sample_reflection
-        _, _, alpha = closure_fit.params_at(fit, wi[2])
-        wo = ggx_sample_reflection(wi, alpha, alpha, rng.random((200000, 2)))
-        wo = np.concatenate([wo, closure_fit._cosine(rng.random((200000, 2)))])
-        q = 0.5 * ggx_reflection_pdf(wi, wo, alpha, alpha) + 0.5 * np.maximum(wo[:, 2], 0) / np.pi
-        ok = q > 0
-        est = np.sum(closure_fit.eval_fit(fit, wi, wo[ok]) * wo[ok, 2:3] / q[ok, None], axis=0) / len(wo)
-        np.testing.assert_allclose(est, albedo, rtol=0.02)
+        want = np.array([np.interp(1 - wi[2], fit["x"], np.array(fit["albedo"])[:, c]) for c in range(3)])
+        np.testing.assert_allclose(_fit_albedo(fit, wi), want, rtol=0.02)
+
+
+def test_eval_fit_turns_with_the_view():
+    """The view-aligned lobes follow wi's azimuth: eval_fit at wi turned about the normal is the
+    same function of wo turned alike (an isotropic BSDF's fit stays isotropic)."""
+    fit = {"x": [0.0, 1.0], "diffuse": [[0.1] * 3] * 2, "specular": [[[0.3] * 3, [0.2] * 3, [0.1] * 3]] * 2,
+           "roughness": [[0.3, 0.5, 0.2]] * 2, "anisotropy": [[0.0, 0.0, 0.0], [0.6, -0.3, 0.0]]}
+    rng = np.random.default_rng(4)
+    wo = rng.normal(size=(500, 3))
+    wo[:, 2] = np.abs(wo[:, 2])
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    wi = np.array([np.sin(1.0), 0.0, np.cos(1.0)])
+    for phi in (0.7, 2.5, -1.9):
+        c, s = np.cos(phi), np.sin(phi)
+        turn = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+        np.testing.assert_allclose(closure_fit.eval_fit(fit, turn @ wi, wo @ turn.T), closure_fit.eval_fit(fit, wi, wo),
+                                   rtol=1e-9)
+    # anisotropic there: not the same at a wo mirrored across the plane of incidence's normal
+    mirrored = wo * np.array([-1.0, 1.0, 1.0])
+    assert not np.allclose(closure_fit.eval_fit(fit, wi, mirrored), closure_fit.eval_fit(fit, wi, wo))
 
 
 def test_control_variate_takes_an_exact_fit_whole(lambert):
@@ -90,8 +176,8 @@ def test_control_variate_rest_is_nowhere_negative(glossy):
     fit = closure_fit.fit_closures(glossy, knots_deg=KNOTS)
     assert any(b[0] + b[1] > 0 for b in fit["cv"]), fit["cv"]
     rng = np.random.default_rng(7)
-    for deg, (bd, bs, share), kd, ks, alpha in zip(fit["theta_deg"], fit["cv"], fit["diffuse"], fit["specular"],
-                                                   fit["alpha"]):
+    for deg, (bd, bs, share), kd, ks, r, an in zip(fit["theta_deg"], fit["cv"], fit["diffuse"], fit["specular"],
+                                                   fit["roughness"], fit["anisotropy"]):
         if bd == 0.0 and bs == 0.0:
             assert share == 1.0
             continue
@@ -100,9 +186,8 @@ def test_control_variate_rest_is_nowhere_negative(glossy):
         wo = rng.normal(size=(1 << 14, 3))
         wo[:, 2] = np.abs(wo[:, 2])
         wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-        c = wo[:, 2:3]
-        fcos = glossy.eval(wi, wo) * c
-        cv = bd * np.asarray(kd) * c / np.pi + bs * np.asarray(ks) * closure_fit.ggx_fcos(wi, wo, alpha)[:, None]
+        fcos = glossy.eval(wi, wo) * wo[:, 2:3]
+        cv = closure_fit._fit_fcos_at(wi, wo, bd * np.asarray(kd), bs * np.asarray(ks), np.square(r), an)
         over = cv > fcos
         assert over.mean() < 2e-3 and np.max(cv - fcos) < 0.01 * fcos.max(), (deg, over.mean(), np.max(cv - fcos))
 
@@ -131,7 +216,7 @@ def test_derived_files_are_cached_rebuilt_and_atomic(tmp_path, lambert, glossy):
     glossy.save(path)                                  # new table contents: new export and fit
     tex2, fit2 = bake_derived(path)
     assert tex2 != tex and not tex.exists(), "the stale export was kept"
-    assert closure_fit.load_fit(fit2)["alpha"][0] < 0.3
+    assert min(closure_fit.load_fit(fit2)["roughness"][0]) ** 2 < 0.3
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "temporary files left"
     fit2.write_text("{broken")
     with pytest.raises(FlowBSDFError, match="unreadable"):

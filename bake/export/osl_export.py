@@ -202,4 +202,4 @@ def bake_derived(tables_path, material=None, log=None):
     if material is not None:
         from .carry_export import ensure_carry_export
         ensure_carry_export(tables_path, material, log=log)
-    return ensure_osl_export(tables_path, log=log), ensure_fit(tables_path, log=log)
+    return ensure_osl_export(tables_path, log=log), ensure_fit(tables_path, material=material, log=log)
