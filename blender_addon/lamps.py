@@ -33,6 +33,25 @@ def scene_lamps(scene):
                    and not getattr(ob.data.cycles, "is_portal", False)), key=lambda ob: ob.name)
 
 
+def unreachable(scene):
+    """{lamp name: why} for the lamps the SVM back end's portal cannot hit, which so light only
+    the fit's closures there (node._resolve): a portal continuing a camera ray is a camera ray
+    (lamps hidden from the camera are not hit), a point of radius 0 or a sun of angle 0 has no
+    area to hit, and past a bounce Cycles hits only lamps with Multiple Importance on."""
+    out = {}
+    for ob in scene_lamps(scene):
+        light = ob.data
+        if not getattr(ob, "visible_camera", True):
+            out[ob.name] = "hidden from the camera"
+        elif light.type in ("POINT", "SPOT") and getattr(light, "shadow_soft_size", 0.0) <= 0.0:
+            out[ob.name] = "radius 0"
+        elif light.type == "SUN" and getattr(light, "angle", 0.0) <= 0.0:
+            out[ob.name] = "angle 0"
+        elif not getattr(light.cycles, "use_multiple_importance_sampling", True):
+            out[ob.name] = "Multiple Importance off"
+    return out
+
+
 def kind_of(light):
     if light.type == "AREA" and light.shape in ("DISK", "ELLIPSE"):
         return ELLIPSE

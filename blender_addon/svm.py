@@ -1314,16 +1314,22 @@ def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, locat
 
 def _cv_switched(g, cv, world, matched):
     """`cv` with "on" (the value of a node named CV: 1 uses the control variate, 0 leaves the
-    portal alone: world inputs' ControlVariate, update_world) and "s", the share of shading
-    points that take the portal: cv's share when on, else 1. None (the node kept, marked) for
-    a control variate with no betas when the world has no light to match it to."""
+    portal alone: world inputs' ControlVariate, update_world; and only on camera rays) and "s",
+    the share of shading points that take the portal: cv's share when on, else 1. None (the
+    node kept, marked) for a control variate with no betas when the world has no light to
+    match it to.
+    Camera rays only: past a diffuse or rough bounce Cycles renders closures other than they
+    are (Filter Glossy, on by default, blurs the GGX lobes; Caustics off drops them), so f_cv as
+    rendered there is not the f_cv the portal's rest subtracts; the portal alone is exact there.
+    A ray a portal continued at a camera-hit point is still a camera ray, neither blurred nor
+    filtered (Cycles path_state_next: the portal adds only the transparent flag)."""
     node = g.node("ShaderNodeValue", name=CV, label=CV)
     node.outputs[0].default_value = _cv_value(world)
     node["flowbsdf_light"] = int(matched)
     node["flowbsdf_matchable"] = int(bool(cv.get("match_image")))
     if not matched and not cv["has_betas"]:
         return None
-    on = node.outputs[0]
+    on = g.math('MULTIPLY', node.outputs[0], g.node("ShaderNodeLightPath").outputs["Is Camera Ray"])
     beta_d, beta_s = g.dot(cv["betas"], X), g.dot(cv["betas"], Y)
     return dict(cv, on=on, matching=matched, diffuse=g.combine(beta_d, beta_d, beta_d),
                 specular=g.combine(beta_s, beta_s, beta_s),
@@ -1353,14 +1359,16 @@ def _cv_fcos(g, cv, wi, n, d):
     height-correlated G2), at wi and d about the normal n. (A node group, one for every
     material: a mixture's branches each take it.)"""
     fit = cv["fit"]
-    inputs = {f"Specular {j + 1}": g.vmath('MULTIPLY', ks, cv["specular"]) for j, ks in enumerate(fit["ks"])}
-    return g.group(_cv_fcos_group(len(fit["ks"])), Wi=wi, N=n, D=d, Diffuse=g.vmath('MULTIPLY', fit["kd"], cv["diffuse"]),
-                   Roughness=fit["roughness"], Anisotropy=fit["anisotropy"], **inputs)[0]
+    inputs = {f"Specular {j + 1}": ks for j, ks in enumerate(fit["ks"])}
+    return g.group(_cv_fcos_group(len(fit["ks"])), Wi=wi, N=n, D=d, Diffuse=fit["kd"], Roughness=fit["roughness"],
+                   Anisotropy=fit["anisotropy"], DiffuseScale=cv["diffuse"], SpecularScale=cv["specular"],
+                   **inputs)[0]
 
 
 def _cv_fcos_group(lobes):
-    names = ["Wi", "N", "D", "Diffuse"] + [f"Specular {j + 1}" for j in range(lobes)] + ["Roughness", "Anisotropy"]
-    done, tree = _group(f"{GROUP_PREFIX}control variate f cos, {lobes} view-aligned lobes",
+    names = (["Wi", "N", "D", "Diffuse"] + [f"Specular {j + 1}" for j in range(lobes)]
+             + ["Roughness", "Anisotropy", "DiffuseScale", "SpecularScale"])
+    done, tree = _group(f"{GROUP_PREFIX}control variate f cos, {lobes} view-aligned lobes, scaled",
                         [(name, "Vector") for name in names], [("F cos", "Vector")])
     if done:
         return done
@@ -1370,7 +1378,6 @@ def _cv_fcos_group(lobes):
     cos_i = g.dot(wi, n)
     cos_o = g.dot(d, n)
     above = g.math('MULTIPLY', g.math('GREATER_THAN', cos_i, 0.0), g.math('GREATER_THAN', cos_o, 0.0))
-    out = g.scale(inp["Diffuse"], g.math('MULTIPLY', g.math('MAXIMUM', cos_o, 0.0), 1.0 / math.pi))
     # Cycles' frame of an anisotropic closure (make_orthonormals_tangent): y = normalize(N x T),
     # x = y x N, T the view's tangent (node.view_tangent: wi less its normal part, nudged)
     tangent = g.vmath('MULTIPLY_ADD', g.vmath('CROSS_PRODUCT', n, (0.36, 0.48, 0.8)), (1e-6, 1e-6, 1e-6),
@@ -1384,14 +1391,18 @@ def _cv_fcos_group(lobes):
     g.set(sep_r.inputs[0], inp["Roughness"])
     sep_a = g.node("ShaderNodeSeparateXYZ")
     g.set(sep_a.inputs[0], inp["Anisotropy"])
+    lobe = []
     for j in range(lobes):
         r = g.math('MINIMUM', g.math('MAXIMUM', sep_r.outputs[j], 0.0), 1.0)
         alpha = g.math('MULTIPLY', r, r)
         a = g.math('MINIMUM', g.math('MAXIMUM', sep_a.outputs[j], -0.99), 0.99)
         neg = g.math('LESS_THAN', a, 0.0)
         # svm closure.h: a < 0: (alpha / (1 + a), alpha (1 + a)), else (alpha (1 - a), alpha / (1 - a))
-        ax = g.select(neg, g.math('DIVIDE', alpha, g.math('ADD', 1.0, a)), g.math('MULTIPLY', alpha, g.math('SUBTRACT', 1.0, a)))
-        ay = g.select(neg, g.math('MULTIPLY', alpha, g.math('ADD', 1.0, a)), g.math('DIVIDE', alpha, g.math('SUBTRACT', 1.0, a)))
+        # (each at most 1: bsdf_microfacet_ggx_setup saturates them)
+        ax = g.math('MINIMUM', g.select(neg, g.math('DIVIDE', alpha, g.math('ADD', 1.0, a)),
+                                        g.math('MULTIPLY', alpha, g.math('SUBTRACT', 1.0, a))), 1.0)
+        ay = g.math('MINIMUM', g.select(neg, g.math('MULTIPLY', alpha, g.math('ADD', 1.0, a)),
+                                        g.math('DIVIDE', alpha, g.math('SUBTRACT', 1.0, a))), 1.0)
         hx, hy, hz = local["h"]
         q = g.math('ADD', g.math('ADD', g.math('POWER', g.math('DIVIDE', hx, ax), 2.0),
                                   g.math('POWER', g.math('DIVIDE', hy, ay), 2.0)), g.math('MULTIPLY', hz, hz))
@@ -1402,8 +1413,13 @@ def _cv_fcos_group(lobes):
                                           g.math('POWER', g.math('MULTIPLY', ay, v[1]), 2.0)), g.math('MULTIPLY', v[2], v[2]))
             return g.math('MULTIPLY', g.math('SUBTRACT', g.math('SQRT', g.math('ADD', t2, 1.0)), 1.0), 0.5)
         g2 = g.math('ADD', g.math('ADD', lam(local["i"]), lam(local["o"])), 1.0)
-        glossy = g.math('DIVIDE', g.math('MULTIPLY', ndf, above), g.math('MULTIPLY', g.math('MULTIPLY', cos_i, 4.0), g2))
-        out = g.vmath('MULTIPLY_ADD', inp[f"Specular {j + 1}"], g.combine(glossy, glossy, glossy), out)
+        lobe.append(g.math('DIVIDE', g.math('MULTIPLY', ndf, above), g.math('MULTIPLY', g.math('MULTIPLY', cos_i, 4.0), g2)))
+    # the colours last (made last, Cycles runs them last: fewer values alive on its stack meanwhile)
+    out = g.scale(g.vmath('MULTIPLY', inp["Diffuse"], inp["DiffuseScale"]),
+                  g.math('MULTIPLY', g.math('MAXIMUM', cos_o, 0.0), 1.0 / math.pi))
+    for j, value in enumerate(lobe):
+        out = g.vmath('MULTIPLY_ADD', g.vmath('MULTIPLY', inp[f"Specular {j + 1}"], inp["SpecularScale"]),
+                      g.combine(value, value, value), out)
     g.set(g.node("NodeGroupOutput").inputs["F cos"], out)
     return tree
 

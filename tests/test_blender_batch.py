@@ -186,8 +186,11 @@ for mat in bpy.data.materials:
     tree = g.node_tree
     out = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial")
     nodes = {n.bl_idname: n for n in tree.nodes}
-    diffuse, glossy = nodes["ShaderNodeBsdfDiffuse"], nodes["ShaderNodeBsdfAnisotropic"]
-    sep = glossy.inputs["Roughness"].links[0].from_node
+    diffuse = nodes["ShaderNodeBsdfDiffuse"]
+    glossies = sorted((n for n in tree.nodes if n.bl_idname == "ShaderNodeBsdfAnisotropic"),
+                      key=lambda n: n.inputs["Color"].links[0].from_socket.name)
+    sep = glossies[0].inputs["Roughness"].links[0].from_node
+    aniso = glossies[0].inputs["Anisotropy"].links[0].from_node
     result[mat.name] = {
         "group": tree.name, "label": g.label, "raw": tree["flowbsdf"].to_dict(),
         "info": {k: bpy.path.abspath(v) if isinstance(v, str) and v.startswith("//") else v
@@ -195,8 +198,10 @@ for mat in bpy.data.materials:
         "surface_from": out.inputs["Surface"].links[0].from_node.name,
         "group_outputs": [s.name for s in g.outputs],
         "node_types": sorted(n.bl_idname for n in tree.nodes),
-        "diffuse": chain(diffuse.inputs["Color"]), "specular": chain(glossy.inputs["Color"]),
-        "roughness": chain(sep.inputs[0]), "distribution": glossy.distribution,
+        "diffuse": chain(diffuse.inputs["Color"]), "specular": [chain(n.inputs["Color"]) for n in glossies],
+        "roughness": chain(sep.inputs[0]), "anisotropy": chain(aniso.inputs[0]),
+        "distribution": sorted({n.distribution for n in glossies}),
+        "view_tangent": [n.inputs["Tangent"].is_linked for n in glossies],
     }
 
 # A uniform white environment, each sphere alone in an orthographic 16x16 view, 4 spp.
@@ -281,7 +286,7 @@ def test_saved_blend_reopens_in_blender_with_the_fit_and_renders(batch_scene, ba
         # stored relative to the .blend, so the project folder can move
         assert r["raw"]["tables"] == f"//flowbsdf/tables/{name}.exr" and r["raw"]["fit"].startswith("//"), r["raw"]
         assert info["material"] == name and info["has_fit"] and Path(info["fit"]) == tables / f"{name}.fit.json"
-        assert info["fit_error"] == pytest.approx(max(fit["rel_error"]))
+        assert info["fit_error"] == pytest.approx(fit["error"]) and info["fit_version"] == fit["version"]
         # the worker wrote the OSL texture beside the tables and the group records it even where
         # Cycles cannot compile OSL (Debian's 3.4), so a Blender that can rebuilds from it; such a
         # group holds no Script node (node.py)
@@ -289,12 +294,17 @@ def test_saved_blend_reopens_in_blender_with_the_fit_and_renders(batch_scene, ba
         assert Path(info["osl_texture"]).is_file() and Path(info["osl_texture"]).parent == tables
         if not info["has_osl"]:
             assert "ShaderNodeScript" not in r["node_types"]
-        assert r["distribution"] == "GGX"
-        for key in ("diffuse", "specular"):
+        assert r["distribution"] == ["GGX"]
+        # the fit's lobes: the first fit["view_aligned"] take the view's tangent
+        assert r["view_tangent"] == [j < fit["view_aligned"] for j in range(3)], r["view_tangent"]
+        for x, want in zip(fit["x"], fit["diffuse"]):
+            assert _eval_chain(r["diffuse"], x) == pytest.approx(want, abs=1e-5), (name, x)
+        for j, lobe in enumerate(r["specular"]):
+            for x, want in zip(fit["x"], fit["specular"]):
+                assert _eval_chain(lobe, x) == pytest.approx(want[j], abs=1e-5), (name, j, x)
+        for key in ("roughness", "anisotropy"):
             for x, want in zip(fit["x"], fit[key]):
                 assert _eval_chain(r[key], x) == pytest.approx(want, abs=1e-5), (name, key, x)
-        for x, want in zip(fit["x"], fit["roughness"]):
-            assert _eval_chain(r["roughness"], x) == pytest.approx([want] * 3, abs=1e-5), (name, x)
 
         # The render: each inner pixel sees the fit's directional albedo at its view angle
         # (orthographic: cos theta = sqrt(1 - rho^2)); 4 spp of a white environment.

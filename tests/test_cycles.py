@@ -393,11 +393,12 @@ def test_fit_furnace_gives_the_fitted_albedo(baked):
 
 
 def baked_albedo_fit(fit, cos_i):
-    """The fit's albedo at a view angle: kd + ks A_ggx(alpha), evaluated from the knots."""
+    """The fit's albedo at a view angle: kd + sum_j ks_j A_ggx(alpha_j, a_j), evaluated from the
+    knots."""
     from bake.export.closure_fit import ggx_albedo
-    kd, ks, alpha = params_at(fit, cos_i)
+    kd, ks, alpha, aniso = params_at(fit, cos_i)
     wi = np.array([np.sqrt(max(1 - cos_i ** 2, 0.0)), 0.0, cos_i])
-    return kd + ks * ggx_albedo(wi, float(alpha), n=4096)
+    return kd + sum(k * ggx_albedo(wi, float(al), float(an), n=4096) for k, al, an in zip(ks, alpha, aniso))
 
 
 def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):

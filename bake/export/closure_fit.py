@@ -74,11 +74,11 @@ L1_MAX_DEG = 88.0   # the error's view angles: knots and their midpoints up to h
 
 def alphas_xy(alpha, aniso):
     """Cycles' Glossy BSDF (svm closure.h): alpha = r^2 and Anisotropy a -> (alpha_x along the
-    tangent, alpha_y across it)."""
+    tangent, alpha_y across it), each at most 1 (bsdf_microfacet_ggx_setup saturates them)."""
     alpha = np.asarray(alpha, float)
     a = np.clip(np.asarray(aniso, float), -0.99, 0.99)
-    return (np.where(a < 0, alpha / (1 + a), alpha * (1 - a)),
-            np.where(a < 0, alpha * (1 + a), alpha / (1 - a)))
+    return (np.minimum(np.where(a < 0, alpha / (1 + a), alpha * (1 - a)), 1.0),
+            np.minimum(np.where(a < 0, alpha * (1 + a), alpha / (1 - a)), 1.0))
 
 
 def ggx_fcos(wi, wo, alpha, aniso=0.0):
@@ -300,7 +300,7 @@ def _neighbours(p, lobe, aniso, coarse=None):
     else:
         alphas, reach = range(max(ia - 2, 0), min(ia + 2, len(ALPHAS) - 1) + 1), 1
     jas = (range(max(ja - reach, 0), min(ja + reach, len(ANISOTROPY) - 1) + 1)
-           if aniso and lobe < VIEW_ALIGNED else [ja])
+           if lobe < aniso else [ja])
     return [(i, j) for i in alphas for j in jas]
 
 
@@ -344,17 +344,17 @@ def _first_knot(knot):
     for _ in range(LOBES):
         sets = [lobes + [(i, zero)] for i in range(len(ALPHAS))]
         lobes = sets[int(np.argmin(knot.solve(sets)[1]))]
-    return _descend(knot, lobes, aniso=False)
+    return _descend(knot, lobes, aniso=0)
 
 
-def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None):
+def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None, view_aligned=VIEW_ALIGNED):
     """The fit as a JSON-able dict (module docstring): per knot x = 1 - cos theta_i, kd (RGB),
     per lobe ks (RGB), Cycles roughness r = sqrt(alpha) and anisotropy, the relative L2 error
     of f cos, the albedos and the control variate; per view angle the L1 error against
     `material` (the measured file) when given, else the tables."""
-    view_aligned = not tables.anisotropic
+    view_aligned = 0 if tables.anisotropic else view_aligned
     out = {"format": "flowbsdf-closure-fit", "version": FIT_VERSION, "model": MODEL,
-           "view_aligned": VIEW_ALIGNED if view_aligned else 0,
+           "view_aligned": view_aligned,
            "x": [], "theta_deg": [], "diffuse": [], "specular": [], "roughness": [], "anisotropy": [],
            "rel_error": [], "albedo": [], "fit_albedo": [], "cv": []}
     lobes = prev = None
@@ -362,7 +362,7 @@ def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None):
     for deg in sorted(knots_deg):
         knot = _Knot(tables, np.radians(deg), n=n, seed=seed)
         lobes = (_first_knot(knot) if lobes is None else
-                 _descend(knot, lobes, aniso=view_aligned and deg > 0, prev=prev))
+                 _descend(knot, lobes, aniso=view_aligned if deg > 0 else 0, prev=prev))
         k = prev = knot.solve([lobes], prev, irls=4)[0][0]
         kd, ks = k[0], k[1:]
         alpha = np.array([ALPHAS[i] for i, _ in lobes])
