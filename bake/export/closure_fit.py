@@ -69,6 +69,7 @@ ALPHAS = np.geomspace(0.002, 1.0, 37)                 # alpha = r^2, Cycles' rou
 ANISOTROPY = np.round(np.linspace(-0.4, 0.8, 13), 6)  # Cycles' Anisotropy input; 0 at index 4
 PULL = 0.02         # the weights' pull toward the previous knot's (_Knot.solve), relative to the Gram
 STEP_COST = 0.004   # added to the relative L1 per grid step a lobe of all the albedo moves (_descend)
+STIFF = 5.0         # _next_knot's stiffer descent: STIFF x STEP_COST
 L1_MAX_DEG = 88.0   # the error's view angles: knots and their midpoints up to here
 
 
@@ -304,7 +305,7 @@ def _neighbours(p, lobe, aniso, coarse=None):
     return [(i, j) for i in alphas for j in jas]
 
 
-def _descend(knot, lobes, aniso, prev=None, sweeps=2):
+def _descend(knot, lobes, aniso, prev=None, sweeps=2, step_cost=STEP_COST):
     """Coordinate descent over the lobes' grid points from the previous knot's: the relative
     L1 plus, per lobe, STEP_COST times its share of the previous knot's albedo times the grid
     steps it moved (a lobe that carries little may jump; one that carries much moves smoothly)."""
@@ -317,7 +318,7 @@ def _descend(knot, lobes, aniso, prev=None, sweeps=2):
 
     def cost(sets, l1):
         steps = np.array([[abs(p[0] - s[0]) + abs(p[1] - s[1]) for p, s in zip(c, start)] for c in sets])
-        return l1 + STEP_COST * (steps @ share)
+        return l1 + step_cost * (steps @ share)
     lobes = list(lobes)
     best = cost([lobes], knot.solve([lobes], prev)[1])[0]
     for _ in range(sweeps):
@@ -347,6 +348,32 @@ def _first_knot(knot):
     return _descend(knot, lobes, aniso=0)
 
 
+def _next_knot(tables, knot, fit, lobes, prev, view_aligned, n, seed):
+    """(lobes, weights) at the next knot: of the descent from the previous knot's lobes, the
+    same made stiffer (STIFF times the cost of moving), and the previous lobes kept (weights
+    alone refitted), the one whose error at this knot plus half-way from the previous knot
+    (the node lerps the parameters between them) is least."""
+    mid = _Knot(tables, 0.5 * (knot.theta + np.radians(fit["theta_deg"][-1])), n=n // 2, seed=seed + 7)
+    aniso = view_aligned if knot.theta > 0 else 0
+    options = [_descend(knot, lobes, aniso, prev), _descend(knot, lobes, aniso, prev, step_cost=STIFF * STEP_COST),
+               list(lobes)]
+    best = None
+    for option in options:
+        k, l1 = knot.solve([option], prev, irls=4)
+        k = k[0]
+        pair = {key: fit[key][-1:] for key in ("x", "diffuse", "specular", "roughness", "anisotropy")}
+        pair["x"] = pair["x"] + [float(1.0 - np.cos(knot.theta))]
+        pair["diffuse"] = pair["diffuse"] + [k[0]]
+        pair["specular"] = pair["specular"] + [k[1:]]
+        pair["roughness"] = pair["roughness"] + [[np.sqrt(ALPHAS[i]) for i, _ in option]]
+        pair["anisotropy"] = pair["anisotropy"] + [[ANISOTROPY[j] for _, j in option]]
+        ff = eval_fit(pair, mid.wi, mid.wo) * mid.wo[:, 2:3]
+        l1_mid = float(mid.w @ np.abs(luminance(ff - mid.g)) / max(float(mid.w @ luminance(mid.g)), 1e-300))
+        if best is None or l1[0] + l1_mid < best[0]:
+            best = (l1[0] + l1_mid, option, k)
+    return best[1], best[2]
+
+
 def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None, view_aligned=VIEW_ALIGNED):
     """The fit as a JSON-able dict (module docstring): per knot x = 1 - cos theta_i, kd (RGB),
     per lobe ks (RGB), Cycles roughness r = sqrt(alpha) and anisotropy, the relative L2 error
@@ -361,9 +388,12 @@ def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None, vie
     # Knots ascending in x = 1 - cos theta (Facing), i.e. ascending theta.
     for deg in sorted(knots_deg):
         knot = _Knot(tables, np.radians(deg), n=n, seed=seed)
-        lobes = (_first_knot(knot) if lobes is None else
-                 _descend(knot, lobes, aniso=view_aligned if deg > 0 else 0, prev=prev))
-        k = prev = knot.solve([lobes], prev, irls=4)[0][0]
+        if lobes is None:
+            lobes = _first_knot(knot)
+            k = knot.solve([lobes], None, irls=4)[0][0]
+        else:
+            lobes, k = _next_knot(tables, knot, out, lobes, prev, view_aligned, n, seed)
+        prev = k
         kd, ks = k[0], k[1:]
         alpha = np.array([ALPHAS[i] for i, _ in lobes])
         aniso = np.array([ANISOTROPY[j] for _, j in lobes])
