@@ -70,6 +70,7 @@ def make_env(path, kind="soft", w=256, h=128):
     else:
         blob = np.exp((d @ sun_dir - 1.0) / 0.35)[..., None] * [2.0, 1.8, 1.4]
     img = (sky + blob).astype(np.float32)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
                  {"RGB": img}).write(str(path))
     return img

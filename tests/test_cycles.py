@@ -520,6 +520,42 @@ def test_a_group_from_an_older_shader_is_rebuilt_on_load(baked, tmp_path):
     assert not lb.upgrade(tree)
 
 
+def test_a_fit_of_an_older_version_is_refit_on_load(baked, tmp_path):
+    """A .blend made by an add-on whose fit was of another version (FIT_VERSION 4: one
+    isotropic lobe, its match image with it) gets the fit remade from its tables when it is
+    opened: the fit file and the group's parameters are the current version's, and the match
+    image follows the new fit."""
+    import json
+    from bake.export import closure_fit
+    path = tmp_path / "gold.exr"
+    path.write_bytes(baked["gold"].read_bytes())
+    cs.reset(8, 8, spp=1)
+    mat = bpy.data.materials.new("m")
+    tree = lb.assign_learned_bsdf(mat, "gold", path).node_tree
+    fit_file = path.with_name("gold.fit.json")
+    old = json.loads(fit_file.read_text())
+    old.update(version=4, model="diffuse+ggx", specular=[s[0] for s in old["specular"]],
+               roughness=[r[0] for r in old["roughness"]])
+    del old["anisotropy"]
+    fit_file.write_text(json.dumps(old))
+    match = path.with_name("gold.match.exr")
+    match.write_bytes(b"an older match image")
+    info = dict(tree[lb.TREE_KEY].to_dict())
+    info["fit_version"] = 4
+    tree[lb.TREE_KEY] = info
+    name, blend = tree.name, tmp_path / "old.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    bpy.ops.wm.open_mainfile(filepath=str(blend))         # load_post -> upgrade
+    tree = bpy.data.node_groups[name]
+    assert lb._info(tree)["fit_version"] == closure_fit.FIT_VERSION and lb._info(tree)["has_fit"]
+    fit = closure_fit.load_fit(fit_file)
+    assert fit["version"] == closure_fit.FIT_VERSION and len(fit["specular"][0]) == closure_fit.LOBES
+    assert match.read_bytes() != b"an older match image"
+    groups = [n.node_tree for n in tree.nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree.name.startswith("FlowBSDF fit")]
+    assert groups and all("Anisotropy" in g.nodes["Group Output"].inputs for g in groups)
+    assert not lb.upgrade(tree)
+
+
 def test_auto_picks_osl_under_light_objects_and_says_what_it_does_not_light(baked):
     """Lamps are light-sampled inside the OSL shader, so `auto` keeps OSL where they render;
     the status names what the shader does not light as Cycles would (lamps past the slots)."""

@@ -390,3 +390,78 @@ def test_hdri_broad_sun_is_left_to_the_portal(lambert, tmp_path):
     render runs with -m slow in test_hdri_sun_by_next_event_estimation: the same image as
     Diffuse BSDF's, measured 3.7x its variance)."""
     _hdri_sun_sphere(lambert, tmp_path, "Linear", "broad")
+
+
+# ------------------------------------------------------------------------------ lamps without OSL
+
+PLASTIC = {"kind": "analytic", "model": "plastic", "albedo": [0.7, 0.1, 0.08], "alpha": 0.12}
+
+
+@pytest.fixture(scope="module")
+def plastic(tmp_path_factory):
+    """Small baked tables of a red plastic (as tests/test_svm.py's) whose fit has a control
+    variate (the SVM back end's lamps)."""
+    path = cs.small_tables(PLASTIC, "plastic", tmp_path_factory.mktemp("lights_plastic"))
+    from bake.export import closure_fit
+    fit = closure_fit.load_fit(closure_fit.ensure_fit(path))
+    assert any(b[0] > 0 or b[1] > 0 for b in fit["cv"]), fit["cv"]
+    return path
+
+
+def _switches(node):
+    return tuple(node.node_tree.nodes[name].outputs[0].default_value for name in (lb.SWITCH, lb.SWITCH_SVM))
+
+
+def test_without_osl_auto_renders_svm_only_where_its_portal_reaches_the_lamps(plastic):
+    """OSL off, back end "auto": the SVM graph where its portal reaches every lamp (visible to
+    the camera, with a size, Multiple Importance on), else the fit, the status naming the lamp
+    and why; the switches follow on the next scene update. A point lamp as bpy makes it is
+    hidden from the camera (bpy 5.0) and has radius 0."""
+    sc = cs.reset(8, 8, spp=1, osl=False)
+    mat = bpy.data.materials.new("plastic")
+    node = lb.assign_learned_bsdf(mat, "plastic", plastic)
+    assert lb._info(node.node_tree)["svm_lamps"]
+    lb.set_backend(sc, "auto")
+    assert lb.node_status(node, sc) == "SVM"                    # no lamps: the SVM graph
+    lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", 'POINT'))
+    sc.collection.objects.link(lamp)
+    assert not lamp.visible_camera and lamp.data.shadow_soft_size == 0.0     # as bpy makes it
+
+    def fit_because(why):
+        bpy.context.view_layer.update()
+        status = lb.node_status(node, sc)
+        assert status.startswith(f"fit (lamps (Lamp: {why}) light only the fit without OSL (Open Shading "
+                                 "Language is off"), status
+        assert "% from the" in status and _switches(node) == (0.0, 0.0), (status, _switches(node))
+    fit_because("hidden from the camera")                       # (a)
+    lamp.visible_camera = True
+    fit_because("radius 0")                                     # (b)
+    lamp.data.shadow_soft_size = 0.1
+    bpy.context.view_layer.update()
+    assert lb.node_status(node, sc) == "SVM (lamps reached through its portal)"      # (c)
+    assert _switches(node) == (0.0, 1.0)
+    lamp.data.cycles.use_multiple_importance_sampling = False
+    lamp.data.update_tag()          # (a Python property of Cycles' set from a script tags nothing; the UI does)
+    fit_because("Multiple Importance off")
+    lamp.data.cycles.use_multiple_importance_sampling = True
+    lamp.data.update_tag()
+    sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", 'SUN'))
+    sun.data.angle = 0.0
+    sc.collection.objects.link(sun)
+    sun.visible_camera = True
+    bpy.context.view_layer.update()
+    status = lb.node_status(node, sc)
+    assert status.startswith("fit (lamps (Sun: angle 0) light only the fit"), status     # only the one it misses
+    sun.hide_render = True
+    bpy.context.view_layer.update()
+    assert lb.node_status(node, sc) == "SVM (lamps reached through its portal)" and _switches(node) == (0.0, 1.0)
+    # the scene's back end "svm" keeps the graph under any lamp, with the warning
+    lamp.visible_camera = False
+    lb.set_backend(sc, "svm")
+    status = lb.node_status(node, sc)
+    assert status.startswith("SVM (warning: lamps (Lamp: hidden from the camera)") and _switches(node) == (0.0, 1.0)
+    # with OSL on, OSL whatever the lamps
+    lb.set_backend(sc, "auto")
+    sc.cycles.shading_system = True
+    bpy.context.view_layer.update()
+    assert lb.node_status(node, sc) == "OSL" and _switches(node)[0] == 1.0
