@@ -226,7 +226,7 @@ def probe(folder, tables, fits=FITS, osl=False, zeniths=SUN_ZENITH_DEG):
     return {k: (v if k in ("quads", "status") else np.array(v, float)) for k, v in out.items()}
 
 
-@pytest.fixture(scope="module", params=["svm", "osl"])
+@pytest.fixture(scope="module", params=["svm", pytest.param("osl", marks=pytest.mark.slow)])   # (OSL: -m slow)
 def rendered(request, tmp_path_factory):
     """The probe rendered with Cycles' SVM, and with its OSL shading system (the fit's closures
     then run as OSL nodes): fits on small baked tables of a Lambertian (the node's tables: the
