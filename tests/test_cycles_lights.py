@@ -412,15 +412,16 @@ def _switches(node):
     return tuple(node.node_tree.nodes[name].outputs[0].default_value for name in (lb.SWITCH, lb.SWITCH_SVM))
 
 
-def test_without_osl_auto_renders_svm_only_where_its_portal_reaches_the_lamps(plastic):
-    """OSL off, back end "auto": the SVM graph where its portal reaches every lamp (visible to
-    the camera, with a size, Multiple Importance on), else the fit, the status naming the lamp
-    and why; the switches follow on the next scene update. A point lamp as bpy makes it is
-    hidden from the camera (bpy 5.0) and has radius 0."""
+def test_without_osl_under_lamps_auto_renders_the_fit_and_says_which_lamps_svm_reaches(plastic):
+    """OSL off, back end "auto": no lamps, the SVM graph; under lamps the fit (at equal time it
+    beats the SVM graph there: node._resolve), the status naming the lamps the SVM graph's
+    portal cannot reach and why (hidden from the camera, radius 0, angle 0, Multiple Importance
+    off), or saying that it renders them exactly; forced "svm" warns of those only. The
+    switches follow on the next scene update. A point lamp as bpy makes it is hidden from the
+    camera (bpy 5.0) and has radius 0."""
     sc = cs.reset(8, 8, spp=1, osl=False)
     mat = bpy.data.materials.new("plastic")
     node = lb.assign_learned_bsdf(mat, "plastic", plastic)
-    assert lb._info(node.node_tree)["svm_lamps"]
     lb.set_backend(sc, "auto")
     assert lb.node_status(node, sc) == "SVM"                    # no lamps: the SVM graph
     lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", 'POINT'))
@@ -433,13 +434,21 @@ def test_without_osl_auto_renders_svm_only_where_its_portal_reaches_the_lamps(pl
         assert status.startswith(f"fit (lamps (Lamp: {why}) light only the fit without OSL (Open Shading "
                                  "Language is off"), status
         assert "% from the" in status and _switches(node) == (0.0, 0.0), (status, _switches(node))
-    fit_because("hidden from the camera")                       # (a)
+        lb.set_backend(sc, "svm")
+        assert lb.node_status(node, sc).startswith(f"SVM (warning: lamps (Lamp: {why})") and \
+            _switches(node) == (0.0, 1.0)
+        lb.set_backend(sc, "auto")
+    fit_because("hidden from the camera")
     lamp.visible_camera = True
-    fit_because("radius 0")                                     # (b)
+    fit_because("radius 0")
     lamp.data.shadow_soft_size = 0.1
     bpy.context.view_layer.update()
-    assert lb.node_status(node, sc) == "SVM (lamps reached through its portal)"      # (c)
-    assert _switches(node) == (0.0, 1.0)
+    status = lb.node_status(node, sc)
+    assert status.startswith("fit (lamps (Lamp) light the fit: OSL is off") and "renders them exactly" in status
+    assert _switches(node) == (0.0, 0.0)
+    lb.set_backend(sc, "svm")
+    assert lb.node_status(node, sc) == "SVM" and _switches(node) == (0.0, 1.0)     # exact: no warning
+    lb.set_backend(sc, "auto")
     lamp.data.cycles.use_multiple_importance_sampling = False
     lamp.data.update_tag()          # (a Python property of Cycles' set from a script tags nothing; the UI does)
     fit_because("Multiple Importance off")
@@ -452,18 +461,9 @@ def test_without_osl_auto_renders_svm_only_where_its_portal_reaches_the_lamps(pl
     bpy.context.view_layer.update()
     status = lb.node_status(node, sc)
     assert status.startswith("fit (lamps (Sun: angle 0) light only the fit"), status     # only the one it misses
-    sun.hide_render = True
-    bpy.context.view_layer.update()
-    assert lb.node_status(node, sc) == "SVM (lamps reached through its portal)" and _switches(node) == (0.0, 1.0)
-    # the scene's back end "svm" keeps the graph under any lamp, with the warning
-    lamp.visible_camera = False
-    lb.set_backend(sc, "svm")
-    status = lb.node_status(node, sc)
-    assert status.startswith("SVM (warning: lamps (Lamp: hidden from the camera)") and _switches(node) == (0.0, 1.0)
     # with OSL on, OSL whatever the lamps
-    lb.set_backend(sc, "auto")
     sc.cycles.shading_system = True
-    bpy.context.view_layer.update()
+    lb.set_backend(sc, "auto")
     assert lb.node_status(node, sc) == "OSL" and _switches(node)[0] == 1.0
 
 
@@ -532,12 +532,13 @@ def _sphere_footprint(sc, fov_deg, margin=0.75):
     return np.logical_and.reduce(corners), ~np.logical_or.reduce(corners)
 
 
-def _svm_renders(sc, node, spp, seeds, status="SVM (lamps reached through its portal)"):
-    """The SVM back end with OSL off (render_pre sets the switches; Blender's pixel filter: hashed u)."""
+def _svm_renders(sc, node, spp, seeds, status="SVM"):
+    """The SVM back end (the scene's back end "svm") with OSL off (render_pre sets the switches;
+    Blender's pixel filter: hashed u)."""
     sc.cycles.shading_system = False
     sc.cycles.samples = spp
     got = lb.node_status(node, sc)
-    assert got.startswith(status), got
+    assert (got == status) if status == "SVM" else got.startswith(status), got
     return cs.render_seeds(sc, seeds)
 
 
@@ -605,10 +606,9 @@ def test_svm_under_lamps_is_unbiased_at_blenders_render_settings(plastic, area_s
     cs.add_sphere(sc, mat, segments=64, rings=32)
     sphere, floor = _sphere_footprint(sc, fov)
     assert sphere.sum() > 200 and floor.sum() > 200
-    lb.set_backend(sc, "auto")
+    lb.set_backend(sc, "svm")
     svm = _svm_renders(sc, node, spp, seeds)
     area.visible_camera = False                 # the portal cannot hit it: its light is lost to the rest
-    lb.set_backend(sc, "svm")
     hidden = _svm_renders(sc, node, 64, 4, "SVM (warning: lamps (area lamp: hidden from the camera)")
     area.visible_camera = True
     osl_spp, osl_seeds = 64, 8
@@ -648,7 +648,7 @@ def test_svm_under_lamps_is_unbiased_past_a_diffuse_bounce(gold):
     node = lb.assign_learned_bsdf(mat, "gold", gold)
     cs.add_sphere(sc, mat, segments=64, rings=32)
     _, around = _sphere_footprint(sc, fov)
-    lb.set_backend(sc, "auto")
+    lb.set_backend(sc, "svm")
     svm = _svm_renders(sc, node, 512, 12)
     osl = _osl_renders(sc, node, 256, 12)
     bias, se, z, ratio = _against(svm, osl, around, 512, 256)
