@@ -210,9 +210,11 @@ class _Knot:
         self.g = tables.eval(wi, wo) * wo[:, 2:3]
         self.albedo = baked_albedo(tables, np.cos(theta))
         self._row = {(-1, -1): 0}                   # grid point -> row of _vals; row 0 the diffuse
-        self._vals = [wo[:, 2] / np.pi]
-        self._albs = [1.0]
-        self._vals_arr, self._albs_arr = np.array(self._vals), np.array(self._albs)
+        self._vals = (wo[:, 2] / np.pi)[None]       # (rows, N) f cos of the diffuse and each lobe
+        self._albs = np.ones(1)
+        # their weighted inner products (what least squares needs), grown with the rows
+        self._gram = (self._vals * self.w) @ self._vals.T
+        self._rhs = (self._vals * self.w) @ self.g
 
     def rows(self, keys):
         """The rows of lobes (ia, ja) (ALPHAS[ia], ANISOTROPY[ja]) in the knot's arrays of f cos
@@ -220,16 +222,19 @@ class _Knot:
         missing = sorted({k for k in keys if k not in self._row})
         if missing:
             ia, ja = np.array(missing).T
-            self._vals.extend(ggx_fcos(self.wi, self.wo, ALPHAS[ia][:, None], ANISOTROPY[ja][:, None]))
-            self._albs.extend(_ggx_albedos(self.theta, ALPHAS[ia], ANISOTROPY[ja]))
+            new = ggx_fcos(self.wi, self.wo, ALPHAS[ia][:, None], ANISOTROPY[ja][:, None])
+            cross = (new * self.w) @ self._vals.T
+            self._gram = np.block([[self._gram, cross.T], [cross, (new * self.w) @ new.T]])
+            self._rhs = np.concatenate([self._rhs, (new * self.w) @ self.g])
+            self._vals = np.concatenate([self._vals, new])
+            self._albs = np.concatenate([self._albs, _ggx_albedos(self.theta, ALPHAS[ia], ANISOTROPY[ja])])
             base = len(self._row)
             self._row.update((k, base + i) for i, k in enumerate(missing))
-            self._vals_arr, self._albs_arr = np.array(self._vals), np.array(self._albs)
         return np.array([self._row[k] for k in keys], int)
 
     def albedos(self, keys):
         rows = self.rows(keys)
-        return self._albs_arr[rows]
+        return self._albs[rows]
 
     def solve(self, candidates, prev=None, irls=1):
         """Best weights of each candidate set of lobes [[(ia, ja), ...], ...] (diffuse first):
@@ -238,17 +243,17 @@ class _Knot:
         lobe and the diffuse trade places at little cost: left free they swap between knots)."""
         idx = self.rows([(-1, -1)] + [p for cand in candidates for p in cand])[1:].reshape(len(candidates), -1)
         idx = np.concatenate([np.zeros((len(idx), 1), int), idx], 1)                # (C, K)
-        basis = self._vals_arr[idx]                                                  # (C, K, N)
-        a = self._albs_arr[idx]                                                      # (C, K)
+        a = self._albs[idx]                                                          # (C, K)
         g, w = self.g, self.w
         delta = 0.05 * np.maximum(self.albedo, 1e-6) / (2 * np.pi)
-        rho = None
-        for _ in range(irls):
-            if rho is None:         # least squares: one Gram for the three channels
-                bw = basis * w
-                gram = np.broadcast_to((bw @ basis.transpose(0, 2, 1))[:, None], (len(basis), 3) + (idx.shape[1],) * 2)
-                rhs = (bw @ g).transpose(0, 2, 1)
+        for it in range(irls):
+            if it == 0:             # least squares: from the knot's inner products, one Gram for the channels
+                kk = idx.shape[1]
+                gram = np.broadcast_to(self._gram[idx[:, :, None], idx[:, None, :]][:, None], (len(idx), 3, kk, kk))
+                rhs = self._rhs[idx].transpose(0, 2, 1)
             else:                   # reweighted for L1, per channel
+                basis = self._vals[idx]                                                            # (C, K, N)
+                rho = 1.0 / np.maximum(np.abs(g[None] - (k @ basis).transpose(0, 2, 1)), delta)  # (C, N, 3)
                 bw = basis[:, None] * (w[None, :, None] * rho).transpose(0, 2, 1)[:, :, None]   # (C, 3, K, N)
                 gram = bw @ basis.transpose(0, 2, 1)[:, None]                                  # (C, 3, K, K)
                 rhs = (bw @ g.T[None, :, :, None])[..., 0]                                     # (C, 3, K)
@@ -257,9 +262,9 @@ class _Knot:
                 gram = gram + lam[..., None, None] * np.eye(gram.shape[-1])
                 rhs = rhs + lam[..., None] * np.asarray(prev).T[None]
             k = _simplex_lsq(gram, rhs, a, self.albedo)                                       # (C, 3, K)
-            resid = g[None] - (k @ basis).transpose(0, 2, 1)                                   # (C, N, 3)
-            rho = 1.0 / np.maximum(np.abs(resid), delta)
-        l1 = (np.abs(resid @ LUMINANCE) @ w) / max(float(w @ luminance(g)), 1e-300)
+        # the relative L1 of luminance: the weights' luminance times the lobes
+        resid_y = g @ LUMINANCE - np.einsum("ck,ckn->cn", k.transpose(0, 2, 1) @ LUMINANCE, self._vals[idx])
+        l1 = (np.abs(resid_y) @ w) / max(float(w @ luminance(g)), 1e-300)
         return k.transpose(0, 2, 1), l1
 
 
