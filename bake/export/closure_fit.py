@@ -19,10 +19,12 @@ At each knot the fit keeps the baked albedo exactly per channel (kd + sum_j ks_j
 albedo(theta_i), A_j the lobe's albedo) and minimizes the L1 error of f cos over the
 hemisphere (weights per channel: an exact non-negative least-squares solve, reweighted for L1;
 Monte Carlo over a mixture of the tables', the cosine's and a GGX mixture's samplers, fixed
-seed). The lobes' (alpha, a) are searched on a grid: all of it at normal view, then knot by
-knot within WINDOW steps of the previous knot's, so that each lobe keeps its identity and its
-parameters vary smoothly with the view angle (a fit made per knot alone jumps between knots,
-and a sphere renders concentric rings). Recorded per knot: the relative L2 error of f cos
+seed; the lobes' albedos at the knots from ggx_albedo.npz). The lobes' (alpha, a) are searched
+on a grid: all of it at normal view, then knot by knot from the previous knot's lobes, moving a
+lobe costing in proportion to its share of the albedo, the weights pulled toward the previous
+knot's, and the next knot's lobes chosen by the error at the knot plus half-way back
+(_next_knot): each lobe keeps its identity and its parameters vary smoothly with the view
+angle (a fit made per knot alone jumps between knots, and a sphere renders concentric rings). Recorded per knot: the relative L2 error of f cos
 against the tables (`rel_error`, which the SVM back end's matching reads) and the albedo the
 closures reach (`fit_albedo`, equal to `albedo`); per view angle (knots and midpoints up to
 88 deg) the relative L1 error of luminance f cos against the measured material when the bake
