@@ -503,14 +503,12 @@ def _closures(tree, params, loc, scale_d=None, scale_s=None):
     return out
 
 
-# A direction no shading normal is parallel to in practice: the view tangent's fallback.
-_TANGENT_NUDGE = (0.36, 0.48, 0.8)
-
-
 def view_tangent(tree, loc):
     """The view direction projected onto the shading surface, I - (I.N) N (Geometry's Incoming
-    and Normal), plus 1e-6 N x _TANGENT_NUDGE: Cycles normalises cross(N, T), which for a zero
-    tangent (a head-on view, where the fit's anisotropy is 0 anyway) would be NaN."""
+    and Normal), nudged off zero as svm.VIEW_TANGENT_NUDGE says (the control variate's f_cv
+    computes the same tangent): Cycles normalises cross(N, T), NaN for a zero tangent (a
+    head-on view, where the fit's anisotropy is 0 anyway)."""
+    from .svm import VIEW_TANGENT_EPS, VIEW_TANGENT_NUDGE
     nodes, links = tree.nodes, tree.links
     geometry = nodes.new("ShaderNodeNewGeometry")
     geometry.location = loc
@@ -528,8 +526,8 @@ def view_tangent(tree, loc):
         return node.outputs["Value" if op == 'DOT_PRODUCT' else "Vector"]
     i_dot_n = vmath('DOT_PRODUCT', 1, incoming, normal)
     projected = vmath('SUBTRACT', 3, incoming, vmath('MULTIPLY', 2, normal, i_dot_n))
-    nudge = vmath('CROSS_PRODUCT', 4, normal, _TANGENT_NUDGE)
-    return vmath('MULTIPLY_ADD', 5, nudge, (1e-6, 1e-6, 1e-6), projected)
+    nudge = vmath('CROSS_PRODUCT', 4, normal, VIEW_TANGENT_NUDGE)
+    return vmath('MULTIPLY_ADD', 5, nudge, (VIEW_TANGENT_EPS,) * 3, projected)
 
 
 def _build_fit(tree, fit, loc=(-1400, -400)):

@@ -138,6 +138,11 @@ SUN = "FlowBSDF SVM sun"        # a Combine XYZ node per mixture with a sun: Sun
 LIGHT = "FlowBSDF SVM light"    # a Combine XYZ node per matched control variate: LightDirection
 CV = "FlowBSDF SVM cv"          # a Value node per control variate: 1 on, 0 off (ControlVariate)
 X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
+# The fit's view tangent (node.view_tangent, and _cv_fcos_group's twin of it): the view direction
+# projected onto the surface plus VIEW_TANGENT_EPS N x VIEW_TANGENT_NUDGE, a direction no shading
+# normal is parallel to in practice (Cycles normalises cross(N, T): NaN for a zero tangent).
+VIEW_TANGENT_NUDGE = (0.36, 0.48, 0.8)
+VIEW_TANGENT_EPS = 1e-6
 MATCHED_SHARE_MIN = 0.05      # node.matched_share's least share
 # ... and its shares of the world's techniques (WorldShare, SunShare) there: the rest has next
 # to nothing where the light is (paper_white, the lights acceptance's sky, noise per sample
@@ -1380,7 +1385,7 @@ def _cv_fcos_group(lobes):
     above = g.math('MULTIPLY', g.math('GREATER_THAN', cos_i, 0.0), g.math('GREATER_THAN', cos_o, 0.0))
     # Cycles' frame of an anisotropic closure (make_orthonormals_tangent): y = normalize(N x T),
     # x = y x N, T the view's tangent (node.view_tangent: wi less its normal part, nudged)
-    tangent = g.vmath('MULTIPLY_ADD', g.vmath('CROSS_PRODUCT', n, (0.36, 0.48, 0.8)), (1e-6, 1e-6, 1e-6),
+    tangent = g.vmath('MULTIPLY_ADD', g.vmath('CROSS_PRODUCT', n, VIEW_TANGENT_NUDGE), (VIEW_TANGENT_EPS,) * 3,
                       g.vmath('SUBTRACT', wi, g.scale(n, cos_i)))
     fy = g.vmath('NORMALIZE', g.vmath('CROSS_PRODUCT', n, tangent))
     fx = g.vmath('CROSS_PRODUCT', fy, n)

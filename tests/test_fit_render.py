@@ -39,6 +39,7 @@ from bake.export.closure_fit import FIT_VERSION, eval_fit
 bpy = cs.bpy_or_skip(need_osl=False)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
 from blender_addon import node as lb  # noqa: E402
+from blender_addon.svm import VIEW_TANGENT_NUDGE  # noqa: E402
 
 E = 2.0                 # the sun's strength: its irradiance at normal incidence
 CELL = 4                # pixels per quad side (the inner 2 x 2 are wholly inside it)
@@ -190,10 +191,10 @@ def _cells(img, side):
 
 def _local(n, v, l):
     """wi, wo in a frame of normal n, its x along v's projection (head-on: along the node's
-    fallback tangent n x lb._TANGENT_NUDGE)."""
+    fallback tangent n x VIEW_TANGENT_NUDGE)."""
     t = v - (v @ n) * n
     if np.linalg.norm(t) < 1e-12:
-        t = np.cross(n, lb._TANGENT_NUDGE)
+        t = np.cross(n, VIEW_TANGENT_NUDGE)
     t /= np.linalg.norm(t)
     frame = np.stack([t, np.cross(n, t), n])
     return frame @ v, frame @ (l / np.linalg.norm(l))
@@ -287,7 +288,7 @@ def test_fit_renders_what_eval_fit_states(rendered, name):
 def test_head_on_view_renders_a_finite_lobe(rendered):
     """Anisotropic lobes seen exactly head-on (no fit has them: its anisotropy is 0 there), where
     the view tangent is 0: no NaN, and some orientation of the lobes (within eval_fit's range
-    over the tangent's azimuth): the node's fallback tangent n x _TANGENT_NUDGE (measured:
+    over the tangent's azimuth): the node's fallback tangent n x VIEW_TANGENT_NUDGE (measured:
     within 3.5e-7 of eval_fit with that tangent)."""
     got, ref, wi, wo = _of(rendered, "head-on")
     assert np.all(np.isfinite(got)) and np.all(got >= 0.0)
