@@ -300,8 +300,8 @@ def _simplex_lsq(gram, rhs, a, albedo):
 
 def _neighbours(p, lobe, aniso, coarse=None):
     """The grid points a lobe at p may move to at the next knot: any alpha (every third where
-    `coarse` is None, else within two steps of `coarse`), the anisotropy within two steps for a
-    view-aligned lobe where `aniso` (one step of `coarse`)."""
+    `coarse` is None, else within two steps of `coarse`); the anisotropy within two steps (one
+    of `coarse`) for the first `aniso` lobes (the view-aligned ones; 0: none moves it)."""
     ia, ja = p if coarse is None else coarse
     if coarse is None:
         alphas, reach = range(0, len(ALPHAS), 3), 2
