@@ -77,7 +77,7 @@ NEUTRAL = (0.5, 0.5, 0.5)
 FIT_FORMAT = "flowbsdf-closure-fit"
 OSL_LAYOUT = 8          # the OSL texture's layout (bake/export/osl_export.LAYOUT): part of its file name
 CARRY_LAYOUT = 1        # the carried blend's texture's (bake/export/carry_export.CARRY_LAYOUT)
-FIT_VERSION = 5
+FIT_VERSION = 6
 FIT_LOBES = 3           # the fit's GGX lobes (bake/export/closure_fit.LOBES): a vector socket holds their r or a
 
 

@@ -57,6 +57,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "scripts"))
 
+import carried_cost  # noqa: E402
 import cycles_acceptance as ca  # noqa: E402
 import cycles_scenes as cs  # noqa: E402
 from bake.export.closure_fit import ensure_fit, load_fit  # noqa: E402
@@ -64,12 +65,18 @@ from bake.core.tables import open_tables  # noqa: E402
 
 NAMES = ["paper_white", "cm_military_green", "chm_mint"]
 SCENES = ("hdri", "sky", "studio", "truesky")
-OUT = ROOT / "out" / "lights_acceptance"
+OUT = ROOT / "out" / "lights_acceptance"     # (--work-dir)
 DRAFT_BINS = np.radians([0.0, 15.0, 30.0, 45.0, 60.0, 70.0, 80.0, 89.5])
 SKY = {"sun_elevation": 0.5, "sun_rotation": 0.6, "strength": 0.08}
 STUDIO_WORLD = 0.05
-KINDS = ("principled", "osl", "svm", "fit")         # equal-time comparisons; Principled is the clock
-TIMED = KINDS + ("principled_osl",)
+KINDS = ("principled", "osl", "osl_fixed", "svm", "fit")   # equal-time comparisons; Principled is the clock
+REFS = ("file", "baked")                            # tracer references: the measured file's eval, the baked tables'
+REF_SEED = {"baked": 1, "file": 2}                  # independent streams: each reference's noise nets out alone
+# Cycles settings recorded in the report (tests/cycles_scenes.reset sets most of them; Blender's defaults differ)
+SETTINGS = ("max_bounces", "diffuse_bounces", "glossy_bounces", "transparent_max_bounces", "blur_glossy",
+            "caustics_reflective", "caustics_refractive", "sample_clamp_direct", "sample_clamp_indirect",
+            "use_light_tree", "light_sampling_threshold", "use_adaptive_sampling", "use_denoising",
+            "pixel_filter_type", "filter_width", "sampling_pattern")
 
 
 def log(msg):
@@ -145,8 +152,11 @@ class Case:
     def __init__(self, scene, name, tables_path, setup, args):
         self.scene, self.name, self.tables_path, self.setup, self.args = scene, name, tables_path, setup, args
         self.fit = load_fit(ensure_fit(tables_path))
-        self.folder = OUT / f"{scene}_{name}"
+        self.fit_version = self.fit.get("version")
+        self.folder = Path(args.work_dir) / f"{scene}_{name}"
         self.folder.mkdir(parents=True, exist_ok=True)
+        self.carry = carry_texture(tables_path)
+        self.settings = None        # the Cycles settings (SETTINGS) of its renders
 
     def tag(self):
         return f"[{self.scene} {self.name}]"
@@ -154,15 +164,28 @@ class Case:
     def cycles(self, kind, spp, seeds, first_seed=0):
         """(seeds, H, W, 3) renders and the seconds of each render call: (wall, CPU of this
         process, i.e. Cycles' threads: what other jobs on the machine change least)."""
+        if kind == "osl_fixed":         # the carry texture moved aside: the node renders the fixed cells
+            if self.carry is None:
+                raise RuntimeError(f"{self.tag()} osl_fixed: the tables have no carry texture")
+            with carried_cost.without(self.carry):
+                return self._cycles(kind, spp, seeds, first_seed)
+        return self._cycles(kind, spp, seeds, first_seed)
+
+    def _cycles(self, kind, spp, seeds, first_seed):
         native = kind != "principled_osl"
-        sc, _ = ca.cycles_scene("principled" if kind == "principled_osl" else kind, self.name, self.tables_path,
-                                None, self.args.size, spp, fit=self.fit, setup=self.setup, native=native)
-        if kind in ("osl", "svm", "fit"):
+        base = {"principled_osl": "principled", "osl_fixed": "osl"}.get(kind, kind)
+        sc, _ = ca.cycles_scene(base, self.name, self.tables_path, None, self.args.size, spp, fit=self.fit,
+                                setup=self.setup, native=native)
+        if self.settings is None:
+            self.settings = {k: getattr(sc.cycles, k) for k in SETTINGS if hasattr(sc.cycles, k)}
+        if base in ("osl", "svm", "fit"):
             from blender_addon import node as lb
             mat = sc.objects["sphere"].active_material
             group = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
             status = lb.node_status(group, sc)
-            if not status.lower().startswith(kind):
+            carried = "carried" in status.lower()
+            if (not status.lower().startswith(base) or (kind == "osl_fixed" and carried)
+                    or (kind == "osl" and self.carry is not None and not carried)):
                 raise RuntimeError(f"{self.tag()} {kind}: the node renders {status!r}")
         imgs, secs = [], []
         for seed in range(first_seed, first_seed + seeds):
@@ -170,6 +193,8 @@ class Case:
             t0, c0 = time.perf_counter(), time.process_time()
             imgs.append(cs.render(sc))
             secs.append((time.perf_counter() - t0, time.process_time() - c0))
+        if kind == "osl_fixed" and not self.carry.with_name("." + self.carry.name).is_file():
+            raise RuntimeError(f"{self.tag()} osl_fixed: the carry texture was not aside during the renders")
         return np.array(imgs), secs
 
     def saved(self, key, make):
@@ -187,10 +212,11 @@ class Case:
         if self.args.reuse and path.is_file():
             return json.loads(path.read_text())
         a = self.args
-        raw = {k: {"lo": [], "hi": [], "lo_wall": [], "hi_wall": []} for k in TIMED}
+        timed = tuple(a.kinds) + ("principled_osl",)
+        raw = {k: {"lo": [], "hi": [], "lo_wall": [], "hi_wall": []} for k in timed}
         loads = []
         for rnd in range(a.t_rounds):
-            order = TIMED[rnd % len(TIMED):] + TIMED[:rnd % len(TIMED)]
+            order = timed[rnd % len(timed):] + timed[:rnd % len(timed)]
             for kind in order:
                 for which, spp in (("lo", a.t_lo), ("hi", a.t_hi)):
                     _, secs = self.cycles(kind, spp, 1, first_seed=100 + rnd)
@@ -225,24 +251,29 @@ class Case:
         sphere_path.write_text(text.replace(mesh, 'type = "sphere"\ncenter = [0.0, 0.0, 0.0]\nradius = 1.0\n'))
         return mesh_path, sphere_path
 
-    def trace(self, scene_path, spp, seed=1):
+    def trace(self, scene_path, spp, seed=1, which="baked"):
+        """which: "baked" (the tables' eval, carried where they carry: what OSL renders) or "file"
+        (the manifest material's own eval: the measured file); tables sampling either way."""
         t0 = time.perf_counter()
-        img, var, var1, _ = ca.trace(scene_path, ROOT / "manifest.toml", open_tables(self.tables_path), "baked",
+        img, var, var1, _ = ca.trace(scene_path, ROOT / "manifest.toml", open_tables(self.tables_path),
+                                     "true" if which == "file" else "baked",
                                      spp, seed=seed, workers=self.args.workers, mis=True)
         return img, var, var1, time.perf_counter() - t0
 
-    def reference(self):
+    def reference(self, which="baked"):
         """Tracer reference (image, variance of the mean, per-sample variance): MIS, the baked
-        tables' BSDF, the analytic sphere (the mesh's BVH in numpy is 10x slower; the mesh's
-        difference is measured by geometry_check)."""
-        path = self.folder / "tracer_baked.npy"
+        tables' BSDF (which="baked") or the measured file's (which="file"), the analytic sphere
+        (the mesh's BVH in numpy is 10x slower; the mesh's difference is measured by
+        geometry_check)."""
+        path = self.folder / f"tracer_{which}.npy"
         if self.args.reuse and path.is_file():
             img, var, var1 = np.load(path)
             return img, var, var1
-        _, sphere_path = self.export()
-        img, var, var1, secs = self.trace(sphere_path, self.args.ref_spp)
-        log(f"{self.tag()} tracer reference (MIS, baked tables, analytic sphere): {self.args.ref_spp} spp in "
-            f"{secs:.0f} s")
+        if getattr(self, "_sphere_path", None) is None:
+            self._sphere_path = self.export()[1]
+        spp = self.args.ref_spp if which == "baked" else (self.args.file_ref_spp or self.args.ref_spp)
+        img, var, var1, secs = self.trace(self._sphere_path, spp, seed=REF_SEED[which], which=which)
+        log(f"{self.tag()} tracer reference (MIS, {which} eval, analytic sphere): {spp} spp in {secs:.0f} s")
         np.save(path, np.stack([img, var, var1]))
         return img, var, var1
 
@@ -263,6 +294,20 @@ class Case:
         log(f"{self.tag()} tracer mesh vs analytic sphere ({spp} spp, same seed): sphere mean rel "
             f"{out['rel']:+.5f} +- {out['se']:.5f}; {ta:.0f} s vs {tb:.0f} s")
         return out
+
+
+def carry_texture(tables_path):
+    """The tables' carried-blend texture (the node's name for it), or None; one left aside by an
+    interrupted run (carried_cost.without's ".<name>") is put back first."""
+    from blender_addon import node as lb
+    tables_path = Path(tables_path)
+    hidden = list(tables_path.parent.glob(f".{tables_path.stem}.carry*.exr"))
+    for h in hidden:
+        if not h.with_name(h.name[1:]).exists():
+            h.rename(h.with_name(h.name[1:]))
+            log(f"restored {h.name[1:]} (left aside by an interrupted run)")
+    path = lb._carry_texture(tables_path)
+    return Path(path) if path else None
 
 
 def inner_mask(size):
@@ -288,32 +333,47 @@ def errors(imgs, ref, ref_var, inner):
     noise + bias^2, and the z statistics of the renders' mean against the reference."""
     k = len(imgs)
     ref_noise = float(np.mean(ref_var[inner]))
-    mse = float(np.mean((imgs - ref)[:, inner] ** 2)) - ref_noise
+    per_render = np.mean((imgs - ref)[:, inner] ** 2, axis=(1, 2)) - ref_noise
+    mse = float(per_render.mean())
+    mse_se = float(per_render.std(ddof=1) / np.sqrt(k)) if k > 1 else float("nan")
     var = imgs.var(0, ddof=1) if k > 1 else np.zeros_like(ref)
     noise = float(np.mean(var[inner]))
     bias2 = float(np.mean((imgs.mean(0) - ref)[inner] ** 2)) - noise / k - ref_noise
     rms_z, frac3, mean_d, se = ca.z_stats(imgs.mean(0), ref, var / k, ref_var, inner)
     m = float(ref[inner].mean())
-    return {"mse": mse, "noise": noise, "bias2": bias2, "rms_z": rms_z, "frac3": frac3,
+    return {"mse": mse, "mse_se": mse_se, "noise": noise, "bias2": bias2, "rms_z": rms_z, "frac3": frac3,
             "block_z": block_z(imgs.mean(0), ref, var / k, ref_var, inner),
             "rel": float(mean_d.mean() / m), "rel_se": float(np.sqrt(np.mean(se ** 2)) / m),
             "max_abs_z_mean": float(np.max(np.abs(mean_d / se))), "seeds": k}
 
 
 def run_case(case):
+    """Row of one (scene, material): references, timing, equal-time renders; row[kind] holds the
+    errors against the primary reference (baked when traced, else file), row[kind]["vs"][ref]
+    those against each reference, row["refs"][ref] each reference's mean, noise and spp."""
     a = case.args
     inner = inner_mask(a.size)
-    ref, ref_var, var1 = case.reference()
+    refs = {w: case.reference(w) for w in a.refs}
+    primary = "baked" if "baked" in refs else "file"
+    ref, ref_var, var1 = refs[primary]
     t = case.timing()
     per = t["per_spp"]
-    spp = {k: max(4, int(round(a.spp * per["principled"] / per[k]))) if k != "principled" else a.spp for k in KINDS}
-    row = {"scene": case.scene, "name": case.name, "mean": float(ref[inner].mean()),
-           "ref_noise": float(np.mean(ref_var[inner])),
-           "ref_spp": int(round(float(np.median(var1[ref_var > 0] / ref_var[ref_var > 0])))),
-           "ref_per_sample_var": float(np.mean(var1[inner])),
-           "per_spp": per, "wall_per_spp": t["wall_per_spp"], "spp": spp, "load": t["load"]}
-    for kind in KINDS:
-        seeds = a.osl_seeds if kind == "osl" else a.seeds
+    spp = {k: max(4, int(round(a.spp * per["principled"] / per[k]))) if k != "principled" else a.spp for k in a.kinds}
+    ref_info = {w: {"mean": float(r[0][inner].mean()), "noise": float(np.mean(r[1][inner])),
+                    "spp": int(round(float(np.median(r[2][r[1] > 0] / r[1][r[1] > 0])))),
+                    "per_sample_var": float(np.mean(r[2][inner]))} for w, r in refs.items()}
+    row = {"scene": case.scene, "name": case.name, "primary": primary, "refs": ref_info,
+           "mean": ref_info[primary]["mean"], "ref_noise": ref_info[primary]["noise"],
+           "ref_spp": ref_info[primary]["spp"], "ref_per_sample_var": ref_info[primary]["per_sample_var"],
+           "per_spp": per, "wall_per_spp": t["wall_per_spp"], "spp": spp, "load": t["load"],
+           "fit_version": case.fit_version, "carry": case.carry.name if case.carry else None}
+    if "file" in refs and "baked" in refs:       # the baked tables' own error against the file
+        (b, bv, _), (f_, fv, _) = refs["baked"], refs["file"]
+        row["baked_vs_file"] = {"rel": float((b[inner].mean() - f_[inner].mean()) / f_[inner].mean()),
+                                "rel_se": float(np.sqrt(np.sum((bv + fv)[inner].mean(-1))) / inner.sum() / f_[inner].mean()),
+                                "mse": float(np.mean((b - f_)[inner] ** 2) - np.mean(bv[inner]) - np.mean(fv[inner]))}
+    for kind in a.kinds:
+        seeds = a.osl_seeds if kind in ("osl", "osl_fixed") else a.seeds
         secs = []
 
         def make():
@@ -321,12 +381,20 @@ def run_case(case):
             secs.extend(s)
             return imgs
         imgs = case.saved(f"{kind}_{spp[kind]}", make)
-        row[kind] = errors(imgs, ref, ref_var, inner)
+        vs = {w: errors(imgs, r[0], r[1], inner) for w, r in refs.items()}
+        row[kind] = dict(vs[primary], vs=vs)
         row[kind]["per_sample_var"] = row[kind]["noise"] * spp[kind]
         row[kind]["render_s"] = float(np.mean([w for w, _ in secs])) if secs else None
-        e = row[kind]
-        log(f"{case.tag()} {kind} {spp[kind]} spp x {seeds}: MSE {e['mse']:.3e} (noise {e['noise']:.2e} + bias2 "
-            f"{e['bias2']:.2e}), rms z {e['rms_z']:.2f}, mean rel {e['rel']:+.4f} +- {e['rel_se']:.4f}")
+        for w, e in vs.items():
+            log(f"{case.tag()} {kind} {spp[kind]} spp x {seeds} vs {w}: MSE {e['mse']:.3e} +- {e['mse_se']:.1e} "
+                f"(noise {e['noise']:.2e} + bias2 {e['bias2']:.2e}), rms z {e['rms_z']:.2f}, "
+                f"mean rel {e['rel']:+.4f} +- {e['rel_se']:.4f}")
+    try:                        # (the fit may be refit while the run goes: its version at the end)
+        row["fit_version_end"] = json.loads(Path(case.tables_path).with_name(
+            Path(case.tables_path).stem + ".fit.json").read_text()).get("version")
+    except Exception as e:      # noqa: BLE001
+        row["fit_version_end"] = f"unreadable ({e})"
+    row["settings"] = case.settings
     return row
 
 
@@ -361,6 +429,82 @@ def run_truesky(case):
 
 # ------------------------------------------------------------------------------ report
 
+LABEL = {"principled": "Principled (clock)", "osl": "OSL carried", "osl_fixed": "OSL fixed cells",
+         "svm": "SVM", "fit": "fit"}
+
+
+def equal_time_tables(rows, args):
+    """The equal-time MSEs against each reference, per (scene, material) and back end; the ratio
+    of each MSE to the best back end's; the carried-vs-fixed and SVM-vs-fit ratios; the
+    references' own noise; the Cycles settings and fit versions."""
+    f = lambda x: f"{x:.2e}"  # noqa: E731
+    refs = [w for w in REFS if any(w in r.get("refs", {}) for r in rows)]
+    settings = next((r["settings"] for r in rows if r.get("settings")), None)
+    out = ["## Equal time: MSE against the measured file and the baked tables", "",
+           "Per back end: CPU time per spp relative to Principled's (this run's timing); its spp at Principled's "
+           f"cost of {args.spp} spp (x seeds); MSE of one render (mean over the seeds +- SE over them; net of the "
+           "reference's noise) = bias^2 + noise; '/ best' = MSE / the smallest MSE of the row group's back ends. "
+           "'OSL fixed cells': the OSL back end with the carry texture moved aside (what it renders without the "
+           "carried blend). Against 'baked' (the CARRIED tables' eval) only OSL carried is unbiased; OSL fixed "
+           "and SVM render the fixed cells, the fit its closures.", "",
+           "Cycles settings (tests/cycles_scenes.reset; Blender's defaults differ, e.g. blur_glossy 1, "
+           "light tree on): " + (", ".join(f"{k} {v}" for k, v in settings.items()) if settings else "?") + ".", ""]
+    head = "| scene | material | back end | time/spp vs Pr | spp x seeds |"
+    sep = "|---|---|---|---|---|"
+    for w in refs:
+        head += f" MSE vs {w} +- SE (bias^2 + noise) | / best ({w}) |"
+        sep += "---|---|"
+    out += [head, sep]
+    for r in rows:
+        kinds = [k for k in KINDS if k in r]
+        best = {w: min(r[k]["vs"][w]["mse"] for k in kinds) for w in refs if w in r["refs"]}
+        for k in kinds:
+            seeds = r[k]["seeds"]
+            line = (f"| {r['scene']} | {r['name']} | {LABEL[k]} | {r['per_spp'][k] / r['per_spp']['principled']:.2f} | "
+                    f"{r['spp'][k]} x {seeds} |")
+            for w in refs:
+                e = r[k]["vs"].get(w)
+                if e is None:
+                    line += " - | - |"
+                    continue
+                ratio = e["mse"] / best[w] if best[w] > 0 else float("nan")
+                line += (f" {f(e['mse'])} +- {e['mse_se']:.1e} ({f(e['bias2'])} + {f(e['noise'])}) | "
+                         f"{'**best**' if e['mse'] == best[w] else f'{ratio:.2f}'} |")
+            out.append(line)
+    out += ["", "Ratios (< 1: the first wins at equal time; +- from the seeds' SEs, first order):", "",
+            "| scene | material |" + "".join(f" OSL carried / fixed vs {w} | SVM / fit vs {w} |" for w in refs)
+            + " fit version (start/end) | load |",
+            "|---|---|" + "---|---|" * len(refs) + "---|---|"]
+
+    def ratio(r, a, b, w):
+        if a not in r or b not in r or w not in r[a]["vs"]:
+            return "-"
+        x, y = r[a]["vs"][w], r[b]["vs"][w]
+        q = x["mse"] / y["mse"]
+        se = abs(q) * np.hypot(x["mse_se"] / x["mse"], y["mse_se"] / y["mse"])
+        return f"{q:.2f} +- {se:.2f}"
+    for r in rows:
+        out.append(f"| {r['scene']} | {r['name']} |" + "".join(
+            f" {ratio(r, 'osl', 'osl_fixed', w)} | {ratio(r, 'svm', 'fit', w)} |" for w in refs)
+            + f" {r.get('fit_version')}/{r.get('fit_version_end')} | {r['load'][0]:.1f}-{r['load'][1]:.1f} |")
+    out += ["", "References: sphere mean, spp, noise (per-pixel variance of the reference's mean, mean over the "
+            "sphere: to compare with the MSEs above, of which it is netted out); baked vs file: sphere-mean "
+            "relative difference and MSE (net of both noises) = the baked tables' own error.", "",
+            "| scene | material |" + "".join(f" {w}: mean, spp, noise |" for w in refs) + " baked vs file: rel, MSE |"
+            + " smallest back-end MSE / largest ref noise |",
+            "|---|---|" + "---|" * len(refs) + "---|---|"]
+    for r in rows:
+        cells = "".join(f" {r['refs'][w]['mean']:.4f}, {r['refs'][w]['spp']}, {f(r['refs'][w]['noise'])} |"
+                        if w in r["refs"] else " - |" for w in refs)
+        bf = r.get("baked_vs_file")
+        kinds = [k for k in KINDS if k in r]
+        m = min(e["mse"] for k in kinds for e in r[k]["vs"].values())
+        out.append(f"| {r['scene']} | {r['name']} |{cells} "
+                   + (f"{bf['rel']:+.4f} +- {bf.get('rel_se', float('nan')):.4f}, {f(bf['mse'])}" if bf else "-")
+                   + f" | {m / max(v['noise'] for v in r['refs'].values()):.0f} |")
+    return out
+
+
 def write(rows, ff_rows, geom, args, started):
     f = lambda x: f"{x:.2e}"  # noqa: E731
     lines = [
@@ -378,8 +522,11 @@ def write(rows, ff_rows, geom, args, started):
         f"rendered to a {args.sky_res[0]}x{args.sky_res[1]} image ({args.sky_spp} spp) by world.render_world, "
         "the SAME image as Cycles' world (Environment Texture, Closest) and the tracer's; **studio** = area lamp "
         f"(1 m, 150 W) + point lamp (radius 0.25, 100 W) + constant world {STUDIO_WORLD}.",
-        "- Reference: bake/tracer, MIS on (lamps + world), tables sampling, material = the baked tables' "
-        "eval, scene from blender_addon/validate.export_scene. MSEs are net of its noise (column 'ref noise').",
+        "- References: bake/tracer, MIS on (lamps + world), tables sampling, scene from "
+        "blender_addon/validate.export_scene; material = **file**: the measured file's own eval (the manifest's "
+        "RGL material), and/or **baked**: the baked tables' eval (carried where they carry: what OSL renders "
+        "with its carry texture). MSEs are net of the reference's noise. The tables below the first two use "
+        "the primary reference (baked when traced, else file).",
         "- Equal time: Principled at the base spp; each other back end at base spp x t_Pr/t_X, t = CPU time per "
         f"spp measured in this run ({args.t_rounds} interleaved rounds at {args.t_lo} and {args.t_hi} spp; "
         "scene sync excluded). OSL: Open Shading Language on; Principled, fit, SVM: off (SVM, Blender's "
@@ -391,12 +538,16 @@ def write(rows, ff_rows, geom, args, started):
             f"{k} {g['name']} {g['spp']} spp: {g['rel']:+.5f} +- {g['se']:.5f}" for k, g in geom.items()) + ").",
         "- OSL/SVM vs tracer: per-pixel z of the seeds' mean (var from the seeds' spread: with K seeds "
         "rms z ~ sqrt((K-1)/(K-3)) if within MC error: 1.18 for 8, 1.73 for 4); sphere mean rel. diff +- SE.",
-        "",
+        ""] + equal_time_tables(rows, args) + [
+        "", "## Acceptance details (primary reference)", "",
         "| scene | material | mean | ref spp (noise) | spp Pr/OSL/SVM/fit | CPU time per spp vs Pr: OSL / SVM / fit / Pr(OSL) | "
         "OSL rms z (\\|z\\|>3) [4x4 blocks] | OSL mean rel +- SE | SVM rms z [blocks] | SVM mean rel +- SE | "
         "MSE equal time: OSL | SVM | fit (bias^2 + noise) | Principled (bias^2 + noise) | OSL < fit, Pr | SVM < fit | load |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
+    old = [r for r in rows if all(k in r for k in ("principled", "osl", "svm", "fit"))]
+    if not old:
+        lines = lines[:-3]
+    for r in old:
         p = r["per_spp"]
         o, s, ft, pr = r["osl"], r["svm"], r["fit"], r["principled"]
         ok = ("yes" if o["mse"] < ft["mse"] else "NO") + " / " + ("yes" if o["mse"] < pr["mse"] else "NO")
@@ -416,9 +567,9 @@ def write(rows, ff_rows, geom, args, started):
               "equal-time MSEs come from. Tracer: plain Monte Carlo, one BSDF + one light sample per vertex "
               "(MIS); OSL/SVM: film-stratified u on camera rays; fit/Principled: Cycles' own QMC, NEE + BSDF.", "",
               "| scene | material | tracer (MIS) | OSL | SVM | fit | Principled | OSL / fit |",
-              "|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        v = {k: r[k].get("per_sample_var", r[k]["noise"] * r["spp"][k]) for k in KINDS}
+              "|---|---|---|---|---|---|---|---|"] if old else []
+    for r in old:
+        v = {k: r[k].get("per_sample_var", r[k]["noise"] * r["spp"][k]) for k in ("principled", "osl", "svm", "fit")}
         lines.append(f"| {r['scene']} | {r['name']} | {f(r.get('ref_per_sample_var', float('nan')))} | "
                      f"{f(v['osl'])} | {f(v['svm'])} | {f(v['fit'])} | {f(v['principled'])} | "
                      f"{v['osl'] / v['fit']:.1f} |")
@@ -441,7 +592,7 @@ def write(rows, ff_rows, geom, args, started):
                 f"{o['mean'] - s['mean']:+.4f} ({r['osl_svm_z']:+.1f}) | {'yes' if ratio <= 3 else 'NO'} |")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text("\n".join(lines) + "\n")
-    (OUT / "rows.json").write_text(json.dumps({"rows": rows, "fireflies": ff_rows, "geometry": geom}, indent=1,
+    (Path(args.work_dir) / "rows.json").write_text(json.dumps({"rows": rows, "fireflies": ff_rows, "geometry": geom}, indent=1,
                                               default=float))
 
 
@@ -458,6 +609,10 @@ def main(argv=None):
     ap.add_argument("--t-rounds", type=int, default=4,
                     help="timing rounds (best of): with 2, Principled's time per spp varied 6.2-7.3 ms between runs")
     ap.add_argument("--ref-spp", type=int, default=4096)
+    ap.add_argument("--file-ref-spp", type=int, default=0, help="spp of the file's reference (default --ref-spp)")
+    ap.add_argument("--reference", choices=("file", "baked", "both"), default="both",
+                    help="tracer reference(s): the measured file's eval, the baked tables', or both")
+    ap.add_argument("--kinds", default=",".join(KINDS), help="back ends at equal time (principled, the clock, always)")
     ap.add_argument("--geom-spp", type=int, default=128, help="tracer spp of the mesh-vs-sphere check (0: none)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--sky-res", type=int, nargs=2, default=(2048, 1024))
@@ -467,16 +622,26 @@ def main(argv=None):
     ap.add_argument("--tables-dir", default=None, help="use <dir>/<name>.exr when present (else draft tables)")
     ap.add_argument("--reuse", action="store_true", help="reuse saved renders, references and timings")
     ap.add_argument("--out", default=str(ROOT / "out" / "lights_acceptance.md"))
+    ap.add_argument("--work-dir", default=str(OUT), help="folder of the renders (.npy), references, timings, "
+                    "world images, draft tables and rows.json")
     args = ap.parse_args(argv)
+    args.refs = REFS if args.reference == "both" else (args.reference,)
+    args.kinds = ["principled"] + [k for k in args.kinds.split(",") if k and k != "principled"]
+    unknown = set(args.kinds) - set(KINDS)
+    if unknown:
+        ap.error(f"unknown kinds {sorted(unknown)}: {', '.join(KINDS)}")
     started = time.time()
-    OUT.mkdir(parents=True, exist_ok=True)
+    work = Path(args.work_dir)
+    work.mkdir(parents=True, exist_ok=True)
     scenes = [s for s in args.scenes.split(",") if s]
-    hdri = OUT / "env_sunny.exr"
+    hdri = work / "env_sunny.exr"
     if not hdri.is_file():
         ca.make_env(hdri, "sunny")
-    sky = sky_image(OUT / f"sky_{args.sky_res[0]}x{args.sky_res[1]}.exr", *args.sky_res, args.sky_spp)
+    sky = None
+    if {"sky", "truesky"} & set(scenes):
+        sky = sky_image(work / f"sky_{args.sky_res[0]}x{args.sky_res[1]}.exr", *args.sky_res, args.sky_spp)
     setup = setups(hdri, sky)
-    tables = {n: draft_tables(n, OUT / "tables", args.tables_dir) for n in args.names}
+    tables = {n: draft_tables(n, work / "tables", args.tables_dir) for n in args.names}
     rows, ff_rows, geom = [], [], {}
     for scene in scenes:
         for name in args.names:

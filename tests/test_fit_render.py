@@ -15,9 +15,9 @@ x = 1 - cos theta_i) and at 12 azimuths each, span the pairs (wi, wo).
 The fits are written here, each as the fit file of a Learned BSDF node (assign_learned_bsdf's
 fit_path) bound to small baked tables of a Lambertian, which the fit back end does not read
 (bound to missing tables it renders the fit too: test_missing_tables_render_the_fit). They are: isotropic lobes only (view_aligned 0);
-view-aligned anisotropic lobes (a > 0 and a < 0, 0 at normal view as a fit has it); one whose
-anisotropy is not 0 at normal view, seen exactly head-on (where the view tangent vanishes: no
-NaN); and a rough lobe stretched beyond alpha 1, which Cycles clamps to 1 and eval_fit too
+view-aligned anisotropic lobes (a > 0 and a < 0, 0 at normal view); one whose anisotropy is not
+0 at normal view (as fits of measured files have it), seen exactly head-on (where the view
+tangent vanishes: no NaN); and a rough lobe stretched beyond alpha 1, which Cycles clamps to 1 and eval_fit too
 (test_alphas_beyond_1_render_as_eval_fit_states: found by this probe). Each is rendered with
 Cycles' SVM and with OSL (its nodes as OSL shaders).
 
@@ -88,8 +88,9 @@ ANISOTROPIC = _fit(
     anisotropy=_lobes([0.0, 0.30, 0.60, 0.50, 0.40], [0.0, -0.20, -0.40, -0.35, -0.30], [0.0] * 5),
     view_aligned=2)
 
-# Anisotropic at normal view too (no fit does that: its tangent vanishes there): the head-on
-# quad must render a finite value, some orientation of the lobes.
+# Anisotropic at normal view too (fits of measured files are: closure_fit's docstring), where
+# the view tangent vanishes: the head-on quad must render a finite value, some orientation of
+# the lobes.
 HEAD_ON = _fit(
     diffuse=[[0.05, 0.05, 0.05]] * 5,
     specular=_lobes([[0.5, 0.4, 0.3]] * 5, [[0.3, 0.4, 0.5]] * 5, [[0.0, 0.0, 0.0]] * 5),
@@ -286,7 +287,7 @@ def test_fit_renders_what_eval_fit_states(rendered, name):
 
 
 def test_head_on_view_renders_a_finite_lobe(rendered):
-    """Anisotropic lobes seen exactly head-on (no fit has them: its anisotropy is 0 there), where
+    """Anisotropic lobes seen exactly head-on (fits of measured files have them), where
     the view tangent is 0: no NaN, and some orientation of the lobes (within eval_fit's range
     over the tangent's azimuth): the node's fallback tangent n x VIEW_TANGENT_NUDGE (measured:
     within 3.5e-7 of eval_fit with that tangent)."""

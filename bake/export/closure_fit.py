@@ -11,8 +11,11 @@ height-correlated G2, no Fresnel), roughness r_j (alpha_j = r_j^2) and Anisotrop
 Cycles maps to alpha_x = alpha (1 - a), alpha_y = alpha / (1 - a) (a >= 0; a < 0 the other way
 round), x along the closure's Tangent. The first VIEW_ALIGNED lobes take as their tangent the
 view direction projected onto the surface: measured "isotropic" lobes are wider across the
-plane of incidence than along it, which isotropic lobes cannot follow (their anisotropy is 0
-at normal view, where that tangent vanishes). The last lobe is isotropic. Between knots the
+plane of incidence than along it, which isotropic lobes cannot follow. At normal view too: the
+files' lobes there are not round (cc_nothern_aurora at theta_i = 0: their f cos over 2-20 deg
+varies 2.1x with the azimuth from the view's), and the exact back ends render that azimuth
+from the same projected tangent, so the view-aligned lobes stay anisotropic there (its zero
+at exactly normal view is nudged, svm.VIEW_TANGENT_NUDGE). The last lobe is isotropic. Between knots the
 node interpolates kd, ks_j, r_j and a_j linearly in x.
 
 At each knot the fit keeps the baked albedo exactly per channel (kd + sum_j ks_j A_j =
@@ -57,7 +60,7 @@ from ..materials.analytic import ggx_ndf, ggx_lambda, ggx_reflection_pdf, ggx_sa
 from ..plumbing.exrio import write_rgba_exr
 from ..plumbing.files import atomic_path, file_hash
 
-FIT_VERSION = 5
+FIT_VERSION = 6
 MODEL = "diffuse+view-aligned-ggx"
 MATCH_N = 16        # the match image's nodes per axis (match_ratios)
 MATCH_MAX = 2.0     # its ratios' bound (blender_addon/svm.py matches only where the fit is within 10 %)
@@ -344,15 +347,15 @@ def _descend(knot, lobes, aniso, prev=None, sweeps=2, step_cost=STEP_COST):
     return lobes
 
 
-def _first_knot(knot):
-    """Normal view: the lobes (all isotropic there) chosen greedily over the whole alpha grid,
-    then refined by coordinate descent over it."""
+def _first_knot(knot, view_aligned):
+    """Normal view: isotropic lobes chosen greedily over the whole alpha grid, then refined by
+    coordinate descent over it, the view-aligned ones' anisotropy too."""
     zero = int(np.argmin(np.abs(ANISOTROPY)))
     lobes = []
     for _ in range(LOBES):
         sets = [lobes + [(i, zero)] for i in range(len(ALPHAS))]
         lobes = sets[int(np.argmin(knot.solve(sets)[1]))]
-    return _descend(knot, lobes, aniso=0)
+    return _descend(knot, lobes, aniso=view_aligned)
 
 
 def _next_knot(tables, knot, fit, lobes, prev, view_aligned, n, seed):
@@ -361,8 +364,8 @@ def _next_knot(tables, knot, fit, lobes, prev, view_aligned, n, seed):
     alone refitted), the one whose error at this knot plus half-way from the previous knot
     (the node lerps the parameters between them) is least."""
     mid = _Knot(tables, 0.5 * (knot.theta + np.radians(fit["theta_deg"][-1])), n=n // 2, seed=seed + 7)
-    aniso = view_aligned if knot.theta > 0 else 0
-    options = [_descend(knot, lobes, aniso, prev), _descend(knot, lobes, aniso, prev, step_cost=STIFF * STEP_COST),
+    options = [_descend(knot, lobes, view_aligned, prev),
+               _descend(knot, lobes, view_aligned, prev, step_cost=STIFF * STEP_COST),
                list(lobes)]
     best = None
     for option in options:
@@ -396,7 +399,7 @@ def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None, vie
     for deg in sorted(knots_deg):
         knot = _Knot(tables, np.radians(deg), n=n, seed=seed)
         if lobes is None:
-            lobes = _first_knot(knot)
+            lobes = _first_knot(knot, view_aligned)
             k = knot.solve([lobes], None, irls=4)[0][0]
         else:
             lobes, k = _next_knot(tables, knot, out, lobes, prev, view_aligned, n, seed)
