@@ -12,7 +12,8 @@ viewport and on farms, with auto-run off.
 
 What the shader does not model is said by `limits(scene)`, which the node's status shows:
 lamps past the slots, light linking, node-based lamp shaders (their Emission strength and
-colour are not read), and zero-spread area lamps.
+colour are not read), and zero-spread area lamps. What the SVM back end's portal cannot reach
+is said by `unreachable(scene)`; `reach(lamp)` makes a lamp reachable (the status's button).
 """
 import bpy
 
@@ -156,20 +157,47 @@ def bind(script, scene):
     tree[KEY] = sig
 
 
+def _names(obs):
+    names = [ob.name for ob in obs]
+    return ", ".join(names[:2]) + (", ..." if len(names) > 2 else "")
+
+
 def limits(scene):
-    """What the shader does not light as Cycles would, in words (empty when all is modelled)."""
+    """What the shader does not light as Cycles would: [(what, the artist's step to fix it)]
+    in the UI's words (empty when all is modelled)."""
     lamps = scene_lamps(scene)
     notes = []
     if len(lamps) > SLOTS:
-        notes.append(f"{len(lamps) - SLOTS} lamp(s) past the first {SLOTS} are not lit "
-                     f"({', '.join(ob.name for ob in lamps[SLOTS:][:3])}{', ...' if len(lamps) > SLOTS + 3 else ''})")
-    linked = [ob.name for ob in lamps if getattr(getattr(ob, "light_linking", None), "receiver_collection", None)]
+        notes.append((f"{len(lamps) - SLOTS} lamps past the first {SLOTS} are not lit ({_names(lamps[SLOTS:])})",
+                      f"Use at most {SLOTS} lamps"))
+    linked = [ob for ob in lamps if getattr(getattr(ob, "light_linking", None), "receiver_collection", None)]
     if linked:
-        notes.append(f"light linking not honoured ({', '.join(linked[:3])})")
-    noded = [ob.name for ob in lamps[:SLOTS] if getattr(ob.data, "use_nodes", False)]
+        notes.append((f"Light Linking is ignored ({_names(linked)})", "Clear Light Linking"))
+    noded = [ob for ob in lamps[:SLOTS] if getattr(ob.data, "use_nodes", False)]
     if noded:
-        notes.append(f"lamp node shaders not evaluated, colour x strength only ({', '.join(noded[:3])})")
-    flat = [ob.name for ob in lamps[:SLOTS] if ob.data.type == "AREA" and getattr(ob.data, "spread", 1.0) <= 0.0]
+        notes.append((f"lamp nodes are not evaluated ({_names(noded)})", "Turn Off Lamp Nodes"))
+    flat = [ob for ob in lamps[:SLOTS] if ob.data.type == "AREA" and getattr(ob.data, "spread", 1.0) <= 0.0]
     if flat:
-        notes.append(f"area lamps with spread 0 are not lit ({', '.join(flat[:3])})")
+        notes.append((f"area lamps of Spread 0 are not lit ({_names(flat)})", "Give Lamp a Spread"))
     return notes
+
+
+# Why the SVM back end's portal cannot reach a lamp (`unreachable`), in the status's words, and
+# the button that makes it reachable (`reach`): short enough for a button in the default sidebar.
+REACH = {"hidden from the camera": ("{} is hidden from the camera", "Show Lamp to Camera"),
+         "radius 0": ("{} has radius 0", "Give Lamp a Radius"),
+         "angle 0": ("{} has angle 0", "Give Sun an Angle"),
+         "Multiple Importance off": ("{} has Multiple Importance off", "Use Multiple Importance")}
+RADIUS, ANGLE = 0.1, 0.00918            # what `reach` gives a lamp of none: Blender's defaults (m, rad)
+
+
+def reach(ob):
+    """Make lamp `ob` one the SVM back end's portal reaches (what `unreachable` asks for)."""
+    light = ob.data
+    ob.visible_camera = True
+    if light.type in ("POINT", "SPOT") and light.shadow_soft_size <= 0.0:
+        light.shadow_soft_size = RADIUS
+    if light.type == "SUN" and light.angle <= 0.0:
+        light.angle = ANGLE
+    light.cycles.use_multiple_importance_sampling = True
+    light.update_tag()

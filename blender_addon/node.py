@@ -54,6 +54,7 @@ import json
 import os
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import bpy
 from bpy.app.handlers import persistent
@@ -744,68 +745,114 @@ def set_backend(scene, backend):
 
 
 def osl_available(scene):
-    """(bool, why not): OSL renders in this scene's settings."""
+    """(bool, why not, in the UI's words): OSL renders in this scene's settings."""
     if scene.render.engine != 'CYCLES':
-        return False, f"render engine is {scene.render.engine}, not Cycles"
+        return False, f"{engine_name(scene)} runs no OSL"
     if scene.cycles.device != 'CPU':
-        return False, "Cycles renders on the GPU (OSL sampling needs the CPU)"
+        return False, "OSL needs the CPU"
     if not scene.cycles.shading_system:
-        return False, "Open Shading Language is off in the render settings"
+        return False, "OSL is off"
     return True, ""
 
 
+ENGINE_NAMES = {"BLENDER_EEVEE": "EEVEE", "BLENDER_EEVEE_NEXT": "EEVEE", "BLENDER_WORKBENCH": "Workbench",
+                "CYCLES": "Cycles"}
+
+
+def engine_name(scene):
+    return ENGINE_NAMES.get(scene.render.engine, scene.render.engine.title())
+
+
+class Status(NamedTuple):
+    """What a Learned BSDF node renders in a scene, in the words of Blender's UI: `text` what
+    renders and how far it is from the measured material, `action` the one step that gets the
+    exact material in this scene ("" where it renders exactly), `operator` the button that takes
+    the step, (bl_idname, {property: value}), or () where the artist takes it, and `detail` what
+    the short words leave out (a path): the panel's tooltip and the logs."""
+    backend: str            # what renders: "osl", "svm" or "fit"
+    text: str
+    action: str = ""
+    operator: tuple = ()
+    detail: str = ""
+
+    def line(self):
+        """The status as one line (logs, reports, node_status)."""
+        return (self.text + (f". {self.action}" if self.action else "")
+                + (f" ({self.detail})" if self.detail else ""))
+
+
+USE_OSL = ("Turn On OSL (CPU)", ("flowbsdf.use_osl", {}))
+USE_SVM = ("Set Back End to SVM", ("flowbsdf.set_backend", {"backend": "svm"}))
+BAKE = ("Bake the Material", ("flowbsdf.bake", {"only_active": True}))
+
+
+def _reach(hidden):
+    """(why, step) for the first lamp of `hidden` (lamps.unreachable): what keeps the SVM
+    back end's portal from it and the button that makes it reachable."""
+    name, why = next(iter(hidden.items()))
+    text, button = lamps.REACH[why]
+    return text.format(name), (button, ("flowbsdf.reach_lamp", {"lamp": name}))
+
+
 def _resolve(scene, tree, limits=None):
-    """(back end that renders: "osl", "svm" or "fit", status text) for one group in one scene
-    (`limits`: lamps.limits(scene), computed here when not given)."""
+    """The Status of one group in one scene (`limits`: lamps.limits(scene), computed here when
+    not given). The exact back ends by preference: OSL (CPU; lamps by next-event estimation in
+    the shader: the least noise), then the SVM graph (every device), else the fit."""
     info = _info(tree)
     backend = backend_of(scene)
-    fit = "fit" if info.get("has_fit") else "neutral grey (no fit)"
-    if info.get("has_fit") and info.get("fit_error", -1.0) >= 0:
-        of = "measured material" if info.get("fit_error_of") == "file" else "baked tables"
-        fit_note = f"; it differs by ~{100 * info['fit_error']:.0f} % from the {of}"
+    if info.get("has_fit"):
+        err, of = info.get("fit_error", -1.0), "measured material" if info.get("fit_error_of") == "file" else "tables"
+        fit = f"Fit, ~{100 * err:.0f} % off the {of}" if err >= 0 else "Fit"
     else:
-        fit_note = ""
+        fit = "Neutral grey (no fit)"
 
-    def fallback(why):
-        return "fit", f"{fit} ({why}{fit_note})"
+    def fallback(why, step, detail=""):
+        return Status("fit", f"{fit} ({why})", step[0], step[1], detail)
     if backend == "fit":
-        return fallback("scene back end: fit")
+        return fallback("Back End: Fit", ("Set Back End to Auto", ("flowbsdf.set_backend", {"backend": "auto"})))
     if scene.render.engine != 'CYCLES':
-        return fallback(f"render engine is {scene.render.engine}: the baked tables render in Cycles")
+        return fallback(engine_name(scene), ("Render with Cycles", ("flowbsdf.use_cycles", {})))
     tables = info.get("tables", "")
     if not tables or not os.path.isfile(tables):
-        return fallback(f"tables missing: {tables}")
+        return fallback("tables missing", BAKE, f"tables missing: {tables}")
     osl_ok, osl_why = osl_available(scene)
-    if tree.nodes.get(SCRIPT) is None:
-        osl_ok, osl_why = False, "no OSL shader in the node: built in a Blender that cannot compile OSL"
-    elif osl_ok and not os.path.isfile(info.get("osl_texture", "")):
-        osl_ok, osl_why = False, f"OSL texture missing: {info.get('osl_texture') or 'not exported'}"
+    osl_step = USE_OSL
+    if tree.nodes.get(SCRIPT) is None:          # built in a Blender that cannot compile OSL
+        osl_ok, osl_why, osl_step = False, "no OSL in this Blender", None
+    elif not os.path.isfile(info.get("osl_texture", "")):
+        osl_ok, osl_why, osl_step = False, "OSL texture missing", BAKE
     svm_ok = _has_svm(tree) and os.path.isfile(info.get("svm_texture", ""))
     notes = lamps.limits(scene) if limits is None else limits
     if osl_ok and backend in ("osl", "auto"):
-        carried = ", carried blend" if os.path.isfile(info.get("carry_texture", "")) else ""
-        return "osl", "OSL" + carried + (f" (warning: {'; '.join(notes)})" if notes else "")
+        exact = "OSL, carried blend, exact" if os.path.isfile(info.get("carry_texture", "")) else "OSL, exact"
+        if notes:
+            return Status("osl", f"{exact}, but {notes[0][0]}", notes[0][1], (), "; ".join(n for n, _ in notes))
+        return Status("osl", exact)
     lit = lamps.scene_lamps(scene)
     # The SVM graph lights its fit's closures by Cycles' lamp sampling and the rest through its
     # portal, which reaches lamps visible to the camera that have a size: exact there, but under
     # lamps far noisier than the fit is off (vch_golden_yellow, studio lamps, 128 px, equal CPU
     # time to the fit's 128 spp: MSE against OSL 8.1e-3 vs the fit's 7.8e-4): `auto` keeps the fit.
     hidden = lamps.unreachable(scene) if lit else {}
-    names = list(hidden) or [ob.name for ob in lit]
-    listed = f"{', '.join(names[:3])}{', ...' if len(names) > 3 else ''}"
-    if hidden:
-        unlit = (f"lamps ({listed}: {', '.join(sorted(set(hidden.values())))}) light only the fit "
-                 f"without OSL ({osl_why})")
-    else:
-        unlit = (f"lamps ({listed}) light the fit: OSL is off ({osl_why}); the SVM back end renders "
-                 f"them exactly, with more noise") if lit else ""
     if svm_ok and (backend == "svm" or not lit):
-        return "svm", "SVM" + (f" (warning: {unlit})" if hidden else "")
-    if backend == "osl":
-        return fallback(osl_why)
-    if not svm_ok:
-        return fallback(osl_why if backend != "svm" else "no SVM graph in the node")
-    return fallback(unlit)
+        if hidden:
+            why, step = _reach(hidden)
+            return Status("svm", f"SVM, exact but {why}: it lights only the fit", *step,
+                          detail="; ".join(f"{n}: {w}" for n, w in hidden.items()))
+        return Status("svm", "SVM, exact")
+    # The fit renders: the step to an exact back end. OSL where the node has it, on the CPU;
+    # where the scene renders on the GPU, the SVM graph (every device runs it) first.
+    if backend == "svm":
+        why = "no SVM in this Blender"
+    else:
+        why = "lamps need OSL" if lit and backend == "auto" and osl_step is USE_OSL else osl_why
+    if svm_ok and (scene.cycles.device != 'CPU' or osl_step is None):
+        if hidden:
+            why, step = _reach(hidden)
+        else:
+            why, step = (why if not lit else "under lamps SVM is noisier"), USE_SVM
+        return fallback(why, step)
+    return fallback(why, osl_step or ("Render in Blender 5.0+", ()))
 
 
 def _refresh_export(tree):
@@ -896,7 +943,7 @@ def sync(scene, refresh=False, bake_world=False):
             _refresh_export(tree)
         if limits is None:
             limits = lamps.limits(scene)        # once per sync: it runs on every scene change
-        backend, _ = _resolve(scene, tree, limits)
+        backend = _resolve(scene, tree, limits).backend
         _set_switches(tree, backend)
         if film is None:
             continue
@@ -945,15 +992,24 @@ def update_world(scene):
     sync(scene, bake_world=True)
 
 
-def node_status(node, scene=None):
-    """What the node renders and why, e.g. "OSL", "fit (tables missing: /x/y.exr)"."""
+def node_state(node, scene=None):
+    """The node's Status in `scene` (the current one when None), or None for a node that is not
+    a Learned BSDF's."""
     tree = getattr(node, "node_tree", None)
     if tree is None or TREE_KEY not in tree.keys():
-        return "not a Learned BSDF node"
-    scene = scene or bpy.context.scene
-    backend, status = _resolve(scene, tree)
+        return None
+    status = _resolve(scene or bpy.context.scene, tree)
     problems = _info(tree).get("problems")
-    return f"{status} [{problems}]" if problems and backend != "fit" else status
+    if problems and status.backend != "fit":
+        status = status._replace(detail="; ".join(p for p in (status.detail, problems) if p))
+    return status
+
+
+def node_status(node, scene=None):
+    """What the node renders and why, as one line (Status.line), e.g. "OSL, exact", "Fit, ~12 %
+    off the measured material (tables missing). Bake the Material (tables missing: /x/y.exr)"."""
+    status = node_state(node, scene)
+    return "not a Learned BSDF node" if status is None else status.line()
 
 
 # ------------------------------------------------------------------------------ handlers

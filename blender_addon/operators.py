@@ -294,5 +294,51 @@ class FLOWBSDF_OT_set_backend(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class FLOWBSDF_OT_use_osl(bpy.types.Operator):
+    """Render with Cycles on the CPU with Open Shading Language on (Render Properties): the Learned
+    BSDF's exact back end with the least noise, lamps included"""
+    bl_idname = "flowbsdf.use_osl"
+    bl_label = "Turn On OSL (CPU)"
+    bl_options = {"UNDO"}
+
+    def execute(self, context):
+        scene = context.scene
+        scene.render.engine = 'CYCLES'
+        scene.cycles.device = 'CPU'
+        scene.cycles.shading_system = True
+        return {"FINISHED"}
+
+
+class FLOWBSDF_OT_use_cycles(bpy.types.Operator):
+    """Render with Cycles, where the Learned BSDF renders its baked tables (EEVEE renders its fit)"""
+    bl_idname = "flowbsdf.use_cycles"
+    bl_label = "Render with Cycles"
+    bl_options = {"UNDO"}
+
+    def execute(self, context):
+        context.scene.render.engine = 'CYCLES'
+        return {"FINISHED"}
+
+
+class FLOWBSDF_OT_reach_lamp(bpy.types.Operator):
+    """Let the SVM back end reach this lamp: visible to the camera, with a size (Radius 0.1 m, a
+    sun's Angle 0.53 deg, Blender's defaults) and Multiple Importance on"""
+    bl_idname = "flowbsdf.reach_lamp"
+    bl_label = "Let the SVM Back End Reach the Lamp"
+    bl_options = {"UNDO"}
+
+    lamp: bpy.props.StringProperty()
+
+    def execute(self, context):
+        from . import lamps
+        ob = context.scene.objects.get(self.lamp)
+        if ob is None or ob.type != 'LIGHT':
+            self.report({"ERROR"}, f"FlowBSDF: no lamp {self.lamp!r} in the scene")
+            return {"CANCELLED"}
+        lamps.reach(ob)
+        return {"FINISHED"}
+
+
 classes = (FLOWBSDF_OT_scan, FLOWBSDF_OT_bake, FLOWBSDF_OT_train_bake, FLOWBSDF_OT_cancel, FLOWBSDF_OT_enable,
-           FLOWBSDF_OT_load_model, FLOWBSDF_OT_check_python, FLOWBSDF_OT_set_backend)
+           FLOWBSDF_OT_load_model, FLOWBSDF_OT_check_python, FLOWBSDF_OT_set_backend, FLOWBSDF_OT_use_osl,
+           FLOWBSDF_OT_use_cycles, FLOWBSDF_OT_reach_lamp)

@@ -166,10 +166,17 @@ def draw_renders(layout, mat, scene, context, boxes=1):
     group = _learned_group(mat)
     if group is None:
         return
-    status = node.node_status(group, scene)
-    exact = status.startswith(("OSL", "SVM"))
-    wrapped(layout, f"Renders: {status}", "CHECKMARK" if exact and "warning" not in status else "ERROR",
-            context, boxes)
+    status = node.node_state(group, scene)
+    if status is None:
+        return
+    wrapped(layout, status.text, "ERROR" if status.action else "CHECKMARK", context, boxes)
+    if status.action and status.operator:
+        idname, props = status.operator
+        op = layout.operator(idname, text=status.action, icon="FORWARD")
+        for key, value in props.items():
+            setattr(op, key, value)
+    elif status.action:
+        wrapped(layout, status.action, "FORWARD", context, boxes)
 
 
 def _split(layout):

@@ -319,7 +319,7 @@ def test_osl_furnace_anisotropic(aniso_tables, tangent):
     tab = open_tables(aniso_tables)
     spp = 256
     img, normal, inner, node, sc = _furnace(aniso_tables, spp, "osl", tangent=tangent)
-    assert lb.node_status(node, sc) == "OSL"
+    assert lb.node_status(node, sc) == "OSL, exact"
     tangent = np.array(tangent or lb.TANGENT)
     stats = []
     for nrm in normal[inner]:
@@ -356,7 +356,7 @@ def test_osl_furnace_gives_the_baked_albedo(baked, name):
     tab = open_tables(baked[name])
     spp = 256
     img, normal, inner, node, sc = _furnace(baked[name], spp, "osl")
-    assert lb.node_status(node, sc) == "OSL"
+    assert lb.node_status(node, sc) == "OSL, exact"
     cos = normal[inner][:, 2]
     ref, var = zip(*(_albedo_and_variance(tab, np.array([np.sqrt(1.0 - c * c), 0.0, c])) for c in cos))
     np.testing.assert_allclose(ref, [baked_albedo(tab, c) for c in cos], rtol=1e-9)
@@ -372,7 +372,7 @@ def test_osl_furnace_on_mixed_resolutions(tmp_path):
     tab = open_tables(path)
     spp = 256
     img, normal, inner, node, sc = _furnace(path, spp, "osl")
-    assert lb.node_status(node, sc) == "OSL"
+    assert lb.node_status(node, sc) == "OSL, exact"
     cos = normal[inner][:, 2]
     assert np.sum(cos > np.cos(np.radians(50.0))) > 20 and np.sum(cos < np.cos(np.radians(50.0))) > 20
     ref, var = zip(*(_albedo_and_variance(tab, np.array([np.sqrt(1.0 - c * c), 0.0, c])) for c in cos))
@@ -383,7 +383,7 @@ def test_fit_furnace_gives_the_fitted_albedo(baked):
     """The fit back end in Cycles (SVM closures) reflects what the fit file says it does."""
     path = baked["gold"]
     img, normal, inner, node, sc = _furnace(path, 128, "fit")
-    assert lb.node_status(node, sc).startswith("fit")
+    assert lb.node_status(node, sc).startswith("Fit")
     fit = load_fit(path.with_name(path.stem + ".fit.json"))
     assert np.allclose(fit["fit_albedo"], fit["albedo"], rtol=1e-6)
     c = normal[inner][:, 2]
@@ -410,16 +410,16 @@ def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):
     mat = bpy.data.materials.new("gold")
     node = lb.assign_learned_bsdf(mat, "gold", path)
     cs.add_sphere(sc, mat, segments=32, rings=16)
-    assert lb.backend_of(sc) == "auto" and lb.node_status(node, sc) == "OSL"
+    assert lb.backend_of(sc) == "auto" and lb.node_status(node, sc) == "OSL, exact"
     sc.cycles.shading_system = False
     bpy.context.view_layer.update()     # the scene-change handler follows
-    assert lb.node_status(node, sc) == "SVM" and switch_of(node) == 0.0 and switch_of(node, lb.SWITCH_SVM) == 1.0
+    assert lb.node_status(node, sc) == "SVM, exact" and switch_of(node) == 0.0 and switch_of(node, lb.SWITCH_SVM) == 1.0
     sc.cycles.shading_system = True
     sc.cycles.device = 'GPU'
-    assert lb.node_status(node, sc) == "SVM"
+    assert lb.node_status(node, sc) == "SVM, exact"
     sc.cycles.device = 'CPU'
     lb.set_backend(sc, "fit")
-    assert lb.backend_of(sc) == "fit" and lb.node_status(node, sc).startswith("fit")
+    assert lb.backend_of(sc) == "fit" and lb.node_status(node, sc).startswith("Fit")
     with pytest.raises(ValueError, match="back end"):
         lb.set_backend(sc, "gpu")
     lb.set_backend(sc, "osl")
@@ -435,7 +435,7 @@ def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):
     mat = bpy.data.materials["gold"]
     node = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
     assert node.label == "Learned BSDF" and lb.backend_of(sc) == "osl"
-    assert lb.node_status(node, sc) == "OSL"
+    assert lb.node_status(node, sc) == "OSL, exact"
     np.testing.assert_allclose(cs.render(sc), osl_img, rtol=1e-6)   # same seed, same image
 
     # Saved as it renders without the add-on (no lamps: the SVM graph), opened without it and
@@ -463,7 +463,7 @@ def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):
     for p in tmp_path.glob("gold*.exr"):
         p.unlink()
     status = lb.node_status(node, sc)
-    assert status.startswith("fit (tables missing: ") and str(path) in status, status
+    assert "(tables missing). Bake the Material (tables missing: " in status and str(path) in status, status
     img = cs.render(sc)                 # render_pre switches the group to the fit
     assert switch_of(node) == 0.0 and switch_of(node, lb.SWITCH_SVM) == 0.0
     sphere = img[inner].mean(0)
@@ -564,7 +564,7 @@ def test_auto_picks_osl_under_light_objects_and_says_what_it_does_not_light(bake
     mat = bpy.data.materials.new("m")
     node = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
     lb.set_backend(sc, "auto")
-    assert lb.node_status(node, sc) == "OSL"
+    assert lb.node_status(node, sc) == "OSL, exact"
     made = []
     for k in range(lamps.SLOTS + 2):
         lamp = bpy.data.objects.new(f"Lamp{k:02d}", bpy.data.lights.new(f"Lamp{k:02d}", 'POINT'))
@@ -572,15 +572,15 @@ def test_auto_picks_osl_under_light_objects_and_says_what_it_does_not_light(bake
         made.append(lamp)
         bpy.context.view_layer.update()
         if k < lamps.SLOTS:
-            assert lb.node_status(node, sc) == "OSL" and switch_of(node) == 1.0
+            assert lb.node_status(node, sc) == "OSL, exact" and switch_of(node) == 1.0
     status = lb.node_status(node, sc)
-    assert status.startswith("OSL (warning: 2 lamp(s) past the first 8 are not lit (Lamp08, Lamp09)"), status
+    assert status.startswith("OSL, exact, but 2 lamps past the first 8 are not lit (Lamp08, Lamp09). Use at most 8 lamps"), status
     script = node.node_tree.nodes[lb.SCRIPT]
     assert [script.inputs[f"L{k}Kind"].default_value for k in range(lamps.SLOTS)] == [1] * lamps.SLOTS
     for lamp in made[lamps.SLOTS:]:
         lamp.hide_render = True
     bpy.context.view_layer.update()
-    assert lb.node_status(node, sc) == "OSL"
+    assert lb.node_status(node, sc) == "OSL, exact"
 
 
 def test_film_settings_follow_the_scene(baked):
@@ -728,7 +728,7 @@ def test_rgl_sphere_under_an_environment_both_back_ends(rgl_baked, name, tmp_pat
     lb.set_backend(sc, "fit")
     fit_img = cs.render(sc)
     group = next(n for n in bpy.data.materials[name].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
-    assert lb.node_status(group, sc).startswith("fit")
+    assert lb.node_status(group, sc).startswith("Fit")
     assert np.all(np.isfinite(fit_img))
     rel = (fit_img[inner].mean(0) - ref[inner].mean(0)) / ref[inner].mean(0)
     assert np.all(np.abs(rel) < 0.2), rel
@@ -876,7 +876,7 @@ def test_osl_furnace_carried_gives_the_blended_albedo(carried_textures, tmp_path
         lb.set_backend(sc, "osl")
         cs.add_plane(sc, material, size=40.0).rotation_euler = (0.0, np.radians(deg), 0.0)
         img = cs.render(sc).reshape(-1, 3)
-        assert lb.node_status(node, sc) == "OSL, carried blend"
+        assert lb.node_status(node, sc) == "OSL, carried blend, exact"
         assert node.node_tree.nodes[lb.SCRIPT].inputs["Carried"].default_value == str(texture)
         theta = np.radians(deg)
         wi = np.array([np.sin(theta), 0.0, np.cos(theta)])

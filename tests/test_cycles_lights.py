@@ -412,59 +412,189 @@ def _switches(node):
     return tuple(node.node_tree.nodes[name].outputs[0].default_value for name in (lb.SWITCH, lb.SWITCH_SVM))
 
 
-def test_without_osl_under_lamps_auto_renders_the_fit_and_says_which_lamps_svm_reaches(plastic):
+def test_without_osl_under_lamps_auto_renders_the_fit_and_says_the_step_to_exact(plastic):
     """OSL off, back end "auto": no lamps, the SVM graph; under lamps the fit (at equal time it
-    beats the SVM graph there: node._resolve), the status naming the lamps the SVM graph's
-    portal cannot reach and why (hidden from the camera, radius 0, angle 0, Multiple Importance
-    off), or saying that it renders them exactly; forced "svm" warns of those only. The
-    switches follow on the next scene update. A point lamp as bpy makes it is hidden from the
-    camera (bpy 5.0) and has radius 0."""
+    beats the SVM graph there: node._resolve), its status saying how far it is from the
+    measured material and the one step to an exact back end: on the CPU, turning on OSL; on the
+    GPU, the SVM graph: first making each lamp its portal cannot reach reachable (hidden from the
+    camera, radius 0, angle 0, Multiple Importance off: lamps.reach, the status's button), then
+    setting the back end to SVM. Forced "svm" says which lamp it does not reach. The switches
+    follow on the next scene update. A point lamp as bpy makes it is hidden from the camera
+    (bpy 5.0) and has radius 0."""
+    from blender_addon import lamps
     sc = cs.reset(8, 8, spp=1, osl=False)
     mat = bpy.data.materials.new("plastic")
     node = lb.assign_learned_bsdf(mat, "plastic", plastic)
     lb.set_backend(sc, "auto")
-    assert lb.node_status(node, sc) == "SVM"                    # no lamps: the SVM graph
+    assert lb.node_status(node, sc) == "SVM, exact"             # no lamps: the SVM graph
     lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", 'POINT'))
     sc.collection.objects.link(lamp)
     assert not lamp.visible_camera and lamp.data.shadow_soft_size == 0.0     # as bpy makes it
 
-    def fit_because(why):
+    def state():
         bpy.context.view_layer.update()
-        status = lb.node_status(node, sc)
-        assert status.startswith(f"fit (lamps (Lamp: {why}) light only the fit without OSL (Open Shading "
-                                 "Language is off"), status
-        assert "% from the" in status and _switches(node) == (0.0, 0.0), (status, _switches(node))
+        return lb.node_state(node, sc)
+
+    def fit_because(why, step, operator):
+        """On the GPU: the fit, why, and the step to the SVM graph; on the CPU the step to OSL;
+        forced "svm": the SVM graph, naming the lamp it does not reach."""
+        st = state()
+        assert st.backend == "fit" and _switches(node) == (0.0, 0.0), (st, _switches(node))
+        assert st.text.startswith("Fit, ~") and st.text.endswith(f" % off the tables ({why})"), st
+        assert (st.action, st.operator) == (step, operator), st
+        sc.cycles.device = 'CPU'
+        st = state()
+        assert st.text.endswith("(lamps need OSL)"), st
+        assert (st.action, st.operator) == ("Turn On OSL (CPU)", ("flowbsdf.use_osl", {})), st
         lb.set_backend(sc, "svm")
-        assert lb.node_status(node, sc).startswith(f"SVM (warning: lamps (Lamp: {why})") and \
-            _switches(node) == (0.0, 1.0)
+        st = state()
+        if operator[0] == "flowbsdf.reach_lamp":
+            assert st.text == f"SVM, exact but {why}: it lights only the fit" and st.action == step, st
+        else:
+            assert st.text == "SVM, exact" and not st.action, st
+        assert _switches(node) == (0.0, 1.0)
         lb.set_backend(sc, "auto")
-    fit_because("hidden from the camera")
+        sc.cycles.device = 'GPU'
+
+    sc.cycles.device = 'GPU'
+    reach = ("flowbsdf.reach_lamp", {"lamp": "Lamp"})
+    fit_because("Lamp is hidden from the camera", "Show Lamp to Camera", reach)
     lamp.visible_camera = True
-    fit_because("radius 0")
-    lamp.data.shadow_soft_size = 0.1
-    bpy.context.view_layer.update()
-    status = lb.node_status(node, sc)
-    assert status.startswith("fit (lamps (Lamp) light the fit: OSL is off") and "renders them exactly" in status
-    assert _switches(node) == (0.0, 0.0)
-    lb.set_backend(sc, "svm")
-    assert lb.node_status(node, sc) == "SVM" and _switches(node) == (0.0, 1.0)     # exact: no warning
-    lb.set_backend(sc, "auto")
+    fit_because("Lamp has radius 0", "Give Lamp a Radius", reach)
+    lamps.reach(lamp)                       # what the status's button does
+    assert lamp.visible_camera and lamp.data.shadow_soft_size == pytest.approx(lamps.RADIUS)
+    fit_because("under lamps SVM is noisier", "Set Back End to SVM", ("flowbsdf.set_backend", {"backend": "svm"}))
     lamp.data.cycles.use_multiple_importance_sampling = False
     lamp.data.update_tag()          # (a Python property of Cycles' set from a script tags nothing; the UI does)
-    fit_because("Multiple Importance off")
-    lamp.data.cycles.use_multiple_importance_sampling = True
-    lamp.data.update_tag()
+    fit_because("Lamp has Multiple Importance off", "Use Multiple Importance", reach)
+    lamps.reach(lamp)
     sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", 'SUN'))
     sun.data.angle = 0.0
     sc.collection.objects.link(sun)
     sun.visible_camera = True
-    bpy.context.view_layer.update()
-    status = lb.node_status(node, sc)
-    assert status.startswith("fit (lamps (Sun: angle 0) light only the fit"), status     # only the one it misses
-    # with OSL on, OSL whatever the lamps
-    sc.cycles.shading_system = True
+    st = state()                            # only the one it misses
+    assert st.text.endswith("(Sun has angle 0)"), st
+    assert (st.action, st.operator) == ("Give Sun an Angle", ("flowbsdf.reach_lamp", {"lamp": "Sun"})), st
+    lamps.reach(sun)
+    assert sun.data.angle == pytest.approx(lamps.ANGLE)
+    # with OSL on (the CPU step's button: device CPU, OSL on), OSL whatever the lamps
+    sc.cycles.device, sc.cycles.shading_system = 'CPU', True
+    lb.set_backend(sc, "auto")              # (syncs the switches: a Python property of Cycles' set from a script tags nothing)
+    assert lb.node_status(node, sc) == "OSL, exact" and _switches(node)[0] == 1.0
+
+
+def _statuses(plastic):
+    """Every (situation, Status) the node can produce in a Cycles-capable Blender: each back-end
+    choice and each reason, lamps of Blender's default names."""
+    from blender_addon import lamps
+    sc = cs.reset(8, 8, spp=1, osl=True)
+    node = lb.assign_learned_bsdf(bpy.data.materials.new("plastic"), "plastic", plastic)
+    out = []
+
+    def look(situation):
+        bpy.context.view_layer.update()
+        out.append((situation, lb.node_state(node, sc)))
+
+    def lamp(name, kind='POINT', **settings):
+        ob = bpy.data.objects.new(name, bpy.data.lights.new(name, kind))
+        sc.collection.objects.link(ob)
+        ob.visible_camera = True
+        for key, value in settings.items():
+            setattr(ob.data, key, value)
+        return ob
+    look("OSL on, no lamps")
+    made = [lamp(f"Light.{k:03d}", shadow_soft_size=0.1) for k in range(lamps.SLOTS + 2)]
+    look("OSL on, 10 lamps")
+    for ob in made:
+        bpy.data.objects.remove(ob)
+    area = lamp("Area", 'AREA', spread=0.0)
+    look("OSL on, an area lamp of spread 0")
+    area.data.spread, area.data.use_nodes = 1.0, True
+    look("OSL on, a lamp with nodes")
+    bpy.data.objects.remove(area)
+    sc.cycles.shading_system = False
+    look("OSL off, no lamps")
+    for backend in ("fit", "osl"):
+        lb.set_backend(sc, backend)
+        look(f"OSL off, back end {backend}")
+    sc.cycles.device = 'GPU'
+    look("GPU, back end osl")
     lb.set_backend(sc, "auto")
-    assert lb.node_status(node, sc) == "OSL" and _switches(node)[0] == 1.0
+    light = lamp("Light")
+    for device in ('GPU', 'CPU'):
+        sc.cycles.device = device
+        for why, change in (("hidden from the camera", lambda: setattr(light, "visible_camera", False)),
+                            ("radius 0", lambda: setattr(light, "visible_camera", True)),
+                            ("Multiple Importance off", lambda: (
+                                setattr(light.data, "shadow_soft_size", 0.1),
+                                setattr(light.data.cycles, "use_multiple_importance_sampling", False))),
+                            ("reachable", lambda: setattr(light.data.cycles, "use_multiple_importance_sampling", True))):
+            change()
+            light.data.update_tag()
+            look(f"{device}, OSL off, lamp {why}")
+            if device == 'GPU' and why != "reachable":
+                lb.set_backend(sc, "svm")
+                look(f"GPU, back end svm, lamp {why}")
+                lb.set_backend(sc, "auto")
+    sun = lamp("Sun", 'SUN', angle=0.0)
+    sc.cycles.device = 'GPU'
+    look("GPU, OSL off, sun of angle 0")
+    bpy.data.objects.remove(sun)
+    for engine in ("BLENDER_EEVEE_NEXT", "BLENDER_EEVEE", "BLENDER_WORKBENCH"):
+        try:
+            sc.render.engine = engine
+        except TypeError:           # (not an engine of this Blender)
+            continue
+        look(engine)
+    sc.render.engine = 'CYCLES'
+    sc.cycles.device, sc.cycles.shading_system = 'CPU', True
+    info = lb._info(node.node_tree)
+    for key, situation in (("osl_texture", "OSL texture missing"), ("tables", "tables missing")):
+        path = Path(info[key])
+        aside = path.with_name(path.name + ".aside")
+        path.rename(aside)
+        try:
+            look(situation)
+        finally:
+            aside.rename(path)
+    return out
+
+
+def test_every_status_fits_the_sidebar_and_names_a_step(plastic):
+    """Every status the node can produce (each back-end choice and reason) fits Blender's default
+    sidebar: the text in at most four lines of a box's labels, the step in one button (measured
+    in the UI font at UI scale 1 as tests/blender_ui_script.py measures labels and buttons:
+    panels.wrap and line_width), and where it does not render exactly it names that step with a
+    button of the add-on's that has those properties (or, for the lamps' limits, the artist's
+    step). The texts say what renders (OSL, SVM or the fit with how far it is off) in the UI's
+    words: no identifiers."""
+    from blender_addon import operators, panels
+    statuses = _statuses(plastic)
+    ops = {cls.bl_idname: cls for cls in operators.classes}
+    seen = {st.backend for _, st in statuses}
+    assert seen == {"osl", "svm", "fit"}, seen
+    assert len({st.text for _, st in statuses}) >= 15, statuses
+    for situation, st in statuses:
+        lines = panels.wrap(st.text, bpy.context, boxes=1)
+        assert len(lines) <= 4, (situation, lines)
+        assert st.text.split(",")[0] in ("OSL", "SVM", "Fit"), (situation, st)
+        assert not any(word.isupper() and "_" in word for word in st.text.split()), (situation, st)
+        exact = st.backend != "fit" and " but " not in st.text
+        assert bool(st.action) != exact, (situation, st)
+        if st.backend == "fit":
+            assert " % off the " in st.text, (situation, st)
+        if situation.endswith("missing"):
+            assert st.text.endswith(f"({situation})") and st.action == "Bake the Material", (situation, st)
+        if not st.action:
+            continue
+        assert len(panels.wrap(st.action, bpy.context, boxes=1)) == 1, (situation, st.action)
+        assert panels.text_width(st.action, bpy.context) <= panels.line_width(bpy.context, boxes=1), st.action
+        if st.operator:
+            idname, props = st.operator
+            declared = {key for cls in getattr(ops.get(idname), "__mro__", ()) for key in getattr(cls, "__annotations__", {})}
+            assert idname in ops and set(props) <= declared, (situation, st)
+        else:
+            assert st.backend == "osl", (situation, st)         # the lamps' limits: the artist's step
 
 
 # ------------------------------------------------------------------------------ SVM under lamps
@@ -532,13 +662,13 @@ def _sphere_footprint(sc, fov_deg, margin=0.75):
     return np.logical_and.reduce(corners), ~np.logical_or.reduce(corners)
 
 
-def _svm_renders(sc, node, spp, seeds, status="SVM"):
+def _svm_renders(sc, node, spp, seeds, status="SVM, exact"):
     """The SVM back end (the scene's back end "svm") with OSL off (render_pre sets the switches;
     Blender's pixel filter: hashed u)."""
     sc.cycles.shading_system = False
     sc.cycles.samples = spp
     got = lb.node_status(node, sc)
-    assert (got == status) if status == "SVM" else got.startswith(status), got
+    assert (got == status) if status == "SVM, exact" else got.startswith(status), got
     return cs.render_seeds(sc, seeds)
 
 
@@ -550,7 +680,7 @@ def _osl_renders(sc, node, spp, seeds):
     sc.cycles.shading_system = True
     sc.cycles.samples = spp
     lb.set_backend(sc, "auto")
-    assert lb.node_status(node, sc) == "OSL"
+    assert lb.node_status(node, sc) == "OSL, exact"
     cs.hashed_u(node)
     return cs.render_seeds(sc, seeds)
 
@@ -609,7 +739,7 @@ def test_svm_under_lamps_is_unbiased_at_blenders_render_settings(plastic, area_s
     lb.set_backend(sc, "svm")
     svm = _svm_renders(sc, node, spp, seeds)
     area.visible_camera = False                 # the portal cannot hit it: its light is lost to the rest
-    hidden = _svm_renders(sc, node, 64, 4, "SVM (warning: lamps (area lamp: hidden from the camera)")
+    hidden = _svm_renders(sc, node, 64, 4, "SVM, exact but area lamp is hidden from the camera: it lights only the fit. Show Lamp to Camera")
     area.visible_camera = True
     osl_spp, osl_seeds = 64, 8
     osl = _osl_renders(sc, node, osl_spp, osl_seeds)

@@ -263,7 +263,7 @@ def test_fit_renders_what_eval_fit_states(rendered, name):
     next to a specular peak of the sharpest lobe, r 0.15-0.2, where Cycles' float 1 - cos^2
     of the half vector rounds)."""
     _, now = rendered["status"][name]
-    assert now.startswith("fit (scene back end: fit"), now
+    assert now.startswith("Fit") and now.endswith("(Back End: Fit). Set Back End to Auto"), now
     got, ref, wi, wo = _of(rendered, name)
     assert np.all(np.isfinite(got))
     spread, = _of(rendered, name, ("spread",))
@@ -323,6 +323,6 @@ def test_missing_tables_render_the_fit(tmp_path):
     finally:
         lb.unregister()
     assigned, now = result["status"]["anisotropic"]
-    assert assigned.startswith("fit (tables missing: "), assigned
+    assert assigned.startswith("Fit") and "(tables missing). Bake the Material" in assigned, assigned
     rel = _relative(result["got"], result["ref"])
     assert np.mean(rel < TOLERANCE) >= SHARE
