@@ -604,6 +604,8 @@ def _build_tree(tree, name, tables_path, fit_path):
             "osl_texture": osl_texture, "svm_texture": svm_texture, "has_fit": fit is not None,
             "has_osl": with_osl, "fit_error": float(fit.get("error", -1.0)) if fit else -1.0,
             "fit_error_of": fit.get("l1_of", "") if fit else "", "fit_version": FIT_VERSION if fit else 0,
+            # (fits before the key: view_aligned 0 was the anisotropic tables' mark)
+            "anisotropic": bool(fit.get("anisotropic", fit.get("view_aligned", 1) == 0)) if fit else False,
             "matte": world.matte_fraction(fit),
             "problems": "; ".join(problems)}
     shader = fit_out
@@ -697,18 +699,20 @@ def assign_learned_bsdf(material, name, tables_path, fit_path=None):
         if n.bl_idname == "ShaderNodeGroup" and n.node_tree is not None and TREE_KEY in n.node_tree.keys():
             node = n
             break
-    if node is None:
-        node = mtree.nodes.new("ShaderNodeGroup")
-        node.location = (-200, 300)
-    node.node_tree = tree
-    node.label = NODE_LABEL
-    node.name = NODE_LABEL
-    node.width = 220
     output = next((n for n in mtree.nodes if n.bl_idname == "ShaderNodeOutputMaterial" and n.is_active_output),
                   None) or next((n for n in mtree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"), None)
     if output is None:
         output = mtree.nodes.new("ShaderNodeOutputMaterial")
         output.location = (200, 300)
+    if node is None:
+        node = mtree.nodes.new("ShaderNodeGroup")
+        node.location = _beside(output)
+    node.node_tree = tree
+    node.label = NODE_LABEL
+    node.name = NODE_LABEL
+    node.width = 220
+    # The Tangent input orients anisotropic tables only (isotropic ones render the same for any).
+    node.inputs["Tangent"].hide = not _info(tree).get("anisotropic", False)
     mtree.links.new(node.outputs["BSDF"], output.inputs["Surface"])
     if hasattr(material.cycles, "emission_sampling"):
         # The shader's emission is the lamps' reflected light, not a light source: Cycles must
@@ -717,6 +721,16 @@ def assign_learned_bsdf(material, name, tables_path, fit_path=None):
     for scene in bpy.data.scenes:
         sync(scene, bake_world=scene.render.engine == 'CYCLES')
     return node
+
+
+def _beside(output):
+    """Where a new Learned BSDF node goes: above the node it replaces at the output's Surface
+    (which keeps its place, unlinked, not hidden under the new one), else left of the output."""
+    surface = output.inputs["Surface"]
+    if surface.is_linked:
+        old = surface.links[0].from_node
+        return old.location.x, old.location.y + 260
+    return output.location.x - 300, output.location.y
 
 
 # ------------------------------------------------------------------------------ back ends

@@ -208,16 +208,19 @@ def draw_material(layout, mat, context):
     else:
         col.prop(s, "python_callable")
         col.prop(s, "python_isotropic")
-    col.prop(s, "domain")
-    col.prop(s, "preset")
     col.prop(s, "bake_quality")
     col.prop(s, "tables_from")
     if s.source_kind == "FILE":
         col.prop(s, "carried")
+    trained = s.tables_from == "MODEL"
+    if trained:                         # what training uses: only on the trained model's route
+        col.prop(s, "preset")
+        col.prop(s, "domain")
     col = layout.column(align=True)
     col.operator("flowbsdf.bake", text="Bake", icon="RENDER_STILL").only_active = True
-    col.operator("flowbsdf.train_bake", text="Train + Bake", icon="PLAY").only_active = True
-    col.operator("flowbsdf.load_model", text="Load Model", icon="FILEBROWSER")
+    if trained:
+        col.operator("flowbsdf.train_bake", text="Train + Bake", icon="PLAY").only_active = True
+        col.operator("flowbsdf.load_model", text="Load Model", icon="FILEBROWSER")
 
 
 def draw_scene(layout, context):

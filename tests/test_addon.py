@@ -806,9 +806,17 @@ def test_panel_draws_every_state(addon, tmp_path):
         job.run(echo=False)
         worker.current = None
     ops = {name for kind, name in seen if kind == "operator"}
-    assert {"flowbsdf.enable", "flowbsdf.bake", "flowbsdf.train_bake", "flowbsdf.scan", "flowbsdf.load_model",
-            "flowbsdf.validate", "flowbsdf.set_backend"} <= ops
+    assert {"flowbsdf.enable", "flowbsdf.bake", "flowbsdf.scan", "flowbsdf.validate", "flowbsdf.set_backend"} <= ops
     assert {"filepath", "analytic_preset", "python_callable", "out_dir"} <= {n for k, n in seen if k == "prop"}
+    # Only what the chosen route uses: training's settings and buttons with tables from a trained model.
+    training = {("prop", "preset"), ("prop", "domain"), ("operator", "flowbsdf.train_bake"),
+                ("operator", "flowbsdf.load_model")}
+    for tables_from, shown in (("MATERIAL", False), ("MODEL", True)):
+        mat.flowbsdf.tables_from = tables_from
+        drawn = []
+        panels.FLOWBSDF_PT_material.draw(SimpleNamespace(layout=_Recorder(drawn)), ctx)
+        assert (training <= set(drawn)) if shown else not training & set(drawn), (tables_from, drawn)
+        assert ("operator", "flowbsdf.bake") in drawn
 
 
 def test_modal_progress_and_cancel(addon, tmp_path):

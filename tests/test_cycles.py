@@ -479,6 +479,23 @@ def switch_of(node, name=None):
     return node.node_tree.nodes[name or lb.SWITCH].outputs[0].default_value
 
 
+def test_a_new_node_goes_beside_what_it_replaces_and_shows_tangent_only_where_it_orients(baked, aniso_tables):
+    """Binding a material whose output was fed by a Principled BSDF: the Learned BSDF node goes
+    above it (not on top of it: the Principled stays where it was, visible, unlinked); its
+    Tangent input shows only for anisotropic tables (isotropic ones render the same for any)."""
+    cs.reset(8, 8, spp=1)
+    for key, path, shown in (("iso", baked["plastic"], False), ("aniso", aniso_tables, True)):
+        mat = bpy.data.materials.new(key)
+        mat.use_nodes = True
+        principled = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeBsdfPrincipled")
+        where = tuple(principled.location)
+        node = lb.assign_learned_bsdf(mat, path.stem, path)
+        assert tuple(principled.location) == where and not principled.outputs[0].is_linked
+        assert node.location.x == pytest.approx(where[0]) and node.location.y >= where[1] + 200, \
+            (tuple(node.location), where)
+        assert node.inputs["Tangent"].hide is not shown, key
+
+
 def test_assign_twice_reuses_the_group(baked):
     """... and compiling the shader leaves no files behind (Cycles would leave its .oso)."""
     import tempfile

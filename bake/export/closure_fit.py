@@ -391,7 +391,7 @@ def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None, vie
     `material` (the measured file) when given, else the tables."""
     view_aligned = 0 if tables.anisotropic else view_aligned
     out = {"format": "flowbsdf-closure-fit", "version": FIT_VERSION, "model": MODEL,
-           "view_aligned": view_aligned,
+           "view_aligned": view_aligned, "anisotropic": bool(tables.anisotropic),
            "x": [], "theta_deg": [], "diffuse": [], "specular": [], "roughness": [], "anisotropy": [],
            "rel_error": [], "albedo": [], "fit_albedo": [], "cv": []}
     lobes = prev = None
