@@ -134,7 +134,22 @@ def _toml_key(k):
     return k if k.replace("_", "").replace("-", "").isalnum() else json.dumps(k)
 
 
-def manifest_text(rows, notes=None, source=""):
+def _portable(source, base):
+    """A file source inside the project (the folder holding the manifest's folder, e.g. the
+    .blend's beside //flowbsdf) relative to the manifest's folder `base`, so the project moves as
+    one folder (the bake reads a relative source against the manifest's folder); one elsewhere as
+    given, absolute."""
+    if not isinstance(source, str) or not base or not os.path.isabs(source):
+        return source
+    try:
+        rel = os.path.relpath(source, base).replace(os.sep, "/")
+    except ValueError:              # another drive (Windows)
+        return source
+    return source if rel.startswith("../../") else rel
+
+
+def manifest_text(rows, notes=None, source="", base=None):
+    """The manifest's text; file sources relative to `base` (its folder) where they can be."""
     notes = notes or {}
     lines = ["# FlowBSDF manifest written by the Blender add-on's scene scan" + (f" of {source}" if source else ""),
              "# (the learned materials that rendered objects use); regenerated on each scan.", ""]
@@ -154,7 +169,8 @@ def manifest_text(rows, notes=None, source=""):
         lines.append("[[material]]")
         for key in ("name", "source", "domain", "train", "bake"):
             if entry.get(key) not in (None, {}):
-                lines.append(f"{key} = {_toml_value(entry[key])}")
+                value = _portable(entry[key], base) if key == "source" else entry[key]
+                lines.append(f"{key} = {_toml_value(value)}")
         lines.append("")
     return "\n".join(lines)
 
@@ -165,7 +181,7 @@ def write_manifest(rows, path, notes=None, source=""):
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     tmp = path + ".tmp"
     with open(tmp, "w", encoding="utf-8") as f:
-        f.write(manifest_text(rows, notes, source))
+        f.write(manifest_text(rows, notes, source, base=os.path.dirname(os.path.abspath(path))))
     os.replace(tmp, path)
     return path
 

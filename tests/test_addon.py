@@ -111,6 +111,22 @@ def test_scan_lists_only_what_renders(addon, tmp_path):
     assert "used by 1 object(s): instanced_obj" in text and "state: missing" in text
 
 
+def test_the_manifest_names_a_measured_file_relative_to_itself(tmp_path):
+    """The scan's manifest names a material's file relative to the manifest's folder (the project
+    moves as one folder), and the bake finds the file from there."""
+    from types import SimpleNamespace
+    from blender_addon import scan
+    measured = tmp_path / "files" / "silk.bsdf"
+    measured.parent.mkdir()
+    measured.write_bytes(b"x")
+    row = {"entry": {"name": "silk", "source": str(measured), "bake": {"resolution": 16}}, "name": "silk",
+           "material": SimpleNamespace(name="silk"), "users": ["ball"]}
+    path = scan.write_manifest([row], tmp_path / "out" / "manifest.toml")
+    assert 'source = "../files/silk.bsdf"' in Path(path).read_text()
+    entry = load_manifest(path).materials[0]
+    assert entry.source_path().resolve() == measured.resolve() and not entry.missing()
+
+
 def test_operator_errors_are_messages(addon, tmp_path, monkeypatch):
     bpy.ops.wm.read_factory_settings(use_empty=True)
     bpy.context.scene.flowbsdf.out_dir = str(tmp_path)
