@@ -172,9 +172,10 @@ def _carry_texture(tables_path):
 
 
 def svm_available():
-    """Whether this Blender has the Ray Portal BSDF (4.2+), the Light Path node's Portal Depth
-    output (5.0+; svm.py reads it) and a `bake` that imports (numpy): what the SVM back end needs."""
-    return (hasattr(bpy.types, "ShaderNodeBsdfRayPortal") and bpy.app.version >= (5, 0, 0)
+    """Whether this Blender runs the SVM back end: the Ray Portal BSDF (4.2+) with Cycles' MIS of
+    a lamp hit past a portal as 5.0 has it (4.5+: path_state_next), and a `bake` that imports
+    (numpy). 4.2 LTS (past its support) renders the fit."""
+    return (hasattr(bpy.types, "ShaderNodeBsdfRayPortal") and bpy.app.version >= (4, 5, 0)
             and _bake_mod("export.svm_export") is not None)
 
 

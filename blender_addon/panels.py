@@ -5,6 +5,8 @@ row with its label on the left (property split), buttons one to a row (the back-
 switch four short ones), and every long text (what renders, job messages, scan results)
 wrapped to the region's width (`wrapped`, measured in the UI font), never cut.
 """
+import os
+
 import bpy
 
 from . import worker
@@ -223,10 +225,29 @@ def draw_material(layout, mat, context):
         col.operator("flowbsdf.load_model", text="Load Model", icon="FILEBROWSER")
 
 
+_disk = {}                      # tables folder -> (its mtime, the text): the panel redraws often
+
+
+def disk_use(folder):
+    """How much the tables folder takes, in words ("" when there is none)."""
+    try:
+        mtime = os.stat(folder).st_mtime_ns
+    except OSError:
+        return ""
+    if _disk.get(folder, (None,))[0] != mtime:
+        files = [e for e in os.scandir(folder) if e.is_file()]
+        _disk[folder] = (mtime, f"Tables: {sum(e.stat().st_size for e in files) / 1e6:.1f} MB, {len(files)} files")
+    return _disk[folder][1]
+
+
 def draw_scene(layout, context):
     s = context.scene.flowbsdf
     col = _split(layout)
     col.prop(s, "out_dir")
+    from . import scan
+    used = disk_use(os.path.join(scan.out_dir(context.scene), "tables"))
+    if used:
+        wrapped(layout, used, "DISK_DRIVE", context)
     from . import jobs
     where = jobs.unsaved_problem(context.scene)
     if where:

@@ -14,7 +14,7 @@ Per shading point:
   (world x when unlinked) projected onto the tangent plane, phi_i = atan2(wi . y, wi . x);
   at normal incidence / a tangent along n, any perpendicular (as learned_bsdf.osl).
 - u0, u1, u2: White Noise 4D of (Position, Ray Length) -> r, then White Noise 4D of
-  (Incoming, r + Portal Depth + 64 Ray Depth) -> its colour (Cycles gives a node graph no
+  (Incoming, r + portal depth + 64 Ray Depth) -> its colour (Cycles gives a node graph no
   sampler state: every path vertex hashes its own numbers). On camera rays before any
   portal, with Cycles' box pixel filter (`film_settings`, `set_film`), u0, u1 come from
   the sample's place in its pixel instead, rotated by a hash of the pixel and the render's
@@ -169,6 +169,11 @@ def _image(path):
     image = bpy.data.images.load(str(path), check_existing=True)
     if image.packed_file is None:
         image.pack()
+    if bpy.data.filepath and os.path.isabs(image.filepath):    # relative to the .blend: the project moves
+        try:
+            image.filepath = bpy.path.relpath(image.filepath)
+        except ValueError:              # another drive
+            pass
     for owner, key, value in ((image.colorspace_settings, "name", 'Non-Color'), (image, "alpha_mode", 'CHANNEL_PACKED'),
                               (image, "use_half_precision", False)):
         if hasattr(owner, key) and getattr(owner, key) != value:
@@ -1179,12 +1184,21 @@ def _frame(g, n, reference):
     return tx, g.vmath('CROSS_PRODUCT', n, tx)
 
 
+def portal_depth(light_path):
+    """How many Ray Portals the path has gone through: Light Path's Portal Depth (Blender 5.0+);
+    before 5.0 its Transparent Depth, which a portal also counts (Cycles' path_state_next: a
+    portal is a transparent bounce, 4.5 as 5.0), and so does a transparent surface: there camera
+    rays take hashed u instead of their pixel's stratified ones and the hash mixes in that count,
+    unbiased either way."""
+    return light_path.outputs.get("Portal Depth") or light_path.outputs["Transparent Depth"]
+
+
 def _random(g, geometry, light_path):
     """u0, u1, u2 hashed from the shading point and the incoming ray (module docstring)."""
     noise = g.node("ShaderNodeTexWhiteNoise", noise_dimensions='4D')
     g.set(noise.inputs["Vector"], geometry.outputs["Position"])
     g.set(noise.inputs["W"], light_path.outputs["Ray Length"])
-    depth = g.math('MULTIPLY_ADD', light_path.outputs["Ray Depth"], 64.0, light_path.outputs["Portal Depth"])
+    depth = g.math('MULTIPLY_ADD', light_path.outputs["Ray Depth"], 64.0, portal_depth(light_path))
     noise2 = g.node("ShaderNodeTexWhiteNoise", noise_dimensions='4D')
     g.set(noise2.inputs["Vector"], geometry.outputs["Incoming"])
     g.set(noise2.inputs["W"], g.math('ADD', noise.outputs["Value"], depth))
@@ -1244,7 +1258,7 @@ def _film_u(g, light_path, hashed):
     g.set(rotation.inputs["W"], g.dot(film.outputs[0], Z))
     u = g.vmath('FRACTION', g.vmath('ADD', g.vmath('FRACTION', raster), rotation.outputs["Color"]))
     first = g.math('MULTIPLY', light_path.outputs["Is Camera Ray"],
-                   g.math('LESS_THAN', light_path.outputs["Portal Depth"], 0.5))
+                   g.math('LESS_THAN', portal_depth(light_path), 0.5))
     use = g.math('MULTIPLY', first, g.math('GREATER_THAN', g.dot(film.outputs[0], Z), 0.5))
     return tuple(g.select(use, g.dot(u, axis), h) for axis, h in zip((X, Y), hashed))
 

@@ -501,11 +501,43 @@ def bake_world_map(scene, folder):
                 write_sky(sky_file, radiance)
         except world_map.FlowBSDFError:         # black world: nothing to sample
             meta = None
+        remove_superseded(folder)
     sun_file = sun_path(folder, key)
     radiance = read_sun(sun_file) if sun is not None else None
     if sun is not None and not sun_file.is_file():
         radiance = bake_sun(scene, sun, sun_file)
     return shader_inputs(path, meta, sun, _environment(exact, sky_file), radiance, bright_file)
+
+
+def remove_superseded(folder):
+    """Remove the world maps in `folder` (world-<key>.*) that no scene of the open .blend renders
+    now: each world edit makes a new map (~5 MB) and the old one would stay forever. Not while a
+    world is animated (its map changes with the frame: the other frames' maps are still wanted),
+    and never a file an image of the .blend still reads from disk."""
+    keys, animated = set(), False
+    for scene in bpy.data.scenes:
+        key = world_key(scene)
+        if key is not None:
+            keys.add(key[:16])
+        world = scene.world
+        if world is not None and (world.animation_data or (world.node_tree is not None
+                                                            and world.node_tree.animation_data)):
+            animated = True
+    if animated:
+        return []
+    in_use = {os.path.normpath(bpy.path.abspath(i.filepath)) for i in bpy.data.images
+              if i.filepath and i.packed_file is None and i.users}
+    removed = []
+    for path in Path(folder).glob("world-*"):
+        key = path.name[len("world-"):].split(".")[0]
+        if key in keys or os.path.normpath(str(path)) in in_use:
+            continue
+        try:
+            path.unlink()
+            removed.append(path)
+        except OSError:
+            pass
+    return removed
 
 
 def bright_path(folder, key):

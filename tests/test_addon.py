@@ -805,6 +805,9 @@ def test_panel_draws_every_state(addon, tmp_path):
     item.material, item.state, item.needs = "m", "current", "theta_i only: 3 bins"
     ctx = SimpleNamespace(material=mat, scene=scene, active_object=None, region=None,
                           window_manager=bpy.context.window_manager, preferences=bpy.context.preferences)
+    (tmp_path / "tables").mkdir()
+    for name, size in (("m.exr", 1_500_000), ("m.osl8-0123.exr", 600_000), ("world-0123.exr", 400_000)):
+        (tmp_path / "tables" / name).write_bytes(b"\0" * size)
     seen = []
     for kind in ("off", "FILE", "ANALYTIC", "PYTHON"):
         mat.flowbsdf.enabled = kind != "off"
@@ -821,6 +824,7 @@ def test_panel_draws_every_state(addon, tmp_path):
     finally:
         job.run(echo=False)
         worker.current = None
+    assert ("label", "Tables: 2.5 MB, 3 files") in seen, [t for k, t in seen if k == "label"]
     ops = {name for kind, name in seen if kind == "operator"}
     assert {"flowbsdf.enable", "flowbsdf.bake", "flowbsdf.scan", "flowbsdf.validate", "flowbsdf.set_backend"} <= ops
     assert {"filepath", "analytic_preset", "python_callable", "out_dir"} <= {n for k, n in seen if k == "prop"}

@@ -308,6 +308,40 @@ def test_a_world_of_one_colour_is_its_map_without_a_render(tmp_path, monkeypatch
     assert world.constant_radiance(sc) is None
 
 
+def test_a_world_edit_removes_the_map_it_supersedes(tmp_path):
+    """Each world edit makes a new map; the one no scene renders any more goes (three Strength
+    tweaks left +13.8 MB behind), unless an image of the .blend still reads it from disk or a
+    world is animated (the other frames' maps are still wanted)."""
+    from blender_addon import world
+    sc = cs.reset(8, 8, spp=1)
+
+    def maps():
+        return sorted(p.name for p in tmp_path.glob("world-*"))
+    cs.set_world(sc, (0.2, 0.4, 0.6))
+    world.bake_world_map(sc, tmp_path)
+    first = maps()
+    assert first and all(world.world_key(sc)[:16] in name for name in first), first
+    cs.set_world(sc, (0.3, 0.4, 0.6))
+    world.bake_world_map(sc, tmp_path)
+    second = maps()
+    assert second and not set(first) & set(second), (first, second)
+    image = bpy.data.images.load(str(tmp_path / second[0]))       # read from disk by the .blend
+    image.use_fake_user = True
+    cs.set_world(sc, (0.4, 0.4, 0.6))
+    world.bake_world_map(sc, tmp_path)
+    third = maps()
+    key = world.world_key(sc)[:16]
+    assert second[0] in third and all(key in name for name in set(third) - {second[0]}), third
+    bpy.data.images.remove(image)
+    background = next(n for n in sc.world.node_tree.nodes if n.type == 'BACKGROUND')
+    background.inputs["Strength"].keyframe_insert("default_value", frame=1)
+    before = maps()
+    sc.frame_set(2)
+    background.inputs["Color"].default_value = (0.5, 0.4, 0.6, 1.0)
+    world.bake_world_map(sc, tmp_path)
+    assert set(before) < set(maps()), (before, maps())
+
+
 def test_the_map_share_follows_the_material(lambert):
     """A plain map's share of portal directions runs from SHARE_GLOSSY (no diffuse part) to
     SHARE_MATTE (all diffuse) with the fit's matte fraction; a sun's and a small sun's shares,
