@@ -42,7 +42,7 @@ def train_on(device, manifest, material, preset, out):
                        "--device", device, "--out", str(out), "--no-progress"])
     if code != 0:
         raise SystemExit(f"train_device_check: training on {device} failed (exit {code})")
-    return out / f"{material}.flow.npz", time.perf_counter() - t0
+    return out / "models" / f"{material}.flow.npz", time.perf_counter() - t0     # --out: the output folder
 
 
 def rv_table(model_path, material, thetas, samples):

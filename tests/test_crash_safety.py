@@ -180,8 +180,8 @@ def train_kills(tmp_path, kills, seed):
                        env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert r.returncode == 0, r.stderr
     full = time.perf_counter() - t0
-    ref = np.load(tmp_path / "ref" / "rough.flow.npz")
-    out = tmp_path / "models"
+    ref = np.load(tmp_path / "ref" / "models" / "rough.flow.npz")
+    out = tmp_path / "models"       # an --out named models: that folder itself (job.train_models_dir)
     for k in range(kills):
         # torch's start-up takes a good part of a tiny run: kill anywhere in [0.1, 1.1] x its time
         run_and_kill(cmd(out), float(rng.uniform(0.1, 1.1) * full), ROOT)

@@ -3,9 +3,10 @@
 bake.plumbing.job.add_train_arguments) and runs this in a subprocess.
 
 Trains one flow per material of the manifest (or only the --material ones) and writes
-<out>/<name>.flow.npz (default out/models; torch-free: load with bake.core.flow.load_model).
-Checkpoints go to <out>/<name>.train/ckpt/: rerunning the same command resumes an
-interrupted run.
+OUT/models/<name>.flow.npz, where `flowbsdf bake/report/run --out OUT` look for it (--out is the
+output folder, default out; torch-free: load with bake.core.flow.load_model). Checkpoints go to
+OUT/models/<name>.train/ckpt/: rerunning the same command resumes an interrupted run. An --out
+named models is that folder itself (what --out meant before: job.train_models_dir).
 
 A material's `train` table in the manifest may set: preset, steps (Euler steps N),
 seed, the training data's SOURCE_KEYS (theta_i: incident elevations in degrees to train on;
@@ -19,7 +20,7 @@ import sys
 from pathlib import Path
 
 from bake.errors import FlowBSDFError, exit_code
-from bake.plumbing.job import add_train_arguments
+from bake.plumbing.job import add_train_arguments, train_models_dir
 
 SOURCE_KEYS = {"theta_i", "resolution", "pool", "supersample", "phi_i_count"}
 
@@ -57,7 +58,7 @@ def cmd_train(args):
                                 f"(have: {', '.join(sorted(names))})", manifest_path)
     log = lambda m: print(m, file=sys.stderr)  # noqa: E731
     materials = [m for m in manifest.select(None, log=log) if not args.material or m.name in args.material]
-    out = Path(args.out)
+    out = train_models_dir(args.out, log)
     written = []
     for entry in materials:
         settings = dict(getattr(entry, "train", None) or {})

@@ -1,6 +1,9 @@
 """The `flowbsdf` command: one subcommand per job.
 
+    library FOLDER --out DIR               an asset library of measured files (blender_addon/library.py)
     check, yardsticks, bake, report, run   here: a manifest, --material, --out (but check)
+                                           --out is the output folder (models/, tables/, report/
+                                           inside) for train and farm task too
     train                                  the trainer (torch) in a subprocess; its parser is
                                            bake/plumbing/job.py's add_train_arguments
     stress                                 bake/quality/stress.py
@@ -15,7 +18,7 @@ import time
 from pathlib import Path
 
 from ..errors import exit_code
-from .job import TRAIN_PRESETS, add_train_arguments, run_trainer
+from .job import OUT_HELP, TRAIN_PRESETS, add_train_arguments, run_trainer
 
 
 def cmd_check(args):
@@ -69,6 +72,21 @@ def cmd_run(args):
         render=not args.no_render, samples=args.samples).run(args.material)
 
 
+def cmd_library(args):
+    """An asset library of a folder of measured files (DIR/library.blend): the Blender add-on's
+    blender_addon/library.py, found beside bake/ in a checkout."""
+    root = Path(__file__).resolve().parents[2]
+    if (root / "blender_addon" / "library.py").is_file() and str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+    try:
+        from blender_addon import library
+    except ImportError:
+        from ..errors import FlowBSDFError
+        raise FlowBSDFError("`flowbsdf library` needs the Blender add-on's folder (blender_addon) "
+                            "beside bake/: run it from a FlowBSDF checkout") from None
+    library.main(args.folder, args.out, quality=args.quality, blend=not args.no_blend)
+
+
 def build_parser():
     p = argparse.ArgumentParser(prog="flowbsdf", description="Learned BSDF importance sampling.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -78,7 +96,7 @@ def build_parser():
         c.add_argument("manifest")
         c.add_argument("--material", help="only this material of the manifest")
         if out:
-            c.add_argument("--out", default="out", help="output folder (models, tables, report)")
+            c.add_argument("--out", default="out", help=OUT_HELP)
         c.set_defaults(func=func)
         return c
 
@@ -97,6 +115,16 @@ def build_parser():
     m.add_argument("--no-render", action="store_true", help="no shader-ball renders")
     m.add_argument("--samples", type=int, default=None,
                    help="samples per rv cell of the report (default: the manifest's [run.report], else 16384)")
+
+    lib = sub.add_parser("library", help="bake a folder of measured files (RGL .bsdf, MERL .binary) into a "
+                                         "Blender asset library: OUT/library.blend (blender_addon/library.py)")
+    lib.add_argument("folder", help="the measured files (subfolders too)")
+    lib.add_argument("--out", required=True, help="the library's folder (manifest.toml, tables/, library.blend, "
+                                                  "blender_assets.cats.txt)")
+    lib.add_argument("--quality", default="final", choices=("draft", "preview", "final"),
+                     help="the tables' bake settings (draft: seconds, for tests and layout)")
+    lib.add_argument("--no-blend", action="store_true", help="bake only: no library.blend")
+    lib.set_defaults(func=cmd_library)
 
     add_train_arguments(sub.add_parser("train", help="train flow models (torch, in a subprocess: python -m trainer)"))
     from ..quality.stress import add_parser as add_stress

@@ -36,6 +36,7 @@ from pathlib import Path
 
 from ..errors import FlowBSDFError
 from .files import atomic_path
+from .job import OUT_HELP
 
 SPEC_VERSION = "jobtemplate-2023-09"
 MAX_TASK_VALUES = 1024           # OpenJD: a STRING task parameter's range holds at most 1024 values
@@ -235,7 +236,7 @@ def _train(entry, manifest_path, out_dir, python, report, span):
     """Run the trainer for one material, relaying its lines; progress over `span` (lo, hi)."""
     lo, hi = span
     cmd = [python, "-m", "trainer", "train", str(manifest_path), "--material", entry.name,
-           "--out", str(Path(out_dir) / "models"), "--no-progress"]
+           "--out", str(out_dir), "--no-progress"]
     report.progress(lo, f"{entry.name}: training (preset {entry.train.get('preset', 'balanced')})")
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
@@ -341,7 +342,7 @@ def add_parser(sub):
     t = fsub.add_parser("task", help="one material: train if needed, then bake (what a farm task runs)")
     t.add_argument("manifest")
     t.add_argument("--material", required=True)
-    t.add_argument("--out", default="out", help="the shared output folder (models/, tables/)")
+    t.add_argument("--out", default="out", help=OUT_HELP)
     t.add_argument("--train", choices=TRAIN_MODES, default="auto")
     t.add_argument("--stage", choices=STAGES, default="all", help="train, bake, or both (default)")
     t.add_argument("--openjd", action="store_true", help="progress and failure as OpenJD protocol lines")

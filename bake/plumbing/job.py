@@ -15,6 +15,8 @@ Each stage of each material is skipped when its product is current:
           reference's settings stay the same
 report and render write the hash of their inputs to <folder>/job.json last: a folder without
 a matching one (changed inputs, or a stage interrupted) is redone.
+A stage that fails ends its material, not the job: the message goes to the log and the page,
+the other materials go on, and the job exits non-zero at the end (a rerun redoes what failed).
 
 The manifest's optional [run] table sets the job: `max_materials` (the first N selected
 materials whose source is present), `report` (REPORT_DEFAULTS) and `render` (RENDER_DEFAULTS).
@@ -25,6 +27,7 @@ import os
 import subprocess
 import sys
 import time
+import traceback
 from pathlib import Path
 
 from ..errors import FlowBSDFError
@@ -61,6 +64,9 @@ PRIORS = {"bake": 30.0, "report": 35.0, "render": 30.0}
 TRAIN_PRIORS = {"fast": 70.0, "balanced": 160.0, "paper": 3600.0}
 # The trainer's presets by name (their settings: trainer/train.py PRESETS).
 TRAIN_PRESETS = tuple(TRAIN_PRIORS)
+# --out of every flowbsdf command that works on a manifest's output folder (train, bake, report, run,
+# yardsticks, farm task): the same folder, the same words.
+OUT_HELP = "output folder: models/, tables/, report/ inside (default out)"
 
 
 def add_train_arguments(parser):
@@ -70,11 +76,23 @@ def add_train_arguments(parser):
     parser.add_argument("--preset", choices=TRAIN_PRESETS, default=None,
                         help="training preset (default: the manifest's, else balanced)")
     parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
-    parser.add_argument("--out", default=str(Path("out") / "models"),
-                        help="where the models go (default out/models)")
+    parser.add_argument("--out", default="out", help=OUT_HELP)
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: 1 for the fast and balanced "
                         "presets, whose small nets train faster on one; all cores for paper)")
+
+
+def train_models_dir(out, log=print):
+    """Where `flowbsdf train --out OUT` writes its models (and their checkpoints): OUT/models, where
+    bake, report and run look. Until --out meant the output folder for train too, it named the
+    models folder itself, and the Blender add-on and older scripts still pass OUT/models: an OUT
+    named models is taken as that folder (with a note), so their models land in OUT/models too."""
+    out = Path(out)
+    if out.name != "models":
+        return out / "models"
+    log(f"[train] --out {out} is a models folder: the models go there (--out is the output folder, "
+        f"with models/ inside: --out {out.parent} does the same)")
+    return out
 
 
 def run_trainer(args):
@@ -145,7 +163,8 @@ class Job:
         self.render_settings = run_settings(manifest, "render", RENDER_DEFAULTS)
         self.log = log or (lambda line: print(line, flush=True))     # flushed: the lines show when piped too
         self.progress = None
-        self.timings = []           # (material, stage, seconds, "done" | "current")
+        self.timings = []           # (material, stage, seconds, "done" | "current" | "failed" | "not run")
+        self.failures = {}          # {material: (stage, message)}
 
     def say(self, line):
         (self.progress.say if self.progress else self.log)(line)
@@ -168,7 +187,7 @@ class Job:
             return False
 
     def train(self, entry, material):
-        if run_trainer([str(self.manifest.path), "--material", entry.name, "--out", str(self.out / "models"),
+        if run_trainer([str(self.manifest.path), "--material", entry.name, "--out", str(self.out),
                         "--preset", self.preset, "--no-progress"]) != 0:
             raise FlowBSDFError(f"training {entry.name} failed (see above); rerun to resume from its checkpoints")
 
@@ -280,37 +299,71 @@ class Job:
     # ---------------------------------------------------------------- the whole job
 
     def run(self, name=None):
-        """Every stage of every selected material, then the page; returns the page's path."""
+        """Every stage of every selected material, then the page; returns the page's path. A stage
+        that fails ends its material (the rest of its stages are not run), not the job: the other
+        materials go on, and the failures, logged and shown on the page, are raised together at the end."""
         from ..quality.page import write_page
         entries = selected(self.manifest, name, log=self.log)
         if not entries:
             raise FlowBSDFError("no material to work on", self.manifest.path)
-        materials = [(e, e.open()) for e in entries]
-        plan = [(e, m, kind, getattr(self, f"{kind}_current")(e, m)) for e, m in materials for kind in self.stages_of(m)]
+        plan = []
+        for entry in entries:
+            try:
+                material = entry.open()
+                plan += [(entry, material, kind, getattr(self, f"{kind}_current")(entry, material))
+                         for kind in self.stages_of(material)]
+            except Exception as e:      # noqa: BLE001 (a material that does not open: the others go on)
+                self._failed(entry, "open", e)
         priors = {**PRIORS, "train": TRAIN_PRIORS.get(self.preset, TRAIN_PRIORS["fast"])}
         self.progress = Progress([(kind, not current) for _, _, kind, current in plan], priors, out=self.log)
         todo = sum(not current for *_, current in plan)
         self.log(f"[run] {len(entries)} material(s): {', '.join(e.name for e in entries)} -> {self.out}; "
                  f"{len(plan)} stages, {todo} to run, {len(plan) - todo} current")
-        page = self.out / "index.html"
         try:
             for i, (entry, material, kind, _) in enumerate(plan):
                 self.progress.stage(kind, entry.name)
                 t0 = time.perf_counter()
-                current = getattr(self, f"{kind}_current")(entry, material)
-                if not current:
-                    getattr(self, kind)(entry, material)
-                self.timings.append((entry.name, kind, time.perf_counter() - t0, "current" if current else "done"))
-                self.progress.end(skipped=current, note="current, skipped" if current else "done")
-                if i + 1 == len(plan) or plan[i + 1][0] is not entry:      # a material's last stage
-                    write_page(self.out, self.manifest, entries, self.timings)
+                if entry.name in self.failures:
+                    status = "not run"
+                    self.progress.end(skipped=True, note=f"not run: its {self.failures[entry.name][0]} failed")
+                else:
+                    try:
+                        current = getattr(self, f"{kind}_current")(entry, material)
+                        if not current:
+                            getattr(self, kind)(entry, material)
+                        status = "current" if current else "done"
+                        self.progress.end(skipped=current, note="current, skipped" if current else "done")
+                    except Exception as e:      # noqa: BLE001 (one material's failure, whatever it is, is its own)
+                        status = "failed"
+                        self.progress.end(note="FAILED")
+                        self._failed(entry, kind, e)
+                self.timings.append((entry.name, kind, time.perf_counter() - t0, status))
+                if i + 1 < len(plan) and plan[i + 1][0] is not entry:      # a material's last stage
+                    write_page(self.out, self.manifest, entries, self.timings, self.failures)
+            page = write_page(self.out, self.manifest, entries, self.timings, self.failures)
         finally:
             total = self.progress.close()
             self.progress = None
-        ran = sum(status == "done" for *_, status in self.timings)
-        self.log(f"[run] {ran} stage(s) ran, {len(self.timings) - ran} current (skipped), {fmt_seconds(total)} in all")
+        count = {s: sum(status == s for *_, status in self.timings) for s in ("done", "current", "failed", "not run")}
+        self.log(f"[run] {count['done']} stage(s) ran, {count['current']} current (skipped), "
+                 + (f"{count['failed']} failed, {count['not run']} not run after a failure, " if self.failures else "")
+                 + f"{fmt_seconds(total)} in all")
         self.log(f"[page] {page.resolve()}")
+        if self.failures:
+            raise FlowBSDFError(f"{len(self.failures)} of {len(entries)} material(s) failed, the others are done: "
+                                + "; ".join(f"{n} ({kind}: {message})" for n, (kind, message) in self.failures.items()),
+                                self.manifest.path)
         return page
+
+    def _failed(self, entry, kind, error):
+        """Record a material's failed stage: its message in the log (after the traceback when it is
+        not a FlowBSDFError: a bug) and, through self.failures, on the page."""
+        message = str(error)
+        if not isinstance(error, FlowBSDFError):
+            self.say(traceback.format_exc().rstrip())
+            message = f"{type(error).__name__}: {message}"
+        self.failures[entry.name] = (kind, message)
+        self.say(f"[fail] {entry.name} {kind}: {message} (its other stages are not run; the job goes on)")
 
 
 def _stamp_matches(folder, digest):

@@ -1,7 +1,8 @@
 """`flowbsdf bake`: tables for the materials a manifest lists, rebuilt only when their inputs change.
 
 Layout of an output folder:
-    <out>/models/<name>.flow.npz     trained flows (flowbsdf train)
+    <out>/models/<name>.flow.npz     trained flows (flowbsdf train --out <out>; an older train's
+                                     <out>/<name>.flow.npz is moved here: model_path)
     <out>/tables/<name>.exr          baked tables (flowbsdf bake)
     <out>/tables/<name>.osl<layout>-<hash>.exr, <name>.svm<layout>-<hash>.exr, <name>.fit.json,
       <name>.match.exr (isotropic)   what the Blender node reads beside them (bake/export/osl_export.py,
@@ -12,6 +13,8 @@ rebuilds it, and a stale file is never used (`open_current_tables`).
 """
 import hashlib
 import json
+import os
+import sys
 import time
 from pathlib import Path
 
@@ -40,7 +43,23 @@ SOURCES = ("auto", "flow", "ideal")
 
 
 def model_path(out_dir, name):
-    return Path(out_dir) / "models" / f"{name}.flow.npz"
+    """OUT/models/<name>.flow.npz. A model that an older `flowbsdf train --out OUT` left in OUT itself
+    (its --out was the models folder then) is moved there first, with its checkpoints, saying so
+    on stderr: every reader of a model finds it, and the folder has one layout from then on."""
+    path = Path(out_dir) / "models" / f"{name}.flow.npz"
+    old = Path(out_dir) / path.name
+    if old.is_file() and not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.replace(old, path)
+        except FileNotFoundError:       # another process moved it first
+            return path
+        checkpoints = old.with_name(f"{name}.train")
+        if checkpoints.is_dir() and not (path.parent / checkpoints.name).exists():
+            os.replace(checkpoints, path.parent / checkpoints.name)
+        print(f"[models] moved {old} to {path} (and its checkpoints): an older `flowbsdf train --out "
+              f"{out_dir}` put it there; models are in {path.parent} now", file=sys.stderr, flush=True)
+    return path
 
 
 def table_path(out_dir, name):
@@ -144,7 +163,7 @@ def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
     model_file = _tables_model(entry, settings, out_dir)
     if model_file is not None and not model_file.is_file():
         raise FlowBSDFError(f"material {entry.name!r}: bake source 'flow' but no model at {model_file} "
-                            "(run flowbsdf train first)")
+                            f"(`flowbsdf train {manifest_path} --material {entry.name} --out {out_dir}` writes it)")
     inputs, digest = inputs_of(material, settings, model_file)
     path = table_path(out_dir, entry.name)
     if not force and path.is_file():

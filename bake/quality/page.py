@@ -26,6 +26,7 @@ figure img.pareto { width: 380px }
 .scale { display: inline-block; width: 160px; height: 10px; vertical-align: middle;
          background: linear-gradient(to right, #440154, #3b528b, #21918c, #5ec962, #fde725) }
 .files, .small { font-size: 0.88em; color: #555 }
+.failed { background: #fbeaea; padding: 0.6em 0.9em; border-radius: 6px }
 """
 SAMPLER_LABELS = {"tables": "learned tables", "ggx": "GGX fit"}
 
@@ -165,8 +166,9 @@ def _times(x, ref):
     return f"{r:,.0f}×" if r >= 100 else f"{r:.2g}×"
 
 
-def write_page(out_dir, manifest, entries, timings):
-    """Write OUT/index.html from the report and render folders of `entries`; returns its path."""
+def write_page(out_dir, manifest, entries, timings, failures=None):
+    """Write OUT/index.html from the report and render folders of `entries`; returns its path.
+    failures: {material: (stage, message)} of this run's failed stages, shown in their sections."""
     from ..plumbing.files import atomic_path
     from ..plumbing.job import read_stamp
     out = Path(out_dir)
@@ -186,6 +188,10 @@ def write_page(out_dir, manifest, entries, timings):
              'the tables do better).</p>']
     for entry, (name, render, report) in zip(entries, stamps):
         parts.append(f"<h2 id='{_e(name)}'>{_e(name)} <small>({_source(entry)})</small></h2>")
+        if name in (failures or {}):
+            stage, message = failures[name]
+            parts.append(f'<p class="failed"><b>{_e(stage)} failed</b>: {_e(message)}<br>Its later stages did not '
+                         f'run (what is shown below, if anything, is from an earlier run); a rerun tries again.</p>')
         if render:
             parts.append(render_section(name, render))
         if report:

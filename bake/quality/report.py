@@ -428,9 +428,25 @@ def manifest_samplers(entry, material, out_dir, manifest_path, steps=(2, 4, 8), 
         samplers["tables"] = tables
         own = getattr(tables, "tables", tables)     # carried tables (bake/core/carried.py): their tables
         half = max(own.rows // 2, 4)
-        samplers[f"tables {half}x{half}"] = build_tables(
-            material, ideal, own.theta_bins, half, half, lobe_width=own.meta.get("lobe_width"))
-        samplers["plain (equal memory)"] = BinnedIdeal.with_memory(material, own.theta_bins, tables.nbytes)
+        azimuths = {}
+        if own.phi_bins is not None:    # anisotropic: the same azimuths (halfvector ones store the closing one too)
+            azimuths = {"phi_bins": own.phi_bins[:-1] if own.coords == "halfvector" else own.phi_bins,
+                        "coords": own.coords}
+        label, tenth = f"tables {half}x{half}", [0]
+
+        def built(done, total):
+            """About ten lines (anisotropic: the rebuild can take as long as the bake); no total, as
+            `total` counts a closing azimuth that build_tables may turn instead of building."""
+            if done * 10 // total > tenth[0]:
+                tenth[0] = done * 10 // total
+                log(f"[report] {entry.name}: {label}: {done} tables built")
+        samplers[label] = build_tables(material, ideal, own.theta_bins, half, half,
+                                       lobe_width=own.meta.get("lobe_width"), progress=built if azimuths else None,
+                                       **azimuths)
+        if azimuths:    # BinnedIdeal snaps theta_i only: a table per phi_i would be neither plain nor equal memory
+            log(f"[report] {entry.name}: no plain (equal memory) baseline for anisotropic tables")
+        else:
+            samplers["plain (equal memory)"] = BinnedIdeal.with_memory(material, own.theta_bins, tables.nbytes)
     path = entry.source_path()
     if path is not None and path.suffix.lower() == ".bsdf":
         try:

@@ -384,7 +384,7 @@ def train_flows(cases, workdir, log=print, python=None):
     out = workdir / "models"
     python = python or sys.executable
     log(f"[flows] training {len(specs)} tiny flows -> {out}")
-    r = subprocess.run([python, "-m", "trainer", "train", str(manifest), "--out", str(out), "--no-progress",
+    r = subprocess.run([python, "-m", "trainer", "train", str(manifest), "--out", str(workdir), "--no-progress",
                         "--threads", "1"], capture_output=True, text=True)
     if r.returncode != 0:
         log(f"[flows] training failed ({r.returncode}): {r.stderr.strip()[-400:]}")
