@@ -105,10 +105,11 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
         ("MODEL", "Trained model", "Its trained flow model places the cells (the paper's route; Final: 2-4 min; "
          "Train + Bake or Load Model first). The cells' masses come from the material either way")])
     carried: bpy.props.BoolProperty(
-        name="Carried", default=True,
-        description="Measured (RGL) files: blend the tables between incident angles along the file's own "
-                    "coordinates where that samples closer (OSL: 5-8x its shading time there). Off: at "
-                    "fixed cells, as the GPU's SVM graph renders them")
+        name="Carried", default=False,
+        description="Measured (RGL) files, OSL only: blend the tables between incident angles along the file's "
+                    "own coordinates where that samples closer. Costs 5-6x OSL's time per sample: at equal "
+                    "render time 6-10x the error of the default (measured). Off: fixed cells, the same look "
+                    "on every device (the SVM graph renders those). Changing it bakes the tables again")
     bake_quality: bpy.props.EnumProperty(name="Tables", default="FINAL", items=[
         ("DRAFT", "Draft", "Tiny tables, seconds: layout and tests"),
         ("PREVIEW", "Preview", "Coarser tables for look-dev"),

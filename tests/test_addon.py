@@ -914,15 +914,15 @@ def test_scan_measured_file_material(addon, tmp_path, rgl):
     assert entry.source == str(path) and entry.open().isotropic
 
 
-def test_a_measured_file_carries_unless_the_artist_turns_it_off(addon, tmp_path):
-    """A material from a file bakes with the carried blend (the manifest's `carry`, the panel's
-    "Carried"), off when unticked; an analytic material's entry does not mention it."""
+def test_a_measured_file_carries_only_when_the_artist_asks(addon, tmp_path):
+    """A material from a file bakes without the carried blend (the manifest's `carry`, the panel's
+    "Carried": off by default), with it when ticked; an analytic material's entry does not mention it."""
     from blender_addon.props import manifest_entry
     mat = one_learned_object(tmp_path, "measured")
     mat.flowbsdf.source_kind = "FILE"
     mat.flowbsdf.filepath = str(tmp_path / "x.bsdf")
-    assert mat.flowbsdf.carried and manifest_entry(mat)["bake"]["carry"] is True
-    mat.flowbsdf.carried = False
-    assert manifest_entry(mat)["bake"]["carry"] is False
+    assert not mat.flowbsdf.carried and manifest_entry(mat)["bake"]["carry"] is False
+    mat.flowbsdf.carried = True
+    assert manifest_entry(mat)["bake"]["carry"] is True
     mat.flowbsdf.source_kind = "ANALYTIC"
     assert "carry" not in manifest_entry(mat)["bake"]

@@ -170,10 +170,11 @@ def test_bake_writes_readable_files_and_the_node_products_and_clears_dead_tempor
 
 
 def test_a_measured_file_bakes_which_intervals_carry(tmp_path):
-    """An isotropic RGL file's bake says per interval whether carrying along the file's coordinates
-    samples closer (tables.meta["carried"]), writes the carried blend's texture for the OSL node, and
-    the `tables` sampler (the reference tracer's, the report's) is then the carried blend;
-    `carry = false` bakes the tables alone and removes the texture."""
+    """With `carry = true` an isotropic RGL file's bake says per interval whether carrying along
+    the file's coordinates samples closer (tables.meta["carried"]), writes the carried blend's
+    texture for the OSL node, and the `tables` sampler (the reference tracer's, the report's) is
+    then the carried blend; by default (`carry = false`) it bakes the tables alone, removes the
+    texture, and the sampler is the fixed cells the SVM graph renders too."""
     from bake.core.carried import CarriedTables
     from bake.core.sampler import open_sampler
     from bake.export.carry_export import read_export
@@ -182,7 +183,7 @@ def test_a_measured_file_bakes_which_intervals_carry(tmp_path):
     write_tensor_file(tmp_path / "s.bsdf", synthetic_fields(n_theta=5))
     out = tmp_path / "out"
     text = '[[material]]\nname = "s"\nsource = "s.bsdf"\n' + FAST.replace("}", ", memory_budget = 40000 }")
-    m = load_manifest_text(tmp_path, text)
+    m = load_manifest_text(tmp_path, text.replace("}", ", carry = true }"))
     bake_manifest(m, out, log=lambda line: None)
     path = table_path(out, "s")
     tables = open_tables(path)
@@ -198,8 +199,11 @@ def test_a_measured_file_bakes_which_intervals_carry(tmp_path):
     report = manifest_samplers(m.materials[0], m.materials[0].open(), out, m.path, steps=(), log=lambda line: None)
     assert isinstance(report["tables"], CarriedTables) and "plain (equal memory)" in report
 
-    m = load_manifest_text(tmp_path, text.replace("}", ", carry = false }"))
+    m = load_manifest_text(tmp_path, text)
     bake_manifest(m, out, log=lambda line: None)
     assert "carried" not in open_tables(path).meta and not list((out / "tables").glob("s.carry*"))
+    sampler = open_sampler("tables", m.materials[0].open(), entry=m.materials[0], out_dir=out, manifest_path=m.path)
+    assert not isinstance(sampler, CarriedTables)
+    assert load_manifest_text(tmp_path, text.replace("}", ", carry = false }")).materials[0].bake.get("carry") is False
     with pytest.raises(FlowBSDFError, match="carry = 'yes'"):
         bake_manifest(load_manifest_text(tmp_path, text.replace("}", ", carry = 'yes' }")), out)
