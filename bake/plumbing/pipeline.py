@@ -76,7 +76,7 @@ def bake_settings(entry, manifest_path):
     if source not in SOURCES:
         raise FlowBSDFError(f"material {entry.name!r}: bake source must be one of {SOURCES}", manifest_path)
     # The carried blend is opt-in (`carry = true`): at equal render time it lost to the fixed cells
-    # against the measured file, 6.4-7.1x the MSE (studio lamps) and 10.4-10.5x (HDRI), OSL on
+    # against the measured file, 6.4-7.1x the MSE (studio lamps) and 10.0-10.5x (HDRI), OSL on
     # cm_military_green, vch_golden_yellow, satin_rosaline at the default bake (it costs 5-6x the
     # time per sample; scripts/lights_acceptance.py --reference file), and only OSL renders it
     # (the SVM graph blends at fixed cells: two looks of one material). Stated in the settings,
