@@ -10,7 +10,10 @@ tables are current), `bake` (the whole job), `validate` (reference tracer vs Cyc
 MSE, SSIM and a side-by-side image in <out>/validate/) and `farm openjd --job-dir DIR`
 (scan, then write an Open Job Description job bundle that trains/bakes each material on a
 farm and assembles this file: `flowbsdf farm openjd` in the worker Python, bake/plumbing/farm.py;
---blender, --addon-dir: Blender and the add-on's folder on the farm). Options:
+--blender, --addon-dir: Blender and the add-on's folder on the farm) and `library FOLDER --out DIR
+[--quality draft|preview|final] [--python PY]` (an asset library of a folder of measured files:
+the bake in the worker Python, then DIR/library.blend in this Blender; blender_addon/library.py;
+no .blend needs to be open, the open one is replaced). Options:
     --python PY        the Python that bakes (numpy + OpenEXR) and trains (torch + FlowBSDF's
                        trainer); else FLOWBSDF_PYTHON, the preference, the Python Blender reports
     --train MODE       never (default; a material whose tables are From: Trained model must have
@@ -85,6 +88,8 @@ def _run_job(python, args, extra_paths):
 
 
 def run(argv):
+    if argv[:1] == ["library"]:
+        return _library(argv[1:])
     try:
         args = _parser().parse_args(argv)
     except SystemExit as e:            # argparse: usage error or --help
@@ -204,6 +209,52 @@ def _farm(scene, args):
             raise BatchError(f"the job was not written (exit code {proc.returncode}): {tail[0]}")
     except (BatchError, worker.JobError, scan.ScanError, OSError, RuntimeError) as e:
         return _error(e)
+    log("done")
+    return 0
+
+
+def _library(argv):
+    """`library FOLDER --out DIR`: the folder's manifest (blender_addon/library.py), its bake in the
+    worker Python (tables, textures, fit, preview; current ones skipped), then DIR/library.blend."""
+    from . import library, prefs
+    p = argparse.ArgumentParser(prog="blender -b -c flowbsdf library",
+                                description="An asset library (DIR/library.blend) of a folder of measured files.")
+    p.add_argument("folder")
+    p.add_argument("--out", required=True, help="the library's folder")
+    p.add_argument("--quality", choices=list(library.QUALITY), default="final", help="the tables' bake settings")
+    p.add_argument("--python", default=None, help="the Python that bakes (numpy + OpenEXR)")
+    try:
+        args = p.parse_args(argv)
+    except SystemExit as e:
+        return 0 if e.code in (0, None) else 1
+    saved_python = os.environ.get(deps.ENV_PYTHON)
+    if args.python:
+        os.environ[deps.ENV_PYTHON] = args.python
+    try:
+        items, manifest = library.prepare(args.folder, args.out, args.quality)
+        out = os.path.abspath(args.out)
+        log(f"library: {len(items)} measured file(s) in {os.path.abspath(args.folder)}; manifest {manifest}")
+        prefs_ = prefs.get()
+        python = worker.python_for(prefs_, where="batch")
+        log(f"worker Python: {deps.describe(python, *_explicit(prefs_))}")
+        job = worker.Job(python, jobs.bake_args(str(manifest), out), worker.extra_paths(prefs_))
+        try:
+            job.run(echo=True)
+            failed = []
+        except worker.JobError:
+            failed = sorted({ln.split(":", 1)[0][len("[fail] "):] for ln in job.lines if ln.startswith("[fail] ")})
+            if not failed:
+                raise
+        library.build([i for i in items if i["name"] not in failed], out, log=log)
+        if failed:
+            raise BatchError(f"not baked, left out of the library: {', '.join(failed)}")
+    except (BatchError, library.LibraryError, worker.JobError, OSError, RuntimeError) as e:
+        return _error(e)
+    finally:
+        if saved_python is None:
+            os.environ.pop(deps.ENV_PYTHON, None)
+        else:
+            os.environ[deps.ENV_PYTHON] = saved_python
     log("done")
     return 0
 

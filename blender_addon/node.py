@@ -303,15 +303,29 @@ def _trees():
 
 
 PATH_KEYS = ("tables", "fit", "osl_texture", "svm_texture", "carry_texture")
+ABS_KEY = "absolute"        # the paths' absolute forms, beside their relative ones (`_store`)
 
 
 def _info(tree):
     """The group's binding data, its file paths absolute (stored relative to the .blend: `_store`)."""
     info = dict(tree[TREE_KEY].to_dict()) if hasattr(tree[TREE_KEY], "to_dict") else dict(tree[TREE_KEY])
+    absolute = info.pop(ABS_KEY, None) or {}
     for key in PATH_KEYS:
         if info.get(key):
-            info[key] = os.path.normpath(bpy.path.abspath(info[key], library=tree.library))
+            info[key] = _located(info[key], absolute.get(key), tree.library)
     return info
+
+
+def _located(stored, absolute, library):
+    """A stored path, absolute: relative to the .blend that holds the group (its library's for
+    linked data), as a moved project folder needs; where no file is there but one is at the
+    absolute path recorded beside it, that one (a group appended from another .blend, e.g. an
+    asset library: Blender does not rebase custom properties on append). Else the first
+    (what a missing file's message names)."""
+    path = os.path.normpath(bpy.path.abspath(stored, library=library))
+    if absolute and stored.startswith("//") and not os.path.exists(path) and os.path.exists(absolute):
+        return os.path.normpath(absolute)
+    return path
 
 
 def _relative(path):
@@ -326,7 +340,10 @@ def _relative(path):
 
 
 def _store(tree, info):
-    tree[TREE_KEY] = {**info, **{key: _relative(info[key]) for key in PATH_KEYS if info.get(key)}}
+    """Record the binding: paths relative to the .blend (`_relative`), and absolute under ABS_KEY."""
+    paths = {key: os.path.normpath(bpy.path.abspath(info[key])) for key in PATH_KEYS if info.get(key)}
+    tree[TREE_KEY] = {**{k: v for k, v in info.items() if k != ABS_KEY},
+                      **{key: _relative(path) for key, path in paths.items()}, ABS_KEY: paths}
 
 
 def _tree_for(name):
