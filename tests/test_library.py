@@ -18,7 +18,7 @@ if str(ROOT) not in sys.path:
 
 bpy = pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed")
 import cycles_scenes as cs  # noqa: E402  (tests/ helper of the node tests)
-from conftest import rgl_path  # noqa: E402
+from conftest import rgl_path, slow_unless  # noqa: E402
 
 from bake.plumbing.manifest import load_manifest  # noqa: E402
 
@@ -140,7 +140,7 @@ def _render_three(scene, mats):
     return [img[:, 16 * k:16 * (k + 1)].mean() if mat is not None else None for k, mat in enumerate(mats)]
 
 
-@pytest.mark.parametrize("osl", [True, False], ids=["osl", "svm"])
+@pytest.mark.parametrize("osl", slow_unless([True, False], default=[False]), ids=["osl", "svm"])
 def test_appended_materials_find_their_tables(lib, tmp_path, osl):
     """A material appended from the library into a .blend in another folder renders exactly (its
     node finds the library's tables: the stored relative path points beside the new file) and as
