@@ -64,9 +64,9 @@ def slow_unless(values, default, unpack=False):
 # xdist's default order, most tests first, left test_cycles_lights.py near the end), so the run
 # waited for one worker. Longest first, the short files fill the gaps.
 LONGEST_FIRST = ("test_cycles.py", "test_cycles_lights.py", "test_addon.py", "test_library.py", "test_flow.py",
-                 "test_svm.py",
-                 "test_tracer_lamps.py", "test_tables.py", "test_crash_safety.py", "test_aniso_tables.py",
-                 "test_farm.py", "test_hard_cases.py", "test_pipeline.py", "test_blender_batch.py")
+                 "test_svm.py", "test_tracer_lamps.py", "test_tables.py", "test_crash_safety.py",
+                 "test_aniso_tables.py", "test_farm.py", "test_hard_cases.py", "test_pipeline.py",
+                 "test_blender_batch.py")
 
 
 def pytest_collection_modifyitems(config, items):
