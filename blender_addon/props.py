@@ -101,7 +101,7 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
         ("PAPER", "Paper", "GPU advised")])
     tables_from: bpy.props.EnumProperty(name="From", default="MATERIAL", items=[
         ("MATERIAL", "Material", "The material itself: its f·cos tabulated at each incident angle places the "
-         "cells (Final: under a minute on 2 cores)"),
+         "cells"),
         ("MODEL", "Trained model", "Its trained flow model places the cells (the paper's route; Final: 2-4 min; "
          "Train + Bake or Load Model first). The cells' masses come from the material either way")])
     carried: bpy.props.BoolProperty(
