@@ -1,5 +1,6 @@
 """Issues 17 and 18 acceptance: the Learned BSDF's back ends on a sphere in three lighting
-scenes, against the reference tracer's converged image of the baked tables' BSDF.
+scenes, at equal render time, against the reference tracer's converged image of the measured
+file's BSDF and/or of the baked tables' BSDF (--reference file|baked|both, default both).
 
 Scenes (64 x 64 by default, box filter, perspective camera as scripts/cycles_acceptance.py;
 Cycles' world importance sampling at Blender's default, 'AUTOMATIC', everywhere):
@@ -13,20 +14,28 @@ and "truesky": the real Sky Texture (the same settings), for the fireflies crite
 
 Per (scene, material) — draft tables (32 x 32 cells, 8 theta bins, ideal tabulation) unless
 --tables-dir has the material:
-  1. CPU time per spp of each back end (this process's CPU time: Cycles' threads; wall time
-     too, for the record), measured in this run, interleaved: Principled BSDF fit
-     (bake.export.closure_fit.principled_params), OSL back end, SVM back end, closure fit (and
-     Principled under OSL, for the record); each at --t-lo and --t-hi spp in --t-rounds
-     rounds (order rotated), time per spp = (min t_hi - min t_lo) / (hi - lo): scene sync and
-     shader compilation excluded.
+  1. CPU time per spp of each back end (--kinds; this process's CPU time: Cycles' threads;
+     wall time too, for the record), measured in this run, interleaved: Principled BSDF fit
+     (bake.export.closure_fit.principled_params: the clock), "osl" (the OSL back end as the
+     node renders it by default: with the carried blend where the tables have a carry
+     texture), "osl_fixed" (the OSL back end at the fixed cells: the tables'
+     <name>.carry1-<hash>.exr renamed to .<name>... for its renders, carried_cost.without,
+     restored in a finally, and put back at start-up if an interrupted run left it aside),
+     "svm" (SVM back end), "fit" (closure fit); and Principled under OSL, for the record; each
+     at --t-lo and --t-hi spp in --t-rounds rounds (order rotated), time per spp = (min t_hi -
+     min t_lo) / (hi - lo): scene sync and shader compilation excluded.
   2. equal time: Principled at --spp, every other back end at the spp that costs the same
-     (--spp x its time per spp / Principled's); seeds: OSL --osl-seeds, the others --seeds.
-     MSE against the tracer's reference, net of the reference's own noise; split into
-     noise (per-pixel variance over the seeds) + bias^2 (the seeds' mean vs the reference,
-     net of both noises).
-  3. the reference: bake/tracer (scene exported by blender_addon/validate.export_scene, lamps
-     included), MIS on, tables sampling, the material evaluated as the baked tables (what the
-     OSL and SVM back ends render), --ref-spp; the exported 256 x 128 mesh replaced by the
+     (--spp x its time per spp / Principled's); seeds: OSL (both) --osl-seeds, the others
+     --seeds. MSE of one render (mean over the seeds, with its SE over them) against each
+     reference, net of the reference's own noise; split into noise (per-pixel variance over
+     the seeds) + bias^2 (the seeds' mean vs the reference, net of both noises).
+  3. the references: bake/tracer (scene exported by blender_addon/validate.export_scene, lamps
+     included), MIS on, tables sampling, the material evaluated as
+       file   the manifest material's own eval (the measured RGL file): --file-ref-spp (default
+              --ref-spp), tracer seed 2;
+       baked  the baked tables (carried where they carry: what the OSL back end renders with
+              its carry texture; OSL fixed and SVM render the fixed cells), --ref-spp, seed 1;
+     the exported 256 x 128 mesh replaced by the
      analytic unit sphere (the tracer's numpy BVH made the mesh 10x slower); per scene, the
      first material's reference is also traced on the mesh with the same seed (--geom-spp) and
      the sphere means compared (geometry_check).
@@ -37,11 +46,21 @@ Truesky: OSL, SVM, Principled and Diffuse (the Principled fit's base colour) at 
 largest pixel; OSL's and SVM's sphere means agree (both unbiased for the baked BSDF).
 
 Back ends render as a user gets them: OSL with Open Shading Language on, the SVM graph, the
-fit, Principled and Diffuse with it off (Blender's default, SVM).
+fit, Principled and Diffuse with it off (Blender's default, SVM). Cycles settings: those of
+tests/cycles_scenes.reset (blur_glossy 0, no clamping, 64 bounces...), recorded in the report.
+
+Report (--out): "Equal time" tables per (scene, material) and back end: time per spp vs
+Principled, equal-time spp x seeds, MSE vs file and vs baked (bias^2 + noise) and each MSE's
+ratio to the best back end's; the ratios OSL carried / OSL fixed and SVM / fit per reference;
+the closure fit's version (at the case's start and end: fits are refit by ensure_fit); each
+reference's mean, spp and noise, and baked vs file; the Cycles settings; then the acceptance
+details (z statistics, per-sample noise) against the primary reference (baked when traced).
 
     .venv/bin/python scripts/lights_acceptance.py [names...] [--scenes hdri,sky,studio,truesky]
-        [--size 64] [--spp 256] [--ref-spp 4096] [--reuse]
-Writes out/lights_acceptance.md and out/lights_acceptance/<scene>_<name>/*.npy.
+        [--size 64] [--spp 256] [--ref-spp 4096] [--file-ref-spp N] [--reference file|baked|both]
+        [--kinds principled,osl,osl_fixed,svm,fit] [--tables-dir DIR] [--work-dir DIR] [--reuse]
+Writes out/lights_acceptance.md (--out) and <work-dir>/<scene>_<name>/*.npy, timing.json,
+tracer_{file,baked}.npy, <work-dir>/rows.json (--work-dir, default out/lights_acceptance/).
 """
 import argparse
 import json
