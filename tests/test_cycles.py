@@ -277,7 +277,7 @@ def aniso_tables(tmp_path_factory):
     return cs.aniso_small_tables(tmp_path_factory.mktemp("aniso"))
 
 
-@pytest.mark.parametrize("coords", ["halfvector", "wo"])
+@pytest.mark.parametrize("coords", slow_unless(["halfvector", "wo"], default=["halfvector"]))
 def test_osl_sampler_is_tables_sample_anisotropic(aniso_tables, coords, tmp_path):
     """Anisotropic tables in OSL: the four-bin blend over theta_i x phi_i gives numpy's wo,
     weight and pdf, on bins, between them and across the period's wrap, in either coordinates
@@ -363,6 +363,7 @@ def test_osl_furnace_gives_the_baked_albedo(baked, name):
     _assert_furnace(img[inner], np.array(ref), np.array(var), spp)
 
 
+@pytest.mark.slow        # (the sampler on mixed resolutions stays: test_osl_sampler_on_mixed_resolutions)
 def test_osl_furnace_on_mixed_resolutions(tmp_path):
     """MixedTables (12 x 16 cells below 50 deg, 24 x 20 above) through the add-on's node: a
     sphere under a white sky, each pixel the baked albedo at its view angle, the pixels' on
@@ -865,6 +866,7 @@ def _assert_mostly_close(got, want, where, rtol=2e-3):
         where, np.mean(rel < rtol), np.mean(rel < 0.05), rel.max())
 
 
+@pytest.mark.slow        # (the carried blend is opt-in; its sampler stays: test_osl_carried_blend_is_numpy)
 def test_osl_furnace_carried_gives_the_blended_albedo(carried_textures, tmp_path):
     """The node picks up the carried blend's texture the bake writes beside the tables, and the OSL
     back end renders it without bias: a flat plane under a constant white sky, seen at 25 and 63

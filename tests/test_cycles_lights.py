@@ -201,6 +201,7 @@ def test_sky_sun_direction_is_where_the_world_map_is_brightest(lambert, rotation
     assert 0.9999 < cos_half < 1.0
 
 
+@pytest.mark.slow        # (~80 s; the small sun's next-event estimation stays: test_hdri_sun_by_next_event_estimation)
 def test_sun_in_a_sky_without_fireflies(lambert):
     """A learned Lambertian sphere under a Sky Texture with its sun: the image is Cycles' Diffuse
     BSDF's within MC error, and next-event estimation of the sun (its fitted radiance a
