@@ -33,6 +33,7 @@ fit's JSON and holds the fit only (see node.py); a Blender that compiles OSL add
 back end when it opens the saved file. Each bound material's back end is logged.
 """
 import argparse
+import contextlib
 import os
 import subprocess
 import sys
@@ -94,16 +95,23 @@ def run(argv):
         args = _parser().parse_args(argv)
     except SystemExit as e:            # argparse: usage error or --help
         return 0 if e.code in (0, None) else 1
-    saved_python = os.environ.get(deps.ENV_PYTHON)
-    if args.python:
-        os.environ[deps.ENV_PYTHON] = args.python
-    try:
+    with _python_env(args.python):
         return _run(args)
+
+
+@contextlib.contextmanager
+def _python_env(python):
+    """The worker's Python set to `python` (--python) for the command, as it was afterwards."""
+    saved = os.environ.get(deps.ENV_PYTHON)
+    if python:
+        os.environ[deps.ENV_PYTHON] = python
+    try:
+        yield
     finally:
-        if saved_python is None:
+        if saved is None:
             os.environ.pop(deps.ENV_PYTHON, None)
         else:
-            os.environ[deps.ENV_PYTHON] = saved_python
+            os.environ[deps.ENV_PYTHON] = saved
 
 
 def _run(args):
@@ -227,34 +235,33 @@ def _library(argv):
         args = p.parse_args(argv)
     except SystemExit as e:
         return 0 if e.code in (0, None) else 1
-    saved_python = os.environ.get(deps.ENV_PYTHON)
-    if args.python:
-        os.environ[deps.ENV_PYTHON] = args.python
     try:
-        items, manifest = library.prepare(args.folder, args.out, args.quality)
-        out = os.path.abspath(args.out)
-        log(f"library: {len(items)} measured file(s) in {os.path.abspath(args.folder)}; manifest {manifest}")
-        prefs_ = prefs.get()
-        python = worker.python_for(prefs_, where="batch")
-        log(f"worker Python: {deps.describe(python, *_explicit(prefs_))}")
-        job = worker.Job(python, jobs.bake_args(str(manifest), out), worker.extra_paths(prefs_))
-        try:
-            job.run(echo=True)
-            failed = []
-        except worker.JobError:
-            failed = sorted({ln.split(":", 1)[0][len("[fail] "):] for ln in job.lines if ln.startswith("[fail] ")})
-            if not failed:
-                raise
-        library.build([i for i in items if i["name"] not in failed], out, log=log)
-        if failed:
-            raise BatchError(f"not baked, left out of the library: {', '.join(failed)}")
+        with _python_env(args.python):
+            return _build_library(args)
     except (BatchError, library.LibraryError, worker.JobError, OSError, RuntimeError) as e:
         return _error(e)
-    finally:
-        if saved_python is None:
-            os.environ.pop(deps.ENV_PYTHON, None)
-        else:
-            os.environ[deps.ENV_PYTHON] = saved_python
+
+
+def _build_library(args):
+    """The library command's work: the manifest, the bake in the worker, then library.blend."""
+    from . import library, prefs
+    items, manifest = library.prepare(args.folder, args.out, args.quality)
+    out = os.path.abspath(args.out)
+    log(f"library: {len(items)} measured file(s) in {os.path.abspath(args.folder)}; manifest {manifest}")
+    prefs_ = prefs.get()
+    python = worker.python_for(prefs_, where="batch")
+    log(f"worker Python: {deps.describe(python, *_explicit(prefs_))}")
+    job = worker.Job(python, jobs.bake_args(str(manifest), out), worker.extra_paths(prefs_))
+    try:
+        job.run(echo=True)
+        failed = []
+    except worker.JobError:
+        failed = sorted({ln.split(":", 1)[0][len("[fail] "):] for ln in job.lines if ln.startswith("[fail] ")})
+        if not failed:
+            raise
+    library.build([i for i in items if i["name"] not in failed], out, log=log)
+    if failed:
+        raise BatchError(f"not baked, left out of the library: {', '.join(failed)}")
     log("done")
     return 0
 
