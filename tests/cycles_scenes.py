@@ -25,9 +25,15 @@ def bpy_or_skip(need_osl=True):
 
 
 def reset(width=64, height=64, spp=16, osl=True, seed=0, threads=2):
+    """An empty factory scene with the tests' render settings (configure)."""
     import bpy
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    sc = bpy.context.scene
+    return configure(bpy.context.scene, width, height, spp, osl, seed, threads)
+
+
+def configure(sc, width=64, height=64, spp=16, osl=True, seed=0, threads=2):
+    """The tests' Cycles settings on scene `sc` (CPU, fixed seed and threads, no adaptive sampling,
+    denoising or clamping, 64 bounces, Filter Glossy 0, linear 32-bit EXR output)."""
     sc.render.engine = 'CYCLES'
     sc.cycles.device = 'CPU'
     sc.cycles.shading_system = osl

@@ -108,22 +108,8 @@ def test_three_files_make_an_asset_library(lib):
 
 
 def _scene(scene, osl, width=48, height=16, spp=16):
-    """cycles_scenes.reset's settings on the open file's scene (it would read the factory file)."""
-    sc = scene
-    sc.render.engine = 'CYCLES'
-    sc.cycles.device = 'CPU'
-    sc.cycles.shading_system = osl
-    sc.cycles.samples = spp
-    sc.cycles.use_adaptive_sampling = False
-    sc.cycles.use_denoising = False
-    sc.cycles.seed = 0
-    sc.render.resolution_x, sc.render.resolution_y, sc.render.resolution_percentage = width, height, 100
-    sc.render.threads_mode, sc.render.threads = 'FIXED', 2
-    sc.view_settings.view_transform = 'Standard'
-    sc.view_settings.look = 'None'
-    sc.render.image_settings.file_format = 'OPEN_EXR'
-    sc.render.image_settings.color_depth = '32'
-    return sc
+    """cycles_scenes.reset's settings on the open file's scene (reset would read the factory file)."""
+    return cs.configure(scene, width, height, spp, osl)
 
 
 def _render_three(scene, mats):
