@@ -22,6 +22,8 @@ KIND = {"POINT": 1, "SPOT": 2, "SUN": 3, "AREA": 4}
 ELLIPSE = 5                                     # AREA with shape DISK or ELLIPSE
 SHADOW, MIS, CAMERA, DIFFUSE, GLOSSY, SPHERE, NORMALIZE = 1, 2, 4, 8, 16, 32, 64
 KEY = "flowbsdf_lamps"                          # on the group tree: the bound lamp set
+SVM_SLOTS = 4                                   # lamps the SVM graph's portal draws toward
+SVM_KEY = "flowbsdf_svm_lamps"                  # on the group tree: the lamp set its SVM graph is bound to
 
 
 def renders(ob):
@@ -51,6 +53,60 @@ def unreachable(scene):
         elif not getattr(light.cycles, "use_multiple_importance_sampling", True):
             out[ob.name] = "Multiple Importance off"
     return out
+
+
+def svm_lamps(scene):
+    """The lamps whose cones the SVM back end's portal draws directions in (svm._Mixture): the
+    first SVM_SLOTS that render and that it can reach (`unreachable`)."""
+    hidden = unreachable(scene)
+    return [ob for ob in scene_lamps(scene) if ob.name not in hidden][:SVM_SLOTS]
+
+
+def bind_svm(tree, scene):
+    """Drive the SVM graph's lamp nodes (svm.LAMP: per lamp technique k its place, and its size,
+    power and kind) in the group tree `tree` from svm_lamps(scene): a point, spot or area lamp's
+    bounding sphere (centre, radius) and power / distance^2 share weight (power / 4 pi, an area's
+    / pi: the radiant intensity of its axis), a sun lamp's direction (its +Z), angle and
+    strength; each times its colour's mean. Does nothing when already bound to the same set."""
+    obs = svm_lamps(scene)
+    sig = signature(scene) + repr([ob.name for ob in obs])
+    nodes = {("where", node["flowbsdf_lamp"]): node for node in tree.nodes if "flowbsdf_lamp" in node.keys()}
+    nodes.update({("size", node["flowbsdf_lamp_size"]): node for node in tree.nodes
+                  if "flowbsdf_lamp_size" in node.keys()})
+    if tree.get(SVM_KEY) == sig + repr(sorted(n.name for n in nodes.values())):
+        return
+    for (part, k), node in nodes.items():
+        for i in range(3):
+            path = f'nodes["{node.name}"].inputs[{i}].default_value'
+            try:
+                tree.driver_remove(path)
+            except TypeError:
+                pass
+            if k >= len(obs):
+                node.inputs[i].default_value = 0.0
+                continue
+            ob, light = obs[k], obs[k].data
+            sun = light.type == "SUN"
+            if part == "where":
+                _drive(tree, path, -1, ob, "m", {"m": (ob, f"matrix_world[{2 if sun else 3}][{i}]")})
+                continue
+            mean = {"c0": (light, "color[0]"), "c1": (light, "color[1]"), "c2": (light, "color[2]")}
+            energy = {"e": (light, "energy"), **({"x": (light, "exposure")} if hasattr(light, "exposure") else {})}
+            e = "e*pow(2, x)" if "x" in energy else "e"
+            if i == 2:
+                node.inputs[i].default_value = 1.0 if sun else 0.0
+            elif i == 1:
+                per = "1" if sun else "0.3183" if light.type == "AREA" else "0.07958"
+                _drive(tree, path, -1, light, f"{e}*{per}*(c0+c1+c2)/3", {**energy, **mean})
+            elif light.type == "AREA":
+                a, b = _size_paths(light)[:2]
+                cols = {f"m{c}{r}": (ob, f"matrix_world[{c}][{r}]") for c in (0, 1) for r in range(3)}
+                _drive(tree, path, -1, light,
+                       "0.5*sqrt(a*a*(m00*m00+m01*m01+m02*m02)+b*b*(m10*m10+m11*m11+m12*m12))",
+                       {"a": (light, a), "b": (light, b or a), **cols})
+            else:
+                _drive(tree, path, -1, light, "s", {"s": (light, "angle" if sun else "shadow_soft_size")})
+    tree[SVM_KEY] = sig + repr(sorted(n.name for n in nodes.values()))
 
 
 def kind_of(light):

@@ -991,6 +991,7 @@ def sync(scene, refresh=False, bake_world=False):
                             Path(info["fit"]) if info.get("fit") else None)
                 _set_switches(tree, backend)
             svm.set_film(tree, scene)
+            lamps.bind_svm(tree, scene)
         script = tree.nodes.get(SCRIPT)         # (after a rebuild: a new node)
         if script is not None:
             _set_inputs(script, film)
@@ -1005,6 +1006,11 @@ def _set_switches(tree, backend):
             sockets.assign(switch.outputs[0], float(on))
 
 
+# The SVM graph's share of portal directions drawn toward the lamps (svm._Mixture), the rest the
+# world's techniques and the tables
+LAMP_SHARE = 0.5
+
+
 def _world_inputs(scene, folder, bake):
     """The shader's world inputs (world.shader_inputs): the world's map when it exists (made
     when `bake`), else none — then the portal samples the tables alone (still unbiased). The
@@ -1015,7 +1021,9 @@ def _world_inputs(scene, folder, bake):
     except Exception as e:      # noqa: BLE001  (no world map: noisier, not wrong)
         print(f"FlowBSDF: no world importance map: {e}")
         inputs = world.shader_inputs(None, None, None)
-    return {**inputs, "ControlVariate": 1.0} if lamps.scene_lamps(scene) else inputs
+    if not lamps.scene_lamps(scene):
+        return inputs
+    return {**inputs, "ControlVariate": 1.0, "Lamps": len(lamps.svm_lamps(scene)), "LampShare": LAMP_SHARE}
 
 
 def update_world(scene):

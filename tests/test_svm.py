@@ -357,8 +357,9 @@ def test_svm_pdf_graph_inverts_the_sampler(svm, which, tangent, request):
 def _svm_furnace(svm, texture, spp, n=32, tangent=None, ballast=0, world=None, fit=None):
     """A sphere in a white furnace with the SVM sampler (OSL off), optionally its Tangent input
     linked to a constant, `ballast` extra floats kept alive across the whole graph (see
-    _keep_alive), the world mixture's inputs and a fit whose control variate the graph takes
-    (the node's SVM back end). Returns (image, normals, mask of the inner pixels)."""
+    _keep_alive), the world mixture's inputs (with "Lamps": that many lamp techniques, their
+    nodes given LAMPS' places and sizes) and a fit whose control variate the graph takes (the
+    node's SVM back end). Returns (image, normals, mask of the inner pixels)."""
     from blender_addon import node as lb
     sc = cs.reset(n, n, spp=spp, osl=False, threads=1)
     sc.cycles.filter_width = 0.01
@@ -368,12 +369,29 @@ def _svm_furnace(svm, texture, spp, n=32, tangent=None, ballast=0, world=None, f
     def nodes(tree):
         socket = _tangent_socket(tree, tangent)
         if fit is not None:
-            return _keep_alive(tree, ballast, lambda: lb._svm_backend(tree, texture, fit, socket, world))
-        return _keep_alive(tree, ballast, lambda: svm.build_svm_sampler(tree, texture, socket, world=world))
+            out = _keep_alive(tree, ballast, lambda: lb._svm_backend(tree, texture, fit, socket, world))
+        else:
+            out = _keep_alive(tree, ballast, lambda: svm.build_svm_sampler(tree, texture, socket, world=world))
+        _place_lamps(tree)
+        return out
     cs.add_sphere(sc, cs.material_with(nodes))
     img = cs.render(sc)
     normal, hit = cs.sphere_view(n, n, scale=2.2)
     return img, normal, hit & (normal[..., 2] > 0.3)
+
+
+# Lamp techniques' values for graphs built without a scene: (place, (radius or angle, power, sun))
+LAMPS = [((2.0, -1.0, 3.0), (0.3, 40.0, 0.0)), ((-3.0, 0.5, 1.0), (0.1, 20.0, 0.0)),
+         ((0.3, 0.2, 0.9), (0.05, 3.0, 1.0)), ((0.0, 4.0, 0.5), (1.0, 80.0, 0.0))]
+
+
+def _place_lamps(tree, lamps=LAMPS):
+    """Set the SVM graph's lamp nodes (svm.LAMP, which lamps.bind_svm drives in a scene)."""
+    for node in tree.nodes:
+        for key, part in (("flowbsdf_lamp", 0), ("flowbsdf_lamp_size", 1)):
+            if key in node.keys():
+                for socket, value in zip(node.inputs, lamps[node[key]][part]):
+                    socket.default_value = value
 
 
 def _keep_alive(tree, count, build):
@@ -555,8 +573,9 @@ def test_svm_film_stratified_u_is_unbiased_and_cuts_noise(svm, plastic):
 
 
 # (the tables' graph alone with -m slow: the mixture's graph holds it as a branch, with less room)
-@pytest.mark.parametrize("mixture,cv", slow_unless([(False, False), (True, False), (True, True)],
-                                                   default=[(True, False), (True, True)], unpack=True))
+@pytest.mark.parametrize("mixture,cv", slow_unless([(False, False), (True, False), (True, True), ("lamps", True)],
+                                                   default=[(True, False), (True, True), ("lamps", True)],
+                                                   unpack=True))
 def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, plastic, capfd, tmp_path, mixture, cv):
     """The anisotropic graph (the larger tables' graph), alone and with the world mixture (map
     and sun), and the isotropic one with the mixture and the fit's control variate matched to a
@@ -573,6 +592,8 @@ def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, plastic, capfd, 
     if mixture:
         world = {"World": str(_world_map(tmp_path)[1]), "WorldShare": 0.2, "SunDirection": (0.3, 0.4, 0.8),
                  "SunCos": 0.999, "SunShare": 0.3, "ControlVariate": 1.0, "LightDirection": (0.3, 0.4, 0.8)}
+    if mixture == "lamps":      # and the most lamp techniques, the control variate matched to the brightest
+        world.update(Lamps=len(LAMPS), LampShare=0.5, LightDirection=(0.0, 0.0, 0.0))
     if cv:
         from bake.export import closure_fit
         fit = dict(closure_fit.load_fit(closure_fit.ensure_fit(plastic)))
@@ -581,7 +602,8 @@ def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, plastic, capfd, 
     alone, _, sphere = _svm_furnace(svm, texture, 1, n=8, world=world, fit=fit)
     assert sphere.sum() >= 16 and np.all(alone[sphere].mean(0) > 0.1)
     capfd.readouterr()
-    held = _svm_furnace(svm, texture, 1, n=8, ballast=110 if cv else 125, world=world, fit=fit)[0]
+    held = _svm_furnace(svm, texture, 1, n=8, ballast=95 if mixture == "lamps" else 110 if cv else 125, world=world,
+                        fit=fit)[0]
     out, err = capfd.readouterr()
     assert "out of SVM stack space" not in out + err
     np.testing.assert_allclose(held, alone, rtol=1e-5)     # (two renders alone differ by an ulp too)
@@ -667,9 +689,11 @@ def _numpy_mixture(tab, wm, world, theta_i, phi_i, u):
     sample uses its own density in q (a direction on a pixel or cone edge may round out of it).
     Also per u: whether the tables' u sits on a cell's CDF edge (within 1e-6 it takes either
     cell: float32 and float64 may part there, each a correct sample of its own density)."""
-    c_world = world["WorldShare"] if wm is not None else 0.0
-    c_sun = world["SunShare"] if world["SunCos"] < 1.0 else 0.0
-    c_tables = 1.0 - c_world - c_sun
+    lamps = _numpy_lamps(world)
+    c_lamp = sum(lamp["c"] for lamp in lamps)
+    c_world = world["WorldShare"] * (1.0 - c_lamp) if wm is not None else 0.0
+    c_sun = world["SunShare"] * (1.0 - c_lamp) if world["SunCos"] < 1.0 else 0.0
+    c_tables = 1.0 - c_world - c_sun - c_lamp
     axis = np.asarray(world["SunDirection"], np.float64)
     axis /= np.linalg.norm(axis)
     omc = 1.0 - world["SunCos"]
@@ -679,18 +703,29 @@ def _numpy_mixture(tab, wm, world, theta_i, phi_i, u):
     tx, ty = _frame_np(n, wi)
     wi_local = np.array([wi @ tx, wi @ ty, wi @ n])
     u0, u1 = u[:, 0], u[:, 1]
-    technique = np.where(u1 < c_sun, 2, np.where(u1 < c_sun + c_world, 1, 0))
+    technique = np.where(u1 < c_sun, 2, np.where(u1 < c_sun + c_world, 1, np.where(u1 < c_sun + c_world + c_lamp, 3, 0)))
     d = np.zeros((len(u), 3))
     own = np.zeros(len(u))
-    sun, drawn, rest = technique == 2, technique == 1, technique == 0
+    sun, drawn, rest, lamped = technique == 2, technique == 1, technique == 0, technique == 3
     if sun.any():
         d[sun], own[sun] = _cone_np(axis, omc, u0[sun], u1[sun] / c_sun), cone
     if drawn.any():
         d[drawn], p = wm.sample(np.stack([u0[drawn], (u1[drawn] - c_sun) / c_world], 1))
         own[drawn] = c_world * p
+    if lamped.any():        # the lamp by its part of c_lamp, u1 rescaled within it, uniform in its cone
+        v = (u1 - c_sun - c_world) / c_lamp
+        lo = 0.0
+        for k, lamp in enumerate(lamps):
+            part = lamp["c"] / c_lamp
+            mine = lamped & (v >= lo) & ((v < lo + part) | (k == len(lamps) - 1))
+            if mine.any():
+                d[mine] = _cone_np(lamp["axis"], lamp["omc"], u0[mine], np.minimum((v[mine] - lo) / part, 1 - 2.0 ** -24))
+                own[mine] = lamp["cone"]
+            technique = np.where(mine, 3 + k, technique)
+            lo += part
     tie = np.zeros(len(u), bool)
     if rest.any():
-        t1 = np.minimum((u1[rest] - c_sun - c_world) / c_tables, 1.0 - 2.0 ** -24)
+        t1 = np.minimum((u1[rest] - c_sun - c_world - c_lamp) / c_tables, 1.0 - 2.0 ** -24)
         wis = np.tile(wi_local, (rest.sum(), 1))
         wo, p = tab.sample(wis, np.stack([u0[rest], t1], 1))
         d[rest] = wo[:, :1] * tx + wo[:, 1:2] * ty + wo[:, 2:] * n
@@ -706,8 +741,40 @@ def _numpy_mixture(tab, wm, world, theta_i, phi_i, u):
         q += np.where(drawn, 0.0, c_world * wm.pdf(d))
     if c_sun > 0:
         q += np.where(sun, 0.0, cone * (d @ axis >= world["SunCos"]))
+    for k, lamp in enumerate(lamps):
+        inside = 0.5 * np.sum((d - lamp["axis"]) ** 2, 1) < lamp["omc"]
+        q += np.where(technique == 3 + k, 0.0, lamp["cone"] * inside)
     ok = (wo[:, 2] > 0) & (d[:, 2] > 0)
     return d, np.where(ok[:, None], fcos / q[:, None], 0.0), q, technique, ok, tie
+
+
+def _numpy_lamps(world, p=np.zeros(3)):
+    """The SVM mixture's lamp techniques (svm._Mixture.lamp_cone, lamp_stream) at the shading
+    point p for world inputs with "Lamps" (their nodes' values in world["LampValues"], as
+    _place_lamps sets them): per lamp its cone's axis and 1 - cos, its share c and c p_cone."""
+    out = []
+    values = world.get("LampValues", [])[:int(world.get("Lamps", 0))]
+    for where, (radius, power, is_sun) in values:
+        to = np.asarray(where, np.float64) - p * (1.0 - is_sun)
+        d2 = max(to @ to, radius * radius)
+        s2 = min(radius * radius / d2, 1.0)
+        omc = 2.0 * np.sin(radius / 4.0) ** 2 if is_sun else s2 / (1.0 + np.sqrt(1.0 - s2))
+        out.append({"axis": to / np.linalg.norm(to), "omc": omc, "weight": power if is_sun else power / d2})
+    total = sum(lamp["weight"] for lamp in out)
+    for lamp in out:
+        lamp["c"] = world["LampShare"] * lamp["weight"] / total
+        lamp["cone"] = lamp["c"] / (2.0 * np.pi * lamp["omc"])
+    return out
+
+
+def _mixture_bounds(world, has_map=True):
+    """The u1 where the mixture's technique changes (the probe's u stay clear of them)."""
+    lamps = _numpy_lamps(world)
+    c_lamp = sum(lamp["c"] for lamp in lamps)
+    c_sun = world["SunShare"] * (1.0 - c_lamp) if world["SunCos"] < 1.0 else 0.0
+    c_world = world["WorldShare"] * (1.0 - c_lamp) if has_map else 0.0
+    parts = np.cumsum([0.0] + [lamp["c"] for lamp in lamps])
+    return np.concatenate([[c_sun, c_sun + c_world], c_sun + c_world + parts])
 
 
 def _on_pixel_edge(wm, d, within=1e-4):
@@ -734,7 +801,7 @@ def _assert_mixture_is_numpy(svm, tables_path, folder, world, wm, build):
     side = 12
     grid = (np.arange(side) + 0.5) / side
     u = np.concatenate([np.stack(np.meshgrid(grid, grid), -1).reshape(-1, 2), np.random.default_rng(2).random((60, 2))])
-    bounds = np.array([world["SunShare"], world["SunShare"] + world["WorldShare"]])
+    bounds = _mixture_bounds(world, wm is not None)
     u = u[np.abs(u[:, 1:2] - bounds).min(1) > 1e-3].astype(np.float32).astype(np.float64)
     angles = [(0.0, 0.0), (30.0, 40.0), (60.0, 200.0), (85.0, -100.0)]
     inputs = np.concatenate([np.column_stack([u, np.full(len(u), np.cos(np.radians(t))),
@@ -745,7 +812,8 @@ def _assert_mixture_is_numpy(svm, tables_path, folder, world, wm, build):
     ref = [_numpy_mixture(tab, wm, world, np.arccos(x[i * len(u), 2]), x[i * len(u), 3], u) for i in range(len(angles))]
     d, ref_weight, q, technique, ok, tie = (np.concatenate(r) for r in zip(*ref))
     assert np.array_equal(extra[:, 1], technique) and np.array_equal(extra[:, 2], ok)
-    techniques = {0} | ({1} if wm is not None else set()) | ({2} if world["SunShare"] > 0 else set())
+    techniques = {0} | ({1} if wm is not None else set()) | ({2} if world["SunShare"] > 0 else set()) \
+        | set(range(3, 3 + len(_numpy_lamps(world))))
     assert set(technique) == techniques
     assert ok.mean() > 0.5
     assert np.abs(2.0 * shown - 1.0 - d).max() < 3e-4
@@ -775,6 +843,32 @@ def test_svm_mixture_is_numpy(svm, plastic, tmp_path, which):
         lambda tree, texture, probe: svm.build_svm_probe(tree, texture, probe, world=world))
     if "sun" in which:      # some table or map directions fall in the sun's cone
         assert np.sum((technique != 2) & (d @ np.asarray(world["SunDirection"]) >= world["SunCos"])) >= 3
+
+
+# Lamps above the probe's shading point (the origin, normal z): two spheres and a sun lamp
+PROBE_LAMPS = [((1.0, 0.5, 2.0), (0.4, 30.0, 0.0)), ((-0.5, -1.5, 1.0), (0.8, 50.0, 0.0)),
+               ((0.2, -0.3, 0.9), (0.2, 3.0, 1.0))]
+
+
+@pytest.mark.parametrize("which", ["lamps", "map and sun and lamps"])
+def test_svm_mixture_with_lamps_is_numpy(svm, plastic, tmp_path, which):
+    """With lamp techniques (the portal's draws toward the scene's lamps: two spheres and a sun
+    lamp's cone, shares by power / distance^2), the mixture's direction, weight, pdf q and
+    technique equal numpy's: the lamp picked by u1 within the lamps' share, its cone, and
+    every lamp's density in q where a direction falls in its cone."""
+    wm, path = _world_map(tmp_path)
+    world = dict(_sun_world(path, which), Lamps=len(PROBE_LAMPS), LampShare=0.5, LampValues=PROBE_LAMPS)
+
+    def build(tree, texture, probe):
+        out = svm.build_svm_probe(tree, texture, probe, world=world)
+        _place_lamps(tree, PROBE_LAMPS)
+        return out
+    d, technique = _assert_mixture_is_numpy(svm, plastic, tmp_path, world, wm if "map" in which else None, build)
+    lamps = _numpy_lamps(world)
+    for k, lamp in enumerate(lamps):
+        inside = 0.5 * np.sum((d - lamp["axis"]) ** 2, 1) < lamp["omc"]
+        assert np.sum(technique == 3 + k) >= 5
+        assert np.sum(inside & (technique != 3 + k)) >= 2, k      # other techniques' directions in its cone
 
 
 def test_svm_update_world(svm, plastic, tmp_path):
