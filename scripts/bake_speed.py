@@ -4,7 +4,7 @@ the shared RGL materials, this checkout beside another one, with the tables' rv.
     .venv/bin/python scripts/bake_speed.py [--materials a,b] [--repeat K] [--baseline CHECKOUT]
         [--out DIR] [--memory-budget BYTES] [--models DIR [--grids 512,256]]
 
-Per material: the bake's wall seconds (best of `repeat`; with --baseline the two checkouts
+Per material: the bake's wall seconds and the process's CPU seconds (each the best of `repeat`; with --baseline the two checkouts
 take turns within every repeat, so a load spike hits both), the planned resolution and bin
 count, the size in MB, and the tables' rv at theta_i 0/30/60/75/85 (metrics.relative_variance_ref
 against the ideal tabulation, 512² directions, as scripts/tables_acceptance.py reports it) with
@@ -49,12 +49,13 @@ def baseline_bake(checkout):
 
 
 def bake(kit, path, **options):
-    """(seconds, tables) of one Final bake with a fresh material and source (nothing cached)."""
+    """(wall seconds, CPU seconds of the process, tables) of one Final bake with a fresh material
+    and source (nothing cached)."""
     open_mat, source, plan, *kit_options = kit
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     mat = open_mat(path)
     tab = plan(mat, source(mat), **options, **(kit_options[0] if kit_options else {}))
-    return time.perf_counter() - t0, tab
+    return time.perf_counter() - t0, time.process_time() - c0, tab
 
 
 def flow_kits(models, grids):
@@ -86,17 +87,19 @@ def main():
         kits.update(flow_kits(args.models, [int(g) for g in args.grids.split(",")]))
     print(f"load: {os.getloadavg()[0]:.2f} (1 min) at start, {os.cpu_count()} cores", flush=True)
     head = ["material"] + [f"{lab} s" for lab in kits] + (["old/new"] if args.baseline else []) + \
+        [f"{lab} cpu s" for lab in kits] + \
         [f"{lab} res x bins, coords" for lab in kits] + [f"{lab} MB" for lab in kits] + \
         [f"{lab} rv {t} (/ideal)" for t in THETAS for lab in kits]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name in args.materials.split(","):
         path = shared_dir() / f"{name}.bsdf"
-        best, tables = {lab: np.inf for lab in kits}, {}
+        best, cpu, tables = {lab: np.inf for lab in kits}, {lab: np.inf for lab in kits}, {}
         for r in range(args.repeat):
             for lab, kit in kits.items():
-                seconds, tables[lab] = bake(kit, path, **options)
-                best[lab] = min(best[lab], seconds)
-                print(f"  {name} {lab} turn {r + 1}: {seconds:.1f} s (load {os.getloadavg()[0]:.2f})", flush=True)
+                seconds, cpu_seconds, tables[lab] = bake(kit, path, **options)
+                best[lab], cpu[lab] = min(best[lab], seconds), min(cpu[lab], cpu_seconds)
+                print(f"  {name} {lab} turn {r + 1}: {seconds:.1f} s, {cpu_seconds:.1f} s of CPU "
+                      f"(load {os.getloadavg()[0]:.2f})", flush=True)
         mat = open_material(path)
         ideal = IdealSampler(mat)
         rv = {lab: rvs(mat, tab, ideal) for lab, tab in tables.items()}
@@ -108,9 +111,10 @@ def main():
         row = [name.removesuffix("_rgb")] + [f"{best[lab]:.1f}" for lab in kits]
         if args.baseline:
             row.append(f"{best['old'] / best['new']:.2f}")
+        row += [f"{cpu[lab]:.1f}" for lab in kits]
         row += [f"{tab.rows} x {len(tab.theta_bins)} {getattr(tab, 'coords', 'wo')}" for tab in tables.values()]
         row += [f"{tab.nbytes / 2**20:.2f}" for tab in tables.values()]
-        row += [f"{rv[lab][i]:.4f} ({rv[lab][i] / ideal_rv[i]:.2f})" for i in range(len(THETAS)) for lab in kits]
+        row += [f"{rv[lab][i]:.3g} ({rv[lab][i] / ideal_rv[i]:.2f})" for i in range(len(THETAS)) for lab in kits]
         lines.append("| " + " | ".join(row) + " |")
         print(lines[-1], flush=True)
     print(f"\nFinal bake wall seconds{'' if not options else f' ({options})'}, best of {args.repeat} (turns interleaved); "

@@ -447,15 +447,17 @@ def _piece_masses_kept(L, pos, logs, count):
 
         def mass(l):
             return _log_mean(np.exp(l), vh)
-        short = ok & (mass(lo) < want * (1 - 1e-3))
-        if not np.any(short):
+        short = np.flatnonzero(ok & (mass(lo) < want * (1 - 1e-3)))
+        if not len(short):
             continue
-        a, b = lo.copy(), hi.copy()
+        # bisection on the short cells alone (row by row: the numbers of all cells at once)
+        a, b, vh_s, want_s = lo[short], hi[short], vh[short], want[short]
         for _ in range(40):
             mid = 0.5 * (a + b)
-            below = mass(mid) < want
+            below = _log_mean(np.exp(mid), vh_s) < want_s
             a, b = np.where(below, mid, a), np.where(below, b, mid)
-        raised = np.where(short, b, lo)
+        raised = lo.copy()
+        raised[short] = b
         L[:, k] = np.where(lo_first, raised, L[:, k])
         L[:, k + 1] = np.where(lo_first, L[:, k + 1], raised)
     return L
@@ -486,22 +488,28 @@ def _cell_moments(material, wi, a_edges, b_edges, frame, q, point_mass, box=None
         return moments[:4] + (_rate_bound(moments[4], at_a), _rate_bound(moments[5], at_b),
                               _profile_logs(moments[4], at_a), _profile_logs(moments[5], at_b))
 
-    def uniform(moments, q):
-        nodes = (np.arange(q) + 0.5) / q
-        return rule(moments, nodes, nodes)
-
-    out = list(uniform(_moments(material, wi, frame, a0, a1, b0, b1, q), q))
+    # Each level's marginals are kept, and a cell's rate bounds and profiles computed once, from
+    # the level that stands for it (they are computed row by row: the numbers are those that
+    # computing them at every level and keeping the last would give, at a fraction of the cost).
+    n = len(a0)
+    moments = _moments(material, wi, frame, a0, a1, b0, b1, q)
+    out = list(moments[:4])
+    levels = [(np.arange(n), q, moments[4], moments[5])]
+    final = np.zeros(n, np.int64)       # per cell: the level that stands for it (-1: the pieces around its points)
     tiny = 1e-7 * max(out[0].sum(), point_mass.sum())
-    active = np.arange(len(a0))
+    active = np.arange(n)
     while q < q_max and len(active):
         q *= 2
-        new = uniform(_moments(material, wi, frame, a0[active], a1[active], b0[active], b1[active], q), q)
+        moments = _moments(material, wi, frame, a0[active], a1[active], b0[active], b1[active], q)
         old_mass = out[0][active]
-        for o, v in zip(out, new):
+        for o, v in zip(out, moments[:4]):
             o[active] = v
-        settled = (np.abs(new[0] - old_mass) <= rtol * new[0] + tiny) & \
-            (point_mass[active] <= 1.5 * new[0] + tiny)
+        final[active] = len(levels)
+        levels.append((active, q, moments[4], moments[5]))
+        settled = (np.abs(moments[0] - old_mass) <= rtol * moments[0] + tiny) & \
+            (point_mass[active] <= 1.5 * moments[0] + tiny)
         active = active[~settled]
+    out += [np.empty(n), np.empty(n), np.empty((n, NSEG)), np.empty((n, NSEG))]
     if box is not None and len(active):
         short = active[point_mass[active] > 1.5 * out[0][active] + tiny]
         short = short[np.isfinite(box[0][short])]
@@ -511,6 +519,15 @@ def _cell_moments(material, wi, a_edges, b_edges, frame, q, point_mass, box=None
             new = rule(around[:6], *around[6:])
             for o, v in zip(out, new):
                 o[short] = v
+            final[short] = -1
+    for level, (cells, q_level, along_a, along_b) in enumerate(levels):
+        sel = np.flatnonzero(final[cells] == level)
+        if not len(sel):
+            continue
+        nodes = (np.arange(q_level) + 0.5) / q_level
+        new = rule((None,) * 4 + (along_a[sel], along_b[sel]), nodes, nodes)
+        for o, v in zip(out[4:], new[4:]):
+            o[cells[sel]] = v
     mass, mx, my, rgb, bound_a, bound_b, prof, prof_b = out
     with np.errstate(divide="ignore", invalid="ignore"):
         mx = np.where(mass > 0, mx / mass, 0.5)
@@ -1094,9 +1111,11 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     cc_green_malachite, worse at 0-84 deg (1.5-4.5x its targets where the half vector's plan
     was 0.2-2x) for being better in the last 5 deg (5x vs 9x): 1 of theta_i 0/30/60/75/85 within
     1.5x the ideal's rv instead of 4 (measured, 2 MB).
-    In turn: a plan stops once it has as many cells as an earlier one that reached its targets
-    and still splits (it could only end bigger: the same choice, sooner; a Lambert bakes 2x
-    sooner, while the shared files' wo plans end above their targets and both plans run).
+    The plans run in turns, a round of splits each (_plan_in_turns): a plan stops once it has as
+    many cells as another that reached its targets and still splits (it could only end bigger: the
+    same choice, sooner; a Lambert bakes 2x sooner), and one whose midpoints are typically PLAN_DROP
+    times further over their targets than the other's, three rounds in, is dropped (the wo plans
+    of sharp files, which end above their targets: satin_rosaline, chm_mint, ...).
     Neither wins everywhere: over the half vector a lobe stays put between bins, over wo a
     diffuse base is the same at every theta_i (2 MB plans: the half vector for 9 of the 10 shared
     files since its columns split at the quarter turns, wo for colodur_napoli_4f, a Lambert and a
@@ -1163,11 +1182,14 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
             targets[theta] = max(ideal_ratio * rv_at(ideal, theta), 0.5 * tol)
         return targets[theta]
 
-    def plan(coords, say, cells_to_beat=None):
-        """(resolution, bins, phi_bins, worst_phi, the worst midpoint's rv over its target) of the
-        tables over coords (None: build_tables' default). cells_to_beat: the cells of a plan that
-        reached its targets; once this one has as many and still splits, it ends bigger and
-        cannot be kept: it stops there (worst midpoint inf)."""
+    def plan(coords, say, beat):
+        """A generator: after each round of the split loop it yields (bins, cells, the typical
+        excess of the midpoints over their targets so far); it returns (resolution, bins,
+        phi_bins, worst_phi, (the worst midpoint's rv over its target, the typical excess),
+        extend) of the tables over coords (None: build_tables' default). beat["cells"], set by
+        the caller between rounds: the cells of a plan that reached its targets; once this one
+        has as many and still splits, it ends bigger and cannot be kept: it stops there (worst
+        midpoint inf)."""
         opts = dict(lobe_width=lobe_width, cache=cache, coords=coords, **options)
         resolution = plan_resolution
 
@@ -1293,15 +1315,22 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
                     return placed
                 placed = sorted(placed + [split_at[iv]])
 
+        def reaches(bins):      # (the worst midpoint's rv over its target, the typical excess)
+            ratios = np.array([reached.get(iv, 0.0) for iv in zip(bins[:-1], bins[1:])])
+            excess = float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=np.diff(bins)))) \
+                if len(bins) > 1 else 1.0
+            return float(ratios.max(initial=0.0)), excess
+
         while len(bins) < max_bins:
             new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
             # The new intervals' builds are independent: all of them at once, in threads.
             scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
+            yield len(bins), len(bins) * resolution ** 2, reaches(bins)[1]
             (lo, hi), worst = max(scores.items(), key=lambda kv: kv[1])
             if worst <= SPLIT_LOSS:
                 say(f"bins {len(bins)}: done, the worst midpoint loses {worst:.2f}x its target")
                 break
-            if cells_to_beat is not None and len(bins) * resolution ** 2 >= cells_to_beat:
+            if beat["cells"] is not None and len(bins) * resolution ** 2 >= beat["cells"]:
                 say(f"bins {len(bins)}: stopped, as many cells as a plan that reaches its targets")
                 return resolution, bins, phi_bins, worst_phi, (np.inf, np.inf), extend
             if not fits(sorted(bins + [split_at[(lo, hi)]])):
@@ -1315,18 +1344,10 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
         if len(candidates) > 1:
             new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
             scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
-        intervals = list(zip(bins[:-1], bins[1:]))
-        ratios = np.array([reached.get(iv, 0.0) for iv in intervals])
-        widths = np.diff(bins)
-        excess = float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=widths))) if len(bins) > 1 else 1.0
-        return resolution, bins, phi_bins, worst_phi, (float(ratios.max(initial=0.0)), excess), extend
+        return resolution, bins, phi_bins, worst_phi, reaches(bins), extend
 
     plan_resolution = resolution
-    plans = {}
-    for coords in candidates:
-        say = log if len(candidates) == 1 else (lambda text, c=coords: log(f"{c}: {text}"))
-        reached = [len(p[1]) * p[0] ** 2 for p in plans.values() if p[4][0] <= 1.0]
-        plans[coords] = plan(coords, say, min(reached, default=None))
+    plans = _plan_in_turns(candidates, plan, log)
     # The plan closest to its targets over its midpoints' typical excess; when both reach them,
     # the smaller.
     coords = min(plans, key=lambda c: (plans[c][4][1], len(plans[c][1]) * plans[c][0] ** 2))
@@ -1368,6 +1389,52 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     return tables
 
 
+# Plans over several coordinates run in turns, a round of splits each: one whose midpoints are
+# typically PLAN_DROP times further over their targets than another's (at the same round, or the
+# other's end), both PLAN_DROP_ROUNDS rounds in, is dropped: it would not be kept. Measured
+# (default Final plans, wo's typical excess over halfpolar's per round): ilm_solo_m_68, whose wo
+# plan is kept (1.02x vs 1.07x at the end), 6.0x at round 1, 2.5x at 3, then 2.1-3.0x; satin_rosaline,
+# whose halfpolar plan is kept (1.09x vs 1.45x), 4.8x at round 3, 6.2x at 5, 2.3x at 18;
+# paper_white and colodur_napoli_4f within 1.25x all along (both plans run to their end).
+PLAN_DROP = 4.0
+PLAN_DROP_ROUNDS = 3
+
+
+def _plan_in_turns(candidates, plan, log):
+    """{coords: plan's result} of plan_tables' plans (plan: the generator of plan_tables) over the
+    candidates, run in turns a round each. Once a plan ends within its targets (typical excess
+    1, the least there is), the others stop where they have as many cells and still split (they
+    could only end bigger). A plan typically further over its targets than another's by
+    PLAN_DROP after PLAN_DROP_ROUNDS rounds each is dropped (absent from the result)."""
+    says = {c: log if len(candidates) == 1 else (lambda text, c=c: log(f"{c}: {text}")) for c in candidates}
+    beats = {c: {"cells": None} for c in candidates}
+    running = {c: plan(c, says[c], beats[c]) for c in candidates}
+    plans, last, rounds = {}, {}, dict.fromkeys(candidates, 0)
+    while running:
+        for c in list(running):
+            try:
+                last[c] = next(running[c])
+                rounds[c] += 1
+            except StopIteration as stop:
+                plans[c] = stop.value
+                del running[c]
+                if stop.value[4][0] <= 1.0:
+                    cells = len(stop.value[1]) * stop.value[0] ** 2
+                    for beat in beats.values():
+                        beat["cells"] = cells if beat["cells"] is None else min(beat["cells"], cells)
+        for c in list(running):
+            others = {o: (plans[o][4][1] if o in plans else last[o][2]) for o in candidates
+                      if o != c and (o in plans or (o in running and rounds[o] >= PLAN_DROP_ROUNDS))}
+            if c not in last or rounds[c] < PLAN_DROP_ROUNDS or not others:
+                continue
+            best, typical = min(others.items(), key=lambda kv: kv[1]), last[c][2]
+            if typical > PLAN_DROP * best[1]:
+                running.pop(c).close()
+                says[c](f"bins {last[c][0]}: dropped, its midpoints typically {typical:.2f}x their targets, "
+                        f"{best[0]}'s {best[1]:.2f}x")
+    return {c: plans[c] for c in candidates if c in plans}     # in the candidates' order (ties: the first)
+
+
 # Isotropic layouts plan_tables tries for the planned bins (build_tables' window): a bin's layout
 # pooled with its neighbours' follows a moving lobe; one layout for all bins mixes them cell by
 # cell, which holds features that appear and fade between bins (measured data between their
@@ -1377,6 +1444,10 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
 # angles of a sweep above 1.5x the ideal's rv 468 -> 429 of 1350. At 4 MB: satin at 75 4.3x ->
 # 0.5x, chm at 85 3.1x -> 1.5x (all 50 acceptance cells within 1.5x; 48 before), sweep 295 -> 205.
 LAYOUT_WINDOWS = (1, None)
+# Over the half vector a lobe stays put between bins: a layout pooled with the neighbours' (to follow
+# it) is not tried. It was never the closest for the eight shared files planned over halfpolar
+# (default Final plans, typical excess: 1.03-1.31x where the kept placement had 1.02-1.22x).
+POLAR_WINDOWS = (None,)
 GROUP_SPLITS_DEG = (55.0, 65.0, 75.0)
 
 
@@ -1428,8 +1499,8 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
     for every candidate).
 
     The candidates: each of LAYOUT_WINDOWS (a bin's layout pooled with its neighbours', or one
-    for all bins), and two layout groups (join_groups: the bins up to the planned bin nearest one
-    of GROUP_SPLITS_DEG, and from it, each built alone with one layout for all its bins: its own
+    for all bins; over halfpolar POLAR_WINDOWS: the latter), and two layout groups (join_groups:
+    the bins up to the planned bin nearest one of GROUP_SPLITS_DEG, and from it, each built alone with one layout for all its bins: its own
     cells per segment, not shared out by the weight of bins far away; window None). A group's
     repeated bin is paid for with the bin of the narrowest span when the budget is full, the
     neighbours' pooled layouts (one per bin) with as many as they need.
@@ -1454,7 +1525,7 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
     # bin is one more).
     layout = dict(coords=opts.get("coords") or ISO_COORDS, lobe_width=opts.get("lobe_width"))
     candidates = []
-    for w in LAYOUT_WINDOWS:
+    for w in (LAYOUT_WINDOWS if layout["coords"] == "wo" else POLAR_WINDOWS):
         (placed, _), = _fit([(bins, resolution)], memory_budget, window=w, **layout)
         candidates.append(("one placement for all bins" if w is None else f"pooled with {w} neighbour", w, placed,
                            resolution, None))
@@ -1507,9 +1578,12 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
         if j is not None and (best_split is None or excess < best_split[0]):
             best_split = (excess, j)
 
+    # A candidate within the ideal's rv everywhere (typical excess 1, the least there is) cannot be
+    # beaten (ties keep the earlier one): the rest are not built.
     for candidate in candidates:
-        compare(*candidate)
-    more = mixed(best_split[1]) if best_split else []
+        if best is None or best[0] > 1.0:
+            compare(*candidate)
+    more = mixed(best_split[1]) if best_split and best[0] > 1.0 else []
     total = len(candidates) + len(more)     # announced as at most this many: now known
     for candidate in more:
         compare(*candidate)
