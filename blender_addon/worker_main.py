@@ -91,6 +91,21 @@ class Step:
         self._thread.join()
 
 
+class _Plan:
+    """One plan's progress: the material's only plan, or one cell layout's of an isotropic material."""
+
+    def __init__(self, resolution, first):
+        self.resolution, self.stage, self.probed, self.bins = resolution, "prepare", 0, first
+        self.scores = []        # the worst midpoint's loss over its target, per split
+        self.turns = []         # seconds of its turns (a split's new intervals scored), measured
+        self.opened = None      # when its turn under way began (its split or resolution line)
+        self.ended = False      # done, stopped or dropped
+
+    def seconds_per_angle(self):
+        recent = self.turns[-4:]
+        return sum(recent) / len(recent)
+
+
 class BakeProgress(Step):
     """A material's bake, estimated from the baker's log (bake/core/tabulate.plan_tables): the
     resolution probe ("resolution R: single-bin rv Xx the target"), then one line per incident
@@ -102,12 +117,19 @@ class BakeProgress(Step):
     textures and fit ("[svm]/[osl]/[fit] wrote"). Angles left: from how far the worst midpoint went down on a log scale, and how far
     the angle count went towards its cap; the time a split takes, measured. The build: a tenth
     of a split per angle (from the ideal tabulation's points; a flow's cost ~20x as much) until
-    its first "built" line, then its own pace. An isotropic material is planned once per cell
-    layout (tabulate.ISO_PLANNED; its lines start "<coords>: "): each plan counts afresh, the
-    ones still to come as long as this one. Lines pass through to the log."""
+    its first "built" line, then its own pace. An isotropic material is planned over each cell
+    layout (tabulate.ISO_PLANNED; its lines start "<coords>: ") in turns, a round of splits each
+    (tabulate._plan_in_turns): each plan is followed on its own (its angles left from its own
+    midpoints), and the time a split takes is each plan's own turn (from its split line to the
+    next plan's line), measured; the time left is every running plan's angles left at its own
+    pace, the words say the plan that spoke last ("layout 2 of 2, 7 of about 12 angles, ...").
+    Until every running plan has three splits and a measured turn: "estimating the time left".
+    Lines pass through to the log."""
     RESOLUTION = re.compile(r"resolution (\d+): single-bin rv ([0-9.eE+-]+)x the target")
     SPLIT = re.compile(r"bins (\d+): split .*\(midpoint loss ([0-9.eE+-]+)x its target\)")
-    PLACEMENTS = re.compile(r"between bins: comparing (\d+) cell placements")
+    ENDED = re.compile(r"bins (\d+): (done|stopped|dropped)\b")
+    COORDINATES = re.compile(r"coordinates: (\w+) \(")
+    PLACEMENTS = re.compile(r"between bins: comparing (\d+) cell placements(?: on (\d+) angles)?")
     PLACED = re.compile(r"between bins: placement (\d+) of (\d+)")
     BUILDING = re.compile(r"tables: building (\d+) angles")
     BUILT = re.compile(r"tables: built (\d+) of (\d+)")
@@ -123,49 +145,96 @@ class BakeProgress(Step):
         self.target, self.budget = 1.0, get("memory_budget")     # the planner's scores are x its targets
         self.layout_names = ISO_PLANNED
         self.layout_of = re.compile("(" + "|".join(ISO_PLANNED) + "): (.*)$")
-        self.layouts, self.layout = 1, 0          # plans of this material (one until a line says more), this one
-        self._start_plan()
+        self.layouts, self.layout = 1, 0          # plans of this material (one until a line says more), the one in words
+        self.plans = {0: _Plan(self.planned_resolution, self.first)}
+        self.speaker = None                        # the plan whose turn is under way
+        self.last_turn = self.t0                   # when the last planner line came
+        self.angles = self.first                   # the kept plan's angles (placements, build)
+        self.stage = None                          # after the plans: "placements", "build", "derive", "preview"
         self.build = None                          # [start time, parts built, parts, time of the last]
 
-    def _start_plan(self):
-        self.resolution, self.stage, self.probed, self.bins = self.planned_resolution, "prepare", 0, self.first
-        self.scores, self.events = [], []          # the planner's worst midpoint rv; times of its lines
-        self.plan_t0 = self.clock()
+    @property
+    def plan(self):
+        return self.plans[self.layout]
+
+    @property
+    def resolution(self):
+        return self.plan.resolution
+
+    @property
+    def bins(self):
+        return self.plan.bins
+
+    def _plan_of(self, layout):
+        return self.plans.setdefault(layout, _Plan(self.planned_resolution, self.first))
+
+    def _turn(self, layout, text, now):
+        """A planner line of `layout` (None: no plan's, e.g. "coordinates: ..."): it ends the turn
+        under way when another plan speaks, or this plan's next split or resolution line comes."""
+        boundary = bool(self.RESOLUTION.match(text) or text.startswith("bins "))
+        if self.speaker is not None and (layout != self.speaker or boundary):
+            p = self.plans[self.speaker]
+            p.turns.append(now - p.opened)
+            p.opened, self.speaker = None, None
+            self.last_turn = now
+        if boundary:
+            self.last_turn = now
+
+    def _open(self, layout, now):
+        self.plans[layout].opened, self.speaker = now, layout
 
     def log(self, line):
         emit(line)
         text = line.split(": ", 1)[1] if line.startswith("[bake] ") and ": " in line else ""
+        now = self.clock()
+        speaker = 0
         m = self.layout_of.match(text)
         if m:
             self.layouts = len(self.layout_names)
-            layout = self.layout_names.index(m.group(1))
-            if layout != self.layout:
-                self.layout = layout
-                self._start_plan()
+            speaker = self.layout_names.index(m.group(1))
             text = m.group(2)
+        elif self.layouts > 1:
+            speaker = None
+        if text:
+            self._turn(speaker, text, now)
+        p = self._plan_of(speaker) if speaker is not None else None
         m = self.RESOLUTION.match(text)
-        if m:
-            self.stage, self.probed = "probe", self.resolutions.index(int(m.group(1))) + 1
-            if float(m.group(2)) <= self.target or self.probed == len(self.resolutions):
-                self.resolution, self.stage = int(m.group(1)), "plan"
-                self.events = [self.clock()]
-        elif self.SPLIT.match(text):
+        if m and p:
+            p.stage, p.probed = "probe", self.resolutions.index(int(m.group(1))) + 1
+            if float(m.group(2)) <= self.target or p.probed == len(self.resolutions):
+                p.resolution, p.stage = int(m.group(1)), "plan"
+                self._open(speaker, now)
+            self.layout = speaker
+        elif self.SPLIT.match(text) and p:
             m = self.SPLIT.match(text)
-            if self.stage != "plan":
-                self.stage, self.events = "plan", [self.t0]
-            self.bins = int(m.group(1))
-            self.scores.append(float(m.group(2)))
-            self.events.append(self.clock())
+            if p.stage != "plan":       # the resolution given: the plan began with the bake
+                p.stage = "plan"
+                if self.layouts == 1:   # (planned alone: its first turn is the time so far)
+                    p.turns.append(now - self.t0)
+            p.bins = int(m.group(1))
+            p.scores.append(float(m.group(2)))
+            self._open(speaker, now)
+            self.layout = speaker
+        elif self.ENDED.match(text) and p:
+            p.ended = True
+            return
+        elif self.COORDINATES.match(text):
+            kept = self.COORDINATES.match(text).group(1)
+            if kept in self.layout_names:
+                self.layout = self.layout_names.index(kept)
+            return
         elif self.PLACEMENTS.match(text):
-            self.stage, self.placed = "placements", [0, int(self.PLACEMENTS.match(text).group(1))]
+            m = self.PLACEMENTS.match(text)
+            self.stage, self.placed = "placements", [0, int(m.group(1))]
+            self.angles = int(m.group(2)) if m.group(2) else self.bins
         elif self.PLACED.match(text):
             self.stage, self.placed = "placements", [int(n) for n in self.PLACED.match(text).groups()]
         elif self.BUILDING.match(text):
-            self.bins = int(self.BUILDING.match(text).group(1))
-            self.stage, self.build = "build", [self.clock(), 0, None, None]
+            self.angles = int(self.BUILDING.match(text).group(1))
+            self.stage, self.build = "build", [now, 0, None, None]
         elif self.BUILT.match(text) and self.build:
             m = self.BUILT.match(text)
-            self.build[1:] = [int(m.group(1)), int(m.group(2)), self.clock()]
+            self.build[1:] = [int(m.group(1)), int(m.group(2)), now]
         elif line.startswith(("[svm] ", "[osl] ", "[fit] ")):
             self.stage = "derive"
         elif line.startswith("[preview] "):
@@ -174,30 +243,26 @@ class BakeProgress(Step):
             return
         self.report()
 
-    def max_bins(self):
-        return self.bins_within(self.budget, self.resolution) if self.resolution else None
+    def max_bins(self, plan=None):
+        plan = plan or self.plan
+        return self.bins_within(self.budget, plan.resolution) if plan.resolution else None
 
-    def angles_left(self):
-        """(angles the planner will still add, True when that is the memory cap)."""
-        cap = self.max_bins() - self.bins
-        progress = (self.bins - self.first) / max(self.max_bins() - self.first, 1)
-        if self.scores[0] > self.target:
-            span = math.log(self.scores[0] / self.target)
-            progress = max(progress, math.log(self.scores[0] / max(self.scores[-1], 1e-30)) / span)
+    def angles_left(self, plan=None):
+        """(angles the plan will still add, True when that is the memory cap)."""
+        plan = plan or self.plan
+        cap = self.max_bins(plan) - plan.bins
+        progress = (plan.bins - self.first) / max(self.max_bins(plan) - self.first, 1)
+        if plan.scores[0] > self.target:
+            span = math.log(plan.scores[0] / self.target)
+            progress = max(progress, math.log(plan.scores[0] / max(plan.scores[-1], 1e-30)) / span)
         if progress <= 0:
             return cap, True
-        left = math.ceil((self.bins - self.first) * (1 - min(progress, 1.0)) / progress)
+        left = math.ceil((plan.bins - self.first) * (1 - min(progress, 1.0)) / progress)
         return (cap, True) if left >= cap else (left, False)
 
     def estimate(self, now):
         who = f"Baking {self.name}"
         elapsed = now - self.t0
-        layout = f"layout {self.layout + 1} of {self.layouts}, " if self.layouts > 1 else ""
-        if self.stage == "prepare" and not self.layout:
-            return 0.02, f"{who}: tabulating the material"
-        if self.stage in ("prepare", "probe"):
-            return (0.05 + 0.5 * self.layout / self.layouts,
-                    f"{who}: {layout}choosing the table resolution ({self.probed} of {len(self.resolutions)})")
         if self.stage == "derive":
             return 0.97, f"{who}: writing the node's textures and closure fit"
         if self.stage == "preview":
@@ -206,37 +271,45 @@ class BakeProgress(Step):
             return self._build_estimate(now, who)
         if self.stage == "placements":
             done, total = self.placed
-            return None, f"{who}: comparing cell placements across {self.bins} angles ({done} of {total} done)"
-        if len(self.scores) < 3:
-            return (0.1 + 0.4 * self.layout / self.layouts,
-                    f"{who}: {layout}{self.bins} angles placed, estimating the time left")
-        split = self._split_seconds()
-        left, capped = self.angles_left()
-        total = self.bins + left
-        plan_left = left * split - (now - self.events[-1])
-        later = (self.layouts - 1 - self.layout) * (now - self.plan_t0 + max(plan_left, 0.0))     # plans to come
-        remaining = plan_left + total * split / 10 + 3.0 + later
+            return None, f"{who}: comparing cell placements across {self.angles} angles ({done} of {total} done)"
+        shown = self.layout
+        running = [k for k, q in self.plans.items() if not q.ended]
+        if self.plan.ended and running:         # the words follow a plan still running
+            shown = running[0]
+        running = [self.plans[k] for k in running]
+        p = self.plans[shown]
+        layout = f"layout {shown + 1} of {self.layouts}, " if self.layouts > 1 else ""
+        if p.stage == "prepare" and self.layouts == 1:
+            return 0.02, f"{who}: tabulating the material"
+        if p.stage in ("prepare", "probe"):
+            return 0.05, f"{who}: {layout}choosing the table resolution ({p.probed} of {len(self.resolutions)})"
+        running = running or [p]
+        if any(q.stage != "plan" or len(q.scores) < 3 or not q.turns for q in running + [p]):
+            return 0.1, f"{who}: {layout}{p.bins} angles placed, estimating the time left"
+        lefts = [self.angles_left(q)[0] for q in running]
+        left, capped = self.angles_left(p)
+        total = p.bins + left
+        split = p.seconds_per_angle()
+        # every running plan's angles left at its own measured pace, less the turn under way so far
+        plan_left = sum(n * q.seconds_per_angle() for n, q in zip(lefts, running)) - (now - self.last_turn)
+        remaining = plan_left + total * split / 10 + 3.0
         if remaining <= 0:
             return None, f"{who}: finishing the tables ({total} angles)"
-        if left == 0 and not later:
+        if not any(lefts):
             words = f"{who}: building the tables for {total} angles, {time_left(remaining)}"
         else:
-            words = (f"{who}: {layout}{self.bins} of {'at most' if capped else 'about'} {total} angles, "
+            words = (f"{who}: {layout}{p.bins} of {'at most' if capped else 'about'} {total} angles, "
                      f"{time_left(remaining)}")
         return elapsed / (elapsed + remaining), words
-
-    def _split_seconds(self):
-        recent = self.events[-5:]
-        return (recent[-1] - recent[0]) / max(len(recent) - 1, 1)
 
     def _build_estimate(self, now, who):
         start, done, parts, last = self.build
         if done:
             remaining = (last - start) / done * (parts - done) - (now - last)
         else:
-            split = self._split_seconds() if len(self.events) > 1 else 1.0
-            remaining = self.bins * split / 10 - (now - start)
-        words = f"{who}: building the tables ({done} of {parts or self.bins} angles done"
+            split = self.plan.seconds_per_angle() if self.plan.turns else 1.0
+            remaining = self.angles * split / 10 - (now - start)
+        words = f"{who}: building the tables ({done} of {parts or self.angles} angles done"
         if remaining <= 0:
             return None, words + ")"
         elapsed = now - self.t0

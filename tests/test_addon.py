@@ -334,6 +334,49 @@ def test_bake_progress_in_words_from_the_planner_log(monkeypatch):
     assert wm.time_left(75) == "about 1 min left" and wm.time_left(610) == "about 10 min left"
 
 
+def test_bake_progress_follows_plans_in_turns(monkeypatch):
+    """An isotropic material's plans over each cell layout run in turns (tabulate._plan_in_turns):
+    each plan is followed on its own, its pace is its own turns (from its line to the next plan's),
+    and the time left is every running plan's angles left at its own pace, measured."""
+    wm = _worker_main()
+    lines = []
+    monkeypatch.setattr(wm, "emit", lines.append)
+    now = [0.0]
+    progress = wm.BakeProgress("Satin", {}, clock=lambda: now[0])
+    steps = []
+
+    def feed(t, text):
+        now[0] = t
+        progress.log(f"[bake] Satin: {text}")
+        steps.append((progress.done, lines[-1]))
+    feed(5.0, "wo: resolution 64: single-bin rv 0.80x the target")
+    feed(15.0, "halfpolar: resolution 48: single-bin rv 0.90x the target")      # wo's first round: 10 s
+    t, wo, hp = 15.0, 100.0, 200.0
+    for k in range(7, 12):      # wo's turns take 4 s, halfpolar's 6 s (its first round 12 s)
+        t += 12.0 if k == 7 else 6.0
+        feed(t, f"wo: bins {k}: split 1.00-2.00 deg (midpoint loss {wo}x its target)")
+        t += 4.0
+        feed(t, f"halfpolar: bins {k}: split 1.00-2.00 deg (midpoint loss {hp}x its target)")
+        wo, hp = wo / 2, hp / 2
+    assert progress.plans[0].turns == [10.0] + [4.0] * 5 and progress.plans[1].turns == [12.0] + [6.0] * 4
+    words = [w for _, w in steps]
+    # until both plans have three splits and a measured turn, no time left is made up
+    assert all(w.endswith("estimating the time left") for w in words[:7]), words
+    assert words[7] == "[step 0.285] Baking Satin: layout 2 of 2, 9 of about 18 angles, about 2 min left", words[7]
+    # halfpolar at 11 of about 16 angles (5 left at 6 s), wo 4 left at 4 s, the build 16 x 6 s / 10, 3 s:
+    # 58.6 s; 20 s later (the heartbeat) 38.6 s
+    assert words[-1] == "[step 0.548] Baking Satin: layout 2 of 2, 11 of about 16 angles, about 1 min left", words[-1]
+    now[0] = t + 20.0
+    progress.report()
+    assert lines[-1] == "[step 0.702] Baking Satin: layout 2 of 2, 11 of about 16 angles, about 40 s left", lines[-1]
+    # a plan that ends counts no more: wo's 2 angles left at 4 s, the build 14 x 4 s / 10, 3 s
+    feed(t + 26.0, "halfpolar: bins 11: done, the worst midpoint loses 0.50x its target")
+    feed(t + 26.0, "wo: bins 12: split 1.00-2.00 deg (midpoint loss 3x its target)")
+    assert lines[-1] == "[step 0.854] Baking Satin: layout 1 of 2, 12 of about 14 angles, about 20 s left", lines[-1]
+    fractions = [f for f, _ in steps]
+    assert fractions == sorted(fractions) and 0 < fractions[-1] < 1
+
+
 def test_progress_moves_within_one_material(tmp_path):
     """One material's bake: the job's fraction moves between 0 and 1 and its message is the
     artist's words ("Baking plastic: 7 of about 12 angles, ..."), not the planner's."""
