@@ -1023,7 +1023,11 @@ def _world_inputs(scene, folder, bake):
         inputs = world.shader_inputs(None, None, None)
     if not lamps.scene_lamps(scene):
         return inputs
-    return {**inputs, "ControlVariate": 1.0, "Lamps": len(lamps.svm_lamps(scene)), "LampShare": LAMP_SHARE}
+    # every lamp slot once there is a lamp to reach: adding, hiding or removing one then rebinds
+    # the slots' drivers without rebuilding the graph (a rebuild per material: ~1-2 s each)
+    reached = bool(lamps.svm_lamps(scene))
+    return {**inputs, "ControlVariate": 1.0, "Lamps": lamps.SVM_SLOTS if reached else 0,
+            "LampShare": LAMP_SHARE if reached else 0.0}
 
 
 def update_world(scene):

@@ -1294,7 +1294,9 @@ def update_world(tree, world):
     mix = _Mixture(world)
     for node in tree.nodes:
         if node.name.startswith(CV):
-            if node.get("flowbsdf_light", 0) != int(_matching(mix, bool(node.get("flowbsdf_matchable", 0)))):
+            matched = _matching(mix, bool(node.get("flowbsdf_matchable", 0)))
+            if node.get("flowbsdf_light", 0) != int(matched) \
+                    or node.get("flowbsdf_match_lamp", 0) != int(matched and mix.match_lamp):
                 return False
             sockets.assign(node.outputs[0], _cv_value(world))
         if node.name.startswith(LIGHT) and mix.light is not None:
@@ -1305,7 +1307,7 @@ def update_world(tree, world):
         return not mix
     for node in nodes:
         if (mix.map and not node.get("flowbsdf_map")) or (mix.sun and not node.get("flowbsdf_sun")) \
-                or mix.lamps != node.get("flowbsdf_lamps", 0):
+                or mix.lamps > node.get("flowbsdf_lamps", 0):       # (slots it has and the scene leaves empty: power 0)
             return False
     for node in tree.nodes:
         if node.name.startswith(LAMPS) and node.bl_idname == "ShaderNodeValue":
@@ -1509,6 +1511,7 @@ def _cv_switched(g, cv, world, matched):
     node.outputs[0].default_value = _cv_value(world)
     node["flowbsdf_light"] = int(matched)
     node["flowbsdf_matchable"] = int(bool(cv.get("match_image")))
+    node["flowbsdf_match_lamp"] = int(matched and _Mixture(world).match_lamp)
     if not matched and not cv["has_betas"]:
         return None
     on = g.math('MULTIPLY', node.outputs[0], g.node("ShaderNodeLightPath").outputs["Is Camera Ray"])

@@ -449,20 +449,21 @@ def _switches(node):
 
 
 def _lamp_values(tree):
-    """{k: (place, (radius, power, sun))} of the SVM graph's lamp nodes (svm.LAMP) as evaluated."""
+    """{k: (place, (radius, power, sun))} of the SVM graph's lamp nodes (svm.LAMP) as evaluated:
+    its slots with a lamp (power > 0), and the number of slots."""
     out = {}
     for node in tree.nodes:
         for key, part in (("flowbsdf_lamp", 0), ("flowbsdf_lamp_size", 1)):
             if key in node.keys():
                 out.setdefault(node[key], [None, None])[part] = tuple(s.default_value for s in node.inputs)
-    return out
+    return {k: v for k, v in out.items() if v[1][1] > 0.0}, len(out)
 
 
 def test_svm_graph_draws_toward_the_lamps_it_reaches(plastic):
-    """OSL off, back end SVM: the graph gets a lamp technique per lamp its portal reaches (at
-    most lamps.SVM_SLOTS), driven by the lamp: its place (a sun: its direction) and bounding
-    radius follow the lamp as it moves or changes; a lamp added or made unreachable rebuilds
-    the graph with the techniques it needs (node.sync)."""
+    """OSL off, back end SVM: once a lamp its portal reaches is in the scene, the graph gets
+    lamps.SVM_SLOTS lamp techniques (one rebuild), each lamp it reaches driving one: its place (a
+    sun: its direction), bounding radius and power follow the lamp as it moves or changes; lamps
+    added, hidden or made unreachable later only rebind the slots (an empty slot has power 0)."""
     from blender_addon import lamps
     sc = cs.reset(8, 8, spp=1, osl=False)
     mat = bpy.data.materials.new("plastic")
@@ -476,20 +477,23 @@ def test_svm_graph_draws_toward_the_lamps_it_reaches(plastic):
         lb.sync(sc)
         sc.frame_set(sc.frame_current)          # (drivers evaluate)
         return _lamp_values(tree)
-    assert sync() == {}                              # no lamps: no lamp techniques
+    assert sync() == ({}, 0)                         # no lamps: no lamp techniques
     point = cs.add_lamp(sc, "POINT", (1.0, -2.0, 3.0), energy=100.0, shadow_soft_size=0.2)
-    got = sync()
+    got, slots = sync()
+    assert slots == lamps.SVM_SLOTS
+    built = tree.nodes[lb.SCRIPT]
     assert list(got) == [0] and got[0][0] == pytest.approx((1.0, -2.0, 3.0))
     assert got[0][1] == pytest.approx((0.2, 100.0 / (4 * np.pi), 0.0), rel=1e-3)
     point.location = (0.5, 0.5, 2.0)
     point.data.shadow_soft_size = 0.3
-    got = sync()
+    got, _ = sync()
     assert got[0][0] == pytest.approx((0.5, 0.5, 2.0)) and got[0][1][0] == pytest.approx(0.3)
     area = cs.add_lamp(sc, "AREA", (-2.0, 0.0, 2.0), energy=50.0, size=1.0)
     area.scale = (2.0, 1.0, 1.0)
     sun = cs.add_lamp(sc, "SUN", (0.0, 0.0, 5.0), energy=3.0)
     sun.data.angle = 0.1
-    got = sync()
+    got, slots = sync()
+    assert slots == lamps.SVM_SLOTS and tree.nodes[lb.SCRIPT] == built      # not rebuilt
     byname = {ob.name: k for k, ob in enumerate(lamps.svm_lamps(sc))}
     assert len(got) == 3 and len(byname) == 3
     a, s = got[byname[area.name]], got[byname[sun.name]]
@@ -499,8 +503,9 @@ def test_svm_graph_draws_toward_the_lamps_it_reaches(plastic):
     z = np.array(sun.matrix_world.col[2][:3])      # toward the sun: its +Z
     assert np.allclose(s[0], z, atol=1e-5)
     area.visible_camera = False                    # its portal cannot reach it: no technique
-    got = sync()
+    got, slots = sync()
     assert len(got) == 2 and area.name not in {ob.name for ob in lamps.svm_lamps(sc)}
+    assert slots == lamps.SVM_SLOTS and tree.nodes[lb.SCRIPT] == built
 
 
 def test_without_osl_under_lamps_auto_renders_the_fit_and_says_the_step_to_exact(plastic):
