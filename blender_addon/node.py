@@ -865,8 +865,8 @@ def _resolve(scene, tree, limits=None):
     # portal, which draws toward the lamps visible to the camera that have a size: exact there,
     # but noisier than the fit is off at the budgets measured (studio lamps, 48 px sphere, equal
     # CPU time to Principled's 128 spp: MSE against the FILE 9-19x the fit's on three files;
-    # scripts/lights_acceptance.py): `auto` keeps the fit. Its MSE falls as 1/time, the fit's is
-    # bias: the SVM graph passes the fit from ~550-580 of its samples (~2600-3000 of Principled's).
+    # scripts/lights_acceptance.py), and 1.0-2.2x at Principled's 4096 spp (Blender's default
+    # final budget; its noise is heavy-tailed): `auto` keeps the fit.
     hidden = lamps.unreachable(scene) if lit else {}
     if svm_ok and (backend == "svm" or not lit):
         if hidden:
