@@ -865,7 +865,7 @@ def _resolve(scene, tree, limits=None):
     # portal, which draws toward the lamps visible to the camera that have a size: exact there,
     # but noisier than the fit is off at the budgets measured (studio lamps, 48 px sphere, equal
     # CPU time to Principled's 128 spp: MSE against the FILE 9-19x the fit's on three files;
-    # scripts/lights_acceptance.py), and 1.0-2.2x at Principled's 4096 spp (Blender's default
+    # scripts/lights_acceptance.py), and 0.8-2.0x at Principled's 4096 spp (Blender's default
     # final budget; its noise is heavy-tailed): `auto` keeps the fit.
     hidden = lamps.unreachable(scene) if lit else {}
     if svm_ok and (backend == "svm" or not lit):
