@@ -96,7 +96,9 @@ update_world sets it) makes s = 1 and f_cv 0 when off.
 
 Matched to a small light: where the world inputs give LightDirection (a Sky Texture's sun, the
 map's small sun: world.shader_inputs), or else toward the lamp of the largest c_k at the shading
-point (its draws then scaled as the world's light's are), the graph rescales the fit's closures at each shading
+point (its draws then scaled as the world's light's are; the portal's share then grows from the
+matched share toward the baked one with the other lamps' part of the lamps' weight, whose rest
+is not ~0), the graph rescales the fit's closures at each shading
 point so that f_cv = f toward that light (beta = f / f_fit there per channel, read trilinearly
 from the fit's match image: bake/export/closure_fit.match_ratios, two lookups; the tables'
 exact inverse there made the graph 1.6x as slow: sky sphere, CPU 20.3 vs 12.9 ms per spp in one
