@@ -73,7 +73,8 @@ def bind_svm(tree, scene):
     nodes = {("where", node["flowbsdf_lamp"]): node for node in tree.nodes if "flowbsdf_lamp" in node.keys()}
     nodes.update({("size", node["flowbsdf_lamp_size"]): node for node in tree.nodes
                   if "flowbsdf_lamp_size" in node.keys()})
-    if tree.get(SVM_KEY) == sig + repr(sorted(n.name for n in nodes.values())):
+    key = sig + repr(sorted(n.name for n in nodes.values()))
+    if tree.get(SVM_KEY) == key:
         return
     for (part, k), node in nodes.items():
         for i in range(3):
@@ -90,13 +91,12 @@ def bind_svm(tree, scene):
             if part == "where":
                 _drive(tree, path, -1, ob, "m", {"m": (ob, f"matrix_world[{2 if sun else 3}][{i}]")})
                 continue
-            mean = {"c0": (light, "color[0]"), "c1": (light, "color[1]"), "c2": (light, "color[2]")}
-            energy = {"e": (light, "energy"), **({"x": (light, "exposure")} if hasattr(light, "exposure") else {})}
-            e = "e*pow(2, x)" if "x" in energy else "e"
             if i == 2:
                 node.inputs[i].default_value = 1.0 if sun else 0.0
             elif i == 1:
+                e, energy = _energy(light)
                 per = "1" if sun else "0.3183" if light.type == "AREA" else "0.07958"
+                mean = {f"c{c}": (light, f"color[{c}]") for c in range(3)}
                 _drive(tree, path, -1, light, f"{e}*{per}*(c0+c1+c2)/3", {**energy, **mean})
             elif light.type == "AREA":
                 a, b = _size_paths(light)[:2]
@@ -106,7 +106,7 @@ def bind_svm(tree, scene):
                        {"a": (light, a), "b": (light, b or a), **cols})
             else:
                 _drive(tree, path, -1, light, "s", {"s": (light, "angle" if sun else "shadow_soft_size")})
-    tree[SVM_KEY] = sig + repr(sorted(n.name for n in nodes.values()))
+    tree[SVM_KEY] = key
 
 
 def kind_of(light):
@@ -157,6 +157,13 @@ def _drive(tree, path, index, id_, expression, variables):
         fc.modifiers.remove(mod)
 
 
+def _energy(light):
+    """(driver expression, variables) of a lamp's energy x 2^exposure (Blender 4.2+'s exposure)."""
+    if hasattr(light, "exposure"):
+        return "e*pow(2, x)", {"e": (light, "energy"), "x": (light, "exposure")}
+    return "e", {"e": (light, "energy")}
+
+
 def _socket_path(script, name):
     return f'nodes["{script.name}"].inputs["{name}"].default_value'
 
@@ -205,11 +212,7 @@ def bind(script, scene):
                 script.inputs[prefix + "Size"].default_value[i] = 0.0
             else:
                 _drive(tree, _socket_path(script, prefix + "Size"), i, light, "s", {"s": (light, path)})
-        if hasattr(light, "exposure"):
-            _drive(tree, _socket_path(script, prefix + "Strength"), -1, light, "e*pow(2, x)",
-                   {"e": (light, "energy"), "x": (light, "exposure")})
-        else:
-            _drive(tree, _socket_path(script, prefix + "Strength"), -1, light, "e", {"e": (light, "energy")})
+        _drive(tree, _socket_path(script, prefix + "Strength"), -1, light, *_energy(light))
     tree[KEY] = sig
 
 

@@ -1485,7 +1485,7 @@ def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, locat
     g = _Graph(tree, location)
     mix = _Mixture(world)
     if cv is not None:
-        cv = _cv_switched(g, cv, world, _matching(mix, bool(cv.get("match_image"))))
+        cv = _cv_switched(g, cv, world, _matching(mix, bool(cv.get("match_image"))), mix.match_lamp)
     if mix:
         return _mixture(g, texture_path, group_input_tangent_socket, mix, cv)
     out = _sample(g, texture_path, group_input_tangent_socket, cv)
@@ -1498,7 +1498,7 @@ def build_svm_sampler(tree, texture_path, group_input_tangent_socket=None, locat
                        _signed_portals(g, rest, out["position"], out["direction"], out["u2"]))
 
 
-def _cv_switched(g, cv, world, matched):
+def _cv_switched(g, cv, world, matched, match_lamp=False):
     """`cv` with "on" (the value of a node named CV: 1 uses the control variate, 0 leaves the
     portal alone: world inputs' ControlVariate, update_world; and only on camera rays) and "s",
     the share of shading points that take the portal: cv's share when on, else 1. None (the
@@ -1513,7 +1513,7 @@ def _cv_switched(g, cv, world, matched):
     node.outputs[0].default_value = _cv_value(world)
     node["flowbsdf_light"] = int(matched)
     node["flowbsdf_matchable"] = int(bool(cv.get("match_image")))
-    node["flowbsdf_match_lamp"] = int(matched and _Mixture(world).match_lamp)
+    node["flowbsdf_match_lamp"] = int(matched and match_lamp)
     if not matched and not cv["has_betas"]:
         return None
     on = g.math('MULTIPLY', node.outputs[0], g.node("ShaderNodeLightPath").outputs["Is Camera Ray"])

@@ -274,20 +274,25 @@ def _worker_main():
     return module
 
 
-def test_bake_progress_in_words_from_the_planner_log(monkeypatch):
-    """The planner's log (resolution probe, one line per added angle) becomes a moving fraction
-    and words with the time left; between lines the time left counts down."""
+def _fed_progress(monkeypatch, name, prefix=""):
+    """(worker_main, a BakeProgress of `name` on a fake clock, the lines it emits, (done, line)
+    per fed line, feed(t, text): log prefix + text at time t, the clock's [now])."""
     wm = _worker_main()
-    lines = []
+    lines, steps, now = [], [], [0.0]
     monkeypatch.setattr(wm, "emit", lines.append)
-    now = [0.0]
-    progress = wm.BakeProgress("MilitaryGreen", {}, clock=lambda: now[0])
-    steps = []
+    progress = wm.BakeProgress(name, {}, clock=lambda: now[0])
 
     def feed(t, text):
         now[0] = t
-        progress.log(text)
+        progress.log(prefix + text)
         steps.append((progress.done, lines[-1]))
+    return wm, progress, lines, steps, feed, now
+
+
+def test_bake_progress_in_words_from_the_planner_log(monkeypatch):
+    """The planner's log (resolution probe, one line per added angle) becomes a moving fraction
+    and words with the time left; between lines the time left counts down."""
+    wm, progress, lines, steps, feed, now = _fed_progress(monkeypatch, "MilitaryGreen")
     feed(8.0, "[bake] MilitaryGreen: resolution 16: single-bin rv 100.25x the target or more")
     assert steps[-1][1] == "[step 0.050] Baking MilitaryGreen: choosing the table resolution (1 of 5)"
     for t, r in ((9, 24), (10, 32), (13, 48), (18, 64)):
@@ -338,17 +343,7 @@ def test_bake_progress_follows_plans_in_turns(monkeypatch):
     """An isotropic material's plans over each cell layout run in turns (tabulate._plan_in_turns):
     each plan is followed on its own, its pace is its own turns (from its line to the next plan's),
     and the time left is every running plan's angles left at its own pace, measured."""
-    wm = _worker_main()
-    lines = []
-    monkeypatch.setattr(wm, "emit", lines.append)
-    now = [0.0]
-    progress = wm.BakeProgress("Satin", {}, clock=lambda: now[0])
-    steps = []
-
-    def feed(t, text):
-        now[0] = t
-        progress.log(f"[bake] Satin: {text}")
-        steps.append((progress.done, lines[-1]))
+    wm, progress, lines, steps, feed, now = _fed_progress(monkeypatch, "Satin", prefix="[bake] Satin: ")
     feed(5.0, "wo: resolution 64: single-bin rv 0.80x the target")
     feed(15.0, "halfpolar: resolution 48: single-bin rv 0.90x the target")      # wo's first round: 10 s
     t, wo, hp = 15.0, 100.0, 200.0
