@@ -114,7 +114,11 @@ class BakeProgress(Step):
     build ("tables: building N angles", "tables: built K of N", about ten of them), after the
     comparison of cell placements between bins ("between bins: comparing N", "placement K of N";
     isotropic: layouts and layout groups, tabulate._between_bins), and the node's
-    textures and fit ("[svm]/[osl]/[fit] wrote"). Angles left: from how far the worst midpoint went down on a log scale, and how far
+    textures and fit ("[svm]/[osl]/[fit] wrote"). The comparison's time: its placements at their
+    measured pace (the reference draws before the first count as one more), until the first is
+    done PLACEMENT_COST split turns per angle each; before it begins, ISO_PLACEMENTS of them where
+    the material is planned over several layouts (isotropic), so the bar leaves room for it.
+    Angles left: from how far the worst midpoint went down on a log scale, and how far
     the angle count went towards its cap; the time a split takes, measured. The build: a tenth
     of a split per angle (from the ideal tabulation's points; a flow's cost ~20x as much) until
     its first "built" line, then its own pace. An isotropic material is planned over each cell
@@ -133,6 +137,13 @@ class BakeProgress(Step):
     PLACED = re.compile(r"between bins: placement (\d+) of (\d+)")
     BUILDING = re.compile(r"tables: building (\d+) angles")
     BUILT = re.compile(r"tables: built (\d+) of (\d+)")
+    # A placement's cost (its tables built from the ideal's cached points, their rv at ~4 angles
+    # per bin) in the kept plan's split turns per angle, and the placements an isotropic material
+    # compares (tabulate._between_bins: 1 over halfpolar or 2 over wo, 3 layout groups, 2 mixed).
+    # Measured, cm_military_green at Final (45 angles, split turns 1.5 s): the draws 12 s, the
+    # placements 13-18 s (0.2 x 45 x 1.5 s = 13.5 s), 6 of them.
+    PLACEMENT_COST = 0.2
+    ISO_PLACEMENTS = 6
 
     def __init__(self, name, settings, clock=time.monotonic):
         import inspect
@@ -152,6 +163,7 @@ class BakeProgress(Step):
         self.angles = self.first                   # the kept plan's angles (placements, build)
         self.stage = None                          # after the plans: "placements", "build", "derive", "preview"
         self.build = None                          # [start time, parts built, parts, time of the last]
+        self.placed = None                         # [start time, placements done, placements, time of the last]
 
     @property
     def plan(self):
@@ -225,10 +237,10 @@ class BakeProgress(Step):
             return
         elif self.PLACEMENTS.match(text):
             m = self.PLACEMENTS.match(text)
-            self.stage, self.placed = "placements", [0, int(m.group(1))]
+            self.stage, self.placed = "placements", [now, 0, int(m.group(1)), now]
             self.angles = int(m.group(2)) if m.group(2) else self.bins
-        elif self.PLACED.match(text):
-            self.stage, self.placed = "placements", [int(n) for n in self.PLACED.match(text).groups()]
+        elif self.PLACED.match(text) and self.placed:
+            self.placed[1:] = [int(n) for n in self.PLACED.match(text).groups()] + [now]
         elif self.BUILDING.match(text):
             self.angles = int(self.BUILDING.match(text).group(1))
             self.stage, self.build = "build", [now, 0, None, None]
@@ -270,8 +282,7 @@ class BakeProgress(Step):
         if self.stage == "build":
             return self._build_estimate(now, who)
         if self.stage == "placements":
-            done, total = self.placed
-            return None, f"{who}: comparing cell placements across {self.angles} angles ({done} of {total} done)"
+            return self._placements_estimate(now, who)
         shown = self.layout
         running = [k for k, q in self.plans.items() if not q.ended]
         if self.plan.ended and running:         # the words follow a plan still running
@@ -289,18 +300,36 @@ class BakeProgress(Step):
         lefts = [self.angles_left(q)[0] for q in running]
         left, capped = self.angles_left(p)
         total = p.bins + left
-        split = p.seconds_per_angle()
         # every running plan's angles left at its own measured pace, less the turn under way so far
         plan_left = sum(n * q.seconds_per_angle() for n, q in zip(lefts, running)) - (now - self.last_turn)
-        remaining = plan_left + total * split / 10 + 3.0
+        # then the kept plan's placements (+1: the reference draws) and build; which plan is kept is
+        # not known yet: the costliest running plan's angles at its pace
+        per_angle = max((q.bins + n) * q.seconds_per_angle() for n, q in zip(lefts, running))
+        placements = self.ISO_PLACEMENTS + 1 if self.layouts > 1 else 0
+        remaining = plan_left + per_angle * (placements * self.PLACEMENT_COST + 0.1) + 3.0
         if remaining <= 0:
             return None, f"{who}: finishing the tables ({total} angles)"
         if not any(lefts):
-            words = f"{who}: building the tables for {total} angles, {time_left(remaining)}"
+            words = (f"{who}: {total} angles placed, comparing cell placements next" if placements else
+                     f"{who}: building the tables for {total} angles") + f", {time_left(remaining)}"
         else:
             words = (f"{who}: {layout}{p.bins} of {'at most' if capped else 'about'} {total} angles, "
                      f"{time_left(remaining)}")
         return elapsed / (elapsed + remaining), words
+
+    def _placements_estimate(self, now, who):
+        start, done, total, last = self.placed
+        split = self.plan.seconds_per_angle() if self.plan.turns else 1.0
+        if done:
+            pace, left = (last - start) / (done + 1), total - done
+        else:
+            pace, left = self.PLACEMENT_COST * self.angles * split, total + 1
+        remaining = left * pace - (now - last) + self.angles * split / 10 + 3.0
+        words = f"{who}: comparing cell placements across {self.angles} angles ({done} of {total} done"
+        if remaining <= 0:
+            return None, words + ")"
+        elapsed = now - self.t0
+        return elapsed / (elapsed + remaining), words + f", {time_left(remaining)})"
 
     def _build_estimate(self, now, who):
         start, done, parts, last = self.build

@@ -319,24 +319,79 @@ def test_bake_progress_in_words_from_the_planner_log(monkeypatch):
     m2 = re.match(r"\[step ([0-9.]+)\] .* about (\d+) (min|s) left$", lines[-1])
     assert m2 and float(m2.group(1)) > float(m.group(1)), lines[-1]
     assert (int(m2.group(2)) if m2.group(3) == "min" else 0) <= before - 1, (words, lines[-1])
-    # The comparison of cell placements between bins (isotropic): words, the bar held where it was.
-    held = progress.done
-    feed(140.0, "[bake] MilitaryGreen: between bins: comparing 5 cell placements on 17 angles")
-    assert lines[-1] == f"[step {held:.3f}] Baking MilitaryGreen: comparing cell placements across 17 angles (0 of 5 done)", lines[-1]
-    feed(144.0, "[bake] MilitaryGreen: between bins: placement 3 of 5, two groups split at 55.10 deg: 1.21x the ideal's rv")
-    assert lines[-1] == f"[step {held:.3f}] Baking MilitaryGreen: comparing cell placements across 17 angles (3 of 5 done)", lines[-1]
+    # The comparison of cell placements between bins (isotropic; test_bake_progress_through_the_placements)
+    feed(200.0, "[bake] MilitaryGreen: between bins: comparing 5 cell placements on 17 angles")
+    assert "comparing cell placements across 17 angles (0 of 5 done, about " in lines[-1], lines[-1]
     # The tables' build (from a flow's points it may take longer than the planning): its own pace.
-    feed(150.0, "[bake] MilitaryGreen: tables: building 34 angles")
+    feed(300.0, "[bake] MilitaryGreen: tables: building 34 angles")
     assert "building the tables (0 of 34 angles done" in lines[-1], lines[-1]
-    feed(170.0, "[bake] MilitaryGreen: tables: built 4 of 34")
+    feed(320.0, "[bake] MilitaryGreen: tables: built 4 of 34")
     m3 = re.match(r"\[step ([0-9.]+)\] Baking MilitaryGreen: building the tables \(4 of 34 angles done, "
                   r"about (\d+) (min|s) left\)$", lines[-1])
     assert m3 and m3.group(2, 3) == ("2", "min"), lines[-1]          # 20 s per 4 angles: 150 s left
     assert float(m3.group(1)) >= float(m2.group(1))
-    feed(200.0, "[svm] wrote /x/MilitaryGreen.svm1-0.exr")
+    feed(350.0, "[svm] wrote /x/MilitaryGreen.svm1-0.exr")
     assert lines[-1].endswith("Baking MilitaryGreen: writing the node's textures and closure fit")
     assert wm.time_left(5) == "a few seconds left" and wm.time_left(40) == "about 40 s left"
     assert wm.time_left(75) == "about 1 min left" and wm.time_left(610) == "about 10 min left"
+
+
+def test_bake_progress_through_the_placements(monkeypatch):
+    """The comparison of cell placements between bins (tabulate._between_bins: a minute and a half
+    of a Final bake, measured) has its share of the bar: counted before it begins (ISO_PLACEMENTS
+    placements of PLACEMENT_COST split turns per angle), then each at its measured pace, so the bar
+    moves while it runs and the time left falls. A plan that ends on its memory budget says it is
+    done (tabulate.plan_tables), and its angles left count no more."""
+    from bake.core import tabulate
+    wm, progress, lines, steps, feed, now = _fed_progress(monkeypatch, "Silk", prefix="[bake] Silk: ")
+    feed(2.0, "wo: resolution 48: single-bin rv 0.80x the target")
+    feed(4.0, "halfpolar: resolution 48: single-bin rv 0.90x the target")
+    t, wo, hp = 4.0, 100.0, 200.0
+    for k in range(7, 12):      # turns of 2 s each; wo's midpoints come down slowly: many angles to go
+        t += 2.0
+        feed(t, f"wo: bins {k}: split 1.00-2.00 deg (midpoint loss {wo}x its target)")
+        t += 2.0
+        feed(t, f"halfpolar: bins {k}: split 1.00-2.00 deg (midpoint loss {hp}x its target)")
+        wo, hp = wo / 1.25, hp / 2
+    t += 2.0
+    now[0] = t
+    before = progress.estimate(t)[0]        # elapsed / (elapsed + time left)
+    budget = tabulate._budget_full(11, 4_000_000)      # what the planner says
+    assert progress.ENDED.match(budget), budget
+    feed(t, "wo: " + budget)
+    after = progress.estimate(t)[0]
+    assert t / after - t < t / before - t - 20.0, (before, progress.estimate(t))      # wo's angles left: 2 s each
+    for k in range(12, 16):
+        t += 2.0
+        feed(t, f"halfpolar: bins {k}: split 1.00-2.00 deg (midpoint loss {hp}x its target)")
+        hp /= 2
+    feed(t + 2.0, "halfpolar: bins 15: done, the worst midpoint loses 0.50x its target")
+    feed(t + 2.0, "coordinates: halfpolar (midpoints over their targets, typical / worst: halfpolar 1.07x / 1.49x)")
+    t += 2.0
+    feed(t, "between bins: comparing 6 cell placements on 15 angles")
+    # elapsed 36 s; the placements and the draws 7 x 0.2 x 15 angles x 2 s = 42 s, the build 3 s, 3 s
+    assert lines[-1] == "[step 0.429] Baking Silk: comparing cell placements across 15 angles (0 of 6 done, " \
+                        "about 50 s left)", lines[-1]
+    during = [steps[-1]]
+    for k in range(1, 7):       # the draws and each placement 5 s: the heartbeat between them
+        now[0] = t + 5.0 * k + 2.5
+        progress.report()
+        during.append((progress.done, lines[-1]))
+        feed(t + 5.0 * (k + 1), f"between bins: placement {k} of 6, two groups split at 55.10 deg: 1.21x the ideal's rv")
+        during.append(steps[-1])
+    bars, lefts = [f for f, _ in during], [_seconds_left(w) for _, w in during]
+    assert all(a < b for a, b in zip(bars, bars[1:])) and bars[-1] < 0.99, during
+    assert lefts == sorted(lefts, reverse=True) and lefts[-1] < lefts[0] / 3, during
+    assert lines[-1] == "[step 0.922] Baking Silk: comparing cell placements across 15 angles (6 of 6 done, " \
+                        "a few seconds left)", lines[-1]
+
+
+def _seconds_left(words):
+    """The time left in a progress line's words, in seconds ("about 2 min left": 120)."""
+    import re
+    m = re.search(r"(a few seconds|about (\d+) (s|min)) left", words)
+    assert m, words
+    return 5 if m.group(2) is None else int(m.group(2)) * (60 if m.group(3) == "min" else 1)
 
 
 def test_bake_progress_follows_plans_in_turns(monkeypatch):
@@ -357,17 +412,20 @@ def test_bake_progress_follows_plans_in_turns(monkeypatch):
     words = [w for _, w in steps]
     # until both plans have three splits and a measured turn, no time left is made up
     assert all(w.endswith("estimating the time left") for w in words[:7]), words
-    assert words[7] == "[step 0.285] Baking Satin: layout 2 of 2, 9 of about 18 angles, about 2 min left", words[7]
+    # after the plans the kept plan's placements (test_bake_progress_through_the_placements) and
+    # build, at the costlier plan's angles and pace until one is kept: here halfpolar's
+    assert words[7] == "[step 0.134] Baking Satin: layout 2 of 2, 9 of about 18 angles, about 5 min left", words[7]
     # halfpolar at 11 of about 16 angles (5 left at 6 s), wo 4 left at 4 s, the build 16 x 6 s / 10, 3 s:
-    # 58.6 s; 20 s later (the heartbeat) 38.6 s
-    assert words[-1] == "[step 0.548] Baking Satin: layout 2 of 2, 11 of about 16 angles, about 1 min left", words[-1]
+    # 58.6 s, the placements and their draws 7 x 0.2 x 16 x 6 s = 134.4 s: 193 s; 20 s later (the heartbeat) 173 s
+    assert words[-1] == "[step 0.269] Baking Satin: layout 2 of 2, 11 of about 16 angles, about 3 min left", words[-1]
     now[0] = t + 20.0
     progress.report()
-    assert lines[-1] == "[step 0.702] Baking Satin: layout 2 of 2, 11 of about 16 angles, about 40 s left", lines[-1]
-    # a plan that ends counts no more: wo's 2 angles left at 4 s, the build 14 x 4 s / 10, 3 s
+    assert lines[-1] == "[step 0.345] Baking Satin: layout 2 of 2, 11 of about 16 angles, about 3 min left", lines[-1]
+    # a plan that ends counts no more: wo's 2 angles left at 4 s, the build 14 x 4 s / 10, 3 s, the
+    # placements 7 x 0.2 x 14 x 4 s: 95 s
     feed(t + 26.0, "halfpolar: bins 11: done, the worst midpoint loses 0.50x its target")
     feed(t + 26.0, "wo: bins 12: split 1.00-2.00 deg (midpoint loss 3x its target)")
-    assert lines[-1] == "[step 0.854] Baking Satin: layout 1 of 2, 12 of about 14 angles, about 20 s left", lines[-1]
+    assert lines[-1] == "[step 0.505] Baking Satin: layout 1 of 2, 12 of about 14 angles, about 2 min left", lines[-1]
     fractions = [f for f, _ in steps]
     assert fractions == sorted(fractions) and 0 < fractions[-1] < 1
 

@@ -784,6 +784,20 @@ def test_planner_splits_until_every_midpoint_is_within_half_its_target(monkeypat
     assert 0.5 < looser_loss <= 1.0 and len(looser.theta_bins) < len(tab.theta_bins)
 
 
+def test_a_plan_ended_by_the_memory_budget_says_it_is_done():
+    """A plan that the memory budget ends says so in the line the add-on's progress counts as a
+    plan's end (worker_main.BakeProgress.ENDED), as a plan within its targets does."""
+    from bake.core import tabulate
+    mat = open_material({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.05})
+    budget = 40_000         # 16² cells: 6 bins
+    assert tabulate.bins_within(budget, 16) == 6
+    lines = []
+    tab = plan_tables(mat, IdealSampler(mat, resolution=32), memory_budget=budget, log=lines.append,
+                      resolution=16, tol=0.01, grid=64, samples=1024, first_bins=3, coords="wo")
+    ends = [line for line in lines if ": done, " in line]
+    assert ends == [tabulate._budget_full(len(tab.theta_bins), budget)], lines
+
+
 class FadingLobes(Material):
     """f·cos: two lobes fixed in wo, the first fading out as the second fades in over theta_i
     30-60 deg, on a floor of 1e-3."""

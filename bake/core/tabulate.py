@@ -1321,7 +1321,10 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
                 if len(bins) > 1 else 1.0
             return float(ratios.max(initial=0.0)), excess
 
-        while len(bins) < max_bins:
+        while True:
+            if len(bins) >= max_bins:       # (a plan that ends on the budget says so: the add-on's progress)
+                say(_budget_full(len(bins), memory_budget))
+                break
             new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
             # The new intervals' builds are independent: all of them at once, in threads.
             scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
@@ -1334,6 +1337,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
                 say(f"bins {len(bins)}: stopped, as many cells as a plan that reaches its targets")
                 return resolution, bins, phi_bins, worst_phi, (np.inf, np.inf), extend
             if not fits(sorted(bins + [split_at[(lo, hi)]])):
+                say(_budget_full(len(bins), memory_budget))
                 break
             bins = sorted(bins + [split_at[(lo, hi)]])
             del scores[(lo, hi)]
@@ -1387,6 +1391,11 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     if phi_bins is not None:
         tables.meta.update(phi_count=len(phi_bins), planned_at_phi=float(worst_phi))
     return tables
+
+
+def _budget_full(bins, memory_budget):
+    """A plan's line when the memory budget ends it (the add-on's progress counts the plan done)."""
+    return f"bins {bins}: done, the memory budget holds no more angles ({memory_budget / 1e6:.2f} MB)"
 
 
 # Plans over several coordinates run in turns, a round of splits each: one whose midpoints are
