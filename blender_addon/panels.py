@@ -240,6 +240,21 @@ def disk_use(folder):
     return _disk[folder][1]
 
 
+def packed_use():
+    """What FlowBSDF packed into the .blend, and why, in words ("" when nothing): the SVM back
+    end's textures (svm._image packs them: unpacked, Cycles under Open Shading Language read a
+    new texture as zeros now and then), those that something still uses (the ones saved)."""
+    try:
+        from .svm import PACKED
+    except ImportError:
+        return ""
+    sizes = [i.packed_file.size for i in bpy.data.images if i.get(PACKED) and i.packed_file is not None and i.users]
+    if not sizes:
+        return ""
+    return (f"Packed in the .blend: {len(sizes)} texture{'s' if len(sizes) > 1 else ''}, {sum(sizes) / 1e6:.1f} MB "
+            "(the SVM back end reads them)")
+
+
 def draw_scene(layout, context):
     s = context.scene.flowbsdf
     col = _split(layout)
@@ -248,6 +263,9 @@ def draw_scene(layout, context):
     used = disk_use(os.path.join(scan.out_dir(context.scene), "tables"))
     if used:
         wrapped(layout, used, "DISK_DRIVE", context)
+    packed = packed_use()
+    if packed:
+        wrapped(layout, packed, "PACKAGE", context)
     from . import jobs
     where = jobs.unsaved_problem(context.scene)
     if where:

@@ -178,8 +178,13 @@ def _svm_export():
     return importlib.import_module(f"{deps.bake.__name__}.export.svm_export")
 
 
+PACKED = "flowbsdf_packed"       # an image's custom property: packed by _image (the panel's "Packed in the .blend")
+
+
 def _image(path):
-    """The texture as Cycles must read it: texel values bit-exact, and packed into the .blend.
+    """The texture as Cycles must read it: texel values bit-exact, and packed into the .blend
+    (marked PACKED; one image per file: Blender's check_existing finds it under any spelling of
+    its path, relative or not).
     Packed, Cycles reads it through its own image manager on every device and shading system.
     A file image under Open Shading Language goes through OIIO's texture system instead, which
     read a new texture file as zeros now and then: the material rendered black (measured, bpy
@@ -191,6 +196,8 @@ def _image(path):
     image = bpy.data.images.load(str(path), check_existing=True)
     if image.packed_file is None:
         image.pack()
+    if not image.get(PACKED):
+        image[PACKED] = True
     if bpy.data.filepath and os.path.isabs(image.filepath):    # relative to the .blend: the project moves
         try:
             image.filepath = bpy.path.relpath(image.filepath)
@@ -1326,14 +1333,31 @@ def update_world(tree, world):
                 for socket, value in zip(node.inputs, mix.inputs["SunDirection"]):
                     sockets.assign(socket, value)
     if mix.map:
-        image = _image(mix.path)
+        image, swapped = _image(mix.path), False
         for node in tree.nodes:
             if node.bl_idname == "ShaderNodeGroup" and node.node_tree is not None:
                 for kind, build in _WORLD_GROUPS.items():
                     name = node.node_tree.name
                     if _is_world_group(name, kind) and name != _world_group_name(kind, mix.map, image):
-                        node.node_tree = build(mix.map, image)
+                        node.node_tree, swapped = build(mix.map, image), True
+        if swapped:
+            drop_unused()
     return True
+
+
+def drop_unused():
+    """Remove the graphs' node groups that nothing uses, then the images _image packed that
+    nothing uses. Blender saves whatever something holds, an unused group too: the superseded
+    world map's groups (a search step held by the old sample group) kept the old map packed in
+    the .blend beside the new one (+4.6 MB per world edit)."""
+    while True:
+        unused = [t for t in bpy.data.node_groups if t.name.startswith(GROUP_PREFIX) and t.users == 0]
+        if not unused:
+            break
+        for tree in unused:
+            bpy.data.node_groups.remove(tree)
+    for image in [i for i in bpy.data.images if i.get(PACKED) and i.users == 0]:
+        bpy.data.images.remove(image)
 
 
 # ------------------------------------------------------------------------------ public

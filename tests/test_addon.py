@@ -921,6 +921,7 @@ def test_panel_draws_every_state(addon, tmp_path):
         job.run(echo=False)
         worker.current = None
     assert ("label", "Tables: 2.5 MB, 3 files") in seen, [t for k, t in seen if k == "label"]
+    _check_packed_line(ctx, tmp_path)
     ops = {name for kind, name in seen if kind == "operator"}
     assert {"flowbsdf.enable", "flowbsdf.bake", "flowbsdf.scan", "flowbsdf.validate", "flowbsdf.set_backend"} <= ops
     assert {"filepath", "analytic_preset", "python_callable", "out_dir"} <= {n for k, n in seen if k == "prop"}
@@ -933,6 +934,42 @@ def test_panel_draws_every_state(addon, tmp_path):
         panels.FLOWBSDF_PT_material.draw(SimpleNamespace(layout=_Recorder(drawn)), ctx)
         assert (training <= set(drawn)) if shown else not training & set(drawn), (tables_from, drawn)
         assert ("operator", "flowbsdf.bake") in drawn
+
+
+def _check_packed_line(ctx, tmp_path):
+    """The scene panel says what FlowBSDF packed into the .blend, how much and why (the SVM back
+    end's textures, svm._image), in lines that fit the sidebar; a texture is packed once
+    however its path is spelled, and one nothing uses (not saved) is not counted."""
+    import numpy as np
+    from bake.plumbing.exrio import write_rgba_exr
+    from blender_addon import panels, svm
+    paths = []
+    rng = np.random.default_rng(0)
+    for k, side in enumerate((256, 128, 16)):       # noise: MBs that compression keeps
+        paths.append(tmp_path / "tables" / f"m{k}.svm4-0123.exr")
+        write_rgba_exr(paths[-1], rng.random((side, side, 4), np.float32), "flowbsdf", {})
+    first = svm._image(str(paths[0]))
+    again = [svm._image(p) for p in (paths[0], str(tmp_path / "tables" / ".." / "tables" / paths[0].name))]
+    assert all(image == first for image in again)
+    used = [first, svm._image(str(paths[1]))]
+    svm._image(str(paths[2]))               # packed, but nothing uses it: not saved, not counted
+    for image in used:
+        image.use_fake_user = True
+    assert not [i for i in bpy.data.images if i.packed_file is not None and not i.get(svm.PACKED)]
+    size = sum(p.stat().st_size for p in paths[:2]) / 1e6
+    assert size > 0.5
+    text = f"Packed in the .blend: 2 textures, {size:.1f} MB (the SVM back end reads them)"
+    assert panels.packed_use() == text
+    drawn = []
+    panels.draw_scene(_Recorder(drawn), ctx)
+    lines = panels.wrap(text, ctx)
+    labels = [t for k, t in drawn if k == "label"]
+    at = labels.index(lines[0])
+    assert labels[at:at + len(lines)] == lines and len(lines) <= 3, lines
+    assert " ".join(lines) == text          # whole words: nothing cut
+    for image in used:
+        bpy.data.images.remove(image)
+    assert panels.packed_use() == ""
 
 
 def test_modal_progress_and_cancel(addon, tmp_path):

@@ -5,6 +5,7 @@ leaves the SVM stack a wide margin, measured with Cycles' own overflow message; 
 mixture (map, sun cone, tables) is numpy's (probes) and renders a sphere under a sky with
 its sun as Cycles' Diffuse BSDF does, with far less noise than the tables alone.
 Cycles tests need bpy (skipped with the reason without it), not OSL."""
+import os
 import sys
 from pathlib import Path
 
@@ -888,12 +889,19 @@ def test_svm_update_world(svm, plastic, tmp_path):
     after = _sun_world(path2, "map and sun", spot=(np.radians(50.0), np.radians(120.0)), shares=(0.2, 0.35),
                        angle=0.2)
 
+    def at(path_):      # the images of a file
+        return [i for i in bpy.data.images if os.path.normpath(bpy.path.abspath(i.filepath)) == os.path.normpath(path_)]
+
     def build(tree, texture, probe):
         out = svm.build_svm_probe(tree, texture, probe, world=before)
+        old = [i.name for i in at(path)]
+        assert len(old) == 1 and at(path)[0].packed_file is not None
         assert svm.update_world(tree, after)
         groups = {n.node_tree.name for n in tree.nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree}
         assert any(name.endswith(": world2.exr") for name in groups)
         assert not any(name.endswith(": world.exr") for name in groups)
+        # the old map is no longer held, so not packed into the .blend: its groups and image are gone
+        assert not at(path) and not [t for t in bpy.data.node_groups if t.name.endswith(f": {old[0]}")]
         return out
     _assert_mixture_is_numpy(svm, plastic, tmp_path, after, wm2, build)
 
