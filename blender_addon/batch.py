@@ -231,6 +231,8 @@ def _library(argv):
     p.add_argument("--out", required=True, help="the library's folder")
     p.add_argument("--quality", choices=list(library.QUALITY), default="final", help="the tables' bake settings")
     p.add_argument("--python", default=None, help="the Python that bakes (numpy + OpenEXR)")
+    p.add_argument("--blend-only", action="store_true",
+                   help="no bake: library.blend from the tables baked already (the panel's second step)")
     try:
         args = p.parse_args(argv)
     except SystemExit as e:
@@ -248,17 +250,18 @@ def _build_library(args):
     items, manifest = library.prepare(args.folder, args.out, args.quality)
     out = os.path.abspath(args.out)
     log(f"library: {len(items)} measured file(s) in {os.path.abspath(args.folder)}; manifest {manifest}")
-    prefs_ = prefs.get()
-    python = worker.python_for(prefs_, where="batch")
-    log(f"worker Python: {deps.describe(python, *_explicit(prefs_))}")
-    job = worker.Job(python, jobs.bake_args(str(manifest), out), worker.extra_paths(prefs_))
-    try:
-        job.run(echo=True)
-        failed = []
-    except worker.JobError:
-        failed = sorted({ln.split(":", 1)[0][len("[fail] "):] for ln in job.lines if ln.startswith("[fail] ")})
-        if not failed:
-            raise
+    failed = []
+    if not args.blend_only:
+        prefs_ = prefs.get()
+        python = worker.python_for(prefs_, where="batch")
+        log(f"worker Python: {deps.describe(python, *_explicit(prefs_))}")
+        job = worker.Job(python, jobs.bake_args(str(manifest), out), worker.extra_paths(prefs_))
+        try:
+            job.run(echo=True)
+        except worker.JobError:
+            failed = sorted({ln.split(":", 1)[0][len("[fail] "):] for ln in job.lines if ln.startswith("[fail] ")})
+            if not failed:
+                raise
     library.build([i for i in items if i["name"] not in failed], out, log=log)
     if failed:
         raise BatchError(f"not baked, left out of the library: {', '.join(failed)}")

@@ -1,6 +1,7 @@
 """The steps the panel and the batch command share: scan -> manifest -> worker -> bind nodes."""
 import os
 import subprocess
+from pathlib import Path
 
 import bpy
 
@@ -69,6 +70,35 @@ def start_bake(scene, context=None, only=None, train="never"):
     names = sorted({r["name"] for r in rows}) if only else ()
     return rows, manifest, out, worker.Job(python, bake_args(manifest, out, train, names),
                                            worker.extra_paths(p), label="Train + Bake" if train == "always" else "Bake")
+
+
+def start_library(folder, out, quality="final", context=None):
+    """The asset library's first step (blender_addon/library.py): DIR/manifest.toml of the folder's
+    measured files, and their bake in the worker (tables, textures, fit, preview; current ones
+    skipped). Returns (items, manifest path, the Job); library.LibraryError when the folder has
+    no measured files."""
+    from . import library
+    items, manifest = library.prepare(folder, out, quality)
+    p = prefs.get(context)
+    return items, manifest, worker.Job(worker.python_for(p), bake_args(str(manifest), str(Path(out).resolve())),
+                                       worker.extra_paths(p), label="Asset Library: Bake")
+
+
+def blender_program():
+    return bpy.app.binary_path          # ('' in the bpy module)
+
+
+def library_blend_job(folder, out, quality="final", context=None):
+    """Its second step: DIR/library.blend written by a background Blender (this one's program;
+    writing it here would replace the open file) from the tables baked already."""
+    from . import library
+    if not blender_program():
+        raise worker.JobError("this Blender cannot start itself in the background (its program is unknown): "
+                              f"write library.blend with `flowbsdf library {folder} --out {out}`")
+    p = prefs.get(context)
+    args = library.blender_args(folder, out, quality, python=worker.python_for(p), blender=blender_program(),
+                                blend_only=True)
+    return worker.Job(args[0], args[1:], worker.extra_paths(p), label="Asset Library: library.blend", script=None)
 
 
 def after_status(scene, rows, manifest, lines):

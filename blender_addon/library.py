@@ -383,16 +383,21 @@ def _save(blend):
         paths.save_version = versions
 
 
-def blender_command(folder, out, quality, python=None):
-    """The command that writes library.blend with Blender (where this Python has no bpy)."""
+def blender_args(folder, out, quality, python=None, blender="blender", blend_only=False):
+    """The command (a list) that writes library.blend with a background Blender: the batch
+    `library` command, the bake in `python` first unless blend_only (the tables baked already)."""
     root = Path(__file__).resolve().parent.parent
     expr = (f"import sys; sys.path.insert(0, {json.dumps(str(root))}); "
             f"import {Path(__file__).resolve().parent.name}.batch as b; b.main()")
-    args = ["blender", "-b", "--factory-startup", "--python-expr", expr, "--", "library",
+    return [blender, "-b", "--factory-startup", "--python-expr", expr, "--", "library",
             str(Path(folder).resolve()), "--out", str(Path(out).resolve()), "--quality", quality,
-            "--python", python or sys.executable]
+            "--python", str(python or sys.executable)] + (["--blend-only"] if blend_only else [])
+
+
+def blender_command(folder, out, quality, python=None):
+    """The command that writes library.blend with Blender (where this Python has no bpy)."""
     import shlex
-    return " ".join(shlex.quote(a) for a in args)
+    return " ".join(shlex.quote(a) for a in blender_args(folder, out, quality, python))
 
 
 def have_bpy():

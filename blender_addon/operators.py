@@ -7,7 +7,7 @@ import shutil
 
 import bpy
 
-from . import deps, jobs, prefs, scan, worker
+from . import deps, jobs, prefs, props, scan, worker
 
 USER_ERRORS = (worker.JobError, scan.ScanError, jobs.BindError, OSError, ValueError)
 
@@ -28,6 +28,20 @@ class _JobOperator:
 
     def finish(self, context, job):    # -> message for the info report
         return "done"
+
+    def next_job(self, context, job):  # -> a Job that goes on with the work once `job` ended, or None
+        return None
+
+    def _next(self, context):
+        """The next step's job (next_job) unless the job was cancelled; None when there is none.
+        A USER_ERRORS from next_job becomes the job's error."""
+        if self._job.cancelled:
+            return None
+        try:
+            return self.next_job(context, self._job)
+        except USER_ERRORS as e:
+            self._job.error = str(e)
+            return None
 
     def _fail(self, context, message, details="", cancelled=False):
         state = context.window_manager.flowbsdf_job
@@ -69,10 +83,13 @@ class _JobOperator:
     def execute(self, context):
         if not self._start(context):
             return {"CANCELLED"}
-        try:
-            self._job.run(echo=bpy.app.background)
-        except worker.JobError:
-            pass                        # job.error holds it: reported by _end
+        while self._job is not None:
+            try:
+                self._job.run(echo=bpy.app.background)
+            except worker.JobError:
+                pass                    # job.error holds it: reported by _end
+            job, self._job = self._job, self._next(context)
+        self._job = job
         return self._end(context)
 
     def invoke(self, context, event):
@@ -81,6 +98,10 @@ class _JobOperator:
         problem = jobs.unsaved_problem(context.scene)
         if problem:
             return self._fail(context, problem)
+        return self._run_modal(context)
+
+    def _run_modal(self, context):
+        """Start the job and follow it from a timer (Blender stays responsive)."""
         if worker.current is not None and not worker.current.done:
             self.report({"ERROR"}, f"FlowBSDF: {worker.current.label} is still running (cancel it first)")
             return {"CANCELLED"}
@@ -103,6 +124,11 @@ class _JobOperator:
         state.progress, state.message = 100.0 * job.fraction, job.message
         _redraw(context)
         if not job.done:
+            return {"PASS_THROUGH"}
+        nxt = self._next(context)
+        if nxt is not None:             # the work's next step: followed the same way
+            self._job = worker.current = nxt
+            state.progress, state.message, state.label = 0.0, "starting", nxt.label
             return {"PASS_THROUGH"}
         context.window_manager.event_timer_remove(self._timer)
         result = self._end(context)
@@ -192,6 +218,65 @@ class FLOWBSDF_OT_train_bake(_BakeOperator, bpy.types.Operator):
             if mat is not None and mat.flowbsdf.enabled:
                 mat.flowbsdf.tables_from = "MODEL"
         return super().start(context)
+
+
+class FLOWBSDF_OT_make_library(_JobOperator, bpy.types.Operator):
+    """Bake a folder of measured files (RGL .bsdf, MERL .binary) into an asset library: one material
+    per file, with a preview, in a .blend that the Asset Browser opens (add its folder in
+    Preferences > File Paths > Asset Libraries). The bake runs in the background like Bake; files
+    already baked are skipped"""
+    bl_idname = "flowbsdf.make_library"
+    bl_label = "Make Asset Library"
+
+    folder: bpy.props.StringProperty(name="Measured Files", subtype="DIR_PATH",
+                                     description="The folder of measured files (subfolders too)")
+    out: bpy.props.StringProperty(name="Library Folder", subtype="DIR_PATH",
+                                  description="Where the library goes (library.blend, tables/, the catalogs); "
+                                              "empty: a folder 'flowbsdf_library' in the measured files' folder")
+    quality: bpy.props.EnumProperty(name="Tables", default="FINAL", items=props.QUALITY_ITEMS)
+
+    def _folders(self):
+        folder = bpy.path.abspath(self.folder.strip())
+        if not folder or not os.path.isdir(folder):
+            raise ValueError(f"pick the folder of measured files ({folder or 'none picked'} is not a folder)")
+        out = bpy.path.abspath(self.out.strip()) or os.path.join(folder, "flowbsdf_library")
+        return os.path.normpath(folder), os.path.normpath(out)
+
+    def start(self, context):
+        from . import library
+        folder, out = self._folders()
+        try:
+            self._items, _, job = jobs.start_library(folder, out, self.quality.lower(), context)
+        except library.LibraryError as e:
+            raise ValueError(str(e)) from None
+        self._failed = []
+        return job
+
+    def next_job(self, context, job):
+        if job.label != "Asset Library: Bake":
+            return None
+        self._failed = sorted({ln.split(":", 1)[0][len("[fail] "):] for ln in job.lines if ln.startswith("[fail] ")})
+        if job.error and not self._failed:
+            return None                 # the bake itself failed: reported by _end
+        folder, out = self._folders()
+        return jobs.library_blend_job(folder, out, self.quality.lower(), context)
+
+    def finish(self, context, job):
+        _, out = self._folders()
+        made = len(self._items) - len(self._failed)
+        return (f"FlowBSDF: asset library {os.path.join(out, 'library.blend')}, {made} material(s)"
+                + (f" ({', '.join(self._failed)} failed to bake)" if self._failed else "")
+                + "; add its folder in Preferences > File Paths > Asset Libraries")
+
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        return context.window_manager.invoke_props_dialog(self, width=420)
+
+    def execute(self, context):
+        if bpy.app.background or context.window is None:
+            return super().execute(context)
+        return self._run_modal(context)         # after the dialog: in the background, with the bar
 
 
 class FLOWBSDF_OT_cancel(bpy.types.Operator):
@@ -339,6 +424,7 @@ class FLOWBSDF_OT_reach_lamp(bpy.types.Operator):
         return {"FINISHED"}
 
 
-classes = (FLOWBSDF_OT_scan, FLOWBSDF_OT_bake, FLOWBSDF_OT_train_bake, FLOWBSDF_OT_cancel, FLOWBSDF_OT_enable,
+classes = (FLOWBSDF_OT_scan, FLOWBSDF_OT_bake, FLOWBSDF_OT_train_bake, FLOWBSDF_OT_make_library, FLOWBSDF_OT_cancel,
+           FLOWBSDF_OT_enable,
            FLOWBSDF_OT_load_model, FLOWBSDF_OT_check_python, FLOWBSDF_OT_set_backend, FLOWBSDF_OT_use_osl,
            FLOWBSDF_OT_use_cycles, FLOWBSDF_OT_reach_lamp)

@@ -293,6 +293,7 @@ def draw_scene(layout, context):
                 wrapped(box, text, "BLANK1", context, boxes=1)
     if s.scan_items:
         layout.operator("flowbsdf.validate", text="Validate", icon="IMAGE_REFERENCE")
+    layout.operator("flowbsdf.make_library", text="Make Asset Library\u2026", icon="ASSET_MANAGER")
 
 
 class _Panel:

@@ -76,6 +76,11 @@ def manifest_entry(material):
                      **({"carry": s.carried} if s.source_kind == "FILE" else {})}}
 
 
+QUALITY_ITEMS = [("DRAFT", "Draft", "Tiny tables, seconds: layout and tests"),
+                 ("PREVIEW", "Preview", "Coarser tables for look-dev"),
+                 ("FINAL", "Final", "The baker's defaults")]        # (BAKE_QUALITY's keys)
+
+
 class FlowBSDFMaterial(bpy.types.PropertyGroup):
     enabled: bpy.props.BoolProperty(name="Learned BSDF", description="Render this material with FlowBSDF")
     name: bpy.props.StringProperty(name="Name", description="Name in the manifest and of the table file "
@@ -110,10 +115,7 @@ class FlowBSDFMaterial(bpy.types.PropertyGroup):
                     "own coordinates where that samples closer. Costs 5-6x OSL's time per sample: at equal "
                     "render time 6-10x the error of the default (measured). Off: fixed cells, the same look "
                     "on every device (the SVM graph renders those). Changing it bakes the tables again")
-    bake_quality: bpy.props.EnumProperty(name="Tables", default="FINAL", items=[
-        ("DRAFT", "Draft", "Tiny tables, seconds: layout and tests"),
-        ("PREVIEW", "Preview", "Coarser tables for look-dev"),
-        ("FINAL", "Final", "The baker's defaults")])
+    bake_quality: bpy.props.EnumProperty(name="Tables", default="FINAL", items=QUALITY_ITEMS)
 
 
 class FlowBSDFScanItem(bpy.types.PropertyGroup):

@@ -39,9 +39,12 @@ def short(text, limit=100):
 
 
 class Job:
-    def __init__(self, python, args, extra_paths=(), label="FlowBSDF"):
+    """`python worker_main.py ARGS`, or with script=None the program `python` itself with ARGS
+    (a background Blender: the asset library's library.blend); its lines read the same way."""
+
+    def __init__(self, python, args, extra_paths=(), label="FlowBSDF", script=deps.WORKER_SCRIPT):
         self.label = label
-        self.cmd = [str(python), str(deps.WORKER_SCRIPT), *map(str, args)]
+        self.cmd = [str(python), *([str(script)] if script else []), *map(str, args)]
         self.lines = []               # everything the worker printed
         self.fraction = 0.0
         self.message = "starting"

@@ -923,7 +923,8 @@ def test_panel_draws_every_state(addon, tmp_path):
     assert ("label", "Tables: 2.5 MB, 3 files") in seen, [t for k, t in seen if k == "label"]
     _check_packed_line(ctx, tmp_path)
     ops = {name for kind, name in seen if kind == "operator"}
-    assert {"flowbsdf.enable", "flowbsdf.bake", "flowbsdf.scan", "flowbsdf.validate", "flowbsdf.set_backend"} <= ops
+    assert {"flowbsdf.enable", "flowbsdf.bake", "flowbsdf.scan", "flowbsdf.validate", "flowbsdf.set_backend",
+            "flowbsdf.make_library"} <= ops
     assert {"filepath", "analytic_preset", "python_callable", "out_dir"} <= {n for k, n in seen if k == "prop"}
     # Only what the chosen route uses: training's settings and buttons with tables from a trained model.
     training = {("prop", "preset"), ("prop", "domain"), ("operator", "flowbsdf.train_bake"),
@@ -970,6 +971,56 @@ def _check_packed_line(ctx, tmp_path):
     for image in used:
         bpy.data.images.remove(image)
     assert panels.packed_use() == ""
+
+
+def test_make_asset_library_bakes_in_the_worker_then_writes_the_blend_in_a_background_blender(addon, tmp_path,
+                                                                                               monkeypatch):
+    """The panel's Make Asset Library: DIR/manifest.toml of the folder's measured files, their bake
+    in the worker (the bake's arguments: its progress and Cancel are the bake's), then library.blend
+    from a background Blender (`library ... --blend-only`: writing it here would replace the open
+    file); a material that failed to bake does not stop the library (jobs are stand-ins here)."""
+    from blender_addon import jobs, library, worker
+    started = []
+
+    class Job:
+        def __init__(self, python, args, extra_paths=(), label="FlowBSDF", script=worker.deps.WORKER_SCRIPT):
+            self.python, self.args, self.label, self.script = python, [str(a) for a in args], label, script
+            self.cancelled, self.done = False, False
+            self.lines = ["[fail] b: unreadable", "[error] 1 material(s) failed"] if not started else ["wrote"]
+            self.error = "1 material(s) failed" if not started else None
+            started.append(self)
+
+        def run(self, echo=True):
+            self.done = True
+            if self.error:
+                raise worker.JobError(self.error)
+            return self.lines
+    monkeypatch.setattr(worker, "Job", Job)
+    monkeypatch.setattr(worker, "python_for", lambda *a, **k: "/py/worker")
+    monkeypatch.setattr(jobs, "blender_program", lambda: "/bin/blender")
+    files, out = tmp_path / "measured", tmp_path / "lib"
+    (files / "sub").mkdir(parents=True)
+    (files / "a.bsdf").write_bytes(b"x")
+    (files / "sub" / "b.binary").write_bytes(b"x")
+    assert bpy.ops.flowbsdf.make_library(folder=str(files), out=str(out), quality="DRAFT") == {"FINISHED"}
+    bake, blend = started
+    manifest = out / library.MANIFEST_NAME
+    assert (bake.python, bake.script) == ("/py/worker", worker.deps.WORKER_SCRIPT)
+    assert bake.args == ["bake", str(manifest), "--out", str(out), "--train", "never"]
+    entries = load_manifest(manifest).materials
+    assert [e.name for e in entries] == ["a", "b"] and entries[0].bake == {**library.QUALITY["draft"], "carry": True}
+    assert (blend.python, blend.script) == ("/bin/blender", None)
+    assert blend.args[:3] == ["-b", "--factory-startup", "--python-expr"]
+    assert blend.args[4:] == ["--", "library", str(files), "--out", str(out), "--quality", "draft",
+                              "--python", "/py/worker", "--blend-only"]
+    message = bpy.context.window_manager.flowbsdf_job.message
+    assert message.startswith(f"FlowBSDF: asset library {out / 'library.blend'}, 1 material(s) (b failed to bake)")
+    # the folder only: the library goes inside it, which the files' listing leaves out
+    started.clear()
+    assert bpy.ops.flowbsdf.make_library(folder=str(files)) == {"FINISHED"}
+    assert started[0].args[3] == str(files / "flowbsdf_library") and started[1].args[-4] == "final"
+    with pytest.raises(RuntimeError, match="pick the folder of measured files"):
+        bpy.ops.flowbsdf.make_library(folder=str(tmp_path / "none"))
 
 
 def test_modal_progress_and_cancel(addon, tmp_path):
