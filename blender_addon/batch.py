@@ -262,6 +262,8 @@ def _build_library(args):
             failed = sorted({ln.split(":", 1)[0][len("[fail] "):] for ln in job.lines if ln.startswith("[fail] ")})
             if not failed:
                 raise
+    if args.blend_only:             # the panel's second step: its words while Blender writes it
+        print(f"[progress 1/1] writing {library.BLEND_NAME} ({len(items)} material(s))", flush=True)
     library.build([i for i in items if i["name"] not in failed], out, log=log)
     if failed:
         raise BatchError(f"not baked, left out of the library: {', '.join(failed)}")

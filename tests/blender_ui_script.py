@@ -227,6 +227,27 @@ def steps():
         os.environ["FLOWBSDF_PYTHON"] = saved
     result["error_message"] = state.message
     yield from stage("error")
+    yield from make_library(win, view, region, state)
+
+
+def make_library(win, view, region, state):
+    """Make Asset Library as the dialog's OK runs it (exec with a window: modal), on a folder of the
+    one measured file (Draft): the bake in the worker, then library.blend from a background Blender."""
+    import shutil
+    files = os.path.join(OUT, "measured")
+    os.makedirs(files, exist_ok=True)
+    if os.path.isfile(MATERIAL_FILE):
+        shutil.copy(MATERIAL_FILE, files)
+    ctx = {"window": win, "area": view, "region": region}
+    with bpy.context.temp_override(**ctx):
+        result["library"] = sorted(bpy.ops.flowbsdf.make_library("EXEC_DEFAULT", folder=files, quality="DRAFT",
+                                                                 out=os.path.join(OUT, "library")))
+    seen, t0 = [], time.monotonic()
+    while state.running and time.monotonic() - t0 < 300:
+        seen.append((state.label, round(state.progress, 1), state.message))
+        yield 0.25
+    result["library_messages"] = seen
+    result["library_message"] = state.message
 
 
 def run():

@@ -97,6 +97,19 @@ def test_bake_from_the_panel_shows_progress_then_a_preview(ui_run):
     assert Path(result["preview_file"]) == out / "project" / "flowbsdf" / "tables" / "MilitaryGreen.preview.png"
 
 
+def test_make_asset_library_from_the_panel_bakes_then_writes_the_library(ui_run):
+    """Make Asset Library as its dialog's OK runs it: modal, the bake's words and bar in the worker,
+    then library.blend from a background Blender; the open file stays open."""
+    out, result = ui_run
+    assert result["library"] == ["RUNNING_MODAL"]
+    seen = result["library_messages"]
+    assert {label for label, _, _ in seen} == {"Asset Library: Bake", "Asset Library: library.blend"}, seen
+    assert any(m.startswith("Baking ") and 0 < p < 100 for _, p, m in seen), seen
+    assert result["library_message"].startswith(f"FlowBSDF: asset library {out / 'library' / 'library.blend'}, "
+                                                "1 material(s)"), result["library_message"]
+    assert (out / "library" / "library.blend").is_file() and (out / "library" / "blender_assets.cats.txt").is_file()
+
+
 def test_a_bake_error_is_one_short_line_with_the_details_in_the_panel(ui_run):
     """Blender's report popup is one line wide: the error is one short line; what to do (which
     Python, what it needs, where to set it) is in the panel, wrapped."""
