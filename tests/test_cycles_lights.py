@@ -565,7 +565,10 @@ def test_without_osl_under_lamps_auto_renders_the_fit_and_says_the_step_to_exact
     sc.cycles.samples = lb.SVM_LAMP_SAMPLES     # a final render's budget: the SVM graph beats the fit there
     for device in ('GPU', 'CPU'):
         sc.cycles.device = device
-        assert state().text == "SVM, exact" and _switches(node) == (0.0, 1.0), (device, state())
+        if bpy.app.version >= (5, 0, 0):
+            assert state().text == "SVM, exact" and _switches(node) == (0.0, 1.0), (device, state())
+        else:                                   # (measured in 5.0 only: 4.5 keeps the fit)
+            assert state().backend == "fit", (device, state())
     sc.cycles.device, sc.cycles.samples = 'GPU', 1
     lamp.data.cycles.use_multiple_importance_sampling = False
     lamp.data.update_tag()          # (a Python property of Cycles' set from a script tags nothing; the UI does)
