@@ -1156,8 +1156,8 @@ def register():
         name="FlowBSDF back end",
         description="How Learned BSDF nodes render",
         items=[("auto", "Auto", "OSL where Cycles runs it (CPU, Open Shading Language on), else the SVM "
-                                "graph (any device; the fit under lamps, which it renders with less noise), "
-                                "else the closure fit"),
+                                "graph (any device; under lamps from 4096 render samples, below them the fit, "
+                                "which has less error there), else the closure fit"),
                ("osl", "OSL", "Sample the baked tables exactly and light-sample lamps and the world "
                               "(Cycles CPU, Open Shading Language)"),
                ("fit", "Closure fit", "Cycles closures fitted at bake time (Eevee, previews): approximate"),
