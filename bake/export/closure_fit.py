@@ -85,6 +85,8 @@ TILT_DIFFUSE_DEG = np.array([-20.0, -15.0, -11.0, -8.0, -6.0, -4.0, -2.5, -1.5, 
                              0.7, 1.5, 2.5, 4.0, 6.0, 8.0, 11.0, 15.0, 20.0])
 TILT_ZERO = 9       # the index of tilt 0 in both grids
 TILT_REACH = 3      # grid steps a tilt may move per descent move
+TILT_STEP = 1.0     # _descend's cost of a tilt grid step, in alpha / anisotropy grid steps
+NEXT_TILT_ONLY = True   # _next_knot's 4th option: the previous lobes' shapes kept, their tilts descended
 TILT_GGX = True     # (switches for the ablation: scripts/fit_acceptance.py --variant)
 TILT_DIFFUSE = True
 R_MIN = 0.02        # a GGX lobe's tilt keeps the view's mirror direction above cos theta R_MIN (> Cycles'
@@ -441,21 +443,25 @@ def _simplex_lsq(gram, rhs, a, albedo):
     best = np.full((c, h), np.inf)
     out = np.zeros((c, h, kk))
     ridge = 1e-10 * np.trace(gram, axis1=-2, axis2=-1)[..., None, None] + 1e-300
-    for m in range(1, kk + 1):
-        for idx in itertools.combinations(range(kk), m):
-            idx = list(idx)
-            sys = np.zeros((c, h, m + 1, m + 1))
-            sys[..., :m, :m] = gram[..., idx, :][..., idx] + ridge * np.eye(m)
-            sys[..., :m, m] = a[:, None, idx]
-            sys[..., m, :m] = a[:, None, idx]
-            b = np.concatenate([rhs[..., idx], np.broadcast_to(albedo, (c, h))[..., None]], -1)
-            sol = np.linalg.solve(sys, b[..., None])[..., :m, 0]
-            k = np.zeros((c, h, kk))
-            k[..., idx] = np.maximum(sol, 0.0)
-            obj = 0.5 * np.einsum("chk,chkl,chl->ch", k, gram, k) - np.einsum("chk,chk->ch", rhs, k)
-            ok = np.all(sol >= -1e-9 * np.abs(albedo)[None, :, None], -1) & (obj < best)
-            best = np.where(ok, obj, best)
-            out = np.where(ok[..., None], k, out)
+    for m in range(1, kk + 1):      # the subsets of m lobes together (S of them)
+        subsets = np.array(list(itertools.combinations(range(kk), m)))              # (S, m)
+        s_n = len(subsets)
+        sys = np.zeros((c, h, s_n, m + 1, m + 1))
+        sys[..., :m, :m] = (gram[:, :, subsets[:, :, None], subsets[:, None, :]]
+                            + ridge[..., None, :, :] * np.eye(m))
+        sys[..., :m, m] = a[:, subsets][:, None]
+        sys[..., m, :m] = a[:, subsets][:, None]
+        b = np.concatenate([rhs[:, :, subsets], np.broadcast_to(albedo[None, :, None, None], (c, h, s_n, 1))], -1)
+        sol = np.linalg.solve(sys, b[..., None])[..., :m, 0]                        # (C, H, S, m)
+        k = np.zeros((c, h, s_n, kk))
+        np.put_along_axis(k, np.broadcast_to(subsets, (c, h, s_n, m)), np.maximum(sol, 0.0), -1)
+        obj = 0.5 * np.einsum("chsk,chkl,chsl->chs", k, gram, k) - np.einsum("chk,chsk->chs", rhs, k)
+        ok = np.all(sol >= -1e-9 * np.abs(albedo)[None, :, None, None], -1)
+        obj = np.where(ok, obj, np.inf)
+        for si in range(s_n):       # (the order of the former loop: ties go to the first subset)
+            better = obj[..., si] < best
+            best = np.where(better, obj[..., si], best)
+            out = np.where(better[..., None], k[:, :, si], out)
     # The equality exactly (the clamp above moved a feasible solution by < 1e-9 at most).
     fit_alb = np.einsum("ck,chk->ch", a, out)
     return out * np.where(fit_alb > 0, albedo / np.where(fit_alb > 0, fit_alb, 1.0), 0.0)[..., None]
@@ -504,12 +510,13 @@ def _clamp_tilts(knot, lobes):
     return out
 
 
-def _descend(knot, lobes, aniso, prev=None, sweeps=2, step_cost=STEP_COST):
+def _descend(knot, lobes, aniso, prev=None, sweeps=2, step_cost=STEP_COST, shapes=True):
     """Coordinate descent over the lobes' grid points from the previous knot's (lobes[0] the
     Diffuse, whose only coordinate is its tilt): the relative L1 plus, per lobe, STEP_COST times
     its share of the previous knot's albedo times the grid steps it moved (a lobe that carries
     little may jump; one that carries much moves smoothly). Per GGX lobe its shape (alpha,
-    anisotropy), then its tilt."""
+    anisotropy; not when `shapes` is False), then its tilt (a grid step of tilt costs TILT_STEP
+    steps)."""
     start = _clamp_tilts(knot, lobes)
     share = np.zeros(len(start))
     if prev is not None:
@@ -518,7 +525,8 @@ def _descend(knot, lobes, aniso, prev=None, sweeps=2, step_cost=STEP_COST):
         share = lum * albs / max(float(lum @ albs), 1e-300)
 
     def cost(sets, l1):
-        steps = np.array([[sum(abs(a - b) for a, b in zip(p, s)) for p, s in zip(c, start)] for c in sets])
+        steps = np.array([[abs(p[0] - s[0]) + abs(p[1] - s[1]) + TILT_STEP * abs(p[2] - s[2])
+                           for p, s in zip(c, start)] for c in sets])
         return l1 + step_cost * (steps @ share)
     lobes = list(start)
     best = cost([lobes], knot.solve([lobes], prev)[1])[0]
@@ -534,7 +542,7 @@ def _descend(knot, lobes, aniso, prev=None, sweeps=2, step_cost=STEP_COST):
     for _ in range(sweeps):
         moved = False
         for j in range(len(lobes)):
-            if j > 0:
+            if j > 0 and shapes:
                 coarse = None
                 for _ in range(2):          # every third alpha, then around the best of those
                     m, pick = take([lobes[:j] + [p] + lobes[j + 1:]
@@ -575,13 +583,15 @@ PARAM_KEYS = ("x", "diffuse", "specular", "roughness", "anisotropy", "tilt", "di
 
 def _next_knot(tables, knot, fit, lobes, prev, view_aligned, n, seed):
     """(lobes, weights) at the next knot: of the descent from the previous knot's lobes, the
-    same made stiffer (STIFF times the cost of moving), and the previous lobes kept (weights
-    alone refitted), the one whose error at this knot plus half-way from the previous knot
+    same made stiffer (STIFF times the cost of moving), the previous lobes kept (weights
+    alone refitted) and kept but for their tilts (NEXT_TILT_ONLY), the one whose error at this knot plus half-way from the previous knot
     (the node lerps the parameters between them) is least."""
     mid = _Knot(tables, 0.5 * (knot.theta + np.radians(fit["theta_deg"][-1])), n=n // 2, seed=seed + 7)
     options = [_descend(knot, lobes, view_aligned, prev),
                _descend(knot, lobes, view_aligned, prev, step_cost=STIFF * STEP_COST),
                _clamp_tilts(knot, lobes)]
+    if NEXT_TILT_ONLY and (TILT_GGX or TILT_DIFFUSE):
+        options.append(_descend(knot, lobes, view_aligned, prev, shapes=False))
     best = None
     for option in options:
         k, l1 = knot.solve([option], prev, irls=4)
