@@ -557,13 +557,13 @@ def test_version_6_fits_evaluate_as_before():
 
 
 def test_glossy_fit_tilts_stay_bounded_and_valid(glossy):
-    """The fit's tilts: none at normal view, GGX ones within the grid's 2 deg and above the
+    """The fit's tilts: none at normal view, GGX ones within the grid's bound and above the
     knots' tilt_limit (Cycles' reflection correction never fires along the node's lerp), and
     the albedo kept with them."""
     fit = closure_fit.fit_closures(glossy, knots_deg=KNOTS)
     tilt = np.array(fit["tilt"])
     assert np.all(tilt[0] == 0.0) and fit["diffuse_tilt"][0] == 0.0
-    assert np.all(np.abs(tilt) <= np.tan(np.radians(2.0)) + 1e-12)
+    assert np.all(np.abs(tilt) <= np.tan(np.radians(np.max(closure_fit.TILT_GGX_DEG))) + 1e-12)
     knots = list(fit["theta_deg"][:-1])
     for k, deg in enumerate(knots):
         nxt = knots[k + 1] if k + 1 < len(knots) else 90.0

@@ -16,7 +16,21 @@ files' lobes there are not round (cc_nothern_aurora at theta_i = 0: their f cos 
 varies 2.1x with the azimuth from the view's), and the exact back ends render that azimuth
 from the same projected tangent, so the view-aligned lobes stay anisotropic there (its zero
 at exactly normal view is nudged, svm.VIEW_TANGENT_NUDGE). The last lobe is isotropic. Between knots the
-node interpolates kd, ks_j, r_j and a_j linearly in x.
+node interpolates kd, ks_j, r_j, a_j and the tilts linearly in x.
+
+Tilts (FIT_VERSION 7): each closure has its own Normal N' = N + t V (V the unit view tangent,
+t = tan of the tilt toward the view, in the plane of incidence; t = 0 gives N exactly, so
+Cycles' bump corrections, which it skips where N' equals N, stay off). A tilted Glossy lobe
+reflects 2 t nearer the normal (measured lobes' peaks sit off the mirror direction by tenths of
+a degree), a tilted Diffuse leans toward or away from the view (Cycles then multiplies it by its
+bump shadowing G1: diffuse_tilt_fcos). GGX tilts within TILT_GGX_DEG (+-4 deg), none at normal
+view (the view tangent is arbitrary there), and above tilt_limit: the mirror direction about
+the tilted normal stays above the surface by more than Cycles' ensure_valid_specular_reflection
+threshold over every knot interval, so that correction never fires and eval_fit is what
+Cycles renders (ensure_valid_reflection models it anyway). The Diffuse's within +-20 deg.
+A tilted lobe's albedo is the table's untilted one times the tilted / untilted ratio of
+estimates from common samples (_ggx_tilt_albedos, within 1 %); the tilted Diffuse's a
+quadrature (diffuse_tilt_albedo). Fits of FIT_VERSION 6 (no "tilt" keys) evaluate untilted.
 
 At each knot the fit keeps the baked albedo exactly per channel (kd + sum_j ks_j A_j =
 albedo(theta_i), A_j the lobe's albedo) and minimizes the L1 error of f cos over the
@@ -24,7 +38,7 @@ hemisphere (weights per channel: an exact non-negative least-squares solve, rewe
 Monte Carlo over a mixture of the tables', the cosine's and a GGX mixture's samplers, fixed
 seed; the lobes' albedos at the knots from ggx_albedo.npz). The lobes' (alpha, a) are searched
 on a grid: all of it at normal view, then knot by knot from the previous knot's lobes, moving a
-lobe costing in proportion to its share of the albedo, the weights pulled toward the previous
+lobe (a tilt: TILT_STEP) costing in proportion to its share of the albedo, the weights pulled toward the previous
 knot's, and the next knot's lobes chosen by the error at the knot plus half-way back
 (_next_knot): each lobe keeps its identity and its parameters vary smoothly with the view
 angle (a fit made per knot alone jumps between knots, and a sphere renders concentric rings). Recorded per knot: the relative L2 error of f cos
@@ -79,13 +93,12 @@ STIFF = 5.0         # _next_knot's stiffer descent: STIFF x STEP_COST
 L1_MAX_DEG = 88.0   # the error's view angles: knots and their midpoints up to here
 # Tilts (FIT_VERSION 7): each closure's Normal N' = N + t V (V the unit view tangent, t = tan of
 # the tilt angle toward the view, in the plane of incidence), lerped in x like the rest.
-TILT_GGX_DEG = np.array([-2.0, -1.4, -1.0, -0.7, -0.5, -0.35, -0.25, -0.15, -0.08, 0.0,
-                         0.08, 0.15, 0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0])
+TILT_GGX_DEG = np.array([-4.0, -3.0, -2.2, -1.5, -1.0, -0.7, -0.45, -0.3, -0.15, -0.07, 0.0,
+                         0.07, 0.15, 0.3, 0.45, 0.7, 1.0, 1.5, 2.2, 3.0, 4.0])
 TILT_DIFFUSE_DEG = np.array([-20.0, -15.0, -11.0, -8.0, -6.0, -4.0, -2.5, -1.5, -0.7, 0.0,
                              0.7, 1.5, 2.5, 4.0, 6.0, 8.0, 11.0, 15.0, 20.0])
-TILT_ZERO = 9       # the index of tilt 0 in both grids
 TILT_REACH = 3      # grid steps a tilt may move per descent move
-TILT_STEP = 1.0     # _descend's cost of a tilt grid step, in alpha / anisotropy grid steps
+TILT_STEP = 0.5     # _descend's cost of a tilt grid step, in alpha / anisotropy grid steps
 NEXT_TILT_ONLY = True   # _next_knot's 4th option: the previous lobes' shapes kept, their tilts descended
 TILT_GGX = True     # (switches for the ablation: scripts/fit_acceptance.py --variant)
 TILT_DIFFUSE = True
@@ -496,13 +509,18 @@ def _tilt_neighbours(knot, p):
     return [(p[0], p[1], it) for it in its if it != p[2]]
 
 
+def _tilt_zero(diffuse):
+    """The index of tilt 0 in the Diffuse's or the GGX lobes' grid."""
+    return int(np.flatnonzero((TILT_DIFFUSE_DEG if diffuse else TILT_GGX_DEG) == 0.0)[0])
+
+
 def _clamp_tilts(knot, lobes):
     """The lobes with tilts the knot allows (0 at normal view; a GGX lobe's raised to tilt_min)."""
     out = []
     for p in lobes:
         it = p[2]
         if knot.theta == 0.0 or not (TILT_DIFFUSE if p[0] < 0 else TILT_GGX):
-            it = TILT_ZERO
+            it = _tilt_zero(p[0] < 0)
         elif p[0] >= 0:
             while np.tan(np.radians(TILT_GGX_DEG[it])) < knot.tilt_min - 1e-12:
                 it += 1
@@ -561,9 +579,9 @@ def _first_knot(knot, view_aligned):
     """Normal view: isotropic lobes chosen greedily over the whole alpha grid, then refined by
     coordinate descent over it, the view-aligned ones' anisotropy too (no tilts here)."""
     zero = int(np.argmin(np.abs(ANISOTROPY)))
-    lobes = [(-1, 0, TILT_ZERO)]
+    lobes = [(-1, 0, _tilt_zero(True))]
     for _ in range(LOBES):
-        sets = [lobes + [(i, zero, TILT_ZERO)] for i in range(len(ALPHAS))]
+        sets = [lobes + [(i, zero, _tilt_zero(False))] for i in range(len(ALPHAS))]
         lobes = sets[int(np.argmin(knot.solve(sets)[1]))]
     return _descend(knot, lobes, aniso=view_aligned)
 
