@@ -165,6 +165,17 @@ def setups(hdri_path, sky_path):
     return {"hdri": env(hdri_path), "sky": env(sky_path), "studio": studio, "truesky": truesky}
 
 
+def _film_off(setup):
+    def film_off(sc):
+        from blender_addon import node as lb
+        if hasattr(sc, lb.FILM_PROP):
+            setattr(sc, lb.FILM_PROP, False)
+        else:
+            sc[lb.FILM_PROP] = False
+        setup(sc)
+    return film_off
+
+
 # ------------------------------------------------------------------------------ rendering
 
 class Case:
@@ -638,6 +649,9 @@ def main(argv=None):
     ap.add_argument("--sky-spp", type=int, default=32)
     ap.add_argument("--ff-spp", type=int, default=64)
     ap.add_argument("--ff-seeds", type=int, default=8)
+    ap.add_argument("--film-u", choices=("on", "off"), default="on",
+                    help="the scene's 'Stratify camera samples' (off: hashed u, what the SVM graph takes under "
+                         "Blender's default Blackman-Harris filter; these scenes use the box filter to match the tracer)")
     ap.add_argument("--tables-dir", default=None, help="use <dir>/<name>.exr when present (else draft tables)")
     ap.add_argument("--reuse", action="store_true", help="reuse saved renders, references and timings")
     ap.add_argument("--out", default=str(ROOT / "out" / "lights_acceptance.md"))
@@ -660,6 +674,8 @@ def main(argv=None):
     if {"sky", "truesky"} & set(scenes):
         sky = sky_image(work / f"sky_{args.sky_res[0]}x{args.sky_res[1]}.exr", *args.sky_res, args.sky_spp)
     setup = setups(hdri, sky)
+    if args.film_u == "off":
+        setup = {k: _film_off(v) for k, v in setup.items()}
     tables = {n: draft_tables(n, work / "tables", args.tables_dir) for n in args.names}
     rows, ff_rows, geom = [], [], {}
     for scene in scenes:
