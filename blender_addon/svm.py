@@ -1612,7 +1612,6 @@ def _cv_fcos_group(lobes, tilted=None):
     # x = y x N, T the view's tangent (node.view_tangent: wi less its normal part, nudged)
     tangent = g.vmath('MULTIPLY_ADD', g.vmath('CROSS_PRODUCT', n, VIEW_TANGENT_NUDGE), (VIEW_TANGENT_EPS,) * 3,
                       g.vmath('SUBTRACT', wi, g.scale(n, cos_i)))
-    unit = g.vmath('NORMALIZE', tangent) if any(tilted) else None
     h = g.vmath('NORMALIZE', g.vmath('ADD', wi, d))
     separated = {}
 
@@ -1622,10 +1621,31 @@ def _cv_fcos_group(lobes, tilted=None):
             g.set(separated[name].inputs[0], inp[name])
         return separated[name].outputs[c]
 
-    def tilt_of(closure):       # 0: the Diffuse, j + 1: lobe j
-        return component("Lobe 4", 2 if closure == 0 else 1) if closure in (0, 4) else component("Tilt", closure - 1)
-
     untilted = {}
+    if any(tilted):
+        # A tilted closure's normal normalize(N + t U) (U = T / |T|: orthogonal to N) and its
+        # frame (make_orthonormals_tangent with T: y = normalize(N' x T) = N x U, the untilted y;
+        # x = y x N') turn the untilted frame (U, y, N) about y: a vector's coordinates there are
+        # ((v.U - t v.N) c, v.y, (v.N + t v.U) c), c = 1 / sqrt(1 + t^2). So each lobe takes scalars
+        # of these dots alone, of its own branch: every value here depends on d, through a no-op
+        # for the tilts (min with a 1e30 of d), else Cycles would merge the branches' equal nodes,
+        # compute them before the branches and hold them all on its stack through all.
+        big = g.math('MAXIMUM', cos_o, 1e30)
+        unit = g.vmath('NORMALIZE', tangent)
+        fy = g.vmath('NORMALIZE', g.vmath('CROSS_PRODUCT', n, tangent))
+        dots = {"h": (g.dot(h, unit), g.dot(h, fy), g.dot(h, n)), "i": (g.dot(wi, unit), g.dot(wi, fy), cos_i),
+                "o": (g.dot(d, unit), g.dot(d, fy), cos_o)}
+
+    def tilt_of(closure):       # 0: the Diffuse, j + 1: lobe j (this branch's own)
+        t = component("Lobe 4", 2 if closure == 0 else 1) if closure in (0, 4) else component("Tilt", closure - 1)
+        return g.math('MINIMUM', t, big)
+
+    def turned(t, c, v, aniso):
+        a, y, b = v
+        z = g.math('MULTIPLY', g.math('MULTIPLY_ADD', a, t, b), c)
+        if not aniso:
+            return None, None, z
+        return g.math('MULTIPLY', g.math('MULTIPLY_ADD', b, g.math('MULTIPLY', t, -1.0), a), c), y, z
 
     def local_of(closure, aniso):
         """(mask, local h, wi, d: each (x, y, z); x, y None for an isotropic lobe) about the
@@ -1634,12 +1654,13 @@ def _cv_fcos_group(lobes, tilted=None):
             if aniso not in untilted:
                 untilted[aniso] = (above, *_cv_local(g, n, tangent, h, wi, d, cos_i, cos_o, aniso))
             return untilted[aniso]
-        nj = g.vmath('NORMALIZE', g.vmath('MULTIPLY_ADD', unit, tilt_of(closure), n))
-        ci, co = g.dot(wi, nj), g.dot(d, nj)
+        t = tilt_of(closure)
+        c = g.math('INVERSE_SQRT', g.math('MULTIPLY_ADD', t, t, 1.0))
+        lh, li, lo = (turned(t, c, dots[k], aniso) for k in ("h", "i", "o"))
         # (Cycles: wi and d above the closure's normal, d above the surface's)
-        mask = g.math('MULTIPLY', g.math('MULTIPLY', g.math('GREATER_THAN', ci, 0.0), g.math('GREATER_THAN', co, 0.0)),
+        mask = g.math('MULTIPLY', g.math('MULTIPLY', g.math('GREATER_THAN', li[2], 0.0), g.math('GREATER_THAN', lo[2], 0.0)),
                       g.math('GREATER_THAN', cos_o, 0.0))
-        return (mask, *_cv_local(g, nj, tangent, h, wi, d, ci, co, aniso))
+        return mask, lh, li, lo
     lobe = []
     for j in range(lobes):
         aniso = j < 3
@@ -1686,12 +1707,13 @@ def _cv_fcos_group(lobes, tilted=None):
     # orthogonal to N; 0 where d.N < 1e-6)
     if tilted[0]:
         td = tilt_of(0)
-        nd = g.vmath('NORMALIZE', g.vmath('MULTIPLY_ADD', unit, td, n))
-        a2 = g.math('MINIMUM', g.math('MULTIPLY', g.math('MULTIPLY', td, td), 0.125), 1.0)
+        td2 = g.math('MULTIPLY', td, td)
+        cos_od = turned(td, g.math('INVERSE_SQRT', g.math('ADD', td2, 1.0)), dots["o"], False)[2]    # d.N'
+        a2 = g.math('MINIMUM', g.math('MULTIPLY', td2, 0.125), 1.0)
         c = g.math('MAXIMUM', cos_o, 1e-6)
         tan2 = g.math('SUBTRACT', g.math('DIVIDE', 1.0, g.math('MULTIPLY', c, c)), 1.0)
         g1 = g.math('DIVIDE', 2.0, g.math('ADD', 1.0, g.math('SQRT', g.math('MULTIPLY_ADD', a2, tan2, 1.0))))
-        shade = g.math('MULTIPLY', g.math('MULTIPLY', g.math('MAXIMUM', g.dot(d, nd), 0.0), 1.0 / math.pi),
+        shade = g.math('MULTIPLY', g.math('MULTIPLY', g.math('MAXIMUM', cos_od, 0.0), 1.0 / math.pi),
                        g.math('MULTIPLY', g1, g.math('GREATER_THAN', cos_o, 1e-6)))
     else:
         shade = g.math('MULTIPLY', g.math('MAXIMUM', cos_o, 0.0), 1.0 / math.pi)
