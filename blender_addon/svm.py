@@ -1631,9 +1631,11 @@ def _cv_fcos_group(lobes, tilted=None):
         # for the tilts (min with a 1e30 of d), else Cycles would merge the branches' equal nodes,
         # compute them before the branches and hold them all on its stack through all.
         big = g.math('MAXIMUM', cos_o, 1e30)
-        unit = g.vmath('NORMALIZE', tangent)
-        fy = g.vmath('NORMALIZE', g.vmath('CROSS_PRODUCT', n, tangent))
-        dots = {"h": (g.dot(h, unit), g.dot(h, fy), g.dot(h, n)), "i": (g.dot(wi, unit), g.dot(wi, fy), cos_i),
+        # (U and y through the no-op too: each branch's own, not held through all; y = N x U exactly)
+        unit = g.vmath('MINIMUM', g.vmath('NORMALIZE', tangent), big)
+        fy = g.vmath('CROSS_PRODUCT', n, unit)
+        # (wi.y: 0, wi in the plane of N and T; Cycles' float dot is ~1e-8 there)
+        dots = {"h": (g.dot(h, unit), g.dot(h, fy), g.dot(h, n)), "i": (g.dot(wi, unit), 0.0, cos_i),
                 "o": (g.dot(d, unit), g.dot(d, fy), cos_o)}
 
     def tilt_of(closure):       # 0: the Diffuse, j + 1: lobe j (this branch's own)
