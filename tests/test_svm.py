@@ -587,7 +587,9 @@ def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, plastic, capfd, 
     held floats fit beside the tables' graph, 134-136 beside the mixture's, 123 beside the
     matched control variate's: its closures' colours and parameters stay alive through the
     branches; 144-146 with the one-lobe fit of FIT_VERSION 4, whose parameters took 15 floats to
-    the three-lobe fit's 24. With one exponential per cell instead of profiles: 177, 168, 144-149.)"""
+    the three-lobe fit's 24. With one exponential per cell instead of profiles: 177, 168, 144-149.
+    FIT_VERSION 7, four lobes, every closure tilted (its parameters 33 floats): 114 beside the
+    matched control variate's, 99 beside the lamps' (the fit cut to version 6's shape: 120, 102).)"""
     texture = svm_export.ensure_svm_export(plastic if cv else brushed)
     world = fit = None
     if mixture:
