@@ -78,8 +78,10 @@ NEUTRAL = (0.5, 0.5, 0.5)
 FIT_FORMAT = "flowbsdf-closure-fit"
 OSL_LAYOUT = 8          # the OSL texture's layout (bake/export/osl_export.LAYOUT): part of its file name
 CARRY_LAYOUT = 1        # the carried blend's texture's (bake/export/carry_export.CARRY_LAYOUT)
-FIT_VERSION = 6
-FIT_LOBES = 3           # the fit's GGX lobes (bake/export/closure_fit.LOBES): a vector socket holds their r or a
+FIT_VERSION = 7
+# the versions the node renders: a version 6 fit (3 lobes, no tilts) until `upgrade` refits it
+READABLE_FIT_VERSIONS = (6, 7)
+FIT_LOBES = 4           # at most (bake/export/closure_fit.LOBES); a vector socket holds lobes 1-3's r, a or tilt
 
 
 def _bake_mod(name):
@@ -113,7 +115,7 @@ def load_fit(path):
         raise ValueError(f"closure fit not found: {path}") from None
     except (OSError, ValueError) as e:
         raise ValueError(f"closure fit unreadable ({e}): {path}") from None
-    if not isinstance(fit, dict) or fit.get("format") != FIT_FORMAT or fit.get("version") != FIT_VERSION:
+    if not isinstance(fit, dict) or fit.get("format") != FIT_FORMAT or fit.get("version") not in READABLE_FIT_VERSIONS:
         raise ValueError(f"not a current FlowBSDF closure fit, re-bake: {path}")
     for key in ("x", "diffuse", "specular", "roughness", "anisotropy", "rel_error", "cv"):
         if key not in fit:
@@ -124,18 +126,25 @@ def load_fit(path):
 
 
 def _fit_file(tables_path):
-    """The fit file beside a table file when it is current (its tables_hash matches), else the
-    one `bake` (re)makes, else a ValueError saying why."""
+    """The fit file beside a table file when it is current (its tables_hash matches, of
+    FIT_VERSION), else the one `bake` (re)makes, else (no numpy) one of an older readable
+    version made from these tables, else a ValueError saying why."""
     path = tables_path.with_name(tables_path.stem + ".fit.json")
     digest = _file_hash(tables_path)
+    older = False
     try:
-        if load_fit(path).get("tables_hash") == digest:
+        fit = load_fit(path)
+        if fit.get("tables_hash") == digest and fit.get("version") == FIT_VERSION:
             return path
-        why = f"closure fit stale (made from other tables): {path}"
+        older = fit.get("tables_hash") == digest
+        why = f"closure fit of version {fit.get('version')}" if older else \
+            f"closure fit stale (made from other tables): {path}"
     except ValueError as e:
         why = str(e)
     closure_fit = _bake_mod("export.closure_fit")
     if closure_fit is None:
+        if older:
+            return path         # rendered as it is (the version it says): refitting needs numpy
         raise ValueError(f"{why}; re-bake (refitting needs numpy, absent in this Blender)")
     return closure_fit.ensure_fit(tables_path)
 
@@ -407,22 +416,66 @@ def _piecewise(tree, x_socket, xs, values, loc):
     return out
 
 
-FIT_PARAMS = ("Diffuse", "Specular 1", "Specular 2", "Specular 3", "Roughness", "Anisotropy",
-              "Control variate", "Matched share")
+# The fit group's outputs (vectors, in this order where the fit has them): "Tilt" = (t_1, t_2,
+# t_3), "Lobe 4" = (r_4, t_4, t_d) (the 4th lobe, isotropic: closure_fit.VIEW_ALIGNED 3, and the
+# Diffuse's tilt; packed: every piecewise vector costs its segments' nodes).
+FIT_PARAMS = ("Diffuse", "Specular 1", "Specular 2", "Specular 3", "Specular 4", "Roughness", "Anisotropy",
+              "Tilt", "Lobe 4", "Control variate", "Matched share")
+
+
+def fit_lobes(fit):
+    """The fit's GGX lobes (3 or 4)."""
+    lobes = len(fit["roughness"][0])
+    if not 1 <= lobes <= FIT_LOBES:
+        raise ValueError(f"closure fit of {lobes} lobes (at most {FIT_LOBES})")
+    return lobes
+
+
+def fit_tilts(fit):
+    """(per knot the lobes' tilts (t = tan), per knot the Diffuse's), zeros for a fit without
+    them (FIT_VERSION 6)."""
+    lobes = fit_lobes(fit)
+    tilt = fit.get("tilt") or [[0.0] * lobes for _ in fit["x"]]
+    return [[float(v) for v in knot] for knot in tilt], [float(v) for v in fit.get("diffuse_tilt") or [0.0] * len(fit["x"])]
+
+
+def _fit_columns(fit):
+    """{output name: per knot its 3-vector} of the fit group (FIT_PARAMS)."""
+    lobes = fit_lobes(fit)
+    tilt, dtilt = fit_tilts(fit)
+    pad = lambda v: (list(v) + [0.0, 0.0, 0.0])[:3]      # noqa: E731
+    columns = {"Diffuse": fit["diffuse"]}
+    columns.update({f"Specular {j + 1}": [knot[j] for knot in fit["specular"]] for j in range(lobes)})
+    columns.update(Roughness=[pad(v[:3]) for v in fit["roughness"]], Anisotropy=[pad(v[:3]) for v in fit["anisotropy"]])
+    if any(v for knot in tilt for v in knot[:3]):
+        columns["Tilt"] = [pad(v[:3]) for v in tilt]
+    if lobes > 3 or any(dtilt):
+        columns["Lobe 4"] = [[r[3] if lobes > 3 else 0.0, t[3] if lobes > 3 else 0.0, d]
+                             for r, t, d in zip(fit["roughness"], tilt, dtilt)]
+    if "cv" in fit:
+        columns["Control variate"] = fit["cv"]
+        columns["Matched share"] = [[matched_share(e)] * 3 for e in fit["rel_error"]]
+    return {name: columns[name] for name in FIT_PARAMS if name in columns}
 
 
 def _fit_params(tree, fit, loc, cv=False):
     """The fit's parameters at the view angle, from its node group (_fit_group): {"kd": colour,
     "ks": [colour per lobe], "roughness": (r_1, r_2, r_3), "anisotropy": (a_1, a_2, a_3),
-    "view_aligned": how many lobes take the view's tangent}; `cv`: and "cv" (beta_d, beta_s, s),
-    "matched" (s_m, s_m, s_m), the control variate's (svm.py)."""
+    "tilt": (t_1, t_2, t_3) or None, "lobe4": (r_4, t_4, t_d) or None, "tilted": per closure
+    (Diffuse first) whether its tilt is anywhere not 0, "view_aligned": how many lobes take the
+    view's tangent}; `cv`: and "cv" (beta_d, beta_s, s), "matched" (s_m, s_m, s_m), the control
+    variate's (svm.py)."""
     node = tree.nodes.new("ShaderNodeGroup")
     node.node_tree = _fit_group(fit)
     node.location = loc
     out = node.outputs
-    params = {"kd": out["Diffuse"], "ks": [out[f"Specular {j + 1}"] for j in range(FIT_LOBES)],
+    lobes = fit_lobes(fit)
+    tilt, dtilt = fit_tilts(fit)
+    params = {"kd": out["Diffuse"], "ks": [out[f"Specular {j + 1}"] for j in range(lobes)],
               "roughness": out["Roughness"], "anisotropy": out["Anisotropy"],
-              "view_aligned": int(fit.get("view_aligned", 0))}
+              "tilt": out.get("Tilt"), "lobe4": out.get("Lobe 4"),
+              "tilted": [any(dtilt)] + [any(knot[j] for knot in tilt) for j in range(lobes)],
+              "view_aligned": min(int(fit.get("view_aligned", 0)), 3)}
     if cv:
         params.update(cv=out["Control variate"], matched=out["Matched share"])
     return params
@@ -430,10 +483,10 @@ def _fit_params(tree, fit, loc, cv=False):
 
 def _fit_group(fit):
     """Node group "FlowBSDF fit: <hash>" of a fit's parameters at the view angle (Layer Weight
-    "Facing" = 1 - |cos theta_i|), each piecewise linear in it (FIT_PARAMS, vectors; the
-    control variate's two where the fit has them). Named after its content: materials with
-    the same fit share it. (A group of its own: every node added to a tree costs in
-    proportion to the tree's size, and each back end takes the parameters.)"""
+    "Facing" = 1 - |cos theta_i|), each piecewise linear in it (FIT_PARAMS, vectors, where the
+    fit has them: _fit_columns). Named after its content: materials with the same fit share it.
+    (A group of its own: every node added to a tree costs in proportion to the tree's size, and
+    each back end takes the parameters.)"""
     import hashlib
     from .svm import MATCHED_SHARE_MIN
     payload = json.dumps([fit, MATCHED_ERROR_MAX, MATCHED_SHARE_MIN], sort_keys=True, default=str)
@@ -442,17 +495,14 @@ def _fit_group(fit):
     if tree is not None:
         return tree
     tree = bpy.data.node_groups.new(name, "ShaderNodeTree")
-    columns = ([fit["diffuse"]] + [[knot[j] for knot in fit["specular"]] for j in range(FIT_LOBES)]
-               + [fit["roughness"], fit["anisotropy"]])
-    if "cv" in fit:
-        columns += [fit["cv"], [[matched_share(e)] * 3 for e in fit["rel_error"]]]
-    for param in FIT_PARAMS[:len(columns)]:
+    columns = _fit_columns(fit)
+    for param in columns:
         _new_socket(tree, param, "OUTPUT", "NodeSocketVector")
     facing = tree.nodes.new("ShaderNodeLayerWeight")
     facing.inputs["Blend"].default_value = 0.5          # Facing = 1 - |cos theta_i|
     out = tree.nodes.new("NodeGroupOutput")
     out.location = (3400, 0)
-    for k, values in enumerate(columns):
+    for k, values in enumerate(columns.values()):
         tree.links.new(_piecewise(tree, facing.outputs["Facing"], fit["x"], values, (200, -500 * k)), out.inputs[k])
     return tree
 
@@ -475,11 +525,14 @@ def matched_share(rel_error):
 MATCHED_ERROR_MAX = 0.1
 
 
-def _closures(tree, params, loc, scale_d=None, scale_s=None):
+def _closures(tree, params, loc, scale_d=None, scale_s=None, tilts=True):
     """The fit's closures: a Diffuse BSDF (colour kd) plus a GGX Glossy BSDF per lobe (colour
     ks_j, roughness r_j, anisotropy a_j; the first params["view_aligned"] with the view's
-    tangent: view_tangent). `scale_d`, `scale_s`: colours multiplying kd and every ks_j (the
-    SVM back end's control variate)."""
+    tangent: view_tangent), each tilted closure with its own Normal N + t normalize(T) (t its
+    tilt, T the view tangent, N Geometry's Normal; a MULTIPLY_ADD: a zero tilt gives N exactly,
+    Cycles normalises it; closures whose tilt is 0 at every knot take the shading normal
+    unlinked, as before). `scale_d`, `scale_s`: colours multiplying kd and every ks_j (the SVM
+    back end's control variate); `tilts` False: every closure untilted."""
     nodes, links = tree.nodes, tree.links
     x, y = loc[0] + 3000, loc[1]
 
@@ -492,28 +545,58 @@ def _closures(tree, params, loc, scale_d=None, scale_s=None):
         links.new(colour, mul.inputs[0])
         links.new(scale, mul.inputs[1])
         return mul.outputs[0]
+    tilted = params["tilted"] if tilts else [False] * (len(params["ks"]) + 1)
+    tangent = normal = None
+    if params["view_aligned"] or any(tilted):
+        tangent, normal = view_tangent(tree, (x - 400, y - 700), with_normal=True)
+    if any(tilted):
+        unit = nodes.new("ShaderNodeVectorMath")
+        unit.operation = 'NORMALIZE'
+        unit.location = (x - 200, y - 900)
+        links.new(tangent, unit.inputs[0])
+    separated = {}
+
+    def component(key, c, at):
+        """Component c of params[key] (one Separate XYZ per vector)."""
+        if key not in separated:
+            sep = separated[key] = nodes.new("ShaderNodeSeparateXYZ")
+            sep.location = at
+            links.new(params[key], sep.inputs[0])
+        return separated[key].outputs[c]
+
+    def tilt_of(closure):       # 0: the Diffuse, j + 1: lobe j
+        if closure == 0:
+            return component("lobe4", 2, (x, y - 1100))
+        return component("tilt", closure - 1, (x, y - 900)) if closure <= 3 else component("lobe4", 1, (x, y - 1100))
+
+    def normal_of(closure, bsdf):
+        if not tilted[closure]:
+            return
+        mad = nodes.new("ShaderNodeVectorMath")
+        mad.operation = 'MULTIPLY_ADD'          # T t + N: N exactly where t = 0
+        mad.location = (bsdf.location[0] - 200, bsdf.location[1] - 100)
+        links.new(unit.outputs[0], mad.inputs[0])
+        links.new(tilt_of(closure), mad.inputs[1])
+        links.new(normal, mad.inputs[2])
+        links.new(mad.outputs[0], bsdf.inputs["Normal"])
     diffuse = nodes.new("ShaderNodeBsdfDiffuse")
     diffuse.location = (x + 400, y)
     links.new(scaled(params["kd"], scale_d, (x + 200, y)), diffuse.inputs["Color"])
+    normal_of(0, diffuse)
     out = diffuse.outputs[0]
-    rough = nodes.new("ShaderNodeSeparateXYZ")
-    rough.location = (x, y - 300)
-    links.new(params["roughness"], rough.inputs[0])
-    aniso = nodes.new("ShaderNodeSeparateXYZ")
-    aniso.location = (x, y - 500)
-    links.new(params["anisotropy"], aniso.inputs[0])
-    tangent = view_tangent(tree, (x - 400, y - 700)) if params["view_aligned"] else None
     for j, ks in enumerate(params["ks"]):
         glossy = nodes.new("ShaderNodeBsdfAnisotropic")     # "Glossy BSDF" in Blender >= 4.0
         glossy.distribution = 'GGX'
         glossy.location = (x + 400, y - 300 * (j + 1))
         links.new(scaled(ks, scale_s, (x + 200, y - 300 * (j + 1))), glossy.inputs["Color"])
-        links.new(rough.outputs[j], glossy.inputs["Roughness"])
+        links.new(component("roughness", j, (x, y - 300)) if j < 3 else component("lobe4", 0, (x, y - 1100)),
+                  glossy.inputs["Roughness"])
         if j < params["view_aligned"] and "Anisotropy" in glossy.inputs:
-            links.new(aniso.outputs[j], glossy.inputs["Anisotropy"])
+            links.new(component("anisotropy", j, (x, y - 500)), glossy.inputs["Anisotropy"])
             links.new(tangent, glossy.inputs["Tangent"])
         elif "Anisotropy" in glossy.inputs:
             glossy.inputs["Anisotropy"].default_value = 0.0
+        normal_of(j + 1, glossy)
         add = nodes.new("ShaderNodeAddShader")
         add.location = (x + 600, y - 300 * j - 150)
         links.new(out, add.inputs[0])
@@ -522,11 +605,12 @@ def _closures(tree, params, loc, scale_d=None, scale_s=None):
     return out
 
 
-def view_tangent(tree, loc):
+def view_tangent(tree, loc, with_normal=False):
     """The view direction projected onto the shading surface, I - (I.N) N (Geometry's Incoming
     and Normal), nudged off zero as svm.VIEW_TANGENT_NUDGE says (the control variate's f_cv
     computes the same tangent): Cycles normalises cross(N, T), NaN for a zero tangent (a
-    head-on view, where the fit's anisotropy is 0 anyway)."""
+    head-on view, where the fit's anisotropy is 0 anyway, and its tilts). `with_normal`: (the
+    tangent, Geometry's Normal)."""
     from .svm import VIEW_TANGENT_EPS, VIEW_TANGENT_NUDGE
     nodes, links = tree.nodes, tree.links
     geometry = nodes.new("ShaderNodeNewGeometry")
@@ -546,7 +630,8 @@ def view_tangent(tree, loc):
     i_dot_n = vmath('DOT_PRODUCT', 1, incoming, normal)
     projected = vmath('SUBTRACT', 3, incoming, vmath('MULTIPLY', 2, normal, i_dot_n))
     nudge = vmath('CROSS_PRODUCT', 4, normal, VIEW_TANGENT_NUDGE)
-    return vmath('MULTIPLY_ADD', 5, nudge, (VIEW_TANGENT_EPS,) * 3, projected)
+    tangent = vmath('MULTIPLY_ADD', 5, nudge, (VIEW_TANGENT_EPS,) * 3, projected)
+    return (tangent, normal) if with_normal else tangent
 
 
 def _build_fit(tree, fit, loc=(-1400, -400)):
@@ -574,7 +659,7 @@ def _svm_backend(tree, svm_texture, fit, tangent, world_inputs, loc=(-1400, -300
     params = _fit_params(tree, fit, (loc[0], loc[1] + 1600), cv=True)
     cv = {"fit": params, "betas": params["cv"], "matched_share": params["matched"],
           "has_betas": has_betas, "match_image": match,
-          "closures": lambda sd, ss: _closures(tree, params, (loc[0], loc[1] + 1600), sd, ss)}
+          "closures": lambda sd, ss: _closures(tree, params, (loc[0], loc[1] + 1600), sd, ss, tilts=svm.CV_TILTS)}
     return svm.build_svm_sampler(tree, svm_texture, tangent, location=loc, world=world_inputs, cv=cv)
 
 
@@ -621,7 +706,7 @@ def _build_tree(tree, name, tables_path, fit_path):
     info = {"material": name, "tables": str(tables_path), "fit": str(fit_path or ""),
             "osl_texture": osl_texture, "svm_texture": svm_texture, "has_fit": fit is not None,
             "has_osl": with_osl, "fit_error": float(fit.get("error", -1.0)) if fit else -1.0,
-            "fit_error_of": fit.get("l1_of", "") if fit else "", "fit_version": FIT_VERSION if fit else 0,
+            "fit_error_of": fit.get("l1_of", "") if fit else "", "fit_version": int(fit["version"]) if fit else 0,
             # (fits before the key: view_aligned 0 was the anisotropic tables' mark)
             "anisotropic": bool(fit.get("anisotropic", fit.get("view_aligned", 1) == 0)) if fit else False,
             "matte": world.matte_fraction(fit),
@@ -684,7 +769,8 @@ def upgrade(tree):
     stale_osl = osl_compiler_available() and (script is None or script.get("flowbsdf_src") != _source_hash())
     missing_svm = svm_available() and not _has_svm(tree) and Path(info["tables"]).is_file()
     # a fit of an older version (made by an older add-on): refit from the tables where they are
-    stale_fit = info.get("has_fit") and info.get("fit_version", 0) != FIT_VERSION and Path(info["tables"]).is_file()
+    stale_fit = (info.get("has_fit") and info.get("fit_version", 0) != FIT_VERSION and Path(info["tables"]).is_file()
+                 and _bake_mod("export.closure_fit") is not None)
     if not (stale_osl or missing_svm or stale_fit):
         return False
     fit = Path(info["fit"]) if info.get("fit") and not stale_fit else None

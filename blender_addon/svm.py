@@ -1567,19 +1567,38 @@ def _cv_fcos(g, cv, wi, n, d):
     Diffuse BSDF (colour kd scaled by cv["diffuse"]) and the fit's GGX Glossy BSDFs (colours
     ks_j scaled by cv["specular"], roughness r_j, anisotropy a_j, the tangent along the view:
     node.view_tangent) as bsdf_diffuse_eval and bsdf_microfacet_eval compute them (no Fresnel,
-    height-correlated G2), at wi and d about the normal n. (A node group, one for every
-    material: a mixture's branches each take it.)"""
+    height-correlated G2), at wi and d about the normal n, each tilted closure about its own
+    normal (node._closures; the tilted Diffuse times Cycles' bump shadowing). (A node group, one
+    for every lobe count and set of tilted closures: a mixture's branches each take it.)"""
     fit = cv["fit"]
+    lobes = len(fit["ks"])
+    tilted = tuple(bool(t) for t in fit.get("tilted", [False] * (lobes + 1))) if CV_TILTS else (False,) * (lobes + 1)
     inputs = {f"Specular {j + 1}": ks for j, ks in enumerate(fit["ks"])}
-    return g.group(_cv_fcos_group(len(fit["ks"])), Wi=wi, N=n, D=d, Diffuse=fit["kd"], Roughness=fit["roughness"],
+    if any(tilted[1:4]):
+        inputs["Tilt"] = fit["tilt"]
+    if lobes > 3 or tilted[0]:
+        inputs["Lobe 4"] = fit["lobe4"]
+    return g.group(_cv_fcos_group(lobes, tilted), Wi=wi, N=n, D=d, Diffuse=fit["kd"], Roughness=fit["roughness"],
                    Anisotropy=fit["anisotropy"], DiffuseScale=cv["diffuse"], SpecularScale=cv["specular"],
                    **inputs)[0]
 
 
-def _cv_fcos_group(lobes):
+# The control variate's closures tilted as the fit's (node._closures): else untilted, in the
+# closures and in _cv_fcos alike (any f_cv is unbiased where the graph's equals what its closures render).
+CV_TILTS = True
+
+
+def _cv_fcos_group(lobes, tilted=None):
+    """_cv_fcos's group: `lobes` GGX lobes (the first three view-aligned where their Anisotropy
+    is not 0, the 4th isotropic: its roughness, tilt and the Diffuse's tilt from "Lobe 4" =
+    (r_4, t_4, t_d)), tilted[k] whether closure k (the Diffuse first) has its own normal
+    normalize(N + t T / |T|) (T the view tangent; else N)."""
+    tilted = tuple(tilted or (False,) * (lobes + 1))
     names = (["Wi", "N", "D", "Diffuse"] + [f"Specular {j + 1}" for j in range(lobes)]
-             + ["Roughness", "Anisotropy", "DiffuseScale", "SpecularScale"])
-    done, tree = _group(f"{GROUP_PREFIX}control variate f cos, {lobes} view-aligned lobes, scaled",
+             + ["Roughness", "Anisotropy"] + (["Tilt"] if any(tilted[1:4]) else [])
+             + (["Lobe 4"] if lobes > 3 or tilted[0] else []) + ["DiffuseScale", "SpecularScale"])
+    mark = "" if not any(tilted) else ", tilted " + "".join("d" if k == 0 else str(k) for k, t in enumerate(tilted) if t)
+    done, tree = _group(f"{GROUP_PREFIX}control variate f cos, {lobes} view-aligned lobes{mark}, scaled",
                         [(name, "Vector") for name in names], [("F cos", "Vector")])
     if done:
         return done
@@ -1593,46 +1612,131 @@ def _cv_fcos_group(lobes):
     # x = y x N, T the view's tangent (node.view_tangent: wi less its normal part, nudged)
     tangent = g.vmath('MULTIPLY_ADD', g.vmath('CROSS_PRODUCT', n, VIEW_TANGENT_NUDGE), (VIEW_TANGENT_EPS,) * 3,
                       g.vmath('SUBTRACT', wi, g.scale(n, cos_i)))
-    fy = g.vmath('NORMALIZE', g.vmath('CROSS_PRODUCT', n, tangent))
-    fx = g.vmath('CROSS_PRODUCT', fy, n)
     h = g.vmath('NORMALIZE', g.vmath('ADD', wi, d))
-    local = {"h": (g.dot(h, fx), g.dot(h, fy), g.dot(h, n)), "i": (g.dot(wi, fx), g.dot(wi, fy), cos_i),
-             "o": (g.dot(d, fx), g.dot(d, fy), cos_o)}
-    sep_r = g.node("ShaderNodeSeparateXYZ")
-    g.set(sep_r.inputs[0], inp["Roughness"])
-    sep_a = g.node("ShaderNodeSeparateXYZ")
-    g.set(sep_a.inputs[0], inp["Anisotropy"])
+    separated = {}
+
+    def component(name, c):
+        if name not in separated:
+            separated[name] = g.node("ShaderNodeSeparateXYZ")
+            g.set(separated[name].inputs[0], inp[name])
+        return separated[name].outputs[c]
+
+    untilted = {}
+    if any(tilted):
+        # A tilted closure's normal normalize(N + t U) (U = T / |T|: orthogonal to N) and its
+        # frame (make_orthonormals_tangent with T: y = normalize(N' x T) = N x U, the untilted y;
+        # x = y x N') turn the untilted frame (U, y, N) about y: a vector's coordinates there are
+        # ((v.U - t v.N) c, v.y, (v.N + t v.U) c), c = 1 / sqrt(1 + t^2). So each lobe takes scalars
+        # of these dots alone, of its own branch: every value here depends on d, through a no-op
+        # for the tilts (min with a 1e30 of d), else Cycles would merge the branches' equal nodes,
+        # compute them before the branches and hold them all on its stack through all.
+        big = g.math('MAXIMUM', cos_o, 1e30)
+        # (U and y through the no-op too: each branch's own, not held through all; y = N x U exactly)
+        unit = g.vmath('MINIMUM', g.vmath('NORMALIZE', tangent), big)
+        fy = g.vmath('CROSS_PRODUCT', n, unit)
+        # (wi.y: 0, wi in the plane of N and T; Cycles' float dot is ~1e-8 there)
+        dots = {"h": (g.dot(h, unit), g.dot(h, fy), g.dot(h, n)), "i": (g.dot(wi, unit), 0.0, cos_i),
+                "o": (g.dot(d, unit), g.dot(d, fy), cos_o)}
+
+    def tilt_of(closure):       # 0: the Diffuse, j + 1: lobe j (this branch's own)
+        t = component("Lobe 4", 2 if closure == 0 else 1) if closure in (0, 4) else component("Tilt", closure - 1)
+        return g.math('MINIMUM', t, big)
+
+    def turned(t, c, v, aniso):
+        a, y, b = v
+        z = g.math('MULTIPLY', g.math('MULTIPLY_ADD', a, t, b), c)
+        if not aniso:
+            return None, None, z
+        return g.math('MULTIPLY', g.math('MULTIPLY_ADD', b, g.math('MULTIPLY', t, -1.0), a), c), y, z
+
+    def local_of(closure, aniso):
+        """(mask, local h, wi, d: each (x, y, z); x, y None for an isotropic lobe) about the
+        closure's normal."""
+        if not tilted[closure]:
+            if aniso not in untilted:
+                untilted[aniso] = (above, *_cv_local(g, n, tangent, h, wi, d, cos_i, cos_o, aniso))
+            return untilted[aniso]
+        t = tilt_of(closure)
+        c = g.math('INVERSE_SQRT', g.math('MULTIPLY_ADD', t, t, 1.0))
+        lh, li, lo = (turned(t, c, dots[k], aniso) for k in ("h", "i", "o"))
+        # (Cycles: wi and d above the closure's normal, d above the surface's)
+        mask = g.math('MULTIPLY', g.math('MULTIPLY', g.math('GREATER_THAN', li[2], 0.0), g.math('GREATER_THAN', lo[2], 0.0)),
+                      g.math('GREATER_THAN', cos_o, 0.0))
+        return mask, lh, li, lo
     lobe = []
     for j in range(lobes):
-        r = g.math('MINIMUM', g.math('MAXIMUM', sep_r.outputs[j], 0.0), 1.0)
+        aniso = j < 3
+        r = g.math('MINIMUM', g.math('MAXIMUM', component("Roughness", j) if j < 3 else component("Lobe 4", 0), 0.0), 1.0)
         alpha = g.math('MULTIPLY', r, r)
-        a = g.math('MINIMUM', g.math('MAXIMUM', sep_a.outputs[j], -0.99), 0.99)
-        neg = g.math('LESS_THAN', a, 0.0)
-        # svm closure.h: a < 0: (alpha / (1 + a), alpha (1 + a)), else (alpha (1 - a), alpha / (1 - a))
-        # (each at most 1: bsdf_microfacet_ggx_setup saturates them)
-        ax = g.math('MINIMUM', g.select(neg, g.math('DIVIDE', alpha, g.math('ADD', 1.0, a)),
-                                        g.math('MULTIPLY', alpha, g.math('SUBTRACT', 1.0, a))), 1.0)
-        ay = g.math('MINIMUM', g.select(neg, g.math('MULTIPLY', alpha, g.math('ADD', 1.0, a)),
-                                        g.math('DIVIDE', alpha, g.math('SUBTRACT', 1.0, a))), 1.0)
-        hx, hy, hz = local["h"]
-        q = g.math('ADD', g.math('ADD', g.math('POWER', g.math('DIVIDE', hx, ax), 2.0),
-                                  g.math('POWER', g.math('DIVIDE', hy, ay), 2.0)), g.math('MULTIPLY', hz, hz))
-        ndf = g.math('DIVIDE', 1.0 / math.pi, g.math('MULTIPLY', g.math('MULTIPLY', ax, ay), g.math('MULTIPLY', q, q)))
+        mask, lh, li, lo = local_of(j + 1, aniso)
+        if aniso:
+            a = g.math('MINIMUM', g.math('MAXIMUM', component("Anisotropy", j), -0.99), 0.99)
+            neg = g.math('LESS_THAN', a, 0.0)
+            # svm closure.h: a < 0: (alpha / (1 + a), alpha (1 + a)), else (alpha (1 - a), alpha / (1 - a))
+            # (each at most 1: bsdf_microfacet_ggx_setup saturates them)
+            ax = g.math('MINIMUM', g.select(neg, g.math('DIVIDE', alpha, g.math('ADD', 1.0, a)),
+                                            g.math('MULTIPLY', alpha, g.math('SUBTRACT', 1.0, a))), 1.0)
+            ay = g.math('MINIMUM', g.select(neg, g.math('MULTIPLY', alpha, g.math('ADD', 1.0, a)),
+                                            g.math('DIVIDE', alpha, g.math('SUBTRACT', 1.0, a))), 1.0)
+            hx, hy, hz = lh
+            q = g.math('ADD', g.math('ADD', g.math('POWER', g.math('DIVIDE', hx, ax), 2.0),
+                                      g.math('POWER', g.math('DIVIDE', hy, ay), 2.0)), g.math('MULTIPLY', hz, hz))
+            ndf = g.math('DIVIDE', 1.0 / math.pi,
+                         g.math('MULTIPLY', g.math('MULTIPLY', ax, ay), g.math('MULTIPLY', q, q)))
 
-        def lam(v, ax=ax, ay=ay):    # bsdf_lambda<GGX>: 0.5 (sqrt(1 + (ax^2 vx^2 + ay^2 vy^2) / vz^2) - 1)
-            t2 = g.math('DIVIDE', g.math('ADD', g.math('POWER', g.math('MULTIPLY', ax, v[0]), 2.0),
-                                          g.math('POWER', g.math('MULTIPLY', ay, v[1]), 2.0)), g.math('MULTIPLY', v[2], v[2]))
-            return g.math('MULTIPLY', g.math('SUBTRACT', g.math('SQRT', g.math('ADD', t2, 1.0)), 1.0), 0.5)
-        g2 = g.math('ADD', g.math('ADD', lam(local["i"]), lam(local["o"])), 1.0)
-        lobe.append(g.math('DIVIDE', g.math('MULTIPLY', ndf, above), g.math('MULTIPLY', g.math('MULTIPLY', cos_i, 4.0), g2)))
+            def lam(v, ax=ax, ay=ay):    # bsdf_lambda<GGX>: 0.5 (sqrt(1 + (ax^2 vx^2 + ay^2 vy^2) / vz^2) - 1)
+                t2 = g.math('DIVIDE', g.math('ADD', g.math('POWER', g.math('MULTIPLY', ax, v[0]), 2.0),
+                                              g.math('POWER', g.math('MULTIPLY', ay, v[1]), 2.0)),
+                            g.math('MULTIPLY', v[2], v[2]))
+                return g.math('MULTIPLY', g.math('SUBTRACT', g.math('SQRT', g.math('ADD', t2, 1.0)), 1.0), 0.5)
+        else:
+            # isotropic (alpha at most 1): D = 1 / (pi alpha^2 q^2), q = (1 - hz^2) / alpha^2 + hz^2;
+            # lambda = 0.5 (sqrt(1 + alpha^2 (1 - vz^2) / vz^2) - 1)
+            hz = lh[2]
+            hz2 = g.math('MULTIPLY', hz, hz)
+            alpha2 = g.math('MULTIPLY', alpha, alpha)
+            q = g.math('ADD', g.math('DIVIDE', g.math('SUBTRACT', 1.0, hz2), alpha2), hz2)
+            ndf = g.math('DIVIDE', 1.0 / math.pi, g.math('MULTIPLY', alpha2, g.math('MULTIPLY', q, q)))
+
+            def lam(v, alpha2=alpha2):
+                vz2 = g.math('MULTIPLY', v[2], v[2])
+                t2 = g.math('DIVIDE', g.math('MULTIPLY', alpha2, g.math('SUBTRACT', 1.0, vz2)), vz2)
+                return g.math('MULTIPLY', g.math('SUBTRACT', g.math('SQRT', g.math('ADD', t2, 1.0)), 1.0), 0.5)
+        g2 = g.math('ADD', g.math('ADD', lam(li), lam(lo)), 1.0)
+        lobe.append(g.math('DIVIDE', g.math('MULTIPLY', ndf, mask), g.math('MULTIPLY', g.math('MULTIPLY', li[2], 4.0), g2)))
+    # the Diffuse: max(d.N', 0) / pi, tilted times Cycles' bump shadowing G1 (bsdf.h
+    # bump_shadowing_term: alpha^2 = min(tan^2 / 8, 1) of the tilt, tan^2 = t_d^2 as T is
+    # orthogonal to N; 0 where d.N < 1e-6)
+    if tilted[0]:
+        td = tilt_of(0)
+        td2 = g.math('MULTIPLY', td, td)
+        cos_od = turned(td, g.math('INVERSE_SQRT', g.math('ADD', td2, 1.0)), dots["o"], False)[2]    # d.N'
+        a2 = g.math('MINIMUM', g.math('MULTIPLY', td2, 0.125), 1.0)
+        c = g.math('MAXIMUM', cos_o, 1e-6)
+        tan2 = g.math('SUBTRACT', g.math('DIVIDE', 1.0, g.math('MULTIPLY', c, c)), 1.0)
+        g1 = g.math('DIVIDE', 2.0, g.math('ADD', 1.0, g.math('SQRT', g.math('MULTIPLY_ADD', a2, tan2, 1.0))))
+        shade = g.math('MULTIPLY', g.math('MULTIPLY', g.math('MAXIMUM', cos_od, 0.0), 1.0 / math.pi),
+                       g.math('MULTIPLY', g1, g.math('GREATER_THAN', cos_o, 1e-6)))
+    else:
+        shade = g.math('MULTIPLY', g.math('MAXIMUM', cos_o, 0.0), 1.0 / math.pi)
     # the colours last (made last, Cycles runs them last: fewer values alive on its stack meanwhile)
-    out = g.scale(g.vmath('MULTIPLY', inp["Diffuse"], inp["DiffuseScale"]),
-                  g.math('MULTIPLY', g.math('MAXIMUM', cos_o, 0.0), 1.0 / math.pi))
+    out = g.scale(g.vmath('MULTIPLY', inp["Diffuse"], inp["DiffuseScale"]), shade)
     for j, value in enumerate(lobe):
         out = g.vmath('MULTIPLY_ADD', g.vmath('MULTIPLY', inp[f"Specular {j + 1}"], inp["SpecularScale"]),
                       g.combine(value, value, value), out)
     g.set(g.node("NodeGroupOutput").inputs["F cos"], out)
     return tree
+
+
+def _cv_local(g, nj, tangent, h, wi, d, cos_i, cos_o, aniso):
+    """(h, wi, d) in the frame of normal nj (Cycles' make_orthonormals_tangent with the view
+    tangent: y = normalize(nj x T), x = y x nj), each (x, y, z); x, y None when not `aniso`."""
+    if not aniso:
+        return (None, None, g.dot(h, nj)), (None, None, cos_i), (None, None, cos_o)
+    fy = g.vmath('NORMALIZE', g.vmath('CROSS_PRODUCT', nj, tangent))
+    fx = g.vmath('CROSS_PRODUCT', fy, nj)
+    return ((g.dot(h, fx), g.dot(h, fy), g.dot(h, nj)), (g.dot(wi, fx), g.dot(wi, fy), cos_i),
+            (g.dot(d, fx), g.dot(d, fy), cos_o))
 
 
 def _cv_rest(g, cv, wi, n, d, weight, ok, q):

@@ -7,6 +7,11 @@ given (--old DIR: <name>.fit.json of FIT_VERSION 4, one Diffuse + one GGX lobe),
 made now from the tables, its seconds.
 
     .venv/bin/python scripts/fit_acceptance.py TABLES_DIR [--old DIR] [--rgl DIR] [--material NAME ...]
+        [--variant full|ac|ab|a|c|b|none] [--json DIR]
+
+--variant (the FIT_VERSION 7 parts, for their ablation): a = tilted GGX lobes, b = the 4th GGX
+lobe, c = a tilted Diffuse; full = abc (the default, the shipped fit); none = FIT_VERSION 6's
+closures (3 lobes, no tilts). --json DIR: the new fits written there as <name>.fit.json.
 
 TABLES_DIR holds `flowbsdf bake`'s <name>.exr of RGL files named <name>_rgb.bsdf in --rgl.
 """
@@ -54,7 +59,13 @@ def main():
     ap.add_argument("--old", type=Path)
     ap.add_argument("--rgl", type=Path, default=ROOT.parent / "shared" / "data" / "rgl")
     ap.add_argument("--material", nargs="*")
+    ap.add_argument("--variant", default="full", choices=["full", "ac", "ab", "a", "c", "b", "none"])
+    ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    parts = "abc" if args.variant == "full" else ("" if args.variant == "none" else args.variant)
+    cf.TILT_GGX, cf.TILT_DIFFUSE = "a" in parts, "c" in parts
+    cf.LOBES, cf.VIEW_ALIGNED = (4, 3) if "b" in parts else (3, 2)
+    print(f"variant {args.variant}: GGX tilts {cf.TILT_GGX}, Diffuse tilt {cf.TILT_DIFFUSE}, {cf.LOBES} GGX lobes")
     degs = sorted(ON + BETWEEN)
     print("relative L1 of luminance f cos against the file; columns: view angle (deg); * between knots")
     print(f"{'file':20s} {'fit':4s} " + " ".join(f"{d:5.1f}{'*' if d in BETWEEN else ' '}" for d in degs)
@@ -75,6 +86,9 @@ def main():
         t0 = time.perf_counter()
         new = cf.fit_closures(tables, material=material)
         seconds = time.perf_counter() - t0
+        if args.json:
+            args.json.mkdir(parents=True, exist_ok=True)
+            (args.json / f"{name}.fit.json").write_text(json.dumps(new, indent=1))
         rows.append(("new", lambda wi, wo: cf.eval_fit(new, wi, wo), seconds))
         for label, f_eval, sec in rows:
             vals = [l1(f_eval, tables, material, d) for d in degs]

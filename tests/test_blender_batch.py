@@ -202,7 +202,12 @@ for mat in bpy.data.materials:
         "roughness": chain(sep.inputs[0]), "anisotropy": chain(aniso.inputs[0]),
         "distribution": sorted({n.distribution for n in glossies}),
         "view_tangent": [n.inputs["Tangent"].is_linked for n in glossies],
+        "normal_linked": [n.inputs["Normal"].is_linked for n in [diffuse] + glossies],
     }
+    fit_node = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree.name.startswith("FlowBSDF fit"))
+    for key, name in (("tilt", "Tilt"), ("lobe4", "Lobe 4")):
+        if name in fit_node.outputs and fit_node.outputs[name].is_linked:
+            result[mat.name][key] = chain(fit_node.outputs[name].links[0].to_socket)
 
 # A uniform white environment, each sphere alone in an orthographic 16x16 view, 4 spp.
 world = bpy.data.worlds.new("white")
@@ -296,7 +301,8 @@ def test_saved_blend_reopens_in_blender_with_the_fit_and_renders(batch_scene, ba
             assert "ShaderNodeScript" not in r["node_types"]
         assert r["distribution"] == ["GGX"]
         # the fit's lobes: the first fit["view_aligned"] take the view's tangent
-        assert r["view_tangent"] == [j < fit["view_aligned"] for j in range(3)], r["view_tangent"]
+        lobes = len(fit["roughness"][0])
+        assert r["view_tangent"] == [j < fit["view_aligned"] for j in range(lobes)], r["view_tangent"]
         for x, want in zip(fit["x"], fit["diffuse"]):
             assert _eval_chain(r["diffuse"], x) == pytest.approx(want, abs=1e-5), (name, x)
         for j, lobe in enumerate(r["specular"]):
@@ -304,7 +310,16 @@ def test_saved_blend_reopens_in_blender_with_the_fit_and_renders(batch_scene, ba
                 assert _eval_chain(lobe, x) == pytest.approx(want[j], abs=1e-5), (name, j, x)
         for key in ("roughness", "anisotropy"):
             for x, want in zip(fit["x"], fit[key]):
-                assert _eval_chain(r[key], x) == pytest.approx(want, abs=1e-5), (name, key, x)
+                assert _eval_chain(r[key], x) == pytest.approx(want[:3], abs=1e-5), (name, key, x)
+        # FIT_VERSION 7: the tilts (t_1, t_2, t_3) and (r_4, t_4, t_d), each tilted closure's Normal linked
+        tilt, dtilt = fit.get("tilt", [[0.0] * lobes] * len(fit["x"])), fit.get("diffuse_tilt", [0.0] * len(fit["x"]))
+        assert r["normal_linked"] == [any(dtilt)] + [any(t[j] for t in tilt) for j in range(lobes)], r["normal_linked"]
+        if "tilt" in r:
+            for x, want in zip(fit["x"], tilt):
+                assert _eval_chain(r["tilt"], x) == pytest.approx(want[:3], abs=1e-6), (name, "tilt", x)
+        if lobes > 3:
+            for x, rough, t, d in zip(fit["x"], fit["roughness"], tilt, dtilt):
+                assert _eval_chain(r["lobe4"], x) == pytest.approx([rough[3], t[3], d], abs=1e-6), (name, "lobe 4", x)
 
         # The render: each inner pixel sees the fit's directional albedo at its view angle
         # (orthographic: cos theta = sqrt(1 - rho^2)); 4 spp of a white environment.

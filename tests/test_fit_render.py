@@ -109,7 +109,38 @@ CLAMPED = _fit(
     anisotropy=_lobes([0.0, 0.6, 0.6, 0.6, 0.6], [0.0] * 5, [0.0] * 5),
     view_aligned=2)
 
-FITS = {"isotropic": ISOTROPIC, "anisotropic": ANISOTROPIC, "head-on": HEAD_ON, "clamped": CLAMPED}
+
+def _tan(*degs):
+    return [float(np.tan(np.radians(d))) for d in degs]
+
+
+# FIT_VERSION 7: four lobes (three view-aligned, the 4th isotropic), each closure with its own
+# Normal N + t T / |T| (T the view tangent): GGX tilts of both signs up to 4 deg (-3 deg near
+# the grazing knot, where the mirror direction about the tilted normal comes close to the
+# surface), a Diffuse tilted up to 20 deg (Cycles' bump shadowing then shades it), all 0 at
+# normal view (where T is the nudged 0: a tilt of 0 gives N exactly, no NaN) and lerped in x
+# from there (tilts of hundredths of a degree at 0.5 deg).
+TILTED = dict(_fit(
+    diffuse=[[0.10, 0.08, 0.06], [0.12, 0.10, 0.05], [0.08, 0.12, 0.10], [0.10, 0.06, 0.12], [0.05, 0.05, 0.05]],
+    specular=_lobes(
+        [[0.30, 0.20, 0.10], [0.20, 0.30, 0.10], [0.40, 0.20, 0.20], [0.10, 0.20, 0.40], [0.20, 0.20, 0.20]],
+        [[0.10, 0.20, 0.30], [0.30, 0.10, 0.20], [0.05, 0.10, 0.10], [0.20, 0.40, 0.10], [0.10, 0.30, 0.30]],
+        [[0.05, 0.04, 0.03], [0.04, 0.05, 0.02], [0.06, 0.05, 0.04], [0.03, 0.06, 0.05], [0.08, 0.04, 0.06]],
+        [[0.04, 0.03, 0.05], [0.06, 0.02, 0.03], [0.02, 0.06, 0.05], [0.05, 0.03, 0.02], [0.04, 0.04, 0.04]]),
+    roughness=_lobes([0.30, 0.35, 0.45, 0.40, 0.40], [0.55, 0.50, 0.45, 0.40, 0.35], [0.20, 0.25, 0.25, 0.22, 0.20],
+                     [0.60, 0.65, 0.70, 0.60, 0.50]),
+    anisotropy=_lobes([0.3, 0.40, 0.60, 0.50, 0.40], [-0.2, -0.30, -0.40, -0.35, -0.30], [0.0, 0.2, 0.1, 0.0, 0.0],
+                      [0.0] * 5),
+    view_aligned=3),
+    tilt=_lobes(_tan(0.0, 2.0, 1.0, -1.0, 0.0), _tan(0.0, -3.0, -2.0, -3.0, 0.0), _tan(0.0, 4.0, 0.5, 1.5, 0.0),
+                _tan(0.0, 1.0, -4.0, -0.5, 0.0)),
+    diffuse_tilt=_tan(0.0, 10.0, -15.0, 20.0, 0.0))
+# ... and the same without tilts, as a FIT_VERSION 6 fit (the node still renders those: a .blend
+# made before the add-on refits it), which renders at normal view exactly what TILTED does
+UNTILTED = {k: (6 if k == "version" else v) for k, v in TILTED.items() if k not in ("tilt", "diffuse_tilt")}
+
+FITS = {"isotropic": ISOTROPIC, "anisotropic": ANISOTROPIC, "head-on": HEAD_ON, "clamped": CLAMPED,
+        "tilted": TILTED, "untilted": UNTILTED}
 MATTE = {"kind": "analytic", "model": "lambert", "albedo": [0.8, 0.7, 0.6]}
 
 
@@ -124,7 +155,7 @@ def _quads(fits):
     head-on once; "head-on" only head-on."""
     out = []
     for name in fits:
-        degs = (0.0,) if name == "head-on" else sorted(ON_KNOTS_DEG + BETWEEN_DEG)
+        degs = (0.0,) if name in ("head-on", "untilted") else sorted(ON_KNOTS_DEG + BETWEEN_DEG)
         for i, deg in enumerate(degs):
             offset = (i * 0.618034) % 1.0
             for k in range(AZIMUTHS if deg > 0 else 1):
@@ -256,7 +287,7 @@ def _relative(got, ref):
     return np.abs(got - ref)[lit] / ref[lit]
 
 
-@pytest.mark.parametrize("name", ["isotropic", "anisotropic"])
+@pytest.mark.parametrize("name", ["isotropic", "anisotropic", "tilted"])
 def test_fit_renders_what_eval_fit_states(rendered, name):
     """Within 1e-3 relative at >= 99 % of the directions, on the knots and between them
     (measured: all within 4.4e-4, median 2e-7 (isotropic) / 7e-7 (anisotropic); the largest
@@ -306,6 +337,29 @@ def test_head_on_view_renders_a_finite_lobe(rendered):
         assert np.all((lo <= g) & (g <= hi)), (g, lo, hi)
     lit = ref > 0
     assert np.max(np.abs(got - ref)[lit] / ref[lit]) < TOLERANCE
+
+
+def test_tilts_render_as_eval_fit_states_and_none_at_normal_view(rendered):
+    """The tilted fit (FIT_VERSION 7: test_fit_renders_what_eval_fit_states[tilted]) per closure
+    kind: its Diffuse tilt is seen (the tilted fit's ref differs from the untilted model's where
+    the Diffuse dominates), and at normal view, where every tilt is 0, it renders bitwise what
+    the same fit without tilts (a FIT_VERSION 6 fit) renders."""
+    got, ref, wi, wo = _of(rendered, "tilted")
+    untilted_ref = np.array([[E * max(o[2], 0.0) * eval_fit(UNTILTED, i, o[None])[0] for i, o in zip(a, b)]
+                             for a, b in zip(wi, wo)])
+    lit = ref > 0
+    moved = np.abs(ref - untilted_ref)[lit] / ref[lit]
+    assert np.mean(moved > 10 * TOLERANCE) > 0.3, np.median(moved)       # the tilts are seen ...
+    rel = _relative(got, ref)
+    assert np.mean(rel < TOLERANCE) >= SHARE and np.median(rel) < 1e-5, (np.mean(rel < TOLERANCE), np.median(rel))
+    head_on = np.array([q[1] == 0.0 for q in rendered["quads"] if q[0] == "tilted"])
+    plain, plain_ref, _, _ = _of(rendered, "untilted")
+    assert head_on.sum() == 1 and plain.shape[1] == 1
+    assert np.all(np.isfinite(got)) and np.array_equal(got[:, head_on], plain), (got[:, head_on], plain)
+    lit = plain_ref > 0
+    assert np.max(np.abs(plain - plain_ref)[lit] / plain_ref[lit]) < TOLERANCE
+    _, now = rendered["status"]["untilted"]
+    assert now.startswith("Fit"), now
 
 
 def test_alphas_beyond_1_render_as_eval_fit_states(rendered):

@@ -16,7 +16,21 @@ files' lobes there are not round (cc_nothern_aurora at theta_i = 0: their f cos 
 varies 2.1x with the azimuth from the view's), and the exact back ends render that azimuth
 from the same projected tangent, so the view-aligned lobes stay anisotropic there (its zero
 at exactly normal view is nudged, svm.VIEW_TANGENT_NUDGE). The last lobe is isotropic. Between knots the
-node interpolates kd, ks_j, r_j and a_j linearly in x.
+node interpolates kd, ks_j, r_j, a_j and the tilts linearly in x.
+
+Tilts (FIT_VERSION 7): each closure has its own Normal N' = N + t V (V the unit view tangent,
+t = tan of the tilt toward the view, in the plane of incidence; t = 0 gives N exactly, so
+Cycles' bump corrections, which it skips where N' equals N, stay off). A tilted Glossy lobe
+reflects 2 t nearer the normal (measured lobes' peaks sit off the mirror direction by tenths of
+a degree), a tilted Diffuse leans toward or away from the view (Cycles then multiplies it by its
+bump shadowing G1: diffuse_tilt_fcos). GGX tilts within TILT_GGX_DEG (+-4 deg), none at normal
+view (the view tangent is arbitrary there), and above tilt_limit: the mirror direction about
+the tilted normal stays above the surface by more than Cycles' ensure_valid_specular_reflection
+threshold over every knot interval, so that correction never fires and eval_fit is what
+Cycles renders (ensure_valid_reflection models it anyway). The Diffuse's within +-20 deg.
+A tilted lobe's albedo is the table's untilted one times the tilted / untilted ratio of
+estimates from common samples (_ggx_tilt_albedos, within 1 %); the tilted Diffuse's a
+quadrature (diffuse_tilt_albedo). Fits of FIT_VERSION 6 (no "tilt" keys) evaluate untilted.
 
 At each knot the fit keeps the baked albedo exactly per channel (kd + sum_j ks_j A_j =
 albedo(theta_i), A_j the lobe's albedo) and minimizes the L1 error of f cos over the
@@ -24,7 +38,7 @@ hemisphere (weights per channel: an exact non-negative least-squares solve, rewe
 Monte Carlo over a mixture of the tables', the cosine's and a GGX mixture's samplers, fixed
 seed; the lobes' albedos at the knots from ggx_albedo.npz). The lobes' (alpha, a) are searched
 on a grid: all of it at normal view, then knot by knot from the previous knot's lobes, moving a
-lobe costing in proportion to its share of the albedo, the weights pulled toward the previous
+lobe (a tilt: TILT_STEP) costing in proportion to its share of the albedo, the weights pulled toward the previous
 knot's, and the next knot's lobes chosen by the error at the knot plus half-way back
 (_next_knot): each lobe keeps its identity and its parameters vary smoothly with the view
 angle (a fit made per knot alone jumps between knots, and a sphere renders concentric rings). Recorded per knot: the relative L2 error of f cos
@@ -60,22 +74,40 @@ from ..materials.analytic import ggx_ndf, ggx_lambda, ggx_reflection_pdf, ggx_sa
 from ..plumbing.exrio import write_rgba_exr
 from ..plumbing.files import atomic_path, file_hash
 
-FIT_VERSION = 6
-MODEL = "diffuse+view-aligned-ggx"
+FIT_VERSION = 7
+READABLE_VERSIONS = (6, 7)      # load_fit / eval_fit: a version 6 fit has no tilts (all 0)
+MODEL = "diffuse+view-aligned-ggx+tilt"
 MATCH_N = 16        # the match image's nodes per axis (match_ratios)
 MATCH_MAX = 2.0     # its ratios' bound (blender_addon/svm.py matches only where the fit is within 10 %)
 MATCH_KEY = "flowbsdf_match"
 CV_BETAS = np.linspace(0.0, 1.0, 11)
 CV_LIGHT_SHARE = 0.5    # the portal mixture's probability of drawing a bright light (cv_scales)
 KNOTS_DEG = (0.0, 15.0, 30.0, 40.0, 50.0, 58.0, 65.0, 70.0, 74.0, 78.0, 81.0, 84.0, 86.0, 88.0, 89.5)
-LOBES = 3           # GGX lobes; the first VIEW_ALIGNED with the view's tangent and anisotropy
-VIEW_ALIGNED = 2
+LOBES = 4           # GGX lobes; the first VIEW_ALIGNED with the view's tangent and anisotropy
+VIEW_ALIGNED = 3
 ALPHAS = np.geomspace(0.002, 1.0, 37)                 # alpha = r^2, Cycles' roughness r <= 1
 ANISOTROPY = np.round(np.linspace(-0.4, 0.8, 13), 6)  # Cycles' Anisotropy input; 0 at index 4
 PULL = 0.02         # the weights' pull toward the previous knot's (_Knot.solve), relative to the Gram
 STEP_COST = 0.004   # added to the relative L1 per grid step a lobe of all the albedo moves (_descend)
 STIFF = 5.0         # _next_knot's stiffer descent: STIFF x STEP_COST
 L1_MAX_DEG = 88.0   # the error's view angles: knots and their midpoints up to here
+# Tilts (FIT_VERSION 7): each closure's Normal N' = N + t V (V the unit view tangent, t = tan of
+# the tilt angle toward the view, in the plane of incidence), lerped in x like the rest.
+TILT_GGX_DEG = np.array([-4.0, -3.0, -2.2, -1.5, -1.0, -0.7, -0.45, -0.3, -0.15, -0.07, 0.0,
+                         0.07, 0.15, 0.3, 0.45, 0.7, 1.0, 1.5, 2.2, 3.0, 4.0])
+TILT_DIFFUSE_DEG = np.array([-20.0, -15.0, -11.0, -8.0, -6.0, -4.0, -2.5, -1.5, -0.7, 0.0,
+                             0.7, 1.5, 2.5, 4.0, 6.0, 8.0, 11.0, 15.0, 20.0])
+TILT_REACH = 3      # grid steps a tilt may move per descent move
+TILT_STEP = 0.5     # _descend's cost of a tilt grid step, in alpha / anisotropy grid steps
+NEXT_TILT_ONLY = True   # _next_knot's 4th option: the previous lobes' shapes kept, their tilts descended
+TILT_GGX = True     # (switches for the ablation: scripts/fit_acceptance.py --variant)
+TILT_DIFFUSE = True
+DIFFUSE_TILT_SHARE = 0.0    # the Diffuse tilts only where it carries this share of the albedo (else none: a
+                            # tilt it hardly shows, which EEVEE, without Cycles' G1, renders otherwise). 0.1
+                            # measured: acceptance median 0.147 -> 0.150, mean 0.199 -> 0.201 (a Diffuse of
+                            # a few % tilted 20 deg shapes the grazing views of malachite, mint, ilm)
+R_MIN = 0.02        # a GGX lobe's tilt keeps the view's mirror direction above cos theta R_MIN (> Cycles'
+                    # ensure_valid_specular_reflection threshold 0.01: its correction never fires)
 
 
 def alphas_xy(alpha, aniso):
@@ -99,6 +131,90 @@ def ggx_fcos(wi, wo, alpha, aniso=0.0):
         g2 = 1.0 / (1.0 + ggx_lambda(wi, ax, ay) + ggx_lambda(wo, ax, ay))
         v = ggx_ndf(h, ax, ay) * g2 / (4.0 * wi[:, 2])
     return np.where(ok, v, 0.0)
+
+
+def ensure_valid_reflection(wi, n):
+    """Cycles' ensure_valid_specular_reflection (closure/bsdf_util.h) with Ng = z: the Glossy
+    closure's normal n, raised toward Ng until wi's mirror direction about it is at least
+    min(0.9 wi.z, 0.01) above the surface (the material's Bump Map Correction, on by default;
+    maybe_ensure_valid_specular_reflection skips it where n equals Ng: the node's zero tilt)."""
+    n = np.asarray(n, float)
+    r = 2.0 * (n @ wi) * n - wi
+    iz = float(wi[2])
+    thr = min(0.9 * iz, 0.01)
+    if r[2] >= thr:
+        return n
+    x = n - n[2] * np.array([0.0, 0.0, 1.0])
+    lx = np.linalg.norm(x)
+    x = x / lx if lx > 0 else n
+    ix = float(wi @ x)
+    a = ix * ix + iz * iz
+    b = 2.0 * (a + iz * thr)
+    c = (thr + iz) ** 2
+    disc = np.sqrt(max(b * b - 4.0 * a * c, 0.0))
+    nz2 = 0.25 * (b + disc) / a if ix < 0 else 0.25 * (b - disc) / a
+    return np.sqrt(max(1.0 - nz2, 0.0)) * x + np.sqrt(max(nz2, 0.0)) * np.array([0.0, 0.0, 1.0])
+
+
+def tilted_normal(t, tb=0.0):
+    """The closure Normal the node builds, N + t V + tb B (V = x the view tangent, B = z x V = y),
+    normalised (Cycles normalises a closure's Normal input: svm/closure.h)."""
+    n = np.array([t, tb, 1.0])
+    return n / np.linalg.norm(n)
+
+
+def ggx_tilt_frame(wi, t, tb=0.0):
+    """Rows: the tilted Glossy closure's frame (X, Y, N'') at wi in the xz plane: N'' the tilted
+    normal after ensure_valid_reflection, X the view tangent x made orthogonal to it
+    (make_orthonormals_tangent: Y = normalize(N'' x T), X = Y x N'')."""
+    n = ensure_valid_reflection(wi, tilted_normal(t, tb))
+    y = np.cross(n, [1.0, 0.0, 0.0])
+    y /= np.linalg.norm(y)
+    return np.stack([np.cross(y, n), y, n])
+
+
+def ggx_tilt_fcos(wi, wo, alpha, aniso, t, tb=0.0):
+    """ggx_fcos of a Glossy closure whose Normal is tilted by t (tan, toward the view) and tb
+    (across): what Cycles renders with the geometric normal z (f cos about the closure's own
+    normal, 0 where wo is under the surface: bsdf.h bump_shadowing_term, bsdf_microfacet.h)."""
+    if t == 0.0 and tb == 0.0:
+        return ggx_fcos(wi, wo, alpha, aniso)
+    m = ggx_tilt_frame(wi, t, tb)
+    v = ggx_fcos(m @ wi, wo @ m.T, alpha, aniso)
+    return np.where(wo[:, 2] > 0, v, 0.0)
+
+
+def diffuse_tilt_fcos(wo, t, tb=0.0):
+    """A Diffuse closure (colour 1) with its Normal tilted by t, tb, times cos theta_o about z:
+    max(N'.wo, 0) / pi, 0 under the surface, times Cycles' bump shadowing G1 of GGX with
+    alpha^2 = min(tan^2 d / 8, 1), d the tilt (bsdf.h bump_shadowing_term: a tilted Diffuse)."""
+    if t == 0.0 and tb == 0.0:
+        return np.maximum(wo[:, 2], 0.0) / np.pi
+    n = tilted_normal(t, tb)
+    v = np.maximum(wo @ n, 0.0) / np.pi
+    a2 = min(0.125 * (1.0 / n[2] ** 2 - 1.0), 1.0)
+    ci = np.clip(np.abs(wo[:, 2]), 1e-12, 1.0)
+    g1 = 2.0 / (1.0 + np.sqrt(1.0 + a2 * (1.0 / (ci * ci) - 1.0)))
+    return np.where(wo[:, 2] >= 1e-6, v * g1, 0.0)
+
+
+_HEMI_DIFFUSE = {}
+
+
+def diffuse_tilt_albedo(t):
+    """The tilted Diffuse's albedo (view independent): a dense quadrature of the hemisphere."""
+    t = float(t)
+    if t not in _HEMI_DIFFUSE:
+        _HEMI_DIFFUSE[t] = 1.0 if t == 0.0 else float(2 * np.pi * np.mean(diffuse_tilt_fcos(_HEMISPHERE, t)))
+    return _HEMI_DIFFUSE[t]
+
+
+def tilt_limit(theta_next):
+    """The least tan-tilt (away from the view: < 0) a GGX lobe may take at a knot whose interval
+    ends at theta_next (rad): the mirror direction at theta + 2 |tilt| stays above cos R_MIN
+    there, and so over the interval (theta + 2 |tilt| is convex in x along the node's lerp)."""
+    room = 0.5 * (np.arccos(R_MIN) - float(theta_next))
+    return -float(np.tan(max(room, 0.0)))
 
 
 def _stratified(n, rng):
@@ -186,6 +302,40 @@ def _ggx_albedos(theta, alphas, anisos, n=1024, seed=0, cache=True):
     return np.array([_ALBEDOS[k] for k in keys])
 
 
+_TILT_EST = {}      # (theta, alpha, a, t) -> the lobe's albedo estimate from TILT_ALBEDO_N common samples
+TILT_ALBEDO_N = 256
+
+
+def _ggx_tilt_albedos(theta, alphas, anisos, t, n=TILT_ALBEDO_N, seed=0):
+    """Albedos of tilted lobes: the untilted lobe's (_ggx_albedos: the table at the knots) times
+    the ratio of the tilted and untilted lobes' estimates from the same n stratified samples,
+    each lobe sampled in its own frame (common numbers: the ratio's noise is far below either
+    estimate's; its part under the surface, which Cycles drops, is lost), kept."""
+    base = _ggx_albedos(theta, alphas, anisos)
+    if t == 0.0:
+        return base
+    keys = [(float(theta), float(a), float(b)) for a, b in zip(alphas, anisos)]
+    wi = _view(theta)
+    m = ggx_tilt_frame(wi, t)
+    u = _stratified(n, np.random.default_rng(seed))
+    for frame, tt in ((None, 0.0), (m, float(t))):
+        missing = sorted(set(k for k in keys if k + (tt,) not in _TILT_EST))
+        w_in = wi if frame is None else m @ wi
+        for start in range(0, len(missing), 64):
+            part = missing[start:start + 64]
+            _, al, an = np.array(part).T
+            ax, ay = alphas_xy(np.repeat(al, len(u)), np.repeat(an, len(u)))
+            lo = ggx_sample_reflection(w_in, ax, ay, np.tile(u, (len(al), 1)))
+            p = ggx_reflection_pdf(w_in, lo, ax, ay)
+            v = ggx_fcos(w_in, lo, np.repeat(al, len(u)), np.repeat(an, len(u)))
+            if frame is not None:
+                v = np.where((lo @ frame)[:, 2] > 0, v, 0.0)
+            est = np.mean(np.where(p > 0, v / np.where(p > 0, p, 1.0), 0.0).reshape(len(al), -1), axis=1)
+            _TILT_EST.update(((k + (tt,)), float(e)) for k, e in zip(part, est))
+    ratio = [(_TILT_EST[k + (float(t),)] / _TILT_EST[k + (0.0,)]) if _TILT_EST[k + (0.0,)] > 0 else 1.0 for k in keys]
+    return base * np.array(ratio)
+
+
 def ggx_albedo(wi, alpha, aniso=0.0, n=1024, seed=0):
     """The albedo of Cycles' Glossy GGX (colour 1, tangent x) at wi: its own VNDF sampling."""
     theta = float(np.arctan2(np.hypot(wi[0], wi[1]), wi[2]))
@@ -214,40 +364,69 @@ class _Knot:
         self.wo, self.w = wo, 1.0 / (q * draws)
         self.g = tables.eval(wi, wo) * wo[:, 2:3]
         self.albedo = baked_albedo(tables, np.cos(theta))
-        self._row = {(-1, -1): 0}                   # grid point -> row of _vals; row 0 the diffuse
-        self._vals = (wo[:, 2] / np.pi)[None]       # (rows, N) f cos of the diffuse and each lobe
-        self._albs = np.ones(1)
+        # grid point -> row of _vals: GGX lobes (ia, ja, it) (ALPHAS[ia], ANISOTROPY[ja], tilt
+        # TILT_GGX_DEG[it]), the Diffuse (-1, 0, it) (tilt TILT_DIFFUSE_DEG[it])
+        self._row = {}
+        cap = 256                                   # (storage grown by doubling)
+        self._vals = np.zeros((cap, len(wo)))       # (rows, N) f cos of the diffuse and each lobe
+        self._albs = np.zeros(cap)
         # their weighted inner products (what least squares needs), grown with the rows
-        self._gram = (self._vals * self.w) @ self._vals.T
-        self._rhs = (self._vals * self.w) @ self.g
+        self._gram = np.zeros((cap, cap))
+        self._rhs = np.zeros((cap, 3))
+        self.tilt_min = -np.inf     # the least GGX tilt (tan) allowed here (fit_closures: tilt_limit)
 
     def rows(self, keys):
-        """The rows of lobes (ia, ja) (ALPHAS[ia], ANISOTROPY[ja]) in the knot's arrays of f cos
-        values and albedos, the missing ones computed together."""
-        missing = sorted({k for k in keys if k not in self._row})
+        """The rows of lobes (ia, ja, it) in the knot's arrays of f cos values and albedos, the
+        missing ones computed together (per tilt)."""
+        missing = sorted({tuple(k) for k in keys if tuple(k) not in self._row})
         if missing:
-            ia, ja = np.array(missing).T
-            new = ggx_fcos(self.wi, self.wo, ALPHAS[ia][:, None], ANISOTROPY[ja][:, None])
-            cross = (new * self.w) @ self._vals.T
-            self._gram = np.block([[self._gram, cross.T], [cross, (new * self.w) @ new.T]])
-            self._rhs = np.concatenate([self._rhs, (new * self.w) @ self.g])
-            self._vals = np.concatenate([self._vals, new])
-            self._albs = np.concatenate([self._albs, _ggx_albedos(self.theta, ALPHAS[ia], ANISOTROPY[ja])])
-            base = len(self._row)
-            self._row.update((k, base + i) for i, k in enumerate(missing))
-        return np.array([self._row[k] for k in keys], int)
+            groups = {}
+            for k in missing:
+                groups.setdefault((k[0] < 0, k[2]), []).append(k)
+            new, albs, order = [], [], []
+            for (diffuse, it), ks in sorted(groups.items()):
+                if diffuse:
+                    t = float(np.tan(np.radians(TILT_DIFFUSE_DEG[it])))
+                    new.append(diffuse_tilt_fcos(self.wo, t)[None])
+                    albs.append(np.array([diffuse_tilt_albedo(t)]))
+                else:
+                    t = float(np.tan(np.radians(TILT_GGX_DEG[it])))
+                    ia, ja, _ = np.array(ks).T
+                    new.append(ggx_tilt_fcos(self.wi, self.wo, ALPHAS[ia][:, None], ANISOTROPY[ja][:, None], t))
+                    albs.append(_ggx_tilt_albedos(self.theta, ALPHAS[ia], ANISOTROPY[ja], t))
+                order += ks
+            new = np.concatenate(new)
+            base, m = len(self._row), len(new)
+            if base + m > len(self._albs):
+                cap = max(2 * len(self._albs), base + m)
+                grow = lambda a, shape: np.concatenate([a, np.zeros((cap - len(a),) + shape)])  # noqa: E731
+                self._vals = grow(self._vals, self._vals.shape[1:])
+                self._albs = grow(self._albs, ())
+                self._rhs = grow(self._rhs, (3,))
+                gram = np.zeros((cap, cap))
+                gram[:base, :base] = self._gram[:base, :base]
+                self._gram = gram
+            nw = new * self.w
+            cross = nw @ self._vals[:base].T
+            self._gram[base:base + m, :base] = cross
+            self._gram[:base, base:base + m] = cross.T
+            self._gram[base:base + m, base:base + m] = nw @ new.T
+            self._rhs[base:base + m] = nw @ self.g
+            self._vals[base:base + m] = new
+            self._albs[base:base + m] = np.concatenate(albs)
+            self._row.update((k, base + i) for i, k in enumerate(order))
+        return np.array([self._row[tuple(k)] for k in keys], int)
 
     def albedos(self, keys):
         rows = self.rows(keys)
         return self._albs[rows]
 
     def solve(self, candidates, prev=None, irls=1):
-        """Best weights of each candidate set of lobes [[(ia, ja), ...], ...] (diffuse first):
+        """Best weights of each candidate set of lobes [[diffuse, (ia, ja, it), ...], ...]:
         (weights (C, K, 3), relative L1 of luminance f cos (C,)). `prev` (K, 3): the previous
         knot's weights, which a small Tikhonov term pulls toward where the error is flat (a rough
         lobe and the diffuse trade places at little cost: left free they swap between knots)."""
-        idx = self.rows([(-1, -1)] + [p for cand in candidates for p in cand])[1:].reshape(len(candidates), -1)
-        idx = np.concatenate([np.zeros((len(idx), 1), int), idx], 1)                # (C, K)
+        idx = self.rows([p for cand in candidates for p in cand]).reshape(len(candidates), -1)     # (C, K)
         a = self._albs[idx]                                                          # (C, K)
         g, w = self.g, self.w
         delta = 0.05 * np.maximum(self.albedo, 1e-6) / (2 * np.pi)
@@ -281,67 +460,123 @@ def _simplex_lsq(gram, rhs, a, albedo):
     best = np.full((c, h), np.inf)
     out = np.zeros((c, h, kk))
     ridge = 1e-10 * np.trace(gram, axis1=-2, axis2=-1)[..., None, None] + 1e-300
-    for m in range(1, kk + 1):
-        for idx in itertools.combinations(range(kk), m):
-            idx = list(idx)
-            sys = np.zeros((c, h, m + 1, m + 1))
-            sys[..., :m, :m] = gram[..., idx, :][..., idx] + ridge * np.eye(m)
-            sys[..., :m, m] = a[:, None, idx]
-            sys[..., m, :m] = a[:, None, idx]
-            b = np.concatenate([rhs[..., idx], np.broadcast_to(albedo, (c, h))[..., None]], -1)
-            sol = np.linalg.solve(sys, b[..., None])[..., :m, 0]
-            k = np.zeros((c, h, kk))
-            k[..., idx] = np.maximum(sol, 0.0)
-            obj = 0.5 * np.einsum("chk,chkl,chl->ch", k, gram, k) - np.einsum("chk,chk->ch", rhs, k)
-            ok = np.all(sol >= -1e-9 * np.abs(albedo)[None, :, None], -1) & (obj < best)
-            best = np.where(ok, obj, best)
-            out = np.where(ok[..., None], k, out)
+    for m in range(1, kk + 1):      # the subsets of m lobes together (S of them)
+        subsets = np.array(list(itertools.combinations(range(kk), m)))              # (S, m)
+        s_n = len(subsets)
+        sys = np.zeros((c, h, s_n, m + 1, m + 1))
+        sys[..., :m, :m] = (gram[:, :, subsets[:, :, None], subsets[:, None, :]]
+                            + ridge[..., None, :, :] * np.eye(m))
+        sys[..., :m, m] = a[:, subsets][:, None]
+        sys[..., m, :m] = a[:, subsets][:, None]
+        b = np.concatenate([rhs[:, :, subsets], np.broadcast_to(albedo[None, :, None, None], (c, h, s_n, 1))], -1)
+        sol = np.linalg.solve(sys, b[..., None])[..., :m, 0]                        # (C, H, S, m)
+        k = np.zeros((c, h, s_n, kk))
+        np.put_along_axis(k, np.broadcast_to(subsets, (c, h, s_n, m)), np.maximum(sol, 0.0), -1)
+        obj = 0.5 * np.einsum("chsk,chkl,chsl->chs", k, gram, k) - np.einsum("chk,chsk->chs", rhs, k)
+        ok = np.all(sol >= -1e-9 * np.abs(albedo)[None, :, None, None], -1)
+        obj = np.where(ok, obj, np.inf)
+        for si in range(s_n):       # (the order of the former loop: ties go to the first subset)
+            better = obj[..., si] < best
+            best = np.where(better, obj[..., si], best)
+            out = np.where(better[..., None], k[:, :, si], out)
     # The equality exactly (the clamp above moved a feasible solution by < 1e-9 at most).
     fit_alb = np.einsum("ck,chk->ch", a, out)
     return out * np.where(fit_alb > 0, albedo / np.where(fit_alb > 0, fit_alb, 1.0), 0.0)[..., None]
 
 
 def _neighbours(p, lobe, aniso, coarse=None):
-    """The grid points a lobe at p may move to at the next knot: any alpha (every third where
-    `coarse` is None, else within two steps of `coarse`); the anisotropy within two steps (one
-    of `coarse`) for the first `aniso` lobes (the view-aligned ones; 0: none moves it)."""
-    ia, ja = p if coarse is None else coarse
+    """The grid points a GGX lobe at p may move its shape to at the next knot (its tilt kept):
+    any alpha (every third where `coarse` is None, else within two steps of `coarse`); the
+    anisotropy within two steps (one of `coarse`) for the first `aniso` lobes (the view-aligned
+    ones; 0: none moves it)."""
+    ia, ja = (p if coarse is None else coarse)[:2]
     if coarse is None:
         alphas, reach = range(0, len(ALPHAS), 3), 2
     else:
         alphas, reach = range(max(ia - 2, 0), min(ia + 2, len(ALPHAS) - 1) + 1), 1
     jas = (range(max(ja - reach, 0), min(ja + reach, len(ANISOTROPY) - 1) + 1)
            if lobe < aniso else [ja])
-    return [(i, j) for i in alphas for j in jas]
+    return [(i, j, p[2]) for i in alphas for j in jas]
 
 
-def _descend(knot, lobes, aniso, prev=None, sweeps=2, step_cost=STEP_COST):
-    """Coordinate descent over the lobes' grid points from the previous knot's: the relative
-    L1 plus, per lobe, STEP_COST times its share of the previous knot's albedo times the grid
-    steps it moved (a lobe that carries little may jump; one that carries much moves smoothly)."""
-    start = list(lobes)
-    share = np.zeros(LOBES)
+def _tilt_neighbours(knot, p):
+    """The tilts a lobe (or the Diffuse, p[0] < 0) at p may move to: within TILT_REACH grid
+    steps, none at normal view (the view tangent is arbitrary there), a GGX lobe's above the
+    knot's tilt_min; [] where that kind of tilt is off."""
+    diffuse = p[0] < 0
+    if not (TILT_DIFFUSE if diffuse else TILT_GGX) or knot.theta == 0.0:
+        return []
+    grid = TILT_DIFFUSE_DEG if diffuse else TILT_GGX_DEG
+    its = range(max(p[2] - TILT_REACH, 0), min(p[2] + TILT_REACH, len(grid) - 1) + 1)
+    if not diffuse:
+        its = [it for it in its if np.tan(np.radians(grid[it])) >= knot.tilt_min - 1e-12]
+    return [(p[0], p[1], it) for it in its if it != p[2]]
+
+
+def _tilt_zero(diffuse):
+    """The index of tilt 0 in the Diffuse's or the GGX lobes' grid."""
+    return int(np.flatnonzero((TILT_DIFFUSE_DEG if diffuse else TILT_GGX_DEG) == 0.0)[0])
+
+
+def _clamp_tilts(knot, lobes):
+    """The lobes with tilts the knot allows (0 at normal view; a GGX lobe's raised to tilt_min)."""
+    out = []
+    for p in lobes:
+        it = p[2]
+        if knot.theta == 0.0 or not (TILT_DIFFUSE if p[0] < 0 else TILT_GGX):
+            it = _tilt_zero(p[0] < 0)
+        elif p[0] >= 0:
+            while np.tan(np.radians(TILT_GGX_DEG[it])) < knot.tilt_min - 1e-12:
+                it += 1
+        out.append((p[0], p[1], it))
+    return out
+
+
+def _descend(knot, lobes, aniso, prev=None, sweeps=2, step_cost=STEP_COST, shapes=True):
+    """Coordinate descent over the lobes' grid points from the previous knot's (lobes[0] the
+    Diffuse, whose only coordinate is its tilt): the relative L1 plus, per lobe, STEP_COST times
+    its share of the previous knot's albedo times the grid steps it moved (a lobe that carries
+    little may jump; one that carries much moves smoothly). Per GGX lobe its shape (alpha,
+    anisotropy; not when `shapes` is False), then its tilt (a grid step of tilt costs TILT_STEP
+    steps)."""
+    start = _clamp_tilts(knot, lobes)
+    share = np.zeros(len(start))
     if prev is not None:
         albs = knot.albedos(start)
         lum = luminance(np.asarray(prev))
-        share = lum[1:] * albs / max(float(lum[0] + lum[1:] @ albs), 1e-300)
+        share = lum * albs / max(float(lum @ albs), 1e-300)
+    diffuse_tilts = share[0] >= DIFFUSE_TILT_SHARE
+    if not diffuse_tilts:
+        start[0] = (start[0][0], start[0][1], _tilt_zero(True))
 
     def cost(sets, l1):
-        steps = np.array([[abs(p[0] - s[0]) + abs(p[1] - s[1]) for p, s in zip(c, start)] for c in sets])
+        steps = np.array([[abs(p[0] - s[0]) + abs(p[1] - s[1]) + TILT_STEP * abs(p[2] - s[2])
+                           for p, s in zip(c, start)] for c in sets])
         return l1 + step_cost * (steps @ share)
-    lobes = list(lobes)
+    lobes = list(start)
     best = cost([lobes], knot.solve([lobes], prev)[1])[0]
+
+    def take(sets):
+        nonlocal best, lobes
+        c = cost(sets, knot.solve(sets, prev)[1])
+        i = int(np.argmin(c))
+        if c[i] < best * (1 - 1e-4):
+            best, lobes = float(c[i]), sets[i]
+            return True, sets[i]
+        return False, sets[i]
     for _ in range(sweeps):
         moved = False
-        for j in range(LOBES):
-            coarse = None
-            for _ in range(2):          # every third alpha, then around the best of those
-                sets = [lobes[:j] + [p] + lobes[j + 1:] for p in _neighbours(lobes[j], j, aniso, coarse)]
-                c = cost(sets, knot.solve(sets, prev)[1])
-                i = int(np.argmin(c))
-                coarse = sets[i][j]
-                if c[i] < best * (1 - 1e-4):
-                    best, lobes, moved = float(c[i]), sets[i], True
+        for j in range(len(lobes)):
+            if j > 0 and shapes:
+                coarse = None
+                for _ in range(2):          # every third alpha, then around the best of those
+                    m, pick = take([lobes[:j] + [p] + lobes[j + 1:]
+                                    for p in _neighbours(lobes[j], j - 1, aniso, coarse)])
+                    coarse, moved = pick[j], moved or m
+            tilts = _tilt_neighbours(knot, lobes[j]) if j > 0 or diffuse_tilts else []
+            if tilts:
+                m, _ = take([lobes[:j] + [p] + lobes[j + 1:] for p in tilts])
+                moved = moved or m
         if not moved:
             break
     return lobes
@@ -349,34 +584,45 @@ def _descend(knot, lobes, aniso, prev=None, sweeps=2, step_cost=STEP_COST):
 
 def _first_knot(knot, view_aligned):
     """Normal view: isotropic lobes chosen greedily over the whole alpha grid, then refined by
-    coordinate descent over it, the view-aligned ones' anisotropy too."""
+    coordinate descent over it, the view-aligned ones' anisotropy too (no tilts here)."""
     zero = int(np.argmin(np.abs(ANISOTROPY)))
-    lobes = []
+    lobes = [(-1, 0, _tilt_zero(True))]
     for _ in range(LOBES):
-        sets = [lobes + [(i, zero)] for i in range(len(ALPHAS))]
+        sets = [lobes + [(i, zero, _tilt_zero(False))] for i in range(len(ALPHAS))]
         lobes = sets[int(np.argmin(knot.solve(sets)[1]))]
     return _descend(knot, lobes, aniso=view_aligned)
 
 
+def _knot_params(knot, lobes, k):
+    """The fit's per-knot entries of lobes (diffuse first) with weights k (K, 3)."""
+    return {"x": float(1.0 - np.cos(knot.theta)), "diffuse": [float(v) for v in k[0]],
+            "specular": [[float(v) for v in row] for row in k[1:]],
+            "roughness": [float(np.sqrt(ALPHAS[p[0]])) for p in lobes[1:]],
+            "anisotropy": [float(ANISOTROPY[p[1]]) for p in lobes[1:]],
+            "tilt": [float(np.tan(np.radians(TILT_GGX_DEG[p[2]]))) for p in lobes[1:]],
+            "diffuse_tilt": float(np.tan(np.radians(TILT_DIFFUSE_DEG[lobes[0][2]])))}
+
+
+PARAM_KEYS = ("x", "diffuse", "specular", "roughness", "anisotropy", "tilt", "diffuse_tilt")
+
+
 def _next_knot(tables, knot, fit, lobes, prev, view_aligned, n, seed):
     """(lobes, weights) at the next knot: of the descent from the previous knot's lobes, the
-    same made stiffer (STIFF times the cost of moving), and the previous lobes kept (weights
-    alone refitted), the one whose error at this knot plus half-way from the previous knot
+    same made stiffer (STIFF times the cost of moving), the previous lobes kept (weights
+    alone refitted) and kept but for their tilts (NEXT_TILT_ONLY), the one whose error at this knot plus half-way from the previous knot
     (the node lerps the parameters between them) is least."""
     mid = _Knot(tables, 0.5 * (knot.theta + np.radians(fit["theta_deg"][-1])), n=n // 2, seed=seed + 7)
     options = [_descend(knot, lobes, view_aligned, prev),
                _descend(knot, lobes, view_aligned, prev, step_cost=STIFF * STEP_COST),
-               list(lobes)]
+               _clamp_tilts(knot, lobes)]
+    if NEXT_TILT_ONLY and (TILT_GGX or TILT_DIFFUSE):
+        options.append(_descend(knot, lobes, view_aligned, prev, shapes=False))
     best = None
     for option in options:
         k, l1 = knot.solve([option], prev, irls=4)
         k = k[0]
-        pair = {key: fit[key][-1:] for key in ("x", "diffuse", "specular", "roughness", "anisotropy")}
-        pair["x"] = pair["x"] + [float(1.0 - np.cos(knot.theta))]
-        pair["diffuse"] = pair["diffuse"] + [k[0]]
-        pair["specular"] = pair["specular"] + [k[1:]]
-        pair["roughness"] = pair["roughness"] + [[np.sqrt(ALPHAS[i]) for i, _ in option]]
-        pair["anisotropy"] = pair["anisotropy"] + [[ANISOTROPY[j] for _, j in option]]
+        this = _knot_params(knot, option, k)
+        pair = {key: fit[key][-1:] + [this[key]] for key in PARAM_KEYS}
         ff = eval_fit(pair, mid.wi, mid.wo) * mid.wo[:, 2:3]
         l1_mid = float(mid.w @ np.abs(luminance(ff - mid.g)) / max(float(mid.w @ luminance(mid.g)), 1e-300))
         if best is None or l1[0] + l1_mid < best[0]:
@@ -384,48 +630,47 @@ def _next_knot(tables, knot, fit, lobes, prev, view_aligned, n, seed):
     return best[1], best[2]
 
 
-def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None, view_aligned=VIEW_ALIGNED):
+def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None, view_aligned=None):
     """The fit as a JSON-able dict (module docstring): per knot x = 1 - cos theta_i, kd (RGB),
-    per lobe ks (RGB), Cycles roughness r = sqrt(alpha) and anisotropy, the relative L2 error
-    of f cos, the albedos and the control variate; per view angle the L1 error against
-    `material` (the measured file) when given, else the tables."""
-    view_aligned = 0 if tables.anisotropic else view_aligned
+    per lobe ks (RGB), Cycles roughness r = sqrt(alpha), anisotropy and tilt (tan, N' = N + t V),
+    the Diffuse's tilt, the relative L2 error of f cos, the albedos and the control variate; per
+    view angle the L1 error against `material` (the measured file) when given, else the tables."""
+    view_aligned = 0 if tables.anisotropic else (VIEW_ALIGNED if view_aligned is None else view_aligned)
     out = {"format": "flowbsdf-closure-fit", "version": FIT_VERSION, "model": MODEL,
            "view_aligned": view_aligned, "anisotropic": bool(tables.anisotropic),
            "x": [], "theta_deg": [], "diffuse": [], "specular": [], "roughness": [], "anisotropy": [],
-           "rel_error": [], "albedo": [], "fit_albedo": [], "cv": []}
+           "tilt": [], "diffuse_tilt": [], "rel_error": [], "albedo": [], "fit_albedo": [], "cv": []}
     lobes = prev = None
     # Knots ascending in x = 1 - cos theta (Facing), i.e. ascending theta.
-    for deg in sorted(knots_deg):
+    knots = sorted(knots_deg)
+    for i, deg in enumerate(knots):
         knot = _Knot(tables, np.radians(deg), n=n, seed=seed)
+        # (anisotropic tables: no tilts; the fit is made at phi_i = 0 only)
+        knot.tilt_min = 0.0 if tables.anisotropic else tilt_limit(np.radians(knots[i + 1] if i + 1 < len(knots) else 90.0))
         if lobes is None:
             lobes = _first_knot(knot, view_aligned)
             k = knot.solve([lobes], None, irls=4)[0][0]
         else:
             lobes, k = _next_knot(tables, knot, out, lobes, prev, view_aligned, n, seed)
         prev = k
+        this = _knot_params(knot, lobes, k)
         kd, ks = k[0], k[1:]
-        alpha = np.array([ALPHAS[i] for i, _ in lobes])
-        aniso = np.array([ANISOTROPY[j] for _, j in lobes])
-        fit_albedo = kd + knot.albedos(lobes) @ ks
-        resid = knot.g - _fit_fcos_at(knot.wi, knot.wo, kd, ks, alpha, aniso)
+        alpha = np.square(this["roughness"])
+        aniso, tilt, dtilt = np.array(this["anisotropy"]), np.array(this["tilt"]), this["diffuse_tilt"]
+        fit_albedo = knot.albedos(lobes) @ k
+        resid = knot.g - _fit_fcos_at(knot.wi, knot.wo, kd, ks, alpha, aniso, tilt, dtilt)
         rel = np.sqrt(np.sum(knot.w[:, None] * resid ** 2) / max(np.sum(knot.w[:, None] * knot.g ** 2), 1e-300))
-        out["x"].append(float(1.0 - np.cos(np.radians(deg))))
+        for key in PARAM_KEYS:
+            out[key].append(this[key])
         out["theta_deg"].append(float(deg))
-        out["diffuse"].append([float(v) for v in kd])
-        out["specular"].append([[float(v) for v in row] for row in ks])
-        out["roughness"].append([float(np.sqrt(a)) for a in alpha])
-        out["anisotropy"].append([float(a) for a in aniso])
         out["rel_error"].append(float(rel))
         out["albedo"].append([float(v) for v in knot.albedo])
         out["fit_albedo"].append([float(v) for v in fit_albedo])
-        # (anisotropic tables: no control variate; the fit is made at phi_i = 0 only, its rest
-        # at other phi_i unchecked)
         out["cv"].append([0.0, 0.0, 1.0] if tables.anisotropic else
-                         list(cv_scales(tables, knot.theta, kd, ks, alpha, aniso, seed=seed)))
+                         list(cv_scales(tables, knot.theta, kd, ks, alpha, aniso, seed=seed, tilt=tilt, diffuse_tilt=dtilt)))
     # The node clamps Facing to the knots' range: extend to x = 1 (grazing) with the last knot.
     if out["x"][-1] < 1.0:
-        for key in ("diffuse", "specular", "roughness", "anisotropy", "rel_error", "albedo", "fit_albedo", "cv"):
+        for key in PARAM_KEYS[1:] + ("rel_error", "albedo", "fit_albedo", "cv"):
             out[key].append(out[key][-1])
         out["x"].append(1.0)
         out["theta_deg"].append(90.0)
@@ -451,11 +696,13 @@ def fit_error(fit, tables, degs, target=None, n=1024, seed=1):
     return out
 
 
-def _fit_fcos_at(wi, wo, kd, ks, alpha, aniso):
-    """f_fit cos (RGB) at wi in the xz plane: the diffuse and the lobes (tangent x)."""
-    spec = sum(np.asarray(ks[j])[None, :] * ggx_fcos(wi, wo, float(alpha[j]), float(aniso[j]))[:, None]
+def _fit_fcos_at(wi, wo, kd, ks, alpha, aniso, tilt=None, diffuse_tilt=0.0):
+    """f_fit cos (RGB) at wi in the xz plane: the diffuse and the lobes (tangent x), their
+    normals tilted by tilt (per lobe) and diffuse_tilt (tan, toward the view; None / 0: none)."""
+    tilt = np.zeros(len(alpha)) if tilt is None else np.asarray(tilt, float)
+    spec = sum(np.asarray(ks[j])[None, :] * ggx_tilt_fcos(wi, wo, float(alpha[j]), float(aniso[j]), float(tilt[j]))[:, None]
                for j in range(len(alpha)))
-    return np.asarray(kd)[None, :] * (np.maximum(wo[:, 2:3], 0.0) / np.pi) + spec
+    return np.asarray(kd)[None, :] * diffuse_tilt_fcos(wo, float(diffuse_tilt))[:, None] + spec
 
 
 def _hemisphere_grid(n_theta=96, n_phi=192):
@@ -470,7 +717,7 @@ def _hemisphere_grid(n_theta=96, n_phi=192):
 _HEMISPHERE = _hemisphere_grid()
 
 
-def cv_scales(tables, theta, kd, ks, alpha, aniso, n=1 << 15, seed=0, betas=CV_BETAS):
+def cv_scales(tables, theta, kd, ks, alpha, aniso, n=1 << 15, seed=0, betas=CV_BETAS, tilt=None, diffuse_tilt=0.0):
     """(beta_d, beta_s, portal share s) at this view angle (module docstring), chosen for a
     small bright light (a sun, a lamp) from a direction l uniform over the hemisphere, whose
     light the portal draws with probability CV_LIGHT_SHARE (its mixture's sun or map share):
@@ -493,8 +740,8 @@ def cv_scales(tables, theta, kd, ks, alpha, aniso, n=1 << 15, seed=0, betas=CV_B
     c = wo[:, 2:3]
     fcos = tables.eval(wi, wo) * c
     kd = np.asarray(kd, float)
-    dcos = kd[None, :] * (c / np.pi)
-    gcos = _fit_fcos_at(wi, wo, np.zeros(3), ks, alpha, aniso)     # the lobes together
+    dcos = kd[None, :] * diffuse_tilt_fcos(wo, float(diffuse_tilt))[:, None]
+    gcos = _fit_fcos_at(wi, wo, np.zeros(3), ks, alpha, aniso, tilt)     # the lobes together
     grid = slice(len(wo) - len(_HEMISPHERE), None)      # the hemisphere grid: l uniform
     alone = float(np.mean(fcos[grid] ** 2)) / CV_LIGHT_SHARE
     # a and b of every (beta_d, beta_s) from the grid's moments (both quadratic in the betas)
@@ -531,18 +778,30 @@ def params_at(fit, cos_i):
     return lerp("diffuse"), lerp("specular"), r * r, lerp("anisotropy")
 
 
+def tilts_at(fit, cos_i):
+    """(tilt (L,), diffuse tilt) the node uses at a view angle (tan, lerped in x as params_at's);
+    zeros for a fit without tilts (FIT_VERSION 6)."""
+    n = len(fit["roughness"][0])
+    if "tilt" not in fit:
+        return np.zeros(n), 0.0
+    x = float(np.clip(1.0 - float(cos_i), 0.0, 1.0))
+    tilt = np.array([np.interp(x, fit["x"], np.asarray(fit["tilt"], float)[:, j]) for j in range(n)])
+    return tilt, float(np.interp(x, fit["x"], fit["diffuse_tilt"]))
+
+
 def eval_fit(fit, wi, wo):
     """f of the fit (RGB, no cosine) for one wi (3,) and wo (N, 3): what the node renders (the
     view-aligned lobes' tangent along wi's azimuth)."""
     wo = np.atleast_2d(np.asarray(wo, float))
     wi = np.asarray(wi, float)
     kd, ks, alpha, aniso = params_at(fit, wi[2])
+    tilt, dtilt = tilts_at(fit, wi[2])
     phi = np.arctan2(wi[1], wi[0]) if np.hypot(wi[0], wi[1]) > 0 else 0.0
     c, s = np.cos(phi), np.sin(phi)
     turn = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])     # wi's azimuth to 0
     wi_v, wo_v = turn @ wi, wo @ turn.T
     with np.errstate(divide="ignore", invalid="ignore"):
-        f = _fit_fcos_at(wi_v, wo_v, kd, ks, alpha, aniso) / wo_v[:, 2:3]
+        f = _fit_fcos_at(wi_v, wo_v, kd, ks, alpha, aniso, tilt, dtilt) / wo_v[:, 2:3]
     return np.where((wo_v[:, 2] > 0)[:, None] & (wi_v[2] > 0), f, 0.0)
 
 
@@ -613,7 +872,7 @@ def load_fit(path):
         raise FlowBSDFError("closure fit not found", path) from None
     except (OSError, ValueError) as e:
         raise FlowBSDFError(f"closure fit unreadable ({e})", path) from None
-    if fit.get("format") != "flowbsdf-closure-fit" or fit.get("version") != FIT_VERSION:
+    if fit.get("format") != "flowbsdf-closure-fit" or fit.get("version") not in READABLE_VERSIONS:
         raise FlowBSDFError("not a current FlowBSDF closure fit; re-bake", path)
     if fit.get("match") and path.with_name(fit["match"]).is_file():
         fit["match_path"] = str(path.with_name(fit["match"]))      # (as blender_addon/node.load_fit)
@@ -629,7 +888,8 @@ def ensure_fit(tables_path, material=None, log=None):
     digest = file_hash(tables_path)
     path = fit_path(tables_path)
     try:
-        if load_fit(path).get("tables_hash") == digest:
+        old = load_fit(path)
+        if old.get("tables_hash") == digest and old.get("version") == FIT_VERSION:
             return path
     except FlowBSDFError:
         pass
