@@ -915,9 +915,9 @@ def _reach(hidden):
 # Render samples from which `auto` takes the SVM graph under lamps it reaches (not OSL's): at
 # equal CPU time to Principled's 4096 spp (Blender's default; the SVM graph gets ~800) its MSE
 # against the measured file is below the fit's (studio lamps, 48 px sphere, 6 seeds, hashed u
-# as under Blender's default pixel filter: SVM / fit 0.13 / 0.46 / 0.63 on colodur_napoli_4f,
-# cc_nothern_aurora, irid_flake_paint1, files the lamp work was not tuned on; 0.40 / 0.46 / 1.27
-# on cm_military_green, vch_golden_yellow, satin_rosaline); at 128 spp 9-19x.
+# as under Blender's default pixel filter; the FIT_VERSION 7 fit: SVM / fit 0.13 / 0.72 / 0.58 on
+# colodur_napoli_4f, cc_nothern_aurora, irid_flake_paint1, files the lamp work was not tuned on;
+# 0.80 / 0.47 / 1.73 on cm_military_green, vch_golden_yellow, satin_rosaline); at 128 spp 4-19x.
 SVM_LAMP_SAMPLES = 4096
 
 
