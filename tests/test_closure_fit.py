@@ -137,16 +137,22 @@ def test_glossy_fit_finds_the_lobe_and_keeps_the_albedo(glossy):
         np.testing.assert_allclose(_fit_albedo(fit, wi), want, rtol=0.02)
 
 
-def test_eval_fit_turns_with_the_view():
-    """The view-aligned lobes follow wi's azimuth: eval_fit at wi turned about the normal is the
-    same function of wo turned alike (an isotropic BSDF's fit stays isotropic)."""
+def _three_lobe_fit_and_directions():
+    """A two-knot three-lobe fit (FIT_VERSION 6's keys: no tilts), a view at 57 deg and 500
+    directions of the upper hemisphere."""
     fit = {"x": [0.0, 1.0], "diffuse": [[0.1] * 3] * 2, "specular": [[[0.3] * 3, [0.2] * 3, [0.1] * 3]] * 2,
            "roughness": [[0.3, 0.5, 0.2]] * 2, "anisotropy": [[0.0, 0.0, 0.0], [0.6, -0.3, 0.0]]}
     rng = np.random.default_rng(4)
     wo = rng.normal(size=(500, 3))
     wo[:, 2] = np.abs(wo[:, 2])
     wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-    wi = np.array([np.sin(1.0), 0.0, np.cos(1.0)])
+    return fit, np.array([np.sin(1.0), 0.0, np.cos(1.0)]), wo
+
+
+def test_eval_fit_turns_with_the_view():
+    """The view-aligned lobes follow wi's azimuth: eval_fit at wi turned about the normal is the
+    same function of wo turned alike (an isotropic BSDF's fit stays isotropic)."""
+    fit, wi, wo = _three_lobe_fit_and_directions()
     for phi in (0.7, 2.5, -1.9):
         c, s = np.cos(phi), np.sin(phi)
         turn = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
@@ -542,13 +548,7 @@ def test_tilted_lobe_albedos_are_within_a_percent():
 
 def test_version_6_fits_evaluate_as_before():
     """A fit without tilts (FIT_VERSION 6's keys) evaluates with the untilted closures, exactly."""
-    fit = {"x": [0.0, 1.0], "diffuse": [[0.1] * 3] * 2, "specular": [[[0.3] * 3, [0.2] * 3, [0.1] * 3]] * 2,
-           "roughness": [[0.3, 0.5, 0.2]] * 2, "anisotropy": [[0.0, 0.0, 0.0], [0.6, -0.3, 0.0]]}
-    rng = np.random.default_rng(4)
-    wo = rng.normal(size=(500, 3))
-    wo[:, 2] = np.abs(wo[:, 2])
-    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-    wi = np.array([np.sin(1.0), 0.0, np.cos(1.0)])
+    fit, wi, wo = _three_lobe_fit_and_directions()
     kd, ks, alpha, aniso = closure_fit.params_at(fit, wi[2])
     want = kd / np.pi + sum(ks[j][None] * closure_fit.ggx_fcos(wi, wo, alpha[j], aniso[j])[:, None] for j in range(3)) / wo[:, 2:3]
     np.testing.assert_allclose(closure_fit.eval_fit(fit, wi, wo), want, rtol=1e-12)
