@@ -67,6 +67,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.fasttables import one_blas_thread
 from ..core.geometry import LUMINANCE, luminance
 from ..core.tables import MixedTables, open_tables
 from ..errors import FlowBSDFError
@@ -630,6 +631,9 @@ def _next_knot(tables, knot, fit, lobes, prev, view_aligned, n, seed):
     return best[1], best[2]
 
 
+# One OpenBLAS thread: the fit's products are small, and two threads made it 1.7-2.4x slower on the
+# loaded 2-core machine (same choices, weights within 1e-13).
+@one_blas_thread()
 def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None, view_aligned=None):
     """The fit as a JSON-able dict (module docstring): per knot x = 1 - cos theta_i, kd (RGB),
     per lobe ks (RGB), Cycles roughness r = sqrt(alpha), anisotropy and tilt (tan, N' = N + t V),
