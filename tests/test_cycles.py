@@ -766,6 +766,53 @@ def test_rgl_sphere_under_an_environment_both_back_ends(rgl_baked, name, tmp_pat
     assert np.all(np.abs(rel) < 0.2), rel
 
 
+def test_osl_and_svm_render_the_same_bsdf_of_default_structure_tables(tmp_path):
+    """Both exact back ends render the same BSDF (issue 52: a farm mixing CPU and GPU nodes gets one
+    look). Tables with the structure of the default bake of a measured file - half-vector polar
+    coordinates, two layout groups of their own resolutions, cells placed by the points' weight
+    pooled over neighbouring bins - at a reduced size, a sphere under a soft environment (world
+    light only: where both are exact): per pixel the SVM graph with OSL off (what GPUs run) is
+    within MC error of the OSL back end (z over both renders' seeds), and so is the sphere's mean."""
+    from conftest import rgl_path
+    from bake.core.ideal import IdealSampler
+    from bake.core.tables import open_tables
+    from bake.core.tabulate import build_tables, join_groups
+    from bake.materials import open_material
+    if not lb.svm_available():
+        pytest.skip("this Blender cannot build the SVM back end (Ray Portal BSDF and Light Path Portal Depth: 5.0+)")
+    name = "cm_military_green_rgb"
+    mat = open_material(str(rgl_path(name)))
+    ideal = IdealSampler(mat, resolution=64)
+    tab = join_groups([build_tables(mat, ideal, np.radians(b), rows=r, cols=r, grid=96, coords="halfpolar")
+                       for b, r in (([0.0, 20.0, 40.0, 50.0], 16), ([50.0, 65.0, 80.0, 89.9], 24))])
+    tab.meta["material"] = name
+    path = tmp_path / f"{name}.exr"
+    tab.save(path)
+    tab = open_tables(path)
+    assert tab.meta["coords"] == "halfpolar" and [(p.rows, p.cols) for p in tab.parts] == [(16, 16), (24, 24)]
+    n, seeds = 24, 6
+    sc, node, _ = _osl_vs_tracer_scene({name: path}, name, n, 32, tmp_path)
+    setattr(sc, lb.FILM_PROP, True)
+    try:
+        osl, var_osl = _seeded_renders(sc, seeds)
+        lb.set_backend(sc, "svm")
+        sc.cycles.shading_system = False
+        assert lb.node_status(node, sc) == "SVM, exact", lb.node_status(node, sc)
+        svm, var_svm = _seeded_renders(sc, seeds)
+    finally:
+        sc.cycles.shading_system = True
+        lb.set_backend(sc, "auto")
+    inner = cs.sphere_view_persp(n, n, 6.0, 22.0)[2]
+    assert inner.sum() > 200
+    var = (var_osl + var_svm)[inner]
+    z = (svm - osl)[inner] / np.maximum(np.sqrt(var), 1e-6)
+    # z with both variances from 6 seeds each: its rms ~ sqrt(5/3) = 1.3 when the images agree
+    assert np.sqrt(np.mean(z ** 2)) < 1.6, np.sqrt(np.mean(z ** 2, axis=0))
+    assert np.mean(np.abs(z) > 5) < 0.01
+    d, se = (svm - osl)[inner].mean(0), np.sqrt(np.sum(var, axis=0)) / inner.sum()
+    assert np.all(np.abs(d) < 4 * se), (d, se)
+
+
 def _tilted_plane_furnace(path, n, spp, seeds, pixel_filter, width, hashed=False):
     """A plane tilted 60 deg to an orthographic camera under a constant white sky: every pixel
     converges to the baked albedo at cos theta_i = 0.5 whatever the pixel filter. Renders
