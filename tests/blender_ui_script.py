@@ -231,17 +231,28 @@ def steps():
 
 
 def make_library(win, view, region, state):
-    """Make Asset Library as the dialog's OK runs it (exec with a window: modal), on a folder of the
-    one measured file (Draft): the bake in the worker, then library.blend from a background Blender."""
+    """Make Asset Library as an artist runs it: the button's dialog opens (its fields filled as the
+    file browser would fill them: a folder of the one measured file, Draft), a screenshot of it,
+    Return confirms it (the dialog's OK): the bake in the worker, then library.blend from a
+    background Blender."""
     import shutil
     files = os.path.join(OUT, "measured")
     os.makedirs(files, exist_ok=True)
     if os.path.isfile(MATERIAL_FILE):
         shutil.copy(MATERIAL_FILE, files)
     ctx = {"window": win, "area": view, "region": region}
+    x, y = region.x + region.width // 2, region.y + region.height // 2
+    win.event_simulate(type="MOUSEMOVE", value="NOTHING", x=x, y=y)
     with bpy.context.temp_override(**ctx):
-        result["library"] = sorted(bpy.ops.flowbsdf.make_library("EXEC_DEFAULT", folder=files, quality="DRAFT",
-                                                                 out=os.path.join(OUT, "library")))
+        result["library_dialog"] = sorted(bpy.ops.flowbsdf.make_library(
+            "INVOKE_DEFAULT", folder=files, quality="DRAFT", out=os.path.join(OUT, "library")))
+    yield 1.0
+    screenshot("library_dialog")
+    result["library_before_ok"] = state.running
+    win.event_simulate(type="RET", value="PRESS", x=x, y=y)
+    win.event_simulate(type="RET", value="RELEASE", x=x, y=y)
+    yield 0.5
+    result["library"] = ["RUNNING_MODAL"] if state.running else ["NOT RUNNING"]
     seen, t0 = [], time.monotonic()
     while state.running and time.monotonic() - t0 < 300:
         seen.append((state.label, round(state.progress, 1), state.message))

@@ -45,7 +45,7 @@ def ui_run(tmp_path_factory):
     assert "UI SCRIPT DONE" in log, log[-3000:]
     result = json.loads((out / "result.json").read_text())
     assert not result["errors"], result["errors"]
-    print(f"screenshots: {out}/{{unsaved,before,baking,after,error}}.png")
+    print(f"screenshots: {out}/{{unsaved,before,baking,after,error,library_dialog}}.png")
     return out, result
 
 
@@ -98,9 +98,12 @@ def test_bake_from_the_panel_shows_progress_then_a_preview(ui_run):
 
 
 def test_make_asset_library_from_the_panel_bakes_then_writes_the_library(ui_run):
-    """Make Asset Library as its dialog's OK runs it: modal, the bake's words and bar in the worker,
-    then library.blend from a background Blender; the open file stays open."""
+    """Make Asset Library from its button: the dialog opens and waits (nothing runs before OK),
+    Return confirms it; then modal, the bake's words and bar in the worker, then library.blend from
+    a background Blender; the open file stays open."""
     out, result = ui_run
+    assert result["library_dialog"] == ["RUNNING_MODAL"] and result["library_before_ok"] is False, result
+    assert (out / "library_dialog.png").is_file()
     assert result["library"] == ["RUNNING_MODAL"]
     seen = result["library_messages"]
     assert {label for label, _, _ in seen} == {"Asset Library: Bake", "Asset Library: library.blend"}, seen
