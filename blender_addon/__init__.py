@@ -9,6 +9,8 @@ scripts/build_extension.py) and a legacy add-on for Blender 3.4+ (bl_info below)
     node       the Learned BSDF node: its back ends  validate  reference tracer vs Cycles
     osl/       the OSL back end (tables, lamps, world) svm      the SVM back end (shader nodes)
     lamps      the scene's lamps -> the OSL shader   world     the world's importance map
+    sockets    socket values written on change       library   a folder of files -> asset library
+    deps       where numpy's `bake` and its Python are  worker_main  the worker (outside Blender)
 """
 bl_info = {
     "name": "FlowBSDF",

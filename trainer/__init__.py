@@ -1,4 +1,10 @@
-"""FlowBSDF trainer (torch): base pretraining, flow matching, reflow; writes torch-free model files."""
+"""FlowBSDF trainer (torch): base pretraining, flow matching, reflow; writes torch-free model files.
+
+    train       the training loop: base pretraining, flow matching, reflow, checkpoints
+    sources     the training data of real materials: exact samples of lum f cos (bake.core.ideal)
+    synthetic   synthetic conditional targets with exact closed-form samplers
+    cli         `flowbsdf train` (python -m trainer)
+"""
 import os
 
 # torch's OpenMP workers spin after each parallel region; with the numpy work between

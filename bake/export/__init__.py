@@ -2,6 +2,7 @@
 
     osl_export     the tables as the texture the OSL shader reads (blender_addon/osl/)
     svm_export     the tables as the texture the SVM node graph reads (blender_addon/svm.py)
+    carry_export   the carried blend's data as the texture the OSL shader reads (osl/carried.h)
     closure_fit    Cycles closures (diffuse + GGX) fitted to the tables: the fit back end
     world_map      the world's importance map, where the back ends sample the environment
 """

@@ -10,6 +10,7 @@ tables, the flow, the ideal tabulation, a fitted GGX lobe, cosine -- and compare
     integrator.py  wavefront path tracer: MIS (power heuristic) or BSDF-only, Russian roulette
     compare.py     reference vs samplers at equal spp and equal time: EXR, PNG, MSE/MAE/SSIM
     images.py      EXR/PNG files, tone mapping, false colour, metrics
+    label.py       text in images without a font library (labelled panels)
     commands.py    `flowbsdf render` and `flowbsdf compare`
 """
 from .integrator import render
