@@ -97,8 +97,8 @@ def render_section(name, stamp):
     ref_noise = rows[0]["reference_noise"] if rows else math.nan
     s = stamp["settings"]
     out.append(f'<p class="small">builtin:{_e(s["scene"])}, {s["size"]}×{s["size"]} pixels, ' + (
-               "MIS (light and BSDF sampling)" if s["mis"] else "BSDF sampling only (as the Blender node samples: "
-               "its portal path gets no light sampling)") + f'; the reference with MIS. The reference\'s own '
+               "MIS (light and BSDF sampling)" if s["mis"] else "BSDF sampling only (the samplers' "
+               "differences show plainly)") + f'; the reference with MIS. The reference\'s own '
                f'noise (mean variance of its pixel means) is {_num(ref_noise)}: MSEs near it are not resolved. '
                f'Equal time is wall clock on a shared machine (load average {stamp.get("load", math.nan):.1f} '
                f'when rendered). Full numbers: <a href="{base}metrics.md">metrics.md</a>, images as EXR in '
