@@ -224,6 +224,7 @@ def test_a_sample_does_not_depend_on_its_place_in_a_call(tables, name):
 
 
 GROUP_PER_BIN = 1000    # _tables_c.c: from this many samples per bin a call with a new wi per sample runs grouped
+GROUP_MAX = 1 << 18     # and in slices of this many samples
 
 
 def assert_same_bits(name, got, expect):
@@ -247,13 +248,14 @@ def grouped_matches_small_calls(tab, rng, n):
 
 
 @needs_c
-@pytest.mark.parametrize("name", ["ggx-5bins", "plastic-1bin", "ggx-polar"])
-def test_grouped_samples_keep_their_bits_and_order(tables, name):
+@pytest.mark.parametrize("name, n", [("ggx-5bins", 3 * GROUP_PER_BIN * 5 + 37), ("ggx-polar", 3 * GROUP_PER_BIN * 5 + 37),
+                                     ("plastic-1bin", GROUP_MAX + 37)])
+def test_grouped_samples_keep_their_bits_and_order(tables, name, n):
     """With a new wi per sample and many samples per bin, the C code runs them grouped by their
-    wi's elevation (copies in that order, results copied back: _tables_c.c "Grouping"): each
-    sample gets the bits it gets in a call too small to be grouped, in the callers' order."""
-    tab = tables[name]
-    grouped_matches_small_calls(tab, np.random.default_rng(13), 3 * GROUP_PER_BIN * len(tab.theta_bins) + 37)
+    wi's elevation (copies in that order, results copied back, in slices of GROUP_MAX: _tables_c.c
+    "Grouping"): each sample gets the bits it gets in a call too small to be grouped, in the
+    callers' order."""
+    grouped_matches_small_calls(tables[name], np.random.default_rng(13), n)
 
 
 @needs_c

@@ -838,6 +838,7 @@ FT_CLONES static void run_part(int kind, const ft_tables *T, int64_t n, const do
  * with fewer, plain tables run in the callers' order (mixed tables are always grouped by part). */
 #define GROUP_KEYS 256
 #define GROUP_PER_BIN 1000
+#define GROUP_MAX ((int64_t)1 << 18)    /* samples grouped at a time (the copies: 21 MB at most) */
 
 /* Per sample of a block of directions w (row stride `stride`): the part of mixed tables
  * (tables.MixedTables.part_at: the count of bounds <= theta_i, theta_i as bins() computes it)
@@ -866,7 +867,7 @@ FT_INLINE void group_keys(const double *w, int64_t stride, int64_t nparts, const
 
 /* Tables (nparts 1) or MixedTables (nparts parts, bounds[nparts - 1] the parts' first angles
  * after the first part's): the samples, as run_part describes them, grouped (see above). */
-static void run(int kind, const ft_tables *parts, int64_t nparts, const double *bounds, int64_t n,
+static void run_grouped(int kind, const ft_tables *parts, int64_t nparts, const double *bounds, int64_t n,
                 const double *wi, int64_t wi_stride, const double *in, double *out, double *out2) {
     const int in_w = kind == SAMPLE ? 2 : 3, out_w = kind == SAMPLE ? 3 : (kind == PDF ? 1 : (kind == INVERT ? 2 : 3));
     const int64_t keys = nparts * GROUP_KEYS;
@@ -927,6 +928,16 @@ static void run(int kind, const ft_tables *parts, int64_t nparts, const double *
         if (out2) out2[q] = s_out2[r];
     }
     free(of);
+}
+
+/* run_grouped over slices of at most GROUP_MAX samples (one wi for all: in one go) */
+static void run(int kind, const ft_tables *parts, int64_t nparts, const double *bounds, int64_t n,
+                const double *wi, int64_t wi_stride, const double *in, double *out, double *out2) {
+    const int in_w = kind == SAMPLE ? 2 : 3, out_w = kind == SAMPLE ? 3 : (kind == PDF ? 1 : (kind == INVERT ? 2 : 3));
+    const int64_t slice = wi_stride ? GROUP_MAX : n;
+    for (int64_t q = 0; q < n; q += slice)
+        run_grouped(kind, parts, nparts, bounds, n - q < slice ? n - q : slice, wi + q * wi_stride, wi_stride,
+                    in + in_w * q, out + out_w * q, out2 ? out2 + q : NULL);
 }
 
 /* Tables.sample: u (n, 2) -> wo (n, 3), pdf (n) */
