@@ -838,7 +838,7 @@ FT_CLONES static void run_part(int kind, const ft_tables *T, int64_t n, const do
  * with fewer, plain tables run in the callers' order (mixed tables are always grouped by part). */
 #define GROUP_KEYS 256
 #define GROUP_PER_BIN 1000
-#define GROUP_MAX ((int64_t)1 << 18)    /* samples grouped at a time (the copies: 21 MB at most) */
+#define GROUP_MAX ((int64_t)1 << 18)    /* samples grouped at a time (their copies: 23 MB at most) */
 
 /* Per sample of a block of directions w (row stride `stride`): the part of mixed tables
  * (tables.MixedTables.part_at: the count of bounds <= theta_i, theta_i as bins() computes it)
