@@ -223,6 +223,82 @@ def test_a_sample_does_not_depend_on_its_place_in_a_call(tables, name):
             assert np.array_equal(whole, np.concatenate(alone), equal_nan=True)
 
 
+GROUP_PER_BIN = 1000    # _tables_c.c: from this many samples per bin a call with a new wi per sample runs grouped
+GROUP_MAX = 1 << 18     # and in slices of this many samples
+
+
+def assert_same_bits(name, got, expect):
+    if name == "sample":
+        assert np.array_equal(got[0], expect[0]) and np.array_equal(got[1], expect[1])
+    else:
+        assert np.array_equal(got, expect, equal_nan=True)
+
+
+def grouped_matches_small_calls(tab, rng, n):
+    """A call of n samples, a new wi each (on the whole sphere: some below the horizon), against
+    the same samples in calls of 1000 (too few per bin to be grouped): the same bits, in order."""
+    wi, u, wo = sphere(rng, n), rng.random((n, 2)), sphere(rng, n)
+    wi[::2, 2] = np.abs(wi[::2, 2])
+    small = 1000
+    for name, x in (("sample", u), ("pdf", wo), ("invert", wo), ("eval", wo)):
+        parts = [fast(name, tab, wi[i:i + small], x[i:i + small]) for i in range(0, n, small)]
+        expect = (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])) \
+            if name == "sample" else np.concatenate(parts)
+        assert_same_bits(name, fast(name, tab, wi, x), expect)
+
+
+@needs_c
+@pytest.mark.parametrize("name, n", [("ggx-5bins", 3 * GROUP_PER_BIN * 5 + 37), ("ggx-polar", 3 * GROUP_PER_BIN * 5 + 37),
+                                     ("plastic-1bin", GROUP_MAX + 37)])
+def test_grouped_samples_keep_their_bits_and_order(tables, name, n):
+    """With a new wi per sample and many samples per bin, the C code runs them grouped by their
+    wi's elevation (copies in that order, results copied back, in slices of GROUP_MAX: _tables_c.c
+    "Grouping"): each sample gets the bits it gets in a call too small to be grouped, in the
+    callers' order."""
+    grouped_matches_small_calls(tables[name], np.random.default_rng(13), n)
+
+
+@needs_c
+def test_mixed_tables_in_c_give_each_sample_its_parts_values(tables):
+    """MixedTables in one C call (each sample's part picked and the samples grouped by part in C,
+    no numpy passes): each sample gets its part's C values bit for bit (the part picked as
+    MixedTables.part_at picks it, wi near the boundary too), numpy's MixedTables' to its
+    tolerance; one wi per call goes to its part; a grouped call keeps the bits of small ones."""
+    from bake.core.geometry import theta_phi
+    from bake.core.tables import MixedTables
+    five, odd = tables["ggx-5bins"], tables["ggx-odd"]      # 16 x 16 cells, and 13 x 21
+    lower = Tables(five.theta_bins[:3], five.a_edges[:3], five.b_edges[:3], five.mass[:3], five.alpha[:3],
+                   five.beta[:3], five.weights[:3])        # bins 0, 30, 60
+    upper = Tables([five.theta_bins[2], np.radians(75.0), np.radians(89.0)], odd.a_edges, odd.b_edges, odd.mass,
+                   odd.alpha, odd.beta, odd.weights)
+    mixed = MixedTables([lower, upper])
+    ref = MixedTables([reference(lower), reference(upper)], backend="numpy")
+    assert mixed._fast is not None and ref._fast is None
+    rng = np.random.default_rng(14)
+    n = 6000
+    theta = np.radians(rng.uniform(0.0, 95.0, n))
+    theta[:200] = five.theta_bins[2] + np.radians(1e-6) * rng.choice([-1.0, 1.0], 200)    # at the boundary
+    wi = spherical_dir(theta, rng.uniform(-np.pi, np.pi, n))
+    part = mixed.part_at(theta_phi(wi)[0])
+    assert 0 < np.sum(part == 1) < n
+    u, wo = rng.random((n, 2)), sphere(rng, n)
+    for name, x in (("sample", u), ("pdf", wo), ("invert", wo), ("eval", wo)):
+        got = fast(name, mixed, wi, x)
+        got = got if name == "sample" else (got,)
+        for p in (0, 1):
+            sel = part == p
+            own = fast(name, mixed.parts[p], wi[sel], x[sel])
+            for g, o in zip(got, own if name == "sample" else (own,)):
+                assert np.array_equal(g[sel], o, equal_nan=True), (name, p)
+        expect = getattr(ref, name)(wi, x)
+        for g, e in zip(got, expect if name == "sample" else (expect,)):
+            np.testing.assert_allclose(g, e, rtol=1e-10, atol=1e-10)
+        for k in (0, 1, 5000):          # one wi for all
+            assert_same_bits(name, fast(name, mixed, wi[k], x), fast(name, mixed.parts[part[k]], wi[k], x))
+    assert_same_bits("sample", mixed.sample(wi, u), fast("sample", mixed, wi, u))      # the method runs in C
+    grouped_matches_small_calls(mixed, rng, 2 * GROUP_PER_BIN * len(mixed.theta_bins) + 37)
+
+
 @needs_c
 def test_tables_methods_dispatch_to_c(tables):
     tab = tables["ggx-odd"]
@@ -338,6 +414,13 @@ def test_c_matches_numpy_on_anisotropic_halfvector_tables(brushed):
             np.testing.assert_allclose(fast("pdf", tab, wi_, wo), ref.pdf(wi_, wo), rtol=1e-6, atol=0)
             np.testing.assert_allclose(fast("invert", tab, wi_, wo), ref.invert(wi_, wo), rtol=1e-7, atol=1e-11)
             np.testing.assert_allclose(fast("eval", tab, wi_, wo), ref.eval(wi_, wo), rtol=1e-6, atol=0)
+
+
+@needs_c
+def test_grouped_samples_on_anisotropic_tables_keep_their_bits(brushed):
+    """Grouped by elevation alone, anisotropic tables' samples (four bins each, over theta_i x phi_i)
+    keep the bits of ungrouped calls too."""
+    grouped_matches_small_calls(brushed, np.random.default_rng(15), GROUP_PER_BIN * len(brushed._a) + 37)
 
 
 @needs_c

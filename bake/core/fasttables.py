@@ -4,8 +4,8 @@
     REASON      one line: where it was loaded from, or why not (then Tables uses numpy)
                 (both are set on first use, by load(): importing bake never runs a compiler)
     sample(tables, wi, u), pdf(tables, wi, wo), invert(tables, wi, wo), eval(tables, wi, wo)
-                the Tables methods in C; each returns None when it cannot take the inputs
-                (the caller then runs the numpy reference)
+                the Tables (and MixedTables) methods in C; each returns None when it cannot
+                take the inputs (the caller then runs the numpy reference)
     rgl_eval(params, vndf, rgb, ndf, wo)
                 an RGL material's f for one wi (RGLMaterial.eval's hot loop, for the baker)
     warp_to_s(warp, wi, wo), warp_from_s(warp, wi, s)
@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-ABI = 6                       # FT_ABI in _tables_c.c
+ABI = 7                       # FT_ABI in _tables_c.c
 COORDS = ("wo", "halfvector", "halfpolar")     # tables.COORDS in the order of ft_tables.coords
 HERE = Path(__file__).resolve().parent
 SOURCE = HERE / "_tables_c.c"
@@ -81,7 +81,7 @@ def _open(path, want_sha):
     for name in ("ft_sample", "ft_pdf", "ft_invert", "ft_eval"):
         fn = getattr(lib, name)
         fn.restype = None
-        fn.argtypes = [ctypes.POINTER(_Tables), i64, ptr, i64, ptr, ptr] + ([ptr] if name == "ft_sample" else [])
+        fn.argtypes = [ctypes.POINTER(_Tables), i64, ptr, i64, ptr, i64, ptr, ptr] + ([ptr] if name == "ft_sample" else [])
     for name in ("ft_warp_to_s", "ft_warp_from_s"):
         getattr(lib, name).restype = None
         getattr(lib, name).argtypes = [ctypes.POINTER(_Warp), i64, ptr, i64, ptr, ptr, ptr]
@@ -213,6 +213,20 @@ def _struct(tab):
     return s
 
 
+def _parts(tab):
+    """(the ft_tables of tab's parts as a C array, their count, the parts' bounds or None): a
+    Tables is one part, MixedTables has several (its bounds: MixedTables.bounds); None when
+    a part is not the C code's."""
+    parts = getattr(tab, "parts", None) or [tab]
+    structs = [_struct(p) for p in parts]
+    if any(s is None for s in structs):
+        return None
+    bounds = None if len(parts) == 1 else np.ascontiguousarray(tab.bounds, np.float64)
+    if bounds is not None and bounds.shape != (len(parts) - 1,):
+        return None
+    return (_Tables * len(parts))(*structs), len(parts), bounds
+
+
 def _wi_arg(wi, n):
     """wi as (pointer array, row stride): one direction (stride 0) or n contiguous rows."""
     wi = np.asarray(wi, np.float64)
@@ -227,17 +241,19 @@ def _call(tab, name, wi, x, width, out_shape):
     lib = _lib if _loaded else load()
     if lib is None:
         return None
-    s = _struct(tab)
+    parts = _parts(tab)
     x = np.atleast_2d(np.asarray(x, np.float64))
-    if s is None or x.ndim != 2 or x.shape[1] != width:
+    if parts is None or x.ndim != 2 or x.shape[1] != width:
         return None
+    structs, nparts, bounds = parts
     n = len(x)
     wi, stride = _wi_arg(wi, n)
     if wi is None:
         return None
     x = np.ascontiguousarray(x)
     out = np.empty((n,) + out_shape)
-    args = [ctypes.byref(s), n, wi.ctypes.data, stride, x.ctypes.data, out.ctypes.data]
+    args = [structs, nparts, None if bounds is None else bounds.ctypes.data, n, wi.ctypes.data, stride,
+            x.ctypes.data, out.ctypes.data]
     if name == "ft_sample":
         pdf = np.empty(n)
         getattr(lib, name)(*args, pdf.ctypes.data)

@@ -544,8 +544,15 @@ class MixedTables:
         """The index of the part that samples theta_i (array or scalar)."""
         return np.searchsorted(self.bounds, theta_i, side="right")
 
+    @property
+    def _fast(self):
+        return self.parts[0]._fast
+
     def _each(self, method, wi, x):
-        """method of the part each wi falls in, per sample (x: the other argument, (N, ...))."""
+        """method of the part each wi falls in, per sample (x: the other argument, (N, ...)).
+        The C fast path picks the parts itself (fasttables: in C, without the passes below)."""
+        if (fast := self._fast) is not None and (out := getattr(fast, method)(self, wi, x)) is not None:
+            return out
         x = np.atleast_2d(np.asarray(x, np.float64))
         if np.shape(wi) in ((3,), (1, 3)):     # one direction: one part, wi passed on as it is
             return getattr(self.parts[int(self.part_at(theta_phi(np.reshape(wi, (1, 3)))[0][0]))], method)(wi, x)
