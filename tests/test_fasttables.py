@@ -248,8 +248,8 @@ def grouped_matches_small_calls(tab, rng, n):
 
 
 @needs_c
-@pytest.mark.parametrize("name, n", [("ggx-5bins", 3 * GROUP_PER_BIN * 5 + 37), ("ggx-polar", 3 * GROUP_PER_BIN * 5 + 37),
-                                     ("plastic-1bin", GROUP_MAX + 37)])
+@pytest.mark.parametrize("name, n", [("ggx-5bins", 3 * GROUP_PER_BIN * 5 + 37),      # 5 bins
+                                     ("ggx-polar", 3 * GROUP_PER_BIN * 5 + 37), ("plastic-1bin", GROUP_MAX + 37)])
 def test_grouped_samples_keep_their_bits_and_order(tables, name, n):
     """With a new wi per sample and many samples per bin, the C code runs them grouped by their
     wi's elevation (copies in that order, results copied back, in slices of GROUP_MAX: _tables_c.c

@@ -81,7 +81,8 @@ def _open(path, want_sha):
     for name in ("ft_sample", "ft_pdf", "ft_invert", "ft_eval"):
         fn = getattr(lib, name)
         fn.restype = None
-        fn.argtypes = [ctypes.POINTER(_Tables), i64, ptr, i64, ptr, i64, ptr, ptr] + ([ptr] if name == "ft_sample" else [])
+        # the parts (nparts ft_tables), nparts, bounds, n, wi, wi_stride, in, out (, sample's pdf)
+        fn.argtypes = [ctypes.POINTER(_Tables), i64, ptr, i64, ptr, i64, ptr, ptr] + [ptr] * (name == "ft_sample")
     for name in ("ft_warp_to_s", "ft_warp_from_s"):
         getattr(lib, name).restype = None
         getattr(lib, name).argtypes = [ctypes.POINTER(_Warp), i64, ptr, i64, ptr, ptr, ptr]
