@@ -24,6 +24,12 @@ installed, and materials append and link like any other. Its node tree, "Learned
   .blend ("FlowBSDF fit: <hash>", shared by materials with the same fit), so it renders
   everywhere (Eevee, previews) even when the table files are gone; approximate.
 
+EEVEE renders none of the three as Cycles does (no OSL, no Ray Portal BSDF, no anisotropy): the
+group's second output, "EEVEE", holds the fit's EEVEE fit (closure_fit: isotropic lobes of its
+own, fit to the tables; a fit before FIT_VERSION 8: the fit's closures), and the material gets
+two Material Outputs, target Cycles fed by "BSDF", target EEVEE by "EEVEE" (`_wire_outputs`):
+each engine takes its own, and EEVEE compiles only the EEVEE fit's closures.
+
 Two Mix Shaders pick one: "FlowBSDF SVM backend" (fit or SVM), then "FlowBSDF backend"
 (that or OSL); with constant factors Cycles compiles only the chosen branch. The factors
 follow the scene's back end ("auto", "osl", "svm", "fit"; `set_backend`, `_resolve`): auto
@@ -720,6 +726,8 @@ def _build_tree(tree, name, tables_path, fit_path):
             "osl_texture": osl_texture, "svm_texture": svm_texture, "has_fit": fit is not None,
             "has_osl": with_osl, "fit_error": float(fit.get("error", -1.0)) if fit else -1.0,
             "fit_error_of": fit.get("l1_of", "") if fit else "", "fit_version": int(fit["version"]) if fit else 0,
+            # what EEVEE shows: the EEVEE fit's error (else the fit's closures without their anisotropy: unknown)
+            "eevee_error": float(eevee.get("error", -1.0)) if eevee else -1.0,
             # (fits before the key: view_aligned 0 was the anisotropic tables' mark)
             "anisotropic": bool(fit.get("anisotropic", fit.get("view_aligned", 1) == 0)) if fit else False,
             "matte": world.matte_fraction(fit),
@@ -984,6 +992,8 @@ def _resolve(scene, tree, limits=None):
     backend = backend_of(scene)
     if info.get("has_fit"):
         err, of = info.get("fit_error", -1.0), "measured material" if info.get("fit_error_of") == "file" else "tables"
+        if scene.render.engine != 'CYCLES':        # EEVEE's own fit
+            err = info.get("eevee_error", -1.0)
         fit = f"Fit, ~{100 * err:.0f} % off the {of}" if err >= 0 else "Fit"
     else:
         fit = "Neutral grey (no fit)"

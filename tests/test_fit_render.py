@@ -396,17 +396,18 @@ def _upstream(socket):
 
 
 # A fit with its EEVEE fit (FIT_VERSION 8: closure_fit's "eevee", isotropic lobes)
-WITH_EEVEE = dict(ANISOTROPIC, eevee=dict(ISOTROPIC, model="hand-written EEVEE fit"))
+WITH_EEVEE = dict(ANISOTROPIC, error=0.1, l1_of="file", eevee=dict(ISOTROPIC, model="hand-written EEVEE fit", error=0.2))
 
 
 def test_eevee_output_takes_the_eevee_fit(tmp_path):
     """The material gets two Material Outputs: target Cycles fed by the node's BSDF (the back
     ends), target EEVEE by its EEVEE output, which holds the EEVEE fit's closures alone: its own
     fit group, isotropic Glossy BSDFs (no Anisotropy or Tangent linked). A fit without an EEVEE
-    fit (FIT_VERSION 7) feeds EEVEE the fit's closures; assigning again adds no output."""
+    fit (FIT_VERSION 7) feeds EEVEE the fit's closures; assigning again adds no output. The
+    node's status in EEVEE gives the EEVEE fit's error, in Cycles the fit's."""
     lb.register()
     try:
-        cs.reset(8, 8)
+        sc = cs.reset(8, 8)
         for name, fit in (("with", WITH_EEVEE), ("without", dict(ANISOTROPIC, version=7))):
             path = tmp_path / f"{name}.fit.json"
             path.write_text(json.dumps(fit))
@@ -423,11 +424,16 @@ def test_eevee_output_takes_the_eevee_fit(tmp_path):
             glossies = [n for n in eevee if n.bl_idname == "ShaderNodeBsdfAnisotropic"]
             assert len(glossies) == 3
             if name == "with":
-                assert fit_groups == [[lb._fit_group(ANISOTROPIC | {"eevee": WITH_EEVEE["eevee"]}).name],
+                assert fit_groups == [[lb._fit_group(WITH_EEVEE).name],
                                       [lb._fit_group(WITH_EEVEE["eevee"]).name]]
                 assert not any(n.inputs["Anisotropy"].is_linked or n.inputs["Tangent"].is_linked for n in glossies)
                 assert all(n.inputs["Anisotropy"].default_value == 0.0 for n in glossies)
                 assert not set(map(id, cycles)) & set(map(id, eevee))
+                lb.set_backend(sc, "fit")
+                assert lb.node_status(node, sc).startswith("Fit, ~10 % off the measured material")
+                sc.render.engine = _eevee()
+                assert lb.node_status(node, sc).startswith("Fit, ~20 % off the measured material")
+                sc.render.engine = "CYCLES"
             else:
                 assert fit_groups[1] == [lb._fit_group(dict(ANISOTROPIC, version=7)).name]
                 assert group_out.inputs["EEVEE"].links[0].from_node in cycles   # the fit's closures, shared
@@ -456,7 +462,7 @@ def test_eevee_renders_the_eevee_fit_and_cycles_the_fit(tmp_path):
         lb.set_backend(sc, "fit")
         _, hit = cs.sphere_view(16, 16, 2.2)
         means = {}
-        for engine in ("CYCLES", "BLENDER_EEVEE_NEXT" if "BLENDER_EEVEE_NEXT" in _engines() else "BLENDER_EEVEE"):
+        for engine in ("CYCLES", _eevee()):
             sc.render.engine = engine
             means[engine] = cs.render(sc)[hit].mean(0)
         (r, g, _), (er, eg, _) = means.values()
@@ -465,5 +471,7 @@ def test_eevee_renders_the_eevee_fit_and_cycles_the_fit(tmp_path):
         lb.unregister()
 
 
-def _engines():
-    return [e.identifier for e in bpy.types.RenderSettings.bl_rna.properties["engine"].enum_items]
+def _eevee():
+    """EEVEE's engine id: BLENDER_EEVEE_NEXT in 4.2-4.5, BLENDER_EEVEE before and from 5.0."""
+    ids = [e.identifier for e in bpy.types.RenderSettings.bl_rna.properties["engine"].enum_items]
+    return "BLENDER_EEVEE_NEXT" if "BLENDER_EEVEE_NEXT" in ids else "BLENDER_EEVEE"
