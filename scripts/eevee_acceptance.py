@@ -4,7 +4,7 @@ EEVEE, same scene; per material the relative mean absolute difference
 mean |EEVEE - Cycles| / mean Cycles over the sphere's pixels (RGB, silhouette excluded).
 
     .venv/bin/python scripts/eevee_acceptance.py TABLES_DIR NAME [NAME...] [--out DIR]
-        [--px 64] [--spp 256] [--taa 64] [--full] [--variants v7,eevee]
+        [--px 64] [--spp 256] [--taa 64] [--full] [--env EXR] [--variants v7,node,iso,...]
 
 Each NAME is <TABLES_DIR>/<NAME>.exr with its <NAME>.fit.json. The node is bound to a path
 that does not exist (with the fit file), so its group holds the fit alone (no SVM graph, no
@@ -27,14 +27,14 @@ import cycles_scenes as cs  # noqa: E402
 N_DEFAULT, SCALE = 64, 2.2
 
 
-def scene(px, spp, taa):
+def scene(px, spp, taa, env=None):
     import bpy
     from blender_addon import node as lb
     sc = cs.reset(px, px, spp=spp, osl=False)
     cs.ortho_camera(sc, scale=SCALE)
     if hasattr(bpy.types.Scene, lb.FILM_PROP):
         setattr(sc, lb.FILM_PROP, False)
-    cs.set_world(sc, (0.25, 0.25, 0.25))
+    cs.set_world(sc, (0.25, 0.25, 0.25), image=env, strength=0.25 if env else 1.0)
     sc.world.cycles.sampling_method = 'AUTOMATIC'
     cs.add_lamp(sc, "AREA", (1.5, 1.0, 4.0), energy=150.0, size=1.0)
     sc.eevee.taa_render_samples = taa
@@ -105,6 +105,7 @@ def main(argv=None):
     p.add_argument("--spp", type=int, default=256)
     p.add_argument("--taa", type=int, default=64)
     p.add_argument("--full", action="store_true")
+    p.add_argument("--env", default=None, help="an equirectangular EXR as the world (x 0.25) instead of grey")
     p.add_argument("--variants", default="v7")
     p.add_argument("--fits", default=None, help="where the <name>.fit.json are (default: beside the tables)")
     p.add_argument("--noise", action="store_true", help="a second Cycles seed of the first variant")
@@ -128,7 +129,7 @@ def main(argv=None):
         for kind in args.variants.split(","):
             fit_path = tmp / f"{name}.{kind}.fit.json"
             fit_path.write_text(json.dumps(variant(fit, kind)))
-            sc = scene(args.px, args.spp, args.taa)
+            sc = scene(args.px, args.spp, args.taa, args.env)
             mat = bpy.data.materials.new(name)
             bound = tables if args.full else tmp / "missing.exr"
             group = lb.assign_learned_bsdf(mat, f"{name}.{kind}", bound, fit_path=fit_path).node_tree
