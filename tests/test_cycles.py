@@ -556,7 +556,7 @@ def test_a_fit_of_an_older_version_is_refit_on_load(baked, tmp_path, version):
     fit_file = path.with_name("gold.fit.json")
     old = json.loads(fit_file.read_text())
     assert old["version"] == closure_fit.FIT_VERSION
-    for key in ("tilt", "diffuse_tilt"):
+    for key in ("tilt", "diffuse_tilt", "eevee"):
         del old[key]
     if version == 4:
         old.update(version=4, model="diffuse+ggx", specular=[s[0] for s in old["specular"]],
@@ -576,10 +576,19 @@ def test_a_fit_of_an_older_version_is_refit_on_load(baked, tmp_path, version):
     info = dict(tree[lb.TREE_KEY].to_dict())
     info["fit_version"] = version
     tree[lb.TREE_KEY] = info
+    mat.use_fake_user = True            # (saved with the file: no object uses it)
+    for n in [n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"]:
+        if n.target == 'EEVEE':         # (an older add-on's material: one output for every engine)
+            mat.node_tree.nodes.remove(n)
+        else:
+            n.target = 'ALL'
     name, blend = tree.name, tmp_path / "old.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
     bpy.ops.wm.open_mainfile(filepath=str(blend))         # load_post -> upgrade
     tree = bpy.data.node_groups[name]
+    outputs = {n.target: n for n in bpy.data.materials["m"].node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"}
+    assert sorted(outputs) == ["CYCLES", "EEVEE"]           # the upgrade wires EEVEE its own output
+    assert outputs["EEVEE"].inputs["Surface"].links[0].from_socket.name == lb.EEVEE_OUTPUT
     assert lb._info(tree)["fit_version"] == closure_fit.FIT_VERSION and lb._info(tree)["has_fit"]
     fit = closure_fit.load_fit(fit_file)
     assert fit["version"] == closure_fit.FIT_VERSION and len(fit["specular"][0]) == closure_fit.LOBES
