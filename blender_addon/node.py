@@ -24,6 +24,12 @@ installed, and materials append and link like any other. Its node tree, "Learned
   .blend ("FlowBSDF fit: <hash>", shared by materials with the same fit), so it renders
   everywhere (Eevee, previews) even when the table files are gone; approximate.
 
+EEVEE renders none of the three as Cycles does (no OSL, no Ray Portal BSDF, no anisotropy): the
+group's second output, "EEVEE", holds the fit's EEVEE fit (closure_fit: isotropic lobes of its
+own, fit to the tables; a fit before FIT_VERSION 8: the fit's closures), and the material gets
+two Material Outputs, target Cycles fed by "BSDF", target EEVEE by "EEVEE" (`_wire_outputs`):
+each engine takes its own, and EEVEE compiles only the EEVEE fit's closures.
+
 Two Mix Shaders pick one: "FlowBSDF SVM backend" (fit or SVM), then "FlowBSDF backend"
 (that or OSL); with constant factors Cycles compiles only the chosen branch. The factors
 follow the scene's back end ("auto", "osl", "svm", "fit"; `set_backend`, `_resolve`): auto
@@ -78,9 +84,11 @@ NEUTRAL = (0.5, 0.5, 0.5)
 FIT_FORMAT = "flowbsdf-closure-fit"
 OSL_LAYOUT = 8          # the OSL texture's layout (bake/export/osl_export.LAYOUT): part of its file name
 CARRY_LAYOUT = 1        # the carried blend's texture's (bake/export/carry_export.CARRY_LAYOUT)
-FIT_VERSION = 7
-# the versions the node renders: a version 6 fit (3 lobes, no tilts) until `upgrade` refits it
-READABLE_FIT_VERSIONS = (6, 7)
+FIT_VERSION = 8
+# the versions the node renders: a version 6 fit (3 lobes, no tilts) or 7 (no EEVEE fit: EEVEE
+# renders the fit's closures, anisotropy dropped) until `upgrade` refits it
+READABLE_FIT_VERSIONS = (6, 7, 8)
+EEVEE_OUTPUT = "EEVEE"      # the group's output that the material's EEVEE-target Material Output takes
 FIT_LOBES = 4           # at most (bake/export/closure_fit.LOBES); a vector socket holds lobes 1-3's r, a or tilt
 
 
@@ -120,6 +128,9 @@ def load_fit(path):
     for key in ("x", "diffuse", "specular", "roughness", "anisotropy", "rel_error", "cv"):
         if key not in fit:
             raise ValueError(f"closure fit without {key!r}: {path}")
+    for key in ("x", "diffuse", "specular", "roughness", "anisotropy"):     # the EEVEE fit's (FIT_VERSION 8)
+        if "eevee" in fit and key not in fit["eevee"]:
+            raise ValueError(f"closure fit's EEVEE fit without {key!r}: {path}")
     if fit.get("match") and path.with_name(fit["match"]).is_file():
         fit["match_path"] = str(path.with_name(fit["match"]))      # the SVM control variate's match image
     return fit
@@ -363,10 +374,14 @@ def _tree_for(name):
 
 
 def _ensure_interface(tree):
-    """The group's sockets: the BSDF output and the Tangent input (anisotropic tables' frame:
-    world x when unlinked, projected onto the tangent plane by the shader)."""
+    """The group's sockets: the BSDF output, the EEVEE output (the EEVEE fit's closures, which
+    the material's EEVEE-target Material Output takes: _wire_outputs) and the Tangent input
+    (anisotropic tables' frame: world x when unlinked, projected onto the tangent plane by the
+    shader)."""
     if not _has_socket(tree, "BSDF", "OUTPUT"):
         _new_socket(tree, "BSDF", "OUTPUT", "NodeSocketShader")
+    if not _has_socket(tree, EEVEE_OUTPUT, "OUTPUT"):
+        _new_socket(tree, EEVEE_OUTPUT, "OUTPUT", "NodeSocketShader")
     if not _has_socket(tree, "Tangent", "INPUT"):
         _new_socket(tree, "Tangent", "INPUT", "NodeSocketVector").default_value = TANGENT
 
@@ -703,10 +718,16 @@ def _build_tree(tree, name, tables_path, fit_path):
     group_in = nodes.new("NodeGroupInput")
     group_in.location = (1900, 600)
     fit_out = _build_fit(tree, fit)
+    # EEVEE's closures: the fit's own EEVEE fit (isotropic lobes: EEVEE renders no anisotropy),
+    # else (a fit before FIT_VERSION 8, or none) the fit's closures
+    eevee = fit.get("eevee") if fit else None
+    links.new(_build_fit(tree, eevee, loc=(-1400, 1400)) if eevee else fit_out, out.inputs[EEVEE_OUTPUT])
     info = {"material": name, "tables": str(tables_path), "fit": str(fit_path or ""),
             "osl_texture": osl_texture, "svm_texture": svm_texture, "has_fit": fit is not None,
             "has_osl": with_osl, "fit_error": float(fit.get("error", -1.0)) if fit else -1.0,
             "fit_error_of": fit.get("l1_of", "") if fit else "", "fit_version": int(fit["version"]) if fit else 0,
+            # what EEVEE shows: the EEVEE fit's error (else the fit's closures without their anisotropy: unknown)
+            "eevee_error": float(eevee.get("error", -1.0)) if eevee else -1.0,
             # (fits before the key: view_aligned 0 was the anisotropic tables' mark)
             "anisotropic": bool(fit.get("anisotropic", fit.get("view_aligned", 1) == 0)) if fit else False,
             "matte": world.matte_fraction(fit),
@@ -730,7 +751,7 @@ def _build_tree(tree, name, tables_path, fit_path):
         links.new(group_in.outputs["Tangent"], script.inputs["Tangent"])
         script["flowbsdf_src"] = _source_hash()
         shader = _switched(tree, SWITCH, shader, script.outputs["BSDF"], (2400, 0))
-    links.new(shader, out.inputs[0])
+    links.new(shader, out.inputs["BSDF"])
     _store(tree, info)
 
 
@@ -775,6 +796,11 @@ def upgrade(tree):
         return False
     fit = Path(info["fit"]) if info.get("fit") and not stale_fit else None
     _build_tree(tree, info["material"], Path(info["tables"]), fit)
+    for material in bpy.data.materials:     # (a group from before the EEVEE output: the materials' outputs too)
+        if material.node_tree is not None and material.library is None:
+            for n in material.node_tree.nodes:
+                if n.bl_idname == "ShaderNodeGroup" and n.node_tree == tree:
+                    _wire_outputs(material.node_tree, n)
     return True
 
 
@@ -803,8 +829,7 @@ def assign_learned_bsdf(material, name, tables_path, fit_path=None):
         if n.bl_idname == "ShaderNodeGroup" and n.node_tree is not None and TREE_KEY in n.node_tree.keys():
             node = n
             break
-    output = next((n for n in mtree.nodes if n.bl_idname == "ShaderNodeOutputMaterial" and n.is_active_output),
-                  None) or next((n for n in mtree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"), None)
+    output = _output(mtree, ("ALL", "CYCLES"))
     if output is None:
         output = mtree.nodes.new("ShaderNodeOutputMaterial")
         output.location = (200, 300)
@@ -818,6 +843,7 @@ def assign_learned_bsdf(material, name, tables_path, fit_path=None):
     # The Tangent input orients anisotropic tables only (isotropic ones render the same for any).
     node.inputs["Tangent"].hide = not _info(tree).get("anisotropic", False)
     mtree.links.new(node.outputs["BSDF"], output.inputs["Surface"])
+    _wire_outputs(mtree, node, output)
     if hasattr(material.cycles, "emission_sampling"):
         # The shader's emission is the lamps' reflected light, not a light source: Cycles must
         # not sample it as one (measured: same image with AUTO, 2-4x slower).
@@ -825,6 +851,35 @@ def assign_learned_bsdf(material, name, tables_path, fit_path=None):
     for scene in bpy.data.scenes:
         sync(scene, bake_world=scene.render.engine == 'CYCLES')
     return node
+
+
+def _output(mtree, targets):
+    """The material's Material Output of one of `targets` ("ALL", "CYCLES", "EEVEE"), the
+    active one first; None where it has none."""
+    outputs = [n for n in mtree.nodes if n.bl_idname == "ShaderNodeOutputMaterial" and n.target in targets]
+    return next((n for n in outputs if n.is_active_output), None) or next(iter(outputs), None)
+
+
+def _wire_outputs(mtree, node, output=None):
+    """Cycles and EEVEE each their own Material Output: `output` (the one the node's BSDF feeds,
+    found when None) set to target Cycles, and one of target EEVEE (made beside it when the
+    material has none) taking the node's EEVEE output. Each engine renders its own target's
+    output whichever is active (Blender prefers the exact target), and compiles only what
+    feeds it: EEVEE no OSL or SVM graph."""
+    if EEVEE_OUTPUT not in node.outputs:
+        return
+    if output is None:
+        output = next((l.to_node for l in node.outputs["BSDF"].links
+                       if l.to_node.bl_idname == "ShaderNodeOutputMaterial"), None)
+        if output is None:
+            return
+    output.target = 'CYCLES'
+    eevee = _output(mtree, ("EEVEE",))
+    if eevee is None:
+        eevee = mtree.nodes.new("ShaderNodeOutputMaterial")
+        eevee.location = (output.location.x, output.location.y - 160)
+        eevee.target = 'EEVEE'
+    mtree.links.new(node.outputs[EEVEE_OUTPUT], eevee.inputs["Surface"])
 
 
 def _beside(output):
@@ -937,6 +992,8 @@ def _resolve(scene, tree, limits=None):
     backend = backend_of(scene)
     if info.get("has_fit"):
         err, of = info.get("fit_error", -1.0), "measured material" if info.get("fit_error_of") == "file" else "tables"
+        if scene.render.engine != 'CYCLES':        # EEVEE's own fit
+            err = info.get("eevee_error", -1.0)
         fit = f"Fit, ~{100 * err:.0f} % off the {of}" if err >= 0 else "Fit"
     else:
         fit = "Neutral grey (no fit)"

@@ -4,7 +4,8 @@ int Y(f_file) cos dw (bake/export/closure_fit.fit_error: importance-sampled, the
 the samples to the file's lobes), at view angles 0/30/60/75/85 deg and between the fit's knots
 (7.5, 22.5, 45, 54, 67.5, 76, 82.5 deg), per file: an older fit file beside the new one when
 given (--old DIR: <name>.fit.json of FIT_VERSION 4, one Diffuse + one GGX lobe), the new fit
-made now from the tables, its seconds.
+made now from the tables, its seconds, and its EEVEE fit (FIT_VERSION 8: isotropic lobes, what
+the node's EEVEE output renders).
 
     .venv/bin/python scripts/fit_acceptance.py TABLES_DIR [--old DIR] [--rgl DIR] [--material NAME ...]
         [--variant full|ac|ab|a|c|b|none] [--json DIR]
@@ -68,9 +69,9 @@ def main():
     print(f"variant {args.variant}: GGX tilts {cf.TILT_GGX}, Diffuse tilt {cf.TILT_DIFFUSE}, {cf.LOBES} GGX lobes")
     degs = sorted(ON + BETWEEN)
     print("relative L1 of luminance f cos against the file; columns: view angle (deg); * between knots")
-    print(f"{'file':20s} {'fit':4s} " + " ".join(f"{d:5.1f}{'*' if d in BETWEEN else ' '}" for d in degs)
+    print(f"{'file':20s} {'fit':5s} " + " ".join(f"{d:5.1f}{'*' if d in BETWEEN else ' '}" for d in degs)
           + "  median  s")
-    med = {"old": [], "new": []}
+    med = {"old": [], "new": [], "eevee": []}
     for path in sorted(args.tables_dir.glob("*.exr")):
         name = path.stem
         if "." in name or (args.material and name not in args.material):
@@ -90,11 +91,12 @@ def main():
             args.json.mkdir(parents=True, exist_ok=True)
             (args.json / f"{name}.fit.json").write_text(json.dumps(new, indent=1))
         rows.append(("new", lambda wi, wo: cf.eval_fit(new, wi, wo), seconds))
+        rows.append(("eevee", lambda wi, wo: cf.eval_fit(new["eevee"], wi, wo), None))     # what EEVEE renders
         for label, f_eval, sec in rows:
             vals = [l1(f_eval, tables, material, d) for d in degs]
             on = [v for d, v in zip(degs, vals) if d in ON]
             med[label].append(on)
-            print(f"{name[:20]:20s} {label:4s} " + " ".join(f"{v:6.3f}" for v in vals)
+            print(f"{name[:20]:20s} {label:5s} " + " ".join(f"{v:6.3f}" for v in vals)
                   + f"  {np.median(vals):6.3f}" + (f" {sec:4.1f}" if sec else ""), flush=True)
     for label, rows in med.items():
         if rows:

@@ -178,17 +178,31 @@ def chain(socket):
     assert node.bl_idname == "ShaderNodeCombineXYZ", node.bl_idname
     return [node.inputs[c].default_value for c in range(3)], steps[::-1]
 
+def upstream(socket):
+    # the nodes feeding socket in its tree
+    seen, todo = {}, [socket]
+    while todo:
+        for link in todo.pop().links:
+            if link.from_node.name not in seen:
+                seen[link.from_node.name] = link.from_node
+                todo.extend(link.from_node.inputs)
+    return list(seen.values())
+
 for mat in bpy.data.materials:
     groups = [n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup"] if mat.node_tree else []
     if not groups:
         continue
     g = groups[0]
     tree = g.node_tree
-    out = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial")
-    nodes = {n.bl_idname: n for n in tree.nodes}
+    outs = {n.target: n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"}
+    out = outs["CYCLES"]
+    group_out = next(n for n in tree.nodes if n.bl_idname == "NodeGroupOutput")
+    fit_nodes, eevee_nodes = upstream(group_out.inputs["BSDF"]), upstream(group_out.inputs["EEVEE"])
+    nodes = {n.bl_idname: n for n in fit_nodes}
     diffuse = nodes["ShaderNodeBsdfDiffuse"]
-    glossies = sorted((n for n in tree.nodes if n.bl_idname == "ShaderNodeBsdfAnisotropic"),
+    glossies = sorted((n for n in fit_nodes if n.bl_idname == "ShaderNodeBsdfAnisotropic"),
                       key=lambda n: n.inputs["Color"].links[0].from_socket.name)
+    eevee_glossies = [n for n in eevee_nodes if n.bl_idname == "ShaderNodeBsdfAnisotropic"]
     sep = glossies[0].inputs["Roughness"].links[0].from_node
     aniso = glossies[0].inputs["Anisotropy"].links[0].from_node
     result[mat.name] = {
@@ -203,8 +217,12 @@ for mat in bpy.data.materials:
         "distribution": sorted({n.distribution for n in glossies}),
         "view_tangent": [n.inputs["Tangent"].is_linked for n in glossies],
         "normal_linked": [n.inputs["Normal"].is_linked for n in [diffuse] + glossies],
+        "outputs": sorted(outs), "eevee_from": outs["EEVEE"].inputs["Surface"].links[0].from_socket.name,
+        "eevee_diffuse": chain(next(n for n in eevee_nodes if n.bl_idname == "ShaderNodeBsdfDiffuse").inputs["Color"]),
+        "eevee_anisotropy_linked": [n.inputs["Anisotropy"].is_linked for n in eevee_glossies],
+        "shared": len(set(n.name for n in fit_nodes) & set(n.name for n in eevee_nodes)),
     }
-    fit_node = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree.name.startswith("FlowBSDF fit"))
+    fit_node = next(n for n in fit_nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree.name.startswith("FlowBSDF fit"))
     for key, name in (("tilt", "Tilt"), ("lobe4", "Lobe 4")):
         if name in fit_node.outputs and fit_node.outputs[name].is_linked:
             result[mat.name][key] = chain(fit_node.outputs[name].links[0].to_socket)
@@ -286,7 +304,12 @@ def test_saved_blend_reopens_in_blender_with_the_fit_and_renders(batch_scene, ba
     for name, r in result.items():
         fit = json.loads((tables / f"{name}.fit.json").read_text())
         assert r["group"] == f"Learned BSDF: {name}" and r["label"] == "Learned BSDF"
-        assert r["surface_from"] == "Learned BSDF" and r["group_outputs"] == ["BSDF"]
+        assert r["surface_from"] == "Learned BSDF" and r["group_outputs"] == ["BSDF", "EEVEE"]
+        # EEVEE its own Material Output, fed by the EEVEE fit's closures alone (isotropic lobes)
+        assert r["outputs"] == ["CYCLES", "EEVEE"] and r["eevee_from"] == "EEVEE" and r["shared"] == 0
+        assert not any(r["eevee_anisotropy_linked"]) and len(r["eevee_anisotropy_linked"]) == len(fit["roughness"][0])
+        for x, want in zip(fit["eevee"]["x"], fit["eevee"]["diffuse"]):
+            assert _eval_chain(r["eevee_diffuse"], x) == pytest.approx(want, abs=1e-5), (name, "eevee", x)
         info = r["info"]
         # stored relative to the .blend, so the project folder can move
         assert r["raw"]["tables"] == f"//flowbsdf/tables/{name}.exr" and r["raw"]["fit"].startswith("//"), r["raw"]

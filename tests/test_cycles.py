@@ -515,8 +515,9 @@ def test_assign_twice_reuses_the_group(baked):
     # the fit's parameters and the tables' sampler are node groups of their own, made once
     # (a node written into a tree costs in proportion to the tree's size: svm._Graph)
     from blender_addon import svm
+    # (two fit groups: the fit's and its EEVEE fit's, FIT_VERSION 8)
     kinds = ("FlowBSDF fit: ", svm.GROUP_PREFIX + "tables sample: ")
-    assert [sum(g.name.startswith(k) for g in bpy.data.node_groups) for k in kinds] == [1, 1]
+    assert [sum(g.name.startswith(k) for g in bpy.data.node_groups) for k in kinds] == [2, 1]
     inner = svm.graph_counts(a.node_tree)[0]
     assert len(a.node_tree.nodes) < 0.5 * inner, (len(a.node_tree.nodes), inner)    # (127 of 608; ~0.9 before)
 
@@ -555,7 +556,7 @@ def test_a_fit_of_an_older_version_is_refit_on_load(baked, tmp_path, version):
     fit_file = path.with_name("gold.fit.json")
     old = json.loads(fit_file.read_text())
     assert old["version"] == closure_fit.FIT_VERSION
-    for key in ("tilt", "diffuse_tilt"):
+    for key in ("tilt", "diffuse_tilt", "eevee"):
         del old[key]
     if version == 4:
         old.update(version=4, model="diffuse+ggx", specular=[s[0] for s in old["specular"]],
@@ -575,10 +576,19 @@ def test_a_fit_of_an_older_version_is_refit_on_load(baked, tmp_path, version):
     info = dict(tree[lb.TREE_KEY].to_dict())
     info["fit_version"] = version
     tree[lb.TREE_KEY] = info
+    mat.use_fake_user = True            # (saved with the file: no object uses it)
+    for n in [n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"]:
+        if n.target == 'EEVEE':         # (an older add-on's material: one output for every engine)
+            mat.node_tree.nodes.remove(n)
+        else:
+            n.target = 'ALL'
     name, blend = tree.name, tmp_path / "old.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
     bpy.ops.wm.open_mainfile(filepath=str(blend))         # load_post -> upgrade
     tree = bpy.data.node_groups[name]
+    outputs = {n.target: n for n in bpy.data.materials["m"].node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"}
+    assert sorted(outputs) == ["CYCLES", "EEVEE"]           # the upgrade wires EEVEE its own output
+    assert outputs["EEVEE"].inputs["Surface"].links[0].from_socket.name == lb.EEVEE_OUTPUT
     assert lb._info(tree)["fit_version"] == closure_fit.FIT_VERSION and lb._info(tree)["has_fit"]
     fit = closure_fit.load_fit(fit_file)
     assert fit["version"] == closure_fit.FIT_VERSION and len(fit["specular"][0]) == closure_fit.LOBES

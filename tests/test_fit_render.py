@@ -380,3 +380,98 @@ def test_missing_tables_render_the_fit(tmp_path):
     assert assigned.startswith("Fit") and "(tables missing). Bake the Material" in assigned, assigned
     rel = _relative(result["got"], result["ref"])
     assert np.mean(rel < TOLERANCE) >= SHARE
+
+
+# ------------------------------------------------------------------ EEVEE's own output
+
+def _upstream(socket):
+    """The nodes feeding `socket` (in its tree, not inside groups)."""
+    seen, todo = [], [socket]
+    while todo:
+        for link in todo.pop().links:
+            if link.from_node not in seen:
+                seen.append(link.from_node)
+                todo.extend(link.from_node.inputs)
+    return seen
+
+
+# A fit with its EEVEE fit (FIT_VERSION 8: closure_fit's "eevee", isotropic lobes)
+WITH_EEVEE = dict(ANISOTROPIC, error=0.1, l1_of="file", eevee=dict(ISOTROPIC, model="hand-written EEVEE fit", error=0.2))
+
+
+def test_eevee_output_takes_the_eevee_fit(tmp_path):
+    """The material gets two Material Outputs: target Cycles fed by the node's BSDF (the back
+    ends), target EEVEE by its EEVEE output, which holds the EEVEE fit's closures alone: its own
+    fit group, isotropic Glossy BSDFs (no Anisotropy or Tangent linked). A fit without an EEVEE
+    fit (FIT_VERSION 7) feeds EEVEE the fit's closures; assigning again adds no output. The
+    node's status in EEVEE gives the EEVEE fit's error, in Cycles the fit's."""
+    lb.register()
+    try:
+        sc = cs.reset(8, 8)
+        for name, fit in (("with", WITH_EEVEE), ("without", dict(ANISOTROPIC, version=7))):
+            path = tmp_path / f"{name}.fit.json"
+            path.write_text(json.dumps(fit))
+            mat = bpy.data.materials.new(name)
+            for _ in range(2):
+                node = lb.assign_learned_bsdf(mat, name, tmp_path / "missing.exr", fit_path=path)
+            outputs = {n.target: n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"}
+            assert sorted(outputs) == ["CYCLES", "EEVEE"]
+            assert outputs["CYCLES"].inputs["Surface"].links[0].from_socket == node.outputs["BSDF"]
+            assert outputs["EEVEE"].inputs["Surface"].links[0].from_socket == node.outputs["EEVEE"]
+            group_out = next(n for n in node.node_tree.nodes if n.bl_idname == "NodeGroupOutput")
+            cycles, eevee = (_upstream(group_out.inputs[s]) for s in ("BSDF", "EEVEE"))
+            fit_groups = [[n.node_tree.name for n in nodes if n.bl_idname == "ShaderNodeGroup"] for nodes in (cycles, eevee)]
+            glossies = [n for n in eevee if n.bl_idname == "ShaderNodeBsdfAnisotropic"]
+            assert len(glossies) == 3
+            if name == "with":
+                assert fit_groups == [[lb._fit_group(WITH_EEVEE).name],
+                                      [lb._fit_group(WITH_EEVEE["eevee"]).name]]
+                assert not any(n.inputs["Anisotropy"].is_linked or n.inputs["Tangent"].is_linked for n in glossies)
+                assert all(n.inputs["Anisotropy"].default_value == 0.0 for n in glossies)
+                assert not set(map(id, cycles)) & set(map(id, eevee))
+                lb.set_backend(sc, "fit")
+                assert lb.node_status(node, sc).startswith("Fit, ~10 % off the measured material")
+                sc.render.engine = _eevee()
+                assert lb.node_status(node, sc).startswith("Fit, ~20 % off the measured material")
+                sc.render.engine = "CYCLES"
+            else:
+                assert fit_groups[1] == [lb._fit_group(dict(ANISOTROPIC, version=7)).name]
+                assert group_out.inputs["EEVEE"].links[0].from_node in cycles   # the fit's closures, shared
+    finally:
+        lb.unregister()
+
+
+EEVEE_RED = dict(ISOTROPIC, diffuse=[[0.8, 0.05, 0.05]] * 5, specular=_lobes(*[[[0.0] * 3] * 5] * 3))
+CYCLES_GREEN = dict(ISOTROPIC, diffuse=[[0.05, 0.8, 0.05]] * 5, specular=_lobes(*[[[0.0] * 3] * 5] * 3),
+                    eevee=EEVEE_RED)
+
+
+def test_eevee_renders_the_eevee_fit_and_cycles_the_fit(tmp_path):
+    """A sphere under a white world whose fit is a green Diffuse and its EEVEE fit a red one:
+    Cycles renders it green, EEVEE red (each engine its own Material Output)."""
+    lb.register()
+    try:
+        sc = cs.reset(16, 16, spp=4, osl=False)
+        cs.ortho_camera(sc, scale=2.2)
+        cs.set_world(sc, (1.0, 1.0, 1.0))
+        path = tmp_path / "green.fit.json"
+        path.write_text(json.dumps(CYCLES_GREEN))
+        mat = bpy.data.materials.new("m")
+        lb.assign_learned_bsdf(mat, "m", tmp_path / "missing.exr", fit_path=path)
+        cs.add_sphere(sc, mat, segments=32, rings=16)
+        lb.set_backend(sc, "fit")
+        _, hit = cs.sphere_view(16, 16, 2.2)
+        means = {}
+        for engine in ("CYCLES", _eevee()):
+            sc.render.engine = engine
+            means[engine] = cs.render(sc)[hit].mean(0)
+        (r, g, _), (er, eg, _) = means.values()
+        assert g > 4 * r and er > 4 * eg, means
+    finally:
+        lb.unregister()
+
+
+def _eevee():
+    """EEVEE's engine id: BLENDER_EEVEE_NEXT in 4.2-4.5, BLENDER_EEVEE before and from 5.0."""
+    ids = [e.identifier for e in bpy.types.RenderSettings.bl_rna.properties["engine"].enum_items]
+    return "BLENDER_EEVEE_NEXT" if "BLENDER_EEVEE_NEXT" in ids else "BLENDER_EEVEE"
