@@ -143,10 +143,10 @@ class BakeProgress(Step):
     # busy 2-core machine, load 7-24): placements 0.12-0.15 (cm_military_green, 45 angles, three
     # bakes) and ~0.19 (paper_white, 21), the reference draws before them 0.15-0.3; the build
     # 0.06-0.12. The placements an isotropic material compares by default (tabulate._between_bins,
-    # placement "rule": the split at 55 deg and that split with groups of their own resolutions):
-    # 2 on cm_military_green (6 with the full comparison).
+    # placement "rule": the splits at 55 and 75 deg, then the better one with groups of their own
+    # resolutions): 2-3 on the shared files (5-6 with the full comparison).
     PLACEMENT_COST = 0.15
-    ISO_PLACEMENTS = 2
+    ISO_PLACEMENTS = 3
     BUILD_COST = 0.1
     # After the tables: the node's SVM and OSL textures, the closure fit (FIT_VERSION 7), the
     # preview (write_preview), in seconds, in the order they run; a line ends each (the preview's

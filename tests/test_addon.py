@@ -369,22 +369,22 @@ def test_bake_progress_through_the_placements(monkeypatch):
     feed(t + 2.0, "halfpolar: bins 15: done, the worst midpoint loses 0.50x its target")
     feed(t + 2.0, "coordinates: halfpolar (midpoints over their targets, typical / worst: halfpolar 1.07x / 1.49x)")
     t += 2.0
-    feed(t, "between bins: comparing 2 cell placements on 15 angles")
-    # elapsed 36 s; the placements and the draws 3 x 0.15 x 15 angles x 2 s = 13.5 s, the build 3 s,
-    # what follows the tables 15.5 s: 32 s
-    assert lines[-1] == "[step 0.529] Baking Silk: comparing cell placements across 15 angles (0 of 2 done, " \
-                        "about 30 s left)", lines[-1]
+    feed(t, "between bins: comparing 3 cell placements on 15 angles")
+    # elapsed 36 s; the placements and the draws 4 x 0.15 x 15 angles x 2 s = 18 s, the build 3 s,
+    # what follows the tables 15.5 s: 36.5 s
+    assert lines[-1] == "[step 0.497] Baking Silk: comparing cell placements across 15 angles (0 of 3 done, " \
+                        "about 40 s left)", lines[-1]
     during = [steps[-1]]
-    for k in range(1, 3):       # the draws and each placement 5 s: the heartbeat between them
+    for k in range(1, 4):       # the draws and each placement 5 s: the heartbeat between them
         now[0] = t + 5.0 * k + 2.5
         progress.report()
         during.append((progress.done, lines[-1]))
-        feed(t + 5.0 * (k + 1), f"between bins: placement {k} of 2, two groups split at 55.10 deg: 1.21x the ideal's rv")
+        feed(t + 5.0 * (k + 1), f"between bins: placement {k} of 3, two groups split at 55.10 deg: 1.21x the ideal's rv")
         during.append(steps[-1])
     bars, lefts = [f for f, _ in during], [_seconds_left(w) for _, w in during]
     assert all(a < b for a, b in zip(bars, bars[1:])) and bars[-1] < 0.99, during
-    assert lefts == sorted(lefts, reverse=True) and lefts[-1] <= lefts[0] - 10, during     # (15 s of placements)
-    assert lines[-1] == "[step 0.734] Baking Silk: comparing cell placements across 15 angles (2 of 2 done, " \
+    assert lefts == sorted(lefts, reverse=True) and lefts[-1] <= lefts[0] - 10, during     # (20 s of placements)
+    assert lines[-1] == "[step 0.752] Baking Silk: comparing cell placements across 15 angles (3 of 3 done, " \
                         "about 20 s left)", lines[-1]
 
 
@@ -445,19 +445,19 @@ def test_bake_progress_follows_plans_in_turns(monkeypatch):
     assert all(w.endswith("estimating the time left") for w in words[:7]), words
     # after the plans the kept plan's placements (test_bake_progress_through_the_placements) and
     # build, at the costlier plan's angles and pace until one is kept: here halfpolar's
-    assert words[7] == "[step 0.199] Baking Satin: layout 2 of 2, 9 of about 18 angles, about 3 min left", words[7]
+    assert words[7] == "[step 0.184] Baking Satin: layout 2 of 2, 9 of about 18 angles, about 4 min left", words[7]
     # halfpolar at 11 of about 16 angles (5 left at 6 s), wo 4 left at 4 s: 46 s, the placements and
-    # their draws 3 x 0.15 x 16 x 6 s = 43.2 s, the build 16 x 6 s / 10 = 9.6 s, what follows the
-    # tables 15.5 s: 114 s; 20 s later (the heartbeat) 94 s
-    assert words[-1] == "[step 0.383] Baking Satin: layout 2 of 2, 11 of about 16 angles, about 2 min left", words[-1]
+    # their draws 4 x 0.15 x 16 x 6 s = 57.6 s, the build 16 x 6 s / 10 = 9.6 s, what follows the
+    # tables 15.5 s: 129 s; 20 s later (the heartbeat) 109 s
+    assert words[-1] == "[step 0.356] Baking Satin: layout 2 of 2, 11 of about 16 angles, about 2 min left", words[-1]
     now[0] = t + 20.0
     progress.report()
-    assert lines[-1] == "[step 0.491] Baking Satin: layout 2 of 2, 11 of about 16 angles, about 2 min left", lines[-1]
-    # a plan that ends counts no more: wo's 2 angles left at 4 s, the placements 3 x 0.15 x 14 x 4 s,
-    # the build 14 x 4 s / 10, 15.5 s: 54 s
+    assert lines[-1] == "[step 0.456] Baking Satin: layout 2 of 2, 11 of about 16 angles, about 2 min left", lines[-1]
+    # a plan that ends counts no more: wo's 2 angles left at 4 s, the placements 4 x 0.15 x 14 x 4 s,
+    # the build 14 x 4 s / 10, 15.5 s: 63 s
     feed(t + 26.0, "halfpolar: bins 11: done, the worst midpoint loses 0.50x its target")
     feed(t + 26.0, "wo: bins 12: split 1.00-2.00 deg (midpoint loss 3x its target)")
-    assert lines[-1] == "[step 0.641] Baking Satin: layout 1 of 2, 12 of about 14 angles, about 50 s left", lines[-1]
+    assert lines[-1] == "[step 0.607] Baking Satin: layout 1 of 2, 12 of about 14 angles, about 1 min left", lines[-1]
     fractions = [f for f, _ in steps]
     assert fractions == sorted(fractions) and 0 < fractions[-1] < 1
 

@@ -1128,8 +1128,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     tables.meta["window"], ["groups"]); the best split is also tried with the lower group at
     coarser cells and the memory it frees spent above (MixedTables; meta["resolution"] then lists
     both). The interval probes above pool the pair alone. placement: "rule" (default) compares,
-    from 6 bins on, only the groups split nearest RULE_SPLIT_DEG and that split's groups of their
-    own resolutions; "compare" every candidate (the full comparison the rule was decided from).
+    from 6 bins on, only the groups split nearest RULE_SPLITS_DEG (and the better one's groups of
+    their own resolutions); "compare" every candidate (the full comparison the rule was decided from).
 
     blend: how the tables will be sampled between bins, which the probes measure: "fixed" (Tables:
     at fixed cells) or "carried" (an isotropic RGL file's tables carried along its own coordinates,
@@ -1464,14 +1464,15 @@ LAYOUT_WINDOWS = (1, None)
 POLAR_WINDOWS = (None,)
 GROUP_SPLITS_DEG = (55.0, 65.0, 75.0)
 # The placements plan_tables compares by default (placement="rule"; from 6 bins on, where layout
-# groups are tried): two layout groups split at the planned bin nearest RULE_SPLIT_DEG, one layout
-# each, and the same split with groups of their own resolutions. The full comparison
-# (placement="compare": also one layout for all bins, the neighbours' layouts over wo, the splits
-# at the other GROUP_SPLITS_DEG) took over half of a Final bake (cm_military_green: 124 of 229 s,
-# 6 placements), and on the ten shared files (default Final plans, typical excess over the
-# ideal's rv) this split was the closest placement or within 0.02 of it on every one; its groups
-# of their own resolutions won on paper_white (docs/placements.md).
-RULE_SPLIT_DEG = GROUP_SPLITS_DEG[0]     # 55
+# groups are tried): two layout groups split at the planned bins nearest RULE_SPLITS_DEG, one layout
+# each, then the better split with groups of their own resolutions. The full comparison
+# (placement="compare": also one layout for all bins, the neighbours' layouts over wo, the split
+# at 65 deg) was 37-44 % of the tables' time (paper_white, cm_military_green, colodur_napoli_4f,
+# 5-6 placements). On the ten shared files (default Final plans) the placement it kept was one of
+# these on six, and on the other four a near-tie of them (typical excess within 0.01:
+# docs/placements.md); the split at 55 deg alone lost rv at single angles where the full
+# comparison kept the one at 75 (cm_military_green 85 deg +12 %, colodur_napoli_4f +26 %).
+RULE_SPLITS_DEG = (55.0, 75.0)
 
 
 def groups_bytes(groups, coords, lobe_width, window):
@@ -1580,11 +1581,10 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
                                 None, lower + groups[1][0], [lo_res, hi_res], j))
         return out
 
-    rule = placement == "rule" and bool(splits)
-    if rule:        # RULE_SPLIT_DEG's split and its groups of their own resolutions, alone
-        j = int(np.clip(np.argmin(np.abs(b - np.radians(RULE_SPLIT_DEG))), 2, len(b) - 3))
-        candidates = [c for c in candidates if c[4] == j] + mixed(j)
-    if len(candidates) == 1:        # nothing to compare
+    if placement == "rule" and splits:      # the splits nearest RULE_SPLITS_DEG alone (then the mixed, as below)
+        at = {int(np.clip(np.argmin(np.abs(b - np.radians(deg))), 2, len(b) - 3)) for deg in RULE_SPLITS_DEG}
+        candidates = [c for c in candidates if c[4] in at]
+    if len(candidates) == 1 and not splits:        # nothing to compare
         label, window, placed, res, _ = candidates[0]
         log(f"between bins: {label}")
         return window, placed, res, None
@@ -1592,7 +1592,7 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
     # Groups of their own resolutions are tried at the split whose groups of one resolution came
     # closest (measured on the shared files at 2 MB, all three splits each: the mixed candidate
     # that won was at that split or tied with it), two builds instead of six.
-    total = len(candidates) + (len(coarser) * (1 + len(finer)) if splits and not rule else 0)     # at most
+    total = len(candidates) + (len(coarser) * (1 + len(finer)) if splits else 0)     # at most
     log(f"between bins: comparing {total} cell placements on {len(bins)} angles")
     draws = list(_parallel(lambda t: ReferencePoints(material, spherical_dir(t, 0.0), ideal, side, 0), angles))
     floors = np.array([max(d.rv(ideal)[0], 0.5 * tol) for d in draws])
@@ -1615,7 +1615,7 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
     for candidate in candidates:
         if best is None or best[0] > 1.0:
             compare(*candidate)
-    more = mixed(best_split[1]) if best_split and best[0] > 1.0 and not rule else []
+    more = mixed(best_split[1]) if best_split and best[0] > 1.0 else []
     total = len(candidates) + len(more)     # announced as at most this many: now known
     for candidate in more:
         compare(*candidate)
