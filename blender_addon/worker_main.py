@@ -111,17 +111,16 @@ class BakeProgress(Step):
     resolution probe ("resolution R: single-bin rv Xx the target"), then one line per incident
     angle the planner adds ("bins N: split ... (midpoint loss Sx its target)") until the worst
     midpoint reaches its target (S <= 1) or the memory budget caps the angles, then the tables'
-    build ("tables: building N angles", "tables: built K of N", about ten of them), after the
-    comparison of cell placements between bins ("between bins: comparing N", "placement K of N";
-    isotropic: layouts and layout groups, tabulate._between_bins), and the node's
-    textures and fit ("[svm]/[osl]/[fit] wrote"). The comparison's time: its placements at their
+    build ("tables: building N angles", "tables: built K of N", about ten of them), after a
+    comparison of cell placements between bins where the planner makes one ("between bins:
+    comparing N", "placement K of N"; tabulate._between_bins: by default only plans of fewer than
+    6 angles over wo, a few cheap builds), then the node's textures and fit, and the preview
+    ("tables in", "[svm]/[osl]/[fit] wrote", "[preview]": AFTER_TABLES, each at its measured
+    cost, counted in the bar from the start). The comparison's time: its placements at their
     measured pace (the reference draws before the first count as one more), until the first is
-    done PLACEMENT_COST split turns per angle each; before it begins, ISO_PLACEMENTS of them where
-    the material is planned over several layouts (isotropic), so the bar leaves room for it.
-    Angles left: from how far the worst midpoint went down on a log scale, and how far
-    the angle count went towards its cap; the time a split takes, measured. The build: a tenth
-    of a split per angle (from the ideal tabulation's points; a flow's cost ~20x as much) until
-    its first "built" line, then its own pace. An isotropic material is planned over each cell
+    done PLACEMENT_COST split turns per angle each. The build: BUILD_COST split turns per angle
+    until its first "built" line, then its own pace. Angles left: from how far the worst midpoint went down on a log scale, and how far
+    the angle count went towards its cap; the time a split takes, measured. An isotropic material is planned over each cell
     layout (tabulate.ISO_PLANNED; its lines start "<coords>: ") in turns, a round of splits each
     (tabulate._plan_in_turns): each plan is followed on its own (its angles left from its own
     midpoints), and the time a split takes is each plan's own turn (from its split line to the
@@ -137,13 +136,28 @@ class BakeProgress(Step):
     PLACED = re.compile(r"between bins: placement (\d+) of (\d+)")
     BUILDING = re.compile(r"tables: building (\d+) angles")
     BUILT = re.compile(r"tables: built (\d+) of (\d+)")
+    TABLES_DONE = re.compile(r"tables in [0-9.]+ s$")
     # A placement's cost (its tables built from the ideal's cached points, their rv at ~4 angles
-    # per bin) in the kept plan's split turns per angle, and the placements an isotropic material
-    # compares (tabulate._between_bins: 1 over halfpolar or 2 over wo, 3 layout groups, 2 mixed).
-    # Measured, cm_military_green at Final (45 angles, split turns 1.5 s): the draws 12 s, the
-    # placements 13-18 s (0.2 x 45 x 1.5 s = 13.5 s), 6 of them.
-    PLACEMENT_COST = 0.2
-    ISO_PLACEMENTS = 6
+    # per bin) and the build's (the kept placement's tables from the same points, when not
+    # compared), in the kept plan's split turns per angle, each the ratio within one Final bake (a
+    # busy 2-core machine, load 7-24): placements 0.12-0.15 (cm_military_green, 45 angles, three
+    # bakes) and ~0.19 (paper_white, 21), the reference draws before them 0.15-0.3; the build
+    # 0.06-0.12. The placements an isotropic material compares by default (tabulate._between_bins,
+    # placement "rule": the splits at 55 and 75 deg, then the better one with groups of their own
+    # resolutions): 2-3 on the shared files (5-6 with the full comparison).
+    PLACEMENT_COST = 0.15
+    ISO_PLACEMENTS = 3
+    BUILD_COST = 0.1
+    # After the tables: the node's SVM and OSL textures, the closure fit (FIT_VERSION 7), the
+    # preview (write_preview), in seconds, in the order they run; a line ends each (the preview's
+    # first line: the fit is done). Measured as CPU seconds of each alone (single-threaded: about
+    # their wall time on an idle core) on paper_white and cm_military_green: SVM 0.2-0.5, OSL
+    # 0.2-0.4, the fit 10.9-15.3, the preview (96², 32 spp) 1.4. Their wall time on a loaded
+    # machine is many times that (load 23-25: the fit 126-366 s): once the textures are written,
+    # the steps left are scaled by their pace against these costs.
+    AFTER_TABLES = (("svm", 0.5), ("osl", 0.5), ("fit", 13.0), ("preview", 1.5))
+    AFTER_WORDS = {"svm": "writing the node's textures and closure fit", "osl": "writing the node's textures and closure fit",
+                   "fit": "fitting the node's closures", "preview": "rendering a preview"}
 
     def __init__(self, name, settings, clock=time.monotonic):
         import inspect
@@ -164,6 +178,7 @@ class BakeProgress(Step):
         self.stage = None                          # after the plans: "placements", "build", "derive", "preview"
         self.build = None                          # [start time, parts built, parts, time of the last]
         self.placed = None                         # [start time, placements done, placements, time of the last]
+        self.after = None                          # [AFTER_TABLES index under way, when it began]
 
     @property
     def plan(self):
@@ -247,10 +262,14 @@ class BakeProgress(Step):
         elif self.BUILT.match(text) and self.build:
             m = self.BUILT.match(text)
             self.build[1:] = [int(m.group(1)), int(m.group(2)), now]
-        elif line.startswith(("[svm] ", "[osl] ", "[fit] ")):
-            self.stage = "derive"
-        elif line.startswith("[preview] "):
-            self.stage = "preview"
+        elif self.TABLES_DONE.match(text):
+            self.stage, self.after = "after", [0, now, now]
+        elif line.startswith(("[svm] wrote", "[osl] wrote", "[fit] wrote", "[preview] ")):
+            kind = line[1:line.index("]")]
+            names = [k for k, _ in self.AFTER_TABLES]
+            step = names.index(kind) + (0 if kind == "preview" else 1)
+            if self.after is None or step > self.after[0]:
+                self.stage, self.after = "after", [min(step, len(names) - 1), now, self.after[2] if self.after else now]
         else:
             return
         self.report()
@@ -275,10 +294,16 @@ class BakeProgress(Step):
     def estimate(self, now):
         who = f"Baking {self.name}"
         elapsed = now - self.t0
-        if self.stage == "derive":
-            return 0.97, f"{who}: writing the node's textures and closure fit"
-        if self.stage == "preview":
-            return 0.98, f"{who}: rendering a preview"
+        if self.stage == "after":
+            step, began, start = self.after
+            # the steps done so far against their costs: how much slower this machine is now (a
+            # busy one: the fit at the textures' pace)
+            pace = max((began - start) / sum(c for _, c in self.AFTER_TABLES[:step]), 1.0) if step else 1.0
+            remaining = pace * self.after_left(step, (now - began) / pace)
+            words = f"{who}: {self.AFTER_WORDS[self.AFTER_TABLES[step][0]]}"
+            if remaining <= 0:
+                return None, words
+            return elapsed / (elapsed + remaining), f"{words}, {time_left(remaining)}"
         if self.stage == "build":
             return self._build_estimate(now, who)
         if self.stage == "placements":
@@ -302,11 +327,11 @@ class BakeProgress(Step):
         total = p.bins + left
         # every running plan's angles left at its own measured pace, less the turn under way so far
         plan_left = sum(n * q.seconds_per_angle() for n, q in zip(lefts, running)) - (now - self.last_turn)
-        # then the kept plan's placements (+1: the reference draws) and build; which plan is kept is
-        # not known yet: the costliest running plan's angles at its pace
+        # then the kept plan's placements (+1: the reference draws) or build, and what follows the
+        # tables; which plan is kept is not known yet: the costliest running plan's angles at its pace
         per_angle = max((q.bins + n) * q.seconds_per_angle() for n, q in zip(lefts, running))
         placements = self.ISO_PLACEMENTS + 1 if self.layouts > 1 else 0
-        remaining = plan_left + per_angle * (placements * self.PLACEMENT_COST + 0.1) + 3.0
+        remaining = plan_left + per_angle * (placements * self.PLACEMENT_COST + self.BUILD_COST) + self.after_left()
         if remaining <= 0:
             return None, f"{who}: finishing the tables ({total} angles)"
         if not any(lefts):
@@ -317,6 +342,11 @@ class BakeProgress(Step):
                      f"{time_left(remaining)}")
         return elapsed / (elapsed + remaining), words
 
+    def after_left(self, step=0, spent=0.0):
+        """Seconds of AFTER_TABLES left from its step `step`, `spent` seconds into it."""
+        costs = [c for _, c in self.AFTER_TABLES]
+        return max(costs[step] - spent, 0.0) + sum(costs[step + 1:])
+
     def _placements_estimate(self, now, who):
         start, done, total, last = self.placed
         split = self.plan.seconds_per_angle() if self.plan.turns else 1.0
@@ -324,7 +354,7 @@ class BakeProgress(Step):
             pace, left = (last - start) / (done + 1), total - done
         else:
             pace, left = self.PLACEMENT_COST * self.angles * split, total + 1
-        remaining = left * pace - (now - last) + self.angles * split / 10 + 3.0
+        remaining = left * pace - (now - last) + self.angles * split * self.BUILD_COST + self.after_left()
         words = f"{who}: comparing cell placements across {self.angles} angles ({done} of {total} done"
         if remaining <= 0:
             return None, words + ")"
@@ -337,10 +367,9 @@ class BakeProgress(Step):
             remaining = (last - start) / done * (parts - done) - (now - last)
         else:
             split = self.plan.seconds_per_angle() if self.plan.turns else 1.0
-            remaining = self.angles * split / 10 - (now - start)
+            remaining = self.angles * split * self.BUILD_COST - (now - start)
+        remaining = max(remaining, 0.0) + self.after_left()
         words = f"{who}: building the tables ({done} of {parts or self.angles} angles done"
-        if remaining <= 0:
-            return None, words + ")"
         elapsed = now - self.t0
         return elapsed / (elapsed + remaining), words + f", {time_left(remaining)})"
 

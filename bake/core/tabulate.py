@@ -1078,7 +1078,7 @@ def lobe_width_of(material, ideal):
 def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio=1.0, resolution=None,
                 first_bins=6, theta_max_deg=89.9, min_gap_deg=0.2, samples=1 << 14, lobe_width="auto",
                 ideal_resolution=256, log=None, phi_count="auto", coords="auto", blend="fixed",
-                carry_flags=False, **options):
+                carry_flags=False, placement="rule", **options):
     """Tables with only the resolution and incident bins this material needs.
 
     The probes build tables from the ideal tabulation's points (`ideal`: the plan depends on
@@ -1127,7 +1127,9 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     one typically closest to the ideal at the bins and between them is kept (_between_bins;
     tables.meta["window"], ["groups"]); the best split is also tried with the lower group at
     coarser cells and the memory it frees spent above (MixedTables; meta["resolution"] then lists
-    both). The interval probes above pool the pair alone.
+    both). The interval probes above pool the pair alone. placement: "rule" (default) compares,
+    from 6 bins on, only the groups split nearest RULE_SPLITS_DEG (and the better one's groups of
+    their own resolutions); "compare" every candidate (the full comparison the rule was decided from).
 
     blend: how the tables will be sampled between bins, which the probes measure: "fixed" (Tables:
     at fixed cells) or "carried" (an isotropic RGL file's tables carried along its own coordinates,
@@ -1152,6 +1154,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     log = log or (lambda *_: None)
     if blend not in ("fixed", "carried"):
         raise FlowBSDFError(f"blend {blend!r}: 'fixed' or 'carried'")
+    if placement not in ("rule", "compare"):
+        raise FlowBSDFError(f"placement {placement!r}: 'rule' or 'compare'")
     carry = _carrier(material) if blend == "carried" else (lambda tables: tables)
     if blend == "carried" or carry_flags:      # the file's warp data is read beside the tables: within the budget
         from .carried import check_carriable
@@ -1363,7 +1367,8 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     compared = None
     if phi_bins is None and "window" not in options:
         opts["window"], bins, resolution, compared = _between_bins(material, ideal, bins, resolution, opts, cache, tol,
-                                                                   samples, log, memory_budget, extend, carry)
+                                                                   samples, log, memory_budget, extend, carry,
+                                                                   placement)
     elif phi_bins is None:      # the layout given: as many bins as its layouts leave room for
         (bins, _), = _fit([(bins, resolution)], memory_budget, window=options["window"], coords=coords or ISO_COORDS,
                           lobe_width=lobe_width)
@@ -1458,6 +1463,16 @@ LAYOUT_WINDOWS = (1, None)
 # (default Final plans, typical excess: 1.03-1.31x where the kept placement had 1.02-1.22x).
 POLAR_WINDOWS = (None,)
 GROUP_SPLITS_DEG = (55.0, 65.0, 75.0)
+# The placements plan_tables compares by default (placement="rule"; from 6 bins on, where layout
+# groups are tried): two layout groups split at the planned bins nearest RULE_SPLITS_DEG, one layout
+# each, then the better split with groups of their own resolutions. The full comparison
+# (placement="compare": also one layout for all bins, the neighbours' layouts over wo, the split
+# at 65 deg) was 37-44 % of the tables' time (paper_white, cm_military_green, colodur_napoli_4f,
+# 5-6 placements). On the ten shared files (default Final plans) the placement it kept was one of
+# these on six, and on the other four a near-tie of them (typical excess within 0.01:
+# docs/placements.md); the split at 55 deg alone lost rv at single angles where the full
+# comparison kept the one at 75 (cm_military_green 85 deg +12 %, colodur_napoli_4f +26 %).
+RULE_SPLITS_DEG = (55.0, 75.0)
 
 
 def groups_bytes(groups, coords, lobe_width, window):
@@ -1499,7 +1514,7 @@ def _carrier(material):
 
 
 def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, log, memory_budget, extend,
-                  carry=lambda tables: tables):
+                  carry=lambda tables: tables, placement="rule"):
     """(window, bins, resolution (one, or one per group), their tables from the ideal's points;
     None when not compared): of the ways to place cells between the planned bins, the one whose
     tables are typically closest to the ideal over the bins and their intervals' midpoints: the
@@ -1565,6 +1580,14 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
                     out.append((f"two groups split at {at}, {lo_res}² cells below, {hi_res}² above",
                                 None, lower + groups[1][0], [lo_res, hi_res], j))
         return out
+
+    if placement == "rule" and splits:      # the splits nearest RULE_SPLITS_DEG alone (then the mixed, as below)
+        at = {int(np.clip(np.argmin(np.abs(b - np.radians(deg))), 2, len(b) - 3)) for deg in RULE_SPLITS_DEG}
+        candidates = [c for c in candidates if c[4] in at]
+    if len(candidates) == 1 and not splits:        # nothing to compare
+        label, window, placed, res, _ = candidates[0]
+        log(f"between bins: {label}")
+        return window, placed, res, None
 
     # Groups of their own resolutions are tried at the split whose groups of one resolution came
     # closest (measured on the shared files at 2 MB, all three splits each: the mixed candidate
