@@ -1097,6 +1097,7 @@ def test_placement_rule_keeps_what_the_full_comparison_keeps():
     with pytest.raises(FlowBSDFError, match="placement"):
         plan_tables(mat, ideal, placement="best", **settings)
 
+
 class RidgeOnPlane(Material):
     """f·cos: cos / pi, plus 200 on a ridge 4e-4 rad wide along the mirror side of the plane of
     incidence below theta_o 60 deg (4 % of the mass; a measured file's grid line at grazing
