@@ -112,6 +112,7 @@ def graph_nodes(socket):
                 continue
             seen.add(key)
             if node.bl_idname == "ShaderNodeGroup" and node.node_tree is not None:
+                groups.add(key)
                 out = next(n for n in node.node_tree.nodes if n.bl_idname == "NodeGroupOutput")
                 inner = set()
                 for s in out.inputs:
@@ -126,10 +127,10 @@ def graph_nodes(socket):
                     upstream(s, seen, path)
         return seen
 
-    seen = {((), socket.node.name)}
+    seen, groups = {((), socket.node.name)}, set()
     for s in socket.node.inputs:
         upstream(s, seen)
-    return len({k for k in seen if not k[1].startswith(("Group Input", "Group Output", "Reroute"))})
+    return len({k for k in seen - groups if not k[1].startswith(("Group Input", "Group Output", "Reroute"))})
 
 
 def per_spp(kind, variant, tables, fit, setup, size, lo, hi, inner):
