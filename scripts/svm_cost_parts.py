@@ -13,12 +13,14 @@ they measure cost, not a look):
   before     the graph as /work/main's blender_addon/svm.py builds it (a cut's saving, side by side)
   portal     a Ray Portal of constant colour toward the mirror direction: a portal bounce's rays
              and a trivial graph (the floor of any portal back end)
-One Cycles thread. Per scene (constant world, the acceptance's HDRI, studio lamps) and variant: CPU time of this process
-(Cycles' thread) per spp from the fastest of --inner renders at --lo and at --hi spp (each render's
-fixed cost cancels), the best of --repeat interleaved rounds (the machine is shared). Also the graph's node counts (group
-nodes expanded) per Mix Shader branch, as the SVM interpreter runs only the branch taken.
+One Cycles thread (with two, a worker waiting for the other counted as CPU time). Per scene (constant
+world, the acceptance's HDRI, studio lamps) and variant: CPU time of this process per spp from the
+fastest of --inner renders at --lo and at --hi spp (each render's fixed cost cancels), the best of
+--repeat interleaved rounds (the machine is shared); and the graph's node count (groups expanded,
+every branch: the SVM interpreter runs only the branch taken). A graph without the node named
+svm.FILM is not taken for the SVM back end (node._has_svm: the node renders the fit instead).
 
-    .venv/bin/python scripts/svm_cost_parts.py [--tables T.exr] [--variants svm,portal] [--repeat 3]
+    .venv/bin/python scripts/svm_cost_parts.py [--tables T.exr] [--variants svm,before] [--repeat 3]
 """
 import argparse
 import contextlib
