@@ -685,24 +685,26 @@ def _half_to_ab(g, wo, wi):
 
 
 def _log_mean(g, v0, v1):
-    """bake/core/tables.py _log_mean: (v1 - v0) / log(v1 / v0), its series where they are close."""
+    """bake/core/tables.py _log_mean: (v1 - v0) / log(v1 / v0), its series where they are close;
+    and log(v1 / v0) (the piece's rate)."""
     r = g.math('DIVIDE', v1, v0)
     lr = g.math('LOGARITHM', r, math.e)
     small = g.math('LESS_THAN', g.math('ABSOLUTE', lr), LOG_MEAN_SERIES)
     exact = g.math('MULTIPLY', v0, g.math('DIVIDE', g.math('SUBTRACT', r, 1.0), lr))
     series = g.math('MULTIPLY_ADD', lr, g.math('MULTIPLY_ADD', lr, 1.0 / 6.0, 0.5), 1.0)
-    return g.select(small, g.math('MULTIPLY', v0, series), exact)
+    return g.select(small, g.math('MULTIPLY', v0, series), exact), lr
 
 
 def _profile(g, nodes):
     """A cell's blended profile along one axis: its node values, the pieces' masses and their
-    total (bake/core/tables.py profile_parts)."""
+    total (bake/core/tables.py profile_parts), and the pieces' log rates."""
     n = len(nodes) - 1
-    masses = [g.math('MULTIPLY', _log_mean(g, nodes[k], nodes[k + 1]), 1.0 / n) for k in range(n)]
+    means, rates = zip(*(_log_mean(g, nodes[k], nodes[k + 1]) for k in range(n)))
+    masses = [g.math('MULTIPLY', mean, 1.0 / n) for mean in means]
     total = masses[0]
     for mk in masses[1:]:
         total = g.math('ADD', total, mk)
-    return nodes, masses, total
+    return nodes, masses, total, rates
 
 
 def _pick(g, steps, values):
@@ -713,16 +715,16 @@ def _pick(g, steps, values):
     return out
 
 
-def _profile_piece(g, steps, nodes):
-    """The piece's end values and its log rate."""
-    v0, v1 = _pick(g, steps, nodes[:-1]), _pick(g, steps, nodes[1:])
-    return v0, v1, g.math('LOGARITHM', g.math('DIVIDE', v1, v0), math.e)
+def _profile_piece(g, steps, nodes, rates):
+    """The piece's start value and its log rate (the one _profile computed: the same value as
+    log(v1 / v0) of the picked end values, without a second logarithm)."""
+    return _pick(g, steps, nodes[:-1]), _pick(g, steps, rates)
 
 
 def _profile_sample(g, u, profile):
     """bake/core/tables.py profile_sample: the place of u and the profile's density there (from
     the piece found: its start value, rate and place t)."""
-    nodes, masses, total = profile
+    nodes, masses, total, rates = profile
     n = len(masses)
     target = g.math('MULTIPLY', u, total)
     cum, steps = [], []
@@ -733,7 +735,7 @@ def _profile_sample(g, u, profile):
         c = g.math('ADD', c, masses[k])
     prev = _pick(g, steps, [0.0] + cum)
     mk = _pick(g, steps, masses)
-    v0, v1, rate = _profile_piece(g, steps, nodes)
+    v0, rate = _profile_piece(g, steps, nodes, rates)
     t, _ = _exp_inverse_cdf(g, g.math('DIVIDE', g.math('SUBTRACT', target, prev), mk, clamp=True), rate)
     k = steps[0]
     for step in steps[1:]:
@@ -744,7 +746,7 @@ def _profile_sample(g, u, profile):
 
 def _profile_density(g, x, profile):
     """bake/core/tables.py profile_density."""
-    nodes, masses, total = profile
+    nodes, masses, total, rates = profile
     n = len(masses)
     s = g.math('MULTIPLY', x, float(n))
     steps = [g.math('SUBTRACT', 1.0, g.math('LESS_THAN', s, float(k))) for k in range(1, n)]
@@ -752,7 +754,7 @@ def _profile_density(g, x, profile):
     for step in steps[1:]:
         k = g.math('ADD', k, step)
     t = g.math('SUBTRACT', s, k, clamp=True)
-    v0, v1, rate = _profile_piece(g, steps, nodes)
+    v0, rate = _profile_piece(g, steps, nodes, rates)
     return g.math('DIVIDE', g.math('MULTIPLY', v0, g.math('EXPONENT', g.math('MULTIPLY', t, rate))), total)
 
 
@@ -1663,6 +1665,8 @@ def _cv_fcos_group(lobes, tilted=None):
         mask = g.math('MULTIPLY', g.math('MULTIPLY', g.math('GREATER_THAN', li[2], 0.0), g.math('GREATER_THAN', lo[2], 0.0)),
                       g.math('GREATER_THAN', cos_o, 0.0))
         return mask, lh, li, lo
+    def square(x):      # x x, not a Power node: pow costs ~4x a multiply in Cycles' SVM (and a constant 2)
+        return g.math('MULTIPLY', x, x)
     lobe = []
     for j in range(lobes):
         aniso = j < 3
@@ -1679,14 +1683,14 @@ def _cv_fcos_group(lobes, tilted=None):
             ay = g.math('MINIMUM', g.select(neg, g.math('MULTIPLY', alpha, g.math('ADD', 1.0, a)),
                                             g.math('DIVIDE', alpha, g.math('SUBTRACT', 1.0, a))), 1.0)
             hx, hy, hz = lh
-            q = g.math('ADD', g.math('ADD', g.math('POWER', g.math('DIVIDE', hx, ax), 2.0),
-                                      g.math('POWER', g.math('DIVIDE', hy, ay), 2.0)), g.math('MULTIPLY', hz, hz))
+            q = g.math('ADD', g.math('ADD', square(g.math('DIVIDE', hx, ax)), square(g.math('DIVIDE', hy, ay))),
+                       g.math('MULTIPLY', hz, hz))
             ndf = g.math('DIVIDE', 1.0 / math.pi,
                          g.math('MULTIPLY', g.math('MULTIPLY', ax, ay), g.math('MULTIPLY', q, q)))
 
             def lam(v, ax=ax, ay=ay):    # bsdf_lambda<GGX>: 0.5 (sqrt(1 + (ax^2 vx^2 + ay^2 vy^2) / vz^2) - 1)
-                t2 = g.math('DIVIDE', g.math('ADD', g.math('POWER', g.math('MULTIPLY', ax, v[0]), 2.0),
-                                              g.math('POWER', g.math('MULTIPLY', ay, v[1]), 2.0)),
+                t2 = g.math('DIVIDE', g.math('ADD', square(g.math('MULTIPLY', ax, v[0])),
+                                              square(g.math('MULTIPLY', ay, v[1]))),
                             g.math('MULTIPLY', v[2], v[2]))
                 return g.math('MULTIPLY', g.math('SUBTRACT', g.math('SQRT', g.math('ADD', t2, 1.0)), 1.0), 0.5)
         else:

@@ -1,0 +1,191 @@
+"""Issue 52: where the SVM back end's time per sample goes. The add-on's SVM graph (blender_addon/svm.py)
+built with parts switched off, side by side with Principled and the fit (OSL off), per scene.
+
+Variants (the graph patched while the node builds it; some render a different, even biased, image:
+they measure cost, not a look):
+  svm        the node's SVM back end as is
+  -match     the control variate unmatched (svm._matching False: the baked betas, no match lookups)
+  fcv0       f_cv in the portal's rest a constant 0 (the in-graph f_cv's cost; biased)
+  untilted   the fit's closures and f_cv untilted (svm.CV_TILTS False)
+  -cv        no control variate (the portal mixture alone)
+  -mix       no mixture (world None: the tables' sample; the control variate then off)
+  sampler    the tables' sampler and a portal alone (world None, no control variate)
+  before     the graph as /work/main's blender_addon/svm.py builds it (a cut's saving, side by side)
+  portal     a Ray Portal of constant colour toward the mirror direction: a portal bounce's rays
+             and a trivial graph (the floor of any portal back end)
+One Cycles thread (with two, a worker waiting for the other counted as CPU time). Per scene (constant
+world, the acceptance's HDRI, studio lamps) and variant: CPU time of this process per spp from the
+fastest of --inner renders at --lo and at --hi spp (each render's fixed cost cancels), the best of
+--repeat interleaved rounds (the machine is shared); and the graph's node count (groups expanded,
+every branch: the SVM interpreter runs only the branch taken). A graph without the node named
+svm.FILM is not taken for the SVM back end (node._has_svm: the node renders the fit instead).
+
+    .venv/bin/python scripts/svm_cost_parts.py [--tables T.exr] [--variants svm,before] [--repeat 3]
+"""
+import argparse
+import contextlib
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "scripts"))
+
+import backend_cost  # noqa: E402
+import cycles_acceptance as ca  # noqa: E402
+import cycles_scenes as cs  # noqa: E402
+from bake.export.closure_fit import ensure_fit, load_fit  # noqa: E402
+
+TABLES = Path("/work/notes/s37/out/tables/cm_military_green.exr")
+BUILT = []      # the SVM back end's output socket, as built
+VARIANTS = ("principled", "fit", "svm", "-match", "fcv0", "untilted", "-cv", "-mix", "sampler", "portal")
+
+
+@contextlib.contextmanager
+def patched(variant):
+    """The svm module with the variant's part switched off while the graph is built and rendered."""
+    from blender_addon import svm
+    saved = dict(vars(svm))
+    build = svm.build_svm_sampler
+    BUILT.clear()
+
+    def without_world(tree, texture, tangent=None, location=(0.0, 0.0), world=None, cv=None):
+        return build(tree, texture, tangent, location=location, cv=None if variant == "sampler" else cv)
+
+    def portal_only(tree, texture, tangent=None, location=(0.0, 0.0), world=None, cv=None):
+        g = svm._Graph(tree, location)
+        g.node("ShaderNodeCombineXYZ", name=svm.FILM)      # (the node's mark of an SVM graph: node._has_svm)
+        geometry = g.node("ShaderNodeNewGeometry")
+        d = g.vmath('REFLECT', g.scale(geometry.outputs["Incoming"], -1.0), geometry.outputs["Normal"])
+        portal = g.node("ShaderNodeBsdfRayPortal")
+        g.set(portal.inputs["Color"], (0.5, 0.5, 0.5, 1.0))
+        g.set(portal.inputs["Position"], geometry.outputs["Position"])
+        g.set(portal.inputs["Direction"], d)
+        return portal.outputs["BSDF"]
+    try:
+        if variant == "-match":
+            svm._matching = lambda mix, matchable: False
+        elif variant == "fcv0":
+            svm._cv_fcos = lambda g, cv, wi, n, d: (0.0, 0.0, 0.0)
+        elif variant == "untilted":
+            svm.CV_TILTS = False
+        elif variant == "-cv":
+            svm._cv_switched = lambda *args, **kw: None
+        elif variant in ("-mix", "sampler"):
+            svm.build_svm_sampler = without_world
+        elif variant == "portal":
+            svm.build_svm_sampler = portal_only
+        elif variant == "before":
+            svm.build_svm_sampler = _before().build_svm_sampler
+        inner = svm.build_svm_sampler
+
+        def recorded(*args, **kw):
+            BUILT.append(inner(*args, **kw))
+            return BUILT[-1]
+        svm.build_svm_sampler = recorded
+        yield
+    finally:
+        for key, value in saved.items():
+            setattr(svm, key, value)
+
+
+def _before(path=Path("/work/main/blender_addon/svm.py")):
+    """The svm module of another checkout (default: the main one), as blender_addon.svm_before."""
+    import importlib.util
+    name = "blender_addon.svm_before"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, path)
+        sys.modules[name] = module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+def graph_nodes(socket):
+    """Nodes (groups expanded) upstream of the SVM back end's output socket, itself included."""
+
+    def upstream(socket, seen, path=()):
+        # nodes feeding `socket` (a node input), group internals expanded
+        for link in socket.links:
+            node = link.from_node
+            key = (path, node.name)
+            if key in seen:
+                continue
+            seen.add(key)
+            if node.bl_idname == "ShaderNodeGroup" and node.node_tree is not None:
+                groups.add(key)
+                out = next(n for n in node.node_tree.nodes if n.bl_idname == "NodeGroupOutput")
+                inner = set()
+                for s in out.inputs:
+                    upstream(s, inner, path + (node.name,))
+                seen |= inner
+                for s in node.inputs:
+                    upstream(s, seen, path)
+            elif node.bl_idname == "NodeGroupInput":
+                pass
+            else:
+                for s in node.inputs:
+                    upstream(s, seen, path)
+        return seen
+
+    seen, groups = {((), socket.node.name)}, set()
+    for s in socket.node.inputs:
+        upstream(s, seen)
+    return len({k for k in seen - groups if not k[1].startswith(("Group Input", "Group Output", "Reroute"))})
+
+
+def per_spp(kind, variant, tables, fit, setup, size, lo, hi, inner):
+    with patched(variant):
+        sc, mat = ca.cycles_scene(kind, tables.stem, tables, None, size, lo, fit=fit, setup=setup, native=True)
+        sc.render.threads = 1           # one Cycles thread: no worker waiting for another counted as CPU
+        cs.render(sc)                           # warm: compilation, world map, textures
+        nodes = graph_nodes(BUILT[-1]) if kind == "svm" and BUILT else 0
+        secs = {lo: [], hi: []}
+        for _ in range(inner):
+            for spp in (lo, hi):
+                sc.cycles.samples = spp
+                t0 = time.process_time()
+                cs.render(sc)
+                secs[spp].append(time.process_time() - t0)
+        return (min(secs[hi]) - min(secs[lo])) / (hi - lo), nodes
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--tables", type=Path, default=TABLES)
+    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--scenes", default="constant,hdri,studio")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--size", type=int, default=32)
+    ap.add_argument("--inner", type=int, default=3, help="renders at each spp per round (the fastest counts)")
+    ap.add_argument("--lo", type=int, default=16)
+    ap.add_argument("--hi", type=int, default=400)
+    args = ap.parse_args(argv)
+    fit = load_fit(ensure_fit(args.tables))
+    scenes = {k: v for k, v in backend_cost.setups().items() if k in args.scenes.split(",")}
+    variants = args.variants.split(",")
+    best, nodes = {}, {}
+    for r in range(args.repeat):
+        for scene, setup in scenes.items():
+            for v in variants:
+                kind = v if v in ("principled", "fit") else "svm"
+                t, n = per_spp(kind, v, args.tables, fit, setup, args.size, args.lo, args.hi, args.inner)
+                best[scene, v] = min(best.get((scene, v), float("inf")), t)
+                nodes[scene, v] = n
+                print(f"round {r} {scene} {v}: {1e3 * t:.2f} ms/spp ({n} nodes)", flush=True)
+    print(f"{args.tables.stem}, {args.size} px sphere, CPU ms per spp (this process, all threads) from "
+          f"{args.lo} and {args.hi} spp, best of {args.repeat} interleaved rounds; ratio to Principled; "
+          f"graph nodes upstream of the output (groups expanded)")
+    print("| variant | " + " | ".join(scenes) + " |")
+    print("|---" * (len(scenes) + 1) + "|")
+    for v in variants:
+        cells = []
+        for scene in scenes:
+            t, p = best[scene, v], best[scene, "principled"] if (scene, "principled") in best else float("nan")
+            cells.append(f"{1e3 * t:.2f} ({t / p:.2f}x{', %d n' % nodes[scene, v] if nodes[scene, v] else ''})")
+        print(f"| {v} | " + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    main()
