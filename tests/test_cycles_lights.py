@@ -921,7 +921,9 @@ def test_svm_under_lamps_is_unbiased_past_a_diffuse_bounce(gold):
 
 def test_svm_past_a_diffuse_bounce_ignores_filter_glossy_and_caustics(gold):
     """The wall scene (_wall_scene): with Filter Glossy 0 instead of Blender's 1.0, or Caustics
-    off, the SVM back end renders the same image, sample for sample (same seeds): the node seen
+    off, the SVM back end renders the same wall, sample for sample (same seeds; the sphere seen
+    by the camera changes with Caustics off: node.caustics_gate turns its control variate off,
+    test_svm_control_variate_is_off_with_caustics_off): the node seen
     past the wall's diffuse bounce is its portal alone (svm._cv_switched: the control variate's
     closures only on camera rays, which Cycles neither blurs nor filters), so neither setting
     reaches it. With the control variate there too its closures would be blurred or dropped
@@ -940,8 +942,8 @@ def test_svm_past_a_diffuse_bounce_ignores_filter_glossy_and_caustics(gold):
         setattr(sc.cycles, name, keep)
         rel = abs(other[:, around].mean() - base[:, around].mean()) / base[:, around].mean()
         print(f"{name} {value}: the wall's mean changes by {rel:.2e} (relative); max pixel difference "
-              f"{np.abs(other - base).max():.2e}")
-        assert rel < 1e-5 and np.allclose(other, base, rtol=1e-4, atol=1e-6), (name, rel)
+              f"{np.abs(other - base)[:, around].max():.2e}")
+        assert rel < 1e-5 and np.allclose(other[:, around], base[:, around], rtol=1e-4, atol=1e-6), (name, rel)
     # Clamping does reach it (node.clamp_note): the status says so under Blender's Clamp Indirect 10
     assert lb.node_state(node, sc).detail == ""
     sc.cycles.sample_clamp_indirect = 10.0
