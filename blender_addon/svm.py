@@ -1534,7 +1534,10 @@ def _cv_switched(g, cv, world, matched, match_lamp=False):
     are (Filter Glossy, on by default, blurs the GGX lobes; Caustics off drops them), so f_cv as
     rendered there is not the f_cv the portal's rest subtracts; the portal alone is exact there.
     A ray a portal continued at a camera-hit point is still a camera ray, neither blurred nor
-    filtered (Cycles path_state_next: the portal adds only the transparent flag)."""
+    filtered (Cycles path_state_next: the portal adds only the transparent flag). The closures'
+    own bounce is a diffuse or glossy one, so what they continue to is blurred or filtered,
+    unlike what the portal continues to: node.caustics_gate turns the control variate off when
+    Caustics are off (measured -8.9 % without); Filter Glossy's +2.1 % there is kept."""
     node = g.node("ShaderNodeValue", name=CV, label=CV)
     node.outputs[0].default_value = _cv_value(world)
     node["flowbsdf_light"] = int(matched)

@@ -47,7 +47,13 @@ largest pixel; OSL's and SVM's sphere means agree (both unbiased for the baked B
 
 Back ends render as a user gets them: OSL with Open Shading Language on, the SVM graph, the
 fit, Principled and Diffuse with it off (Blender's default, SVM). Cycles settings: those of
-tests/cycles_scenes.reset (blur_glossy 0, no clamping, 64 bounces...), recorded in the report.
+tests/cycles_scenes.reset (blur_glossy 0, no clamping, 64 bounces...), recorded in the report;
+--settings blender: Blender's factory render settings instead (read from a factory scene:
+Filter Glossy 1, 12/4/4 bounces, 8 transparent, Clamp Indirect 10, adaptive sampling...) but
+denoising off and the box pixel filter kept (the tracer's pixels; the SVM graph and the OSL
+shader take hashed u there, as under the default Blackman-Harris filter: implies --film-u off).
+With adaptive sampling on, time per spp is not what an equal-time render costs: each back
+end's equal-time render's own CPU seconds are in the report.
 
 Report (--out): "Equal time" tables per (scene, material) and back end: time per spp vs
 Principled, equal-time spp x seeds, MSE vs file and vs baked (bias^2 + noise) and each MSE's
@@ -165,6 +171,30 @@ def setups(hdri_path, sky_path):
     return {"hdri": env(hdri_path), "sky": env(sky_path), "studio": studio, "truesky": truesky}
 
 
+# Blender's factory render settings --settings blender takes (blender_settings), all but the
+# pixel filter, denoising, device, seed and threads (the comparison's own)
+FACTORY = ("max_bounces", "diffuse_bounces", "glossy_bounces", "transmission_bounces", "volume_bounces",
+           "transparent_max_bounces", "blur_glossy", "caustics_reflective", "caustics_refractive",
+           "sample_clamp_direct", "sample_clamp_indirect", "use_light_tree", "light_sampling_threshold",
+           "use_adaptive_sampling", "adaptive_threshold", "adaptive_min_samples", "sampling_pattern")
+
+
+def blender_settings():
+    """{setting: value} of FACTORY in a factory scene (reads the factory settings: call first)."""
+    import bpy
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    return {k: getattr(bpy.context.scene.cycles, k) for k in FACTORY}
+
+
+def _with_settings(setup, settings):
+    def with_settings(sc):
+        for k, v in settings.items():
+            setattr(sc.cycles, k, v)
+        sc.cycles.use_denoising = False
+        setup(sc)
+    return with_settings
+
+
 def _film_off(setup):
     def film_off(sc):
         from blender_addon import node as lb
@@ -223,6 +253,7 @@ class Case:
             t0, c0 = time.perf_counter(), time.process_time()
             imgs.append(cs.render(sc))
             secs.append((time.perf_counter() - t0, time.process_time() - c0))
+            log(f"{self.tag()} {kind} {spp} spp seed {seed}: {secs[-1][0]:.1f} s wall, {secs[-1][1]:.1f} s CPU")
         if kind == "osl_fixed" and not self.carry.with_name("." + self.carry.name).is_file():
             raise RuntimeError(f"{self.tag()} osl_fixed: the carry texture was not aside during the renders")
         return np.array(imgs), secs
@@ -415,6 +446,7 @@ def run_case(case):
         row[kind] = dict(vs[primary], vs=vs)
         row[kind]["per_sample_var"] = row[kind]["noise"] * spp[kind]
         row[kind]["render_s"] = float(np.mean([w for w, _ in secs])) if secs else None
+        row[kind]["render_cpu_s"] = float(np.mean([c for _, c in secs])) if secs else None
         for w, e in vs.items():
             log(f"{case.tag()} {kind} {spp[kind]} spp x {seeds} vs {w}: MSE {e['mse']:.3e} +- {e['mse_se']:.1e} "
                 f"(noise {e['noise']:.2e} + bias2 {e['bias2']:.2e}), rms z {e['rms_z']:.2f}, "
@@ -477,10 +509,12 @@ def equal_time_tables(rows, args):
            "'OSL fixed cells': the OSL back end with the carry texture moved aside (what it renders without the "
            "carried blend). Against 'baked' (the CARRIED tables' eval) only OSL carried is unbiased; OSL fixed "
            "and SVM render the fixed cells, the fit its closures.", "",
-           "Cycles settings (tests/cycles_scenes.reset; Blender's defaults differ, e.g. blur_glossy 1, "
-           "light tree on): " + (", ".join(f"{k} {v}" for k, v in settings.items()) if settings else "?") + ".", ""]
-    head = "| scene | material | back end | time/spp vs Pr | spp x seeds |"
-    sep = "|---|---|---|---|---|"
+           ("Cycles settings (Blender's factory render settings but denoising off and the box filter, hashed u): "
+            if args.settings == "blender" else
+            "Cycles settings (tests/cycles_scenes.reset; Blender's defaults differ, e.g. blur_glossy 1, "
+            "light tree on): ") + (", ".join(f"{k} {v}" for k, v in settings.items()) if settings else "?") + ".", ""]
+    head = "| scene | material | back end | time/spp vs Pr | spp x seeds | CPU s per render |"
+    sep = "|---|---|---|---|---|---|"
     for w in refs:
         head += f" MSE vs {w} +- SE (bias^2 + noise) | / best ({w}) |"
         sep += "---|---|"
@@ -491,7 +525,7 @@ def equal_time_tables(rows, args):
         for k in kinds:
             seeds = r[k]["seeds"]
             line = (f"| {r['scene']} | {r['name']} | {LABEL[k]} | {r['per_spp'][k] / r['per_spp']['principled']:.2f} | "
-                    f"{r['spp'][k]} x {seeds} |")
+                    f"{r['spp'][k]} x {seeds} | {r[k].get('render_cpu_s') or float('nan'):.1f} |")
             for w in refs:
                 e = r[k]["vs"].get(w)
                 if e is None:
@@ -652,6 +686,9 @@ def main(argv=None):
     ap.add_argument("--film-u", choices=("on", "off"), default="on",
                     help="the scene's 'Stratify camera samples' (off: hashed u, what the SVM graph takes under "
                          "Blender's default Blackman-Harris filter; these scenes use the box filter to match the tracer)")
+    ap.add_argument("--settings", choices=("tests", "blender"), default="tests",
+                    help="Cycles render settings: the tests' (cycles_scenes.reset) or Blender's factory ones "
+                         "(denoising off, box filter kept, hashed u)")
     ap.add_argument("--tables-dir", default=None, help="use <dir>/<name>.exr when present (else draft tables)")
     ap.add_argument("--reuse", action="store_true", help="reuse saved renders, references and timings")
     ap.add_argument("--out", default=str(ROOT / "out" / "lights_acceptance.md"))
@@ -663,6 +700,7 @@ def main(argv=None):
     unknown = set(args.kinds) - set(KINDS)
     if unknown:
         ap.error(f"unknown kinds {sorted(unknown)}: {', '.join(KINDS)}")
+    factory = blender_settings() if args.settings == "blender" else None
     started = time.time()
     work = Path(args.work_dir)
     work.mkdir(parents=True, exist_ok=True)
@@ -674,7 +712,9 @@ def main(argv=None):
     if {"sky", "truesky"} & set(scenes):
         sky = sky_image(work / f"sky_{args.sky_res[0]}x{args.sky_res[1]}.exr", *args.sky_res, args.sky_spp)
     setup = setups(hdri, sky)
-    if args.film_u == "off":
+    if factory is not None:
+        setup = {k: _with_settings(v, factory) for k, v in setup.items()}
+    if args.film_u == "off" or factory is not None:
         setup = {k: _film_off(v) for k, v in setup.items()}
     tables = {n: draft_tables(n, work / "tables", args.tables_dir) for n in args.names}
     rows, ff_rows, geom = [], [], {}
