@@ -143,8 +143,9 @@ class BakeProgress(Step):
     # busy 2-core machine, load 7-24): placements 0.12-0.15 (cm_military_green, 45 angles, three
     # bakes) and ~0.19 (paper_white, 21), the reference draws before them 0.15-0.3; the build
     # 0.06-0.12. The placements an isotropic material compares by default (tabulate._between_bins,
-    # placement "rule": the splits at 55 and 75 deg, then the better one with groups of their own
-    # resolutions): 2-3 on the shared files (5-6 with the full comparison).
+    # placement "compare", the full comparison): 5-6 on the shared files (2-3 with placement "rule");
+    # counted as 3 until the stage's first line says how many (then its own count: an estimate
+    # that is low by 2-3 placements before that line; the rule's count, which the tests' numbers use).
     PLACEMENT_COST = 0.15
     ISO_PLACEMENTS = 3
     BUILD_COST = 0.1

@@ -1073,7 +1073,7 @@ def test_planner_gives_layout_groups_their_own_resolutions(monkeypatch):
 
 
 def test_placement_rule_keeps_what_the_full_comparison_keeps():
-    """plan_tables' default placement="rule" compares only the layout groups split nearest
+    """plan_tables' placement="rule" compares only the layout groups split nearest
     tabulate.RULE_SPLITS_DEG (55 and 75 deg) and the better one's groups of their own resolutions
     (on the ten shared files the full comparison kept one of those or a near-tie:
     docs/placements.md). On GlossAtGrazing (the handover at 55-65 deg) the full comparison keeps

@@ -1078,7 +1078,7 @@ def lobe_width_of(material, ideal):
 def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio=1.0, resolution=None,
                 first_bins=6, theta_max_deg=89.9, min_gap_deg=0.2, samples=1 << 14, lobe_width="auto",
                 ideal_resolution=256, log=None, phi_count="auto", coords="auto", blend="fixed",
-                carry_flags=False, placement="rule", **options):
+                carry_flags=False, placement="compare", **options):
     """Tables with only the resolution and incident bins this material needs.
 
     The probes build tables from the ideal tabulation's points (`ideal`: the plan depends on
@@ -1127,9 +1127,11 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     one typically closest to the ideal at the bins and between them is kept (_between_bins;
     tables.meta["window"], ["groups"]); the best split is also tried with the lower group at
     coarser cells and the memory it frees spent above (MixedTables; meta["resolution"] then lists
-    both). The interval probes above pool the pair alone. placement: "rule" (default) compares,
-    from 6 bins on, only the groups split nearest RULE_SPLITS_DEG (and the better one's groups of
-    their own resolutions); "compare" every candidate (the full comparison the rule was decided from).
+    both). The interval probes above pool the pair alone. placement: "compare" (default) every
+    candidate; "rule" from 6 bins on only the groups split nearest RULE_SPLITS_DEG (and the better
+    one's groups of their own resolutions): 2-3 placements built instead of 5-6, the same tables
+    where the full comparison keeps one of those, but on near-ties it loses rv at single angles
+    (satin_rosaline 1.24x at theta_i 0, vch_golden_yellow 2.01x at 60: RULE_SPLITS_DEG).
 
     blend: how the tables will be sampled between bins, which the probes measure: "fixed" (Tables:
     at fixed cells) or "carried" (an isotropic RGL file's tables carried along its own coordinates,
@@ -1463,7 +1465,7 @@ LAYOUT_WINDOWS = (1, None)
 # (default Final plans, typical excess: 1.03-1.31x where the kept placement had 1.02-1.22x).
 POLAR_WINDOWS = (None,)
 GROUP_SPLITS_DEG = (55.0, 65.0, 75.0)
-# The placements plan_tables compares by default (placement="rule"; from 6 bins on, where layout
+# The placements plan_tables(placement="rule") compares (from 6 bins on, where layout
 # groups are tried): two layout groups split at the planned bins nearest RULE_SPLITS_DEG, one layout
 # each, then the better split with groups of their own resolutions. The full comparison
 # (placement="compare": also one layout for all bins, the neighbours' layouts over wo, the split
@@ -1472,6 +1474,10 @@ GROUP_SPLITS_DEG = (55.0, 65.0, 75.0)
 # these on six, and on the other four a near-tie of them (typical excess within 0.01:
 # docs/placements.md); the split at 55 deg alone lost rv at single angles where the full
 # comparison kept the one at 75 (cm_military_green 85 deg +12 %, colodur_napoli_4f +26 %).
+# Not the default: on two near-tie files the rule's tables lost rv at single angles against the
+# full comparison's (rv over the ideal's, theta_i 0/30/60/75/85, default Final bakes side by side,
+# quiet: satin_rosaline 1.24/1.11/1.11/0.84/0.67x, vch_golden_yellow 1.20/0.92/2.01/1.03/0.85x;
+# paper_white and cm_military_green byte-identical) for ~10 % of the bake's time.
 RULE_SPLITS_DEG = (55.0, 75.0)
 
 
@@ -1514,7 +1520,7 @@ def _carrier(material):
 
 
 def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, log, memory_budget, extend,
-                  carry=lambda tables: tables, placement="rule"):
+                  carry=lambda tables: tables, placement="compare"):
     """(window, bins, resolution (one, or one per group), their tables from the ideal's points;
     None when not compared): of the ways to place cells between the planned bins, the one whose
     tables are typically closest to the ideal over the bins and their intervals' midpoints: the
