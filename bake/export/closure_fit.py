@@ -101,6 +101,7 @@ LOBES = 4           # GGX lobes; the first VIEW_ALIGNED with the view's tangent 
 VIEW_ALIGNED = 3
 ALPHAS = np.geomspace(0.002, 1.0, 37)                 # alpha = r^2, Cycles' roughness r <= 1
 ANISOTROPY = np.round(np.linspace(-0.4, 0.8, 13), 6)  # Cycles' Anisotropy input; 0 at index 4
+ISO = int(np.argmin(np.abs(ANISOTROPY)))              # that index: an isotropic lobe
 PULL = 0.02         # the weights' pull toward the previous knot's (_Knot.solve), relative to the Gram
 STEP_COST = 0.004   # added to the relative L1 per grid step a lobe of all the albedo moves (_descend)
 STIFF = 5.0         # _next_knot's stiffer descent: STIFF x STEP_COST
@@ -600,10 +601,9 @@ def _descend(knot, lobes, aniso, prev=None, sweeps=2, step_cost=STEP_COST, shape
 def _first_knot(knot, view_aligned):
     """Normal view: isotropic lobes chosen greedily over the whole alpha grid, then refined by
     coordinate descent over it, the view-aligned ones' anisotropy too (no tilts here)."""
-    zero = int(np.argmin(np.abs(ANISOTROPY)))
     lobes = [(-1, 0, _tilt_zero(True))]
     for _ in range(LOBES):
-        sets = [lobes + [(i, zero, _tilt_zero(False))] for i in range(len(ALPHAS))]
+        sets = [lobes + [(i, ISO, _tilt_zero(False))] for i in range(len(ALPHAS))]
         lobes = sets[int(np.argmin(knot.solve(sets)[1]))]
     return _descend(knot, lobes, aniso=view_aligned)
 
@@ -649,12 +649,11 @@ def _isotropic(knot, lobes, prev):
     """(lobes, weights) of the knot's EEVEE fit (module docstring): the fit's `lobes` made
     isotropic, each formerly anisotropic lobe's alpha the best within EEVEE_REACH steps of
     its own (in turn, the others kept); `prev` the previous knot's EEVEE weights (or None)."""
-    zero = int(np.argmin(np.abs(ANISOTROPY)))
-    iso = [lobes[0]] + [(p[0], zero, p[2]) for p in lobes[1:]]
+    iso = [lobes[0]] + [(p[0], ISO, p[2]) for p in lobes[1:]]
     for j, p in enumerate(lobes[1:], 1):
-        if p[1] == zero:
+        if p[1] == ISO:
             continue
-        sets = [iso[:j] + [(i, zero, p[2])] + iso[j + 1:]
+        sets = [iso[:j] + [(i, ISO, p[2])] + iso[j + 1:]
                 for i in range(max(p[0] - EEVEE_REACH, 0), min(p[0] + EEVEE_REACH, len(ALPHAS) - 1) + 1)]
         iso = sets[int(np.argmin(knot.solve(sets, prev)[1]))]
     return iso, knot.solve([iso], prev, irls=4)[0][0]
