@@ -790,9 +790,7 @@ def upgrade(tree):
     script = tree.nodes.get(SCRIPT)
     stale_osl = osl_compiler_available() and (script is None or script.get("flowbsdf_src") != _source_hash())
     missing_svm = svm_available() and not _has_svm(tree) and Path(info["tables"]).is_file()
-    # a fit of an older version (made by an older add-on): refit from the tables where they are
-    stale_fit = (info.get("has_fit") and info.get("fit_version", 0) != FIT_VERSION and Path(info["tables"]).is_file()
-                 and _bake_mod("export.closure_fit") is not None)
+    stale_fit = _stale_fit(tree)
     if not (stale_osl or missing_svm or stale_fit):
         return False
     fit = Path(info["fit"]) if info.get("fit") and not stale_fit else None
@@ -803,6 +801,97 @@ def upgrade(tree):
                 if n.bl_idname == "ShaderNodeGroup" and n.node_tree == tree:
                     _wire_outputs(material.node_tree, n)
     return True
+
+
+def _stale_fit(tree):
+    """Whether the group's fit is of an older version (made by an older add-on) and can be
+    refit here: its tables are at hand and the bake module imports."""
+    info = _info(tree)
+    return bool(info.get("has_fit") and info.get("fit_version", 0) != FIT_VERSION and info.get("tables")
+                and Path(info["tables"]).is_file() and _bake_mod("export.closure_fit") is not None)
+
+
+# ------------------------------------------------------------------------------ refits after a file opens
+
+# Opening a .blend whose fits an older add-on made refits each from its tables (~5 s per
+# material on 2 idle cores). In the UI that runs in a thread, the older fit rendering meanwhile
+# (every readable version renders), so a file with many materials opens at once; each group is
+# rebuilt as its fit is written, and a final render waits for the rest (render_pre). Without a
+# UI (blender --background, a farm's render) load_post refits before anything renders.
+_refit = {"thread": None, "tables": [], "done": set(), "errors": {}}
+
+
+def refit_in_thread():
+    """Whether refits after a file opens run in a thread (the UI) rather than in load_post."""
+    return not bpy.app.background
+
+
+def _refit_worker(tables, done, errors):
+    closure_fit = _bake_mod("export.closure_fit")
+    for path in tables:
+        try:
+            closure_fit.ensure_fit(path)
+        except Exception as e:      # noqa: BLE001  (the older fit keeps rendering; the status says why)
+            errors[path] = str(e)
+        done.add(path)
+
+
+def refit_later(trees):
+    """Refit the fits of `trees` (stale: `_stale_fit`) in a thread; a timer rebuilds each group
+    once its fit file is written (`refit_poll`)."""
+    import threading
+    tables = list(dict.fromkeys(_info(t)["tables"] for t in trees))
+    if not tables:
+        return
+    finish_refits()         # (a file opened while another's refits ran: those first)
+    done, errors = set(), {}
+    thread = threading.Thread(target=_refit_worker, args=(tables, done, errors), name="FlowBSDF refit", daemon=True)
+    _refit.update(thread=thread, tables=tables, done=done, errors=errors)
+    print(f"FlowBSDF: remaking {len(tables)} closure fit(s) of an older add-on in the background; "
+          "the older fits render until then")
+    thread.start()
+    if not bpy.app.timers.is_registered(refit_poll):
+        bpy.app.timers.register(refit_poll, first_interval=0.5)
+
+
+def refitting(tree):
+    """(done, total) of the refits running when `tree` waits for one, else None."""
+    if _refit["thread"] is None or _info(tree).get("tables") not in _refit["tables"] or not _stale_fit(tree):
+        return None
+    return len(_refit["done"]), len(_refit["tables"])
+
+
+def refit_poll():
+    """Rebuild the groups whose new fit is written (a bpy timer: None stops it)."""
+    done = set(_refit["done"])
+    for tree in list(_trees()):
+        tables = _info(tree).get("tables")
+        if tables in done and _stale_fit(tree):
+            if tables in _refit["errors"]:
+                print(f"FlowBSDF: could not refit {tree.name} (its older fit renders): {_refit['errors'][tables]}")
+                _store(tree, {**_info(tree), "problems": f"refit failed: {_refit['errors'][tables]}"})
+                continue
+            try:
+                upgrade(tree)
+            except Exception as e:      # noqa: BLE001
+                print(f"FlowBSDF: could not rebuild {tree.name} with its new fit: {e}")
+    if len(done) < len(_refit["tables"]):
+        return 0.5
+    _refit["thread"] = None
+    for scene in bpy.data.scenes:
+        sync(scene)
+    return None
+
+
+def finish_refits():
+    """Wait for the refits running and rebuild their groups (before a final render)."""
+    thread = _refit["thread"]
+    if thread is None:
+        return
+    thread.join()
+    refit_poll()
+    if bpy.app.timers.is_registered(refit_poll):
+        bpy.app.timers.unregister(refit_poll)
 
 
 def assign_learned_bsdf(material, name, tables_path, fit_path=None):
@@ -1257,6 +1346,11 @@ def node_state(node, scene=None):
     problems = _info(tree).get("problems")
     if problems and status.backend != "fit":
         status = status._replace(detail="; ".join(p for p in (status.detail, problems) if p))
+    waiting = refitting(tree)
+    if waiting:
+        status = status._replace(detail="; ".join(p for p in (
+            status.detail, f"new closure fit being made ({waiting[0]} of {waiting[1]} done): "
+                           "an older add-on's fit renders until then") if p))
     return status
 
 
@@ -1271,6 +1365,7 @@ def node_status(node, scene=None):
 
 @persistent
 def _on_render_pre(scene, *_):
+    finish_refits()
     sync(scene, refresh=True)
 
 
@@ -1309,7 +1404,11 @@ def _schedule_world(scene):
 
 @persistent
 def _on_load_post(*_):
+    later = [t for t in _trees() if t.library is None and _stale_fit(t)] if refit_in_thread() else []
+    refit_later(later)
     for tree in list(_trees()):
+        if tree in later:
+            continue
         try:
             upgrade(tree)
         except Exception as e:      # noqa: BLE001  (the fit still renders)
@@ -1372,6 +1471,8 @@ def unregister():
     for handlers, fn in _handlers():
         if fn in handlers:
             handlers.remove(fn)
+    if bpy.app.timers.is_registered(refit_poll):        # (a refit's thread only writes its fit file)
+        bpy.app.timers.unregister(refit_poll)
     if hasattr(bpy.types.Scene, SCENE_PROP):
         del bpy.types.Scene.flowbsdf_backend
     if hasattr(bpy.types.Scene, FILM_PROP):

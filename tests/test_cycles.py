@@ -539,13 +539,15 @@ def test_a_group_from_an_older_shader_is_rebuilt_on_load(baked, tmp_path):
     assert not lb.upgrade(tree)
 
 
-@pytest.mark.parametrize("version", [4, 6])
-def test_a_fit_of_an_older_version_is_refit_on_load(baked, tmp_path, version):
+@pytest.mark.parametrize("version,in_thread", [(4, False), (6, True)])
+def test_a_fit_of_an_older_version_is_refit_on_load(baked, tmp_path, monkeypatch, version, in_thread):
     """A .blend made by an add-on whose fit was of another version (FIT_VERSION 4: one
     isotropic lobe; 6: three lobes, no tilts; its match image with it) gets the fit remade from
     its tables when it is opened: the fit file and the group's parameters are the current
     version's, and the match image follows the new fit. (A version 6 fit the node still builds
-    and renders: three Glossy BSDFs, their normals unlinked.)"""
+    and renders: three Glossy BSDFs, their normals unlinked.) Without a UI the refit runs in
+    load_post; in the UI (in_thread) in a thread: the file opens with the older fit rendering
+    and the status saying so, and a final render waits for the new one (render_pre)."""
     import json
     from bake.export import closure_fit
     path = tmp_path / "gold.exr"
@@ -584,8 +586,15 @@ def test_a_fit_of_an_older_version_is_refit_on_load(baked, tmp_path, version):
             n.target = 'ALL'
     name, blend = tree.name, tmp_path / "old.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
-    bpy.ops.wm.open_mainfile(filepath=str(blend))         # load_post -> upgrade
+    monkeypatch.setattr(lb, "refit_in_thread", lambda: in_thread)
+    bpy.ops.wm.open_mainfile(filepath=str(blend))         # load_post -> upgrade (or the thread)
     tree = bpy.data.node_groups[name]
+    if in_thread:
+        assert lb._info(tree)["fit_version"] == version       # opened at once, the older fit rendering
+        node = next(n for n in bpy.data.materials["m"].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
+        assert "new closure fit being made" in lb.node_state(node).detail
+        lb._on_render_pre(bpy.context.scene)
+        assert lb.refitting(tree) is None and "new closure fit" not in lb.node_state(node).detail
     outputs = {n.target: n for n in bpy.data.materials["m"].node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"}
     assert sorted(outputs) == ["CYCLES", "EEVEE"]           # the upgrade wires EEVEE its own output
     assert outputs["EEVEE"].inputs["Surface"].links[0].from_socket.name == lb.EEVEE_OUTPUT
