@@ -582,8 +582,9 @@ def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, plastic, capfd, 
     and sun), and the isotropic one with the mixture and the fit's control variate matched to a
     light (the largest with a control variate: anisotropic tables get none), with 125 of the
     stack's 255 floats held by other values through all of it (110 beside the control
-    variate's graph) renders the image it renders alone; with 250 held, Cycles reports the
-    overflow and renders the material black (so the check can fail). (Measured: at most 146-148
+    variate's graph) renders the image it renders alone; with 250 held (shown on the mixture's
+    graph without the control variate), Cycles reports the overflow and renders the material
+    black (so the check can fail). (Measured: at most 146-148
     held floats fit beside the tables' graph, 134-136 beside the mixture's, 123 beside the
     matched control variate's: its closures' colours and parameters stay alive through the
     branches; 144-146 with the one-lobe fit of FIT_VERSION 4, whose parameters took 15 floats to
@@ -610,6 +611,8 @@ def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, plastic, capfd, 
     out, err = capfd.readouterr()
     assert "out of SVM stack space" not in out + err
     np.testing.assert_allclose(held, alone, rtol=1e-5)     # (two renders alone differ by an ulp too)
+    if (mixture, cv) != (True, False):      # (the check can fail: shown once, on the smallest graph of the default run)
+        return
     overflow = _svm_furnace(svm, texture, 1, n=8, ballast=250, world=world, fit=fit)[0]
     out, err = capfd.readouterr()
     assert "out of SVM stack space" in out + err and np.all(overflow[sphere] == 0)
