@@ -10,7 +10,8 @@ they measure cost, not a look):
   -cv        no control variate (the portal mixture alone)
   -mix       no mixture (world None: the tables' sample; the control variate then off)
   sampler    the tables' sampler and a portal alone (world None, no control variate)
-  before     the graph as /work/main's blender_addon/svm.py builds it (a cut's saving, side by side)
+  before     the graph as /work/main's blender_addon/svm.py (or --before's file) builds it (a cut's
+             saving, side by side; its node groups named apart from this checkout's)
   portal     a Ray Portal of constant colour toward the mirror direction: a portal bounce's rays
              and a trivial graph (the floor of any portal back end)
 One Cycles thread (with two, a worker waiting for the other counted as CPU time). Per scene (constant
@@ -91,14 +92,19 @@ def patched(variant):
             setattr(svm, key, value)
 
 
-def _before(path=Path("/work/main/blender_addon/svm.py")):
-    """The svm module of another checkout (default: the main one), as blender_addon.svm_before."""
+BEFORE = Path("/work/main/blender_addon/svm.py")
+
+
+def _before(path=None):
+    """The svm module of another checkout (default: BEFORE), as blender_addon.svm_before; its node
+    groups get names of their own (a graph of the same GRAPH_VERSION would reuse this checkout's)."""
     import importlib.util
     name = "blender_addon.svm_before"
     if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, path)
+        spec = importlib.util.spec_from_file_location(name, path or BEFORE)
         sys.modules[name] = module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
+        module.GROUP_PREFIX = module.GROUP_PREFIX.rstrip() + " before "
     return sys.modules[name]
 
 
@@ -155,6 +161,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tables", type=Path, default=TABLES)
     ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--before", type=Path, default=BEFORE, help="the svm.py the variant `before` builds with")
     ap.add_argument("--scenes", default="constant,hdri,studio")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--size", type=int, default=32)
@@ -162,6 +169,7 @@ def main(argv=None):
     ap.add_argument("--lo", type=int, default=16)
     ap.add_argument("--hi", type=int, default=400)
     args = ap.parse_args(argv)
+    _before(args.before)
     fit = load_fit(ensure_fit(args.tables))
     scenes = {k: v for k, v in backend_cost.setups().items() if k in args.scenes.split(",")}
     variants = args.variants.split(",")
