@@ -150,7 +150,7 @@ CUTOFF = 1e-5           # Cycles' CLOSURE_WEIGHT_CUTOFF
 K_SMALL = 1e-4          # bake/core/tables.py _SMALL: the in-cell density's small-rate branch
 LOG_MEAN_SERIES = 1e-3  # bake/core/tables.py LOG_MEAN_SERIES: the log mean's series below it
 TANGENT = (1.0, 0.0, 0.0)
-GRAPH_VERSION = 2       # in the node groups' names: a graph built by other code gets new groups
+GRAPH_VERSION = 3       # in the node groups' names: a graph built by other code gets new groups
 GROUP_PREFIX = f"FlowBSDF SVM{GRAPH_VERSION} "
 FILM = "FlowBSDF SVM film"      # a Combine XYZ node per sampler: film_settings
 WORLD = "FlowBSDF SVM world"    # a Combine XYZ node per mixture: (WorldShare, SunShare, SunCos)
@@ -326,16 +326,16 @@ def _record_group(image, alpha):
 
 def _step_group(image, alpha):
     """Group "search step" (branchless binary search): index = Lo + Half; Lo moves there when
-    the record at Base + index x Stride is <= Target."""
+    the record at texture x Base X + index x Stride, y Base Y is <= Target."""
     done, tree = _group(f"{GROUP_PREFIX}search step{' RGBA' if alpha else ' RGB'}: {image.name}",
-                        [("Lo", "Float"), ("Target", "Float"), ("Base", "Vector"), ("Stride", "Vector"),
-                         ("Half", "Float")] + _weight_inputs(alpha), [("Lo", "Float")])
+                        [("Lo", "Float"), ("Target", "Float"), ("Base X", "Float"), ("Base Y", "Float"),
+                         ("Stride", "Float"), ("Half", "Float")] + _weight_inputs(alpha), [("Lo", "Float")])
     if done:
         return done
     g = _Graph(tree)
     inp = g.node("NodeGroupInput").outputs
     index = g.math('ADD', inp["Lo"], inp["Half"])
-    uv = g.vmath('MULTIPLY_ADD', index, inp["Stride"], inp["Base"])
+    uv = g.combine(g.math('MULTIPLY_ADD', index, inp["Stride"], inp["Base X"]), inp["Base Y"])
     weights = {name: inp[name] for name, _ in _weight_inputs(alpha)}
     value = g.group(_record_group(image, alpha), UV=uv, **weights)[0]
     above = g.math('GREATER_THAN', value, inp["Target"])
@@ -346,10 +346,18 @@ def _step_group(image, alpha):
 
 # ------------------------------------------------------------------------------ the sampler
 
+def _key(value):
+    """A socket or a number, as a dictionary key."""
+    return (value.node.name, value.identifier) if isinstance(value, bpy.types.NodeSocket) else value
+
+
 class _Sampler:
     """The sampler's nodes on one SVM texture (layout: bake/export/svm_export.py). `incident` adds
     the bin lookup and blend weights (once per graph), then `sample` and `locate` add the
-    sampler and its inverse (the pdf at a direction)."""
+    sampler and its inverse (the pdf at a direction).
+    A texel's place is a pair (x, y) of texture coordinates (sockets or numbers), each moved by
+    scalar Math and combined into a vector once per texel looked up: a Vector Math node costs
+    Cycles' SVM ~5 scalar ones."""
 
     def __init__(self, g, texture_path, lay=None):
         self.g, self.path = g, texture_path
@@ -358,23 +366,33 @@ class _Sampler:
         self.du = 1.0 / self.lay["width"]
         self.dv = 1.0 / self.lay["height"]
         self.rpt = 4 // self.lay["NB"]          # records per texel: record q at texel q // rpt, slot q % rpt
-        self.offsets = {}
+        self.offsets, self.uvs = {}, {}
         # a cell's quantities (svm_export.CELL_QUANTITIES): mass, the a and b profiles' node values, W
         n = (_svm_export().CELL_QUANTITIES - 4) // 2
         self.on_a, self.on_b, self.on_w = range(1, 1 + n), range(1 + n, 1 + 2 * n), range(1 + 2 * n, 4 + 2 * n)
 
-    def fetch(self, uv):
+    def uv(self, at):
+        """The texel place `at` (x, y) as a vector, made once per place."""
+        key = tuple(map(_key, at))
+        if key not in self.uvs:
+            self.uvs[key] = self.g.combine(*at)
+        return self.uvs[key]
+
+    def fetch(self, at):
         tex = self.g.node("ShaderNodeTexImage", image=self.image, interpolation='Closest', extension='EXTEND')
-        self.g.set(tex.inputs["Vector"], uv)
+        self.g.set(tex.inputs["Vector"], self.uv(at))
         return tex.outputs["Color"], tex.outputs["Alpha"]
 
     def offset(self, base, dx=0.0, dy=0.0):
-        """base + (dx, dy) texels (dy down the image), made once per base and offset."""
-        if not (dx or dy):
-            return base
-        key = (base.node.name, base.identifier, dx, dy)
+        """base + (dx, dy) texels (dy down the image), each coordinate moved once per base and offset."""
+        return tuple(self._moved(c, d) for c, d in zip(base, (dx * self.du, -dy * self.dv)))
+
+    def _moved(self, c, d):
+        if not d:
+            return c
+        key = (_key(c), d)
         if key not in self.offsets:
-            self.offsets[key] = self.g.vmath('ADD', base, (dx * self.du, -dy * self.dv, 0.0))
+            self.offsets[key] = self.g.math('ADD', c, d)
         return self.offsets[key]
 
     def blend(self, q):
@@ -385,11 +403,12 @@ class _Sampler:
     def quantity(self, base, q):
         """Quantity q of the records at texel `base`, blended over the bins."""
         alpha, weights = self.blend(q)
-        return self.g.group(_record_group(self.image, alpha), UV=self.offset(base, q // self.rpt), **weights)[0]
+        return self.g.group(_record_group(self.image, alpha), UV=self.uv(self.offset(base, q // self.rpt)),
+                            **weights)[0]
 
     def at(self, base, index, stride):
         """The texel `index` records of `stride` texels after `base`."""
-        return self.g.vmath('MULTIPLY_ADD', index, (stride * self.du, 0.0, 0.0), base)
+        return self.g.math('MULTIPLY_ADD', index, stride * self.du, base[0]), base[1]
 
     def search(self, lo, target, base, stride, steps, q, last):
         """The last index <= `last` (a socket or a number) whose quantity q is <= target, from
@@ -398,8 +417,8 @@ class _Sampler:
         alpha, weights = self.blend(q)
         base = self.offset(base, q // self.rpt)
         for s in reversed(range(steps)):
-            lo = self.g.group(_step_group(self.image, alpha), Lo=lo, Target=target, Base=base,
-                              Stride=(stride * self.du, 0.0, 0.0), Half=float(2 ** s), **weights)[0]
+            lo = self.g.group(_step_group(self.image, alpha), Lo=lo, Target=target, **{"Base X": base[0]},
+                              **{"Base Y": base[1]}, Stride=stride * self.du, Half=float(2 ** s), **weights)[0]
         return self.g.math('MINIMUM', lo, last)
 
     def guide_lo(self, base, u, count):
@@ -415,7 +434,7 @@ class _Sampler:
         x0, count = guide
         entry = g.math('FLOOR', g.math('MULTIPLY', index_value, float(count)))
         uv_x = g.math('MULTIPLY_ADD', entry, self.du, (x0 + 0.5) * self.du)
-        color, alpha = self.fetch(g.combine(uv_x, 1.0 - 0.5 * self.dv))
+        color, alpha = self.fetch((uv_x, 1.0 - 0.5 * self.dv))
         # [value < t_j] = ceil(clamp(t_j - value, 0, 1)) per channel
         below = g.vmath('CEIL', g.vmath('MAXIMUM', g.vmath('MINIMUM', g.vmath('SUBTRACT', color, value),
                                                             (1.0, 1.0, 1.0)), (0.0, 0.0, 0.0)))
@@ -445,8 +464,8 @@ class _Sampler:
             bcol = g.math('MULTIPLY_ADD', brow, -float(nx), corner)
         else:
             brow, bcol = 0.0, corner
-        self.origin = g.combine(g.math('MULTIPLY_ADD', bcol, bw * self.du, 0.5 * self.du),
-                                g.math('MULTIPLY_ADD', brow, -bh * self.dv, 1.0 - 1.5 * self.dv))
+        self.origin = (g.math('MULTIPLY_ADD', bcol, bw * self.du, 0.5 * self.du),
+                       g.math('MULTIPLY_ADD', brow, -bh * self.dv, 1.0 - 1.5 * self.dv))
         head, head_a = self.fetch(self.origin)
         self.last = (lay["R"] - 1.0, lay["C"] - 1.0) if P > 1 else (g.dot(head, Z), head_a)
         t = s = 0.0
@@ -491,7 +510,8 @@ class _Sampler:
 
     def row(self, i):
         """Texel (0, 1 + i) of the block: table row i's guide, then its records."""
-        return self.g.vmath('MULTIPLY_ADD', i, (0.0, -self.dv, 0.0), self.offset(self.origin, 0, 1))
+        x, y = self.offset(self.origin, 0, 1)
+        return x, self.g.math('MULTIPLY_ADD', i, -self.dv, y)
 
     def cell(self, row, j):
         """Cell j of the blended table's row at texel `row` (self.row): a function giving its
