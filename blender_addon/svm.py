@@ -71,7 +71,9 @@ every lamp's c_k / (2 pi (1 - cos)) where the direction is in its cone (1 - cos 
 nodes (LAMP k, LAMP k size) that lamps.bind_svm drives from the lamp (keyframed lamps render
 right at every frame); the number of techniques is the graph's (update_world asks for a
 rebuild when it changes). The lamps' values are computed anew in each branch (a position
-through a no-op of the branch's own) and lamp by lamp, so few are alive at once. Measured
+through a no-op of the branch's own; held from before the branches they would take the SVM stack
+through all of it) and lamp by lamp, so few are alive at once; the lamps' branch makes them once
+for its draw and the other techniques' density, before the tables' inverse. Measured
 (tests/test_cycles_lights.py, a plastic sphere under an area lamp and a point lamp of radius
 0.25, Blender's render settings): per-sample variance of the sphere's mean over OSL's 50-160x
 -> 11-15x; Blender's smaller lamps (0.5 m, radius 0.1) 400-1250x -> 20-42x.
@@ -1054,9 +1056,10 @@ class _Mixture:
         return self._lamp_nodes
 
     def lamp_cone(self, g, p, where, size):
-        """A lamp technique's cone at the shading point p (axis, 1 - cos of its half angle) about
-        the lamp's bounding sphere (a sun lamp: about its direction, of its angle), and the weight
-        that shares the lamps' draws (~ irradiance: power / distance^2, a sun's strength)."""
+        """A lamp technique's cone at the shading point p (its axis unnormalised, "to"; 1 - cos of
+        its half angle) about the lamp's bounding sphere (a sun lamp: about its direction, of its
+        angle), and the weight that shares the lamps' draws (~ irradiance: power / distance^2, a
+        sun's strength)."""
         radius, power, is_sun = (g.dot(size, axis) for axis in (X, Y, Z))
         to = g.vmath('SUBTRACT', where, g.scale(p, g.math('SUBTRACT', 1.0, is_sun)))
         d2 = g.math('MAXIMUM', g.dot(to, to), g.math('MULTIPLY', radius, radius))
@@ -1065,25 +1068,26 @@ class _Mixture:
         sphere = g.math('DIVIDE', s2, g.math('ADD', 1.0, g.math('SQRT', g.math('SUBTRACT', 1.0, s2))))
         half = g.math('SINE', g.math('MULTIPLY', radius, 0.25))
         omc = g.select(is_sun, g.math('MULTIPLY', g.math('MULTIPLY', half, half), 2.0), sphere)
-        return {"axis": g.vmath('NORMALIZE', to), "omc": omc,
+        return {"to": to, "omc": omc,
                 "weight": g.select(is_sun, power, g.math('DIVIDE', power, d2))}
 
     def lamp_data(self, g, at):
         """Before the branches: the lamps' total weight, the largest, the brightest lamp's axis
         (the matched control variate's) and (values) the lamps' share c_lamp."""
         if self._lamp_data is None:
-            total = best = axis = None
+            total = best = to = None
             for where, size in self.lamp_nodes(g):
                 cone = self.lamp_cone(g, at["p"], where, size)
                 if total is None:
-                    total, best, axis = cone["weight"], cone["weight"], cone["axis"]
+                    total, best, to = cone["weight"], cone["weight"], cone["to"]
                     continue
                 total = g.math('ADD', total, cone["weight"])
                 better = g.math('GREATER_THAN', cone["weight"], best)
-                axis = g.vmath('MULTIPLY_ADD', cone["axis"], g.combine(better, better, better),
-                               g.scale(axis, g.math('SUBTRACT', 1.0, better)))
+                to = g.vmath('MULTIPLY_ADD', cone["to"], g.combine(better, better, better),
+                             g.scale(to, g.math('SUBTRACT', 1.0, better)))
                 best = g.math('MAXIMUM', best, cone["weight"])
-            self._lamp_data = {"total": total, "best": best, "axis": axis}
+            # (normalised once, as picked: the same axis as the brightest lamp's own cone has)
+            self._lamp_data = {"total": total, "best": best, "axis": g.vmath('NORMALIZE', to) if self.match_lamp else None}
         return self._lamp_data
 
     def lamp_stream(self, g, at, tag):
@@ -1098,6 +1102,7 @@ class _Mixture:
         share = g.math('DIVIDE', self.lamp_share, data["total"])
         for where, size in self.lamp_nodes(g):
             cone = self.lamp_cone(g, p, where, size)
+            cone["axis"] = g.vmath('NORMALIZE', cone["to"])
             c = g.math('MULTIPLY', cone["weight"], share)
             if self.match_lamp and self.scale is not None:   # the brightest lamp's draws scaled
                 top = g.math('SUBTRACT', 1.0, g.math('LESS_THAN', cone["weight"], data["best"]))
@@ -1167,10 +1172,10 @@ class _Mixture:
                     g.scale(axis, g.math('SUBTRACT', 1.0, t)))
         return g.vmath('NORMALIZE', d)
 
-    def light_pdf(self, g, d, own, at=None, tag=0, drawn=None):
-        """c_world p_world(d) + c_sun p_cone(d) + the lamps' c_k p_k(d) (lamp_stream with `tag`
-        at `at`), the technique `own` left out (its caller adds its own sample's density); in
-        the lamps' branch the lamp of index `drawn` counts as inside its cone."""
+    def light_pdf(self, g, d, own, at=None, tag=0, drawn=None, lamps=None):
+        """c_world p_world(d) + c_sun p_cone(d) + the lamps' c_k p_k(d) (`lamps`, or lamp_stream
+        with `tag` at `at`), the technique `own` left out (its caller adds its own sample's
+        density); in the lamps' branch the lamp of index `drawn` counts as inside its cone."""
         total = None
 
         def add(term):
@@ -1181,7 +1186,7 @@ class _Mixture:
         if self.sun and own != "sun":
             add(g.math('MULTIPLY', self.cone, g.math('SUBTRACT', 1.0, g.math('LESS_THAN', g.dot(d, self.axis),
                                                                                self.sun_cos))))
-        for k, lamp in enumerate(self.lamp_stream(g, at, tag) if self.lamps else ()):
+        for k, lamp in enumerate(lamps if lamps is not None else self.lamp_stream(g, at, tag) if self.lamps else ()):
             # inside the cone: 1 - cos = |d - axis|^2 / 2 (no cancellation for small cones)
             gap = g.vmath('DISTANCE', d, lamp["axis"])
             inside = g.math('LESS_THAN', g.math('MULTIPLY', g.math('MULTIPLY', gap, gap), 0.5), lamp["omc"])
@@ -1227,7 +1232,7 @@ class _Mixture:
     def light_branch(self, g, sampler, at, kind, start, share, closure):
         u0 = at["u0"]
         u1 = g.math('DIVIDE', g.math('SUBTRACT', at["u1"], start) if start != 0.0 else at["u1"], share)
-        drawn = None
+        drawn = lamps = None
         if kind == "sun":
             d = self.sample_cone(g, self.axis, self.omc, u0, u1)
             own, technique, noop = self.cone, 2.0, -2.0
@@ -1235,26 +1240,30 @@ class _Mixture:
             out = g.group(_world_sample_group(self.map, _image(self.path)), U0=u0, U1=u1)
             d, own, technique, noop = out["Direction"], g.math('MULTIPLY', self.c_world, out["Pdf"]), 1.0, -1.0
         else:
-            d, drawn = self.sample_lamps(g, at, u0, u1)
+            d, drawn, lamps = self.sample_lamps(g, at, u0, u1)
             own, technique, noop = 0.0, g.math('ADD', drawn, 3.0), -3.0
+        # the other techniques' density first: the lamps' values (here the drawn ones, not made
+        # twice) are then no longer alive while the tables' inverse runs
+        light = self.light_pdf(g, d, kind, at, {"sun": 2, "world": 3, "lamps": 4}[kind], drawn, lamps)
         wo = tuple(g.dot(d, axis) for axis in (at["tx"], at["ty"], at["n"]))
         # its own incident nodes (cos theta_i through a no-op unlike the other branches'): Cycles
         # would merge identical ones into nodes run before the branches, their results held
         # on the stack through every branch
         out = _tables_call(g, sampler, "pdf", g.math('MAXIMUM', at["cos_i"], noop), at["phi_i"], X=wo[0], Y=wo[1], Z=wo[2])
         pdf, fcos = out["Pdf"], out["F cos"]
-        light = self.light_pdf(g, d, kind, at, {"sun": 2, "world": 3, "lamps": 4}[kind], drawn)
         q = g.math('MULTIPLY_ADD', self.c_tables, pdf, g.math('ADD', own, light) if kind != "lamps" else light)
         ok = _valid(g, at, wo[2], d)
         return closure({"direction": d, "weight": g.scale(fcos, g.math('DIVIDE', ok, q)), "q": q,
                         "technique": technique, "ok": ok})
 
     def sample_lamps(self, g, at, u0, u1):
-        """(direction, index of the lamp drawn): the lamp by u1 in parts c_k / c_lamp, u1
-        rescaled within its part, uniform in its cone (picked by flags: exact, x 1 and x 0)."""
+        """(direction, index of the lamp drawn, the lamps' values: lamp_stream's): the lamp by u1
+        in parts c_k / c_lamp, u1 rescaled within its part, uniform in its cone (picked by flags:
+        exact, x 1 and x 0)."""
         lo, axis, omc, v, index = 0.0, (0.0, 0.0, 0.0), 0.0, 0.0, 0.0
         last = self.lamps - 1
-        for k, lamp in enumerate(self.lamp_stream(g, at, 5)):
+        lamps = list(self.lamp_stream(g, at, 5))
+        for k, lamp in enumerate(lamps):
             part = g.math('DIVIDE', lamp["c"], self.c_lamp)
             hi = g.math('ADD', lo, part) if k else part
             above = g.math('SUBTRACT', 1.0, g.math('LESS_THAN', u1, lo)) if k else 1.0
@@ -1269,7 +1278,7 @@ class _Mixture:
             v = g.math('MULTIPLY_ADD', within, flag, v)
             index = g.math('MULTIPLY_ADD', flag, float(k), index)
             lo = hi
-        return self.sample_cone(g, axis, omc, u0, g.math('MINIMUM', v, 1.0 - 2.0 ** -24)), index
+        return self.sample_cone(g, axis, omc, u0, g.math('MINIMUM', v, 1.0 - 2.0 ** -24)), index, lamps
 
 
 def _light_direction(world):
