@@ -71,7 +71,9 @@ every lamp's c_k / (2 pi (1 - cos)) where the direction is in its cone (1 - cos 
 nodes (LAMP k, LAMP k size) that lamps.bind_svm drives from the lamp (keyframed lamps render
 right at every frame); the number of techniques is the graph's (update_world asks for a
 rebuild when it changes). The lamps' values are computed anew in each branch (a position
-through a no-op of the branch's own) and lamp by lamp, so few are alive at once. Measured
+through a no-op of the branch's own; held from before the branches they would take the SVM stack
+through all of it) and lamp by lamp, so few are alive at once; the lamps' branch makes them once
+for its draw and the other techniques' density, before the tables' inverse. Measured
 (tests/test_cycles_lights.py, a plastic sphere under an area lamp and a point lamp of radius
 0.25, Blender's render settings): per-sample variance of the sphere's mean over OSL's 50-160x
 -> 11-15x; Blender's smaller lamps (0.5 m, radius 0.1) 400-1250x -> 20-42x.
@@ -150,7 +152,7 @@ CUTOFF = 1e-5           # Cycles' CLOSURE_WEIGHT_CUTOFF
 K_SMALL = 1e-4          # bake/core/tables.py _SMALL: the in-cell density's small-rate branch
 LOG_MEAN_SERIES = 1e-3  # bake/core/tables.py LOG_MEAN_SERIES: the log mean's series below it
 TANGENT = (1.0, 0.0, 0.0)
-GRAPH_VERSION = 2       # in the node groups' names: a graph built by other code gets new groups
+GRAPH_VERSION = 3       # in the node groups' names: a graph built by other code gets new groups
 GROUP_PREFIX = f"FlowBSDF SVM{GRAPH_VERSION} "
 FILM = "FlowBSDF SVM film"      # a Combine XYZ node per sampler: film_settings
 WORLD = "FlowBSDF SVM world"    # a Combine XYZ node per mixture: (WorldShare, SunShare, SunCos)
@@ -326,16 +328,16 @@ def _record_group(image, alpha):
 
 def _step_group(image, alpha):
     """Group "search step" (branchless binary search): index = Lo + Half; Lo moves there when
-    the record at Base + index x Stride is <= Target."""
+    the record at texture x Base X + index x Stride, y Base Y is <= Target."""
     done, tree = _group(f"{GROUP_PREFIX}search step{' RGBA' if alpha else ' RGB'}: {image.name}",
-                        [("Lo", "Float"), ("Target", "Float"), ("Base", "Vector"), ("Stride", "Vector"),
-                         ("Half", "Float")] + _weight_inputs(alpha), [("Lo", "Float")])
+                        [("Lo", "Float"), ("Target", "Float"), ("Base X", "Float"), ("Base Y", "Float"),
+                         ("Stride", "Float"), ("Half", "Float")] + _weight_inputs(alpha), [("Lo", "Float")])
     if done:
         return done
     g = _Graph(tree)
     inp = g.node("NodeGroupInput").outputs
     index = g.math('ADD', inp["Lo"], inp["Half"])
-    uv = g.vmath('MULTIPLY_ADD', index, inp["Stride"], inp["Base"])
+    uv = g.combine(g.math('MULTIPLY_ADD', index, inp["Stride"], inp["Base X"]), inp["Base Y"])
     weights = {name: inp[name] for name, _ in _weight_inputs(alpha)}
     value = g.group(_record_group(image, alpha), UV=uv, **weights)[0]
     above = g.math('GREATER_THAN', value, inp["Target"])
@@ -346,10 +348,18 @@ def _step_group(image, alpha):
 
 # ------------------------------------------------------------------------------ the sampler
 
+def _key(value):
+    """A socket or a number, as a dictionary key."""
+    return (value.node.name, value.identifier) if isinstance(value, bpy.types.NodeSocket) else value
+
+
 class _Sampler:
     """The sampler's nodes on one SVM texture (layout: bake/export/svm_export.py). `incident` adds
     the bin lookup and blend weights (once per graph), then `sample` and `locate` add the
-    sampler and its inverse (the pdf at a direction)."""
+    sampler and its inverse (the pdf at a direction).
+    A texel's place is a pair (x, y) of texture coordinates (sockets or numbers), each moved by
+    scalar Math and combined into a vector once per texel looked up: a Vector Math node costs
+    Cycles' SVM ~5 scalar ones."""
 
     def __init__(self, g, texture_path, lay=None):
         self.g, self.path = g, texture_path
@@ -358,23 +368,33 @@ class _Sampler:
         self.du = 1.0 / self.lay["width"]
         self.dv = 1.0 / self.lay["height"]
         self.rpt = 4 // self.lay["NB"]          # records per texel: record q at texel q // rpt, slot q % rpt
-        self.offsets = {}
+        self.offsets, self.uvs = {}, {}
         # a cell's quantities (svm_export.CELL_QUANTITIES): mass, the a and b profiles' node values, W
         n = (_svm_export().CELL_QUANTITIES - 4) // 2
         self.on_a, self.on_b, self.on_w = range(1, 1 + n), range(1 + n, 1 + 2 * n), range(1 + 2 * n, 4 + 2 * n)
 
-    def fetch(self, uv):
+    def uv(self, at):
+        """The texel place `at` (x, y) as a vector, made once per place."""
+        key = tuple(map(_key, at))
+        if key not in self.uvs:
+            self.uvs[key] = self.g.combine(*at)
+        return self.uvs[key]
+
+    def fetch(self, at):
         tex = self.g.node("ShaderNodeTexImage", image=self.image, interpolation='Closest', extension='EXTEND')
-        self.g.set(tex.inputs["Vector"], uv)
+        self.g.set(tex.inputs["Vector"], self.uv(at))
         return tex.outputs["Color"], tex.outputs["Alpha"]
 
     def offset(self, base, dx=0.0, dy=0.0):
-        """base + (dx, dy) texels (dy down the image), made once per base and offset."""
-        if not (dx or dy):
-            return base
-        key = (base.node.name, base.identifier, dx, dy)
+        """base + (dx, dy) texels (dy down the image), each coordinate moved once per base and offset."""
+        return tuple(self._moved(c, d) for c, d in zip(base, (dx * self.du, -dy * self.dv)))
+
+    def _moved(self, c, d):
+        if not d:
+            return c
+        key = (_key(c), d)
         if key not in self.offsets:
-            self.offsets[key] = self.g.vmath('ADD', base, (dx * self.du, -dy * self.dv, 0.0))
+            self.offsets[key] = self.g.math('ADD', c, d)
         return self.offsets[key]
 
     def blend(self, q):
@@ -385,11 +405,12 @@ class _Sampler:
     def quantity(self, base, q):
         """Quantity q of the records at texel `base`, blended over the bins."""
         alpha, weights = self.blend(q)
-        return self.g.group(_record_group(self.image, alpha), UV=self.offset(base, q // self.rpt), **weights)[0]
+        return self.g.group(_record_group(self.image, alpha), UV=self.uv(self.offset(base, q // self.rpt)),
+                            **weights)[0]
 
     def at(self, base, index, stride):
         """The texel `index` records of `stride` texels after `base`."""
-        return self.g.vmath('MULTIPLY_ADD', index, (stride * self.du, 0.0, 0.0), base)
+        return self.g.math('MULTIPLY_ADD', index, stride * self.du, base[0]), base[1]
 
     def search(self, lo, target, base, stride, steps, q, last):
         """The last index <= `last` (a socket or a number) whose quantity q is <= target, from
@@ -398,8 +419,8 @@ class _Sampler:
         alpha, weights = self.blend(q)
         base = self.offset(base, q // self.rpt)
         for s in reversed(range(steps)):
-            lo = self.g.group(_step_group(self.image, alpha), Lo=lo, Target=target, Base=base,
-                              Stride=(stride * self.du, 0.0, 0.0), Half=float(2 ** s), **weights)[0]
+            lo = self.g.group(_step_group(self.image, alpha), Lo=lo, Target=target, **{"Base X": base[0]},
+                              **{"Base Y": base[1]}, Stride=stride * self.du, Half=float(2 ** s), **weights)[0]
         return self.g.math('MINIMUM', lo, last)
 
     def guide_lo(self, base, u, count):
@@ -415,7 +436,7 @@ class _Sampler:
         x0, count = guide
         entry = g.math('FLOOR', g.math('MULTIPLY', index_value, float(count)))
         uv_x = g.math('MULTIPLY_ADD', entry, self.du, (x0 + 0.5) * self.du)
-        color, alpha = self.fetch(g.combine(uv_x, 1.0 - 0.5 * self.dv))
+        color, alpha = self.fetch((uv_x, 1.0 - 0.5 * self.dv))
         # [value < t_j] = ceil(clamp(t_j - value, 0, 1)) per channel
         below = g.vmath('CEIL', g.vmath('MAXIMUM', g.vmath('MINIMUM', g.vmath('SUBTRACT', color, value),
                                                             (1.0, 1.0, 1.0)), (0.0, 0.0, 0.0)))
@@ -445,8 +466,8 @@ class _Sampler:
             bcol = g.math('MULTIPLY_ADD', brow, -float(nx), corner)
         else:
             brow, bcol = 0.0, corner
-        self.origin = g.combine(g.math('MULTIPLY_ADD', bcol, bw * self.du, 0.5 * self.du),
-                                g.math('MULTIPLY_ADD', brow, -bh * self.dv, 1.0 - 1.5 * self.dv))
+        self.origin = (g.math('MULTIPLY_ADD', bcol, bw * self.du, 0.5 * self.du),
+                       g.math('MULTIPLY_ADD', brow, -bh * self.dv, 1.0 - 1.5 * self.dv))
         head, head_a = self.fetch(self.origin)
         self.last = (lay["R"] - 1.0, lay["C"] - 1.0) if P > 1 else (g.dot(head, Z), head_a)
         t = s = 0.0
@@ -491,7 +512,8 @@ class _Sampler:
 
     def row(self, i):
         """Texel (0, 1 + i) of the block: table row i's guide, then its records."""
-        return self.g.vmath('MULTIPLY_ADD', i, (0.0, -self.dv, 0.0), self.offset(self.origin, 0, 1))
+        x, y = self.offset(self.origin, 0, 1)
+        return x, self.g.math('MULTIPLY_ADD', i, -self.dv, y)
 
     def cell(self, row, j):
         """Cell j of the blended table's row at texel `row` (self.row): a function giving its
@@ -1034,9 +1056,10 @@ class _Mixture:
         return self._lamp_nodes
 
     def lamp_cone(self, g, p, where, size):
-        """A lamp technique's cone at the shading point p (axis, 1 - cos of its half angle) about
-        the lamp's bounding sphere (a sun lamp: about its direction, of its angle), and the weight
-        that shares the lamps' draws (~ irradiance: power / distance^2, a sun's strength)."""
+        """A lamp technique's cone at the shading point p (its axis unnormalised, "to"; 1 - cos of
+        its half angle) about the lamp's bounding sphere (a sun lamp: about its direction, of its
+        angle), and the weight that shares the lamps' draws (~ irradiance: power / distance^2, a
+        sun's strength)."""
         radius, power, is_sun = (g.dot(size, axis) for axis in (X, Y, Z))
         to = g.vmath('SUBTRACT', where, g.scale(p, g.math('SUBTRACT', 1.0, is_sun)))
         d2 = g.math('MAXIMUM', g.dot(to, to), g.math('MULTIPLY', radius, radius))
@@ -1045,25 +1068,26 @@ class _Mixture:
         sphere = g.math('DIVIDE', s2, g.math('ADD', 1.0, g.math('SQRT', g.math('SUBTRACT', 1.0, s2))))
         half = g.math('SINE', g.math('MULTIPLY', radius, 0.25))
         omc = g.select(is_sun, g.math('MULTIPLY', g.math('MULTIPLY', half, half), 2.0), sphere)
-        return {"axis": g.vmath('NORMALIZE', to), "omc": omc,
+        return {"to": to, "omc": omc,
                 "weight": g.select(is_sun, power, g.math('DIVIDE', power, d2))}
 
     def lamp_data(self, g, at):
         """Before the branches: the lamps' total weight, the largest, the brightest lamp's axis
         (the matched control variate's) and (values) the lamps' share c_lamp."""
         if self._lamp_data is None:
-            total = best = axis = None
+            total = best = to = None
             for where, size in self.lamp_nodes(g):
                 cone = self.lamp_cone(g, at["p"], where, size)
                 if total is None:
-                    total, best, axis = cone["weight"], cone["weight"], cone["axis"]
+                    total, best, to = cone["weight"], cone["weight"], cone["to"]
                     continue
                 total = g.math('ADD', total, cone["weight"])
                 better = g.math('GREATER_THAN', cone["weight"], best)
-                axis = g.vmath('MULTIPLY_ADD', cone["axis"], g.combine(better, better, better),
-                               g.scale(axis, g.math('SUBTRACT', 1.0, better)))
+                to = g.vmath('MULTIPLY_ADD', cone["to"], g.combine(better, better, better),
+                             g.scale(to, g.math('SUBTRACT', 1.0, better)))
                 best = g.math('MAXIMUM', best, cone["weight"])
-            self._lamp_data = {"total": total, "best": best, "axis": axis}
+            # (normalised once, as picked: the same axis as the brightest lamp's own cone has)
+            self._lamp_data = {"total": total, "best": best, "axis": g.vmath('NORMALIZE', to) if self.match_lamp else None}
         return self._lamp_data
 
     def lamp_stream(self, g, at, tag):
@@ -1078,6 +1102,7 @@ class _Mixture:
         share = g.math('DIVIDE', self.lamp_share, data["total"])
         for where, size in self.lamp_nodes(g):
             cone = self.lamp_cone(g, p, where, size)
+            cone["axis"] = g.vmath('NORMALIZE', cone["to"])
             c = g.math('MULTIPLY', cone["weight"], share)
             if self.match_lamp and self.scale is not None:   # the brightest lamp's draws scaled
                 top = g.math('SUBTRACT', 1.0, g.math('LESS_THAN', cone["weight"], data["best"]))
@@ -1147,10 +1172,10 @@ class _Mixture:
                     g.scale(axis, g.math('SUBTRACT', 1.0, t)))
         return g.vmath('NORMALIZE', d)
 
-    def light_pdf(self, g, d, own, at=None, tag=0, drawn=None):
-        """c_world p_world(d) + c_sun p_cone(d) + the lamps' c_k p_k(d) (lamp_stream with `tag`
-        at `at`), the technique `own` left out (its caller adds its own sample's density); in
-        the lamps' branch the lamp of index `drawn` counts as inside its cone."""
+    def light_pdf(self, g, d, own, at=None, tag=0, drawn=None, lamps=None):
+        """c_world p_world(d) + c_sun p_cone(d) + the lamps' c_k p_k(d) (`lamps`, or lamp_stream
+        with `tag` at `at`), the technique `own` left out (its caller adds its own sample's
+        density); in the lamps' branch the lamp of index `drawn` counts as inside its cone."""
         total = None
 
         def add(term):
@@ -1161,7 +1186,7 @@ class _Mixture:
         if self.sun and own != "sun":
             add(g.math('MULTIPLY', self.cone, g.math('SUBTRACT', 1.0, g.math('LESS_THAN', g.dot(d, self.axis),
                                                                                self.sun_cos))))
-        for k, lamp in enumerate(self.lamp_stream(g, at, tag) if self.lamps else ()):
+        for k, lamp in enumerate(lamps if lamps is not None else self.lamp_stream(g, at, tag) if self.lamps else ()):
             # inside the cone: 1 - cos = |d - axis|^2 / 2 (no cancellation for small cones)
             gap = g.vmath('DISTANCE', d, lamp["axis"])
             inside = g.math('LESS_THAN', g.math('MULTIPLY', g.math('MULTIPLY', gap, gap), 0.5), lamp["omc"])
@@ -1207,7 +1232,7 @@ class _Mixture:
     def light_branch(self, g, sampler, at, kind, start, share, closure):
         u0 = at["u0"]
         u1 = g.math('DIVIDE', g.math('SUBTRACT', at["u1"], start) if start != 0.0 else at["u1"], share)
-        drawn = None
+        drawn = lamps = None
         if kind == "sun":
             d = self.sample_cone(g, self.axis, self.omc, u0, u1)
             own, technique, noop = self.cone, 2.0, -2.0
@@ -1215,26 +1240,30 @@ class _Mixture:
             out = g.group(_world_sample_group(self.map, _image(self.path)), U0=u0, U1=u1)
             d, own, technique, noop = out["Direction"], g.math('MULTIPLY', self.c_world, out["Pdf"]), 1.0, -1.0
         else:
-            d, drawn = self.sample_lamps(g, at, u0, u1)
+            d, drawn, lamps = self.sample_lamps(g, at, u0, u1)
             own, technique, noop = 0.0, g.math('ADD', drawn, 3.0), -3.0
+        # the other techniques' density first: the lamps' values (here the drawn ones, not made
+        # twice) are then no longer alive while the tables' inverse runs
+        light = self.light_pdf(g, d, kind, at, {"sun": 2, "world": 3, "lamps": 4}[kind], drawn, lamps)
         wo = tuple(g.dot(d, axis) for axis in (at["tx"], at["ty"], at["n"]))
         # its own incident nodes (cos theta_i through a no-op unlike the other branches'): Cycles
         # would merge identical ones into nodes run before the branches, their results held
         # on the stack through every branch
         out = _tables_call(g, sampler, "pdf", g.math('MAXIMUM', at["cos_i"], noop), at["phi_i"], X=wo[0], Y=wo[1], Z=wo[2])
         pdf, fcos = out["Pdf"], out["F cos"]
-        light = self.light_pdf(g, d, kind, at, {"sun": 2, "world": 3, "lamps": 4}[kind], drawn)
         q = g.math('MULTIPLY_ADD', self.c_tables, pdf, g.math('ADD', own, light) if kind != "lamps" else light)
         ok = _valid(g, at, wo[2], d)
         return closure({"direction": d, "weight": g.scale(fcos, g.math('DIVIDE', ok, q)), "q": q,
                         "technique": technique, "ok": ok})
 
     def sample_lamps(self, g, at, u0, u1):
-        """(direction, index of the lamp drawn): the lamp by u1 in parts c_k / c_lamp, u1
-        rescaled within its part, uniform in its cone (picked by flags: exact, x 1 and x 0)."""
+        """(direction, index of the lamp drawn, the lamps' values: lamp_stream's): the lamp by u1
+        in parts c_k / c_lamp, u1 rescaled within its part, uniform in its cone (picked by flags:
+        exact, x 1 and x 0)."""
         lo, axis, omc, v, index = 0.0, (0.0, 0.0, 0.0), 0.0, 0.0, 0.0
         last = self.lamps - 1
-        for k, lamp in enumerate(self.lamp_stream(g, at, 5)):
+        lamps = list(self.lamp_stream(g, at, 5))
+        for k, lamp in enumerate(lamps):
             part = g.math('DIVIDE', lamp["c"], self.c_lamp)
             hi = g.math('ADD', lo, part) if k else part
             above = g.math('SUBTRACT', 1.0, g.math('LESS_THAN', u1, lo)) if k else 1.0
@@ -1249,7 +1278,7 @@ class _Mixture:
             v = g.math('MULTIPLY_ADD', within, flag, v)
             index = g.math('MULTIPLY_ADD', flag, float(k), index)
             lo = hi
-        return self.sample_cone(g, axis, omc, u0, g.math('MINIMUM', v, 1.0 - 2.0 ** -24)), index
+        return self.sample_cone(g, axis, omc, u0, g.math('MINIMUM', v, 1.0 - 2.0 ** -24)), index, lamps
 
 
 def _light_direction(world):
