@@ -114,6 +114,7 @@ TILT_DIFFUSE_DEG = np.array([-20.0, -15.0, -11.0, -8.0, -6.0, -4.0, -2.5, -1.5, 
                              0.7, 1.5, 2.5, 4.0, 6.0, 8.0, 11.0, 15.0, 20.0])
 TILT_REACH = 3      # grid steps a tilt may move per descent move
 TILT_STEP = 0.5     # _descend's cost of a tilt grid step, in alpha / anisotropy grid steps
+RELABEL = True      # _next_knot: each option's lobes also relabelled (_next_knot, _relabellings)
 NEXT_TILT_ONLY = True   # _next_knot's 4th option: the previous lobes' shapes kept, their tilts descended
 TILT_GGX = True     # (switches for the ablation: scripts/fit_acceptance.py --variant)
 TILT_DIFFUSE = True
@@ -621,28 +622,50 @@ def _knot_params(knot, lobes, k):
 PARAM_KEYS = ("x", "diffuse", "specular", "roughness", "anisotropy", "tilt", "diffuse_tilt")
 
 
+def _relabellings(view_aligned, n):
+    """The orders of a knot's n closures that keep each kind in place: the Diffuse first, the
+    view-aligned GGX lobes (1 .. view_aligned) permuted among themselves, the isotropic ones
+    among theirs; the identity first."""
+    return [[0] + list(a) + list(b) for a in itertools.permutations(range(1, 1 + view_aligned))
+            for b in itertools.permutations(range(1 + view_aligned, n))]
+
+
 def _next_knot(tables, knot, fit, lobes, prev, view_aligned, n, seed):
     """(lobes, weights) at the next knot: of the descent from the previous knot's lobes, the
     same made stiffer (STIFF times the cost of moving), the previous lobes kept (weights
-    alone refitted) and kept but for their tilts (NEXT_TILT_ONLY), the one whose error at this knot plus half-way from the previous knot
-    (the node lerps the parameters between them) is least."""
+    alone refitted) and kept but for their tilts (NEXT_TILT_ONLY), each also relabelled
+    (RELABEL: which of the previous knot's lobes each continues, _relabellings), the one whose
+    error at this knot plus half-way from the previous knot (the node lerps the parameters
+    between them: a lobe that changes its shape while it carries much fits neither knot
+    there) is least. A relabelled option is ranked with its weights permuted (the same error
+    at the knot) and, when it wins, solved again (its weights pulled toward the previous
+    knot's of its new labels)."""
     mid = _Knot(tables, 0.5 * (knot.theta + np.radians(fit["theta_deg"][-1])), n=n // 2, seed=seed + 7)
     options = [_descend(knot, lobes, view_aligned, prev),
                _descend(knot, lobes, view_aligned, prev, step_cost=STIFF * STEP_COST),
                _clamp_tilts(knot, lobes)]
     if NEXT_TILT_ONLY and (TILT_GGX or TILT_DIFFUSE):
         options.append(_descend(knot, lobes, view_aligned, prev, shapes=False))
-    best = None
-    for option in options:
-        k, l1 = knot.solve([option], prev, irls=4)
-        k = k[0]
-        this = _knot_params(knot, option, k)
-        pair = {key: fit[key][-1:] + [this[key]] for key in PARAM_KEYS}
-        ff = eval_fit(pair, mid.wi, mid.wo) * mid.wo[:, 2:3]
-        l1_mid = float(mid.w @ np.abs(luminance(ff - mid.g)) / max(float(mid.w @ luminance(mid.g)), 1e-300))
-        if best is None or l1[0] + l1_mid < best[0]:
-            best = (l1[0] + l1_mid, option, k)
-    return best[1], best[2]
+    options = [o for i, o in enumerate(options) if o not in options[:i]]
+    ks, l1s = knot.solve(options, prev, irls=4)
+    orders = _relabellings(view_aligned, len(lobes)) if RELABEL else [list(range(len(lobes)))]
+    best, seen = None, set()
+    for order in orders:
+        for option, k, l1 in zip(options, ks, l1s):
+            option, k = [option[i] for i in order], k[order]
+            if tuple(option) in seen:
+                continue
+            seen.add(tuple(option))
+            this = _knot_params(knot, option, k)
+            pair = {key: fit[key][-1:] + [this[key]] for key in PARAM_KEYS}
+            ff = eval_fit(pair, mid.wi, mid.wo) * mid.wo[:, 2:3]
+            l1_mid = float(mid.w @ np.abs(luminance(ff - mid.g)) / max(float(mid.w @ luminance(mid.g)), 1e-300))
+            if best is None or l1 + l1_mid < best[0]:
+                best = (l1 + l1_mid, option, k, order)
+    _, option, k, order = best
+    if order != orders[0]:
+        k = knot.solve([option], prev, irls=4)[0][0]
+    return option, k
 
 
 def _isotropic(knot, lobes, prev):
