@@ -115,6 +115,7 @@ TILT_DIFFUSE_DEG = np.array([-20.0, -15.0, -11.0, -8.0, -6.0, -4.0, -2.5, -1.5, 
 TILT_REACH = 3      # grid steps a tilt may move per descent move
 TILT_STEP = 0.5     # _descend's cost of a tilt grid step, in alpha / anisotropy grid steps
 RELABEL = True      # _next_knot: each option's lobes also relabelled (_next_knot, _relabellings)
+RELABEL_SOLVED = 3  # _next_knot: the relabelled options solved again (the best so many ranked)
 NEXT_TILT_ONLY = True   # _next_knot's 4th option: the previous lobes' shapes kept, their tilts descended
 TILT_GGX = True     # (switches for the ablation: scripts/fit_acceptance.py --variant)
 TILT_DIFFUSE = True
@@ -637,10 +638,18 @@ def _next_knot(tables, knot, fit, lobes, prev, view_aligned, n, seed):
     (RELABEL: which of the previous knot's lobes each continues, _relabellings), the one whose
     error at this knot plus half-way from the previous knot (the node lerps the parameters
     between them: a lobe that changes its shape while it carries much fits neither knot
-    there) is least. A relabelled option is ranked with its weights permuted (the same error
-    at the knot) and, when it wins, solved again (its weights pulled toward the previous
-    knot's of its new labels)."""
+    there) is least. Relabelled options are ranked with their weights permuted (the same
+    error at the knot); the RELABEL_SOLVED best of them are solved again (weights pulled
+    toward the previous knot's of their new labels: near-twin lobes then split their weight
+    otherwise) and measured again before they compete."""
     mid = _Knot(tables, 0.5 * (knot.theta + np.radians(fit["theta_deg"][-1])), n=n // 2, seed=seed + 7)
+    norm = max(float(mid.w @ luminance(mid.g)), 1e-300)
+
+    def between(option, k):         # the relative L1 half-way, the parameters lerped
+        this = _knot_params(knot, option, k)
+        pair = {key: fit[key][-1:] + [this[key]] for key in PARAM_KEYS}
+        ff = eval_fit(pair, mid.wi, mid.wo) * mid.wo[:, 2:3]
+        return float(mid.w @ np.abs(luminance(ff - mid.g)) / norm)
     options = [_descend(knot, lobes, view_aligned, prev),
                _descend(knot, lobes, view_aligned, prev, step_cost=STIFF * STEP_COST),
                _clamp_tilts(knot, lobes)]
@@ -648,24 +657,23 @@ def _next_knot(tables, knot, fit, lobes, prev, view_aligned, n, seed):
         options.append(_descend(knot, lobes, view_aligned, prev, shapes=False))
     options = [o for i, o in enumerate(options) if o not in options[:i]]
     ks, l1s = knot.solve(options, prev, irls=4)
-    orders = _relabellings(view_aligned, len(lobes)) if RELABEL else [list(range(len(lobes)))]
-    best, seen = None, set()
-    for order in orders:
-        for option, k, l1 in zip(options, ks, l1s):
-            option, k = [option[i] for i in order], k[order]
-            if tuple(option) in seen:
-                continue
-            seen.add(tuple(option))
-            this = _knot_params(knot, option, k)
-            pair = {key: fit[key][-1:] + [this[key]] for key in PARAM_KEYS}
-            ff = eval_fit(pair, mid.wi, mid.wo) * mid.wo[:, 2:3]
-            l1_mid = float(mid.w @ np.abs(luminance(ff - mid.g)) / max(float(mid.w @ luminance(mid.g)), 1e-300))
-            if best is None or l1 + l1_mid < best[0]:
-                best = (l1 + l1_mid, option, k, order)
-    _, option, k, order = best
-    if order != orders[0]:
-        k = knot.solve([option], prev, irls=4)[0][0]
-    return option, k
+    scored = [(l1 + between(o, k), o, k) for o, k, l1 in zip(options, ks, l1s)]
+    best = min(scored, key=lambda c: c[0])
+    if RELABEL:
+        seen = {tuple(o) for o in options}
+        relabelled = []
+        for order in _relabellings(view_aligned, len(lobes))[1:]:
+            for o, k, l1 in zip(options, ks, l1s):
+                o, k = [o[i] for i in order], k[order]
+                if tuple(o) not in seen:
+                    seen.add(tuple(o))
+                    relabelled.append((l1 + between(o, k), o))
+        relabelled = sorted(relabelled, key=lambda c: c[0])[:RELABEL_SOLVED]
+        if relabelled and relabelled[0][0] < best[0]:
+            rs = [o for _, o in relabelled]
+            ks, l1s = knot.solve(rs, prev, irls=4)
+            best = min([best] + [(l1 + between(o, k), o, k) for o, k, l1 in zip(rs, ks, l1s)], key=lambda c: c[0])
+    return best[1], best[2]
 
 
 def _isotropic(knot, lobes, prev):
