@@ -40,8 +40,12 @@ seed; the lobes' albedos at the knots from ggx_albedo.npz). The lobes' (alpha, a
 on a grid: all of it at normal view, then knot by knot from the previous knot's lobes, moving a
 lobe (a tilt: TILT_STEP) costing in proportion to its share of the albedo, the weights pulled toward the previous
 knot's, and the next knot's lobes chosen by the error at the knot plus half-way back
-(_next_knot): each lobe keeps its identity and its parameters vary smoothly with the view
-angle (a fit made per knot alone jumps between knots, and a sphere renders concentric rings). Recorded per knot: the relative L2 error of f cos
+(_next_knot), among the descents' results each also relabelled (which of the previous knot's
+lobes each continues: where a lobe must take a new shape, the one that carried little should,
+else the node's lerp half-way fits neither shape; irid_flake_paint1 at 82.5 deg, between
+knots 81 and 84: 0.278 -> 0.145): each lobe keeps its identity and its parameters vary
+smoothly with the view angle (a fit made per knot alone jumps between knots, and a sphere
+renders concentric rings). Recorded per knot: the relative L2 error of f cos
 against the tables (`rel_error`, which the SVM back end's matching reads) and the albedo the
 closures reach (`fit_albedo`, equal to `albedo`); per view angle (knots and midpoints up to
 88 deg) the relative L1 error of luminance f cos against the measured material when the bake
