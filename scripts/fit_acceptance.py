@@ -5,7 +5,10 @@ the samples to the file's lobes), at view angles 0/30/60/75/85 deg and between t
 (7.5, 22.5, 45, 54, 67.5, 76, 82.5 deg), per file: an older fit file beside the new one when
 given (--old DIR: <name>.fit.json of FIT_VERSION 4, one Diffuse + one GGX lobe), the new fit
 made now from the tables, its seconds, and its EEVEE fit (FIT_VERSION 8: isotropic lobes, what
-the node's EEVEE output renders).
+the node's EEVEE output renders). Last column (`between`): the most the fit's own error half-way
+between two knots (its `l1`: every knot and midpoint up to 88 deg) exceeds the mean of those two
+knots' errors, and where: a fit whose lobes change identity between knots is good at both and
+poor half-way (irid_flake_paint1's 82.5 deg before the relabelling: +0.12).
 
     .venv/bin/python scripts/fit_acceptance.py TABLES_DIR [--old DIR] [--rgl DIR] [--material NAME ...]
         [--variant full|ac|ab|a|c|b|none] [--json DIR]
@@ -54,6 +57,15 @@ def l1(f_eval, tables, material, deg):
     return float(knot.w @ np.abs(luminance(ff - f)) / (knot.w @ luminance(f)))
 
 
+def between_excess(fit):
+    """(excess, deg): the largest l1 half-way between knots less the mean of its two knots' l1."""
+    degs, l1 = fit["l1_theta_deg"], fit["l1"]
+    knots = set(fit["theta_deg"])
+    out = [(l1[i] - 0.5 * (l1[i - 1] + l1[i + 1]), d) for i, d in enumerate(degs)
+           if d not in knots and 0 < i < len(degs) - 1]
+    return max(out) if out else (0.0, float("nan"))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("tables_dir", type=Path)
@@ -70,7 +82,7 @@ def main():
     degs = sorted(ON + BETWEEN)
     print("relative L1 of luminance f cos against the file; columns: view angle (deg); * between knots")
     print(f"{'file':20s} {'fit':5s} " + " ".join(f"{d:5.1f}{'*' if d in BETWEEN else ' '}" for d in degs)
-          + "  median  s")
+          + "  median  s    between")
     med = {"old": [], "new": [], "eevee": []}
     for path in sorted(args.tables_dir.glob("*.exr")):
         name = path.stem
@@ -83,21 +95,22 @@ def main():
         rows = []
         if args.old and (args.old / f"{name}.fit.json").is_file():
             old = json.loads((args.old / f"{name}.fit.json").read_text())
-            rows.append(("old", lambda wi, wo, old=old: old_eval(old, wi, wo), None))
+            rows.append(("old", lambda wi, wo, old=old: old_eval(old, wi, wo), None, None))
         t0 = time.perf_counter()
         new = cf.fit_closures(tables, material=material)
         seconds = time.perf_counter() - t0
         if args.json:
             args.json.mkdir(parents=True, exist_ok=True)
             (args.json / f"{name}.fit.json").write_text(json.dumps(new, indent=1))
-        rows.append(("new", lambda wi, wo: cf.eval_fit(new, wi, wo), seconds))
-        rows.append(("eevee", lambda wi, wo: cf.eval_fit(new["eevee"], wi, wo), None))     # what EEVEE renders
-        for label, f_eval, sec in rows:
+        rows.append(("new", lambda wi, wo: cf.eval_fit(new, wi, wo), seconds, new))
+        rows.append(("eevee", lambda wi, wo: cf.eval_fit(new["eevee"], wi, wo), None, new["eevee"]))   # what EEVEE renders
+        for label, f_eval, sec, fit in rows:
             vals = [l1(f_eval, tables, material, d) for d in degs]
             on = [v for d, v in zip(degs, vals) if d in ON]
             med[label].append(on)
             print(f"{name[:20]:20s} {label:5s} " + " ".join(f"{v:6.3f}" for v in vals)
-                  + f"  {np.median(vals):6.3f}" + (f" {sec:4.1f}" if sec else ""), flush=True)
+                  + f"  {np.median(vals):6.3f}" + (f" {sec:4.1f}" if sec else "     ")
+                  + ("  {:+.3f} at {:g}".format(*between_excess(fit)) if fit else ""), flush=True)
     for label, rows in med.items():
         if rows:
             a = np.array(rows)
