@@ -196,6 +196,21 @@ void blend_bins(string file, float W, float H, int K, int R, int NP, float perio
     base = 3 + 4 * K * NP * R + (k * NP + p) * (3 + 3 * R);
 }
 
+// The bins a shading point blends: blend_bins at its (cos theta_i, phi_i), the same for each of
+// its samples and pdfs, so read once there and handed to sample_blend / eval_blend.
+struct Blend {
+    int bins[4];
+    float w[4];
+    int base;
+    float turn;
+};
+
+void blend_at(string file, float W, float H, int K, int R, int NP, float period, int half, float cos_i,
+              float phi_i, output Blend b)
+{
+    blend_bins(file, W, H, K, R, NP, period, half, cos_i, phi_i, b.bins, b.w, b.base, b.turn);
+}
+
 // Cell (i, j) of the blended table: its weight W (baked f cos / pdf), mass and profiles along a
 // and b (node values): three texels a cell, (mass, a0, a1), (a2, a3, b0), (b1, b2, b3).
 void blend_cell(string file, float W, float H, int B, int R, int bins[4], float w[4], int i, int j,
@@ -289,15 +304,12 @@ vector turn_z(vector w, float angle)
 
 // Samples the tables at (cos theta_i, phi_i): wo in the local frame (x toward phi = 0), its
 // weight (baked f cos / pdf) and pdf per steradian.
-void sample_tables(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
-                   float frame, float cos_i, float phi_i, float u0, float u1,
-                   output vector wo, output color weight, output float pdf)
+// (sample_blend: with the shading point's Blend read.)
+void sample_blend(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
+                  float frame, Blend bl, float cos_i, float phi_i, float u0, float u1,
+                  output vector wo, output color weight, output float pdf)
 {
-    int bins[4];
-    float w[4];
-    int base;
-    float turn;
-    blend_bins(file, W, H, K, R, NP, period, half, cos_i, phi_i, bins, w, base, turn);
+    int base = bl.base;
 
     // Row: the last i with CDF_i <= u0 (the guide brackets it).
     color guide = fetch(file, W, H, min(int(u0 * R), R - 1), base + 2 + 2 * R);
@@ -305,14 +317,14 @@ void sample_tables(string file, float W, float H, int K, int R, int C, int NP, f
     float c0 = -1.0, c1 = -1.0;         // the CDF at lo and hi, once the search has read them
     while (hi - lo > 1) {
         int mid = (lo + hi) / 2;
-        float c = fetch_blend(file, W, H, mid, base, w);
+        float c = fetch_blend(file, W, H, mid, base, bl.w);
         if (c <= u0) { lo = mid; c0 = c; } else { hi = mid; c1 = c; }
     }
     int i = lo;
     if (c0 < 0.0)
-        c0 = fetch_blend(file, W, H, i, base, w);
+        c0 = fetch_blend(file, W, H, i, base, bl.w);
     if (c1 < 0.0 || hi != i + 1)
-        c1 = fetch_blend(file, W, H, i + 1, base, w);
+        c1 = fetch_blend(file, W, H, i + 1, base, bl.w);
     float v = u1 * (c1 - c0);
     // Column: the last j with cumsum_ij <= v.
     int yrow = base + 2 + i;
@@ -322,18 +334,18 @@ void sample_tables(string file, float W, float H, int K, int R, int C, int NP, f
     float d0 = -1.0;
     while (hi - lo > 1) {
         int mid = (lo + hi) / 2;
-        float d = fetch_blend(file, W, H, mid, yrow, w);
+        float d = fetch_blend(file, W, H, mid, yrow, bl.w);
         if (d <= v) { lo = mid; d0 = d; } else hi = mid;
     }
     int j = lo;
     if (d0 < 0.0)
-        d0 = fetch_blend(file, W, H, j, yrow, w);
-    float a0 = fetch_blend(file, W, H, i, base + 1, w);
-    float a1 = fetch_blend(file, W, H, i + 1, base + 1, w);
-    float b0 = fetch_blend(file, W, H, j, base + 2 + R + i, w);
-    float b1 = fetch_blend(file, W, H, j + 1, base + 2 + R + i, w);
+        d0 = fetch_blend(file, W, H, j, yrow, bl.w);
+    float a0 = fetch_blend(file, W, H, i, base + 1, bl.w);
+    float a1 = fetch_blend(file, W, H, i + 1, base + 1, bl.w);
+    float b0 = fetch_blend(file, W, H, j, base + 2 + R + i, bl.w);
+    float b1 = fetch_blend(file, W, H, j + 1, base + 2 + R + i, bl.w);
     float mass, pa[4], pb[4];
-    blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, mass, pa, pb);
+    blend_cell(file, W, H, K * NP, R, bl.bins, bl.w, i, j, weight, mass, pa, pb);
     float dx, dy;
     float x = profile_sample(clamp((u0 - c0) / (c1 - c0), 0.0, 1.0), pa, dx);
     float y = profile_sample(clamp((v - d0) / mass, 0.0, 1.0), pb, dy);
@@ -341,7 +353,7 @@ void sample_tables(string file, float W, float H, int K, int R, int C, int NP, f
     float b = b0 + y * (b1 - b0);
     pdf = mass * dx * dy / ((a1 - a0) * (b1 - b0));
     if (half) {     // h in the frame turned by whole periods and the lobe's axes (halfpolar: wi's + pi)
-        float ref = (half == 2) ? phi_i + M_PI : turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0)), jac;
+        float ref = (half == 2) ? phi_i + M_PI : bl.turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0)), jac;
         vector wi = vector(sin_i * cos(phi_i - ref), sin_i * sin(phi_i - ref), cos_i);
         wo = turn_z((half == 2) ? polar_from_ab(wi, a, b, jac) : half_from_ab(wi, a, b, jac), ref);
         pdf /= jac;
@@ -350,6 +362,15 @@ void sample_tables(string file, float W, float H, int K, int R, int C, int NP, f
     float s = sqrt(max(a * (2.0 - a), 0.0));
     // b is the azimuth from the mirror plane of wi, + pi: phi_o = b - pi + (phi_i + pi).
     wo = vector(s * cos(b + phi_i), s * sin(b + phi_i), 1.0 - a);
+}
+
+void sample_tables(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
+                   float frame, float cos_i, float phi_i, float u0, float u1,
+                   output vector wo, output color weight, output float pdf)
+{
+    Blend bl;
+    blend_at(file, W, H, K, R, NP, period, half, cos_i, phi_i, bl);
+    sample_blend(file, W, H, K, R, C, NP, period, half, frame, bl, cos_i, phi_i, u0, u1, wo, weight, pdf);
 }
 
 // The last k in [lo, hi) with blended edge_k <= x among the edges of texture row y (binary
@@ -399,23 +420,20 @@ int own_edge_search(string file, float W, float H, int y, int R, int base, int a
 
 // The tables' pdf (per steradian) and baked f cos (= the cell's weight x pdf) at a direction
 // wo of the local frame (Tables.pdf and Tables.eval x cos): 0 below the horizon.
-void eval_tables(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
-                 float frame, float cos_i, float phi_i, vector wo, output color fcos, output float pdf)
+// (eval_blend: with the shading point's Blend read.)
+void eval_blend(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
+                float frame, Blend bl, float cos_i, float phi_i, vector wo, output color fcos, output float pdf)
 {
     fcos = 0;
     pdf = 0;
     if (wo[2] <= 0.0)
         return;
-    int bins[4];
-    float w[4];
-    int base;
-    float turn;
-    blend_bins(file, W, H, K, R, NP, period, half, cos_i, phi_i, bins, w, base, turn);
+    int base = bl.base;
     float a = min((wo[0] * wo[0] + wo[1] * wo[1]) / (1.0 + wo[2]), 1.0);
     float b = mod(atan2(wo[1], wo[0]) - phi_i, 2.0 * M_PI);     // as in sample_tables: phi_o = b + phi_i
     float jac = 1.0;
     if (half) {
-        float ref = (half == 2) ? phi_i + M_PI : turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0));
+        float ref = (half == 2) ? phi_i + M_PI : bl.turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0));
         vector wi = vector(sin_i * cos(phi_i - ref), sin_i * sin(phi_i - ref), cos_i);
         if (half == 2)
             polar_to_ab(wi, turn_z(wo, -ref), a, b, jac);
@@ -427,15 +445,27 @@ void eval_tables(string file, float W, float H, int K, int R, int C, int NP, flo
     float a0, a1, b0, b1;
     float alpha = 0;
     color guide = fetch4(file, W, H, clamp(int(a * R), 0, R - 1), base + 2 + 2 * R, alpha);
-    int i = own_edge_search(file, W, H, base + 1, R, base, 0, int(guide[2]), int(alpha), w, a, a0, a1);
+    int i = own_edge_search(file, W, H, base + 1, R, base, 0, int(guide[2]), int(alpha), bl.w, a, a0, a1);
     int brow = base + 2 + R + i;
     guide = fetch4(file, W, H, clamp(int(b * (C / (2.0 * M_PI))), 0, C - 1), base + 3 + 2 * R + i, alpha);
-    int j = own_edge_search(file, W, H, brow, R, base, 1, int(guide[2]), int(alpha), w, b, b0, b1);
+    int j = own_edge_search(file, W, H, brow, R, base, 1, int(guide[2]), int(alpha), bl.w, b, b0, b1);
     color weight;
     float mass, pa[4], pb[4];
-    blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, mass, pa, pb);
+    blend_cell(file, W, H, K * NP, R, bl.bins, bl.w, i, j, weight, mass, pa, pb);
     float x = clamp((a - a0) / (a1 - a0), 0.0, 1.0);
     float y = clamp((b - b0) / (b1 - b0), 0.0, 1.0);
     pdf = mass * profile_density(x, pa) * profile_density(y, pb) / ((a1 - a0) * (b1 - b0)) / jac;
     fcos = weight * pdf;
+}
+
+void eval_tables(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
+                 float frame, float cos_i, float phi_i, vector wo, output color fcos, output float pdf)
+{
+    fcos = 0;
+    pdf = 0;
+    if (wo[2] <= 0.0)
+        return;
+    Blend bl;
+    blend_at(file, W, H, K, R, NP, period, half, cos_i, phi_i, bl);
+    eval_blend(file, W, H, K, R, C, NP, period, half, frame, bl, cos_i, phi_i, wo, fcos, pdf);
 }
