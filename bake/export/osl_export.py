@@ -14,19 +14,19 @@ R x C cells each, and the shader reads only a bin's own entries (the guides and 
 below bound its searches). Layout (W = texture width, rows from the top of the image; texel
 (x, y) is read at s = (x + 0.5) / W, t = (y + 0.5) / H):
 
-    row 0                   header: (LAYOUT, K, R), (C, W, H), (P, phi period, the coordinates
-                            (their index in tables.COORDS: 0 wo, 1 halfvector, 2 halfpolar),
-                            their frame's angle)
+    row 0                   header: (LAYOUT, K, R, C), (P, phi period, the coordinates (their
+                            index in tables.COORDS: 0 wo, 1 halfvector, 2 halfpolar), their
+                            frame's angle); the shader checks the texture's size against them
     row 1                   cos(theta_bin k) at x = k (red); phi_bin p at x = p (green)
     row 2                   theta guide: at x = g < W, (lo, hi) brackets k for cos theta_i in
                             [g / W, (g + 1) / W), then cos(theta_bin k), cos(theta_bin k + 1) for
                             k = min(lo, K - 2) (what the shader needs when hi = lo + 1)
-    rows 3 + b R + i        bin b, table row i: cell j at x = j holds W_bij (RGB)
-    rows 3 + (1 + q) B R + b R + i, q = 0, 1, 2
-                            bin b, table row i: cell j holds (mass, a0, a1), (a2, a3, b0), (b1,
-                            b2, b3): the mass and the profiles' node values along a and b
-                            (Tables._alpha, _beta: normalized per bin)
-    corner block (k, p), k = 0 .. max(K - 1, 1) - 1, first row 3 + 4 B R + (k P + p)(3 + 3 R):
+    rows 3 + q B R + b R + i, q = 0, 1, 2
+                            bin b, table row i: cell j at x = j holds (mass, a0, a1, a2), (a3,
+                            b0, b1, b2), (b3, W_bij): the mass, the profiles' node values along a
+                            and b (Tables._alpha, _beta: normalized per bin) and the weight (RGB),
+                            three RGBA texels a cell
+    corner block (k, p), k = 0 .. max(K - 1, 1) - 1, first row 3 + 3 B R + (k P + p)(3 + 3 R):
         +0          row CDF, x = 0..R
         +1          a edges, x = 0..R
         +2 + i      column cumulative sums of row i, x = 0..C
@@ -62,7 +62,8 @@ from ..errors import FlowBSDFError
 from ..plumbing.exrio import read_rgba_exr, write_rgba_exr
 from ..plumbing.files import file_hash
 
-LAYOUT = 8      # 8: tables of mixed resolutions (each corner's own rows and columns: its guides, its count texel)
+LAYOUT = 9      # 8: tables of mixed resolutions (each corner's own rows and columns: its guides, its count
+                # texel); 9: a cell in three RGBA texels (weight with the profiles), the header in two
 META_KEY = "flowbsdf_osl"
 
 
@@ -108,11 +109,10 @@ def texture_image(tables):
     B = K * P
     KP = max(K - 1, 1)
     width = max(C + 1, R + 1, K, P, 3)
-    height = 3 + 4 * B * R + KP * P * (3 + 3 * R)
+    height = 3 + 3 * B * R + KP * P * (3 + 3 * R)
     img = np.zeros((height, width, 4), np.float64)
-    img[0, 0, :3] = (LAYOUT, K, R)
-    img[0, 1, :3] = (C, width, height)
-    img[0, 2] = (P, tables.phi_period, COORDS.index(tables.coords), tables.frame_angle)
+    img[0, 0] = (LAYOUT, K, R, C)
+    img[0, 1] = (P, tables.phi_period, COORDS.index(tables.coords), tables.frame_angle)
     cos_bins = np.cos(tables.theta_bins).astype(np.float32).astype(np.float64)
     img[1, :K, 0] = cos_bins
     img[1, :P, 1] = [0.0] if tables.phi_bins is None else tables.phi_bins
@@ -123,14 +123,13 @@ def texture_image(tables):
     img[2, :, 1] = [K - np.sum(cos_bins < x / width) for x in g]
     k = np.clip(img[2, :, 0].astype(int), 0, max(K - 2, 0))
     img[2, :, 2], img[2, :, 3] = cos_bins[k], cos_bins[np.minimum(k + 1, K - 1)]
-    img[3:3 + B * R, :C, :3] = tables._w.reshape(B * R, C, 3)
-    cells = np.concatenate([tables._m[..., None], tables._alpha, tables._beta], axis=-1)     # (B, R, C, 9)
+    cells = np.concatenate([tables._m[..., None], tables._alpha, tables._beta, tables._w], axis=-1)     # (B, R, C, 12)
     for q in range(3):
-        img[3 + (1 + q) * B * R:3 + (2 + q) * B * R, :C, :3] = cells[..., 3 * q:3 * q + 3].reshape(B * R, C, 3)
+        img[3 + q * B * R:3 + (1 + q) * B * R, :C] = cells[..., 4 * q:4 * q + 4].reshape(B * R, C, 4)
     f32 = lambda x: np.asarray(x, np.float32).astype(np.float64)      # noqa: E731  (what the shader reads)
     for k in range(KP):
         for p in range(P):
-            base = 3 + 4 * B * R + (k * P + p) * (3 + 3 * R)
+            base = 3 + 3 * B * R + (k * P + p) * (3 + 3 * R)
             k1, p1 = min(k + 1, K - 1), (p + 1) % P
             blend = [k * P + p, k1 * P + p, k * P + p1, k1 * P + p1]
             for ch, b in enumerate(blend):

@@ -2,7 +2,7 @@
 // evaluation. A port of bake/core/tables.py's Tables.sample and Tables._locate (the numpy reference).
 // Every texel is fetched with "interp", "closest" and zero derivatives, so values come back exact.
 
-#define LAYOUT 8
+#define LAYOUT 9
 #define NSEG 3
 #define LOG_MEAN_SERIES 1e-3
 #define K_SMALL 1e-4
@@ -113,7 +113,8 @@ float profile_density(float x, float V[4])
 }
 
 // The texture's header: 1 and (W, H, K, R, C, P, phi period, the coordinates (0 "wo",
-// 1 "halfvector", 2 "halfpolar"), their frame's angle) when it is a current export.
+// 1 "halfvector", 2 "halfpolar"), their frame's angle) when it is a current export (of the
+// size the export makes of them: bake/export/osl_export.texture_image).
 int read_header(string file, output float W, output float H, output int K, output int R,
                 output int C, output int NP, output float period, output int half, output float frame)
 {
@@ -122,19 +123,20 @@ int read_header(string file, output float W, output float H, output int K, outpu
         return 0;
     W = res[0];
     H = res[1];
-    color h0 = fetch(file, W, H, 0, 0);      // (LAYOUT, K, R)
-    color h1 = fetch(file, W, H, 1, 0);      // (C, W, H)
-    float h2a = 0;
-    color h2 = fetch4(file, W, H, 2, 0, h2a);      // (P, phi period, coordinates, frame angle)
-    half = int(h2[2]);
-    frame = h2a;
+    float h0a = 0, h1a = 0;
+    color h0 = fetch4(file, W, H, 0, 0, h0a);      // (LAYOUT, K, R, C)
+    color h1 = fetch4(file, W, H, 1, 0, h1a);      // (P, phi period, coordinates, frame angle)
     K = int(h0[1]);
     R = int(h0[2]);
-    C = int(h1[0]);
-    NP = int(h2[0]);
-    period = h2[1];
-    return int(h0[0]) == LAYOUT && int(h1[1]) == res[0] && int(h1[2]) == res[1]
-        && K >= 1 && R >= 1 && C >= 1 && NP >= 1 && period > 0.0;
+    C = int(h0a);
+    NP = int(h1[0]);
+    period = h1[1];
+    half = int(h1[2]);
+    frame = h1a;
+    int B = K * NP;
+    return int(h0[0]) == LAYOUT && K >= 1 && R >= 1 && C >= 1 && NP >= 1 && period > 0.0
+        && res[0] == max(max(C + 1, R + 1), max(max(K, NP), 3))
+        && res[1] == 3 + 3 * B * R + max(K - 1, 1) * NP * (3 + 3 * R);
 }
 
 // The bins a direction blends at (cos theta_i, phi_i) (phi_i in the tangent frame; 0 when
@@ -193,7 +195,7 @@ void blend_bins(string file, float W, float H, int K, int R, int NP, float perio
     bins[1] = k1 * NP + p;
     bins[2] = k * NP + p1;
     bins[3] = k1 * NP + p1;
-    base = 3 + 4 * K * NP * R + (k * NP + p) * (3 + 3 * R);
+    base = 3 + 3 * K * NP * R + (k * NP + p) * (3 + 3 * R);
 }
 
 // The bins a shading point blends: blend_bins at its (cos theta_i, phi_i), the same for each of
@@ -212,24 +214,28 @@ void blend_at(string file, float W, float H, int K, int R, int NP, float period,
 }
 
 // Cell (i, j) of the blended table: its weight W (baked f cos / pdf), mass and profiles along a
-// and b (node values): three texels a cell, (mass, a0, a1), (a2, a3, b0), (b1, b2, b3).
+// and b (node values): three RGBA texels a cell, (mass, a0, a1, a2), (a3, b0, b1, b2), (b3, W).
 void blend_cell(string file, float W, float H, int B, int R, int bins[4], float w[4], int i, int j,
                 output color weight, output float mass, output float pa[4], output float pb[4])
 {
     color q0 = 0, q1 = 0, q2 = 0;
-    weight = 0;
+    float s0 = 0, s1 = 0, s2 = 0;
     for (int c = 0; c < 4; c++) {
         if (w[c] > 0.0) {
-            int y = 3 + B * R + bins[c] * R + i;
-            q0 += w[c] * fetch(file, W, H, j, y);
-            q1 += w[c] * fetch(file, W, H, j, y + B * R);
-            q2 += w[c] * fetch(file, W, H, j, y + 2 * B * R);
-            weight += w[c] * fetch(file, W, H, j, 3 + bins[c] * R + i);
+            int y = 3 + bins[c] * R + i;
+            float a0 = 0, a1 = 0, a2 = 0;
+            q0 += w[c] * fetch4(file, W, H, j, y, a0);
+            q1 += w[c] * fetch4(file, W, H, j, y + B * R, a1);
+            q2 += w[c] * fetch4(file, W, H, j, y + 2 * B * R, a2);
+            s0 += w[c] * a0;
+            s1 += w[c] * a1;
+            s2 += w[c] * a2;
         }
     }
     mass = q0[0];
-    pa[0] = q0[1]; pa[1] = q0[2]; pa[2] = q1[0]; pa[3] = q1[1];
-    pb[0] = q1[2]; pb[1] = q2[0]; pb[2] = q2[1]; pb[3] = q2[2];
+    pa[0] = q0[1]; pa[1] = q0[2]; pa[2] = s0; pa[3] = q1[0];
+    pb[0] = q1[1]; pb[1] = q1[2]; pb[2] = s1; pb[3] = q2[0];
+    weight = color(q2[1], q2[2], s2);
 }
 
 // bake/core/halfvector.py: 1 - cos theta_max(phi_h), the valid cap of h along phi_h at wi.
