@@ -40,7 +40,10 @@ below bound its searches). Layout (W = texture width, rows from the top of the i
                     among the row's b edges (blue, alpha)
       with the four bins a sample blends in its channels: red (k, p), green (k + 1, p), blue
       (k, p + 1), alpha (k + 1, p + 1) (p + 1 wrapping to 0; k + 1 clipped to K - 1), so one
-      fetch gives all four ends of the blend. A guide's bracket holds for any blend of the four
+      fetch gives all four ends of the blend. Isotropic tables (P = 1, where blue and alpha would
+      repeat red and green, blended with weight 0) put the next rows' values there instead: the
+      row CDF's texels carry the a edges (of +1) and the column sums' the b edges (of +2 + R + i),
+      so a sample's searches read the edges with the sums. A guide's bracket holds for any blend of the four
       (for every bin: its value at lo is below the fraction, at hi above it), so the shader's
       binary searches start from it: one fetch instead of log2(R) or log2(C). Guides come from
       the corner's own entries (own_size), so lo < hi <= R_b (C_b): a search, and the entries
@@ -62,8 +65,9 @@ from ..errors import FlowBSDFError
 from ..plumbing.exrio import read_rgba_exr, write_rgba_exr
 from ..plumbing.files import file_hash
 
-LAYOUT = 9      # 8: tables of mixed resolutions (each corner's own rows and columns: its guides, its count
-                # texel); 9: a cell in three RGBA texels (weight with the profiles), the header in two
+LAYOUT = 10     # 8: tables of mixed resolutions (each corner's own rows and columns: its guides, its count
+                # texel); 9: a cell in three RGBA texels (weight with the profiles), the header in two;
+                # 10: isotropic corners' sums carry their edges (blue, alpha)
 META_KEY = "flowbsdf_osl"
 
 
@@ -137,6 +141,10 @@ def texture_image(tables):
                 img[base + 1, :R + 1, ch] = tables._a[b]
                 img[base + 2:base + 2 + R, :C + 1, ch] = tables._col_cum[b]
                 img[base + 2 + R:base + 2 + 2 * R, :C + 1, ch] = tables._b[b]
+            if P == 1:          # the sums' blue and alpha: the edges of bins k, k + 1
+                for ch, b in ((2, blend[0]), (3, blend[1])):
+                    img[base, :R + 1, ch] = tables._a[b]
+                    img[base + 2:base + 2 + R, :C + 1, ch] = tables._b[b]
             rb, cb = own_size(tables, blend)
             row_cdf, a_edges = f32(tables._row_cdf[blend, :rb + 1]), f32(tables._a[blend, :rb + 1])
             img[base + 2 + 2 * R, :R, :2] = _guide(row_cdf, row_cdf[:, -1], R)

@@ -2,7 +2,7 @@
 // evaluation. A port of bake/core/tables.py's Tables.sample and Tables._locate (the numpy reference).
 // Every texel is fetched with "interp", "closest" and zero derivatives, so values come back exact.
 
-#define LAYOUT 9
+#define LAYOUT 10
 #define NSEG 3
 #define LOG_MEAN_SERIES 1e-3
 #define K_SMALL 1e-4
@@ -39,6 +39,17 @@ float fetch_blend(string file, float W, float H, int x, int y, float w[4])
     float alpha = 0;
     color c = fetch4(file, W, H, x, y, alpha);
     return w[0] * c[0] + w[1] * c[1] + w[2] * c[2] + w[3] * alpha;
+}
+
+// fetch_blend of an isotropic corner's texel (red, green: bins k, k + 1) and, blended alike, the
+// other quantity its blue and alpha hold (the row CDF's texels hold the a edges, the column sums'
+// the b edges: bake/export/osl_export.py).
+float fetch_pair(string file, float W, float H, int x, int y, float w[4], output float second)
+{
+    float alpha = 0;
+    color c = fetch4(file, W, H, x, y, alpha);
+    second = w[0] * c[2] + w[1] * alpha;
+    return w[0] * c[0] + w[1] * c[1];
 }
 
 float log1p_(float x)
@@ -317,20 +328,28 @@ void sample_blend(string file, float W, float H, int K, int R, int C, int NP, fl
 {
     int base = bl.base;
 
+    // Isotropic corners: every texel the searches read brings its a (b) edge along (fetch_pair).
+    int iso = NP == 1;
+    float e = 0.0;
     // Row: the last i with CDF_i <= u0 (the guide brackets it).
     color guide = fetch(file, W, H, min(int(u0 * R), R - 1), base + 2 + 2 * R);
     int lo = int(guide[0]), hi = int(guide[1]);
     float c0 = -1.0, c1 = -1.0;         // the CDF at lo and hi, once the search has read them
+    float a0 = 0.0, a1 = 0.0;           // (isotropic: the a edges there)
     while (hi - lo > 1) {
         int mid = (lo + hi) / 2;
-        float c = fetch_blend(file, W, H, mid, base, bl.w);
-        if (c <= u0) { lo = mid; c0 = c; } else { hi = mid; c1 = c; }
+        float c = iso ? fetch_pair(file, W, H, mid, base, bl.w, e) : fetch_blend(file, W, H, mid, base, bl.w);
+        if (c <= u0) { lo = mid; c0 = c; a0 = e; } else { hi = mid; c1 = c; a1 = e; }
     }
     int i = lo;
     if (c0 < 0.0)
-        c0 = fetch_blend(file, W, H, i, base, bl.w);
+        c0 = iso ? fetch_pair(file, W, H, i, base, bl.w, a0) : fetch_blend(file, W, H, i, base, bl.w);
     if (c1 < 0.0 || hi != i + 1)
-        c1 = fetch_blend(file, W, H, i + 1, base, bl.w);
+        c1 = iso ? fetch_pair(file, W, H, i + 1, base, bl.w, a1) : fetch_blend(file, W, H, i + 1, base, bl.w);
+    if (!iso) {
+        a0 = fetch_blend(file, W, H, i, base + 1, bl.w);
+        a1 = fetch_blend(file, W, H, i + 1, base + 1, bl.w);
+    }
     float v = u1 * (c1 - c0);
     // Column: the last j with cumsum_ij <= v.
     int yrow = base + 2 + i;
@@ -338,18 +357,21 @@ void sample_blend(string file, float W, float H, int K, int R, int C, int NP, fl
     lo = int(guide[0]);
     hi = int(guide[1]);
     float d0 = -1.0;
+    float b0 = 0.0, b1 = -1.0;          // (isotropic: the b edges at lo and hi, once read)
     while (hi - lo > 1) {
         int mid = (lo + hi) / 2;
-        float d = fetch_blend(file, W, H, mid, yrow, bl.w);
-        if (d <= v) { lo = mid; d0 = d; } else hi = mid;
+        float d = iso ? fetch_pair(file, W, H, mid, yrow, bl.w, e) : fetch_blend(file, W, H, mid, yrow, bl.w);
+        if (d <= v) { lo = mid; d0 = d; b0 = e; } else { hi = mid; b1 = e; }
     }
     int j = lo;
     if (d0 < 0.0)
-        d0 = fetch_blend(file, W, H, j, yrow, bl.w);
-    float a0 = fetch_blend(file, W, H, i, base + 1, bl.w);
-    float a1 = fetch_blend(file, W, H, i + 1, base + 1, bl.w);
-    float b0 = fetch_blend(file, W, H, j, base + 2 + R + i, bl.w);
-    float b1 = fetch_blend(file, W, H, j + 1, base + 2 + R + i, bl.w);
+        d0 = iso ? fetch_pair(file, W, H, j, yrow, bl.w, b0) : fetch_blend(file, W, H, j, yrow, bl.w);
+    if (!iso) {
+        b0 = fetch_blend(file, W, H, j, base + 2 + R + i, bl.w);
+        b1 = fetch_blend(file, W, H, j + 1, base + 2 + R + i, bl.w);
+    } else if (b1 < 0.0 || hi != j + 1) {
+        fetch_pair(file, W, H, j + 1, yrow, bl.w, b1);
+    }
     float mass, pa[4], pb[4];
     blend_cell(file, W, H, K * NP, R, bl.bins, bl.w, i, j, weight, mass, pa, pb);
     float dx, dy;
