@@ -2,7 +2,7 @@
 // evaluation. A port of bake/core/tables.py's Tables.sample and Tables._locate (the numpy reference).
 // Every texel is fetched with "interp", "closest" and zero derivatives, so values come back exact.
 
-#define LAYOUT 10
+#define LAYOUT 11
 #define NSEG 3
 #define LOG_MEAN_SERIES 1e-3
 #define K_SMALL 1e-4
@@ -225,7 +225,8 @@ void blend_at(string file, float W, float H, int K, int R, int NP, float period,
 }
 
 // Cell (i, j) of the blended table: its weight W (baked f cos / pdf), mass and profiles along a
-// and b (node values): three RGBA texels a cell, (mass, a0, a1, a2), (a3, b0, b1, b2), (b3, W).
+// and b (node values): three RGBA texels a cell, (mass, a0, a1, a2), (a3, b0, b1, b2), (b3, W), one
+// above the other, the bins of a table row in consecutive rows (the blend's reads share a tile).
 void blend_cell(string file, float W, float H, int B, int R, int bins[4], float w[4], int i, int j,
                 output color weight, output float mass, output float pa[4], output float pb[4])
 {
@@ -233,11 +234,11 @@ void blend_cell(string file, float W, float H, int B, int R, int bins[4], float 
     float s0 = 0, s1 = 0, s2 = 0;
     for (int c = 0; c < 4; c++) {
         if (w[c] > 0.0) {
-            int y = 3 + bins[c] * R + i;
+            int y = 3 + 3 * (i * B + bins[c]);
             float a0 = 0, a1 = 0, a2 = 0;
             q0 += w[c] * fetch4(file, W, H, j, y, a0);
-            q1 += w[c] * fetch4(file, W, H, j, y + B * R, a1);
-            q2 += w[c] * fetch4(file, W, H, j, y + 2 * B * R, a2);
+            q1 += w[c] * fetch4(file, W, H, j, y + 1, a1);
+            q2 += w[c] * fetch4(file, W, H, j, y + 2, a2);
             s0 += w[c] * a0;
             s1 += w[c] * a1;
             s2 += w[c] * a2;
@@ -332,7 +333,7 @@ void sample_blend(string file, float W, float H, int K, int R, int C, int NP, fl
     int iso = NP == 1;
     float e = 0.0;
     // Row: the last i with CDF_i <= u0 (the guide brackets it).
-    color guide = fetch(file, W, H, min(int(u0 * R), R - 1), base + 2 + 2 * R);
+    color guide = fetch(file, W, H, min(int(u0 * R), R - 1), base + 2);
     int lo = int(guide[0]), hi = int(guide[1]);
     float c0 = -1.0, c1 = -1.0;         // the CDF at lo and hi, once the search has read them
     float a0 = 0.0, a1 = 0.0;           // (isotropic: the a edges there)
@@ -352,8 +353,8 @@ void sample_blend(string file, float W, float H, int K, int R, int C, int NP, fl
     }
     float v = u1 * (c1 - c0);
     // Column: the last j with cumsum_ij <= v.
-    int yrow = base + 2 + i;
-    guide = fetch(file, W, H, min(int(u1 * C), C - 1), base + 3 + 2 * R + i);
+    int yrow = base + 3 + 3 * i;
+    guide = fetch(file, W, H, min(int(u1 * C), C - 1), yrow + 2);
     lo = int(guide[0]);
     hi = int(guide[1]);
     float d0 = -1.0;
@@ -367,8 +368,8 @@ void sample_blend(string file, float W, float H, int K, int R, int C, int NP, fl
     if (d0 < 0.0)
         d0 = iso ? fetch_pair(file, W, H, j, yrow, bl.w, b0) : fetch_blend(file, W, H, j, yrow, bl.w);
     if (!iso) {
-        b0 = fetch_blend(file, W, H, j, base + 2 + R + i, bl.w);
-        b1 = fetch_blend(file, W, H, j + 1, base + 2 + R + i, bl.w);
+        b0 = fetch_blend(file, W, H, j, yrow + 1, bl.w);
+        b1 = fetch_blend(file, W, H, j + 1, yrow + 1, bl.w);
     } else if (b1 < 0.0 || hi != j + 1) {
         fetch_pair(file, W, H, j + 1, yrow, bl.w, b1);
     }
@@ -442,7 +443,7 @@ int own_edge_search(string file, float W, float H, int y, int R, int base, int a
     int k = bracket_search(file, W, H, y, lo_guide, hi_guide, w, x, e0, e1);
     if ((e0 <= x || k == 0) && x < e1)
         return k;
-    color count = fetch(file, W, H, R, base + 2 + 2 * R);
+    color count = fetch(file, W, H, R, base + 2);
     return edge_search(file, W, H, y, int(count[axis]), k, k + 1, w, x, e0, e1);
 }
 
@@ -472,10 +473,10 @@ void eval_blend(string file, float W, float H, int K, int R, int C, int NP, floa
     // its guide's bracket (blue, alpha of the row / column guide texels).
     float a0, a1, b0, b1;
     float alpha = 0;
-    color guide = fetch4(file, W, H, clamp(int(a * R), 0, R - 1), base + 2 + 2 * R, alpha);
+    color guide = fetch4(file, W, H, clamp(int(a * R), 0, R - 1), base + 2, alpha);
     int i = own_edge_search(file, W, H, base + 1, R, base, 0, int(guide[2]), int(alpha), bl.w, a, a0, a1);
-    int brow = base + 2 + R + i;
-    guide = fetch4(file, W, H, clamp(int(b * (C / (2.0 * M_PI))), 0, C - 1), base + 3 + 2 * R + i, alpha);
+    int brow = base + 4 + 3 * i;
+    guide = fetch4(file, W, H, clamp(int(b * (C / (2.0 * M_PI))), 0, C - 1), brow + 1, alpha);
     int j = own_edge_search(file, W, H, brow, R, base, 1, int(guide[2]), int(alpha), bl.w, b, b0, b1);
     color weight;
     float mass, pa[4], pb[4];
