@@ -164,8 +164,7 @@ def per_spp(sc, spp, inner):
     sample status past sample 0 to its last, so neither the shaders' compilation (OSL's JIT runs
     at every render: seconds, varying by seconds) nor the first sample's texture loading counts."""
     import bpy
-    _stats.__dict__["_persistent"] = True      # (bpy.app.handlers.persistent: kept across file loads)
-    if _stats not in bpy.app.handlers.render_stats:
+    if _stats not in bpy.app.handlers.render_stats:        # (scene builds load factory settings)
         bpy.app.handlers.render_stats.append(_stats)
     sc.cycles.samples = spp
     best = (float("inf"), float("inf"))
