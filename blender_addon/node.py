@@ -82,7 +82,7 @@ OSL_SOURCE = Path(__file__).resolve().parent / "osl" / "learned_bsdf.osl"
 NEUTRAL = (0.5, 0.5, 0.5)
 # The fit file format (bake/export/closure_fit.py: load_fit, FIT_VERSION), read here without numpy.
 FIT_FORMAT = "flowbsdf-closure-fit"
-OSL_LAYOUT = 8          # the OSL texture's layout (bake/export/osl_export.LAYOUT): part of its file name
+OSL_LAYOUT = 11         # the OSL texture's layout (bake/export/osl_export.LAYOUT): part of its file name
 CARRY_LAYOUT = 1        # the carried blend's texture's (bake/export/carry_export.CARRY_LAYOUT)
 FIT_VERSION = 8
 # the versions the node renders: a version 6 fit (3 lobes, no tilts) or 7 (no EEVEE fit: EEVEE

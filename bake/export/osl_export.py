@@ -14,33 +14,38 @@ R x C cells each, and the shader reads only a bin's own entries (the guides and 
 below bound its searches). Layout (W = texture width, rows from the top of the image; texel
 (x, y) is read at s = (x + 0.5) / W, t = (y + 0.5) / H):
 
-    row 0                   header: (LAYOUT, K, R), (C, W, H), (P, phi period, the coordinates
-                            (their index in tables.COORDS: 0 wo, 1 halfvector, 2 halfpolar),
-                            their frame's angle)
+    row 0                   header: (LAYOUT, K, R, C), (P, phi period, the coordinates (their
+                            index in tables.COORDS: 0 wo, 1 halfvector, 2 halfpolar), their
+                            frame's angle); the shader checks the texture's size against them
     row 1                   cos(theta_bin k) at x = k (red); phi_bin p at x = p (green)
     row 2                   theta guide: at x = g < W, (lo, hi) brackets k for cos theta_i in
                             [g / W, (g + 1) / W), then cos(theta_bin k), cos(theta_bin k + 1) for
                             k = min(lo, K - 2) (what the shader needs when hi = lo + 1)
-    rows 3 + b R + i        bin b, table row i: cell j at x = j holds W_bij (RGB)
-    rows 3 + (1 + q) B R + b R + i, q = 0, 1, 2
-                            bin b, table row i: cell j holds (mass, a0, a1), (a2, a3, b0), (b1,
-                            b2, b3): the mass and the profiles' node values along a and b
-                            (Tables._alpha, _beta: normalized per bin)
-    corner block (k, p), k = 0 .. max(K - 1, 1) - 1, first row 3 + 4 B R + (k P + p)(3 + 3 R):
+    rows 3 + 3 (i B + b) + q, q = 0, 1, 2
+                            bin b, table row i: cell j at x = j holds (mass, a0, a1, a2), (a3,
+                            b0, b1, b2), (b3, W_bij): the mass, the profiles' node values along a
+                            and b (Tables._alpha, _beta: normalized per bin) and the weight (RGB),
+                            three RGBA texels a cell, one above the other, the bins of a table
+                            row next to each other (what a blend reads shares an OIIO tile)
+    corner block (k, p), k = 0 .. max(K - 1, 1) - 1, first row 3 + 3 B R + (k P + p)(3 + 3 R):
         +0          row CDF, x = 0..R
         +1          a edges, x = 0..R
-        +2 + i      column cumulative sums of row i, x = 0..C
-        +2 + R + i  b edges of row i, x = 0..C
-        +2 + 2 R    row guide: at x = g < G_R = R, (lo, hi) brackets the row for u0 in [g, g + 1) / R
+        +2          row guide: at x = g < G_R = R, (lo, hi) brackets the row for u0 in [g, g + 1) / R
                     (red, green), and the row of a = 1 - cos theta_o in [g, g + 1) / R among the
                     a edges (blue, alpha: the inverse's search, eval_tables); at x = R the count
                     texel (R_b, C_b): the corner's own rows and columns (edge_search's fallback)
-        +3 + 2 R + i  column guide of row i < R_b: at x = g < G_C = C, (lo, hi) brackets the column
+        +3 + 3 i    column cumulative sums of row i, x = 0..C
+        +4 + 3 i    b edges of row i, x = 0..C
+        +5 + 3 i    column guide of row i < R_b: at x = g < G_C = C, (lo, hi) brackets the column
                     for u1 in [g, g + 1) / C (red, green), and the column of b in [g, g + 1) 2 pi / C
                     among the row's b edges (blue, alpha)
+                    (a table row's three rows together: a sample's column search stays in a tile)
       with the four bins a sample blends in its channels: red (k, p), green (k + 1, p), blue
       (k, p + 1), alpha (k + 1, p + 1) (p + 1 wrapping to 0; k + 1 clipped to K - 1), so one
-      fetch gives all four ends of the blend. A guide's bracket holds for any blend of the four
+      fetch gives all four ends of the blend. Isotropic tables (P = 1, where blue and alpha would
+      repeat red and green, blended with weight 0) put the next rows' values there instead: the
+      row CDF's texels carry the a edges (of +1) and the column sums' the b edges (of +2 + R + i),
+      so a sample's searches read the edges with the sums. A guide's bracket holds for any blend of the four
       (for every bin: its value at lo is below the fraction, at hi above it), so the shader's
       binary searches start from it: one fetch instead of log2(R) or log2(C). Guides come from
       the corner's own entries (own_size), so lo < hi <= R_b (C_b): a search, and the entries
@@ -62,7 +67,10 @@ from ..errors import FlowBSDFError
 from ..plumbing.exrio import read_rgba_exr, write_rgba_exr
 from ..plumbing.files import file_hash
 
-LAYOUT = 8      # 8: tables of mixed resolutions (each corner's own rows and columns: its guides, its count texel)
+LAYOUT = 11     # 8: tables of mixed resolutions (each corner's own rows and columns: its guides, its count
+                # texel); 9: a cell in three RGBA texels (weight with the profiles), the header in two;
+                # 10: isotropic corners' sums carry their edges (blue, alpha); 11: what a sample reads
+                # together lies together (cells' texels and bins, a table row's sums, edges, guide)
 META_KEY = "flowbsdf_osl"
 
 
@@ -108,11 +116,10 @@ def texture_image(tables):
     B = K * P
     KP = max(K - 1, 1)
     width = max(C + 1, R + 1, K, P, 3)
-    height = 3 + 4 * B * R + KP * P * (3 + 3 * R)
+    height = 3 + 3 * B * R + KP * P * (3 + 3 * R)
     img = np.zeros((height, width, 4), np.float64)
-    img[0, 0, :3] = (LAYOUT, K, R)
-    img[0, 1, :3] = (C, width, height)
-    img[0, 2] = (P, tables.phi_period, COORDS.index(tables.coords), tables.frame_angle)
+    img[0, 0] = (LAYOUT, K, R, C)
+    img[0, 1] = (P, tables.phi_period, COORDS.index(tables.coords), tables.frame_angle)
     cos_bins = np.cos(tables.theta_bins).astype(np.float32).astype(np.float64)
     img[1, :K, 0] = cos_bins
     img[1, :P, 1] = [0.0] if tables.phi_bins is None else tables.phi_bins
@@ -123,30 +130,34 @@ def texture_image(tables):
     img[2, :, 1] = [K - np.sum(cos_bins < x / width) for x in g]
     k = np.clip(img[2, :, 0].astype(int), 0, max(K - 2, 0))
     img[2, :, 2], img[2, :, 3] = cos_bins[k], cos_bins[np.minimum(k + 1, K - 1)]
-    img[3:3 + B * R, :C, :3] = tables._w.reshape(B * R, C, 3)
-    cells = np.concatenate([tables._m[..., None], tables._alpha, tables._beta], axis=-1)     # (B, R, C, 9)
-    for q in range(3):
-        img[3 + (1 + q) * B * R:3 + (2 + q) * B * R, :C, :3] = cells[..., 3 * q:3 * q + 3].reshape(B * R, C, 3)
+    cells = np.concatenate([tables._m[..., None], tables._alpha, tables._beta, tables._w], axis=-1)     # (B, R, C, 12)
+    # (B, R, C, 3 texels, 4) -> rows (R, B, 3): y = 3 + 3 (i B + b) + q
+    img[3:3 + 3 * B * R, :C] = cells.reshape(B, R, C, 3, 4).transpose(1, 0, 3, 2, 4).reshape(3 * B * R, C, 4)
     f32 = lambda x: np.asarray(x, np.float32).astype(np.float64)      # noqa: E731  (what the shader reads)
     for k in range(KP):
         for p in range(P):
-            base = 3 + 4 * B * R + (k * P + p) * (3 + 3 * R)
+            base = 3 + 3 * B * R + (k * P + p) * (3 + 3 * R)
             k1, p1 = min(k + 1, K - 1), (p + 1) % P
             blend = [k * P + p, k1 * P + p, k * P + p1, k1 * P + p1]
+            sums, edges, guides = (slice(base + 3 + q, base + 3 + 3 * R, 3) for q in range(3))   # row i's
             for ch, b in enumerate(blend):
                 img[base, :R + 1, ch] = tables._row_cdf[b]
                 img[base + 1, :R + 1, ch] = tables._a[b]
-                img[base + 2:base + 2 + R, :C + 1, ch] = tables._col_cum[b]
-                img[base + 2 + R:base + 2 + 2 * R, :C + 1, ch] = tables._b[b]
+                img[sums, :C + 1, ch] = tables._col_cum[b]
+                img[edges, :C + 1, ch] = tables._b[b]
+            if P == 1:          # the sums' blue and alpha: the edges of bins k, k + 1
+                for ch, b in ((2, blend[0]), (3, blend[1])):
+                    img[base, :R + 1, ch] = tables._a[b]
+                    img[sums, :C + 1, ch] = tables._b[b]
             rb, cb = own_size(tables, blend)
             row_cdf, a_edges = f32(tables._row_cdf[blend, :rb + 1]), f32(tables._a[blend, :rb + 1])
-            img[base + 2 + 2 * R, :R, :2] = _guide(row_cdf, row_cdf[:, -1], R)
-            img[base + 2 + 2 * R, :R, 2:] = _guide(a_edges, np.ones(4), R)
-            img[base + 2 + 2 * R, R, :2] = (rb, cb)
+            img[base + 2, :R, :2] = _guide(row_cdf, row_cdf[:, -1], R)
+            img[base + 2, :R, 2:] = _guide(a_edges, np.ones(4), R)
+            img[base + 2, R, :2] = (rb, cb)
             for i in range(rb):
                 col_cum, b_edges = f32(tables._col_cum[blend, i, :cb + 1]), f32(tables._b[blend, i, :cb + 1])
-                img[base + 3 + 2 * R + i, :C, :2] = _guide(col_cum, col_cum[:, -1], C)
-                img[base + 3 + 2 * R + i, :C, 2:] = _guide(b_edges, np.full(4, 2.0 * np.pi), C)
+                img[base + 5 + 3 * i, :C, :2] = _guide(col_cum, col_cum[:, -1], C)
+                img[base + 5 + 3 * i, :C, 2:] = _guide(b_edges, np.full(4, 2.0 * np.pi), C)
     return img.astype(np.float32)
 
 

@@ -221,20 +221,16 @@ void carry_from_s(Carry c, float cos_i, float theta, float s_x, float s_y, outpu
 }
 
 // Whether theta_i carries (with a carry texture: its interval's flag, above its first bin, past
-// the last bin too: its directions carried on, as CarriedTables does), and its two bins, their
-// weights and angles.
-int carries(string file, float W, float H, int K, int R, int NP, float period, int half, int carried, Carry c,
-            float cos_i, float phi_i, output int bins[4], output float w[4], output float theta[2])
+// the last bin too: its directions carried on, as CarriedTables does), and the angles of its
+// two bins (bl: the shading point's Blend, tables.h).
+int carries(int carried, Carry c, Blend bl, output float theta[2])
 {
     if (!carried)
         return 0;
-    int base;
-    float turn;
-    blend_bins(file, W, H, K, R, NP, period, half, cos_i, phi_i, bins, w, base, turn);
-    theta[0] = fetch1(c.file, c.W, c.H, 2 + c.S + bins[0], 0);
-    theta[1] = fetch1(c.file, c.W, c.H, 2 + c.S + bins[1], 0);
-    color flag = fetch(c.file, c.W, c.H, 2 + c.S + bins[0], 0);
-    return flag[1] > 0.5 && w[1] > 0.0 && bins[1] == bins[0] + 1;
+    theta[0] = fetch1(c.file, c.W, c.H, 2 + c.S + bl.bins[0], 0);
+    theta[1] = fetch1(c.file, c.W, c.H, 2 + c.S + bl.bins[1], 0);
+    color flag = fetch(c.file, c.W, c.H, 2 + c.S + bl.bins[0], 0);
+    return flag[1] > 0.5 && bl.w[1] > 0.0 && bl.bins[1] == bl.bins[0] + 1;
 }
 
 // Adds bin q's term of the carried sum at s: w_q {pdf, f cos}_q(W_q^-1(s)) J_q / J (J: d omega / d s
@@ -256,13 +252,12 @@ void carry_term(string file, float W, float H, int K, int R, int C, int NP, floa
 
 // eval_tables, carried where the interval carries: pdf per steradian and baked f cos at wo.
 void eval_bsdf(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
-               float frame, int carried, Carry c, float cos_i, float phi_i, vector wo, output color fcos,
+               float frame, int carried, Carry c, Blend bl, float cos_i, float phi_i, vector wo, output color fcos,
                output float pdf)
 {
-    int bins[4];
-    float w[4], theta_j[2];
-    if (!carries(file, W, H, K, R, NP, period, half, carried, c, cos_i, phi_i, bins, w, theta_j)) {
-        eval_tables(file, W, H, K, R, C, NP, period, half, frame, cos_i, phi_i, wo, fcos, pdf);
+    float theta_j[2];
+    if (!carries(carried, c, bl, theta_j)) {
+        eval_blend(file, W, H, K, R, C, NP, period, half, frame, bl, cos_i, phi_i, wo, fcos, pdf);
         return;
     }
     fcos = 0;
@@ -274,34 +269,33 @@ void eval_bsdf(string file, float W, float H, int K, int R, int C, int NP, float
     if (jac <= 0.0)
         return;
     for (int q = 0; q < 2; q++)
-        if (w[q] > 0.0)
-            carry_term(file, W, H, K, R, C, NP, period, half, frame, c, bins[q], theta_j[q], w[q], s_x, s_y, jac,
+        if (bl.w[q] > 0.0)
+            carry_term(file, W, H, K, R, C, NP, period, half, frame, c, bl.bins[q], theta_j[q], bl.w[q], s_x, s_y, jac,
                        fcos, pdf);
 }
 
 // sample_tables, carried where the interval carries: wo, its weight (baked f cos / pdf) and pdf.
 void sample_bsdf(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
-                 float frame, int carried, Carry c, float cos_i, float phi_i, float u0, float u1,
+                 float frame, int carried, Carry c, Blend bl, float cos_i, float phi_i, float u0, float u1,
                  output vector wo, output color weight, output float pdf)
 {
-    int bins[4];
-    float w[4], theta_j[2];
-    if (!carries(file, W, H, K, R, NP, period, half, carried, c, cos_i, phi_i, bins, w, theta_j)) {
-        sample_tables(file, W, H, K, R, C, NP, period, half, frame, cos_i, phi_i, u0, u1, wo, weight, pdf);
+    float theta_j[2];
+    if (!carries(carried, c, bl, theta_j)) {
+        sample_blend(file, W, H, K, R, C, NP, period, half, frame, bl, cos_i, phi_i, u0, u1, wo, weight, pdf);
         return;
     }
-    int j = (u0 < w[0]) ? 0 : 1, o = 1 - j;
-    float u = (j == 0) ? u0 / w[0] : (u0 - w[0]) / w[1];
+    int j = (u0 < bl.w[0]) ? 0 : 1, o = 1 - j;
+    float u = (j == 0) ? u0 / bl.w[0] : (u0 - bl.w[0]) / bl.w[1];
     vector wo_j;
     color weight_j;
     float pdf_j, s_x, s_y, jac_j, jac;
-    sample_tables(file, W, H, K, R, C, NP, period, half, frame, fetch1(file, W, H, bins[j], 1), 0.0,
+    sample_tables(file, W, H, K, R, C, NP, period, half, frame, fetch1(file, W, H, bl.bins[j], 1), 0.0,
                   clamp(u, 0.0, 0.99999994), u1, wo_j, weight_j, pdf_j);
     carry_to_s(c, cos(theta_j[j]), theta_j[j], wo_j, s_x, s_y, jac_j);
     carry_from_s(c, cos_i, acos(cos_i), s_x, s_y, wo, jac);
     if (jac_j <= 0.0) {     // no warp density at wo_j (rare): the pdf as eval_bsdf reads it at wo
         color fcos;
-        eval_bsdf(file, W, H, K, R, C, NP, period, half, frame, carried, c, cos_i, phi_i, wo, fcos, pdf);
+        eval_bsdf(file, W, H, K, R, C, NP, period, half, frame, carried, c, bl, cos_i, phi_i, wo, fcos, pdf);
         weight = (pdf > 0.0) ? fcos / pdf : color(0);
         return;
     }
@@ -311,10 +305,10 @@ void sample_bsdf(string file, float W, float H, int K, int R, int C, int NP, flo
     weight = 0;
     if (jac <= 0.0)
         return;         // s reaches no direction above the horizon at theta_i: lost
-    color fcos = w[j] * weight_j * pdf_j * (jac_j / jac);
-    pdf = w[j] * pdf_j * (jac_j / jac);
-    if (w[o] > 0.0)
-        carry_term(file, W, H, K, R, C, NP, period, half, frame, c, bins[o], theta_j[o], w[o], s_x, s_y, jac,
+    color fcos = bl.w[j] * weight_j * pdf_j * (jac_j / jac);
+    pdf = bl.w[j] * pdf_j * (jac_j / jac);
+    if (bl.w[o] > 0.0)
+        carry_term(file, W, H, K, R, C, NP, period, half, frame, c, bl.bins[o], theta_j[o], bl.w[o], s_x, s_y, jac,
                    fcos, pdf);
     weight = (pdf > 0.0) ? fcos / pdf : color(0);
 }

@@ -2,7 +2,7 @@
 // evaluation. A port of bake/core/tables.py's Tables.sample and Tables._locate (the numpy reference).
 // Every texel is fetched with "interp", "closest" and zero derivatives, so values come back exact.
 
-#define LAYOUT 8
+#define LAYOUT 11
 #define NSEG 3
 #define LOG_MEAN_SERIES 1e-3
 #define K_SMALL 1e-4
@@ -39,6 +39,17 @@ float fetch_blend(string file, float W, float H, int x, int y, float w[4])
     float alpha = 0;
     color c = fetch4(file, W, H, x, y, alpha);
     return w[0] * c[0] + w[1] * c[1] + w[2] * c[2] + w[3] * alpha;
+}
+
+// fetch_blend of an isotropic corner's texel (red, green: bins k, k + 1) and, blended alike, the
+// other quantity its blue and alpha hold (the row CDF's texels hold the a edges, the column sums'
+// the b edges: bake/export/osl_export.py).
+float fetch_pair(string file, float W, float H, int x, int y, float w[4], output float second)
+{
+    float alpha = 0;
+    color c = fetch4(file, W, H, x, y, alpha);
+    second = w[0] * c[2] + w[1] * alpha;
+    return w[0] * c[0] + w[1] * c[1];
 }
 
 float log1p_(float x)
@@ -113,7 +124,8 @@ float profile_density(float x, float V[4])
 }
 
 // The texture's header: 1 and (W, H, K, R, C, P, phi period, the coordinates (0 "wo",
-// 1 "halfvector", 2 "halfpolar"), their frame's angle) when it is a current export.
+// 1 "halfvector", 2 "halfpolar"), their frame's angle) when it is a current export (of the
+// size the export makes of them: bake/export/osl_export.texture_image).
 int read_header(string file, output float W, output float H, output int K, output int R,
                 output int C, output int NP, output float period, output int half, output float frame)
 {
@@ -122,19 +134,20 @@ int read_header(string file, output float W, output float H, output int K, outpu
         return 0;
     W = res[0];
     H = res[1];
-    color h0 = fetch(file, W, H, 0, 0);      // (LAYOUT, K, R)
-    color h1 = fetch(file, W, H, 1, 0);      // (C, W, H)
-    float h2a = 0;
-    color h2 = fetch4(file, W, H, 2, 0, h2a);      // (P, phi period, coordinates, frame angle)
-    half = int(h2[2]);
-    frame = h2a;
+    float h0a = 0, h1a = 0;
+    color h0 = fetch4(file, W, H, 0, 0, h0a);      // (LAYOUT, K, R, C)
+    color h1 = fetch4(file, W, H, 1, 0, h1a);      // (P, phi period, coordinates, frame angle)
     K = int(h0[1]);
     R = int(h0[2]);
-    C = int(h1[0]);
-    NP = int(h2[0]);
-    period = h2[1];
-    return int(h0[0]) == LAYOUT && int(h1[1]) == res[0] && int(h1[2]) == res[1]
-        && K >= 1 && R >= 1 && C >= 1 && NP >= 1 && period > 0.0;
+    C = int(h0a);
+    NP = int(h1[0]);
+    period = h1[1];
+    half = int(h1[2]);
+    frame = h1a;
+    int B = K * NP;
+    return int(h0[0]) == LAYOUT && K >= 1 && R >= 1 && C >= 1 && NP >= 1 && period > 0.0
+        && res[0] == max(max(C + 1, R + 1), max(max(K, NP), 3))
+        && res[1] == 3 + 3 * B * R + max(K - 1, 1) * NP * (3 + 3 * R);
 }
 
 // The bins a direction blends at (cos theta_i, phi_i) (phi_i in the tangent frame; 0 when
@@ -193,28 +206,48 @@ void blend_bins(string file, float W, float H, int K, int R, int NP, float perio
     bins[1] = k1 * NP + p;
     bins[2] = k * NP + p1;
     bins[3] = k1 * NP + p1;
-    base = 3 + 4 * K * NP * R + (k * NP + p) * (3 + 3 * R);
+    base = 3 + 3 * K * NP * R + (k * NP + p) * (3 + 3 * R);
+}
+
+// The bins a shading point blends: blend_bins at its (cos theta_i, phi_i), the same for each of
+// its samples and pdfs, so read once there and handed to sample_blend / eval_blend.
+struct Blend {
+    int bins[4];
+    float w[4];
+    int base;
+    float turn;
+};
+
+void blend_at(string file, float W, float H, int K, int R, int NP, float period, int half, float cos_i,
+              float phi_i, output Blend b)
+{
+    blend_bins(file, W, H, K, R, NP, period, half, cos_i, phi_i, b.bins, b.w, b.base, b.turn);
 }
 
 // Cell (i, j) of the blended table: its weight W (baked f cos / pdf), mass and profiles along a
-// and b (node values): three texels a cell, (mass, a0, a1), (a2, a3, b0), (b1, b2, b3).
+// and b (node values): three RGBA texels a cell, (mass, a0, a1, a2), (a3, b0, b1, b2), (b3, W), one
+// above the other, the bins of a table row in consecutive rows (the blend's reads share a tile).
 void blend_cell(string file, float W, float H, int B, int R, int bins[4], float w[4], int i, int j,
                 output color weight, output float mass, output float pa[4], output float pb[4])
 {
     color q0 = 0, q1 = 0, q2 = 0;
-    weight = 0;
+    float s0 = 0, s1 = 0, s2 = 0;
     for (int c = 0; c < 4; c++) {
         if (w[c] > 0.0) {
-            int y = 3 + B * R + bins[c] * R + i;
-            q0 += w[c] * fetch(file, W, H, j, y);
-            q1 += w[c] * fetch(file, W, H, j, y + B * R);
-            q2 += w[c] * fetch(file, W, H, j, y + 2 * B * R);
-            weight += w[c] * fetch(file, W, H, j, 3 + bins[c] * R + i);
+            int y = 3 + 3 * (i * B + bins[c]);
+            float a0 = 0, a1 = 0, a2 = 0;
+            q0 += w[c] * fetch4(file, W, H, j, y, a0);
+            q1 += w[c] * fetch4(file, W, H, j, y + 1, a1);
+            q2 += w[c] * fetch4(file, W, H, j, y + 2, a2);
+            s0 += w[c] * a0;
+            s1 += w[c] * a1;
+            s2 += w[c] * a2;
         }
     }
     mass = q0[0];
-    pa[0] = q0[1]; pa[1] = q0[2]; pa[2] = q1[0]; pa[3] = q1[1];
-    pb[0] = q1[2]; pb[1] = q2[0]; pb[2] = q2[1]; pb[3] = q2[2];
+    pa[0] = q0[1]; pa[1] = q0[2]; pa[2] = s0; pa[3] = q1[0];
+    pb[0] = q1[1]; pb[1] = q1[2]; pb[2] = s1; pb[3] = q2[0];
+    weight = color(q2[1], q2[2], s2);
 }
 
 // bake/core/halfvector.py: 1 - cos theta_max(phi_h), the valid cap of h along phi_h at wi.
@@ -289,51 +322,59 @@ vector turn_z(vector w, float angle)
 
 // Samples the tables at (cos theta_i, phi_i): wo in the local frame (x toward phi = 0), its
 // weight (baked f cos / pdf) and pdf per steradian.
-void sample_tables(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
-                   float frame, float cos_i, float phi_i, float u0, float u1,
-                   output vector wo, output color weight, output float pdf)
+// (sample_blend: with the shading point's Blend read.)
+void sample_blend(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
+                  float frame, Blend bl, float cos_i, float phi_i, float u0, float u1,
+                  output vector wo, output color weight, output float pdf)
 {
-    int bins[4];
-    float w[4];
-    int base;
-    float turn;
-    blend_bins(file, W, H, K, R, NP, period, half, cos_i, phi_i, bins, w, base, turn);
+    int base = bl.base;
 
+    // Isotropic corners: every texel the searches read brings its a (b) edge along (fetch_pair).
+    int iso = NP == 1;
+    float e = 0.0;
     // Row: the last i with CDF_i <= u0 (the guide brackets it).
-    color guide = fetch(file, W, H, min(int(u0 * R), R - 1), base + 2 + 2 * R);
+    color guide = fetch(file, W, H, min(int(u0 * R), R - 1), base + 2);
     int lo = int(guide[0]), hi = int(guide[1]);
     float c0 = -1.0, c1 = -1.0;         // the CDF at lo and hi, once the search has read them
+    float a0 = 0.0, a1 = 0.0;           // (isotropic: the a edges there)
     while (hi - lo > 1) {
         int mid = (lo + hi) / 2;
-        float c = fetch_blend(file, W, H, mid, base, w);
-        if (c <= u0) { lo = mid; c0 = c; } else { hi = mid; c1 = c; }
+        float c = iso ? fetch_pair(file, W, H, mid, base, bl.w, e) : fetch_blend(file, W, H, mid, base, bl.w);
+        if (c <= u0) { lo = mid; c0 = c; a0 = e; } else { hi = mid; c1 = c; a1 = e; }
     }
     int i = lo;
     if (c0 < 0.0)
-        c0 = fetch_blend(file, W, H, i, base, w);
+        c0 = iso ? fetch_pair(file, W, H, i, base, bl.w, a0) : fetch_blend(file, W, H, i, base, bl.w);
     if (c1 < 0.0 || hi != i + 1)
-        c1 = fetch_blend(file, W, H, i + 1, base, w);
+        c1 = iso ? fetch_pair(file, W, H, i + 1, base, bl.w, a1) : fetch_blend(file, W, H, i + 1, base, bl.w);
+    if (!iso) {
+        a0 = fetch_blend(file, W, H, i, base + 1, bl.w);
+        a1 = fetch_blend(file, W, H, i + 1, base + 1, bl.w);
+    }
     float v = u1 * (c1 - c0);
     // Column: the last j with cumsum_ij <= v.
-    int yrow = base + 2 + i;
-    guide = fetch(file, W, H, min(int(u1 * C), C - 1), base + 3 + 2 * R + i);
+    int yrow = base + 3 + 3 * i;
+    guide = fetch(file, W, H, min(int(u1 * C), C - 1), yrow + 2);
     lo = int(guide[0]);
     hi = int(guide[1]);
     float d0 = -1.0;
+    float b0 = 0.0, b1 = -1.0;          // (isotropic: the b edges at lo and hi, once read)
     while (hi - lo > 1) {
         int mid = (lo + hi) / 2;
-        float d = fetch_blend(file, W, H, mid, yrow, w);
-        if (d <= v) { lo = mid; d0 = d; } else hi = mid;
+        float d = iso ? fetch_pair(file, W, H, mid, yrow, bl.w, e) : fetch_blend(file, W, H, mid, yrow, bl.w);
+        if (d <= v) { lo = mid; d0 = d; b0 = e; } else { hi = mid; b1 = e; }
     }
     int j = lo;
     if (d0 < 0.0)
-        d0 = fetch_blend(file, W, H, j, yrow, w);
-    float a0 = fetch_blend(file, W, H, i, base + 1, w);
-    float a1 = fetch_blend(file, W, H, i + 1, base + 1, w);
-    float b0 = fetch_blend(file, W, H, j, base + 2 + R + i, w);
-    float b1 = fetch_blend(file, W, H, j + 1, base + 2 + R + i, w);
+        d0 = iso ? fetch_pair(file, W, H, j, yrow, bl.w, b0) : fetch_blend(file, W, H, j, yrow, bl.w);
+    if (!iso) {
+        b0 = fetch_blend(file, W, H, j, yrow + 1, bl.w);
+        b1 = fetch_blend(file, W, H, j + 1, yrow + 1, bl.w);
+    } else if (b1 < 0.0 || hi != j + 1) {
+        fetch_pair(file, W, H, j + 1, yrow, bl.w, b1);
+    }
     float mass, pa[4], pb[4];
-    blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, mass, pa, pb);
+    blend_cell(file, W, H, K * NP, R, bl.bins, bl.w, i, j, weight, mass, pa, pb);
     float dx, dy;
     float x = profile_sample(clamp((u0 - c0) / (c1 - c0), 0.0, 1.0), pa, dx);
     float y = profile_sample(clamp((v - d0) / mass, 0.0, 1.0), pb, dy);
@@ -341,7 +382,7 @@ void sample_tables(string file, float W, float H, int K, int R, int C, int NP, f
     float b = b0 + y * (b1 - b0);
     pdf = mass * dx * dy / ((a1 - a0) * (b1 - b0));
     if (half) {     // h in the frame turned by whole periods and the lobe's axes (halfpolar: wi's + pi)
-        float ref = (half == 2) ? phi_i + M_PI : turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0)), jac;
+        float ref = (half == 2) ? phi_i + M_PI : bl.turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0)), jac;
         vector wi = vector(sin_i * cos(phi_i - ref), sin_i * sin(phi_i - ref), cos_i);
         wo = turn_z((half == 2) ? polar_from_ab(wi, a, b, jac) : half_from_ab(wi, a, b, jac), ref);
         pdf /= jac;
@@ -350,6 +391,15 @@ void sample_tables(string file, float W, float H, int K, int R, int C, int NP, f
     float s = sqrt(max(a * (2.0 - a), 0.0));
     // b is the azimuth from the mirror plane of wi, + pi: phi_o = b - pi + (phi_i + pi).
     wo = vector(s * cos(b + phi_i), s * sin(b + phi_i), 1.0 - a);
+}
+
+void sample_tables(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
+                   float frame, float cos_i, float phi_i, float u0, float u1,
+                   output vector wo, output color weight, output float pdf)
+{
+    Blend bl;
+    blend_at(file, W, H, K, R, NP, period, half, cos_i, phi_i, bl);
+    sample_blend(file, W, H, K, R, C, NP, period, half, frame, bl, cos_i, phi_i, u0, u1, wo, weight, pdf);
 }
 
 // The last k in [lo, hi) with blended edge_k <= x among the edges of texture row y (binary
@@ -393,29 +443,26 @@ int own_edge_search(string file, float W, float H, int y, int R, int base, int a
     int k = bracket_search(file, W, H, y, lo_guide, hi_guide, w, x, e0, e1);
     if ((e0 <= x || k == 0) && x < e1)
         return k;
-    color count = fetch(file, W, H, R, base + 2 + 2 * R);
+    color count = fetch(file, W, H, R, base + 2);
     return edge_search(file, W, H, y, int(count[axis]), k, k + 1, w, x, e0, e1);
 }
 
 // The tables' pdf (per steradian) and baked f cos (= the cell's weight x pdf) at a direction
 // wo of the local frame (Tables.pdf and Tables.eval x cos): 0 below the horizon.
-void eval_tables(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
-                 float frame, float cos_i, float phi_i, vector wo, output color fcos, output float pdf)
+// (eval_blend: with the shading point's Blend read.)
+void eval_blend(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
+                float frame, Blend bl, float cos_i, float phi_i, vector wo, output color fcos, output float pdf)
 {
     fcos = 0;
     pdf = 0;
     if (wo[2] <= 0.0)
         return;
-    int bins[4];
-    float w[4];
-    int base;
-    float turn;
-    blend_bins(file, W, H, K, R, NP, period, half, cos_i, phi_i, bins, w, base, turn);
+    int base = bl.base;
     float a = min((wo[0] * wo[0] + wo[1] * wo[1]) / (1.0 + wo[2]), 1.0);
     float b = mod(atan2(wo[1], wo[0]) - phi_i, 2.0 * M_PI);     // as in sample_tables: phi_o = b + phi_i
     float jac = 1.0;
     if (half) {
-        float ref = (half == 2) ? phi_i + M_PI : turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0));
+        float ref = (half == 2) ? phi_i + M_PI : bl.turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0));
         vector wi = vector(sin_i * cos(phi_i - ref), sin_i * sin(phi_i - ref), cos_i);
         if (half == 2)
             polar_to_ab(wi, turn_z(wo, -ref), a, b, jac);
@@ -426,16 +473,28 @@ void eval_tables(string file, float W, float H, int K, int R, int C, int NP, flo
     // its guide's bracket (blue, alpha of the row / column guide texels).
     float a0, a1, b0, b1;
     float alpha = 0;
-    color guide = fetch4(file, W, H, clamp(int(a * R), 0, R - 1), base + 2 + 2 * R, alpha);
-    int i = own_edge_search(file, W, H, base + 1, R, base, 0, int(guide[2]), int(alpha), w, a, a0, a1);
-    int brow = base + 2 + R + i;
-    guide = fetch4(file, W, H, clamp(int(b * (C / (2.0 * M_PI))), 0, C - 1), base + 3 + 2 * R + i, alpha);
-    int j = own_edge_search(file, W, H, brow, R, base, 1, int(guide[2]), int(alpha), w, b, b0, b1);
+    color guide = fetch4(file, W, H, clamp(int(a * R), 0, R - 1), base + 2, alpha);
+    int i = own_edge_search(file, W, H, base + 1, R, base, 0, int(guide[2]), int(alpha), bl.w, a, a0, a1);
+    int brow = base + 4 + 3 * i;
+    guide = fetch4(file, W, H, clamp(int(b * (C / (2.0 * M_PI))), 0, C - 1), brow + 1, alpha);
+    int j = own_edge_search(file, W, H, brow, R, base, 1, int(guide[2]), int(alpha), bl.w, b, b0, b1);
     color weight;
     float mass, pa[4], pb[4];
-    blend_cell(file, W, H, K * NP, R, bins, w, i, j, weight, mass, pa, pb);
+    blend_cell(file, W, H, K * NP, R, bl.bins, bl.w, i, j, weight, mass, pa, pb);
     float x = clamp((a - a0) / (a1 - a0), 0.0, 1.0);
     float y = clamp((b - b0) / (b1 - b0), 0.0, 1.0);
     pdf = mass * profile_density(x, pa) * profile_density(y, pb) / ((a1 - a0) * (b1 - b0)) / jac;
     fcos = weight * pdf;
+}
+
+void eval_tables(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
+                 float frame, float cos_i, float phi_i, vector wo, output color fcos, output float pdf)
+{
+    fcos = 0;
+    pdf = 0;
+    if (wo[2] <= 0.0)
+        return;
+    Blend bl;
+    blend_at(file, W, H, K, R, NP, period, half, cos_i, phi_i, bl);
+    eval_blend(file, W, H, K, R, C, NP, period, half, frame, bl, cos_i, phi_i, wo, fcos, pdf);
 }
