@@ -29,19 +29,33 @@ import numpy as np
 
 from ..materials.base import as_dirs
 from .geometry import luminance, normalize, reflect, theta_phi
-from .warps import dwo_du, half_vector, rotate_z, u_of_half_vector
+from .warps import HALF_PI, TWO_PI, dwo_du, half_vector, rotate_z, u_of_half_vector
 
 
 @functools.lru_cache(maxsize=32)
 def _sub_cells(n1, n2, s, r0, r1):
     """Stratified points inside the cells of rows r0:r1 of an n1 x n2 grid, (n1*s) x (n2*s)
-    sub-cell centres u, and their half vectors: the same for every wi (read-only, shared)."""
+    sub-cell centres u, their half vectors and sin(theta_m): the same for every wi (read-only,
+    shared)."""
     g1 = (np.arange(n1 * s) + 0.5) / (n1 * s)
     g2 = (np.arange(n2 * s) + 0.5) / (n2 * s)
     u = np.stack(np.meshgrid(g1[r0 * s:r1 * s], g2, indexing="ij"), axis=-1).reshape(-1, 2)
     m = half_vector(u)
-    u.flags.writeable = m.flags.writeable = False
-    return u, m
+    sin_m = np.sin(HALF_PI * u[:, 0] * u[:, 0])      # dwo_du's sin(theta_m), which u alone decides
+    for x in (u, m, sin_m):
+        x.flags.writeable = False
+    return u, m, sin_m
+
+
+def _mean_of_sub_cells(x):
+    """x.mean(axis=(1, 3)) of x (rows, s, n2, s, 3), bit for bit: numpy adds the s x s sub-cells in
+    order, (0, 0), (0, 1), ..., one trailing colour axis at a time (slow); here whole slices."""
+    s = x.shape[1]
+    total = None
+    for i in range(s):
+        for j in range(s):
+            total = x[:, i, :, j] if total is None else total + x[:, i, :, j]
+    return total / (s * s)
 
 
 class Table:
@@ -56,15 +70,19 @@ class Table:
         rows_per_chunk = max(1, (1 << 19) // (n2 * s * s))
         for r0 in range(0, n1, rows_per_chunk):
             r1 = min(n1, r0 + rows_per_chunk)
-            u, m = _sub_cells(n1, n2, s, r0, r1)
-            wo = reflect(wi[None, :], m)
+            u, m, sin_m = _sub_cells(n1, n2, s, r0, r1)
+            # reflect(wi, m) and dwo_du(wi, m, u1) with wi.m taken once, in np.sum's order, and the
+            # products in theirs: the same numbers, a third of the time (the table is built at
+            # every angle the baker probes).
+            cos_im = (wi[0] * m[:, 0] + wi[1] * m[:, 1]) + wi[2] * m[:, 2]
+            wo = (2.0 * cos_im)[:, None] * m - wi
             value = material.eval(wi, wo)
-            jac = dwo_du(wi[None, :], m, u[:, 0]) * (wo[:, 2] > 0)
+            jac = (4.0 * np.maximum(cos_im, 0.0) * sin_m * np.pi * u[:, 0] * TWO_PI) * (wo[:, 2] > 0)
             cos_o = np.maximum(wo[:, 2], 0.0)
             dens = np.maximum(luminance(value), 0.0) * cos_o * jac
             rows = r1 - r0
             mass[r0:r1] = dens.reshape(rows, s, n2, s).mean(axis=(1, 3))
-            rgb[r0:r1] = (value * (cos_o * jac)[:, None]).reshape(rows, s, n2, s, 3).mean(axis=(1, 3))
+            rgb[r0:r1] = _mean_of_sub_cells((value * (cos_o * jac)[:, None]).reshape(rows, s, n2, s, 3))
         cell_area = 1.0 / (n1 * n2)
         self.albedo_rgb = rgb.sum(axis=(0, 1)) * cell_area
         self.total = mass.sum() * cell_area
