@@ -686,8 +686,17 @@ def _ridge_edges(material, wi, frame, a_e, b_e, mass, q=4):
 
 
 def _find_cols(b_edges, row, b):
-    """Column of each point within its row."""
-    return _search(b, b_edges.shape[1] - 1, lambda m: b_edges[row, m])
+    """Column of each point within its row: the last column whose left edge is at or below it (the
+    first where none is; tables._search's answer for increasing edges), one searchsorted per row
+    over its points (the bisection over all points at once indexed a row's edges per point and step)."""
+    cols = b_edges.shape[1] - 1
+    order = np.argsort(row.astype(np.int16 if cols < 1 << 15 else np.int64), kind="stable")
+    starts = np.searchsorted(row[order], np.arange(b_edges.shape[0] + 1))
+    col = np.empty(len(b), np.int64)
+    for i in range(b_edges.shape[0]):
+        at = order[starts[i]:starts[i + 1]]
+        col[at] = np.searchsorted(b_edges[i, :cols].astype(np.float64), b[at], side="right") - 1
+    return np.clip(col, 0, cols - 1)
 
 
 def default_phi_bins(material, count):
@@ -987,10 +996,15 @@ def _once_per_neighbourhood(near, compute):
 
 
 def _normalize_rows(x, knots, row):
-    """Like _normalize, with each point's own knots row (knots: (rows, n_knots))."""
-    k = knots[row]
-    seg = np.clip(np.sum(x[:, None] >= k[:, 1:-1], axis=1), 0, knots.shape[1] - 2)
-    lo, hi = np.take_along_axis(k, seg[:, None], 1)[:, 0], np.take_along_axis(k, seg[:, None] + 1, 1)[:, 0]
+    """Like _normalize, with each point's own knots row (knots: (rows, n_knots)); the segment is
+    the count of inner knots at or below x (one searchsorted when every row has the same knots)."""
+    inner = knots[:, 1:-1]
+    if np.all(inner == inner[:1]):
+        seg = np.searchsorted(inner[0], x, side="right")
+    else:
+        seg = np.sum(x[:, None] >= inner[row], axis=1)
+    seg = np.clip(seg, 0, knots.shape[1] - 2)
+    lo, hi = knots[row, seg], knots[row, seg + 1]
     return seg, np.clip((x - lo) / (hi - lo), 0.0, 1.0)
 
 
