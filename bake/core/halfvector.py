@@ -124,9 +124,17 @@ def polar_grid_from_ab(wi, a, b, frame=0.0):
     sin_h = np.sqrt(np.maximum(one_minus_cos * (2.0 - one_minus_cos), 0.0))
     h = (sin_h * cos_b[:, None, :], sin_h * sin_b[:, None, :], 1.0 - one_minus_cos)
     cos_ih = wi[0] * h[0] + wi[1] * h[1] + wi[2] * h[2]
-    wo = np.stack([2.0 * cos_ih * h[k] - wi[k] for k in range(3)], axis=-1).reshape(-1, 3)
-    wo[:, 2] = np.maximum(wo[:, 2], 0.0)                  # the rim is the horizon (rounding)
-    return rotate_z(wo, frame), (4.0 * cos_ih * cap[:, None, :]).ravel()
+    # wo = 2 (wi.h) h - wi, the rim the horizon (rounding), turned back by the frame: rotate_z's
+    # products written into one array (the quadrature's hottest lines: a stack each, before).
+    twice = 2.0 * cos_ih
+    x, y, z = (np.subtract(np.multiply(twice, h[k], out=h[k]), wi[k], out=h[k]) for k in range(3))
+    np.maximum(z, 0.0, out=z)
+    c, s = np.cos(frame), np.sin(frame)
+    wo = np.empty(x.shape + (3,))
+    np.subtract(c * x, s * y, out=wo[..., 0])
+    np.add(s * x, c * y, out=wo[..., 1])
+    wo[..., 2] = z
+    return wo.reshape(-1, 3), (4.0 * cos_ih * cap[:, None, :]).ravel()
 
 
 def polar_to_ab(wi, wo, frame=0.0):
