@@ -118,11 +118,24 @@ def _normalize(x, knots):
     return seg, np.clip((x - lo) / (hi - lo), 0.0, 1.0)
 
 
+def _stable_argsort(x):
+    """np.argsort(x, kind="stable") of a 1D float array without NaN: numpy's quicksort (several
+    times faster on floats), then each run of equal values put back in index order."""
+    order = np.argsort(x)
+    xs = x[order]
+    tie = xs[1:] == xs[:-1]
+    if tie.any():
+        at = np.flatnonzero(np.concatenate([tie, [False]]) | np.concatenate([[False], tie]))
+        run = np.cumsum(np.concatenate([[True], ~tie]))[at]      # the run of equal values of each
+        order[at] = order[at][np.lexsort((order[at], run))]
+    return order
+
+
 def _by_segment(seg, r, w, segments):
     """Points ordered by segment (in [0, segments)), then by r, ties in their given order:
     (r, w) in that order and each segment's bounds. Sorted once per bin, for every
     neighbourhood that pools the bin (see _pooled_edges)."""
-    order = np.argsort(r, kind="stable")
+    order = _stable_argsort(r) if not np.isnan(r).any() else np.argsort(r, kind="stable")
     order = order[np.argsort(seg[order].astype(np.int16 if segments < 1 << 15 else np.int64), kind="stable")]
     return r[order], w[order], np.searchsorted(seg[order], np.arange(segments + 1))
 
