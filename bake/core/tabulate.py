@@ -425,6 +425,18 @@ def _profile_logs(marginal, at):
     return np.round((L[:, 1:] - L[:, :1]) * 64.0) / 64.0
 
 
+def _profile_logs_ab(along_a, at_a, along_b, at_b):
+    """(_profile_logs(along_a, at_a), _profile_logs(along_b, at_b)) in one call on the rows of both
+    (the same numbers: every step works row by row; half the calls, whose many small steps were
+    much of a bin's time)."""
+    n = len(along_a)
+    if along_a.shape != along_b.shape:
+        return _profile_logs(along_a, at_a), _profile_logs(along_b, at_b)
+    both = _profile_logs(np.concatenate([along_a, along_b]),
+                         np.concatenate([np.broadcast_to(at_a, along_a.shape), np.broadcast_to(at_b, along_b.shape)]))
+    return both[:n], both[n:]
+
+
 def _log_interp(pos, logs, count, x):
     """Per cell, the logs of its marginal at the places x (m,): linear between its samples'
     logs (`pos` sorted, the first `count` valid; log-linear in the density, exact on an
@@ -499,7 +511,7 @@ def _cell_moments(material, wi, a_edges, b_edges, frame, q, point_mass, box=None
         at_a = np.broadcast_to(at_a, moments[4].shape)
         at_b = np.broadcast_to(at_b, moments[5].shape)
         return moments[:4] + (_rate_bound(moments[4], at_a), _rate_bound(moments[5], at_b),
-                              _profile_logs(moments[4], at_a), _profile_logs(moments[5], at_b))
+                              *_profile_logs_ab(moments[4], at_a, moments[5], at_b))
 
     # Each level's marginals are kept, and a cell's rate bounds and profiles computed once, from
     # the level that stands for it (they are computed row by row: the numbers are those that
@@ -573,18 +585,24 @@ def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrat
     row = np.clip(np.searchsorted(a_edges, a, side="right") - 1, 0, rows - 1)
     col = _find_cols(b_edges, row, b)
     cell = row * cols + col
-    has = point_mass > 0
+    has = np.flatnonzero(point_mass > 0)
+    # Per cell, the box of its points (lo_a, hi_a, lo_b, hi_b; inf, -inf where none): min and max
+    # over the points ordered by cell (np.minimum.at's numbers, at a fraction of its time).
     box = [np.full(rows * cols, sign * np.inf) for sign in (1, -1, 1, -1)]
-    for k, v in enumerate((a, b)):
-        np.minimum.at(box[2 * k], cell[has], v[has])
-        np.maximum.at(box[2 * k + 1], cell[has], v[has])
+    if len(has):
+        has = has[np.argsort(cell[has].astype(np.int16 if rows * cols < 1 << 15 else np.int64), kind="stable")]
+        cells, first = np.unique(cell[has], return_index=True)
+        for k, v in enumerate((a, b)):
+            box[2 * k][cells] = np.minimum.reduceat(v[has], first)
+            box[2 * k + 1][cells] = np.maximum.reduceat(v[has], first)
     point_mass = np.bincount(cell, weights=point_mass, minlength=rows * cols)
     mass, mx, my, rgb, bound_a, bound_b, prof, prof_b = _cell_moments(material, wi, a_edges, b_edges, frame, quadrature,
                                                                point_mass, box)
     # Exponential rates matching each cell's first moments along a and b, no steeper than the
     # cell's own f·cos: what _unresolved_edges compares across edges (the profiles are kept).
-    alpha = np.clip(exp_rate_for_mean(mx), -bound_a, bound_a)
-    beta = np.clip(exp_rate_for_mean(my), -bound_b, bound_b)
+    rate_x, rate_y = exp_rate_for_mean(np.stack([mx, my]))        # one bisection for both (elementwise)
+    alpha = np.clip(rate_x, -bound_a, bound_a)
+    beta = np.clip(rate_y, -bound_b, bound_b)
     a_e, b_e = a_edges.astype(np.float64), b_edges.astype(np.float64)
     for find in (lambda: _unresolved_edges(a_edges, b_edges, mass, alpha, beta),
                  lambda: _ridge_edges(material, wi, frame, a_e, b_e, mass)):
@@ -598,8 +616,7 @@ def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrat
         found = m > 1.25 * mass.flat[cells]      # materially more: else the first rule stands
         r, c = r[found], c[found]
         mass[r, c], rgb[r, c] = m[found], c_rgb[found]
-        prof[r, c] = _profile_logs(along_a[found], at_a[found])
-        prof_b[r, c] = _profile_logs(along_b[found], at_b[found])
+        prof[r, c], prof_b[r, c] = _profile_logs_ab(along_a[found], at_a[found], along_b[found], at_b[found])
     # A floor of uniform density keeps pdf > 0 everywhere, so the table never loses a
     # direction where f·cos > 0 (unbiased whatever the quadrature missed).
     area = np.diff(a_edges.astype(np.float64))[:, None] * np.diff(b_edges.astype(np.float64), axis=1)
@@ -937,14 +954,19 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
     wis = [spherical_dir(t, phi) for t in theta_bins]
     frames = [_WoFrame(phi) if coords == "wo" else _PolarFrame(wi, phi) if coords == "halfpolar"
               else _HalfFrame(wi, frame_angle) for wi in wis]
+    row_knots = [_row_knots(wi, t, coords, lobe_width) for t, wi in zip(theta_bins, wis)]
+    n_seg = len(row_knots[0]) - 1
+    # A bin's points, and their order by row segment (its knots decide it: the same in every build
+    # of the bin, a probe's pair or a placement's group), each computed once per cache.
     with _cache_lock:
         entries = [cache.setdefault((float(t), phi, grid, gamma, coords),
                                     _Once(_points, material, source, wi, grid, frame, gamma))
                    for t, wi, frame in zip(theta_bins, wis, frames)]
+        ordered = [cache.setdefault((float(t), phi, grid, gamma, coords, knots.tobytes()),
+                                    _Once(_row_order, entry, knots, n_seg))
+                   for t, entry, knots in zip(theta_bins, entries, row_knots)]
     points = list(_parallel(_Once.get, entries))
-    row_knots = [_row_knots(wi, t, coords, lobe_width) for t, wi in zip(theta_bins, wis)]
-    n_seg = len(row_knots[0]) - 1
-    by_seg = [_by_segment(*_normalize(p[0], k), p[2], n_seg) for p, k in zip(points, row_knots)]
+    by_seg = list(_parallel(_Once.get, ordered))
     window = K if window is None else window
     near = [tuple(range(max(0, k - window), min(K, k + window + 1))) for k in range(K)]
     # Cells per segment by the weight of all the column's bins: interpolation pairs cells by
@@ -964,8 +986,7 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
                for shared, knots in zip(_once_per_neighbourhood(near, row_edges), row_knots)]
 
     # Per bin: each point's row, and its normalized position within that row's column knots.
-    by_row = []
-    for k in range(K):
+    def bin_by_row(k):
         a, b, w, _ = points[k]
         row = np.clip(np.searchsorted(a_edges[k], a, side="right") - 1, 0, rows - 1)
         a_mid = 0.5 * (a_edges[k][:-1].astype(np.float64) + a_edges[k][1:])
@@ -973,7 +994,8 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
                  else np.tile(COL_KNOTS[coords], (rows, 1)))
         seg, r = _normalize_rows(b, knots, row)
         # segment s of row i: group i * n + s
-        by_row.append((knots, _by_segment(row * (knots.shape[1] - 1) + seg, r, w, rows * (knots.shape[1] - 1))))
+        return knots, _by_segment(row * (knots.shape[1] - 1) + seg, r, w, rows * (knots.shape[1] - 1))
+    by_row = list(_parallel(bin_by_row, range(K)))
     n = by_row[0][0].shape[1] - 1
     shares = _segment_shares([p for _, p in by_row], rows * n).reshape(rows, n)
     col_counts = [counts(cols, row_shares) for row_shares in shares]
@@ -998,6 +1020,12 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
         step()
     mass, alpha, beta, weights = (np.stack(x) for x in zip(*parts))
     return np.stack(a_edges), b_edges, mass, alpha, beta, weights
+
+
+def _row_order(points, knots, n_seg):
+    """_by_segment of a bin's points (_Once of _points) over its row knots."""
+    p = points.get()
+    return _by_segment(*_normalize(p[0], knots), p[2], n_seg)
 
 
 def _once_per_neighbourhood(near, compute):
