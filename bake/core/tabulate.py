@@ -579,22 +579,28 @@ def _points(material, source, wi, grid, frame, gamma):
     return a, b, weight, target / pdf / (grid * grid)
 
 
+def _point_boxes(cell, a, b, has, n):
+    """Per cell of n, the box of its points where `has` (lo_a, hi_a, lo_b, hi_b; inf, -inf where
+    none): min and max over the points ordered by cell (np.minimum.at's numbers, a fraction of
+    its time)."""
+    box = [np.full(n, sign * np.inf) for sign in (1, -1, 1, -1)]
+    at = np.flatnonzero(has)
+    if len(at):
+        at = at[np.argsort(cell[at].astype(np.int16 if n < 1 << 15 else np.int64), kind="stable")]
+        cells, first = np.unique(cell[at], return_index=True)
+        for k, v in enumerate((a, b)):
+            box[2 * k][cells] = np.minimum.reduceat(v[at], first)
+            box[2 * k + 1][cells] = np.maximum.reduceat(v[at], first)
+    return box
+
+
 def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrature, floor):
     """Per cell mass, profiles (logs) and RGB weight for one incident direction."""
     rows, cols = b_edges.shape[0], b_edges.shape[1] - 1
     row = np.clip(np.searchsorted(a_edges, a, side="right") - 1, 0, rows - 1)
     col = _find_cols(b_edges, row, b)
     cell = row * cols + col
-    has = np.flatnonzero(point_mass > 0)
-    # Per cell, the box of its points (lo_a, hi_a, lo_b, hi_b; inf, -inf where none): min and max
-    # over the points ordered by cell (np.minimum.at's numbers, at a fraction of its time).
-    box = [np.full(rows * cols, sign * np.inf) for sign in (1, -1, 1, -1)]
-    if len(has):
-        has = has[np.argsort(cell[has].astype(np.int16 if rows * cols < 1 << 15 else np.int64), kind="stable")]
-        cells, first = np.unique(cell[has], return_index=True)
-        for k, v in enumerate((a, b)):
-            box[2 * k][cells] = np.minimum.reduceat(v[has], first)
-            box[2 * k + 1][cells] = np.maximum.reduceat(v[has], first)
+    box = _point_boxes(cell, a, b, point_mass > 0, rows * cols)
     point_mass = np.bincount(cell, weights=point_mass, minlength=rows * cols)
     mass, mx, my, rgb, bound_a, bound_b, prof, prof_b = _cell_moments(material, wi, a_edges, b_edges, frame, quadrature,
                                                                point_mass, box)
