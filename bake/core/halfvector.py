@@ -75,7 +75,11 @@ def _mirror(wi, one_minus_cos, phi_h, cap, frame):
 def _half_of(wi, wo, frame):
     """(wi, h = normalize(wi + wo)) in the frame turned by `frame`."""
     wo = rotate_z(np.asarray(wo, np.float64), -frame)
-    wi = rotate_z(_per_point(wi, len(wo)), -frame)
+    wi = np.asarray(wi, np.float64)
+    if wi.ndim == 1 and np.ndim(frame) == 0:        # one wi turned once: the numbers of each row turned
+        wi = np.broadcast_to(rotate_z(wi, -frame), (len(wo), 3))
+    else:
+        wi = rotate_z(_per_point(wi, len(wo)), -frame)
     h = wi + wo
     with np.errstate(invalid="ignore", divide="ignore"):     # wo = -wi (below): callers give pdf 0
         return wi, h / np.linalg.norm(h, axis=-1, keepdims=True)
@@ -139,8 +143,15 @@ def polar_grid_from_ab(wi, a, b, frame=0.0):
 
 def polar_to_ab(wi, wo, frame=0.0):
     """(a, b, jac) of directions wo at wi, as polar_from_ab's inverse."""
+    a, b, wi, h, cap = _polar_ab(wi, wo, frame)
+    return a, b, 4.0 * np.sum(wi * h, axis=-1) * cap
+
+
+def _polar_ab(wi, wo, frame=0.0):
+    """polar_to_ab's a and b, and what its jac takes (wi and h in the frame, the cap): the
+    baker's points need a and b alone."""
     wi, h = _half_of(wi, wo, frame)
     b = np.mod(np.arctan2(h[:, 1], h[:, 0]), TWO_PI)
     cap = _cap(wi, b)
     a = np.nan_to_num(np.clip((h[:, 0] ** 2 + h[:, 1] ** 2) / (1.0 + h[:, 2]) / cap, 0.0, 1.0))
-    return a, np.nan_to_num(b), 4.0 * np.sum(wi * h, axis=-1) * cap
+    return a, np.nan_to_num(b), wi, h, cap

@@ -232,7 +232,7 @@ class _PolarFrame:
         return halfvector.polar_grid_from_ab(self.wi, a, b, self.angle)
 
     def ab(self, wo):
-        return halfvector.polar_to_ab(self.wi, wo, self.angle)[:2]
+        return halfvector._polar_ab(self.wi, wo, self.angle)[:2]
 
 
 # Row knots of halfpolar cells at these fractions of the lobe width: a coat's spike inside a
