@@ -124,6 +124,10 @@ def polar_grid_from_ab(wi, a, b, frame=0.0):
     wi = rotate_z(np.asarray(wi, np.float64), -frame)
     cos_b, sin_b = np.cos(b), np.sin(b)
     cap = _cap_along(wi[2], wi[0] * cos_b + wi[1] * sin_b)
+    from . import fasttables
+    fast = fasttables.polar_grid(a, cos_b, sin_b, cap, wi, np.cos(frame), np.sin(frame))
+    if fast is not None:        # the per-node products below in C, the same bits
+        return fast
     one_minus_cos = a[:, :, None] * cap[:, None, :]
     sin_h = np.sqrt(np.maximum(one_minus_cos * (2.0 - one_minus_cos), 0.0))
     h = (sin_h * cos_b[:, None, :], sin_h * sin_b[:, None, :], 1.0 - one_minus_cos)
