@@ -1173,3 +1173,46 @@ def test_planner_probes_near_normal_intervals_at_their_middle_angle(monkeypatch)
     monkeypatch.setattr(tabulate, "PROBE_APART", np.inf)
     cos_only, rv_cos_only = planned()
     assert cos_only.theta_bins[1] > np.radians(12.0) and rv_cos_only.max() > 3.0 * rv.max(), rv_cos_only
+
+
+def test_bake_search_helpers_give_the_reference_answers():
+    """The baker's quicker searches answer as the plain ones did, ties and zeros included:
+    _stable_argsort as np.argsort(kind="stable"), _find_cols as tables._search's bisection over
+    each point's row, _normalize_rows as comparing every point with its row's inner knots, and a
+    bin's point boxes (per cell min and max) as np.minimum.at / np.maximum.at."""
+    from bake.core.tables import _search
+    from bake.core.tabulate import _find_cols, _normalize_rows, _point_boxes, _stable_argsort
+    rng = np.random.default_rng(5)
+    for trial in range(40):
+        n = int(rng.integers(1, 4000))
+        x = rng.choice(rng.random(int(rng.integers(1, n + 1))), n)       # many ties
+        x[rng.random(n) < 0.2] = 0.0
+        x[rng.random(n) < 0.1] = -0.0
+        assert np.array_equal(_stable_argsort(x), np.argsort(x, kind="stable"))
+    rows, cols = 12, 20
+    b_edges = np.sort(rng.random((rows, cols + 1)) * TWO_PI, axis=1).astype(np.float32)
+    b_edges[:, 0], b_edges[:, -1] = 0.0, TWO_PI
+    row = rng.integers(0, rows, 5000)
+    b = np.concatenate([rng.random(4000) * TWO_PI, b_edges[row[4000:], rng.integers(0, cols + 1, 1000)]])  # on edges too
+    assert np.array_equal(_find_cols(b_edges, row, b), _search(b, cols, lambda m: b_edges[row, m]))
+
+    def reference(x, knots, row):
+        k = knots[row]
+        seg = np.clip(np.sum(x[:, None] >= k[:, 1:-1], axis=1), 0, knots.shape[1] - 2)
+        lo, hi = np.take_along_axis(k, seg[:, None], 1)[:, 0], np.take_along_axis(k, seg[:, None] + 1, 1)[:, 0]
+        return seg, np.clip((x - lo) / (hi - lo), 0.0, 1.0)
+    same = np.tile([0.0, 0.5 * np.pi, np.pi, 1.5 * np.pi, TWO_PI], (rows, 1))
+    own = np.sort(np.concatenate([np.zeros((rows, 1)), rng.random((rows, 3)) * TWO_PI,
+                                  np.full((rows, 1), TWO_PI)], axis=1), axis=1)
+    for knots in (same, own):
+        x = np.concatenate([rng.random(3000) * TWO_PI, knots[row[:2000], 2]])        # on knots too
+        for got, want in zip(_normalize_rows(x, knots, row[:len(x)]), reference(x, knots, row[:len(x)])):
+            assert got.tobytes() == want.tobytes()
+    cell, has = rng.integers(0, 50, 5000), rng.random(5000) < 0.7
+    a, b = rng.random(5000), rng.random(5000) * TWO_PI
+    want = [np.full(60, sign * np.inf) for sign in (1, -1, 1, -1)]
+    for k, v in enumerate((a, b)):
+        np.minimum.at(want[2 * k], cell[has], v[has])
+        np.maximum.at(want[2 * k + 1], cell[has], v[has])
+    for got, w in zip(_point_boxes(cell, a, b, has, 60), want):
+        assert got.tobytes() == w.tobytes()

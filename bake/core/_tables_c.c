@@ -71,7 +71,7 @@ double sin(double) FT_VEC;
 #endif
 
 /* Bumped whenever ft_tables or a signature changes (bake/core/fasttables.py checks it). */
-#define FT_ABI 7
+#define FT_ABI 8
 
 static const double PI = 3.141592653589793;       /* np.pi */
 static const double TWO_PI = 6.283185307179586;   /* 2.0 * np.pi */
@@ -1230,4 +1230,39 @@ FT_EXPORT void ft_warp_from_s(const ft_warp *W, int64_t n, const double *wi, int
         const double j = warp_jac(W, &I, u_x, h, (1.0 - fx) * c0 + fx * c1) * rim;
         jac[k] = reached && isfinite(j) ? j : 0.0;
     }
+}
+
+/* ------------------------------------------------------------------ the baker's polar nodes */
+
+/* np.maximum(x, 0.0) of numpy's scalar loop (x when x >= 0 or NaN). */
+FT_INLINE double np_max0(double x) { return (x >= 0.0 || isnan(x)) ? x : 0.0; }
+
+/* halfvector.polar_grid_from_ab after its per-b-node part (cos b, sin b and the cap, which numpy
+ * computes): per cell i, a node j (qa of them), b node k (qb), the same products in the same
+ * order as the numpy reference, so the same bits (only + - * and sqrt, correctly rounded either
+ * way; no fused multiply-add). wi: the incident direction in the frame; (c, s): cos and sin of
+ * the frame angle, turning wo back (rotate_z). wo: (cells * qa * qb, 3), jac: cells * qa * qb. */
+FT_EXPORT void ft_polar_grid(int64_t cells, int64_t qa, int64_t qb, const double *a, const double *cos_b,
+                             const double *sin_b, const double *cap, const double *wi, double c, double s,
+                             double *wo, double *jac) {
+    for (int64_t i = 0; i < cells; i++)
+        for (int64_t j = 0; j < qa; j++) {
+            const double aj = a[i * qa + j];
+            const int64_t at = (i * qa + j) * qb;
+            for (int64_t k = 0; k < qb; k++) {
+                const double cb = cos_b[i * qb + k], sb = sin_b[i * qb + k], cp = cap[i * qb + k];
+                const double omc = aj * cp;
+                const double sin_h = sqrt(np_max0(omc * (2.0 - omc)));
+                const double h0 = sin_h * cb, h1 = sin_h * sb, h2 = 1.0 - omc;
+                const double cos_ih = wi[0] * h0 + wi[1] * h1 + wi[2] * h2;
+                const double twice = 2.0 * cos_ih;
+                const double x = twice * h0 - wi[0], y = twice * h1 - wi[1];
+                const double z = np_max0(twice * h2 - wi[2]);
+                double *o = wo + 3 * (at + k);
+                o[0] = c * x - s * y;
+                o[1] = s * x + c * y;
+                o[2] = z;
+                jac[at + k] = 4.0 * cos_ih * cp;
+            }
+        }
 }

@@ -8,6 +8,8 @@
                 take the inputs (the caller then runs the numpy reference)
     rgl_eval(params, vndf, rgb, ndf, wo)
                 an RGL material's f for one wi (RGLMaterial.eval's hot loop, for the baker)
+    polar_grid(a, cos_b, sin_b, cap, wi, c, s)
+                halfvector.polar_grid_from_ab's nodes (the baker's halfpolar quadrature)
     warp_to_s(warp, wi, wo), warp_from_s(warp, wi, s)
                 rgl.WarpedCoords' to_s and from_s (the carried tables' hot loop)
 
@@ -42,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-ABI = 7                       # FT_ABI in _tables_c.c
+ABI = 8                       # FT_ABI in _tables_c.c
 COORDS = ("wo", "halfvector", "halfpolar")     # tables.COORDS in the order of ft_tables.coords
 HERE = Path(__file__).resolve().parent
 SOURCE = HERE / "_tables_c.c"
@@ -88,6 +90,8 @@ def _open(path, want_sha):
         getattr(lib, name).argtypes = [ctypes.POINTER(_Warp), i64, ptr, i64, ptr, ptr, ptr]
     lib.ft_rgl_eval.restype = None
     lib.ft_rgl_eval.argtypes = [i64, ptr, ptr, ptr, i64, i64, ptr, i64, i64, ptr, i64, i64, ptr]
+    lib.ft_polar_grid.restype = None
+    lib.ft_polar_grid.argtypes = [i64, i64, i64, ptr, ptr, ptr, ptr, ptr, ctypes.c_double, ctypes.c_double, ptr, ptr]
     return lib
 
 
@@ -298,6 +302,22 @@ def rgl_eval(params, vndf, vndf_shape, rgb, rgb_shape, ndf, wo):
                         rgb.ctypes.data, ry, rx, ndf.ctypes.data, ndf.shape[0], ndf.shape[1], out[lo:].ctypes.data)
     _split(len(wo), run)
     return out
+
+
+def polar_grid(a, cos_b, sin_b, cap, wi, c, s):
+    """halfvector.polar_grid_from_ab's nodes from its per-b-node part, in C (ft_polar_grid: the
+    same bits): (wo, jac), or None without the library. a: (cells, qa); cos_b, sin_b, cap:
+    (cells, qb); wi: (3,) in the frame; c, s: the frame's cosine and sine."""
+    lib = _lib if _loaded else load()
+    if lib is None:
+        return None
+    a, cos_b, sin_b, cap, wi = (np.ascontiguousarray(x, np.float64) for x in (a, cos_b, sin_b, cap, wi))
+    cells, qa = a.shape
+    qb = cos_b.shape[1]
+    wo, jac = np.empty((cells * qa * qb, 3)), np.empty(cells * qa * qb)
+    lib.ft_polar_grid(cells, qa, qb, a.ctypes.data, cos_b.ctypes.data, sin_b.ctypes.data, cap.ctypes.data,
+                      wi.ctypes.data, float(c), float(s), wo.ctypes.data, jac.ctypes.data)
+    return wo, jac
 
 
 def _warp_call(warp, name, wi, x, width):

@@ -75,7 +75,11 @@ def _mirror(wi, one_minus_cos, phi_h, cap, frame):
 def _half_of(wi, wo, frame):
     """(wi, h = normalize(wi + wo)) in the frame turned by `frame`."""
     wo = rotate_z(np.asarray(wo, np.float64), -frame)
-    wi = rotate_z(_per_point(wi, len(wo)), -frame)
+    wi = np.asarray(wi, np.float64)
+    if wi.ndim == 1 and np.ndim(frame) == 0:        # one wi turned once: the numbers of each row turned
+        wi = np.broadcast_to(rotate_z(wi, -frame), (len(wo), 3))
+    else:
+        wi = rotate_z(_per_point(wi, len(wo)), -frame)
     h = wi + wo
     with np.errstate(invalid="ignore", divide="ignore"):     # wo = -wi (below): callers give pdf 0
         return wi, h / np.linalg.norm(h, axis=-1, keepdims=True)
@@ -120,19 +124,38 @@ def polar_grid_from_ab(wi, a, b, frame=0.0):
     wi = rotate_z(np.asarray(wi, np.float64), -frame)
     cos_b, sin_b = np.cos(b), np.sin(b)
     cap = _cap_along(wi[2], wi[0] * cos_b + wi[1] * sin_b)
+    from . import fasttables
+    fast = fasttables.polar_grid(a, cos_b, sin_b, cap, wi, np.cos(frame), np.sin(frame))
+    if fast is not None:        # the per-node products below in C, the same bits
+        return fast
     one_minus_cos = a[:, :, None] * cap[:, None, :]
     sin_h = np.sqrt(np.maximum(one_minus_cos * (2.0 - one_minus_cos), 0.0))
     h = (sin_h * cos_b[:, None, :], sin_h * sin_b[:, None, :], 1.0 - one_minus_cos)
     cos_ih = wi[0] * h[0] + wi[1] * h[1] + wi[2] * h[2]
-    wo = np.stack([2.0 * cos_ih * h[k] - wi[k] for k in range(3)], axis=-1).reshape(-1, 3)
-    wo[:, 2] = np.maximum(wo[:, 2], 0.0)                  # the rim is the horizon (rounding)
-    return rotate_z(wo, frame), (4.0 * cos_ih * cap[:, None, :]).ravel()
+    # wo = 2 (wi.h) h - wi, the rim the horizon (rounding), turned back by the frame: rotate_z's
+    # products written into one array (the quadrature's hottest lines: a stack each, before).
+    twice = 2.0 * cos_ih
+    x, y, z = (np.subtract(np.multiply(twice, h[k], out=h[k]), wi[k], out=h[k]) for k in range(3))
+    np.maximum(z, 0.0, out=z)
+    c, s = np.cos(frame), np.sin(frame)
+    wo = np.empty(x.shape + (3,))
+    np.subtract(c * x, s * y, out=wo[..., 0])
+    np.add(s * x, c * y, out=wo[..., 1])
+    wo[..., 2] = z
+    return wo.reshape(-1, 3), (4.0 * cos_ih * cap[:, None, :]).ravel()
 
 
 def polar_to_ab(wi, wo, frame=0.0):
     """(a, b, jac) of directions wo at wi, as polar_from_ab's inverse."""
+    a, b, wi, h, cap = _polar_ab(wi, wo, frame)
+    return a, b, 4.0 * np.sum(wi * h, axis=-1) * cap
+
+
+def _polar_ab(wi, wo, frame=0.0):
+    """polar_to_ab's a and b, and what its jac takes (wi and h in the frame, the cap): the
+    baker's points need a and b alone."""
     wi, h = _half_of(wi, wo, frame)
     b = np.mod(np.arctan2(h[:, 1], h[:, 0]), TWO_PI)
     cap = _cap(wi, b)
     a = np.nan_to_num(np.clip((h[:, 0] ** 2 + h[:, 1] ** 2) / (1.0 + h[:, 2]) / cap, 0.0, 1.0))
-    return a, np.nan_to_num(b), 4.0 * np.sum(wi * h, axis=-1) * cap
+    return a, np.nan_to_num(b), wi, h, cap

@@ -28,20 +28,44 @@ import time
 import numpy as np
 
 from ..materials.base import as_dirs
-from .geometry import luminance, normalize, reflect, theta_phi
-from .warps import dwo_du, half_vector, rotate_z, u_of_half_vector
+from .geometry import luminance, theta_phi
+from .warps import HALF_PI, TWO_PI, half_vector, rotate_z, u_of_half_vector
 
 
 @functools.lru_cache(maxsize=32)
 def _sub_cells(n1, n2, s, r0, r1):
     """Stratified points inside the cells of rows r0:r1 of an n1 x n2 grid, (n1*s) x (n2*s)
-    sub-cell centres u, and their half vectors: the same for every wi (read-only, shared)."""
+    sub-cell centres u, their half vectors and sin(theta_m): the same for every wi (read-only,
+    shared)."""
     g1 = (np.arange(n1 * s) + 0.5) / (n1 * s)
     g2 = (np.arange(n2 * s) + 0.5) / (n2 * s)
     u = np.stack(np.meshgrid(g1[r0 * s:r1 * s], g2, indexing="ij"), axis=-1).reshape(-1, 2)
     m = half_vector(u)
-    u.flags.writeable = m.flags.writeable = False
-    return u, m
+    sin_m = np.sin(HALF_PI * u[:, 0] * u[:, 0])      # dwo_du's sin(theta_m), which u alone decides
+    for x in (u, m, sin_m):
+        x.flags.writeable = False
+    return u, m, sin_m
+
+
+def _dot3(a, m):
+    """The dot products of a (3,) or (n, 3) with the rows of m, added as np.sum(a * m, axis=-1)
+    adds them (the same bits; numpy's reduction over a short last axis is slow)."""
+    a = a.T if a.ndim == 2 else a
+    return (a[0] * m[:, 0] + a[1] * m[:, 1]) + a[2] * m[:, 2]
+
+
+def _mean_of_sub_cells(x):
+    """x.mean(axis=(1, 3)) of x (rows, s, n2, s, 3), bit for bit: numpy adds the s x s sub-cells in
+    order, (0, 0), (0, 1), ..., one trailing colour axis at a time (slow); here whole slices."""
+    s = x.shape[1]
+    total = None
+    for i in range(s):
+        for j in range(s):
+            total = x[:, i, :, j] if total is None else total + x[:, i, :, j]
+    return total / (s * s)
+
+
+CHUNK = 1 << 17     # sub-cells per pass (smaller passes reuse their memory: ~10 % faster than 1 << 19)
 
 
 class Table:
@@ -53,18 +77,22 @@ class Table:
         self.wi = wi
         mass = np.zeros((n1, n2))
         rgb = np.zeros((n1, n2, 3))
-        rows_per_chunk = max(1, (1 << 19) // (n2 * s * s))
+        rows_per_chunk = max(1, CHUNK // (n2 * s * s))
         for r0 in range(0, n1, rows_per_chunk):
             r1 = min(n1, r0 + rows_per_chunk)
-            u, m = _sub_cells(n1, n2, s, r0, r1)
-            wo = reflect(wi[None, :], m)
+            u, m, sin_m = _sub_cells(n1, n2, s, r0, r1)
+            # reflect(wi, m) and dwo_du(wi, m, u1) with wi.m taken once, in np.sum's order, and the
+            # products in theirs: the same numbers, a third of the time (the table is built at
+            # every angle the baker probes).
+            cos_im = _dot3(wi, m)
+            wo = (2.0 * cos_im)[:, None] * m - wi
             value = material.eval(wi, wo)
-            jac = dwo_du(wi[None, :], m, u[:, 0]) * (wo[:, 2] > 0)
+            jac = (4.0 * np.maximum(cos_im, 0.0) * sin_m * np.pi * u[:, 0] * TWO_PI) * (wo[:, 2] > 0)
             cos_o = np.maximum(wo[:, 2], 0.0)
             dens = np.maximum(luminance(value), 0.0) * cos_o * jac
             rows = r1 - r0
             mass[r0:r1] = dens.reshape(rows, s, n2, s).mean(axis=(1, 3))
-            rgb[r0:r1] = (value * (cos_o * jac)[:, None]).reshape(rows, s, n2, s, 3).mean(axis=(1, 3))
+            rgb[r0:r1] = _mean_of_sub_cells((value * (cos_o * jac)[:, None]).reshape(rows, s, n2, s, 3))
         cell_area = 1.0 / (n1 * n2)
         self.albedo_rgb = rgb.sum(axis=(0, 1)) * cell_area
         self.total = mass.sum() * cell_area
@@ -110,14 +138,16 @@ class Table:
         the neighbouring cell gets that cell's density, as pdf() says (the stress suite found
         3 in 2.5e6 disagreeing by up to 7e-4 when the pdf came from the sampled cell)."""
         m = half_vector(self.sample_u(u))
-        w = reflect(self.wi[None, :], m)
+        w = (2.0 * _dot3(self.wi, m))[:, None] * m - self.wi         # reflect(wi, m)
         return w, self.pdf_dir(w)
 
     def pdf_dir(self, wo):
         """The solid-angle density of sample_dir at wo (this table's frame)."""
-        m = normalize(self.wi[None, :] + wo)
+        h = self.wi[None, :] + wo
+        m = h / np.sqrt(_dot3(h, h))[:, None]            # normalize(wi + wo)
         v = u_of_half_vector(m)
-        jac = dwo_du(self.wi[None, :], m, v[:, 0])
+        u1 = v[:, 0]
+        jac = 4.0 * np.maximum(_dot3(self.wi, m), 0.0) * np.sin(HALF_PI * u1 * u1) * np.pi * u1 * TWO_PI    # dwo_du
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where((wo[:, 2] > 0) & (jac > 0), self.density_u(v) / jac, 0.0)
 

@@ -118,11 +118,24 @@ def _normalize(x, knots):
     return seg, np.clip((x - lo) / (hi - lo), 0.0, 1.0)
 
 
+def _stable_argsort(x):
+    """np.argsort(x, kind="stable") of a 1D float array without NaN: numpy's quicksort (several
+    times faster on floats), then each run of equal values put back in index order."""
+    order = np.argsort(x)
+    xs = x[order]
+    tie = xs[1:] == xs[:-1]
+    if tie.any():
+        at = np.flatnonzero(np.concatenate([tie, [False]]) | np.concatenate([[False], tie]))
+        run = np.cumsum(np.concatenate([[True], ~tie]))[at]      # the run of equal values of each
+        order[at] = order[at][np.lexsort((order[at], run))]
+    return order
+
+
 def _by_segment(seg, r, w, segments):
     """Points ordered by segment (in [0, segments)), then by r, ties in their given order:
     (r, w) in that order and each segment's bounds. Sorted once per bin, for every
     neighbourhood that pools the bin (see _pooled_edges)."""
-    order = np.argsort(r, kind="stable")
+    order = _stable_argsort(r) if not np.isnan(r).any() else np.argsort(r, kind="stable")
     order = order[np.argsort(seg[order].astype(np.int16 if segments < 1 << 15 else np.int64), kind="stable")]
     return r[order], w[order], np.searchsorted(seg[order], np.arange(segments + 1))
 
@@ -219,7 +232,7 @@ class _PolarFrame:
         return halfvector.polar_grid_from_ab(self.wi, a, b, self.angle)
 
     def ab(self, wo):
-        return halfvector.polar_to_ab(self.wi, wo, self.angle)[:2]
+        return halfvector._polar_ab(self.wi, wo, self.angle)[:2]
 
 
 # Row knots of halfpolar cells at these fractions of the lobe width: a coat's spike inside a
@@ -412,6 +425,18 @@ def _profile_logs(marginal, at):
     return np.round((L[:, 1:] - L[:, :1]) * 64.0) / 64.0
 
 
+def _profile_logs_ab(along_a, at_a, along_b, at_b):
+    """(_profile_logs(along_a, at_a), _profile_logs(along_b, at_b)) in one call on the rows of both
+    (the same numbers: every step works row by row; half the calls, whose many small steps were
+    much of a bin's time)."""
+    n = len(along_a)
+    if along_a.shape != along_b.shape:
+        return _profile_logs(along_a, at_a), _profile_logs(along_b, at_b)
+    both = _profile_logs(np.concatenate([along_a, along_b]),
+                         np.concatenate([np.broadcast_to(at_a, along_a.shape), np.broadcast_to(at_b, along_b.shape)]))
+    return both[:n], both[n:]
+
+
 def _log_interp(pos, logs, count, x):
     """Per cell, the logs of its marginal at the places x (m,): linear between its samples'
     logs (`pos` sorted, the first `count` valid; log-linear in the density, exact on an
@@ -486,7 +511,7 @@ def _cell_moments(material, wi, a_edges, b_edges, frame, q, point_mass, box=None
         at_a = np.broadcast_to(at_a, moments[4].shape)
         at_b = np.broadcast_to(at_b, moments[5].shape)
         return moments[:4] + (_rate_bound(moments[4], at_a), _rate_bound(moments[5], at_b),
-                              _profile_logs(moments[4], at_a), _profile_logs(moments[5], at_b))
+                              *_profile_logs_ab(moments[4], at_a, moments[5], at_b))
 
     # Each level's marginals are kept, and a cell's rate bounds and profiles computed once, from
     # the level that stands for it (they are computed row by row: the numbers are those that
@@ -554,24 +579,36 @@ def _points(material, source, wi, grid, frame, gamma):
     return a, b, weight, target / pdf / (grid * grid)
 
 
+def _point_boxes(cell, a, b, has, n):
+    """Per cell of n, the box of its points where `has` (lo_a, hi_a, lo_b, hi_b; inf, -inf where
+    none): min and max over the points ordered by cell (np.minimum.at's numbers, a fraction of
+    its time)."""
+    box = [np.full(n, sign * np.inf) for sign in (1, -1, 1, -1)]
+    at = np.flatnonzero(has)
+    if len(at):
+        at = at[np.argsort(cell[at].astype(np.int16 if n < 1 << 15 else np.int64), kind="stable")]
+        cells, first = np.unique(cell[at], return_index=True)
+        for k, v in enumerate((a, b)):
+            box[2 * k][cells] = np.minimum.reduceat(v[at], first)
+            box[2 * k + 1][cells] = np.maximum.reduceat(v[at], first)
+    return box
+
+
 def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrature, floor):
     """Per cell mass, profiles (logs) and RGB weight for one incident direction."""
     rows, cols = b_edges.shape[0], b_edges.shape[1] - 1
     row = np.clip(np.searchsorted(a_edges, a, side="right") - 1, 0, rows - 1)
     col = _find_cols(b_edges, row, b)
     cell = row * cols + col
-    has = point_mass > 0
-    box = [np.full(rows * cols, sign * np.inf) for sign in (1, -1, 1, -1)]
-    for k, v in enumerate((a, b)):
-        np.minimum.at(box[2 * k], cell[has], v[has])
-        np.maximum.at(box[2 * k + 1], cell[has], v[has])
+    box = _point_boxes(cell, a, b, point_mass > 0, rows * cols)
     point_mass = np.bincount(cell, weights=point_mass, minlength=rows * cols)
     mass, mx, my, rgb, bound_a, bound_b, prof, prof_b = _cell_moments(material, wi, a_edges, b_edges, frame, quadrature,
                                                                point_mass, box)
     # Exponential rates matching each cell's first moments along a and b, no steeper than the
     # cell's own f·cos: what _unresolved_edges compares across edges (the profiles are kept).
-    alpha = np.clip(exp_rate_for_mean(mx), -bound_a, bound_a)
-    beta = np.clip(exp_rate_for_mean(my), -bound_b, bound_b)
+    rate_x, rate_y = exp_rate_for_mean(np.stack([mx, my]))        # one bisection for both (elementwise)
+    alpha = np.clip(rate_x, -bound_a, bound_a)
+    beta = np.clip(rate_y, -bound_b, bound_b)
     a_e, b_e = a_edges.astype(np.float64), b_edges.astype(np.float64)
     for find in (lambda: _unresolved_edges(a_edges, b_edges, mass, alpha, beta),
                  lambda: _ridge_edges(material, wi, frame, a_e, b_e, mass)):
@@ -585,8 +622,7 @@ def _finish_bin(material, wi, frame, a_edges, b_edges, a, b, point_mass, quadrat
         found = m > 1.25 * mass.flat[cells]      # materially more: else the first rule stands
         r, c = r[found], c[found]
         mass[r, c], rgb[r, c] = m[found], c_rgb[found]
-        prof[r, c] = _profile_logs(along_a[found], at_a[found])
-        prof_b[r, c] = _profile_logs(along_b[found], at_b[found])
+        prof[r, c], prof_b[r, c] = _profile_logs_ab(along_a[found], at_a[found], along_b[found], at_b[found])
     # A floor of uniform density keeps pdf > 0 everywhere, so the table never loses a
     # direction where f·cos > 0 (unbiased whatever the quadrature missed).
     area = np.diff(a_edges.astype(np.float64))[:, None] * np.diff(b_edges.astype(np.float64), axis=1)
@@ -686,8 +722,17 @@ def _ridge_edges(material, wi, frame, a_e, b_e, mass, q=4):
 
 
 def _find_cols(b_edges, row, b):
-    """Column of each point within its row."""
-    return _search(b, b_edges.shape[1] - 1, lambda m: b_edges[row, m])
+    """Column of each point within its row: the last column whose left edge is at or below it (the
+    first where none is; tables._search's answer for increasing edges), one searchsorted per row
+    over its points (the bisection over all points at once indexed a row's edges per point and step)."""
+    cols = b_edges.shape[1] - 1
+    order = np.argsort(row.astype(np.int16 if cols < 1 << 15 else np.int64), kind="stable")
+    starts = np.searchsorted(row[order], np.arange(b_edges.shape[0] + 1))
+    col = np.empty(len(b), np.int64)
+    for i in range(b_edges.shape[0]):
+        at = order[starts[i]:starts[i + 1]]
+        col[at] = np.searchsorted(b_edges[i, :cols].astype(np.float64), b[at], side="right") - 1
+    return np.clip(col, 0, cols - 1)
 
 
 def default_phi_bins(material, count):
@@ -915,14 +960,19 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
     wis = [spherical_dir(t, phi) for t in theta_bins]
     frames = [_WoFrame(phi) if coords == "wo" else _PolarFrame(wi, phi) if coords == "halfpolar"
               else _HalfFrame(wi, frame_angle) for wi in wis]
+    row_knots = [_row_knots(wi, t, coords, lobe_width) for t, wi in zip(theta_bins, wis)]
+    n_seg = len(row_knots[0]) - 1
+    # A bin's points, and their order by row segment (its knots decide it: the same in every build
+    # of the bin, a probe's pair or a placement's group), each computed once per cache.
     with _cache_lock:
         entries = [cache.setdefault((float(t), phi, grid, gamma, coords),
                                     _Once(_points, material, source, wi, grid, frame, gamma))
                    for t, wi, frame in zip(theta_bins, wis, frames)]
+        ordered = [cache.setdefault((float(t), phi, grid, gamma, coords, knots.tobytes()),
+                                    _Once(_row_order, entry, knots, n_seg))
+                   for t, entry, knots in zip(theta_bins, entries, row_knots)]
     points = list(_parallel(_Once.get, entries))
-    row_knots = [_row_knots(wi, t, coords, lobe_width) for t, wi in zip(theta_bins, wis)]
-    n_seg = len(row_knots[0]) - 1
-    by_seg = [_by_segment(*_normalize(p[0], k), p[2], n_seg) for p, k in zip(points, row_knots)]
+    by_seg = list(_parallel(_Once.get, ordered))
     window = K if window is None else window
     near = [tuple(range(max(0, k - window), min(K, k + window + 1))) for k in range(K)]
     # Cells per segment by the weight of all the column's bins: interpolation pairs cells by
@@ -942,8 +992,7 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
                for shared, knots in zip(_once_per_neighbourhood(near, row_edges), row_knots)]
 
     # Per bin: each point's row, and its normalized position within that row's column knots.
-    by_row = []
-    for k in range(K):
+    def bin_by_row(k):
         a, b, w, _ = points[k]
         row = np.clip(np.searchsorted(a_edges[k], a, side="right") - 1, 0, rows - 1)
         a_mid = 0.5 * (a_edges[k][:-1].astype(np.float64) + a_edges[k][1:])
@@ -951,7 +1000,8 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
                  else np.tile(COL_KNOTS[coords], (rows, 1)))
         seg, r = _normalize_rows(b, knots, row)
         # segment s of row i: group i * n + s
-        by_row.append((knots, _by_segment(row * (knots.shape[1] - 1) + seg, r, w, rows * (knots.shape[1] - 1))))
+        return knots, _by_segment(row * (knots.shape[1] - 1) + seg, r, w, rows * (knots.shape[1] - 1))
+    by_row = list(_parallel(bin_by_row, range(K)))
     n = by_row[0][0].shape[1] - 1
     shares = _segment_shares([p for _, p in by_row], rows * n).reshape(rows, n)
     col_counts = [counts(cols, row_shares) for row_shares in shares]
@@ -978,6 +1028,12 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
     return np.stack(a_edges), b_edges, mass, alpha, beta, weights
 
 
+def _row_order(points, knots, n_seg):
+    """_by_segment of a bin's points (_Once of _points) over its row knots."""
+    p = points.get()
+    return _by_segment(*_normalize(p[0], knots), p[2], n_seg)
+
+
 def _once_per_neighbourhood(near, compute):
     """[compute(n) for n in near], each distinct neighbourhood computed once: bins that pool the
     same points (both bins of a pair the planner builds) get the same normalized edges."""
@@ -987,10 +1043,15 @@ def _once_per_neighbourhood(near, compute):
 
 
 def _normalize_rows(x, knots, row):
-    """Like _normalize, with each point's own knots row (knots: (rows, n_knots))."""
-    k = knots[row]
-    seg = np.clip(np.sum(x[:, None] >= k[:, 1:-1], axis=1), 0, knots.shape[1] - 2)
-    lo, hi = np.take_along_axis(k, seg[:, None], 1)[:, 0], np.take_along_axis(k, seg[:, None] + 1, 1)[:, 0]
+    """Like _normalize, with each point's own knots row (knots: (rows, n_knots)); the segment is
+    the count of inner knots at or below x (one searchsorted when every row has the same knots)."""
+    inner = knots[:, 1:-1]
+    if np.all(inner == inner[:1]):
+        seg = np.searchsorted(inner[0], x, side="right")
+    else:
+        seg = np.sum(x[:, None] >= inner[row], axis=1)
+    seg = np.clip(seg, 0, knots.shape[1] - 2)
+    lo, hi = knots[row, seg], knots[row, seg + 1]
     return seg, np.clip((x - lo) / (hi - lo), 0.0, 1.0)
 
 
