@@ -404,16 +404,15 @@ def _new_socket(tree, name, in_out, kind):
 def _piecewise(tree, x_socket, xs, values, loc):
     """A vector socket whose value is the piecewise-linear interpolant of `values` (3-vectors)
     at knots `xs`, evaluated at x: v0 + sum_k (v_{k+1} - v_k) clamp((x - x_k)/(x_{k+1} - x_k)).
-    Built from Map Range and Vector Math nodes: exact, no curve tables."""
+    Built from Map Range nodes (one per segment) and scalar Math Multiply Adds per channel (a
+    channel's zero steps left out), combined once: exact, no curve tables. (Scalar: a vector Math
+    node costs SVM ~5 scalar ones, and this runs on every shading point of the fit and the SVM
+    back end: scripts/svm_cost_parts.py.)"""
     nodes, links = tree.nodes, tree.links
-    acc = nodes.new("ShaderNodeCombineXYZ")
-    acc.location = loc
-    for c in range(3):
-        acc.inputs[c].default_value = float(values[0][c])
-    out = acc.outputs[0]
+    channels = [float(values[0][c]) for c in range(3)]
     for k in range(len(xs) - 1):
-        diff = [float(values[k + 1][c] - values[k][c]) for c in range(3)]
-        if max(abs(d) for d in diff) == 0.0:
+        steps = [float(values[k + 1][c] - values[k][c]) for c in range(3)]
+        if not any(steps):
             continue
         ramp = nodes.new("ShaderNodeMapRange")
         ramp.clamp = True
@@ -421,14 +420,27 @@ def _piecewise(tree, x_socket, xs, values, loc):
         ramp.inputs["From Max"].default_value = float(xs[k + 1])
         ramp.location = (loc[0] + 180 * (k + 1), loc[1] + 200)
         links.new(x_socket, ramp.inputs["Value"])
-        mad = nodes.new("ShaderNodeVectorMath")
-        mad.operation = 'MULTIPLY_ADD'
-        mad.location = (loc[0] + 180 * (k + 1), loc[1])
-        links.new(ramp.outputs["Result"], mad.inputs[0])        # scalar -> (t, t, t)
-        mad.inputs[1].default_value = diff
-        links.new(out, mad.inputs[2])
-        out = mad.outputs[0]
-    return out
+        for c, step in enumerate(steps):
+            if step == 0.0:
+                continue
+            mad = nodes.new("ShaderNodeMath")
+            mad.operation = 'MULTIPLY_ADD'
+            mad.location = (loc[0] + 180 * (k + 1), loc[1] - 60 * c)
+            links.new(ramp.outputs["Result"], mad.inputs[0])
+            mad.inputs[1].default_value = step
+            if isinstance(channels[c], float):
+                mad.inputs[2].default_value = channels[c]
+            else:
+                links.new(channels[c], mad.inputs[2])
+            channels[c] = mad.outputs[0]
+    out = nodes.new("ShaderNodeCombineXYZ")
+    out.location = (loc[0] + 180 * len(xs), loc[1])
+    for c, value in enumerate(channels):
+        if isinstance(value, float):
+            out.inputs[c].default_value = value
+        else:
+            links.new(value, out.inputs[c])
+    return out.outputs[0]
 
 
 # The fit group's outputs (vectors, in this order where the fit has them): "Tilt" = (t_1, t_2,

@@ -165,18 +165,28 @@ result = {}
 
 def chain(socket):
     # (base, [(x0, x1, diff)]) of a piecewise-linear vector built by node._piecewise, in the
-    # fit's node group (node._fit_group)
+    # fit's node group (node._fit_group): per channel a chain of Math Multiply Adds on Map Ranges
+    # into one Combine XYZ
     link = socket.links[0]
     inner = next(n for n in link.from_node.node_tree.nodes if n.bl_idname == "NodeGroupOutput")
-    steps = []
-    node = inner.inputs[link.from_socket.name].links[0].from_node
-    while node.bl_idname == "ShaderNodeVectorMath":
-        ramp = node.inputs[0].links[0].from_node
-        steps.append((ramp.inputs["From Min"].default_value, ramp.inputs["From Max"].default_value,
-                      list(node.inputs[1].default_value)))
-        node = node.inputs[2].links[0].from_node
-    assert node.bl_idname == "ShaderNodeCombineXYZ", node.bl_idname
-    return [node.inputs[c].default_value for c in range(3)], steps[::-1]
+    combine = inner.inputs[link.from_socket.name].links[0].from_node
+    assert combine.bl_idname == "ShaderNodeCombineXYZ", combine.bl_idname
+    base, segments = [0.0] * 3, {}
+    for c in range(3):
+        node = combine.inputs[c].links[0].from_node if combine.inputs[c].links else None
+        while node is not None:
+            assert node.bl_idname == "ShaderNodeMath" and node.operation == 'MULTIPLY_ADD', node.bl_idname
+            ramp = node.inputs[0].links[0].from_node
+            key = (ramp.inputs["From Min"].default_value, ramp.inputs["From Max"].default_value)
+            segments.setdefault(key, [0.0] * 3)[c] = node.inputs[1].default_value
+            if node.inputs[2].links:
+                node = node.inputs[2].links[0].from_node
+            else:
+                base[c] = node.inputs[2].default_value
+                node = None
+        if not combine.inputs[c].links:
+            base[c] = combine.inputs[c].default_value
+    return base, [(x0, x1, diff) for (x0, x1), diff in sorted(segments.items())]
 
 def upstream(socket):
     # the nodes feeding socket in its tree
