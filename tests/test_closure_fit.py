@@ -247,19 +247,19 @@ def test_the_inverse_guides_bracket_the_edge_searches(tmp_path, glossy):
     K, R, C = len(glossy.theta_bins), glossy.rows, glossy.cols
     rng = np.random.default_rng(1)
     for k in range(max(K - 1, 1)):
-        base = 3 + 4 * K * R + k * (3 + 3 * R)
+        base = 3 + 3 * K * R + k * (3 + 3 * R)     # (+2 the row guide; row i: +3 + 3 i sums, +4 b edges, +5 guide)
         for _ in range(200):
             w = rng.random(4) * np.array([1, 1, 0, 0])     # isotropic: two bins
             w /= w.sum()
             a = rng.random()
             edges = img[base + 1, :R + 1] @ w
             i = min(np.nonzero(edges <= a)[0].max(), R - 1)
-            lo, hi = img[base + 2 + 2 * R, min(int(a * R), R - 1), 2:4]
+            lo, hi = img[base + 2, min(int(a * R), R - 1), 2:4]
             assert lo <= i < hi, (k, a, i, lo, hi)
             b = rng.random() * 2 * np.pi
-            edges = img[base + 2 + R + i, :C + 1] @ w
+            edges = img[base + 4 + 3 * i, :C + 1] @ w
             j = min(np.nonzero(edges <= b)[0].max(), C - 1)
-            lo, hi = img[base + 3 + 2 * R + i, min(int(b * C / (2 * np.pi)), C - 1), 2:4]
+            lo, hi = img[base + 5 + 3 * i, min(int(b * C / (2 * np.pi)), C - 1), 2:4]
             assert lo <= j < hi, (k, b, j, lo, hi)
 
 
