@@ -44,8 +44,8 @@ knot's, and the next knot's lobes chosen by the error at the knot plus half-way 
 lobes each continues: where a lobe must take a new shape, the one that carried little should,
 else the node's lerp half-way fits neither shape; irid_flake_paint1 at 82.5 deg, between
 knots 81 and 84: 0.278 -> 0.145): each lobe keeps its identity and its parameters vary
-smoothly with the view angle (a fit made per knot alone jumps between knots, and a sphere
-renders concentric rings). Recorded per knot: the relative L2 error of f cos
+smoothly with the view angle (lobes that trade identities or jump between knots fit neither
+half-way, and a sphere renders concentric rings: test_crossed_lobes_jump_between_knots). Recorded per knot: the relative L2 error of f cos
 against the tables (`rel_error`, which the SVM back end's matching reads) and the albedo the
 closures reach (`fit_albedo`, equal to `albedo`); per view angle (knots and midpoints up to
 88 deg) the relative L1 error of luminance f cos against the measured material when the bake
