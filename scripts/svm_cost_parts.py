@@ -14,10 +14,6 @@ they measure cost, not a look):
              saving, side by side; its node groups named apart from this checkout's)
   portal     a Ray Portal of constant colour toward the mirror direction: a portal bounce's rays
              and a trivial graph (the floor of any portal back end)
-  fitscalar  the fit's parameters (node._fit_group: per knot segment a Map Range and a Vector Math
-             Multiply Add of each parameter, run before the branches on every sample) in scalar
-             Math per channel, a Combine XYZ per parameter (same values: the same operation per
-             channel, channels whose step is 0 left out); "fit-fitscalar" the fit back end so
 One Cycles thread (with two, a worker waiting for the other counted as CPU time). Per scene (constant
 world, the acceptance's HDRI, studio lamps) and variant: CPU time of this process per spp from the
 fastest of --inner renders at --lo and at --hi spp (each render's fixed cost cancels), the best of
@@ -45,57 +41,14 @@ from bake.export.closure_fit import ensure_fit, load_fit  # noqa: E402
 
 TABLES = Path("/work/notes/s37/out/tables/cm_military_green.exr")
 BUILT = []      # the SVM back end's output socket, as built
-VARIANTS = ("principled", "fit", "svm", "-match", "fcv0", "untilted", "-cv", "-mix", "sampler", "portal", "fitscalar",
-            "fit-fitscalar")
-FIT_GROUPS = "FlowBSDF fit: "
-
-
-def _scalar_piecewise(tree, x_socket, xs, values, loc):
-    """node._piecewise's value in scalar Math nodes: per channel v0 + step_k x ramp_k, combined."""
-    nodes, links = tree.nodes, tree.links
-    ramps, channels = {}, [float(values[0][c]) for c in range(3)]
-    for k in range(len(xs) - 1):
-        for c in range(3):
-            step = float(values[k + 1][c] - values[k][c])
-            if step == 0.0:
-                continue
-            if k not in ramps:
-                ramp = ramps[k] = nodes.new("ShaderNodeMapRange")
-                ramp.clamp = True
-                ramp.inputs["From Min"].default_value = float(xs[k])
-                ramp.inputs["From Max"].default_value = float(xs[k + 1])
-                links.new(x_socket, ramp.inputs["Value"])
-            mad = nodes.new("ShaderNodeMath")
-            mad.operation = 'MULTIPLY_ADD'
-            links.new(ramps[k].outputs["Result"], mad.inputs[0])
-            mad.inputs[1].default_value = step
-            if isinstance(channels[c], float):
-                mad.inputs[2].default_value = channels[c]
-            else:
-                links.new(channels[c], mad.inputs[2])
-            channels[c] = mad.outputs[0]
-    combine = nodes.new("ShaderNodeCombineXYZ")
-    for c, value in enumerate(channels):
-        if isinstance(value, float):
-            combine.inputs[c].default_value = value
-        else:
-            links.new(value, combine.inputs[c])
-    return combine.outputs[0]
-
-
-def _drop_fit_groups():
-    import bpy
-    for tree in [t for t in bpy.data.node_groups if t.name.startswith(FIT_GROUPS)]:
-        bpy.data.node_groups.remove(tree)
+VARIANTS = ("principled", "fit", "svm", "-match", "fcv0", "untilted", "-cv", "-mix", "sampler", "portal")
 
 
 @contextlib.contextmanager
 def patched(variant):
     """The svm module with the variant's part switched off while the graph is built and rendered."""
     from blender_addon import svm
-    from blender_addon import node as lb
     saved = dict(vars(svm))
-    piecewise = lb._piecewise
     build = svm.build_svm_sampler
     BUILT.clear()
 
@@ -125,9 +78,6 @@ def patched(variant):
             svm.build_svm_sampler = without_world
         elif variant == "portal":
             svm.build_svm_sampler = portal_only
-        elif variant.endswith("fitscalar"):
-            _drop_fit_groups()          # (named by the fit alone: built anew, and after the variant)
-            lb._piecewise = _scalar_piecewise
         elif variant == "before":
             svm.build_svm_sampler = _before().build_svm_sampler
         inner = svm.build_svm_sampler
@@ -140,9 +90,6 @@ def patched(variant):
     finally:
         for key, value in saved.items():
             setattr(svm, key, value)
-        if lb._piecewise is not piecewise:
-            lb._piecewise = piecewise
-            _drop_fit_groups()
 
 
 BEFORE = Path("/work/main/blender_addon/svm.py")
@@ -222,7 +169,8 @@ def main(argv=None):
     ap.add_argument("--lo", type=int, default=16)
     ap.add_argument("--hi", type=int, default=400)
     args = ap.parse_args(argv)
-    _before(args.before)
+    if "before" in args.variants.split(","):
+        _before(args.before)
     fit = load_fit(ensure_fit(args.tables))
     scenes = {k: v for k, v in backend_cost.setups().items() if k in args.scenes.split(",")}
     variants = args.variants.split(",")
@@ -230,7 +178,7 @@ def main(argv=None):
     for r in range(args.repeat):
         for scene, setup in scenes.items():
             for v in variants:
-                kind = v if v in ("principled", "fit") else "fit" if v.startswith("fit-") else "svm"
+                kind = v if v in ("principled", "fit") else "svm"
                 t, n = per_spp(kind, v, args.tables, fit, setup, args.size, args.lo, args.hi, args.inner)
                 best[scene, v] = min(best.get((scene, v), float("inf")), t)
                 nodes[scene, v] = n
