@@ -29,7 +29,7 @@ import numpy as np
 
 from ..materials.base import as_dirs
 from .geometry import luminance, theta_phi
-from .warps import HALF_PI, TWO_PI, half_vector, rotate_z, u_of_half_vector
+from .warps import HALF_PI, dwo_du_of, half_vector, rotate_z, u_of_half_vector
 
 
 @functools.lru_cache(maxsize=32)
@@ -87,7 +87,7 @@ class Table:
             cos_im = _dot3(wi, m)
             wo = (2.0 * cos_im)[:, None] * m - wi
             value = material.eval(wi, wo)
-            jac = (4.0 * np.maximum(cos_im, 0.0) * sin_m * np.pi * u[:, 0] * TWO_PI) * (wo[:, 2] > 0)
+            jac = dwo_du_of(cos_im, sin_m, u[:, 0]) * (wo[:, 2] > 0)
             cos_o = np.maximum(wo[:, 2], 0.0)
             dens = np.maximum(luminance(value), 0.0) * cos_o * jac
             rows = r1 - r0
@@ -147,7 +147,7 @@ class Table:
         m = h / np.sqrt(_dot3(h, h))[:, None]            # normalize(wi + wo)
         v = u_of_half_vector(m)
         u1 = v[:, 0]
-        jac = 4.0 * np.maximum(_dot3(self.wi, m), 0.0) * np.sin(HALF_PI * u1 * u1) * np.pi * u1 * TWO_PI    # dwo_du
+        jac = dwo_du_of(_dot3(self.wi, m), np.sin(HALF_PI * u1 * u1), u1)
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where((wo[:, 2] > 0) & (jac > 0), self.density_u(v) / jac, 0.0)
 

@@ -11,6 +11,7 @@ Directions are in the local shading frame (z = normal, wi pointing away from the
     u_of_half_vector(m)         its inverse
     dwo_du(wi, m, u1)           |d omega_o / d u| of wo = reflect(wi, m) at u = (u1, .):
                                 4 (wi·m) sin(theta_m) pi u1 2 pi, zero where wi·m <= 0
+    dwo_du_of(cos_im, sin_theta_m, u1)  the same from wi·m and sin(theta_m) (the ideal table's hot loop)
 
 The ideal sampler (bake/core/ideal.py) tabulates over half_vector's square; the chi-square test
 (bake/quality/metrics.py) bins samples on it.
@@ -45,6 +46,9 @@ def u_of_half_vector(m):
 
 def dwo_du(wi, m, u1):
     """Solid angle of wo = reflect(wi, m) per unit area of u (zero where the reflection is invalid)."""
-    cos_im = np.sum(wi * m, axis=-1)
-    theta_m = HALF_PI * u1 * u1
-    return 4.0 * np.maximum(cos_im, 0.0) * np.sin(theta_m) * np.pi * u1 * TWO_PI
+    return dwo_du_of(np.sum(wi * m, axis=-1), np.sin(HALF_PI * u1 * u1), u1)
+
+
+def dwo_du_of(cos_im, sin_theta_m, u1):
+    """dwo_du from wi.m and sin(theta_m) (theta_m = pi/2 u1^2) where the caller has them."""
+    return 4.0 * np.maximum(cos_im, 0.0) * sin_theta_m * np.pi * u1 * TWO_PI
