@@ -152,7 +152,7 @@ def _fit_file(tables_path):
             f"closure fit stale (made from other tables): {path}"
     except ValueError as e:
         why = str(e)
-    closure_fit = _bake_mod("export.closure_fit")
+    closure_fit = _bake_mod("export.derived")
     if closure_fit is None:
         if older:
             return path         # rendered as it is (the version it says): refitting needs numpy
@@ -163,7 +163,7 @@ def _fit_file(tables_path):
 def _osl_texture(tables_path):
     """The OSL texture of a table file: made or refreshed by `bake` where it imports, else the
     one the bake wrote (its name carries the tables' hash: bake/export/osl_export.export_path)."""
-    osl_export = _bake_mod("export.osl_export")
+    osl_export = _bake_mod("export.derived")
     error = None
     if osl_export is not None:
         try:
@@ -201,7 +201,7 @@ def svm_available():
 
 def _svm_texture(tables_path):
     """The SVM texture of a table file, made or refreshed by `bake` (bake/export/svm_export.py)."""
-    return str(_bake_mod("export.svm_export").ensure_svm_export(tables_path))
+    return str(_bake_mod("export.derived").ensure_svm_export(tables_path))
 
 
 def derived_current(tables_path):
@@ -839,7 +839,7 @@ def refit_in_thread():
 
 
 def _refit_worker(tables, done, errors):
-    closure_fit = _bake_mod("export.closure_fit")
+    closure_fit = _bake_mod("export.derived")
     for path in tables:
         try:
             closure_fit.ensure_fit(path)

@@ -307,7 +307,7 @@ def bake_sun(scene, sun, path):
     import json
     from . import node
     fit = sun_fit(render_sun(scene, sun), sun)
-    with node._bake_mod("plumbing.files").atomic_path(path) as tmp:
+    with node._bake_mod("io.files").atomic_path(path) as tmp:
         Path(tmp).write_text(json.dumps(fit))
     return fit
 
@@ -553,7 +553,7 @@ def write_sky(path, radiance):
     import numpy as np
     from . import node
     rgba = np.concatenate([radiance, np.ones(radiance.shape[:2] + (1,))], -1).astype(np.float32)
-    node._bake_mod("plumbing.exrio").write_rgba_exr(path, rgba, "flowbsdf", {"sky": True})
+    node._bake_mod("io.exrio").write_rgba_exr(path, rgba, "flowbsdf", {"sky": True})
 
 
 def _environment(exact, sky_file):

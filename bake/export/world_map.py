@@ -40,9 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.geometry import LUMINANCE
 from ..errors import FlowBSDFError
-from ..plumbing.exrio import write_rgba_exr
+from ..io.exrio import write_rgba_exr
+from ..maths.geometry import LUMINANCE
 
 LAYOUT = 3
 TEXTURE_WIDTH = 1024
