@@ -1,6 +1,6 @@
 """The `flowbsdf` command: one subcommand per job.
 
-    library FOLDER --out DIR               an asset library of measured files (blender_addon/library.py,
+    library FOLDER --out DIR               an asset library of measured files (blender_addon/artist/library.py,
                                            run as a program of its own)
     check, yardsticks, bake, report, run   here: a manifest, --material, --out (but check)
                                            --out is the output folder (models/, tables/, report/
@@ -75,11 +75,11 @@ def cmd_run(args):
         render=not args.no_render, samples=args.samples).run(args.material)
 
 
-# `flowbsdf library` runs the add-on's library (blender_addon/library.py) as its own program: bake/
+# `flowbsdf library` runs the add-on's library (blender_addon/artist/library.py) as its own program: bake/
 # never imports the add-on (it is the bottom of the repository), as the add-on runs bake/ in its
 # worker Python.
 LIBRARY_CODE = """
-import sys, bake.errors as errors, blender_addon.library as library
+import sys, bake.errors as errors, blender_addon.artist.library as library
 folder, out, quality, blend = sys.argv[1:5]
 sys.exit(errors.exit_code(lambda: library.main(folder, out, quality=quality, blend=blend == "1"), "flowbsdf"))
 """
@@ -87,10 +87,10 @@ sys.exit(errors.exit_code(lambda: library.main(folder, out, quality=quality, ble
 
 def cmd_library(args):
     """An asset library of a folder of measured files (DIR/library.blend): the Blender add-on's
-    blender_addon/library.py, found beside bake/ in a checkout, run in a Python of its own (this
+    blender_addon/artist/library.py, found beside bake/ in a checkout, run in a Python of its own (this
     one, with the checkout first on its path); its exit code is the command's."""
     root = Path(__file__).resolve().parents[2]
-    if not (root / "blender_addon" / "library.py").is_file():
+    if not (root / "blender_addon" / "artist" / "library.py").is_file():
         from ..errors import FlowBSDFError
         raise FlowBSDFError("`flowbsdf library` needs the Blender add-on's folder (blender_addon) "
                             "beside bake/: run it from a FlowBSDF checkout")
@@ -146,7 +146,7 @@ def build_parser():
                    help="samples per rv cell of the report (default: the manifest's [run.report], else 16384)")
 
     lib = sub.add_parser("library", help="bake a folder of measured files (RGL .bsdf, MERL .binary) into a "
-                                         "Blender asset library: OUT/library.blend (blender_addon/library.py)")
+                                         "Blender asset library: OUT/library.blend (blender_addon/artist/library.py)")
     lib.add_argument("folder", help="the measured files (subfolders too)")
     lib.add_argument("--out", required=True, help="the library's folder (manifest.toml, tables/, library.blend, "
                                                   "blender_assets.cats.txt)")
