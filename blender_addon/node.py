@@ -515,7 +515,7 @@ def _fit_group(fit):
     (A group of its own: every node added to a tree costs in proportion to the tree's size, and
     each back end takes the parameters.)"""
     import hashlib
-    from .svm import MATCHED_SHARE_MIN
+    from .render.svm import MATCHED_SHARE_MIN
     payload = json.dumps([fit, MATCHED_ERROR_MAX, MATCHED_SHARE_MIN], sort_keys=True, default=str)
     name = "FlowBSDF fit: " + hashlib.sha256(payload.encode()).hexdigest()[:12]
     tree = bpy.data.node_groups.get(name)
@@ -544,7 +544,7 @@ def matched_share(rel_error):
     poor its f_cv exceeds f widely: in a sun's shadow (no light to match, the sky only) the rest
     then renders negative pixels (cm_military_green: 7-17 of 5000, at any s and with betas
     capped at 1; paper_white none)."""
-    from .svm import MATCHED_SHARE_MIN
+    from .render.svm import MATCHED_SHARE_MIN
     e = float(rel_error)
     return min(max(0.5 * e, MATCHED_SHARE_MIN), 0.5) if e <= MATCHED_ERROR_MAX else 0.0
 
@@ -638,7 +638,7 @@ def view_tangent(tree, loc, with_normal=False):
     computes the same tangent): Cycles normalises cross(N, T), NaN for a zero tangent (a
     head-on view, where the fit's anisotropy is 0 anyway, and its tilts). `with_normal`: (the
     tangent, Geometry's Normal)."""
-    from .svm import VIEW_TANGENT_EPS, VIEW_TANGENT_NUDGE
+    from .render.svm import VIEW_TANGENT_EPS, VIEW_TANGENT_NUDGE
     nodes, links = tree.nodes, tree.links
     geometry = nodes.new("ShaderNodeNewGeometry")
     geometry.location = loc
@@ -677,7 +677,7 @@ def _svm_backend(tree, svm_texture, fit, tangent, world_inputs, loc=(-1400, -300
     fit its control variate: the fit's closures scaled by its `cv` betas (or matched to the
     world's small light: svm.py), which Cycles lights with its lamp and world sampling, taken
     with probability 1 - s; else the portal carrying the rest (bake/export/closure_fit.py)."""
-    from . import svm
+    from .render import svm
     has_betas = fit is not None and any(b[0] > 0.0 or b[1] > 0.0 for b in fit["cv"])
     # (a match image only where some view angle is matched: else no lookups)
     match = fit.get("match_path") if fit and any(matched_share(e) > 0.0 for e in fit["rel_error"]) else None
@@ -784,7 +784,7 @@ def _switched(tree, name, off, on, location):
 
 
 def _has_svm(tree):
-    from . import svm
+    from .render import svm
     return any(n.name.startswith(svm.FILM) for n in tree.nodes)
 
 
@@ -1275,7 +1275,7 @@ def sync(scene, refresh=False, bake_world=False):
             worlds[folder] = _world_inputs(scene, folder, bake_world)
         inputs = world.material_share(worlds[folder], _info(tree).get("matte"))
         if _has_svm(tree):
-            from . import svm
+            from .render import svm
             if not svm.update_world(tree, caustics_gate(scene, inputs)):  # a technique the graph lacks: rebuild it
                 info = _info(tree)
                 _build_tree(tree, info["material"], Path(info["tables"]),
