@@ -12,7 +12,7 @@ LOG_MEAN_SERIES = 1e-3  # bake/core/tables.py LOG_MEAN_SERIES: the log mean's se
 
 def _svm_export():
     import importlib
-    from . import deps
+    from ... import deps
     return importlib.import_module(f"{deps.bake.__name__}.export.svm_export")
 
 

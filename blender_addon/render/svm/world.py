@@ -9,7 +9,7 @@ from .graph import GROUP_PREFIX, X, Y, Z, _Graph, _group, _image
 
 def _world_map_module():
     import importlib
-    from . import deps
+    from ... import deps
     return importlib.import_module(f"{deps.bake.__name__}.export.world_map")
 
 
