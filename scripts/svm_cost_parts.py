@@ -10,8 +10,8 @@ they measure cost, not a look):
   -cv        no control variate (the portal mixture alone)
   -mix       no mixture (world None: the tables' sample; the control variate then off)
   sampler    the tables' sampler and a portal alone (world None, no control variate)
-  before     the graph as /work/main's blender_addon/render/svm/ (or --before's package or svm.py) builds it (a cut's
-             saving, side by side; its node groups named apart from this checkout's)
+  before     the graph as /work/main's blender_addon/render/svm/ (or --before's package, or an svm.py of
+             before issue 53) builds it (a cut's saving, side by side; its node groups named apart)
   portal     a Ray Portal of constant colour toward the mirror direction: a portal bounce's rays
              and a trivial graph (the floor of any portal back end)
 One Cycles thread (with two, a worker waiting for the other counted as CPU time). Per scene (constant
@@ -174,7 +174,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tables", type=Path, default=TABLES)
     ap.add_argument("--variants", default=",".join(VARIANTS))
-    ap.add_argument("--before", type=Path, default=BEFORE, help="the svm package (or svm.py) the variant `before` builds with")
+    ap.add_argument("--before", type=Path, default=BEFORE,
+                    help="the svm package (or svm.py) the variant `before` builds with")
     ap.add_argument("--scenes", default="constant,hdri,studio")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--size", type=int, default=32)

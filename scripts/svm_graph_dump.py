@@ -118,7 +118,7 @@ def _custom(owner):
     return " ".join(out)
 
 
-def dump_tree(tree, lines, groups):
+def dump_tree(tree, lines, groups, images):
     lines.append(f"tree {tree.name!r} {tree.bl_idname}")
     if getattr(tree, "interface", None) is not None:
         for item in tree.interface.items_tree:
@@ -129,7 +129,10 @@ def dump_tree(tree, lines, groups):
             key = prop.identifier
             if key in SKIP or prop.type == "COLLECTION":
                 continue
-            props.append(f"{key}={_val(getattr(node, key))}")
+            try:
+                props.append(f"{key}={_val(getattr(node, key))}")
+            except (AttributeError, TypeError, ValueError) as e:
+                props.append(f"{key}=<{type(e).__name__}>")
         lines.append(f"  node {node.bl_idname} " + " ".join(props))
         for i, socket in enumerate(node.inputs):
             if socket.is_linked:
@@ -141,7 +144,12 @@ def dump_tree(tree, lines, groups):
         if node.keys():
             lines.append(f"    custom {_custom(node)}")
         if node.bl_idname == "ShaderNodeGroup" and node.node_tree is not None:
-            groups.add(node.node_tree.name)
+            groups.append(node.node_tree)
+        image = getattr(node, "image", None)
+        if image is not None and image.name not in images:
+            images[image.name] = (f"image {image.name!r} {image.colorspace_settings.name} {image.alpha_mode} "
+                                  f"half={image.use_half_precision} packed={image.packed_file is not None} "
+                                  f"{_custom(image)}")
     for link in tree.links:
         lines.append(f"  link {link.from_node.name!r}.{link.from_socket.identifier} -> "
                      f"{link.to_node.name!r}.{link.to_socket.identifier}")
@@ -166,14 +174,14 @@ def _api(checkout):
     return svm, probes, node
 
 
-def dump(folder, out, checkout):
+def dump(folder, out, checkout, quick=False):
     import bpy
     svm, probes, lb = _api(checkout)
     import cycles_scenes as cs
     from bake.export import closure_fit, svm_export
-    lines, built = [], []
+    lines, built, done, images = [], [], set(), {}
     textures = {p.parent.name: svm_export.ensure_svm_export(p)
-                for p in sorted(folder.glob("*/*.exr")) if "." not in p.stem}
+                for p in sorted(folder.glob("*/*.exr")) if "." not in p.stem and not p.stem.startswith("world")}
     baked = {p.parent.name: p for p in sorted((folder / "baked").glob("*/*.exr")) if p.stem == p.parent.name}
     for name, path in baked.items():
         textures[f"baked/{name}"] = svm_export.ensure_svm_export(path)
@@ -192,10 +200,24 @@ def dump(folder, out, checkout):
     }
     cs.reset(8, 8, spp=1, osl=False, threads=1)
 
-    def record(label, build):
-        tree = bpy.data.node_groups.new(f"dump {len(built)}", "ShaderNodeTree")
-        out_socket = build(tree)
-        built.append((label, tree, out_socket))
+    def record(label, build=None, tree=None):
+        """Build a graph and write it, and the node groups it uses not written yet, at once (a
+        scene reset removes them)."""
+        if tree is None:
+            tree = bpy.data.node_groups.new(f"dump {len(built)}", "ShaderNodeTree")
+            build(tree)
+        built.append(label)
+        lines.append(f"=== {label}")
+        lines.append(f"counts {counts(tree)}")
+        groups = []
+        dump_tree(tree, lines, groups, images)
+        while groups:
+            group = groups.pop(0)
+            if group.name not in done:
+                done.add(group.name)
+                lines.append(f"=== group {group.name}")
+                dump_tree(group, lines, groups, images)
+    counts = getattr(probes, "graph_counts", None) or svm.graph_counts
 
     def tangent(tree, value=(0.6, 0.8, 0.0)):
         node = tree.nodes.new("ShaderNodeCombineXYZ")
@@ -203,22 +225,25 @@ def dump(folder, out, checkout):
             socket.default_value = v
         return node.outputs[0]
 
+    few = (lambda names, n: list(names)[:n]) if quick else (lambda names, n: list(names))
     for name, tex in textures.items():
         record(f"{name}: tables", lambda t, tex=tex: svm.build_svm_sampler(t, tex))
         if name.startswith("brushed") or "x3" in name:
             record(f"{name}: tables, tangent", lambda t, tex=tex: svm.build_svm_sampler(t, tex, tangent(t)))
-    for name in ("plastic", "brushed", "plastic_wo", "plastic_halfpolar", "mixed", "synthetic1x1", "synthetic2x3") \
-            + tuple(f"baked/{n}" for n in baked):
+    for name in few(("plastic", "brushed", "synthetic1x1", "plastic_wo", "mixed", "synthetic2x3") + tuple(
+            f"baked/{n}" for n in list(baked)[:1]), 3):
         tex = textures[name]
         for w, world in worlds.items():
-            if world is not None:
+            if world is not None and (not quick or w in ("map and sun", "lamps", "all")):
                 record(f"{name}: world {w}", lambda t, tex=tex, world=world: svm.build_svm_sampler(t, tex, world=world))
-        record(f"{name}: sample_graph + tables_pdf_graph", lambda t, tex=tex: _inverse_pair(svm, t, tex, tangent(t)))
+        if not quick or name != "synthetic1x1":
+            record(f"{name}: sample_graph + tables_pdf_graph",
+                   lambda t, tex=tex: _inverse_pair(svm, t, tex, tangent(t)))
     fits = {name: closure_fit.load_fit(closure_fit.ensure_fit(folder / name / f"{stem}.exr"))
-            for name, stem in (("plastic", "plastic"), ("lambert", "lambert"), ("mixed", "mixed"))}
-    for name, path in baked.items():
+            for name, stem in (("plastic", "plastic"), ("mixed", "mixed"))}
+    for name, path in list(baked.items())[:1]:
         fits[f"baked/{name}"] = closure_fit.load_fit(closure_fit.ensure_fit(path))
-    for name, fit in fits.items():
+    for name, fit in few(fits.items(), 1):
         tex = textures[name]
         variants = {"baked": fit}
         matched = dict(fit)
@@ -228,8 +253,8 @@ def dump(folder, out, checkout):
         poor = dict(fit)
         poor["rel_error"] = [1.0] * len(fit["x"])
         variants["poor"] = poor
-        for v, f in variants.items():
-            for w in ("none", "cv on", "sun", "map and sun", "lamps", "lamp", "all"):
+        for v, f in few(variants.items(), 2):
+            for w in few(("none", "map and sun", "lamps", "cv on", "lamp"), 3):
                 world = worlds[w]
                 if world is not None and "sun" in w:
                     world = dict(world, ControlVariate=1.0, LightDirection=(0.3, 0.4, 0.8))
@@ -247,39 +272,23 @@ def dump(folder, out, checkout):
     record("plastic: update_world to a new map", swapped)
     # the test probes
     probe = str(folder / "world.exr")          # (any RGBA float image serves as the probe's input)
-    for name in ("plastic", "brushed", "mixed", "synthetic2x3"):
+    for name in few(("plastic", "brushed", "mixed", "synthetic2x3"), 2):
         tex = textures[name]
         record(f"{name}: probe sample", lambda t, tex=tex: probes.build_svm_probe(t, tex, probe))
         record(f"{name}: probe inverse", lambda t, tex=tex: probes.build_svm_probe(t, tex, probe, inverse=True))
-        for w in ("map and sun", "lamps", "all"):
+        for w in few(("all", "map and sun", "lamps"), 1):
             record(f"{name}: probe world {w}",
                    lambda t, tex=tex, w=w: probes.build_svm_probe(t, tex, probe, world=worlds[w]))
     record("world probe", lambda t: probes.build_world_probe(t, world_map, probe))
-    for tilts in ("none", "tilted"):
+    for tilts in few(("tilted", "none"), 1):
         record(f"f_cv probe, tilts {tilts}", lambda t, tilts=tilts: _fcos_probe(svm, probes, t, probe, tilts))
     record("match lookup probe", lambda t: _match_probe(svm, probes, t, probe, fits["plastic"]["match_path"]))
     # the Learned BSDF node's own group, in scenes
-    for name in ("plastic",) + tuple(f"baked/{n}" for n in baked):
+    for name in few(("plastic",) + tuple(f"baked/{n}" for n in list(baked)[:1]), 1):
         path = folder / name / (f"{name.split('/')[-1]}.exr")
-        for scene in ("constant", "image", "sky", "studio"):
-            label = f"{name}: node, {scene}"
-            built.append((label, _node_group(lb, cs, path, scene, folder, len(built)), None))
-    groups = set()
-    for label, tree, _ in built:
-        lines.append(f"=== {label}")
-        if hasattr(svm, "graph_counts") or hasattr(probes, "graph_counts"):
-            counts = (getattr(probes, "graph_counts", None) or svm.graph_counts)(tree)
-            lines.append(f"counts {counts}")
-        dump_tree(tree, lines, groups)
-    done = set()
-    while groups - done:
-        for name in sorted(groups - done):
-            done.add(name)
-            lines.append(f"=== group {name}")
-            dump_tree(bpy.data.node_groups[name], lines, groups)
-    for image in sorted(bpy.data.images, key=lambda i: i.name):
-        lines.append(f"image {image.name!r} {image.colorspace_settings.name} {image.alpha_mode} "
-                     f"half={image.use_half_precision} packed={image.packed_file is not None} {_custom(image)}")
+        for scene in few(("studio", "constant", "image", "sky"), 2):
+            record(f"{name}: node, {scene}", tree=_node_group(lb, cs, path, scene, folder, len(built)))
+    lines += [images[name] for name in sorted(images)]
     Path(out).write_text("\n".join(lines) + "\n")
     print(f"{len(built)} graphs, {len(done)} groups, {len(lines)} lines -> {out}")
 
@@ -370,11 +379,12 @@ def main(argv=None):
     ap.add_argument("--dump", type=Path, help="the prepared folder")
     ap.add_argument("--out", type=Path)
     ap.add_argument("--checkout", type=Path, default=ROOT)
+    ap.add_argument("--quick", action="store_true", help="a subset (~40 graphs) for a loaded machine")
     args = ap.parse_args(argv)
     if args.prepare:
         prepare(args.prepare, args.baked)
     if args.dump:
-        dump(args.dump, args.out, args.checkout.resolve())
+        dump(args.dump, args.out, args.checkout.resolve(), args.quick)
 
 
 if __name__ == "__main__":

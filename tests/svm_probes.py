@@ -77,7 +77,7 @@ def _probe_input(g, probe_path):
     middle = g.math('SUBTRACT', g.math('SUBTRACT', 1.0, left), right)
     probe = g.node("ShaderNodeTexImage", image=_image(probe_path), interpolation='Closest', extension='EXTEND')
     g.set(probe.inputs["Vector"], g.combine(g.math('FRACT', wx), g.dot(window, Y)))
-    return (left, middle, right), probe.outputs["Color"], probe.outputs["Alpha"]
+    return (left, middle, right), probe.outputs["Color"], g.outputs(probe)["Alpha"]
 
 
 def _probe_output(g, thirds, shown):

@@ -668,7 +668,8 @@ def test_svm_world_map_sample_is_numpy(svm, tmp_path):
     u = np.stack([(ix.ravel() + 0.5) / n, (iy.ravel() + 0.5) / n], 1)
     d, pdf = wm.sample(u)
     inputs = np.concatenate([u, np.zeros((len(u), 2))], 1)
-    shown, pdfs, _ = _render_probe(svm, lambda tree, probe: _probes().build_world_probe(tree, path, probe), inputs, tmp_path)
+    shown, pdfs, _ = _render_probe(svm, lambda tree, probe: _probes().build_world_probe(tree, path, probe), inputs,
+                                   tmp_path)
     assert np.abs(2.0 * shown - 1.0 - d).max() < 2e-4
     np.testing.assert_allclose(pdfs[:, 0], pdf, rtol=1e-5)
     np.testing.assert_allclose(pdfs[:, 1], pdf, rtol=1e-5)

@@ -1,7 +1,9 @@
 """The SVM graph builder: Cycles shader nodes added to a node tree in evaluation order, laid out in
-columns (`_Graph`), node groups made once per name (`_group`), the textures packed into the .blend
-(`_image`), and the clean-up of what no graph uses (`drop_unused`). Why creation order matters
-(Cycles' SVM stack) and what it measured: docs/svm.md."""
+columns (`_Graph`), written as arithmetic (`Value`: a float socket with Python's operators, and
+the functions below, named as in OSL), node groups made once per name (`_group`), the textures
+packed into the .blend (`_image`), and the clean-up of what no graph uses (`drop_unused`). Why
+creation order matters (Cycles' SVM stack) and what it measured: docs/svm.md."""
+import math
 import os
 
 import bpy
@@ -78,6 +80,8 @@ class _Graph:
         return node
 
     def set(self, socket, value):
+        if isinstance(value, Value):
+            value = value.out
         if isinstance(value, bpy.types.NodeSocket):
             self.tree.links.new(value, socket)
         else:
@@ -87,7 +91,7 @@ class _Graph:
         node = self.node("ShaderNodeMath", operation=op, use_clamp=clamp)
         for socket, value in zip(node.inputs, (a, b, c)[:_MATH_ARITY.get(op, 2)]):
             self.set(socket, value)
-        return node.outputs[0]
+        return Value(self, node.outputs[0])
 
     def vmath(self, op, a, b=(0.0, 0.0, 0.0), c=(0.0, 0.0, 0.0), scale=None):
         node = self.node("ShaderNodeVectorMath", operation=op)
@@ -95,7 +99,7 @@ class _Graph:
             self.set(socket, value)
         if scale is not None:
             self.set(node.inputs[3], scale)
-        return node.outputs[1 if op in ('DOT_PRODUCT', 'LENGTH', 'DISTANCE') else 0]
+        return Value(self, node.outputs[1]) if op in ('DOT_PRODUCT', 'LENGTH', 'DISTANCE') else node.outputs[0]
 
     def dot(self, a, b):
         return self.vmath('DOT_PRODUCT', a, b)
@@ -113,12 +117,153 @@ class _Graph:
         node = self.node("ShaderNodeGroup", node_tree=tree)
         for name, value in inputs.items():
             self.set(node.inputs[name], value)
-        return node.outputs
+        return Outputs(self, node)
+
+    def outputs(self, node):
+        """The node's outputs, its float ones as Values (`Outputs`)."""
+        return Outputs(self, node)
+
+    def const(self, value):
+        """A constant that arithmetic gives nodes of their own (an operator between two Python
+        numbers is Python's: no node)."""
+        return Value(self, float(value))
 
     def select(self, flag, a, b, clamp=False):
         """flag ? a : b for flag in {0, 1}, exactly (a x 1 + b x 0): no rounding, unlike a mix."""
         return self.math('MULTIPLY_ADD', a, flag, self.math('MULTIPLY', b, self.math('SUBTRACT', 1.0, flag)),
                          clamp=clamp)
+
+
+class Value:
+    """A float in the graph, a socket (or a constant: _Graph.const) whose arithmetic adds Math
+    nodes: a + b, a - b, a * b, a / b, a % b (FLOORED_MODULO, as Python's %), -a (a x -1), abs(a),
+    a < b and a > b (1 or 0), and the functions below (exp, log, sqrt, where, clamp, saturate, fma
+    ...). Each operator adds its node when Python evaluates it: inner first, left to right, the
+    order the builder's calls g.math('DIVIDE', g.math('MULTIPLY', v0, g.math('EXPONENT', ...)),
+    total) added them in, so `v0 * exp(t * rate) / total` is the same four nodes in the same
+    order. Nothing is folded or reordered, and a + b * c is two nodes (fma(b, c, a) is one).
+    Write a comparison with its Value first: Python turns `0.5 > x` into x < 0.5 (LESS_THAN of
+    x, not GREATER_THAN of 0.5). Never a truth value (`if x`: an error)."""
+    __slots__ = ("g", "out")
+
+    def __init__(self, g, out):
+        self.g, self.out = g, out
+
+    def __add__(self, other):
+        return self.g.math('ADD', self, other)
+
+    def __radd__(self, other):
+        return self.g.math('ADD', other, self)
+
+    def __sub__(self, other):
+        return self.g.math('SUBTRACT', self, other)
+
+    def __rsub__(self, other):
+        return self.g.math('SUBTRACT', other, self)
+
+    def __mul__(self, other):
+        return self.g.math('MULTIPLY', self, other)
+
+    def __rmul__(self, other):
+        return self.g.math('MULTIPLY', other, self)
+
+    def __truediv__(self, other):       # (Cycles' divide: 0 where other is 0)
+        return self.g.math('DIVIDE', self, other)
+
+    def __rtruediv__(self, other):
+        return self.g.math('DIVIDE', other, self)
+
+    def __mod__(self, other):
+        return self.g.math('FLOORED_MODULO', self, other)
+
+    def __neg__(self):
+        return self.g.math('MULTIPLY', self, -1.0)
+
+    def __abs__(self):
+        return self.g.math('ABSOLUTE', self)
+
+    def __lt__(self, other):
+        return self.g.math('LESS_THAN', self, other)
+
+    def __gt__(self, other):
+        return self.g.math('GREATER_THAN', self, other)
+
+    def __bool__(self):
+        raise TypeError("a graph value has no truth value (where(flag, a, b) selects)")
+
+
+class Outputs:
+    """A node's outputs by name or index, float ones as Values."""
+
+    def __init__(self, g, node):
+        self.g, self.outputs = g, node.outputs
+
+    def __getitem__(self, key):
+        socket = self.outputs[key]
+        return Value(self.g, socket) if socket.type == 'VALUE' else socket
+
+
+def _graph(*args):
+    for a in args:
+        if isinstance(a, Value):
+            return a.g
+    raise TypeError("no graph value among the arguments (a constant that needs a node: _Graph.const)")
+
+
+def _function(name, op, doc):
+    def function(*args):
+        return _graph(*args).math(op, *args)
+    function.__name__ = function.__qualname__ = name
+    function.__doc__ = f"{doc} (a {op} node)"
+    return function
+
+
+exp = _function("exp", 'EXPONENT', "e^x.")
+sqrt = _function("sqrt", 'SQRT', "The square root (0 below 0: Cycles' safe_sqrtf).")
+inversesqrt = _function("inversesqrt", 'INVERSE_SQRT', "1 / sqrt(x).")
+sin = _function("sin", 'SINE', "sin x.")
+cos = _function("cos", 'COSINE', "cos x.")
+sinh = _function("sinh", 'SINH', "sinh x.")
+atan = _function("atan", 'ARCTANGENT', "atan x.")
+atan2 = _function("atan2", 'ARCTAN2', "atan2(y, x).")
+acos = _function("acos", 'ARCCOSINE', "acos x (Cycles clamps x to [-1, 1]).")
+sign = _function("sign", 'SIGN', "-1, 0 or 1.")
+floor = _function("floor", 'FLOOR', "floor x.")
+fract = _function("fract", 'FRACT', "x - floor x.")
+minimum = _function("minimum", 'MINIMUM', "min(a, b).")
+maximum = _function("maximum", 'MAXIMUM', "max(a, b).")
+fma = _function("fma", 'MULTIPLY_ADD', "a b + c in one node.")
+compare = _function("compare", 'COMPARE', "1 where |a - b| <= eps, else 0.")
+
+
+def log(x):
+    """The natural logarithm."""
+    return _graph(x).math('LOGARITHM', x, math.e)
+
+
+def clamp(x, lo, hi):
+    """min(max(x, lo), hi): two nodes (saturate: [0, 1] within x's own node)."""
+    return minimum(maximum(x, lo), hi)
+
+
+def saturate(x):
+    """x clamped to [0, 1] by its own Math node's Clamp option (no node of its own): x must be a
+    Math node's output that nothing reads yet."""
+    node = x.out.node
+    if node.bl_idname != "ShaderNodeMath" or x.out.is_linked or node.use_clamp:
+        raise ValueError(f"saturate needs a Math node's output nothing reads yet, not {node.name}'s")
+    node.use_clamp = True
+    return x
+
+
+def where(flag, a, b):
+    """flag ? a : b for a flag in {0, 1} (a comparison's), exactly: a x flag + b x (1 - flag)."""
+    return _graph(flag, a, b).select(flag, a, b)
+
+
+def raw(value):
+    """A Value's socket (or number), for code outside the builder (tree.links.new)."""
+    return value.out if isinstance(value, Value) else value
 
 
 # ------------------------------------------------------------------------------ node groups
@@ -137,7 +282,9 @@ def _group(name, inputs, outputs):
 
 
 def _key(value):
-    """A socket or a number, as a dictionary key."""
+    """A socket or a number (or a Value of either), as a dictionary key."""
+    if isinstance(value, Value):
+        value = value.out
     return (value.node.name, value.identifier) if isinstance(value, bpy.types.NodeSocket) else value
 
 

@@ -5,9 +5,10 @@ import math
 
 from ... import sockets
 from .control_variate import CV, _cv_value, _matching
-from .graph import X, Y, Z, _image, _mix_shader, drop_unused
+from .graph import X, Y, Z, _image, _mix_shader, compare, cos, drop_unused, fma, maximum, minimum, sin, sqrt, where
 from .tables import _tables_call, _tables_sample
-from .world import _WORLD_GROUPS, _is_world_group, _world_group_name, _world_pdf_group, _world_sample_group, world_layout
+from .world import (_WORLD_GROUPS, _is_world_group, _world_group_name, _world_pdf_group, _world_sample_group,
+                    world_layout)
 
 WORLD = "FlowBSDF SVM world"    # a Combine XYZ node per mixture: (WorldShare, SunShare, SunCos)
 SUN = "FlowBSDF SVM sun"        # a Combine XYZ node per mixture with a sun: SunDirection
@@ -59,37 +60,35 @@ class _Mixture:
                 self._lamp_nodes.append((where.outputs[0], size.outputs[0]))
         return self._lamp_nodes
 
-    def lamp_cone(self, g, p, where, size):
+    def lamp_cone(self, g, p, place, size):
         """A lamp technique's cone at the shading point p (its axis unnormalised, "to"; 1 - cos of
         its half angle) about the lamp's bounding sphere (a sun lamp: about its direction, of its
         angle), and the weight that shares the lamps' draws (~ irradiance: power / distance^2, a
         sun's strength)."""
         radius, power, is_sun = (g.dot(size, axis) for axis in (X, Y, Z))
-        to = g.vmath('SUBTRACT', where, g.scale(p, g.math('SUBTRACT', 1.0, is_sun)))
-        d2 = g.math('MAXIMUM', g.dot(to, to), g.math('MULTIPLY', radius, radius))
-        s2 = g.math('MINIMUM', g.math('DIVIDE', g.math('MULTIPLY', radius, radius), d2), 1.0)
+        to = g.vmath('SUBTRACT', place, g.scale(p, 1.0 - is_sun))
+        d2 = maximum(g.dot(to, to), radius * radius)
+        s2 = minimum(radius * radius / d2, 1.0)
         # 1 - cos without cancellation: sin^2 / (1 + cos) for a sphere, 2 sin^2(angle / 4) for a sun
-        sphere = g.math('DIVIDE', s2, g.math('ADD', 1.0, g.math('SQRT', g.math('SUBTRACT', 1.0, s2))))
-        half = g.math('SINE', g.math('MULTIPLY', radius, 0.25))
-        omc = g.select(is_sun, g.math('MULTIPLY', g.math('MULTIPLY', half, half), 2.0), sphere)
-        return {"to": to, "omc": omc,
-                "weight": g.select(is_sun, power, g.math('DIVIDE', power, d2))}
+        sphere = s2 / (1.0 + sqrt(1.0 - s2))
+        half = sin(radius * 0.25)
+        omc = where(is_sun, half * half * 2.0, sphere)
+        return {"to": to, "omc": omc, "weight": where(is_sun, power, power / d2)}
 
     def lamp_data(self, g, at):
         """Before the branches: the lamps' total weight, the largest, the brightest lamp's axis
         (the matched control variate's) and (values) the lamps' share c_lamp."""
         if self._lamp_data is None:
             total = best = to = None
-            for where, size in self.lamp_nodes(g):
-                cone = self.lamp_cone(g, at["p"], where, size)
+            for place, size in self.lamp_nodes(g):
+                cone = self.lamp_cone(g, at["p"], place, size)
                 if total is None:
                     total, best, to = cone["weight"], cone["weight"], cone["to"]
                     continue
-                total = g.math('ADD', total, cone["weight"])
-                better = g.math('GREATER_THAN', cone["weight"], best)
-                to = g.vmath('MULTIPLY_ADD', cone["to"], g.combine(better, better, better),
-                             g.scale(to, g.math('SUBTRACT', 1.0, better)))
-                best = g.math('MAXIMUM', best, cone["weight"])
+                total = total + cone["weight"]
+                better = cone["weight"] > best
+                to = g.vmath('MULTIPLY_ADD', cone["to"], g.combine(better, better, better), g.scale(to, 1.0 - better))
+                best = maximum(best, cone["weight"])
             # (normalised once, as picked: the same axis as the brightest lamp's own cone has)
             self._lamp_data = {"total": total, "best": best, "axis": g.vmath('NORMALIZE', to) if self.match_lamp else None}
         return self._lamp_data
@@ -103,16 +102,16 @@ class _Mixture:
         28 of its 255 floats)."""
         p = g.vmath('MAXIMUM', at["p"], (-1e30 * tag,) * 3)
         data = self._lamp_data
-        share = g.math('DIVIDE', self.lamp_share, data["total"])
-        for where, size in self.lamp_nodes(g):
-            cone = self.lamp_cone(g, p, where, size)
+        share = self.lamp_share / data["total"]
+        for place, size in self.lamp_nodes(g):
+            cone = self.lamp_cone(g, p, place, size)
             cone["axis"] = g.vmath('NORMALIZE', cone["to"])
-            c = g.math('MULTIPLY', cone["weight"], share)
+            c = cone["weight"] * share
             if self.match_lamp and self.scale is not None:   # the brightest lamp's draws scaled
-                top = g.math('SUBTRACT', 1.0, g.math('LESS_THAN', cone["weight"], data["best"]))
-                c = g.math('MULTIPLY', c, g.math('MULTIPLY_ADD', top, g.math('SUBTRACT', self.scale, 1.0), 1.0))
+                top = 1.0 - (cone["weight"] < data["best"])
+                c = c * fma(top, self.scale - 1.0, 1.0)
             cone["c"] = c
-            cone["cone"] = g.math('DIVIDE', c, g.math('MULTIPLY', cone["omc"], 2.0 * math.pi))
+            cone["cone"] = c / (cone["omc"] * (2.0 * math.pi))
             yield cone
 
     def values(self, g, at, scale=None):
@@ -134,46 +133,43 @@ class _Mixture:
         if self.lamps:
             value = g.node("ShaderNodeValue", name=LAMPS, label=LAMPS)
             value.outputs[0].default_value = float(self.inputs.get("LampShare", 0.0))
-            self.lamp_share = value.outputs[0]
+            self.lamp_share = g.outputs(value)[0]
             data = self.lamp_data(g, at)
             self.c_lamp = self.lamp_share
             if self.match_lamp and scale is not None:       # LampShare (total - (1 - scale) best) / total
-                self.c_lamp = g.math('MULTIPLY', self.lamp_share, g.math('SUBTRACT', 1.0, g.math(
-                    'DIVIDE', g.math('MULTIPLY', g.math('SUBTRACT', 1.0, scale), data["best"]), data["total"])))
-            rest = g.math('SUBTRACT', 1.0, self.c_lamp)
-        # the world's techniques share what the lamps leave
-        self.c_world = (g.math('MULTIPLY', g.dot(shares, X), rest) if self.lamps else g.dot(shares, X)) if self.map else 0.0
-        self.c_sun = 0.0
+                self.c_lamp = self.lamp_share * (1.0 - (1.0 - scale) * data["best"] / data["total"])
+            rest = 1.0 - self.c_lamp
+        # the world's techniques share what the lamps leave (a technique the graph lacks: 0)
+        self.c_world = (g.dot(shares, X) * rest if self.lamps else g.dot(shares, X)) if self.map else g.const(0.0)
+        self.c_sun = g.const(0.0)
         if self.sun:
             sun = g.node("ShaderNodeCombineXYZ", name=SUN, label=SUN)
             for socket, value in zip(sun.inputs, self.inputs["SunDirection"]):
                 socket.default_value = value
             self.sun_cos = g.dot(shares, Z)
-            self.c_sun = g.math('MULTIPLY', g.dot(shares, Y), g.math('LESS_THAN', self.sun_cos, 1.0))
+            self.c_sun = g.dot(shares, Y) * (self.sun_cos < 1.0)
             if self.lamps:
-                self.c_sun = g.math('MULTIPLY', self.c_sun, rest)
+                self.c_sun = self.c_sun * rest
             self.axis = g.vmath('NORMALIZE', sun.outputs[0])
-            self.omc = g.math('SUBTRACT', 1.0, self.sun_cos)
+            self.omc = 1.0 - self.sun_cos
             # c_sun p_cone inside the cone (0 for c_sun = 0: Cycles' divide by 0 gives 0)
-            self.cone = g.math('DIVIDE', self.c_sun, g.math('MULTIPLY', self.omc, 2.0 * math.pi))
-        self.c_light = g.math('ADD', self.c_sun, self.c_world)
+            self.cone = self.c_sun / (self.omc * (2.0 * math.pi))
+        self.c_light = self.c_sun + self.c_world
         if self.lamps:
-            self.c_light = g.math('ADD', self.c_light, self.c_lamp)
-        self.c_tables = g.math('SUBTRACT', 1.0, self.c_light)
+            self.c_light = self.c_light + self.c_lamp
+        self.c_tables = 1.0 - self.c_light
 
     @staticmethod
     def sample_cone(g, axis, omc, u0, u1):
         """lamps.h cone_direction: uniform in the cone about `axis` of 1 - cos its half angle
         `omc` (1 - cos computed as t (2 - t))."""
-        near_x = g.math('SUBTRACT', 1.0, g.math('LESS_THAN', g.math('ABSOLUTE', g.dot(axis, X)), 0.9))
-        tx = g.vmath('NORMALIZE', g.vmath('CROSS_PRODUCT', axis, g.combine(g.math('SUBTRACT', 1.0, near_x), near_x)))
+        near_x = 1.0 - (abs(g.dot(axis, X)) < 0.9)
+        tx = g.vmath('NORMALIZE', g.vmath('CROSS_PRODUCT', axis, g.combine(1.0 - near_x, near_x)))
         ty = g.vmath('CROSS_PRODUCT', axis, tx)
-        t = g.math('MULTIPLY', u0, omc)
-        s = g.math('SQRT', g.math('MULTIPLY', t, g.math('SUBTRACT', 2.0, t)))
-        phi = g.math('MULTIPLY', u1, 2.0 * math.pi)
-        d = g.vmath('ADD', g.vmath('ADD', g.scale(tx, g.math('MULTIPLY', s, g.math('COSINE', phi))),
-                                   g.scale(ty, g.math('MULTIPLY', s, g.math('SINE', phi)))),
-                    g.scale(axis, g.math('SUBTRACT', 1.0, t)))
+        t = u0 * omc
+        s = sqrt(t * (2.0 - t))
+        phi = u1 * (2.0 * math.pi)
+        d = g.vmath('ADD', g.vmath('ADD', g.scale(tx, s * cos(phi)), g.scale(ty, s * sin(phi))), g.scale(axis, 1.0 - t))
         return g.vmath('NORMALIZE', d)
 
     def light_pdf(self, g, d, own, at=None, tag=0, drawn=None, lamps=None):
@@ -184,19 +180,18 @@ class _Mixture:
 
         def add(term):
             nonlocal total
-            total = term if total is None else g.math('ADD', total, term)
+            total = term if total is None else total + term
         if self.map and own != "world":
-            add(g.math('MULTIPLY', self.c_world, g.group(self.pdf_group(), Direction=d)[0]))
+            add(self.c_world * g.group(self.pdf_group(), Direction=d)[0])
         if self.sun and own != "sun":
-            add(g.math('MULTIPLY', self.cone, g.math('SUBTRACT', 1.0, g.math('LESS_THAN', g.dot(d, self.axis),
-                                                                               self.sun_cos))))
+            add(self.cone * (1.0 - (g.dot(d, self.axis) < self.sun_cos)))
         for k, lamp in enumerate(lamps if lamps is not None else self.lamp_stream(g, at, tag) if self.lamps else ()):
             # inside the cone: 1 - cos = |d - axis|^2 / 2 (no cancellation for small cones)
             gap = g.vmath('DISTANCE', d, lamp["axis"])
-            inside = g.math('LESS_THAN', g.math('MULTIPLY', g.math('MULTIPLY', gap, gap), 0.5), lamp["omc"])
+            inside = gap * gap * 0.5 < lamp["omc"]
             if drawn is not None:
-                inside = g.math('MAXIMUM', inside, g.math('COMPARE', drawn, float(k), 0.25))
-            add(g.math('MULTIPLY', lamp["cone"], inside))
+                inside = maximum(inside, compare(drawn, float(k), 0.25))
+            add(lamp["cone"] * inside)
         return 0.0 if total is None else total
 
     def pdf_group(self):
@@ -215,37 +210,35 @@ class _Mixture:
             + ([("lamps", self.c_lamp)] if self.lamps else [])
         branches, start = [], 0.0
         for kind, share in techniques:
-            end = g.math('ADD', start, share) if start != 0.0 else share
+            end = start + share if start != 0.0 else share
             branches.append((end, self.light_branch(g, sampler, at, kind, start, share, closure)))
             start = end
         out = self.tables_branch(g, sampler, at, closure)
         for end, branch in reversed(branches):
-            out = _mix_shader(g, g.math('LESS_THAN', u1, end), out, branch)
+            out = _mix_shader(g, u1 < end, out, branch)
         return out
 
     def tables_branch(self, g, sampler, at, closure):
-        t1 = g.math('MINIMUM', g.math('DIVIDE', g.math('SUBTRACT', at["u1"], self.c_light), self.c_tables),
-                    1.0 - 2.0 ** -24)
+        t1 = minimum((at["u1"] - self.c_light) / self.c_tables, 1.0 - 2.0 ** -24)
         wo, weight, pdf = _tables_sample(g, sampler, at["cos_i"], at["phi_i"], at["u0"], t1)
         d = _to_world(g, at, wo)
-        q = g.math('MULTIPLY_ADD', self.c_tables, pdf, self.light_pdf(g, d, "tables", at, 1))
+        q = fma(self.c_tables, pdf, self.light_pdf(g, d, "tables", at, 1))
         ok = _valid(g, at, wo[2], d)
-        return closure({"direction": d, "weight": g.scale(weight, g.math('DIVIDE', g.math('MULTIPLY', pdf, ok), q)),
-                        "q": q, "technique": 0.0, "ok": ok})
+        return closure({"direction": d, "weight": g.scale(weight, pdf * ok / q), "q": q, "technique": 0.0, "ok": ok})
 
     def light_branch(self, g, sampler, at, kind, start, share, closure):
         u0 = at["u0"]
-        u1 = g.math('DIVIDE', g.math('SUBTRACT', at["u1"], start) if start != 0.0 else at["u1"], share)
+        u1 = (at["u1"] - start if start != 0.0 else at["u1"]) / share
         drawn = lamps = None
         if kind == "sun":
             d = self.sample_cone(g, self.axis, self.omc, u0, u1)
             own, technique, noop = self.cone, 2.0, -2.0
         elif kind == "world":
             out = g.group(_world_sample_group(self.map, _image(self.path)), U0=u0, U1=u1)
-            d, own, technique, noop = out["Direction"], g.math('MULTIPLY', self.c_world, out["Pdf"]), 1.0, -1.0
+            d, own, technique, noop = out["Direction"], self.c_world * out["Pdf"], 1.0, -1.0
         else:
             d, drawn, lamps = self.sample_lamps(g, at, u0, u1)
-            own, technique, noop = 0.0, g.math('ADD', drawn, 3.0), -3.0
+            own, technique, noop = 0.0, drawn + 3.0, -3.0
         # the other techniques' density first: the lamps' values (here the drawn ones, not made
         # twice) are then no longer alive while the tables' inverse runs
         light = self.light_pdf(g, d, kind, at, {"sun": 2, "world": 3, "lamps": 4}[kind], drawn, lamps)
@@ -253,36 +246,34 @@ class _Mixture:
         # its own incident nodes (cos theta_i through a no-op unlike the other branches'): Cycles
         # would merge identical ones into nodes run before the branches, their results held
         # on the stack through every branch
-        out = _tables_call(g, sampler, "pdf", g.math('MAXIMUM', at["cos_i"], noop), at["phi_i"], X=wo[0], Y=wo[1], Z=wo[2])
+        out = _tables_call(g, sampler, "pdf", maximum(at["cos_i"], noop), at["phi_i"], X=wo[0], Y=wo[1], Z=wo[2])
         pdf, fcos = out["Pdf"], out["F cos"]
-        q = g.math('MULTIPLY_ADD', self.c_tables, pdf, g.math('ADD', own, light) if kind != "lamps" else light)
+        q = fma(self.c_tables, pdf, own + light if kind != "lamps" else light)
         ok = _valid(g, at, wo[2], d)
-        return closure({"direction": d, "weight": g.scale(fcos, g.math('DIVIDE', ok, q)), "q": q,
-                        "technique": technique, "ok": ok})
+        return closure({"direction": d, "weight": g.scale(fcos, ok / q), "q": q, "technique": technique, "ok": ok})
 
     def sample_lamps(self, g, at, u0, u1):
         """(direction, index of the lamp drawn, the lamps' values: lamp_stream's): the lamp by u1
         in parts c_k / c_lamp, u1 rescaled within its part, uniform in its cone (picked by flags:
         exact, x 1 and x 0)."""
-        lo, axis, omc, v, index = 0.0, (0.0, 0.0, 0.0), 0.0, 0.0, 0.0
+        lo, axis, omc, v, index = 0.0, (0.0, 0.0, 0.0), 0.0, 0.0, g.const(0.0)
         last = self.lamps - 1
         lamps = list(self.lamp_stream(g, at, 5))
         for k, lamp in enumerate(lamps):
-            part = g.math('DIVIDE', lamp["c"], self.c_lamp)
-            hi = g.math('ADD', lo, part) if k else part
-            above = g.math('SUBTRACT', 1.0, g.math('LESS_THAN', u1, lo)) if k else 1.0
-            flag = above if k == last else g.math('MULTIPLY', above, g.math('LESS_THAN', u1, hi)) if k else \
-                g.math('LESS_THAN', u1, hi)
-            within = g.math('DIVIDE', g.math('SUBTRACT', u1, lo) if k else u1, part)
+            part = lamp["c"] / self.c_lamp
+            hi = lo + part if k else part
+            above = 1.0 - (u1 < lo) if k else 1.0
+            flag = above if k == last else above * (u1 < hi) if k else u1 < hi
+            within = (u1 - lo if k else u1) / part
             if not last:
                 axis, omc, v = lamp["axis"], lamp["omc"], within
                 break
             axis = g.vmath('MULTIPLY_ADD', lamp["axis"], g.combine(flag, flag, flag), axis)
-            omc = g.math('MULTIPLY_ADD', lamp["omc"], flag, omc)
-            v = g.math('MULTIPLY_ADD', within, flag, v)
-            index = g.math('MULTIPLY_ADD', flag, float(k), index)
+            omc = fma(lamp["omc"], flag, omc)
+            v = fma(within, flag, v)
+            index = fma(flag, float(k), index)
             lo = hi
-        return self.sample_cone(g, axis, omc, u0, g.math('MINIMUM', v, 1.0 - 2.0 ** -24)), index, lamps
+        return self.sample_cone(g, axis, omc, u0, minimum(v, 1.0 - 2.0 ** -24)), index, lamps
 
 
 def _light_direction(world):
@@ -304,9 +295,7 @@ def _to_world(g, at, wo):
 
 def _valid(g, at, cos_o, d):
     """1 when wi and wo are above the shading surface and d above the geometric one, else 0."""
-    return g.math('MULTIPLY', g.math('GREATER_THAN', at["cos_raw"], 0.0),
-                  g.math('MULTIPLY', g.math('GREATER_THAN', cos_o, 0.0),
-                         g.math('GREATER_THAN', g.dot(d, at["ng"]), 0.0)))
+    return (at["cos_raw"] > 0.0) * ((cos_o > 0.0) * (g.dot(d, at["ng"]) > 0.0))
 
 
 def update_world(tree, world):

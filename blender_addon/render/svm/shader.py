@@ -4,7 +4,7 @@ with the control variate) ending in Ray Portal BSDFs (`build_svm_sampler`), the 
 from .control_variate import (MATCHED_LIGHT_SCALE, _cv_closures, _cv_matched, _cv_pick, _cv_rest, _cv_switched,
                               _matching)
 from .film import _film_u, _random
-from .graph import X, _Graph, _mix_shader
+from .graph import X, _Graph, _mix_shader, raw
 from .mixture import _Mixture
 from .tables import _inverse, _Sampler, _tables_sample
 
@@ -48,7 +48,8 @@ def sample_graph(tree, texture_path, group_input_tangent_socket=None, location=(
     on: build_svm_sampler, or a mixture with another strategy (one-sample MIS, with
     tables_pdf_graph at the other strategy's direction). Anisotropic tables take their frame's
     x from `group_input_tangent_socket` (world x when None)."""
-    return _sample(_Graph(tree, location), texture_path, group_input_tangent_socket)
+    return {key: raw(value) for key, value in _sample(_Graph(tree, location), texture_path,
+                                                      group_input_tangent_socket).items()}
 
 
 def _sample(g, texture_path, group_input_tangent_socket, cv=None):
@@ -180,4 +181,4 @@ def tables_pdf_graph(tree, texture_path, wo_socket, group_input_tangent_socket=N
     local = tuple(g.dot(wo_socket, axis) for axis in (tx, ty, n))
     pdf, fcos = _inverse(g, sampler, cos_i, phi_i, local)
     fcos = g.scale(fcos, g.math('GREATER_THAN', cos_raw, 0.0))
-    return pdf, fcos
+    return raw(pdf), fcos

@@ -3,7 +3,8 @@ the numpy reference; blender_addon/osl/tables.h, the OSL twin) on the texture of
 bake/export/svm_export.py. Per-texture node groups "tables sample" and "tables pdf" hold them."""
 import math
 
-from .graph import GROUP_PREFIX, X, Y, Z, _Graph, _group, _image, _key
+from .graph import (GROUP_PREFIX, X, Y, Z, _Graph, _group, _image, _key, atan2, cos, exp, floor, fma, log, maximum,
+                    minimum, saturate, sin, sinh, sqrt, where)
 from .halfvector import _half_from_ab, _half_to_ab, _half_wi, _polar_from_ab, _polar_ref, _polar_to_ab, _polar_wi
 
 K_SMALL = 1e-4          # bake/core/tables.py _SMALL: the in-cell density's small-rate branch
@@ -29,12 +30,12 @@ def _record_group(image, alpha):
     if done:
         return done
     g = _Graph(tree)
-    inp = g.node("NodeGroupInput").outputs
+    inp = g.outputs(g.node("NodeGroupInput"))
     tex = g.node("ShaderNodeTexImage", image=image, interpolation='Closest', extension='EXTEND')
     g.set(tex.inputs["Vector"], inp["UV"])
     value = g.dot(tex.outputs["Color"], inp["Weights"])
     if alpha:
-        value = g.math('MULTIPLY_ADD', tex.outputs["Alpha"], inp["Weight A"], value)
+        value = fma(g.outputs(tex)["Alpha"], inp["Weight A"], value)
     g.set(g.node("NodeGroupOutput").inputs["Value"], value)
     return tree
 
@@ -48,13 +49,13 @@ def _step_group(image, alpha):
     if done:
         return done
     g = _Graph(tree)
-    inp = g.node("NodeGroupInput").outputs
-    index = g.math('ADD', inp["Lo"], inp["Half"])
-    uv = g.combine(g.math('MULTIPLY_ADD', index, inp["Stride"], inp["Base X"]), inp["Base Y"])
+    inp = g.outputs(g.node("NodeGroupInput"))
+    index = inp["Lo"] + inp["Half"]
+    uv = g.combine(fma(index, inp["Stride"], inp["Base X"]), inp["Base Y"])
     weights = {name: inp[name] for name, _ in _weight_inputs(alpha)}
     value = g.group(_record_group(image, alpha), UV=uv, **weights)[0]
-    above = g.math('GREATER_THAN', value, inp["Target"])
-    lo = g.math('MULTIPLY_ADD', above, g.math('MULTIPLY', inp["Half"], -1.0), index)
+    above = value > inp["Target"]                   # (tables.h: if (c <= u0) lo = mid)
+    lo = fma(above, -inp["Half"], index)
     g.set(g.node("NodeGroupOutput").inputs["Lo"], lo)
     return tree
 
@@ -89,7 +90,7 @@ class _Sampler:
     def fetch(self, at):
         tex = self.g.node("ShaderNodeTexImage", image=self.image, interpolation='Closest', extension='EXTEND')
         self.g.set(tex.inputs["Vector"], self.uv(at))
-        return tex.outputs["Color"], tex.outputs["Alpha"]
+        return tex.outputs["Color"], self.g.outputs(tex)["Alpha"]
 
     def offset(self, base, dx=0.0, dy=0.0):
         """base + (dx, dy) texels (dy down the image), each coordinate moved once per base and offset."""
@@ -100,7 +101,7 @@ class _Sampler:
             return c
         key = (_key(c), d)
         if key not in self.offsets:
-            self.offsets[key] = self.g.math('ADD', c, d)
+            self.offsets[key] = c + d
         return self.offsets[key]
 
     def blend(self, q):
@@ -116,7 +117,7 @@ class _Sampler:
 
     def at(self, base, index, stride):
         """The texel `index` records of `stride` texels after `base`."""
-        return self.g.math('MULTIPLY_ADD', index, stride * self.du, base[0]), base[1]
+        return fma(index, stride * self.du, base[0]), base[1]
 
     def search(self, lo, target, base, stride, steps, q, last):
         """The last index <= `last` (a socket or a number) whose quantity q is <= target, from
@@ -127,26 +128,25 @@ class _Sampler:
         for s in reversed(range(steps)):
             lo = self.g.group(_step_group(self.image, alpha), Lo=lo, Target=target, **{"Base X": base[0]},
                               **{"Base Y": base[1]}, Stride=stride * self.du, Half=float(2 ** s), **weights)[0]
-        return self.g.math('MINIMUM', lo, last)
+        return minimum(lo, last)
 
     def guide_lo(self, base, u, count):
         """The guide's lo for u in [0, 1] (entries at base + g texels, g < count)."""
-        g = self.g
-        entry = g.math('MINIMUM', g.math('FLOOR', g.math('MULTIPLY', u, float(count))), count - 1.0)
+        entry = minimum(floor(u * float(count)), count - 1.0)      # tables.h: min(int(u0 * R), R - 1)
         color, _ = self.fetch(self.at(base, entry, 1))
-        return g.dot(color, X)
+        return self.g.dot(color, X)
 
     def bin_count(self, guide, value, index_value):
         """The bin index from a bin guide ([x0, G]) at `value`, the entry floor(index_value G)."""
         g = self.g
         x0, count = guide
-        entry = g.math('FLOOR', g.math('MULTIPLY', index_value, float(count)))
-        uv_x = g.math('MULTIPLY_ADD', entry, self.du, (x0 + 0.5) * self.du)
+        entry = floor(index_value * float(count))
+        uv_x = fma(entry, self.du, (x0 + 0.5) * self.du)
         color, alpha = self.fetch((uv_x, 1.0 - 0.5 * self.dv))
         # [value < t_j] = ceil(clamp(t_j - value, 0, 1)) per channel
         below = g.vmath('CEIL', g.vmath('MAXIMUM', g.vmath('MINIMUM', g.vmath('SUBTRACT', color, value),
                                                             (1.0, 1.0, 1.0)), (0.0, 0.0, 0.0)))
-        return g.math('SUBTRACT', alpha, g.dot(below, (1.0, 1.0, 1.0)))
+        return alpha - g.dot(below, (1.0, 1.0, 1.0))
 
     def incident(self, cos_i, phi_i):
         """The corner block of the incident bins at sockets cos theta_i (>= 0) and phi_i (None
@@ -156,40 +156,36 @@ class _Sampler:
         g, lay = self.g, self.lay
         K, P, nx = lay["K"], lay["P"], lay["blocks_per_row"]
         bw, bh = lay["block"]
-        k = self.bin_count(lay["theta_guide"], g.math('MULTIPLY', cos_i, -1.0), g.math('SUBTRACT', 1.0, cos_i)) \
-            if K > 1 else 0.0
+        k = self.bin_count(lay["theta_guide"], -cos_i, 1.0 - cos_i) if K > 1 else g.const(0.0)
         if P > 1:
-            x = g.math('FLOORED_MODULO', g.math('SUBTRACT', phi_i, lay["phi0"]), lay["period"])
+            x = (phi_i - lay["phi0"]) % lay["period"]
             # halfvector tables: the whole periods phi_i was turned back by, plus the lobe's axes
-            self.ref = g.math('ADD', g.math('SUBTRACT', g.math('SUBTRACT', phi_i, lay["phi0"]), x),
-                              lay.get("frame", 0.0))
-            p = self.bin_count(lay["phi_guide"], x, g.math('MULTIPLY', x, 1.0 / lay["period"]))
-            corner = g.math('MULTIPLY_ADD', k, float(P), p)
+            self.ref = phi_i - lay["phi0"] - x + lay.get("frame", 0.0)
+            p = self.bin_count(lay["phi_guide"], x, x * (1.0 / lay["period"]))
+            corner = fma(k, float(P), p)
         else:
             corner = k
         if lay["corners"] > nx:
-            brow = g.math('FLOOR', g.math('MULTIPLY_ADD', corner, 1.0 / nx, 0.5 / nx))
-            bcol = g.math('MULTIPLY_ADD', brow, -float(nx), corner)
+            brow = floor(fma(corner, 1.0 / nx, 0.5 / nx))
+            bcol = fma(brow, -float(nx), corner)
         else:
-            brow, bcol = 0.0, corner
-        self.origin = (g.math('MULTIPLY_ADD', bcol, bw * self.du, 0.5 * self.du),
-                       g.math('MULTIPLY_ADD', brow, -bh * self.dv, 1.0 - 1.5 * self.dv))
+            brow, bcol = g.const(0.0), corner
+        self.origin = (fma(bcol, bw * self.du, 0.5 * self.du), fma(brow, -bh * self.dv, 1.0 - 1.5 * self.dv))
         head, head_a = self.fetch(self.origin)
         self.last = (lay["R"] - 1.0, lay["C"] - 1.0) if P > 1 else (g.dot(head, Z), head_a)
-        t = s = 0.0
+        t = s = g.const(0.0)
         if K > 1:
             c_k, c_k1 = g.dot(head, X), g.dot(head, Y)
-            t = g.math('DIVIDE', g.math('SUBTRACT', c_k, cos_i), g.math('SUBTRACT', c_k, c_k1), clamp=True)
+            t = saturate((c_k - cos_i) / (c_k - c_k1))
         if P > 1:
             start = g.dot(head, Z)
-            s = g.math('DIVIDE', g.math('SUBTRACT', x, start), g.math('SUBTRACT', head_a, start), clamp=True)
+            s = saturate((x - start) / (head_a - start))
         if lay["NB"] == 2:
-            w0 = g.math('SUBTRACT', 1.0, t)
+            w0 = 1.0 - t
             self.weights = [(g.combine(w0, t), None), (g.combine(0.0, 0.0, w0), t)]
         else:
-            t1, s1 = g.math('SUBTRACT', 1.0, t), g.math('SUBTRACT', 1.0, s)
-            self.weights = [(g.combine(g.math('MULTIPLY', t1, s1), g.math('MULTIPLY', t, s1), g.math('MULTIPLY', t1, s)),
-                             g.math('MULTIPLY', t, s))]
+            t1, s1 = 1.0 - t, 1.0 - s
+            self.weights = [(g.combine(t1 * s1, t * s1, t1 * s), t * s)]
 
     def direction(self, a, b, cos_i, phi_i):
         """wo (floats x, y, z in the local frame) at table coordinates (a, b), after `incident`,
@@ -209,9 +205,8 @@ class _Sampler:
         if coords == "wo":
             return _to_ab(g, wo, phi_i) + (None,)
         if coords == "halfpolar":
-            return _polar_to_ab(g, _turn(g, wo, g.math('MULTIPLY', _polar_ref(g, phi_i), -1.0)), _polar_wi(g, cos_i))
-        return _half_to_ab(g, _turn(g, wo, g.math('MULTIPLY', self.ref, -1.0)),
-                           _half_wi(g, cos_i, phi_i, self.ref))
+            return _polar_to_ab(g, _turn(g, wo, -_polar_ref(g, phi_i)), _polar_wi(g, cos_i))
+        return _half_to_ab(g, _turn(g, wo, -self.ref), _half_wi(g, cos_i, phi_i, self.ref))
 
     def rows(self):
         return self.offset(self.origin, self.lay["x_row"])
@@ -219,7 +214,7 @@ class _Sampler:
     def row(self, i):
         """Texel (0, 1 + i) of the block: table row i's guide, then its records."""
         x, y = self.offset(self.origin, 0, 1)
-        return x, self.g.math('MULTIPLY_ADD', i, -self.dv, y)
+        return x, fma(i, -self.dv, y)
 
     def cell(self, row, j):
         """Cell j of the blended table's row at texel `row` (self.row): a function giving its
@@ -239,7 +234,7 @@ class _Sampler:
         rec = self.at(rows, i, sr)
         rec1 = self.offset(rec, sr)
         c0, a0, c1, a1 = (self.quantity(r, q) for r, q in ((rec, 0), (rec, 1), (rec1, 0), (rec1, 1)))
-        v = g.math('MULTIPLY', u1, g.math('SUBTRACT', c1, c0))
+        v = u1 * (c1 - c0)
         # column j of row i: the last with cumsum(i, j) <= v
         row = self.row(i)
         cols = self.offset(row, lay["x_col"])
@@ -249,15 +244,12 @@ class _Sampler:
         q = self.cell(row, j)
         m = q(0)
         # the point in the cell, and its density along each axis
-        x, dens_a = _profile_sample(g, g.math('DIVIDE', g.math('SUBTRACT', u0, c0), g.math('SUBTRACT', c1, c0),
-                                              clamp=True), _profile(g, [q(n) for n in self.on_a]))
-        a = g.math('MULTIPLY_ADD', x, g.math('SUBTRACT', a1, a0), a0)
-        y, dens_b = _profile_sample(g, g.math('DIVIDE', g.math('SUBTRACT', v, d0), m, clamp=True),
-                                    _profile(g, [q(n) for n in self.on_b]))
-        db = g.math('SUBTRACT', b1, b0)
-        b = g.math('MULTIPLY_ADD', y, db, b0)
-        pdf = g.math('DIVIDE', g.math('MULTIPLY', m, g.math('MULTIPLY', dens_a, dens_b)),
-                     g.math('MULTIPLY', g.math('SUBTRACT', a1, a0), db))
+        x, dens_a = _profile_sample(g, saturate((u0 - c0) / (c1 - c0)), _profile(g, [q(n) for n in self.on_a]))
+        a = fma(x, a1 - a0, a0)
+        y, dens_b = _profile_sample(g, saturate((v - d0) / m), _profile(g, [q(n) for n in self.on_b]))
+        db = b1 - b0
+        b = fma(y, db, b0)
+        pdf = m * (dens_a * dens_b) / ((a1 - a0) * db)
         return a, b, g.combine(*(q(n) for n in self.on_w)), pdf
 
     def locate(self, a, b):
@@ -265,21 +257,19 @@ class _Sampler:
         g, lay = self.g, self.lay
         R, C, sr, sc = lay["R"], lay["C"], lay["row_stride"], lay["col_stride"]
         rows = self.rows()
-        i = self.search(0.0, a, rows, sr, _log2(R), 1, self.last[0])
+        i = self.search(g.const(0.0), a, rows, sr, _log2(R), 1, self.last[0])
         rec = self.at(rows, i, sr)
         a0, a1 = self.quantity(rec, 1), self.quantity(self.offset(rec, sr), 1)
         row = self.row(i)
         cols = self.offset(row, lay["x_col"])
-        j = self.search(0.0, b, cols, sc, _log2(C), 1, self.last[1])
+        j = self.search(g.const(0.0), b, cols, sc, _log2(C), 1, self.last[1])
         rec = self.at(cols, j, sc)
         b0, b1 = self.quantity(rec, 1), self.quantity(self.offset(rec, sc), 1)
         q = self.cell(row, j)
-        da, db = g.math('SUBTRACT', a1, a0), g.math('SUBTRACT', b1, b0)
-        dens_a = _profile_density(g, g.math('DIVIDE', g.math('SUBTRACT', a, a0), da, clamp=True),
-                                  _profile(g, [q(n) for n in self.on_a]))
-        dens_b = _profile_density(g, g.math('DIVIDE', g.math('SUBTRACT', b, b0), db, clamp=True),
-                                  _profile(g, [q(n) for n in self.on_b]))
-        pdf = g.math('DIVIDE', g.math('MULTIPLY', q(0), g.math('MULTIPLY', dens_a, dens_b)), g.math('MULTIPLY', da, db))
+        da, db = a1 - a0, b1 - b0
+        dens_a = _profile_density(g, saturate((a - a0) / da), _profile(g, [q(n) for n in self.on_a]))
+        dens_b = _profile_density(g, saturate((b - b0) / db), _profile(g, [q(n) for n in self.on_b]))
+        pdf = q(0) * (dens_a * dens_b) / (da * db)
         return pdf, g.combine(*(q(n) for n in self.on_w))
 
 
@@ -291,40 +281,37 @@ def _log2(n):
 def _from_ab(g, a, b, phi_i):
     """bake/core/tables.py from_ab: wo (floats x, y, z) in the local frame, where wi has azimuth phi_i
     (None: 0, the isotropic frame that follows wi)."""
-    sin_o = g.math('SQRT', g.math('MULTIPLY', a, g.math('SUBTRACT', 2.0, a)))
-    phi_o = g.math('ADD', b, phi_i) if phi_i is not None else b
-    return (g.math('MULTIPLY', sin_o, g.math('COSINE', phi_o)), g.math('MULTIPLY', sin_o, g.math('SINE', phi_o)),
-            g.math('SUBTRACT', 1.0, a))
+    sin_o = sqrt(a * (2.0 - a))
+    phi_o = b + phi_i if phi_i is not None else b
+    return sin_o * cos(phi_o), sin_o * sin(phi_o), 1.0 - a
 
 
 def _to_ab(g, wo, phi_i):
     """bake/core/tables.py to_ab (phi_ref = phi_i + pi) of a local direction (floats x, y, z)."""
     x, y, z = wo
-    a = g.math('DIVIDE', g.math('ADD', g.math('MULTIPLY', x, x), g.math('MULTIPLY', y, y)),
-               g.math('ADD', g.math('MAXIMUM', z, 0.0), 1.0))
-    a = g.select(g.math('GREATER_THAN', z, 0.0), g.math('MINIMUM', a, 1.0), 1.0)
-    azimuth = g.math('ARCTAN2', y, x)
+    a = (x * x + y * y) / (maximum(z, 0.0) + 1.0)
+    a = where(z > 0.0, minimum(a, 1.0), 1.0)
+    azimuth = atan2(y, x)
     if phi_i is not None:
-        azimuth = g.math('SUBTRACT', azimuth, phi_i)
-    return a, g.math('FLOORED_MODULO', azimuth, 2.0 * math.pi)
+        azimuth = azimuth - phi_i
+    return a, azimuth % (2.0 * math.pi)
 
 
 def _turn(g, w, angle):
     """Floats (x, y, z) turned about z by the socket `angle`."""
-    c, s = g.math('COSINE', angle), g.math('SINE', angle)
-    return (g.math('SUBTRACT', g.math('MULTIPLY', c, w[0]), g.math('MULTIPLY', s, w[1])),
-            g.math('MULTIPLY_ADD', s, w[0], g.math('MULTIPLY', c, w[1])), w[2])
+    c, s = cos(angle), sin(angle)
+    return c * w[0] - s * w[1], fma(s, w[0], c * w[1]), w[2]
 
 
 def _log_mean(g, v0, v1):
     """bake/core/tables.py _log_mean: (v1 - v0) / log(v1 / v0), its series where they are close;
     and log(v1 / v0) (the piece's rate)."""
-    r = g.math('DIVIDE', v1, v0)
-    lr = g.math('LOGARITHM', r, math.e)
-    small = g.math('LESS_THAN', g.math('ABSOLUTE', lr), LOG_MEAN_SERIES)
-    exact = g.math('MULTIPLY', v0, g.math('DIVIDE', g.math('SUBTRACT', r, 1.0), lr))
-    series = g.math('MULTIPLY_ADD', lr, g.math('MULTIPLY_ADD', lr, 1.0 / 6.0, 0.5), 1.0)
-    return g.select(small, g.math('MULTIPLY', v0, series), exact), lr
+    r = v1 / v0
+    lr = log(r)
+    small = abs(lr) < LOG_MEAN_SERIES
+    exact = v0 * ((r - 1.0) / lr)
+    series = fma(lr, fma(lr, 1.0 / 6.0, 0.5), 1.0)
+    return where(small, v0 * series, exact), lr
 
 
 def _profile(g, nodes):
@@ -332,10 +319,10 @@ def _profile(g, nodes):
     total (bake/core/tables.py profile_parts), and the pieces' log rates."""
     n = len(nodes) - 1
     means, rates = zip(*(_log_mean(g, nodes[k], nodes[k + 1]) for k in range(n)))
-    masses = [g.math('MULTIPLY', mean, 1.0 / n) for mean in means]
+    masses = [mean * (1.0 / n) for mean in means]
     total = masses[0]
     for mk in masses[1:]:
-        total = g.math('ADD', total, mk)
+        total = total + mk
     return nodes, masses, total, rates
 
 
@@ -343,7 +330,7 @@ def _pick(g, steps, values):
     """values[k] for k = the number of the 0 / 1 sockets `steps` that are 1 (a prefix of them)."""
     out = values[0]
     for step, value in zip(steps, values[1:]):
-        out = g.select(step, value, out)
+        out = where(step, value, out)
     return out
 
 
@@ -358,63 +345,63 @@ def _profile_sample(g, u, profile):
     the piece found: its start value, rate and place t)."""
     nodes, masses, total, rates = profile
     n = len(masses)
-    target = g.math('MULTIPLY', u, total)
+    target = u * total
     cum, steps = [], []
     c = masses[0]
     for k in range(1, n):
         cum.append(c)
-        steps.append(g.math('SUBTRACT', 1.0, g.math('LESS_THAN', target, c)))      # cum_k <= target
-        c = g.math('ADD', c, masses[k])
+        steps.append(1.0 - (target < c))      # cum_k <= target
+        c = c + masses[k]
     prev = _pick(g, steps, [0.0] + cum)
     mk = _pick(g, steps, masses)
     v0, rate = _profile_piece(g, steps, nodes, rates)
-    t, _ = _exp_inverse_cdf(g, g.math('DIVIDE', g.math('SUBTRACT', target, prev), mk, clamp=True), rate)
+    t, _ = _exp_inverse_cdf(g, saturate((target - prev) / mk), rate)
     k = steps[0]
     for step in steps[1:]:
-        k = g.math('ADD', k, step)
-    density = g.math('DIVIDE', g.math('MULTIPLY', v0, g.math('EXPONENT', g.math('MULTIPLY', t, rate))), total)
-    return g.math('DIVIDE', g.math('ADD', k, t), float(n)), density
+        k = k + step
+    density = v0 * exp(t * rate) / total
+    return (k + t) / float(n), density
 
 
 def _profile_density(g, x, profile):
     """bake/core/tables.py profile_density."""
     nodes, masses, total, rates = profile
     n = len(masses)
-    s = g.math('MULTIPLY', x, float(n))
-    steps = [g.math('SUBTRACT', 1.0, g.math('LESS_THAN', s, float(k))) for k in range(1, n)]
+    s = x * float(n)
+    steps = [1.0 - (s < float(k)) for k in range(1, n)]
     k = steps[0]
     for step in steps[1:]:
-        k = g.math('ADD', k, step)
-    t = g.math('SUBTRACT', s, k, clamp=True)
+        k = k + step
+    t = saturate(s - k)
     v0, rate = _profile_piece(g, steps, nodes, rates)
-    return g.math('DIVIDE', g.math('MULTIPLY', v0, g.math('EXPONENT', g.math('MULTIPLY', t, rate))), total)
+    return v0 * exp(t * rate) / total
 
 
 def _expm1(g, k):
     """e^k - 1 to float precision near k = 0: 2 sinh(k / 2) e^(k / 2)."""
-    h = g.math('MULTIPLY', k, 0.5)
-    return g.math('MULTIPLY', g.math('MULTIPLY', g.math('SINH', h), g.math('EXPONENT', h)), 2.0)
+    h = k * 0.5
+    return sinh(h) * exp(h) * 2.0
 
 
 def _log1p(g, z):
     """log(1 + z) to float precision near z = 0: log(w) z / (w - 1) with w = 1 + z, or z
     where w rounds to 1."""
-    w = g.math('ADD', z, 1.0)
-    d = g.math('SUBTRACT', w, 1.0)
-    exact = g.math('LESS_THAN', g.math('ABSOLUTE', d), 1e-30)
-    return g.math('MULTIPLY_ADD', exact, z, g.math('MULTIPLY', g.math('LOGARITHM', w, math.e), g.math('DIVIDE', z, d)))
+    w = z + 1.0
+    d = w - 1.0
+    rounds = abs(d) < 1e-30
+    return fma(rounds, z, log(w) * (z / d))
 
 
 def _small(g, k):
-    return g.math('LESS_THAN', g.math('ABSOLUTE', k), K_SMALL)
+    return abs(k) < K_SMALL
 
 
 def _exp_inverse_cdf(g, u, k):
     """bake/core/tables.py exp_inverse_cdf, both branches, one selected; also e^k - 1 (reused)."""
-    series = g.math('MULTIPLY_ADD', g.math('MULTIPLY', k, g.math('MULTIPLY', u, g.math('SUBTRACT', 1.0, u))), 0.5, u)
+    series = fma(k * (u * (1.0 - u)), 0.5, u)
     ex = _expm1(g, k)
-    exact = g.math('DIVIDE', _log1p(g, g.math('MULTIPLY', u, ex)), k)
-    return g.select(_small(g, k), series, exact, clamp=True), ex
+    exact = _log1p(g, u * ex) / k
+    return saturate(where(_small(g, k), series, exact)), ex
 
 
 def _tables_group(sampler, kind, inputs, outputs, build):
@@ -428,7 +415,7 @@ def _tables_group(sampler, kind, inputs, outputs, build):
     if done:
         return done
     g = _Graph(tree)
-    inp = g.node("NodeGroupInput").outputs
+    inp = g.outputs(g.node("NodeGroupInput"))
     values = build(g, _Sampler(g, sampler.path, sampler.lay), inp, inp["Cos I"], inp["Phi I"] if phi else None)
     out = g.node("NodeGroupOutput")
     for name, value in values.items():
@@ -454,7 +441,7 @@ def _sample_in_group(g, inner, inp, cos_i, phi_i):
     a, b, weight, pdf = inner.sample(inp["U0"], inp["U1"])
     wo, jac = inner.direction(a, b, cos_i, phi_i)
     if jac is not None:
-        pdf = g.math('DIVIDE', pdf, jac)
+        pdf = pdf / jac
     return {"X": wo[0], "Y": wo[1], "Z": wo[2], "Weight": weight, "Pdf": pdf}
 
 
@@ -481,6 +468,6 @@ def _inverse(g, sampler, cos_i, phi_i, wo):
     a, b, jac = sampler.coordinates(wo, cos_i, phi_i)
     pdf, weight = sampler.locate(a, b)
     if jac is not None:
-        pdf = g.math('DIVIDE', pdf, jac)
-    pdf = g.math('MULTIPLY', pdf, g.math('GREATER_THAN', wo[2], 0.0))
+        pdf = pdf / jac
+    pdf = pdf * (wo[2] > 0.0)
     return pdf, g.scale(weight, pdf)

@@ -4,7 +4,8 @@ WorldMap the numpy reference), the map's numbers constants of groups named after
 import math
 import os
 
-from .graph import GROUP_PREFIX, X, Y, Z, _Graph, _group, _image
+from .graph import (GROUP_PREFIX, X, Y, Z, _Graph, _group, _image, acos, atan2, cos, floor, fma, maximum, minimum,
+                    saturate, sin, sqrt)
 
 
 def _world_map_module():
@@ -56,8 +57,7 @@ def _world_texel(g, wl, image, x, row):
     """The colour of the world texture's texel (x, row)."""
     tex = g.node("ShaderNodeTexImage", image=image, interpolation='Closest', extension='EXTEND')
     wt, ht = float(wl["Wt"]), float(wl["Ht"])
-    g.set(tex.inputs["Vector"], g.combine(g.math('MULTIPLY_ADD', x, 1.0 / wt, 0.5 / wt),
-                                          g.math('MULTIPLY_ADD', row, -1.0 / ht, 1.0 - 0.5 / ht)))
+    g.set(tex.inputs["Vector"], g.combine(fma(x, 1.0 / wt, 0.5 / wt), fma(row, -1.0 / ht, 1.0 - 0.5 / ht)))
     return tex.outputs["Color"]
 
 
@@ -78,7 +78,7 @@ def _world_group(kind, wl, image, inputs, outputs, build):
     if done:
         return done
     g = _Graph(tree)
-    results = build(g, g.node("NodeGroupInput").outputs)
+    results = build(g, g.outputs(g.node("NodeGroupInput")))
     out = g.node("NodeGroupOutput")
     for name, value in results.items():
         g.set(out.inputs[name], value)
@@ -89,10 +89,10 @@ def _world_step_group(wl, image):
     """Group "world search step" over a CDF in texture row Row (entries 0 .. Last, the last 1):
     index = Lo + Half; Lo moves there when its entry (past Last: the last, 1) is <= Target."""
     def build(g, inp):
-        index = g.math('ADD', inp["Lo"], inp["Half"])
-        entry = g.dot(_world_texel(g, wl, image, g.math('MINIMUM', index, inp["Last"]), inp["Row"]), X)
-        above = g.math('GREATER_THAN', entry, inp["Target"])
-        return {"Lo": g.math('MULTIPLY_ADD', above, g.math('MULTIPLY', inp["Half"], -1.0), index)}
+        index = inp["Lo"] + inp["Half"]
+        entry = g.dot(_world_texel(g, wl, image, minimum(index, inp["Last"]), inp["Row"]), X)
+        above = entry > inp["Target"]
+        return {"Lo": fma(above, -inp["Half"], index)}
     return _world_group("search step", wl, image, [("Lo", "Float"), ("Target", "Float"), ("Half", "Float"),
                                                    ("Row", "Float"), ("Last", "Float")],
                         [("Lo", "Float")], build)
@@ -101,11 +101,11 @@ def _world_step_group(wl, image):
 def _world_search(g, wl, image, u, row, last, steps):
     """(k, cdf_k, cdf_k+1): the last entry k < last of the CDF in texture row `row` with cdf_k <=
     u, found branchlessly in `steps` halvings (2^steps >= last)."""
-    lo = 0.0
+    lo = g.const(0.0)
     for s in reversed(range(steps)):
         lo = g.group(_world_step_group(wl, image), Lo=lo, Target=u, Half=float(2 ** s), Row=row, Last=float(last))[0]
     c0 = g.dot(_world_texel(g, wl, image, lo, row), X)
-    c1 = g.dot(_world_texel(g, wl, image, g.math('ADD', lo, 1.0), row), X)
+    c1 = g.dot(_world_texel(g, wl, image, lo + 1.0, row), X)
     return lo, c0, c1
 
 
@@ -117,18 +117,17 @@ def _world_sample_group(wl, image):
     def build(g, inp):
         u0, u1 = inp["U0"], inp["U1"]
         w, h = float(wl["W"]), float(wl["H"])
-        row, r0, r1 = _world_search(g, wl, image, u0, 1.0, wl["H"], wl["row_steps"])
-        cond_row = g.math('ADD', row, 2.0)
+        row, r0, r1 = _world_search(g, wl, image, u0, g.const(1.0), wl["H"], wl["row_steps"])
+        cond_row = row + 2.0
         col, c0, c1 = _world_search(g, wl, image, u1, cond_row, wl["W"], wl["col_steps"])
-        t_row = g.math('DIVIDE', g.math('SUBTRACT', u0, r0), g.math('SUBTRACT', r1, r0), clamp=True)
-        t_col = g.math('DIVIDE', g.math('SUBTRACT', u1, c0), g.math('SUBTRACT', c1, c0), clamp=True)
-        z0 = g.math('COSINE', g.math('MULTIPLY', row, math.pi / h))
-        z1 = g.math('COSINE', g.math('MULTIPLY_ADD', row, math.pi / h, math.pi / h))
-        z = g.math('MULTIPLY_ADD', t_row, g.math('SUBTRACT', z1, z0), z0)
-        phi = g.math('MULTIPLY_ADD', g.math('ADD', col, t_col), -2.0 * math.pi / w, math.pi)
-        s = g.math('SQRT', g.math('MAXIMUM', g.math('SUBTRACT', 1.0, g.math('MULTIPLY', z, z)), 0.0))
-        direction = g.combine(g.math('MULTIPLY', s, g.math('COSINE', phi)), g.math('MULTIPLY', s, g.math('SINE', phi)),
-                              z)
+        t_row = saturate((u0 - r0) / (r1 - r0))
+        t_col = saturate((u1 - c0) / (c1 - c0))
+        z0 = cos(row * (math.pi / h))
+        z1 = cos(fma(row, math.pi / h, math.pi / h))
+        z = fma(t_row, z1 - z0, z0)
+        phi = fma(col + t_col, -2.0 * math.pi / w, math.pi)
+        s = sqrt(maximum(1.0 - z * z, 0.0))
+        direction = g.combine(s * cos(phi), s * sin(phi), z)
         return {"Direction": direction, "Pdf": g.dot(_world_texel(g, wl, image, col, cond_row), Y)}
     return _world_group("sample", wl, image, [("U0", "Float"), ("U1", "Float")],
                         [("Direction", "Vector"), ("Pdf", "Float")], build)
@@ -140,12 +139,11 @@ def _world_pdf_group(wl, image):
     def build(g, inp):
         d = inp["Direction"]
         w, h = float(wl["W"]), float(wl["H"])
-        theta = g.math('ARCCOSINE', g.dot(d, Z))            # (Cycles' acos clamps its argument)
-        row = g.math('MINIMUM', g.math('FLOOR', g.math('MULTIPLY', theta, h / math.pi)), h - 1.0)
-        u = g.math('FLOORED_MODULO', g.math('MULTIPLY_ADD', g.math('ARCTAN2', g.dot(d, Y), g.dot(d, X)),
-                                            -0.5 / math.pi, 0.5), 1.0)
-        col = g.math('MINIMUM', g.math('FLOOR', g.math('MULTIPLY', u, w)), w - 1.0)
-        return {"Pdf": g.dot(_world_texel(g, wl, image, col, g.math('ADD', row, 2.0)), Y)}
+        theta = acos(g.dot(d, Z))            # (Cycles' acos clamps its argument)
+        row = minimum(floor(theta * (h / math.pi)), h - 1.0)
+        u = fma(atan2(g.dot(d, Y), g.dot(d, X)), -0.5 / math.pi, 0.5) % 1.0
+        col = minimum(floor(u * w), w - 1.0)
+        return {"Pdf": g.dot(_world_texel(g, wl, image, col, row + 2.0), Y)}
     return _world_group("pdf", wl, image, [("Direction", "Vector")], [("Pdf", "Float")], build)
 
 
