@@ -2,7 +2,7 @@
 rays the sample's place in its pixel (the film: Cycles' box filter); docs/svm.md."""
 import bpy
 
-from ... import sockets
+from .. import sockets
 from .graph import X, Y, Z
 
 FILM = "FlowBSDF SVM film"      # a Combine XYZ node per sampler: film_settings

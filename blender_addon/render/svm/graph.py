@@ -8,7 +8,7 @@ import os
 
 import bpy
 
-from ... import sockets
+from .. import sockets
 
 GRAPH_VERSION = 3       # in the node groups' names: a graph built by other code gets new groups
 GROUP_PREFIX = f"FlowBSDF SVM{GRAPH_VERSION} "

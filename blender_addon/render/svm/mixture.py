@@ -3,7 +3,7 @@ lamps the portal reaches (blender_addon/osl/learned_bsdf.osl, lamps.h), a branch
 `update_world` hands a built graph new world inputs. What it does and measured: docs/svm.md."""
 import math
 
-from ... import sockets
+from .. import sockets
 from .control_variate import CV, _cv_value, _matching
 from .graph import X, Y, Z, _image, _mix_shader, compare, cos, drop_unused, fma, maximum, minimum, sin, sqrt, where
 from .tables import _tables_call, _tables_sample
