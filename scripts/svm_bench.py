@@ -1,4 +1,4 @@
-"""Cost per sample of the SVM back end (blender_addon/svm.py) on the CPU, against the OSL back
+"""Cost per sample of the SVM back end (blender_addon/render/svm/) on the CPU, against the OSL back
 end (blender_addon/render/osl/learned_bsdf.osl), a Diffuse BSDF and a Principled BSDF; with --mse,
 the equal-time image error of the SVM world mixture on a sphere under a sky with its sun.
 
@@ -82,7 +82,7 @@ def _lambert(folder):
 def _materials(tables, world):
     """{back end: (OSL on?, nodes(tree) -> shader socket)}."""
     from blender_addon.render import osl_script
-    from blender_addon import svm
+    from blender_addon.render import svm
     svm_texture, osl_texture = ensure_svm_export(tables), ensure_osl_export(tables)
 
     def bsdf(kind):
@@ -131,7 +131,8 @@ def _render_time(osl, nodes, size, spp, sky=False):
 def _counts(tables, world):
     """Lines on the SVM graphs: nodes, lookups (per technique for the mixture), build time."""
     import bpy
-    from blender_addon import svm
+    import svm_probes
+    from blender_addon.render import svm
     texture = ensure_svm_export(tables)
     lines, lookups = [], {}
     for name, kind in (("svm", None), ("svm world", world), ("tables pdf", "pdf")):
@@ -142,7 +143,7 @@ def _counts(tables, world):
         else:
             svm.build_svm_sampler(tree, texture, world=kind)
         built = time.perf_counter() - start
-        nodes, lookups[name] = svm.graph_counts(tree)
+        nodes, lookups[name] = svm_probes.graph_counts(tree)
         lines.append(f"{name}: {nodes} nodes, {lookups[name]} texture lookups, built in {built:.2f} s")
     steps = svm.world_layout(world["World"])["steps"]
     c_world, c_sun = world["WorldShare"], world["SunShare"]

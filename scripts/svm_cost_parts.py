@@ -1,4 +1,4 @@
-"""Issue 52: where the SVM back end's time per sample goes. The add-on's SVM graph (blender_addon/svm.py)
+"""Issue 52: where the SVM back end's time per sample goes. The add-on's SVM graph (blender_addon/render/svm/)
 built with parts switched off, side by side with Principled and the fit (OSL off), per scene.
 
 Variants (the graph patched while the node builds it; some render a different, even biased, image:
@@ -10,8 +10,8 @@ they measure cost, not a look):
   -cv        no control variate (the portal mixture alone)
   -mix       no mixture (world None: the tables' sample; the control variate then off)
   sampler    the tables' sampler and a portal alone (world None, no control variate)
-  before     the graph as /work/main's blender_addon/svm.py (or --before's file) builds it (a cut's
-             saving, side by side; its node groups named apart from this checkout's)
+  before     the graph as /work/main's blender_addon/render/svm/ (or --before's package, or an svm.py of
+             before issue 53) builds it (a cut's saving, side by side; its node groups named apart)
   portal     a Ray Portal of constant colour toward the mirror direction: a portal bounce's rays
              and a trivial graph (the floor of any portal back end)
 One Cycles thread (with two, a worker waiting for the other counted as CPU time). Per scene (constant
@@ -47,9 +47,13 @@ VARIANTS = ("principled", "fit", "svm", "-match", "fcv0", "untilted", "-cv", "-m
 
 @contextlib.contextmanager
 def patched(variant):
-    """The svm module with the variant's part switched off while the graph is built and rendered."""
-    from blender_addon import svm
-    saved = dict(vars(svm))
+    """The svm package with the variant's part switched off while the graph is built and rendered
+    (a name is patched in the modules that look it up: the face for node.py's, the package's
+    modules for their own)."""
+    from blender_addon.render import svm
+    from blender_addon.render.svm import control_variate, graph, mixture, shader
+    modules = (svm, control_variate, mixture, shader)
+    saved = [(m, dict(vars(m))) for m in modules]
     build = svm.build_svm_sampler
     BUILT.clear()
 
@@ -57,7 +61,7 @@ def patched(variant):
         return build(tree, texture, tangent, location=location, cv=None if variant == "sampler" else cv)
 
     def portal_only(tree, texture, tangent=None, location=(0.0, 0.0), world=None, cv=None):
-        g = svm._Graph(tree, location)
+        g = graph._Graph(tree, location)
         g.node("ShaderNodeCombineXYZ", name=svm.FILM)      # (the node's mark of an SVM graph: binding.has_svm)
         geometry = g.node("ShaderNodeNewGeometry")
         d = g.vmath('REFLECT', g.scale(geometry.outputs["Incoming"], -1.0), geometry.outputs["Normal"])
@@ -68,13 +72,13 @@ def patched(variant):
         return portal.outputs["BSDF"]
     try:
         if variant == "-match":
-            svm._matching = lambda mix, matchable: False
+            shader._matching = mixture._matching = lambda mix, matchable: False
         elif variant == "fcv0":
-            svm._cv_fcos = lambda g, cv, wi, n, d: (0.0, 0.0, 0.0)
+            control_variate._cv_fcos = lambda g, cv, wi, n, d: (0.0, 0.0, 0.0)
         elif variant == "untilted":
-            svm.CV_TILTS = False
+            svm.CV_TILTS = control_variate.CV_TILTS = False
         elif variant == "-cv":
-            svm._cv_switched = lambda *args, **kw: None
+            shader._cv_switched = lambda *args, **kw: None
         elif variant in ("-mix", "sampler"):
             svm.build_svm_sampler = without_world
         elif variant == "portal":
@@ -89,23 +93,32 @@ def patched(variant):
         svm.build_svm_sampler = recorded
         yield
     finally:
-        for key, value in saved.items():
-            setattr(svm, key, value)
+        for module, values in saved:
+            for key, value in values.items():
+                setattr(module, key, value)
 
 
-BEFORE = Path("/work/main/blender_addon/svm.py")
+BEFORE = Path("/work/main/blender_addon/render/svm")
 
 
 def _before(path=None):
-    """The svm module of another checkout (default: BEFORE), as blender_addon.svm_before; its node
-    groups get names of their own (a graph of the same GRAPH_VERSION would reuse this checkout's)."""
+    """The SVM graph builder of another checkout (default: BEFORE; a package folder, or before issue
+    53 the module blender_addon/svm.py), as blender_addon.render.svm_before; its node groups get
+    names of their own (a graph of the same GRAPH_VERSION would reuse this checkout's)."""
     import importlib.util
-    name = "blender_addon.svm_before"
+    name = "blender_addon.render.svm_before"
     if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, path or BEFORE)
+        path = Path(path or BEFORE)
+        if path.is_dir():
+            spec = importlib.util.spec_from_file_location(name, path / "__init__.py",
+                                                          submodule_search_locations=[str(path)])
+        else:       # (the module's `from . import sockets` then finds blender_addon.render.sockets)
+            spec = importlib.util.spec_from_file_location(name, path)
         sys.modules[name] = module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
-        module.GROUP_PREFIX = module.GROUP_PREFIX.rstrip() + " before "
+        for key, sub in list(sys.modules.items()):
+            if (key == name or key.startswith(name + ".")) and hasattr(sub, "GROUP_PREFIX"):
+                sub.GROUP_PREFIX = sub.GROUP_PREFIX.rstrip() + " before "
     return sys.modules[name]
 
 
@@ -162,7 +175,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tables", type=Path, default=TABLES)
     ap.add_argument("--variants", default=",".join(VARIANTS))
-    ap.add_argument("--before", type=Path, default=BEFORE, help="the svm.py the variant `before` builds with")
+    ap.add_argument("--before", type=Path, default=BEFORE,
+                    help="the svm package (or svm.py) the variant `before` builds with")
     ap.add_argument("--scenes", default="constant,hdri,studio")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--size", type=int, default=32)

@@ -976,8 +976,8 @@ def _check_packed_line(ctx, tmp_path):
     however its path is spelled, and one nothing uses (not saved) is not counted."""
     import numpy as np
     from bake.io.exrio import write_rgba_exr
-    from blender_addon import svm
     from blender_addon.artist import panels, uitext
+    from blender_addon.render import svm
     paths = []
     rng = np.random.default_rng(0)
     for k, side in enumerate((256, 128, 16)):       # noise: MBs that compression keeps

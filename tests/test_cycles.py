@@ -513,12 +513,13 @@ def test_assign_twice_reuses_the_group(baked):
     assert out.inputs["Surface"].links[0].from_node.name == a.name
     assert os.path.isfile(a.node_tree[binding.TREE_KEY]["osl_texture"])
     # the fit's parameters and the tables' sampler are node groups of their own, made once
-    # (a node written into a tree costs in proportion to the tree's size: svm._Graph)
-    from blender_addon import svm
+    # (a node written into a tree costs in proportion to the tree's size: svm.graph._Graph)
+    import svm_probes
+    from blender_addon.render import svm
     # (two fit groups: the fit's and its EEVEE fit's, FIT_VERSION 8)
     kinds = ("FlowBSDF fit: ", svm.GROUP_PREFIX + "tables sample: ")
     assert [sum(g.name.startswith(k) for g in bpy.data.node_groups) for k in kinds] == [2, 1]
-    inner = svm.graph_counts(a.node_tree)[0]
+    inner = svm_probes.graph_counts(a.node_tree)[0]
     assert len(a.node_tree.nodes) < 0.5 * inner, (len(a.node_tree.nodes), inner)    # (127 of 608; ~0.9 before)
 
 

@@ -969,7 +969,7 @@ def test_svm_control_variate_is_off_with_caustics_off(lambert):
     the OSL back end renders: measured, a paper_white sphere over that floor, 24 px, 8 x 512 spp
     against OSL's 8 x 128: +0.27 % +- 0.37 %; without the gate -8.9 %, z -22; the note of s41,
     svmdef)."""
-    from blender_addon import svm
+    from blender_addon.render import svm
     fov = 28.0
     sc = _factory_scene(16, 32)
     _aim_camera(sc, (0.0, -5.0, 1.2), (0.0, 0.0, -0.2), fov)

@@ -39,7 +39,7 @@ from bake.export.closure_fit import FIT_VERSION, eval_fit
 bpy = cs.bpy_or_skip(need_osl=False)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
 from blender_addon.render import fit_nodes, node as lb  # noqa: E402
-from blender_addon.svm import VIEW_TANGENT_NUDGE  # noqa: E402
+from blender_addon.render.svm import VIEW_TANGENT_NUDGE  # noqa: E402
 
 E = 2.0                 # the sun's strength: its irradiance at normal incidence
 CELL = 4                # pixels per quad side (the inner 2 x 2 are wholly inside it)

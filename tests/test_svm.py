@@ -1,4 +1,4 @@
-"""The SVM back end (bake/export/svm_export.py, blender_addon/svm.py): its texture fits GPU texture
+"""The SVM back end (bake/export/svm_export.py, blender_addon/render/svm/): its texture fits GPU texture
 limits for the largest tables the baker writes; the node graph samples exactly what numpy's
 Tables.sample does (probe); it renders the baked albedo in a white furnace with OSL off; it
 leaves the SVM stack a wide margin, measured with Cycles' own overflow message; the world
@@ -104,14 +104,21 @@ def test_export_is_named_by_the_tables_hash(plastic, tmp_path):
 @pytest.fixture(scope="module")
 def svm():
     cs.bpy_or_skip(need_osl=False)
-    from blender_addon import svm
+    from blender_addon.render import svm
     return svm
+
+
+def _probes():
+    """tests/svm_probes.py, the graph's test probes (it imports bpy: called once the `svm` fixture
+    has checked for it)."""
+    import svm_probes
+    return svm_probes
 
 
 def _probe(svm, texture, inputs, folder, width=32, inverse=False):
     """The graph's (wo, weight, pdf) for probe inputs (n, 4): u0, u1, cos theta_i, phi_i; with
     `inverse`, (pdf, f·cos, zeros) for inputs cos theta_o, phi_o, cos theta_i, phi_i."""
-    thirds = _render_probe(svm, lambda tree, probe: svm.build_svm_probe(tree, texture, probe, inverse),
+    thirds = _render_probe(svm, lambda tree, probe: _probes().build_svm_probe(tree, texture, probe, inverse),
                            inputs, folder, width)
     if inverse:
         return thirds[0][:, 0], thirds[1], thirds[2]
@@ -661,7 +668,8 @@ def test_svm_world_map_sample_is_numpy(svm, tmp_path):
     u = np.stack([(ix.ravel() + 0.5) / n, (iy.ravel() + 0.5) / n], 1)
     d, pdf = wm.sample(u)
     inputs = np.concatenate([u, np.zeros((len(u), 2))], 1)
-    shown, pdfs, _ = _render_probe(svm, lambda tree, probe: svm.build_world_probe(tree, path, probe), inputs, tmp_path)
+    shown, pdfs, _ = _render_probe(svm, lambda tree, probe: _probes().build_world_probe(tree, path, probe), inputs,
+                                   tmp_path)
     assert np.abs(2.0 * shown - 1.0 - d).max() < 2e-4
     np.testing.assert_allclose(pdfs[:, 0], pdf, rtol=1e-5)
     np.testing.assert_allclose(pdfs[:, 1], pdf, rtol=1e-5)
@@ -846,7 +854,7 @@ def test_svm_mixture_is_numpy(svm, plastic, tmp_path, which):
     world = _sun_world(path, which)
     d, technique = _assert_mixture_is_numpy(
         svm, plastic, tmp_path, world, wm if "map" in which else None,
-        lambda tree, texture, probe: svm.build_svm_probe(tree, texture, probe, world=world))
+        lambda tree, texture, probe: _probes().build_svm_probe(tree, texture, probe, world=world))
     if "sun" in which:      # some table or map directions fall in the sun's cone
         assert np.sum((technique != 2) & (d @ np.asarray(world["SunDirection"]) >= world["SunCos"])) >= 3
 
@@ -866,7 +874,7 @@ def test_svm_mixture_with_lamps_is_numpy(svm, plastic, tmp_path, which):
     world = dict(_sun_world(path, which), Lamps=len(PROBE_LAMPS), LampShare=0.5, LampValues=PROBE_LAMPS)
 
     def build(tree, texture, probe):
-        out = svm.build_svm_probe(tree, texture, probe, world=world)
+        out = _probes().build_svm_probe(tree, texture, probe, world=world)
         _place_lamps(tree, PROBE_LAMPS)
         return out
     d, technique = _assert_mixture_is_numpy(svm, plastic, tmp_path, world, wm if "map" in which else None, build)
@@ -898,7 +906,7 @@ def test_svm_update_world(svm, plastic, tmp_path):
         return [i for i in bpy.data.images if os.path.normpath(bpy.path.abspath(i.filepath)) == os.path.normpath(path_)]
 
     def build(tree, texture, probe):
-        out = svm.build_svm_probe(tree, texture, probe, world=before)
+        out = _probes().build_svm_probe(tree, texture, probe, world=before)
         old = [i.name for i in at(path)]
         assert len(old) == 1 and at(path)[0].packed_file is not None
         assert svm.update_world(tree, after)
@@ -922,7 +930,7 @@ def test_svm_update_world(svm, plastic, tmp_path):
     assert not any(n.name.startswith((svm.WORLD, svm.SUN)) for n in alone.nodes)
     plain = bpy.data.node_groups.new("plain", "ShaderNodeTree")
     svm.build_svm_sampler(plain, texture)
-    assert svm.graph_counts(alone) == svm.graph_counts(plain)      # shares 0: the tables' graph, no cost
+    assert _probes().graph_counts(alone) == _probes().graph_counts(plain)      # shares 0: the tables' graph, no cost
     assert svm.update_world(alone, _sun_world(path, "neither")) and not svm.update_world(alone, after)
 
 
@@ -1041,6 +1049,7 @@ def test_svm_control_variate_fcos_is_closure_fit(svm, tmp_path, tilts):
     grazing and directions over the hemisphere (measured per closure: within 2.5e-5 relative, the
     tilted Diffuse 4e-4 near the horizon; medians under 1e-6)."""
     from bake.export import closure_fit
+    from blender_addon.render.svm.control_variate import _cv_fcos
     rng = np.random.default_rng(5)
     n = 1024
     # (tilted: views up to 81 deg, where no tilt here brings the mirror direction about the tilted
@@ -1058,14 +1067,14 @@ def test_svm_control_variate_fcos_is_closure_fit(svm, tmp_path, tilts):
     cv = {"fit": cv_fit, "diffuse": (1.0, 1.0, 1.0), "specular": (1.0, 1.0, 1.0)}
 
     def build(tree, path):
-        g = svm._Graph(tree)
-        thirds, values, _ = svm._probe_input(g, path)
+        g = _probes()._Graph(tree)
+        thirds, values, _ = _probes()._probe_input(g, path)
         co, po, ci = (g.dot(values, axis) for axis in (svm.X, svm.Y, svm.Z))
         so = g.math('SQRT', g.math('MAXIMUM', g.math('SUBTRACT', 1.0, g.math('MULTIPLY', co, co)), 0.0))
         si = g.math('SQRT', g.math('MAXIMUM', g.math('SUBTRACT', 1.0, g.math('MULTIPLY', ci, ci)), 0.0))
         d = g.combine(g.math('MULTIPLY', so, g.math('COSINE', po)), g.math('MULTIPLY', so, g.math('SINE', po)), co)
-        fcos = svm._cv_fcos(g, cv, g.combine(si, 0.0, ci), svm.Z, d)
-        return svm._probe_output(g, thirds, (fcos, fcos, fcos))
+        fcos = _cv_fcos(g, cv, g.combine(si, 0.0, ci), svm.Z, d)
+        return _probes()._probe_output(g, thirds, (fcos, fcos, fcos))
     got = _render_probe(svm, build, np.stack([cos_o, phi_o, cos_i, np.zeros(n)], -1), tmp_path)[0]
     r = np.array(list(CV_FIT["roughness"]) + [CV_FIT["r4"]])
     aniso = np.array(list(CV_FIT["anisotropy"]) + [0.0])
@@ -1195,7 +1204,7 @@ def test_svm_matched_control_variate_follows_the_world(svm, plastic, plastic_fit
     plain = bpy.data.node_groups.new("not matched", "ShaderNodeTree")
     lb._svm_backend(plain, texture, plastic_fit, None, dict(sun, LightDirection=(0.0, 0.0, 0.0)))
     assert not any(n.name.startswith(svm.LIGHT) for n in plain.nodes)
-    assert svm.graph_counts(plain)[0] < svm.graph_counts(tree)[0]
+    assert _probes().graph_counts(plain)[0] < _probes().graph_counts(tree)[0]
     assert not svm.update_world(plain, sun)
     assert svm.control_variate_wanted(texture, plastic_fit)
     assert not svm.control_variate_wanted(texture, None)
@@ -1205,7 +1214,7 @@ def test_svm_matched_control_variate_follows_the_world(svm, plastic, plastic_fit
     lb._svm_backend(unmatched, texture, poor, None, sun)
     bare = bpy.data.node_groups.new("bare", "ShaderNodeTree")
     svm.build_svm_sampler(bare, texture, world=sun)
-    assert svm.graph_counts(unmatched) == svm.graph_counts(bare)
+    assert _probes().graph_counts(unmatched) == _probes().graph_counts(bare)
     assert svm.update_world(unmatched, sun) and svm.update_world(unmatched, dict(sun, LightDirection=(0.0, 0.0, 0.0)))
 
 
@@ -1216,6 +1225,7 @@ def test_svm_match_lookup_is_trilinear_in_the_match_image(svm, plastic, plastic_
     grid's nodes and edges (Linear image lookups at texel centres: no blend of two tiles)."""
     import OpenEXR
     from bake.export import closure_fit
+    from blender_addon.render.svm.control_variate import _match_lookup
     path = plastic_fit["match_path"]
     ratios = OpenEXR.File(path).channels()["RGBA"].pixels[..., :3]
     n = ratios.shape[0]
@@ -1228,13 +1238,13 @@ def test_svm_match_lookup_is_trilinear_in_the_match_image(svm, plastic, plastic_
     inputs = np.column_stack([pts[:, 0], pts[:, 1], np.zeros(len(pts)), pts[:, 2]]).astype(np.float32)
 
     def build(tree, probe):
-        g = svm._Graph(tree)
-        thirds, values, phi = svm._probe_input(g, probe)
+        g = _probes()._Graph(tree)
+        thirds, values, phi = _probes()._probe_input(g, probe)
         cos_v, cos_l = g.dot(values, svm.X), g.dot(values, svm.Y)
         sin_l = g.math('SQRT', g.math('SUBTRACT', 1.0, g.math('MULTIPLY', cos_l, cos_l)))
         wo = (g.math('MULTIPLY', sin_l, g.math('COSINE', phi)), g.math('MULTIPLY', sin_l, g.math('SINE', phi)), cos_l)
-        beta = svm._match_lookup(g, path, cos_v, wo)
-        return svm._probe_output(g, thirds, (beta, beta, beta))
+        beta = _match_lookup(g, path, cos_v, wo)
+        return _probes()._probe_output(g, thirds, (beta, beta, beta))
     shown = _render_probe(svm, build, inputs, tmp_path)[0]
     x = inputs.astype(np.float64)
     f = np.column_stack([x[:, 0], x[:, 1], np.abs(x[:, 3]) / np.pi]) * (n - 1)

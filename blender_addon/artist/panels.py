@@ -177,7 +177,7 @@ def packed_use():
     end's textures (svm._image packs them: unpacked, Cycles under Open Shading Language read a
     new texture as zeros now and then), those that something still uses (the ones saved)."""
     try:
-        from ..svm import PACKED
+        from ..render.svm import PACKED
     except ImportError:
         return ""
     sizes = [i.packed_file.size for i in bpy.data.images if i.get(PACKED) and i.packed_file is not None and i.users]

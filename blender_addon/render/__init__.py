@@ -6,9 +6,9 @@
     derived     the files beside the tables the node reads (fit JSON, textures), without numpy
     osl_script  the OSL Script node (osl/ inlined into a text block of the .blend)
     osl/        the OSL back end's shader (tables, carried blend, lamps, world, random numbers)
+    svm/        the SVM back end's shader node graph (graph, tables, world, mixture, control variate, film)
     fit_nodes   the fit back end's node group and closures (also the SVM control variate's)
     refits      an older add-on's fits remade after a file opens
     lamps       the scene's lamps -> the shaders      world    the world's importance map
     sockets     group sockets across Blender versions; values written only on change
-The SVM back end's graph (svm) is the render side's too.
 """

@@ -65,5 +65,5 @@ def tree_for(name):
 
 
 def has_svm(tree):
-    from .. import svm
+    from . import svm
     return any(n.name.startswith(svm.FILM) for n in tree.nodes)

@@ -126,7 +126,7 @@ def fit_group(fit):
     (A group of its own: every node added to a tree costs in proportion to the tree's size, and
     each back end takes the parameters.)"""
     import hashlib
-    from ..svm import MATCHED_SHARE_MIN
+    from .svm import MATCHED_SHARE_MIN
     payload = json.dumps([fit, MATCHED_ERROR_MAX, MATCHED_SHARE_MIN], sort_keys=True, default=str)
     name = "FlowBSDF fit: " + hashlib.sha256(payload.encode()).hexdigest()[:12]
     tree = bpy.data.node_groups.get(name)
@@ -155,7 +155,7 @@ def matched_share(rel_error):
     poor its f_cv exceeds f widely: in a sun's shadow (no light to match, the sky only) the rest
     then renders negative pixels (cm_military_green: 7-17 of 5000, at any s and with betas
     capped at 1; paper_white none)."""
-    from ..svm import MATCHED_SHARE_MIN
+    from .svm import MATCHED_SHARE_MIN
     e = float(rel_error)
     return min(max(0.5 * e, MATCHED_SHARE_MIN), 0.5) if e <= MATCHED_ERROR_MAX else 0.0
 
@@ -249,7 +249,7 @@ def view_tangent(tree, loc, with_normal=False):
     computes the same tangent): Cycles normalises cross(N, T), NaN for a zero tangent (a
     head-on view, where the fit's anisotropy is 0 anyway, and its tilts). `with_normal`: (the
     tangent, Geometry's Normal)."""
-    from ..svm import VIEW_TANGENT_EPS, VIEW_TANGENT_NUDGE
+    from .svm import VIEW_TANGENT_EPS, VIEW_TANGENT_NUDGE
     nodes, links = tree.nodes, tree.links
     geometry = nodes.new("ShaderNodeNewGeometry")
     geometry.location = loc

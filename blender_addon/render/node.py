@@ -99,7 +99,7 @@ def _svm_backend(tree, svm_texture, fit, tangent, world_inputs, loc=(-1400, -300
     fit its control variate: the fit's closures scaled by its `cv` betas (or matched to the
     world's small light: svm.py), which Cycles lights with its lamp and world sampling, taken
     with probability 1 - s; else the portal carrying the rest (bake/export/closure_fit.py)."""
-    from .. import svm
+    from . import svm
     has_betas = fit is not None and any(b[0] > 0.0 or b[1] > 0.0 for b in fit["cv"])
     # (a match image only where some view angle is matched: else no lookups)
     match = fit.get("match_path") if fit and any(fit_nodes.matched_share(e) > 0.0 for e in fit["rel_error"]) else None
@@ -430,7 +430,7 @@ def sync(scene, refresh=False, bake_world=False):
             worlds[folder] = _world_inputs(scene, folder, bake_world)
         inputs = world.material_share(worlds[folder], binding.read(tree).get("matte"))
         if binding.has_svm(tree):
-            from .. import svm
+            from . import svm
             if not svm.update_world(tree, caustics_gate(scene, inputs)):  # a technique the graph lacks: rebuild it
                 info = binding.read(tree)
                 _build_tree(tree, info["material"], Path(info["tables"]),
