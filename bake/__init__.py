@@ -8,6 +8,7 @@ yardsticks, the commands. One folder per kind:
     materials/   measured and analytic BSDFs
     tracer/      the reference path tracer
     errors.py    FlowBSDFError, the one error type of every folder
+    formats.py   the version numbers of the files and graphs (numpy, the OSL shader and the add-on read them)
 
 The public API:
 

@@ -146,13 +146,13 @@ import os
 
 import bpy
 
-from . import sockets
+from . import deps, sockets
 
 CUTOFF = 1e-5           # Cycles' CLOSURE_WEIGHT_CUTOFF
 K_SMALL = 1e-4          # bake/core/tables.py _SMALL: the in-cell density's small-rate branch
 LOG_MEAN_SERIES = 1e-3  # bake/core/tables.py LOG_MEAN_SERIES: the log mean's series below it
 TANGENT = (1.0, 0.0, 0.0)
-GRAPH_VERSION = 3       # in the node groups' names: a graph built by other code gets new groups
+GRAPH_VERSION = deps.formats().GRAPH_VERSION      # in the node groups' names (bake/formats.py)
 GROUP_PREFIX = f"FlowBSDF SVM{GRAPH_VERSION} "
 FILM = "FlowBSDF SVM film"      # a Combine XYZ node per sampler: film_settings
 WORLD = "FlowBSDF SVM world"    # a Combine XYZ node per mixture: (WorldShare, SunShare, SunCos)

@@ -8,6 +8,7 @@
     carried        an RGL file's tables blended along the file's own coordinates (numpy only)
     fasttables     the tables' optional C fast path (_tables_c.c, loaded with ctypes)
     tabulate       building tables from a material and a source sampler
+    settings       BakeSettings: a manifest's [bake] table, checked once, as the planner takes it
     ideal          the ideal sampler: f·cos tabulated finely per incident direction
     baselines      uniform, cosine and a fitted GGX lobe: what every learned sampler must beat
     domains        2D sampling domains of outgoing directions (disk, spherical)

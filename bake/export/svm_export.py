@@ -86,10 +86,11 @@ import numpy as np
 
 from ..core.tables import NSEG
 from ..errors import FlowBSDFError
+from ..formats import SVM_LAYOUT
 from ..plumbing.exrio import write_rgba_exr
 from .osl_export import _guide, ensure_export, own_size
 
-LAYOUT = 4      # 4: tables of mixed resolutions (isotropic headers hold the corner's last row and column)
+LAYOUT = SVM_LAYOUT     # bake/formats.py
 META_KEY = "flowbsdf_svm"
 MAX_SIDE = 16384
 PAST_END = 8.0          # a record value above any target (CDFs and a <= 1, b <= 2 pi)

@@ -42,9 +42,10 @@ import numpy as np
 
 from ..core.geometry import LUMINANCE
 from ..errors import FlowBSDFError
+from ..formats import WORLD_LAYOUT
 from ..plumbing.exrio import write_rgba_exr
 
-LAYOUT = 3
+LAYOUT = WORLD_LAYOUT   # bake/formats.py
 TEXTURE_WIDTH = 1024
 META_KEY = "flowbsdf_world"
 
