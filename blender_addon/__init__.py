@@ -1,16 +1,16 @@
 """FlowBSDF for Blender: learned importance sampling of measured BSDFs in Cycles.
 
 One package, two install forms: a Blender 4.2+ extension (blender_manifest.toml; built by
-scripts/build_extension.py) and a legacy add-on for Blender 3.4+ (bl_info below). Modules:
-    props      FlowBSDF data on materials/scenes     scan      what the scene needs -> manifest
-    prefs      the Python that trains                worker    subprocess jobs, progress, cancel
-    operators  the panel's operators                 jobs      scan -> worker -> bind nodes
-    panels     Shader Editor sidebar + Material tab  batch     blender --background / -c flowbsdf
-    node       the Learned BSDF node: its back ends  validate  reference tracer vs Cycles
-    osl/       the OSL back end (tables, lamps, world) svm      the SVM back end (shader nodes)
-    lamps      the scene's lamps -> the OSL shader   world     the world's importance map
-    sockets    socket values written on change       library   a folder of files -> asset library
-    deps       where numpy's `bake` and its Python are  worker_main  the worker (outside Blender)
+scripts/build_extension.py) and a legacy add-on for Blender 3.4+ (bl_info below). In layers,
+each importing only its own or lower ones (tests/test_layers.py):
+    __init__, batch   the faces: registration here; batch, the command line (blender -c flowbsdf,
+                      or --python-expr "import flowbsdf.batch as b; b.main()": farms call it)
+    artist/           what the artist and the farm drive: the panel, its operators and jobs, the
+                      worker subprocess (artist/__init__.py lists its modules)
+    render/           what renders: the Learned BSDF node, its OSL, SVM and fit back ends, the
+                      lamps and the world map (render/__init__.py lists its modules); never
+                      imports artist/
+    deps              where numpy's `bake` and the worker's Python are (both sides use it)
 """
 bl_info = {
     "name": "FlowBSDF",
@@ -28,7 +28,8 @@ _cli_handle = None
 def register():
     global _cli_handle
     import bpy
-    from . import node, operators, panels, prefs, props, validate
+    from .artist import operators, panels, prefs, props, validate
+    from .render import node
     props.register()
     for cls in prefs.classes + operators.classes + validate.classes + panels.classes:
         bpy.utils.register_class(cls)
@@ -41,7 +42,8 @@ def register():
 def unregister():
     global _cli_handle
     import bpy
-    from . import node, operators, panels, prefs, props, validate, worker
+    from .artist import operators, panels, prefs, props, validate, worker
+    from .render import node
     worker.clear()
     if _cli_handle is not None:
         bpy.utils.unregister_cli_command(_cli_handle)

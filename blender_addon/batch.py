@@ -12,7 +12,7 @@ MSE, SSIM and a side-by-side image in <out>/validate/) and `farm openjd --job-di
 farm and assembles this file: `flowbsdf farm openjd` in the worker Python, bake/plumbing/farm.py;
 --blender, --addon-dir: Blender and the add-on's folder on the farm) and `library FOLDER --out DIR
 [--quality draft|preview|final] [--python PY]` (an asset library of a folder of measured files:
-the bake in the worker Python, then DIR/library.blend in this Blender; blender_addon/library.py;
+the bake in the worker Python, then DIR/library.blend in this Blender; blender_addon/artist/library.py;
 no .blend needs to be open, the open one is replaced). Options:
     --python PY        the Python that bakes (numpy + OpenEXR) and trains (torch + FlowBSDF's
                        trainer); else FLOWBSDF_PYTHON, the preference, the Python Blender reports
@@ -29,7 +29,7 @@ add-on's own with `[flowbsdf]`. Exit code 0 on success, 1 on any failure (with a
 
 The node binds in every supported Blender: where Blender's Python has no numpy and Cycles no
 OSL (Debian's 3.4), the worker's bake writes the fit and OSL texture, and the node reads the
-fit's JSON and holds the fit only (see node.py); a Blender that compiles OSL adds the OSL
+fit's JSON and holds the fit only (see render/node.py); a Blender that compiles OSL adds the OSL
 back end when it opens the saved file. Each bound material's back end is logged.
 """
 import argparse
@@ -40,7 +40,8 @@ import sys
 
 import bpy
 
-from . import deps, jobs, scan, worker
+from . import deps
+from .artist import jobs, scan, worker
 
 
 def log(message):
@@ -131,7 +132,7 @@ def _run(args):
         log(f"{len(rows)} learned material(s) in use; manifest {manifest}")
         if jobs.unsaved_problem(scene):
             log(f"unsaved file: the tables go to {out}")
-        from . import prefs
+        from .artist import prefs
         p = prefs.get()
         python = worker.python_for(p, need_train=(train == "always"), where="batch")
         log(f"worker Python: {deps.describe(python, *_explicit(p))}")
@@ -172,7 +173,7 @@ def _run(args):
 
 
 def _validate(scene, args):
-    from . import validate
+    from .artist import validate
     try:
         if args.out:
             scene.flowbsdf.out_dir = os.path.abspath(args.out)
@@ -200,7 +201,7 @@ def _farm(scene, args):
             scene.flowbsdf.out_dir = os.path.abspath(args.out)
         rows, manifest, out = jobs.prepare(scene)
         log(f"{len(rows)} learned material(s) in use; manifest {manifest}")
-        from . import prefs
+        from .artist import prefs
         p = prefs.get()
         python = worker.python_for(p)
         cmd = [str(python), "-m", "bake.plumbing.cli", "farm", "openjd", manifest, "--scene", bpy.data.filepath,
@@ -222,9 +223,9 @@ def _farm(scene, args):
 
 
 def _library(argv):
-    """`library FOLDER --out DIR`: the folder's manifest (blender_addon/library.py), its bake in the
+    """`library FOLDER --out DIR`: the folder's manifest (blender_addon/artist/library.py), its bake in the
     worker Python (tables, textures, fit, preview; current ones skipped), then DIR/library.blend."""
-    from . import library, prefs
+    from .artist import library, prefs
     p = argparse.ArgumentParser(prog="blender -b -c flowbsdf library",
                                 description="An asset library (DIR/library.blend) of a folder of measured files.")
     p.add_argument("folder")
@@ -246,7 +247,7 @@ def _library(argv):
 
 def _build_library(args):
     """The library command's work: the manifest, the bake in the worker, then library.blend."""
-    from . import library, prefs
+    from .artist import library, prefs
     items, manifest = library.prepare(args.folder, args.out, args.quality)
     out = os.path.abspath(args.out)
     log(f"library: {len(items)} measured file(s) in {os.path.abspath(args.folder)}; manifest {manifest}")
@@ -289,13 +290,13 @@ def _error(e):
 
 def _node_report(scene, rows):
     """One line per bound material: what its Learned BSDF node renders in this scene and Blender."""
-    from . import node
+    from .render import binding, node
     lines = []
     for mat in dict.fromkeys(r["material"] for r in rows):
         group = next((n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup"
-                      and n.node_tree is not None and node.TREE_KEY in n.node_tree.keys()), None)
+                      and n.node_tree is not None and binding.TREE_KEY in n.node_tree.keys()), None)
         if group is not None:
-            info = node._info(group.node_tree)
+            info = binding.read(group.node_tree)
             err = info.get("fit_error", -1.0)
             fit = f"fit error {err:.3f}" if err >= 0 else "no fit"
             problems = f"; problems: {info['problems']}" if info.get("problems") else ""

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-WORKER_SCRIPT = HERE / "worker_main.py"
+WORKER_SCRIPT = HERE / "artist" / "worker_main.py"
 ENV_PYTHON = "FLOWBSDF_PYTHON"          # overrides the preference (farms, tests)
 _probes = {}
 
@@ -45,16 +45,31 @@ def formats():
     return sys.modules[name]
 
 
-def __getattr__(name):
-    """`deps.bake`: the add-on's `bake` imported into Blender (numpy + OpenEXR needed, so only
-    on first use: the UI, scan and batch never need it in Blender itself)."""
-    if name != "bake":
-        raise AttributeError(name)
+def _import_bake():
     if (HERE / "vendor" / "bake" / "__init__.py").is_file():
         from .vendor import bake
     else:
         import bake
     return bake
+
+
+def __getattr__(name):
+    """`deps.bake`: the add-on's `bake` imported into Blender (numpy + OpenEXR needed, so only
+    on first use: the UI, scan and batch never need it in Blender itself)."""
+    if name != "bake":
+        raise AttributeError(name)
+    return _import_bake()
+
+
+def bake_module(name):
+    """A module of the add-on's `bake` (numpy) by its name below the package ("export.world_map"),
+    or None where this Blender's Python cannot import it (no numpy: Debian's Blender 3.4). Both
+    sides of the add-on use it (render/: the fit, textures, world map; artist/: jobs)."""
+    import importlib
+    try:
+        return importlib.import_module(f"{_import_bake().__name__}.{name}")
+    except ImportError:
+        return None
 
 
 def worker_env(python, extra_paths=()):

@@ -146,7 +146,8 @@ import os
 
 import bpy
 
-from . import deps, sockets
+from . import deps
+from .render import sockets
 
 CUTOFF = 1e-5           # Cycles' CLOSURE_WEIGHT_CUTOFF
 K_SMALL = 1e-4          # bake/core/tables.py _SMALL: the in-cell density's small-rate branch

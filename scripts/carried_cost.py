@@ -30,7 +30,7 @@ SPP = (16, 48)
 
 def render_seconds(tables, carried, lamp, spp):
     import bpy
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb
     sc = cs.reset(64, 64, spp=spp)
     cs.ortho_camera(sc, scale=2.2)
     cs.set_world(sc, (0.2, 0.2, 0.2) if lamp else (1.0, 1.0, 1.0))
@@ -69,7 +69,7 @@ def main():
     p.add_argument("material", type=Path)
     p.add_argument("--repeat", type=int, default=2)
     args = p.parse_args()
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb
     lb.register()
     ensure_osl_export(args.tables)
     texture = ensure_carry_export(args.tables, open_material(args.material))

@@ -4,7 +4,7 @@ Scene: a unit sphere (smooth UV mesh, 256 x 128) seen by a perspective camera (d
 fov 22 deg) under an equirectangular environment (closest lookups, world kept out of light
 sampling: BSDF-only sampling everywhere), 64 x 64, box pixel filter of width 1 in Cycles
 (= the tracer's uniform jitter over the pixel). The Blender scene is exported to the tracer's
-format by the add-on's validate exporter (blender_addon/validate.export_scene: the same
+format by the add-on's validate exporter (blender_addon/artist/validate.export_scene: the same
 triangle mesh and normals, camera and environment file) and rendered by bake/tracer with the
 baked tables as sampler, BSDF-only (mis=False).
 
@@ -99,7 +99,7 @@ def cycles_scene(kind, name, tables_path, env_path, size, spp, fit=None, seed=0,
     every kind, or with `native` only for the OSL kinds (the others render as Blender's
     default, SVM). Returns (scene, material)."""
     import bpy
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb
     sc = cs.reset(size, size, spp=spp, seed=seed, osl=not native or kind in ("osl", "oslhash"))
     sc.cycles.pixel_filter_type = 'BOX'
     sc.cycles.filter_width = 1.0
@@ -144,7 +144,7 @@ def render_case(*args, seeds=1, **kw):
 
 def export_for_tracer(name, tables_path, env_path, size, folder, manifest_path, **kw):
     """The OSL scene exported by the add-on's validate exporter; returns the scene file."""
-    from blender_addon import validate
+    from blender_addon.artist import validate
     sc, mat = cycles_scene("osl", name, tables_path, env_path, size, 1, **kw)
     path, notes = validate.export_scene(sc, str(folder), [{"material": mat, "name": name}], size, size,
                                         str(manifest_path))
@@ -323,7 +323,7 @@ def write(rows, args):
              f"{', world importance-sampled' if args.world_mis else ', world not light-sampled'}) "
              f"at {args.spp} spp; reference: bake/tracer, BSDF-only, tables sampling (ref spp: baked / true "
              "reference, per row), "
-             "scene exported by blender_addon/validate.export_scene. Pixels: the sphere's interior (no "
+             "scene exported by blender_addon/artist/validate.export_scene. Pixels: the sphere's interior (no "
              "silhouette pixels, cos view > 0.05). MSE: mean over those pixels and RGB.", "",
              "- **baked ref**: tracer with the scene material's eval = the tables' (carried where they carry: what the OSL back end "
              f"renders). OSL: {OSL_SEEDS} renders (Cycles seeds); MSE = their mean MSE (one render at the spp). "

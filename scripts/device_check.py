@@ -43,7 +43,7 @@ def gpu_devices():
 
 def render_on(kind, tables, spp, seeds, size):
     import bpy
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb
     sc = cs.reset(size, size, spp=spp, osl=False)
     sc.cycles.pixel_filter_type = 'BOX'
     cs.ortho_camera(sc, scale=2.2)
@@ -75,7 +75,7 @@ def main(argv=None):
         print("device_check: no GPU that Cycles can use on this machine (looked for "
               f"{', '.join(GPU_TYPES)}): nothing to compare; skipped")
         return 0
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb
     lb.register()
     tables = Path(tempfile.mkdtemp(prefix="flowbsdf_device_")) / "plastic.exr"
     cs.small_tables({"kind": "analytic", "model": "plastic", "albedo": [0.7, 0.1, 0.08], "alpha": 0.12},

@@ -29,7 +29,7 @@ N_DEFAULT, SCALE = 64, 2.2
 
 def scene(px, spp, taa, env=None):
     import bpy
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb
     sc = cs.reset(px, px, spp=spp, osl=False)
     cs.ortho_camera(sc, scale=SCALE)
     if hasattr(bpy.types.Scene, lb.FILM_PROP):
@@ -112,7 +112,7 @@ def main(argv=None):
     args = p.parse_args(argv)
     import tempfile
     import bpy
-    from blender_addon import node as lb
+    from blender_addon.render import binding, node as lb
     lb.register()
     eevee = engine_id()
     out = Path(args.out) if args.out else None
@@ -133,7 +133,7 @@ def main(argv=None):
             mat = bpy.data.materials.new(name)
             bound = tables if args.full else tmp / "missing.exr"
             group = lb.assign_learned_bsdf(mat, f"{name}.{kind}", bound, fit_path=fit_path).node_tree
-            assert lb._info(group)["has_fit"], lb._info(group)["problems"]
+            assert binding.read(group)["has_fit"], binding.read(group)["problems"]
             cs.add_sphere(sc, mat, segments=64, rings=32)
             lb.set_backend(sc, "fit")
             for eng in ("CYCLES", eevee):

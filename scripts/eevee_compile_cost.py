@@ -30,7 +30,7 @@ def main():
     ap.add_argument("--px", type=int, default=32)
     args = ap.parse_args()
     import bpy
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb
     lb.register()
     sc = scene(args.px, 16, 16)
     sc.render.engine = engine_id()

@@ -1,7 +1,7 @@
 """What the closure fit costs Cycles per sample: the Learned BSDF's fit back end (FIT_VERSION 5:
 a Diffuse BSDF + three GGX Glossy BSDFs, two with the view's tangent and anisotropy) against
 the previous fit's graph (FIT_VERSION 4: Diffuse + one isotropic GGX, its parameters piecewise
-linear in Facing as node._piecewise builds them: rebuilt here from an old fit file) and a
+linear in Facing as fit_nodes.piecewise builds them: rebuilt here from an old fit file) and a
 Principled BSDF (closure_fit.principled_params), rendered with Blender's default SVM.
 
 A sphere (64 x 64, box filter, the acceptance's perspective camera) in two scenes: "constant"
@@ -32,15 +32,14 @@ KINDS = ("principled", "fit v4", "fit")
 
 def old_fit_material(fit):
     """A material rendering a FIT_VERSION 4 fit as that version's node did."""
-    from blender_addon import node as lb
-
+    from blender_addon.render import fit_nodes
     def nodes(tree):
         facing = tree.nodes.new("ShaderNodeLayerWeight")
         facing.inputs["Blend"].default_value = 0.5
         x = facing.outputs["Facing"]
-        kd = lb._piecewise(tree, x, fit["x"], fit["diffuse"], (0, 0))
-        ks = lb._piecewise(tree, x, fit["x"], fit["specular"], (0, -500))
-        r = lb._piecewise(tree, x, fit["x"], [[v] * 3 for v in fit["roughness"]], (0, -1000))
+        kd = fit_nodes.piecewise(tree, x, fit["x"], fit["diffuse"], (0, 0))
+        ks = fit_nodes.piecewise(tree, x, fit["x"], fit["specular"], (0, -500))
+        r = fit_nodes.piecewise(tree, x, fit["x"], [[v] * 3 for v in fit["roughness"]], (0, -1000))
         diffuse = tree.nodes.new("ShaderNodeBsdfDiffuse")
         tree.links.new(kd, diffuse.inputs["Color"])
         glossy = tree.nodes.new("ShaderNodeBsdfAnisotropic")

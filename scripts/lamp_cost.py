@@ -23,7 +23,7 @@ import cycles_scenes as cs  # noqa: E402
 
 def scene(tables, lamps, principled, size, spp):
     import bpy
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb
     sc = cs.reset(size, size, spp=spp, threads=1)
     sc.cycles.pixel_filter_type = 'BOX'
     cs.ortho_camera(sc, scale=2.4)
@@ -54,7 +54,7 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args(argv)
     import bpy
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb
     lb.register()
     folder = Path(tempfile.mkdtemp(prefix="flowbsdf_lampcost_"))
     tables = folder / "plastic.exr"

@@ -6,7 +6,7 @@ Scenes (64 x 64 by default, box filter, perspective camera as scripts/cycles_acc
 Cycles' world importance sampling at Blender's default, 'AUTOMATIC', everywhere):
   hdri    the "sunny" environment image of cycles_acceptance (Environment Texture, Closest);
   sky     Blender's default Sky Texture (sun_elevation 0.5) rendered once into an
-          equirectangular image by blender_addon/world.render_world (--sky-res, --sky-spp), and
+          equirectangular image by blender_addon/render/world.render_world (--sky-res, --sky-spp), and
           that image is the world of both Cycles (Environment Texture, Closest) and the tracer:
           both renderers see the identical world;
   studio  an area lamp + a point lamp with a radius + a dim constant world.
@@ -29,7 +29,7 @@ Per (scene, material) — draft tables (32 x 32 cells, 8 theta bins, ideal tabul
      --seeds. MSE of one render (mean over the seeds, with its SE over them) against each
      reference, net of the reference's own noise; split into noise (per-pixel variance over
      the seeds) + bias^2 (the seeds' mean vs the reference, net of both noises).
-  3. the references: bake/tracer (scene exported by blender_addon/validate.export_scene, lamps
+  3. the references: bake/tracer (scene exported by blender_addon/artist/validate.export_scene, lamps
      included), MIS on, tables sampling, the material evaluated as
        file   the manifest material's own eval (the measured RGL file): --file-ref-spp (default
               --ref-spp), tracer seed 2;
@@ -142,7 +142,7 @@ def sky_image(path, width, height, spp):
     """The Sky Texture world (SKY) as an equirectangular image, rendered by world.render_world."""
     if Path(path).is_file():
         return path
-    from blender_addon import world as bw
+    from blender_addon.render import world as bw
     sc = cs.reset(8, 8)
     cs.set_sky_world(sc, SKY["sun_elevation"], SKY["sun_rotation"], SKY["strength"])
     t0 = time.perf_counter()
@@ -197,7 +197,7 @@ def _with_settings(setup, settings):
 
 def _film_off(setup):
     def film_off(sc):
-        from blender_addon import node as lb
+        from blender_addon.render import node as lb
         if hasattr(sc, lb.FILM_PROP):
             setattr(sc, lb.FILM_PROP, False)
         else:
@@ -239,7 +239,7 @@ class Case:
         if self.settings is None:
             self.settings = {k: getattr(sc.cycles, k) for k in SETTINGS if hasattr(sc.cycles, k)}
         if base in ("osl", "svm", "fit"):
-            from blender_addon import node as lb
+            from blender_addon.render import node as lb
             mat = sc.objects["sphere"].active_material
             group = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
             status = lb.node_status(group, sc)
@@ -299,7 +299,7 @@ class Case:
         exp = self.folder / "export"
         sc, mat = ca.cycles_scene("osl", self.name, self.tables_path, None, self.args.size, 1, fit=self.fit,
                                   setup=self.setup, native=True)
-        from blender_addon import validate
+        from blender_addon.artist import validate
         mesh_path, notes = validate.export_scene(sc, str(exp), [{"material": mat, "name": self.name}],
                                                  self.args.size, self.args.size, str(ROOT / "manifest.toml"))
         for n in notes:
@@ -360,14 +360,14 @@ class Case:
 def carry_texture(tables_path):
     """The tables' carried-blend texture (the node's name for it), or None; one left aside by an
     interrupted run (carried_cost.without's ".<name>") is put back first."""
-    from blender_addon import node as lb
+    from blender_addon.render import derived
     tables_path = Path(tables_path)
     hidden = list(tables_path.parent.glob(f".{tables_path.stem}.carry*.exr"))
     for h in hidden:
         if not h.with_name(h.name[1:]).exists():
             h.rename(h.with_name(h.name[1:]))
             log(f"restored {h.name[1:]} (left aside by an interrupted run)")
-    path = lb._carry_texture(tables_path)
+    path = derived.carry_texture(tables_path)
     return Path(path) if path else None
 
 
@@ -587,7 +587,7 @@ def write(rows, ff_rows, geom, args, started):
         "the SAME image as Cycles' world (Environment Texture, Closest) and the tracer's; **studio** = area lamp "
         f"(1 m, 150 W) + point lamp (radius 0.25, 100 W) + constant world {STUDIO_WORLD}.",
         "- References: bake/tracer, MIS on (lamps + world), tables sampling, scene from "
-        "blender_addon/validate.export_scene; material = **file**: the measured file's own eval (the manifest's "
+        "blender_addon/artist/validate.export_scene; material = **file**: the measured file's own eval (the manifest's "
         "RGL material), and/or **baked**: the baked tables' eval (carried where they carry: what OSL renders "
         "with its carry texture). MSEs are net of the reference's noise. The tables below the first two use "
         "the primary reference (baked when traced, else file).",

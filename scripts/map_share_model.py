@@ -7,7 +7,7 @@ mixture (map with probability c, else the tables), weight lum(f cos) L / (c p_ma
 p_tables), as the SVM graph and the OSL shader weigh them. Prints each material's mean per-normal
 variance per sample at each c, over the variance at c = 0.5. A model, not the render: on the
 lights acceptance's sky it put c = 0.8 at 0.31x (paper_white) and 0.42x (cm_military_green) of
-c = 0.5's variance, Cycles' SVM renders measured 0.87x and 0.99x (blender_addon/world.py).
+c = 0.5's variance, Cycles' SVM renders measured 0.87x and 0.99x (blender_addon/render/world.py).
 
     .venv/bin/python scripts/map_share_model.py WORLD.exr TABLES.exr... [--shares 0.2,0.5,0.8]
 """

@@ -1,4 +1,4 @@
-"""The world map's share of portal directions, measured in renders (blender_addon/world.py
+"""The world map's share of portal directions, measured in renders (blender_addon/render/world.py
 SHARE_GLOSSY, SHARE_MATTE): per share, a back end's per-sample variance and CPU time per spp on
 the lights acceptance's sphere, and their product (what an equal-time MSE follows).
 
@@ -39,7 +39,7 @@ def main(argv=None):
     ap.add_argument("--lo", type=int, default=16)
     ap.add_argument("--hi", type=int, default=144)
     args = ap.parse_args(argv)
-    from blender_addon import world as bw
+    from blender_addon.render import world as bw
     ref_path = la.OUT / f"{args.scene}_{args.name}" / "tracer_baked.npy"
     if not ref_path.is_file():
         sys.exit(f"no reference: run scripts/lights_acceptance.py {args.name} --scenes {args.scene} first")

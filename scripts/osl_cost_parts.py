@@ -1,5 +1,5 @@
 """Issue 52 item 2: where the OSL back end's time per sample goes. The node's OSL shader
-(blender_addon/osl/) compiled with parts replaced, side by side with Principled (OSL off and on),
+(blender_addon/render/osl/) compiled with parts replaced, side by side with Principled (OSL off and on),
 per scene, on a default bake (cm_military_green's by default).
 
 Variants (the shader's text patched while the node compiles it; some render a different image:
@@ -101,8 +101,8 @@ def _counted(src):
 
 
 def source(variant, fetches=0, before=None, at=None):
-    from blender_addon import node
-    src = node.shader_source()
+    from blender_addon.render import osl_script
+    src = osl_script.shader_source()
     if variant == "const":
         return _body(src, PORTAL.replace("ACC", "0.0"))
     if variant in ("floor1", "floorR"):
@@ -119,8 +119,10 @@ def source(variant, fetches=0, before=None, at=None):
 
 
 def _before_source(path):
-    """The shader of another checkout's blender_addon/osl (headers inlined as node.shader_source does)."""
-    folder = Path(path) / "blender_addon" / "osl"
+    """The shader of another checkout's blender_addon/render/osl (blender_addon/osl before issue 53's
+    split; headers inlined as osl_script.shader_source does)."""
+    folder = next((f for f in (Path(path) / "blender_addon" / "render" / "osl", Path(path) / "blender_addon" / "osl")
+                   if f.is_dir()), Path(path) / "blender_addon" / "render" / "osl")
     return re.sub(r'^#include "([^"]+)"$',
                   lambda m: (folder / m.group(1)).read_text() if (folder / m.group(1)).is_file() else m.group(0),
                   (folder / "learned_bsdf.osl").read_text(), flags=re.M)
@@ -130,15 +132,15 @@ def _before_source(path):
 def patched(text, texture=None):
     """The node compiling `text` as its shader (and binding the OSL texture `texture`, when given)
     while the scene is built and rendered (the node refreshes its texture at every render)."""
-    from blender_addon import node
-    saved, saved_texture = node.shader_source, node._osl_texture
-    node.shader_source = lambda probe=False: text if not probe else saved(probe)
+    from blender_addon.render import derived, osl_script
+    saved, saved_texture = osl_script.shader_source, derived.osl_texture
+    osl_script.shader_source = lambda probe=False: text if not probe else saved(probe)
     if texture:
-        node._osl_texture = lambda tables_path: str(texture)
+        derived.osl_texture = lambda tables_path: str(texture)
     try:
         yield
     finally:
-        node.shader_source, node._osl_texture = saved, saved_texture
+        osl_script.shader_source, derived.osl_texture = saved, saved_texture
 
 
 def scene_for(variant, tables, fit, setup, size, spp, threads):

@@ -39,9 +39,9 @@ def _case(name):
 def roulette(name="cm_military_green", scenes=("sky", "truesky", "hdri")):
     import bpy
     import cycles.osl
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb, osl_script
     setups = la.setups(la.OUT / "env_sunny.exr", sorted(la.OUT.glob("sky_*.exr"))[-1])
-    src = lb.shader_source()
+    src = osl_script.shader_source()
     marker = "        w_portal = fcos / q;\n"
     if src.count(marker) != 1:
         raise RuntimeError("the shader changed: no single 'w_portal = fcos / q;' to probe after")
@@ -60,13 +60,13 @@ def roulette(name="cm_military_green", scenes=("sky", "truesky", "hdri")):
         lb.register()
         sc, mat = ca.cycles_scene("osl", name, tp, None, N, 64, fit=fit, setup=setups[scene], native=True)
         lb.sync(sc, refresh=True)
-        script = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup").node_tree.nodes[lb.SCRIPT]
+        script = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup").node_tree.nodes[osl_script.SCRIPT]
         lb.unregister()         # nothing may rebuild the node before the render
         text = bpy.data.texts.new("flowbsdf_probe.osl")
         text.from_string(src)
-        with lb._own_tempdir():
+        with osl_script._own_tempdir():
             script.script = text
-            if not cycles.osl.update_script_node(script, lb._report):
+            if not cycles.osl.update_script_node(script, osl_script._report):
                 raise RuntimeError("probe shader did not compile")
         r, g, b = cs.render(sc).astype(float)[inner].T
         print(f"[roulette] {scene} {name}: world/sun-technique samples {r.mean():.3f} of the camera samples; "

@@ -1,5 +1,5 @@
 """Cost per sample of the SVM back end (blender_addon/svm.py) on the CPU, against the OSL back
-end (blender_addon/osl/learned_bsdf.osl), a Diffuse BSDF and a Principled BSDF; with --mse,
+end (blender_addon/render/osl/learned_bsdf.osl), a Diffuse BSDF and a Principled BSDF; with --mse,
 the equal-time image error of the SVM world mixture on a sphere under a sky with its sun.
 
 Scene: a smooth unit sphere filling an orthographic view, size x size pixels, under a constant
@@ -11,7 +11,7 @@ CPU time of the process, not wall time, and the fastest run, as other jobs may s
 cores. SVM, Diffuse and Principled render with OSL off; the OSL back end (and a Diffuse with
 OSL on, for scale) with OSL on. "svm world" is the SVM graph with the world mixture of a
 Sky Texture with its sun (strength 0.2, sun elevation 0.5, rotation 1.0; its world inputs
-from blender_addon/world.bake_world_map: map 0.2, sun 0.3, tables 0.5). Also reports the
+from blender_addon/render/world.bake_world_map: map 0.2, sun 0.3, tables 0.5). Also reports the
 SVM graphs' node and lookup counts (node groups expanded, as Cycles compiles them; for the
 mixture per technique, as only the chosen branch runs) and the time to build them in
 Python and to compile them (an 8 x 8 px, 1 spp render).
@@ -60,8 +60,8 @@ def _set_sky(scene):
 
 
 def _sky_inputs(folder):
-    """The world inputs of the sky (blender_addon/world.bake_world_map, its map in `folder`)."""
-    from blender_addon import world
+    """The world inputs of the sky (blender_addon/render/world.bake_world_map, its map in `folder`)."""
+    from blender_addon.render import world
     scene = cs.reset(8, 8, spp=1, osl=False, threads=1)
     _set_sky(scene)
     return world.bake_world_map(scene, folder)
@@ -82,7 +82,7 @@ def _lambert(folder):
 
 def _materials(tables, world):
     """{back end: (OSL on?, nodes(tree) -> shader socket)}."""
-    from blender_addon import node as lb
+    from blender_addon.render import osl_script
     from blender_addon import svm
     svm_texture, osl_texture = ensure_svm_export(tables), ensure_osl_export(tables)
 
@@ -95,7 +95,7 @@ def _materials(tables, world):
         return nodes
 
     def osl(tree):
-        script = lb.make_script_node(tree)
+        script = osl_script.make_script_node(tree)
         script.inputs["Tables"].default_value = str(osl_texture)
         return script.outputs["BSDF"]
     return {"diffuse": (False, bsdf("ShaderNodeBsdfDiffuse")), "principled": (False, bsdf("ShaderNodeBsdfPrincipled")),

@@ -19,7 +19,7 @@ world, the acceptance's HDRI, studio lamps) and variant: CPU time of this proces
 fastest of --inner renders at --lo and at --hi spp (each render's fixed cost cancels), the best of
 --repeat interleaved rounds (the machine is shared); and the graph's node count (groups expanded,
 every branch: the SVM interpreter runs only the branch taken). A graph without the node named
-svm.FILM is not taken for the SVM back end (node._has_svm: the node renders the fit instead).
+svm.FILM is not taken for the SVM back end (binding.has_svm: the node renders the fit instead).
 
     .venv/bin/python scripts/svm_cost_parts.py [--tables T.exr] [--variants svm,before] [--repeat 3]
 """
@@ -57,7 +57,7 @@ def patched(variant):
 
     def portal_only(tree, texture, tangent=None, location=(0.0, 0.0), world=None, cv=None):
         g = svm._Graph(tree, location)
-        g.node("ShaderNodeCombineXYZ", name=svm.FILM)      # (the node's mark of an SVM graph: node._has_svm)
+        g.node("ShaderNodeCombineXYZ", name=svm.FILM)      # (the node's mark of an SVM graph: binding.has_svm)
         geometry = g.node("ShaderNodeNewGeometry")
         d = g.vmath('REFLECT', g.scale(geometry.outputs["Incoming"], -1.0), geometry.outputs["Normal"])
         portal = g.node("ShaderNodeBsdfRayPortal")

@@ -162,7 +162,7 @@ def setup():
 
 def steps():
     """A generator: each yield waits that many seconds (the UI redraws meanwhile)."""
-    import flowbsdf.panels as panels
+    import flowbsdf.artist.panels as panels
     win = bpy.context.window_manager.windows[0]
     win.event_simulate(type="ESC", value="PRESS", x=10, y=10)        # close the splash
     win.event_simulate(type="ESC", value="RELEASE", x=10, y=10)

@@ -268,9 +268,9 @@ def hashed_u(group_node):
     """Make a Learned BSDF node's OSL shader hash u on camera rays too (what it does without the
     scene's film settings), for comparisons. Unregisters the add-on's handlers, which would set
     the film settings again before the render."""
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb, osl_script
     lb.unregister()
-    group_node.node_tree.nodes[lb.SCRIPT].inputs["FilmFilter"].default_value = 0
+    group_node.node_tree.nodes[osl_script.SCRIPT].inputs["FilmFilter"].default_value = 0
 
 
 def sphere_view(width, height, scale=2.0, radius=1.0):

@@ -115,7 +115,7 @@ def test_the_manifest_names_a_measured_file_relative_to_itself(tmp_path):
     """The scan's manifest names a material's file relative to the manifest's folder (the project
     moves as one folder), and the bake finds the file from there."""
     from types import SimpleNamespace
-    from blender_addon import scan
+    from blender_addon.artist import scan
     measured = tmp_path / "files" / "silk.bsdf"
     measured.parent.mkdir()
     measured.write_bytes(b"x")
@@ -211,7 +211,7 @@ def test_preferences_say_which_python_trains(addon, monkeypatch):
 def test_bake_never_trains_and_the_two_buttons_say_what_they_do(addon, tmp_path, monkeypatch):
     """"Bake" with a Python that could train (this venv has torch) bakes from the ideal
     tabulation; only "Train + Bake" trains. Their tooltips differ and give the time."""
-    from blender_addon import operators
+    from blender_addon.artist import operators
     monkeypatch.delenv("FLOWBSDF_PYTHON", raising=False)
     mat = one_learned_object(tmp_path, "never_trained")
     with bpy.context.temp_override(material=mat):
@@ -231,7 +231,7 @@ def test_tables_from_a_model_without_one_fails_with_what_to_do(addon, tmp_path, 
     """Tables > From: Trained model makes the manifest's bake source "flow"; Bake (never trains)
     without a model fails that material with the ways out, and writes no tables; Material
     (the default) bakes from the material itself."""
-    from blender_addon.props import manifest_entry
+    from blender_addon.artist.props import manifest_entry
     monkeypatch.delenv("FLOWBSDF_PYTHON", raising=False)
     mat = one_learned_object(tmp_path, "wants_model")
     assert mat.flowbsdf.tables_from == "MATERIAL" and manifest_entry(mat)["bake"]["source"] == "auto"
@@ -246,7 +246,7 @@ def test_tables_from_a_model_without_one_fails_with_what_to_do(addon, tmp_path, 
 
 def test_job_progress_and_cancel(tmp_path):
     """A worker job reports progress lines and a cancel ends it and its process group."""
-    from blender_addon import worker
+    from blender_addon.artist import worker
     manifest = tmp_path / "m.toml"
     manifest.write_text('[[material]]\nname = "slow"\nsource = { kind = "analytic", model = "ggx", '
                         'alpha = 0.05 }\nbake = { tol = 0.0001, resolution = 256 }\n')
@@ -268,7 +268,7 @@ def test_job_progress_and_cancel(tmp_path):
 
 def _worker_main():
     import importlib.util
-    spec = importlib.util.spec_from_file_location("worker_main", ROOT / "blender_addon" / "worker_main.py")
+    spec = importlib.util.spec_from_file_location("worker_main", ROOT / "blender_addon" / "artist" / "worker_main.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -466,7 +466,7 @@ def test_bake_progress_follows_plans_in_turns(monkeypatch):
 def test_progress_moves_within_one_material(tmp_path):
     """One material's bake: the job's fraction moves between 0 and 1 and its message is the
     artist's words ("Baking plastic: 7 of about 12 angles, ..."), not the planner's."""
-    from blender_addon import worker
+    from blender_addon.artist import worker
     manifest = tmp_path / "m.toml"
     manifest.write_text('[[material]]\nname = "plastic"\nsource = { kind = "analytic", model = "plastic", '
                         'albedo = [0.7, 0.1, 0.08], alpha = 0.12 }\nbake = { resolution = 16, tol = 0.02, '
@@ -496,8 +496,8 @@ def test_progress_moves_within_one_material(tmp_path):
 def EXACT():
     """What a bound node renders in a Cycles CPU scene with OSL on and no lamps, in this Blender:
     OSL where its Cycles runs our shader, else the SVM graph where it builds, else the fit."""
-    from blender_addon import node
-    if node.osl_compiler_available():
+    from blender_addon.render import node, osl_script
+    if osl_script.osl_compiler_available():
         return "OSL, exact"
     return "SVM, exact" if node.svm_available() else "Fit"
 
@@ -536,7 +536,7 @@ def test_three_materials_scanned_baked_rendered(baked_scene):
     assert bins["matte"] == 3 and min(bins.values()) >= 3, bins
     for name, _ in THREE:
         assert (out / "tables" / f"{name}.exr").is_file()
-    from blender_addon import node
+    from blender_addon.render import node
     for name, _ in THREE:
         group = next(n for n in bpy.data.materials[name].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
         status = node.node_status(group, scene)
@@ -559,7 +559,7 @@ def test_the_svm_back_end_renders_what_osl_does(baked_scene):
     Cycles' shading system OSL and SVM: each sphere's mean within noise of the OSL render (all
     sample the baked tables). The graph's textures are packed (svm._image: a file texture read
     through OSL rendered a sphere black now and then)."""
-    from blender_addon import node
+    from blender_addon.render import node
     scene, _, _ = baked_scene
     if not node.svm_available():
         pytest.skip("this Blender cannot build the SVM back end (Ray Portal BSDF and Light Path Portal Depth: 5.0+)")
@@ -586,7 +586,7 @@ def test_the_svm_back_end_renders_what_osl_does(baked_scene):
 def test_bake_writes_a_preview_beside_the_tables(baked_scene):
     """Each bake leaves <name>.preview.png beside its tables (the material on the reference
     tracer's shader ball under a soft sky, 96x96) and the panel finds it."""
-    from blender_addon import panels
+    from blender_addon.artist import panels
     scene, out, _ = baked_scene
     colours = {}
     for name, _ in THREE:
@@ -626,7 +626,7 @@ def test_cli_command_bakes_binds_and_saves(baked_scene, tmp_path, capsys):
 
 
 def _learned_group(mat):
-    from blender_addon import panels
+    from blender_addon.artist import panels
     return panels._learned_group(mat)
 
 
@@ -634,7 +634,7 @@ def test_paths_follow_the_project_folder(addon, tmp_path):
     """Table paths are stored relative to the .blend: moving the project folder keeps the tables
     rendering; moving the .blend alone, the node and Scan both say the tables are missing."""
     import shutil
-    from blender_addon import node
+    from blender_addon.render import binding, node, osl_script
     cs.bpy_or_skip()
     project = tmp_path / "A"
     project.mkdir()
@@ -646,9 +646,9 @@ def test_paths_follow_the_project_folder(addon, tmp_path):
     scene.flowbsdf.out_dir = "//flowbsdf"
     bpy.ops.wm.save_as_mainfile(filepath=str(project / "shot.blend"))
     assert bpy.ops.flowbsdf.bake() == {"FINISHED"}
-    raw = _learned_group(mat).node_tree[node.TREE_KEY]
+    raw = _learned_group(mat).node_tree[binding.TREE_KEY]
     assert raw["tables"] == "//flowbsdf/tables/moving.exr", raw["tables"]
-    assert all(raw[k].startswith("//flowbsdf/tables/moving.") for k in node.PATH_KEYS if raw.get(k)), raw.to_dict()
+    assert all(raw[k].startswith("//flowbsdf/tables/moving.") for k in binding.PATH_KEYS if raw.get(k)), raw.to_dict()
     svm_images = [i for i in bpy.data.images if "svm" in i.filepath]
     assert all(i.filepath.startswith("//flowbsdf/tables/") for i in svm_images), [i.filepath for i in svm_images]
     bpy.ops.wm.save_mainfile()
@@ -660,7 +660,7 @@ def test_paths_follow_the_project_folder(addon, tmp_path):
     group = _learned_group(mat)
     assert node.node_status(group, scene).startswith(EXACT())
     assert "tables missing" not in node.node_status(group, scene)
-    script = group.node_tree.nodes.get(node.SCRIPT)
+    script = group.node_tree.nodes.get(osl_script.SCRIPT)
     if script is not None:
         assert Path(script.inputs["Tables"].default_value).parent == moved / "flowbsdf" / "tables"
     assert all(Path(bpy.path.abspath(i.filepath)).is_file() for i in bpy.data.images if "svm" in i.filepath)
@@ -683,7 +683,7 @@ def test_paths_follow_the_project_folder(addon, tmp_path):
 def test_an_unsaved_file_asks_to_save_first(addon, tmp_path, monkeypatch):
     """The panel and the interactive operators ask to save first (the tables go beside the
     .blend); a script's bake of an unsaved file says exactly where the tables went."""
-    from blender_addon import jobs, prefs
+    from blender_addon.artist import jobs, prefs
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     assert scene.flowbsdf.out_dir == "//flowbsdf"
@@ -710,7 +710,7 @@ def test_extension_zip_builds_validates_installs(tmp_path):
     import zipfile
     names = zipfile.ZipFile(zip_path).namelist()
     assert "blender_manifest.toml" in names and "vendor/bake/plumbing/pipeline.py" in names
-    assert "worker_main.py" in names and "osl/learned_bsdf.osl" in names
+    assert "artist/worker_main.py" in names and "render/osl/learned_bsdf.osl" in names
     assert not [n for n in names if n.endswith((".so", ".pyc")) or "trainer/" in n]
     manifest = tomllib.loads(zipfile.ZipFile(zip_path).read("blender_manifest.toml").decode())
     assert manifest["id"] == "flowbsdf" and manifest["blender_version_min"] == "4.2.0"
@@ -734,9 +734,10 @@ assert bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_de
                                                 enable_on_install=True) == {"FINISHED"}
 assert "bl_ext.user_default.flowbsdf" in bpy.context.preferences.addons.keys()
 print("ENABLED bl_ext.user_default.flowbsdf")
-from bl_ext.user_default.flowbsdf import deps, prefs
+from bl_ext.user_default.flowbsdf import deps
+from bl_ext.user_default.flowbsdf.artist import prefs
 print("VENDORED", deps.bake_root())
-from bl_ext.user_default.flowbsdf import node
+from bl_ext.user_default.flowbsdf.render import node
 assert deps.bake.__name__ == "bl_ext.user_default.flowbsdf.vendor.bake", deps.bake.__name__
 assert hasattr(bpy.types.Scene, "flowbsdf_backend")
 assert prefs.get() is not None
@@ -924,7 +925,7 @@ class _Recorder:
 
 def test_panel_draws_every_state(addon, tmp_path):
     from types import SimpleNamespace
-    from blender_addon import panels, worker
+    from blender_addon.artist import panels, worker
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     scene.flowbsdf.out_dir = str(tmp_path)
@@ -976,7 +977,8 @@ def _check_packed_line(ctx, tmp_path):
     however its path is spelled, and one nothing uses (not saved) is not counted."""
     import numpy as np
     from bake.plumbing.exrio import write_rgba_exr
-    from blender_addon import panels, svm
+    from blender_addon import svm
+    from blender_addon.artist import panels, uitext
     paths = []
     rng = np.random.default_rng(0)
     for k, side in enumerate((256, 128, 16)):       # noise: MBs that compression keeps
@@ -996,7 +998,7 @@ def _check_packed_line(ctx, tmp_path):
     assert panels.packed_use() == text
     drawn = []
     panels.draw_scene(_Recorder(drawn), ctx)
-    lines = panels.wrap(text, ctx)
+    lines = uitext.wrap(text, ctx)
     labels = [t for k, t in drawn if k == "label"]
     at = labels.index(lines[0])
     assert labels[at:at + len(lines)] == lines and len(lines) <= 3, lines
@@ -1012,7 +1014,7 @@ def test_make_asset_library_bakes_in_the_worker_then_writes_the_blend_in_a_backg
     in the worker (the bake's arguments: its progress and Cancel are the bake's), then library.blend
     from a background Blender (`library ... --blend-only`: writing it here would replace the open
     file); a material that failed to bake does not stop the library (jobs are stand-ins here)."""
-    from blender_addon import jobs, library, worker
+    from blender_addon.artist import jobs, library, worker
     started = []
 
     class Job:
@@ -1059,8 +1061,7 @@ def test_make_asset_library_bakes_in_the_worker_then_writes_the_blend_in_a_backg
 def test_modal_progress_and_cancel(addon, tmp_path):
     """The interactive path: the modal timer polls the job, shows progress, and Cancel stops it."""
     from types import SimpleNamespace
-    from blender_addon import operators, worker
-
+    from blender_addon.artist import operators, worker
     manifest = tmp_path / "m.toml"
     manifest.write_text('[[material]]\nname = "slow"\nsource = { kind = "analytic", model = "ggx", '
                         'alpha = 0.05 }\nbake = { tol = 0.0001, resolution = 256 }\n')
@@ -1104,7 +1105,7 @@ def test_train_then_bake_from_the_panel(addon, tmp_path):
     """Train + Bake: the trainer runs as a subprocess of the worker (torch never in Blender);
     the material's tables' From becomes Trained model and the tables are baked from the flow."""
     pytest.importorskip("torch")
-    from blender_addon import scan, worker
+    from blender_addon.artist import scan, worker
     mat = one_learned_object(tmp_path, "trained")
     with bpy.context.temp_override(material=mat):
         assert bpy.ops.flowbsdf.train_bake(only_active=True) == {"FINISHED"}
@@ -1134,7 +1135,7 @@ def test_scan_measured_file_material(addon, tmp_path, rgl):
 def test_a_measured_file_carries_only_when_the_artist_asks(addon, tmp_path):
     """A material from a file bakes without the carried blend (the manifest's `carry`, the panel's
     "Carried": off by default), with it when ticked; an analytic material's entry does not mention it."""
-    from blender_addon.props import manifest_entry
+    from blender_addon.artist.props import manifest_entry
     mat = one_learned_object(tmp_path, "measured")
     mat.flowbsdf.source_kind = "FILE"
     mat.flowbsdf.filepath = str(tmp_path / "x.bsdf")

@@ -164,8 +164,8 @@ scene = bpy.context.scene
 result = {}
 
 def chain(socket):
-    # (base, [(x0, x1, diff)]) of a piecewise-linear vector built by node._piecewise, in the
-    # fit's node group (node._fit_group): per channel a chain of Math Multiply Adds on Map Ranges
+    # (base, [(x0, x1, diff)]) of a piecewise-linear vector built by fit_nodes.piecewise, in the
+    # fit's node group (fit_nodes.fit_group): per channel a chain of Math Multiply Adds on Map Ranges
     # into one Combine XYZ
     link = socket.links[0]
     inner = next(n for n in link.from_node.node_tree.nodes if n.bl_idname == "NodeGroupOutput")
@@ -374,7 +374,7 @@ UPGRADE = """
 import sys, bpy
 sys.path.insert(0, sys.argv[1])
 import blender_addon
-from blender_addon import node
+from blender_addon.render import binding, node, osl_script
 blender_addon.register()
 bpy.ops.wm.open_mainfile(filepath=sys.argv[2])
 scene = bpy.context.scene
@@ -383,9 +383,9 @@ scene.cycles.device = "CPU"
 scene.cycles.shading_system = True
 for mat in ("matte", "plastic", "rough_metal"):
     g = bpy.data.materials[mat].node_tree.nodes["Learned BSDF"]
-    script = g.node_tree.nodes[node.SCRIPT]
+    script = g.node_tree.nodes[osl_script.SCRIPT]
     assert script.bytecode and "Fallback" in script.inputs, mat
-    assert g.node_tree[node.TREE_KEY]["has_osl"], mat
+    assert g.node_tree[binding.TREE_KEY]["has_osl"], mat
     node.sync(scene)
     print("STATUS", mat, node.node_status(g, scene))
 blender_addon.unregister()
@@ -410,22 +410,22 @@ def test_saved_blend_gets_the_osl_back_end_in_bpy(batch_scene, batch_bake):
 
 
 def test_node_reads_the_fit_format_bake_writes(batch_scene, batch_bake, tmp_path):
-    """node.load_fit (json only, what a numpy-less Blender uses) reads the fits the batch's bake
+    """derived.load_fit (json only, what a numpy-less Blender uses) reads the fits the batch's bake
     wrote, and refuses one of another format version."""
     tmp, _, _ = batch_scene
     pytest.importorskip("bpy", reason="bpy (Blender as a Python module) is not installed")
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))
     from bake.export import closure_fit
-    from blender_addon import node
+    from blender_addon.render import derived
     _bound_blend(batch_scene, batch_bake)
-    assert node.FIT_VERSION == closure_fit.FIT_VERSION
+    assert derived.FIT_VERSION == closure_fit.FIT_VERSION
     fits = sorted((tmp / "flowbsdf" / "tables").glob("*.fit.json"))
     assert len(fits) == 3
     for path in fits:
-        assert node.load_fit(path) == closure_fit.load_fit(path)
+        assert derived.load_fit(path) == closure_fit.load_fit(path)
     data = json.loads(fits[0].read_text())
     data["version"] = closure_fit.FIT_VERSION + 1
     (tmp_path / "old.fit.json").write_text(json.dumps(data))
     with pytest.raises(ValueError, match="not a current FlowBSDF closure fit"):
-        node.load_fit(tmp_path / "old.fit.json")
+        derived.load_fit(tmp_path / "old.fit.json")

@@ -16,7 +16,7 @@ from bake.export.osl_export import ensure_osl_export
 
 bpy = cs.bpy_or_skip()
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
-from blender_addon import node as lb  # noqa: E402
+from blender_addon.render import backends, binding, derived, node as lb, osl_script, refits  # noqa: E402
 from cycles_scenes import (albedo_and_variance as _albedo_and_variance, assert_furnace as _assert_furnace,  # noqa: E402
                            small_tables as _small_tables)
 
@@ -53,7 +53,7 @@ def _probe(tex, n, theta, mode, phi=0.0, world="", **inputs):
     cs.ortho_camera(sc)
 
     def nodes(tree):
-        s = lb.make_script_node(tree, probe=True)
+        s = osl_script.make_script_node(tree, probe=True)
         values = {"Tables": str(tex), "World": str(world), "ProbeN": n, "ProbeTheta": theta, "ProbePhi": phi,
                   "ProbeMode": mode, **inputs}
         for name, value in values.items():
@@ -71,8 +71,8 @@ def test_osl_sampler_is_tables_sample(baked, name):
     from bake.export.osl_export import LAYOUT
     from bake.core.tables import open_tables
     from bake.export.osl_export import export_path
-    assert lb.OSL_LAYOUT == LAYOUT and f"#define LAYOUT {LAYOUT}\n" in lb.shader_source()
-    assert lb._texture_path(baked[name], "0" * 64) == export_path(baked[name], "0" * 64)
+    assert derived.OSL_LAYOUT == LAYOUT and f"#define LAYOUT {LAYOUT}\n" in osl_script.shader_source()
+    assert derived.texture_path(baked[name], "0" * 64) == export_path(baked[name], "0" * 64)
     tab = open_tables(baked[name])
     tab.backend = "numpy"
     tex = ensure_osl_export(baked[name])
@@ -248,7 +248,7 @@ def test_osl_env_radiance_is_the_environment_textures(tmp_path, linear):
     cs.ortho_camera(sc)
 
     def nodes(tree):
-        s = lb.make_script_node(tree, probe=True)
+        s = osl_script.make_script_node(tree, probe=True)
         s.inputs["EnvImage"].default_value = str(path)
         s.inputs["EnvLinear"].default_value = linear
         s.inputs["ProbeN"].default_value = n
@@ -411,7 +411,7 @@ def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):
     mat = bpy.data.materials.new("gold")
     node = lb.assign_learned_bsdf(mat, "gold", path)
     cs.add_sphere(sc, mat, segments=32, rings=16)
-    assert lb.backend_of(sc) == "auto" and lb.node_status(node, sc) == "OSL, exact"
+    assert backends.backend_of(sc) == "auto" and lb.node_status(node, sc) == "OSL, exact"
     sc.cycles.shading_system = False
     bpy.context.view_layer.update()     # the scene-change handler follows
     assert lb.node_status(node, sc) == "SVM, exact" and switch_of(node) == 0.0 and switch_of(node, lb.SWITCH_SVM) == 1.0
@@ -420,7 +420,7 @@ def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):
     assert lb.node_status(node, sc) == "SVM, exact"
     sc.cycles.device = 'CPU'
     lb.set_backend(sc, "fit")
-    assert lb.backend_of(sc) == "fit" and lb.node_status(node, sc).startswith("Fit")
+    assert backends.backend_of(sc) == "fit" and lb.node_status(node, sc).startswith("Fit")
     with pytest.raises(ValueError, match="back end"):
         lb.set_backend(sc, "gpu")
     lb.set_backend(sc, "osl")
@@ -435,7 +435,7 @@ def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):
     sc = bpy.context.scene
     mat = bpy.data.materials["gold"]
     node = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
-    assert node.label == "Learned BSDF" and lb.backend_of(sc) == "osl"
+    assert node.label == "Learned BSDF" and backends.backend_of(sc) == "osl"
     assert lb.node_status(node, sc) == "OSL, exact"
     np.testing.assert_allclose(cs.render(sc), osl_img, rtol=1e-6)   # same seed, same image
 
@@ -508,10 +508,10 @@ def test_assign_twice_reuses_the_group(baked):
     b = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
     assert a.name == b.name and a.node_tree.name == b.node_tree.name
     assert sum(n.bl_idname == "ShaderNodeGroup" for n in mat.node_tree.nodes) == 1
-    assert len([g for g in bpy.data.node_groups if g.name.startswith(lb.TREE_PREFIX)]) == 1
+    assert len([g for g in bpy.data.node_groups if g.name.startswith(binding.TREE_PREFIX)]) == 1
     out = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial")
     assert out.inputs["Surface"].links[0].from_node.name == a.name
-    assert os.path.isfile(a.node_tree[lb.TREE_KEY]["osl_texture"])
+    assert os.path.isfile(a.node_tree[binding.TREE_KEY]["osl_texture"])
     # the fit's parameters and the tables' sampler are node groups of their own, made once
     # (a node written into a tree costs in proportion to the tree's size: svm._Graph)
     from blender_addon import svm
@@ -530,12 +530,12 @@ def test_a_group_from_an_older_shader_is_rebuilt_on_load(baked, tmp_path):
     mat = bpy.data.materials.new("m")
     tree = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"]).node_tree
     assert not lb.upgrade(tree)
-    tree.nodes[lb.SCRIPT]["flowbsdf_src"] = "an older shader"
+    tree.nodes[osl_script.SCRIPT]["flowbsdf_src"] = "an older shader"
     name, path = tree.name, tmp_path / "old.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(path))
     bpy.ops.wm.open_mainfile(filepath=str(path))         # load_post -> upgrade
     tree = bpy.data.node_groups[name]
-    assert tree.nodes[lb.SCRIPT]["flowbsdf_src"] == lb._source_hash()
+    assert tree.nodes[osl_script.SCRIPT]["flowbsdf_src"] == osl_script.source_hash()
     assert not lb.upgrade(tree)
 
 
@@ -570,14 +570,14 @@ def test_a_fit_of_an_older_version_is_refit_on_load(baked, tmp_path, monkeypatch
     fit_file.write_text(json.dumps(old))
     if version == 6:        # (node.py renders it as it is, where it cannot refit: no numpy)
         lb._build_tree(tree, "gold", path, fit_file)
-        assert lb._info(tree)["fit_version"] == 6 and lb._info(tree)["has_fit"]
+        assert binding.read(tree)["fit_version"] == 6 and binding.read(tree)["has_fit"]
         glossy = [n for n in tree.nodes if n.bl_idname == "ShaderNodeBsdfAnisotropic"]
         assert glossy and len(glossy) % 3 == 0 and not any(n.inputs["Normal"].is_linked for n in glossy)
     match = path.with_name("gold.match.exr")
     match.write_bytes(b"an older match image")
-    info = dict(tree[lb.TREE_KEY].to_dict())
+    info = dict(tree[binding.TREE_KEY].to_dict())
     info["fit_version"] = version
-    tree[lb.TREE_KEY] = info
+    tree[binding.TREE_KEY] = info
     mat.use_fake_user = True            # (saved with the file: no object uses it)
     for n in [n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"]:
         if n.target == 'EEVEE':         # (an older add-on's material: one output for every engine)
@@ -586,19 +586,19 @@ def test_a_fit_of_an_older_version_is_refit_on_load(baked, tmp_path, monkeypatch
             n.target = 'ALL'
     name, blend = tree.name, tmp_path / "old.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
-    monkeypatch.setattr(lb, "refit_in_thread", lambda: in_thread)
+    monkeypatch.setattr(refits, "refit_in_thread", lambda: in_thread)
     bpy.ops.wm.open_mainfile(filepath=str(blend))         # load_post -> upgrade (or the thread)
     tree = bpy.data.node_groups[name]
     if in_thread:
-        assert lb._info(tree)["fit_version"] == version       # opened at once, the older fit rendering
+        assert binding.read(tree)["fit_version"] == version       # opened at once, the older fit rendering
         node = next(n for n in bpy.data.materials["m"].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
         assert "new closure fit being made" in lb.node_state(node).detail
         lb._on_render_pre(bpy.context.scene)
-        assert lb.refitting(tree) is None and "new closure fit" not in lb.node_state(node).detail
+        assert refits.refitting(tree) is None and "new closure fit" not in lb.node_state(node).detail
     outputs = {n.target: n for n in bpy.data.materials["m"].node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"}
     assert sorted(outputs) == ["CYCLES", "EEVEE"]           # the upgrade wires EEVEE its own output
     assert outputs["EEVEE"].inputs["Surface"].links[0].from_socket.name == lb.EEVEE_OUTPUT
-    assert lb._info(tree)["fit_version"] == closure_fit.FIT_VERSION and lb._info(tree)["has_fit"]
+    assert binding.read(tree)["fit_version"] == closure_fit.FIT_VERSION and binding.read(tree)["has_fit"]
     fit = closure_fit.load_fit(fit_file)
     assert fit["version"] == closure_fit.FIT_VERSION and len(fit["specular"][0]) == closure_fit.LOBES
     assert match.read_bytes() != b"an older match image"
@@ -610,7 +610,7 @@ def test_a_fit_of_an_older_version_is_refit_on_load(baked, tmp_path, monkeypatch
 def test_auto_picks_osl_under_light_objects_and_says_what_it_does_not_light(baked):
     """Lamps are light-sampled inside the OSL shader, so `auto` keeps OSL where they render;
     the status names what the shader does not light as Cycles would (lamps past the slots)."""
-    from blender_addon import lamps
+    from blender_addon.render import lamps, osl_script
     sc = cs.reset(8, 8, spp=1)
     mat = bpy.data.materials.new("m")
     node = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
@@ -626,7 +626,7 @@ def test_auto_picks_osl_under_light_objects_and_says_what_it_does_not_light(bake
             assert lb.node_status(node, sc) == "OSL, exact" and switch_of(node) == 1.0
     status = lb.node_status(node, sc)
     assert status.startswith("OSL, exact, but 2 lamps past the first 8 are not lit (Lamp08, Lamp09). Use at most 8 lamps"), status
-    script = node.node_tree.nodes[lb.SCRIPT]
+    script = node.node_tree.nodes[osl_script.SCRIPT]
     assert [script.inputs[f"L{k}Kind"].default_value for k in range(lamps.SLOTS)] == [1] * lamps.SLOTS
     for lamp in made[lamps.SLOTS:]:
         lamp.hide_render = True
@@ -641,7 +641,7 @@ def test_film_settings_follow_the_scene(baked):
     sc.cycles.pixel_filter_type = 'GAUSSIAN'
     sc.cycles.filter_width = 2.0
     mat = bpy.data.materials.new("m")
-    script = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"]).node_tree.nodes[lb.SCRIPT]
+    script = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"]).node_tree.nodes[osl_script.SCRIPT]
     got = lambda: {k: script.inputs[k].default_value for k in ("FilmFilter", "FilmWidth", "Seed")}  # noqa: E731
     assert got() == {"FilmFilter": 3, "FilmWidth": 2.0, "Seed": 5}
     setattr(sc, lb.FILM_PROP, False)         # the scene's opt-out: hashed u
@@ -674,7 +674,7 @@ def _soft_env(path, w=64, h=32):
 def _osl_vs_tracer_scene(baked, name, n, spp, tmp_path, seed=0):
     """A sphere under a soft environment in Cycles (OSL back end) and the same scene exported
     for bake/tracer by the validate exporter. Returns (Cycles scene, node, tracer scene path)."""
-    from blender_addon import validate
+    from blender_addon.artist import validate
     env = tmp_path / "env.exr"
     if not env.is_file():
         _soft_env(env)
@@ -907,8 +907,8 @@ def test_osl_carried_blend_is_numpy(carried_textures):
     from bake.core.carried import CarriedTables
     from bake.core.tables import open_tables
     from bake.export.carry_export import CARRY_LAYOUT, CARRY_SLICES
-    src = lb.shader_source()
-    assert lb.CARRY_LAYOUT == CARRY_LAYOUT and re.search(rf"^#define CARRY_LAYOUT {CARRY_LAYOUT}\b", src, re.M)
+    src = osl_script.shader_source()
+    assert derived.CARRY_LAYOUT == CARRY_LAYOUT and re.search(rf"^#define CARRY_LAYOUT {CARRY_LAYOUT}\b", src, re.M)
     assert re.search(rf"^#define CARRY_SLICES {CARRY_SLICES}\b", src, re.M)
     mat, tables_path, tex, carry = carried_textures
     tab = open_tables(tables_path)
@@ -976,7 +976,7 @@ def test_osl_furnace_carried_gives_the_blended_albedo(carried_textures, tmp_path
         cs.add_plane(sc, material, size=40.0).rotation_euler = (0.0, np.radians(deg), 0.0)
         img = cs.render(sc).reshape(-1, 3)
         assert lb.node_status(node, sc) == "OSL, carried blend, exact"
-        assert node.node_tree.nodes[lb.SCRIPT].inputs["Carried"].default_value == str(texture)
+        assert node.node_tree.nodes[osl_script.SCRIPT].inputs["Carried"].default_value == str(texture)
         theta = np.radians(deg)
         wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
         thetas, weights, carries, _ = sampler._interval(tab, 0, wi[None])

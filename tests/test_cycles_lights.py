@@ -13,7 +13,7 @@ from conftest import slow_unless
 
 bpy = cs.bpy_or_skip()
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
-from blender_addon import node as lb  # noqa: E402
+from blender_addon.render import binding, node as lb, osl_script  # noqa: E402
 
 ALBEDO = 0.8
 N, SPP, PARTS = 16, 64, 6
@@ -151,7 +151,7 @@ def test_animated_lamp(lambert):
     for frame, (x, energy) in ((1, (-1.0, 50.0)), (2, (0.0, 100.0)), (3, (1.2, 200.0))):
         sc.frame_set(frame)
         # (the first update after the lamp came rebuilt the group: its SVM graph draws toward it)
-        script = bpy.data.node_groups["Learned BSDF: lambert"].nodes[lb.SCRIPT]
+        script = bpy.data.node_groups["Learned BSDF: lambert"].nodes[osl_script.SCRIPT]
         assert script.inputs["L0P"].default_value[0] == pytest.approx(x, abs=1e-5)
         assert script.inputs["L0Strength"].default_value == pytest.approx(energy, rel=1e-6)
     # One frame rendered: a driven input tags the shader at every render, which compiles it
@@ -190,7 +190,7 @@ def _sky_world(sc, elevation=0.5, rotation=1.0, strength=0.2):
 def test_sky_sun_direction_is_where_the_world_map_is_brightest(lambert, rotation):
     """world.sun_of's direction (the shader's sun technique) points at the rendered map's
     brightest pixel: the map's convention and the sun's agree."""
-    from blender_addon import world
+    from blender_addon.render import world
     sc = cs.reset(8, 8, spp=1)
     _sky_world(sc, elevation=0.4, rotation=rotation)
     img = world.render_world(sc, 256, 128, 256)      # enough samples to find the sub-pixel disc
@@ -215,7 +215,7 @@ def test_sun_in_a_sky_without_fireflies(lambert):
     learned = bpy.data.materials.new("learned")
     lb.assign_learned_bsdf(learned, "lambert", lambert)
     sphere = cs.add_sphere(sc, learned, segments=64, rings=32)
-    script = bpy.data.node_groups["Learned BSDF: lambert"].nodes[lb.SCRIPT]
+    script = bpy.data.node_groups["Learned BSDF: lambert"].nodes[osl_script.SCRIPT]
     assert script.inputs["SunNEE"].default_value == 1 and max(script.inputs["SunBase"].default_value) > 0
     assert script.inputs["WorldShare"].default_value > 0
     mine, diffuse = _same_as_diffuse(sc, sphere, learned, cs.material_with(_diffuse, "diffuse"), film_u=True)
@@ -238,8 +238,8 @@ def test_a_sync_that_changes_nothing_updates_nothing(lambert, monkeypatch):
     lb.assign_learned_bsdf(learned, "lambert", lambert)
     assert len(builds) == 1
     cs.add_sphere(sc, learned, segments=16, rings=8)
-    script = bpy.data.node_groups["Learned BSDF: lambert"].nodes[lb.SCRIPT]
-    assert script.inputs["SunNEE"].default_value == 1 and lb._has_svm(script.id_data)
+    script = bpy.data.node_groups["Learned BSDF: lambert"].nodes[osl_script.SCRIPT]
+    assert script.inputs["SunNEE"].default_value == 1 and binding.has_svm(script.id_data)
     lb.sync(sc, refresh=True)
     bpy.context.view_layer.update()
     updated = []
@@ -265,7 +265,7 @@ def test_sun_fit_is_the_rendered_disc(tmp_path, elevation, rotation):
     its centre at 99.5 % of the disc's pixels (measured 1e-4 typical); outside it there is sky
     only; world.without_sun paints the disc out of the
     world map, leaving the sky."""
-    from blender_addon import world
+    from blender_addon.render import world
     sc = cs.reset(8, 8, spp=1)
     _sky_world(sc, elevation=elevation, rotation=rotation)
     sun = world.sun_of(sc)
@@ -293,7 +293,7 @@ def test_a_world_of_one_colour_is_its_map_without_a_render(tmp_path, monkeypatch
     """A world of one colour (Blender's default grey, a lamp-lit scene's black) is mapped as
     that colour, as Cycles renders it, without a render (2-4 s each here; a black world left
     no map behind, so every sync rendered it again); a world with anything linked is rendered."""
-    from blender_addon import world
+    from blender_addon.render import world
     sc = cs.reset(8, 8, spp=1)
     cs.set_world(sc, (0.2, 0.4, 0.6), strength=1.5)
     constant = world.constant_radiance(sc, 64, 32)
@@ -314,7 +314,7 @@ def test_a_world_edit_removes_the_map_it_supersedes(tmp_path):
     """Each world edit makes a new map; the one no scene renders any more goes (three Strength
     tweaks left +13.8 MB behind), unless an image of the .blend still reads it from disk or a
     world is animated (the other frames' maps are still wanted)."""
-    from blender_addon import world
+    from blender_addon.render import world
     sc = cs.reset(8, 8, spp=1)
 
     def maps():
@@ -348,7 +348,7 @@ def test_the_map_share_follows_the_material(lambert):
     """A plain map's share of portal directions runs from SHARE_GLOSSY (no diffuse part) to
     SHARE_MATTE (all diffuse) with the fit's matte fraction; a sun's and a small sun's shares,
     and a material without a fit, keep the world's."""
-    from blender_addon import world as bw
+    from blender_addon.render import binding, world as bw
     plain = bw.shader_inputs("map.exr", {"peak": 38.0}, None)
     assert plain["WorldShare"] == bw.SHARE
     fit = {"diffuse": [[0.2, 0.2, 0.2]], "fit_albedo": [[0.8, 0.8, 0.8]]}
@@ -363,7 +363,7 @@ def test_the_map_share_follows_the_material(lambert):
     cs.reset(8, 8, spp=1)
     mat = bpy.data.materials.new("share")
     lb.assign_learned_bsdf(mat, "lambert", lambert)
-    assert lb._info(bpy.data.node_groups["Learned BSDF: lambert"])["matte"] == pytest.approx(1.0, abs=0.02)
+    assert binding.read(bpy.data.node_groups["Learned BSDF: lambert"])["matte"] == pytest.approx(1.0, abs=0.02)
 
 
 def _hdri_sun_sphere(lambert, tmp_path, interpolation, sun):
@@ -371,7 +371,7 @@ def _hdri_sun_sphere(lambert, tmp_path, interpolation, sun):
     very bright) or a broad sun (a patch 40x the sky); checks the shader's world inputs for it
     and returns (scene, sphere, learned material)."""
     import OpenEXR
-    from blender_addon import world as bw
+    from blender_addon.render import osl_script, world as bw
     h, w = 512, 1024
     img = np.full((h, w, 3), 0.5, np.float32)
     img[h // 2:] = 0.1
@@ -389,7 +389,7 @@ def _hdri_sun_sphere(lambert, tmp_path, interpolation, sun):
     learned = bpy.data.materials.new("learned")
     lb.assign_learned_bsdf(learned, "lambert", lambert)
     sphere = cs.add_sphere(sc, learned, segments=64, rings=32)
-    script = bpy.data.node_groups["Learned BSDF: lambert"].nodes[lb.SCRIPT]
+    script = bpy.data.node_groups["Learned BSDF: lambert"].nodes[osl_script.SCRIPT]
     if sun == "tiny":
         assert script.inputs["EnvImage"].default_value == str(path)
         assert Path(script.inputs["EnvMap"].default_value).name.endswith(".bright.exr")
@@ -464,7 +464,7 @@ def test_svm_graph_draws_toward_the_lamps_it_reaches(plastic):
     lamps.SVM_SLOTS lamp techniques (one rebuild), each lamp it reaches driving one: its place (a
     sun: its direction), bounding radius and power follow the lamp as it moves or changes; lamps
     added, hidden or made unreachable later only rebind the slots (an empty slot has power 0)."""
-    from blender_addon import lamps
+    from blender_addon.render import lamps, osl_script
     sc = cs.reset(8, 8, spp=1, osl=False)
     mat = bpy.data.materials.new("plastic")
     node = lb.assign_learned_bsdf(mat, "plastic", plastic)
@@ -481,7 +481,7 @@ def test_svm_graph_draws_toward_the_lamps_it_reaches(plastic):
     point = cs.add_lamp(sc, "POINT", (1.0, -2.0, 3.0), energy=100.0, shadow_soft_size=0.2)
     got, slots = sync()
     assert slots == lamps.SVM_SLOTS
-    built = tree.nodes[lb.SCRIPT]
+    built = tree.nodes[osl_script.SCRIPT]
     assert list(got) == [0] and got[0][0] == pytest.approx((1.0, -2.0, 3.0))
     assert got[0][1] == pytest.approx((0.2, 100.0 / (4 * np.pi), 0.0), rel=1e-3)
     point.location = (0.5, 0.5, 2.0)
@@ -493,7 +493,7 @@ def test_svm_graph_draws_toward_the_lamps_it_reaches(plastic):
     sun = cs.add_lamp(sc, "SUN", (0.0, 0.0, 5.0), energy=3.0)
     sun.data.angle = 0.1
     got, slots = sync()
-    assert slots == lamps.SVM_SLOTS and tree.nodes[lb.SCRIPT] == built      # not rebuilt
+    assert slots == lamps.SVM_SLOTS and tree.nodes[osl_script.SCRIPT] == built      # not rebuilt
     byname = {ob.name: k for k, ob in enumerate(lamps.svm_lamps(sc))}
     assert len(got) == 3 and len(byname) == 3
     a, s = got[byname[area.name]], got[byname[sun.name]]
@@ -505,20 +505,20 @@ def test_svm_graph_draws_toward_the_lamps_it_reaches(plastic):
     area.visible_camera = False                    # its portal cannot reach it: no technique
     got, slots = sync()
     assert len(got) == 2 and area.name not in {ob.name for ob in lamps.svm_lamps(sc)}
-    assert slots == lamps.SVM_SLOTS and tree.nodes[lb.SCRIPT] == built
+    assert slots == lamps.SVM_SLOTS and tree.nodes[osl_script.SCRIPT] == built
 
 
 def test_without_osl_under_lamps_auto_renders_the_fit_and_says_the_step_to_exact(plastic):
     """OSL off, back end "auto": no lamps, the SVM graph; under lamps the fit below
-    node.SVM_LAMP_SAMPLES render samples (at equal time it beats the SVM graph there:
-    node._resolve), the SVM graph from there on (lamps it reaches), the fit's status saying how far it is from the
+    backends.SVM_LAMP_SAMPLES render samples (at equal time it beats the SVM graph there:
+    backends.resolve), the SVM graph from there on (lamps it reaches), the fit's status saying how far it is from the
     measured material and the one step to an exact back end: on the CPU, turning on OSL; on the
     GPU, the SVM graph: first making each lamp its portal cannot reach reachable (hidden from the
     camera, radius 0, angle 0, Multiple Importance off: lamps.reach, the status's button), then
     setting the back end to SVM. Forced "svm" says which lamp it does not reach. The switches
     follow on the next scene update. A point lamp as bpy makes it is hidden from the camera
     (bpy 5.0) and has radius 0."""
-    from blender_addon import lamps
+    from blender_addon.render import backends, lamps
     sc = cs.reset(8, 8, spp=1, osl=False)
     mat = bpy.data.materials.new("plastic")
     node = lb.assign_learned_bsdf(mat, "plastic", plastic)
@@ -560,9 +560,9 @@ def test_without_osl_under_lamps_auto_renders_the_fit_and_says_the_step_to_exact
     fit_because("Lamp has radius 0", "Give Lamp a Radius", reach)
     lamps.reach(lamp)                       # what the status's button does
     assert lamp.visible_camera and lamp.data.shadow_soft_size == pytest.approx(lamps.RADIUS)
-    fit_because(f"under lamps SVM needs {lb.SVM_LAMP_SAMPLES}+ samples", "Set Back End to SVM",
+    fit_because(f"under lamps SVM needs {backends.SVM_LAMP_SAMPLES}+ samples", "Set Back End to SVM",
                 ("flowbsdf.set_backend", {"backend": "svm"}))
-    sc.cycles.samples = lb.SVM_LAMP_SAMPLES     # a final render's budget: the SVM graph beats the fit there
+    sc.cycles.samples = backends.SVM_LAMP_SAMPLES     # a final render's budget: the SVM graph beats the fit there
     sc.cycles.use_adaptive_sampling = True      # ... unless adaptive sampling stops the fit's renders early
     fit_because("under lamps SVM needs Noise Threshold off", "Set Back End to SVM",
                 ("flowbsdf.set_backend", {"backend": "svm"}))
@@ -596,7 +596,7 @@ def test_without_osl_under_lamps_auto_renders_the_fit_and_says_the_step_to_exact
 def _statuses(plastic):
     """Every (situation, Status) the node can produce in a Cycles-capable Blender: each back-end
     choice and each reason, lamps of Blender's default names."""
-    from blender_addon import lamps
+    from blender_addon.render import backends, binding, lamps
     sc = cs.reset(8, 8, spp=1, osl=True)
     node = lb.assign_learned_bsdf(bpy.data.materials.new("plastic"), "plastic", plastic)
     out = []
@@ -647,7 +647,7 @@ def _statuses(plastic):
                 look(f"GPU, back end svm, lamp {why}")
                 lb.set_backend(sc, "auto")
     sc.cycles.device = 'GPU'
-    sc.cycles.samples, sc.cycles.use_adaptive_sampling = lb.SVM_LAMP_SAMPLES, True       # (Blender's default)
+    sc.cycles.samples, sc.cycles.use_adaptive_sampling = backends.SVM_LAMP_SAMPLES, True       # (Blender's default)
     look("GPU, OSL off, lamp reachable, 4096 samples, adaptive sampling")
     sc.cycles.use_adaptive_sampling = False
     sc.cycles.sample_clamp_indirect, sc.cycles.caustics_reflective = 10.0, False
@@ -665,7 +665,7 @@ def _statuses(plastic):
         look(engine)
     sc.render.engine = 'CYCLES'
     sc.cycles.device, sc.cycles.shading_system = 'CPU', True
-    info = lb._info(node.node_tree)
+    info = binding.read(node.node_tree)
     for key, situation in (("osl_texture", "OSL texture missing"), ("tables", "tables missing")):
         path = Path(info[key])
         aside = path.with_name(path.name + ".aside")
@@ -681,18 +681,18 @@ def test_every_status_fits_the_sidebar_and_names_a_step(plastic):
     """Every status the node can produce (each back-end choice and reason) fits Blender's default
     sidebar: the text in at most four lines of a box's labels, the step in one button (measured
     in the UI font at UI scale 1 as tests/blender_ui_script.py measures labels and buttons:
-    panels.wrap and line_width), and where it does not render exactly it names that step with a
+    uitext.wrap and line_width), and where it does not render exactly it names that step with a
     button of the add-on's that has those properties (or, for the lamps' limits, the artist's
     step). The texts say what renders (OSL, SVM or the fit with how far it is off) in the UI's
     words: no identifiers."""
-    from blender_addon import operators, panels
+    from blender_addon.artist import operators, uitext
     statuses = _statuses(plastic)
     ops = {cls.bl_idname: cls for cls in operators.classes}
     seen = {st.backend for _, st in statuses}
     assert seen == {"osl", "svm", "fit"}, seen
     assert len({st.text for _, st in statuses}) >= 15, statuses
     for situation, st in statuses:
-        lines = panels.wrap(st.text, bpy.context, boxes=1)
+        lines = uitext.wrap(st.text, bpy.context, boxes=1)
         assert len(lines) <= 4, (situation, lines)
         assert st.text.split(",")[0] in ("OSL", "SVM", "Fit"), (situation, st)
         assert not any(word.isupper() and "_" in word for word in st.text.split()), (situation, st)
@@ -704,8 +704,8 @@ def test_every_status_fits_the_sidebar_and_names_a_step(plastic):
             assert st.text.endswith(f"({situation})") and st.action == "Bake the Material", (situation, st)
         if not st.action:
             continue
-        assert len(panels.wrap(st.action, bpy.context, boxes=1)) == 1, (situation, st.action)
-        assert panels.text_width(st.action, bpy.context) <= panels.line_width(bpy.context, boxes=1), st.action
+        assert len(uitext.wrap(st.action, bpy.context, boxes=1)) == 1, (situation, st.action)
+        assert uitext.text_width(st.action, bpy.context) <= uitext.line_width(bpy.context, boxes=1), st.action
         if st.operator:
             idname, props = st.operator
             declared = {key for cls in getattr(ops.get(idname), "__mro__", ()) for key in getattr(cls, "__annotations__", {})}
@@ -944,7 +944,7 @@ def test_svm_past_a_diffuse_bounce_ignores_filter_glossy_and_caustics(gold):
         print(f"{name} {value}: the wall's mean changes by {rel:.2e} (relative); max pixel difference "
               f"{np.abs(other - base)[:, around].max():.2e}")
         assert rel < 1e-5 and np.allclose(other[:, around], base[:, around], rtol=1e-4, atol=1e-6), (name, rel)
-    # Clamping does reach it (node.clamp_note): the status says so under Blender's Clamp Indirect 10
+    # Clamping does reach it (backends.clamp_note): the status says so under Blender's Clamp Indirect 10
     assert lb.node_state(node, sc).detail == ""
     sc.cycles.sample_clamp_indirect = 10.0
     st = lb.node_state(node, sc)

@@ -290,7 +290,7 @@ print("EVALS", json.dumps({k: eval(e, {}, names) for k, e in json.load(open(eval
 
 # -- the Flamenco job type (node, with a stub `author`: not the Flamenco manager) -----------------
 
-JOB_TYPE = ROOT / "blender_addon" / "farm" / "flowbsdf_bake.js"
+JOB_TYPE = ROOT / "blender_addon" / "artist" / "farm" / "flowbsdf_bake.js"
 NODE = shutil.which("node")
 HARNESS = """
 const fs = require("fs"), vm = require("vm");

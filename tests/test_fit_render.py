@@ -38,7 +38,7 @@ from bake.export.closure_fit import FIT_VERSION, eval_fit
 
 bpy = cs.bpy_or_skip(need_osl=False)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
-from blender_addon import node as lb  # noqa: E402
+from blender_addon.render import fit_nodes, node as lb  # noqa: E402
 from blender_addon.svm import VIEW_TANGENT_NUDGE  # noqa: E402
 
 E = 2.0                 # the sun's strength: its irradiance at normal incidence
@@ -424,8 +424,8 @@ def test_eevee_output_takes_the_eevee_fit(tmp_path):
             glossies = [n for n in eevee if n.bl_idname == "ShaderNodeBsdfAnisotropic"]
             assert len(glossies) == 3
             if name == "with":
-                assert fit_groups == [[lb._fit_group(WITH_EEVEE).name],
-                                      [lb._fit_group(WITH_EEVEE["eevee"]).name]]
+                assert fit_groups == [[fit_nodes.fit_group(WITH_EEVEE).name],
+                                      [fit_nodes.fit_group(WITH_EEVEE["eevee"]).name]]
                 assert not any(n.inputs["Anisotropy"].is_linked or n.inputs["Tangent"].is_linked for n in glossies)
                 assert all(n.inputs["Anisotropy"].default_value == 0.0 for n in glossies)
                 assert not set(map(id, cycles)) & set(map(id, eevee))
@@ -435,7 +435,7 @@ def test_eevee_output_takes_the_eevee_fit(tmp_path):
                 assert lb.node_status(node, sc).startswith("Fit, ~20 % off the measured material")
                 sc.render.engine = "CYCLES"
             else:
-                assert fit_groups[1] == [lb._fit_group(dict(ANISOTROPIC, version=7)).name]
+                assert fit_groups[1] == [fit_nodes.fit_group(dict(ANISOTROPIC, version=7)).name]
                 assert group_out.inputs["EEVEE"].links[0].from_node in cycles   # the fit's closures, shared
     finally:
         lb.unregister()

@@ -65,7 +65,7 @@ from conftest import rgl_path
 
 bpy = cs.bpy_or_skip()
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
-from blender_addon import node as lb  # noqa: E402
+from blender_addon.render import binding, node as lb  # noqa: E402
 
 N, SPP, PARTS = 48, 16, 4
 SCALE = 2.0             # the orthographic camera's width: the unit sphere fills the image
@@ -120,7 +120,7 @@ def materials(tables, folder, extra_fits=()):
         path.write_text(json.dumps(f))
         mat = bpy.data.materials.new(name)
         node = lb.assign_learned_bsdf(mat, name, tables, fit_path=path)
-        assert lb._info(node.node_tree)["fit"] == str(path)
+        assert binding.read(node.node_tree)["fit"] == str(path)
         out[name] = mat
     return out
 

@@ -1,4 +1,4 @@
-"""The asset library of measured files: `flowbsdf library FOLDER --out DIR` (blender_addon/library.py).
+"""The asset library of measured files: `flowbsdf library FOLDER --out DIR` (blender_addon/artist/library.py).
 
 One library of three shared RGL files, baked once at Draft quality (about a minute and a half on
 2 cores) and shared by the tests in file order: the last one changes a file.
@@ -36,7 +36,7 @@ def addon():
 @pytest.fixture(scope="module")
 def lib(addon, tmp_path_factory):
     """{root, files, out, lines, seconds}: the library of FILES, made by the CLI's code path."""
-    from blender_addon import library
+    from blender_addon.artist import library
     sources = [rgl_path(name) for name in FILES]
     root = tmp_path_factory.mktemp("library")
     files = root / "measured"
@@ -52,20 +52,20 @@ def lib(addon, tmp_path_factory):
 
 
 def _group(mat):
-    from blender_addon import node
+    from blender_addon.render import binding
     return next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup"
-                and n.node_tree is not None and node.TREE_KEY in n.node_tree.keys())
+                and n.node_tree is not None and binding.TREE_KEY in n.node_tree.keys())
 
 
 def test_quality_settings_match_the_panels():
-    from blender_addon import library, props
+    from blender_addon.artist import library, props
     assert library.QUALITY == {k.lower(): v for k, v in props.BAKE_QUALITY.items()}
 
 
 def test_three_files_make_an_asset_library(lib):
     """library.blend: a material per file, marked as an asset, with the bake's preview (its
     pixels, surviving the save), in a catalog of blender_assets.cats.txt, naming its file."""
-    from blender_addon import library
+    from blender_addon.artist import library
     out = lib["out"]
     assert {p.name for p in out.iterdir()} >= {"library.blend", "blender_assets.cats.txt", "manifest.toml", "tables"}
     assert not (out / "library.blend1").exists()
@@ -134,7 +134,7 @@ def test_appended_materials_find_their_tables(lib, tmp_path, osl):
     library's render is the SVM graph's (exact, seconds); with OSL on, the appended file renders
     one material (Cycles compiles the OSL shader for each material on every render: ~25 s each
     on 2 shared cores)."""
-    from blender_addon import node
+    from blender_addon.render import binding, node
     cs.bpy_or_skip(need_osl=osl)
     exact = ("OSL", "exact") if osl else ("SVM", "exact")
     bpy.ops.wm.open_mainfile(filepath=str(lib["out"] / "library.blend"))
@@ -159,7 +159,7 @@ def test_appended_materials_find_their_tables(lib, tmp_path, osl):
     mats = [bpy.data.materials[n] for n in FILES]
     for mat in mats:
         assert node.node_state(_group(mat), scene).text.startswith(exact[0]), mat.name
-        assert node._info(_group(mat).node_tree)["tables"] == str(lib["out"] / "tables" / f"{mat.name}.exr")
+        assert binding.read(_group(mat).node_tree)["tables"] == str(lib["out"] / "tables" / f"{mat.name}.exr")
     appended = _render_three(scene, mats[:1] + [None, None] if osl else mats)
     for name, a, b in zip(FILES, appended, in_library):
         assert b > 0.05 and (a is None or abs(a / b - 1) < 0.1), (name, a, b)
@@ -178,7 +178,7 @@ def test_appended_materials_find_their_tables(lib, tmp_path, osl):
 def test_a_second_run_bakes_nothing_and_a_changed_file_rebakes_alone(lib):
     """Run again: every table current, library.blend not rewritten. Then one file's contents
     change: that material alone is rebaked and rebuilt."""
-    from blender_addon import library
+    from blender_addon.artist import library
     out, files = lib["out"], lib["files"]
     tables = {n: out / "tables" / f"{n}.exr" for n in FILES}
     blend = out / "library.blend"

@@ -54,7 +54,7 @@ def test_the_largest_world_map_fits_gpu_limits():
     """An image world's map keeps the image's pixels up to world.IMAGE_WIDTH x IMAGE_HEIGHT (the
     add-on's cap): its texture stays within the GPU side limit."""
     from bake.export.world_map import WorldMap
-    world = pytest.importorskip("blender_addon.world")
+    world = pytest.importorskip("blender_addon.render.world")
     h, w = world.IMAGE_HEIGHT, world.IMAGE_WIDTH
     img = WorldMap(np.ones((h, w, 3))).texture_image()
     assert img.shape == (h + 2, w + 1, 4) and max(img.shape[:2]) <= svm_export.MAX_SIDE
@@ -361,7 +361,7 @@ def _svm_furnace(svm, texture, spp, n=32, tangent=None, ballast=0, world=None, f
     _keep_alive), the world mixture's inputs (with "Lamps": that many lamp techniques, their
     nodes given LAMPS' places and sizes) and a fit whose control variate the graph takes (the
     node's SVM back end). Returns (image, normals, mask of the inner pixels)."""
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb
     sc = cs.reset(n, n, spp=spp, osl=False, threads=1)
     sc.cycles.filter_width = 0.01
     cs.ortho_camera(sc, scale=2.2)
@@ -552,7 +552,7 @@ def test_svm_film_stratified_u_is_unbiased_and_cuts_noise(svm, plastic):
     ref = baked_albedo(open_tables(plastic), 0.5)
     sc = cs.reset(16, 16, spp=64, osl=False, threads=1)
     sc.cycles.pixel_filter_type = 'BOX'
-    sc["flowbsdf_film_u"] = True        # the default (blender_addon/node.film_settings)
+    sc["flowbsdf_film_u"] = True        # the default (blender_addon/render/node.film_settings)
     cs.ortho_camera(sc, scale=0.8)
     cs.set_world(sc, (1.0, 1.0, 1.0))
     texture = svm_export.ensure_svm_export(plastic)
@@ -937,7 +937,7 @@ def _sky_sphere(svm, lambert, folder, n, sun_size=None):
     the world's importance sampling left on, as Blender's default), box pixel filter (film-
     stratified u), 64 spp; its world inputs from blender_addon.world.bake_world_map, and
     materials {"mixture", "tables" (the tables alone), "diffuse" (Cycles' Diffuse BSDF 0.8)}."""
-    from blender_addon import world as bw
+    from blender_addon.render import world as bw
     sc = cs.reset(n, n, spp=64, osl=False, threads=1)
     sc.cycles.pixel_filter_type = 'BOX'
     cs.ortho_camera(sc, scale=2.2)
@@ -1015,7 +1015,7 @@ def test_svm_world_mixture_cuts_the_tables_noise(svm, lambert, tmp_path):
 def _cv_material(svm, texture, fit, world, name):
     """The node's SVM back end with the fit's control variate (blender_addon.node._svm_backend:
     the scaled fit's closures + the portals of the rest)."""
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb
     return cs.material_with(lambda tree: lb._svm_backend(tree, texture, fit, None, world), name)
 
 
@@ -1119,7 +1119,7 @@ def test_svm_control_variate_is_unbiased_and_cuts_the_sun_noise(svm, lambert, tm
     learned Lambertian, whose fit is nearly the BSDF (16 px, 64 spp, 6 seeds; measured ratios
     0.59 and 0.13)."""
     from bake.export import closure_fit
-    from blender_addon import world as bw
+    from blender_addon.render import world as bw
     fit = closure_fit.load_fit(closure_fit.ensure_fit(lambert))
     n = 16
     sc, sphere, _ = _sky_sphere(svm, lambert, tmp_path, n)
@@ -1150,7 +1150,7 @@ def test_svm_control_variate_switch(svm, plastic, plastic_fit, tmp_path):
     """World inputs with ControlVariate 0 (a broad map, blender_addon.world.shader_inputs) leave
     the portal alone: the node's SVM back end renders the pixels of the graph without a control
     variate, exactly; update_world switches it on and off without a rebuild."""
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb
     n = 12
     sc = cs.reset(n, n, spp=8, osl=False, threads=1)
     cs.ortho_camera(sc, scale=2.2)
@@ -1181,7 +1181,7 @@ def test_svm_matched_control_variate_follows_the_world(svm, plastic, plastic_fit
     without a rebuild and asks for one (False) when a light appears or goes; anisotropic tables
     get no control variate at all."""
     import bpy
-    from blender_addon import node as lb
+    from blender_addon.render import node as lb
     _, path = _world_map(tmp_path)
     sun = dict(_sun_world(path, "map and sun"), ControlVariate=1.0, LightDirection=(0.0, 0.6, 0.8))
     texture = svm_export.ensure_svm_export(plastic)
@@ -1252,7 +1252,7 @@ def test_control_variate_is_on_where_a_small_light_is(svm, tmp_path):
     BRIGHT), a Sky Texture's sun and a scene with lamps; off for no map, a flat or a broad map
     (where the measurements in world.shader_inputs found the mixture alone better)."""
     import bpy
-    from blender_addon import node as lb, world as bw
+    from blender_addon.render import node as lb, world as bw
     cv = lambda inputs: inputs["ControlVariate"]        # noqa: E731
     assert cv(bw.shader_inputs(None, None, None)) == 0.0
     assert cv(bw.shader_inputs(tmp_path / "w.exr", {"peak": 1.2}, None)) == 0.0         # flat

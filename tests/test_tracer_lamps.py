@@ -317,7 +317,7 @@ def test_validate_exports_every_lamp_as_cycles_renders_it(tmp_path):
     of the same scene; what the tracer cannot render is refused, not dropped."""
     import tomllib
     cs.bpy_or_skip()
-    from blender_addon import validate
+    from blender_addon.artist import validate
     from bake.tracer.samplers import scene_samplers
     from bake.tracer.scene import load_scene
     lamps = [point(0.3, camera=True, z=0.8, energy=20.0)[0], spot(0.2, scale=(1.0, 0.6, 1.0), energy=40.0)[0],
@@ -353,7 +353,7 @@ def test_validate_exports_a_default_area_lamp(tmp_path):
     """Blender's default spread (180 deg, stored as float32 pi = 180.000005 deg) exports as
     180, which the tracer accepts (it refused the scene of any default area lamp)."""
     cs.bpy_or_skip()
-    from blender_addon import validate
+    from blender_addon.artist import validate
     from bake.tracer.scene import load_scene
     sc = cycles_scene([("AREA", {"location": LOC, "rotation_euler": ROT}, {"energy": 10.0})])
     cs.persp_camera(sc, distance=6.0, fov_deg=22.0)

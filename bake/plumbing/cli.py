@@ -76,10 +76,10 @@ def cmd_library(args):
     """An asset library of a folder of measured files (DIR/library.blend): the Blender add-on's
     blender_addon/library.py, found beside bake/ in a checkout."""
     root = Path(__file__).resolve().parents[2]
-    if (root / "blender_addon" / "library.py").is_file() and str(root) not in sys.path:
+    if (root / "blender_addon" / "artist" / "library.py").is_file() and str(root) not in sys.path:
         sys.path.insert(0, str(root))
     try:
-        from blender_addon import library
+        from blender_addon.artist import library
     except ImportError:
         from ..errors import FlowBSDFError
         raise FlowBSDFError("`flowbsdf library` needs the Blender add-on's folder (blender_addon) "

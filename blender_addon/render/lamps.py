@@ -1,4 +1,4 @@
-"""The scene's lamps, passed to the Learned BSDF's OSL shader (blender_addon/osl/lamps.h).
+"""The scene's lamps, passed to the Learned BSDF's OSL shader (blender_addon/render/osl/lamps.h).
 
 The shader has LAMP slots of sockets (`L<k>Kind`, `Flags`, `P`, `X`, `Y`, `Z`, `Color`,
 `Strength`, `Size`). `bind(script, scene)` fills one slot per lamp that renders: the kind,
@@ -38,7 +38,7 @@ def scene_lamps(scene):
 
 def unreachable(scene):
     """{lamp name: why} for the lamps the SVM back end's portal cannot hit, which so light only
-    the fit's closures there (node._resolve): a portal continuing a camera ray is a camera ray
+    the fit's closures there (backends.resolve): a portal continuing a camera ray is a camera ray
     (lamps hidden from the camera are not hit), a point of radius 0 or a sun of angle 0 has no
     area to hit, and past a bounce Cycles hits only lamps with Multiple Importance on."""
     out = {}

@@ -2,7 +2,8 @@
 and what it can do (deps.summary)."""
 import bpy
 
-ADDON_ID = __package__        # "blender_addon", "flowbsdf" (legacy) or "bl_ext.<repo>.flowbsdf"
+# the add-on's package (this module's parent's): "blender_addon", "flowbsdf" (legacy) or "bl_ext.<repo>.flowbsdf"
+ADDON_ID = __package__.rpartition(".")[0]
 
 
 class FlowBSDFPreferences(bpy.types.AddonPreferences):
@@ -18,12 +19,13 @@ class FlowBSDFPreferences(bpy.types.AddonPreferences):
         description="Folders added to the worker's PYTHONPATH (for materials given as a Python callable)")
 
     def draw(self, context):
-        from . import deps, panels, worker
+        from .. import deps
+        from . import uitext, worker
         col = self.layout.column()
         col.prop(self, "python_path")
         col.prop(self, "module_path")
         for text, icon in deps.summary(self.python_path, worker.extra_paths(self)):
-            panels.wrapped(col, text, icon, context)
+            uitext.wrapped(col, text, icon, context)
         col.operator("flowbsdf.check_python", icon="CHECKMARK")
 
 

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import bpy
 
+from .. import deps
+
 WIDTH, HEIGHT, SPP = 1024, 512, 16
 # An Environment Texture world's map keeps its image's own pixels up to this size: next-event
 # estimation reads the image itself, so every map pixel holding several texels of a small sun
@@ -305,9 +307,8 @@ def sun_model(fit, r, height):
 def bake_sun(scene, sun, path):
     """sun_fit of the world's sun, rendered and saved at path (JSON); None without a disc."""
     import json
-    from . import node
     fit = sun_fit(render_sun(scene, sun), sun)
-    with node._bake_mod("plumbing.files").atomic_path(path) as tmp:
+    with deps.bake_module("plumbing.files").atomic_path(path) as tmp:
         Path(tmp).write_text(json.dumps(fit))
     return fit
 
@@ -474,8 +475,7 @@ def bake_world_map(scene, folder):
     """The shader's world inputs (shader_inputs) for the scene's world, its map rendered when
     missing; no map for no world, a black one, or where numpy/bake are missing."""
     key = world_key(scene)
-    from . import node
-    world_map = node._bake_mod("export.world_map")
+    world_map = deps.bake_module("export.world_map")
     if key is None or world_map is None:
         return shader_inputs(None, None, None)
     path, sky_file, bright_file = map_path(folder, key), sky_path(folder, key), bright_path(folder, key)
@@ -551,9 +551,8 @@ def sky_path(folder, key):
 def write_sky(path, radiance):
     """The map's radiance (rows from the zenith) as the float image the OSL shader reads."""
     import numpy as np
-    from . import node
     rgba = np.concatenate([radiance, np.ones(radiance.shape[:2] + (1,))], -1).astype(np.float32)
-    node._bake_mod("plumbing.exrio").write_rgba_exr(path, rgba, "flowbsdf", {"sky": True})
+    deps.bake_module("plumbing.exrio").write_rgba_exr(path, rgba, "flowbsdf", {"sky": True})
 
 
 def _environment(exact, sky_file):
@@ -571,8 +570,7 @@ def current_inputs(scene, folder):
     """The shader's world inputs from the map already made for the world as it is now (none
     when it is not made yet: then the tables sample alone, unbiased, noisier)."""
     key = world_key(scene)
-    from . import node
-    world_map = node._bake_mod("export.world_map")
+    world_map = deps.bake_module("export.world_map")
     path = map_path(folder, key) if key else None
     meta = world_map.read_world_meta(path) if path is not None and world_map is not None else None
     env = _environment(exact_environment(scene), sky_path(folder, key)) if key else None

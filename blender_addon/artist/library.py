@@ -114,7 +114,7 @@ def items_of(folder, out, quality="final"):
 
 def _portable(path, base):
     """`path` relative to the manifest's folder `base` when inside base's parent (the library and
-    its files move together), else absolute (as blender_addon/scan.py's _portable)."""
+    its files move together), else absolute (as blender_addon/artist/scan.py's _portable)."""
     try:
         rel = os.path.relpath(path, base).replace(os.sep, "/")
     except ValueError:              # another drive (Windows)
@@ -245,19 +245,19 @@ def _hash(path):
 
 
 def _record(item, out, catalog):
-    from . import node
-    shader = node._source_hash() if node.osl_compiler_available() else ""
+    from ..render import derived, osl_script
+    shader = osl_script.source_hash() if osl_script.osl_compiler_available() else ""
     return {"file": item["file"].name, "kind": item["kind"], "source": _portable(item["file"], out),
             "name": item["name"], "catalog": item["catalog"], "catalog_id": catalog,
             "tables_hash": _hash(item["tables"]), "preview_hash": _hash(item["preview"]),
-            "shader": shader, "fit_version": node.FIT_VERSION, "quality": item["quality"]}
+            "shader": shader, "fit_version": derived.FIT_VERSION, "quality": item["quality"]}
 
 
 def _ensure_registered():
     import bpy
     if not hasattr(bpy.types.Scene, "flowbsdf"):
         import importlib
-        importlib.import_module(__package__).register()
+        importlib.import_module(__package__.rpartition(".")[0]).register()
 
 
 def _set_preview(mat, path):
@@ -301,9 +301,9 @@ def _learned_settings(mat, item):
 
 def _remove(mat):
     import bpy
-    from . import node
+    from ..render import binding
     trees = {n.node_tree for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup"
-             and n.node_tree is not None and node.TREE_KEY in n.node_tree.keys()} if mat.node_tree else set()
+             and n.node_tree is not None and binding.TREE_KEY in n.node_tree.keys()} if mat.node_tree else set()
     bpy.data.materials.remove(mat)
     for tree in trees:
         if tree.users == 0:
@@ -315,7 +315,7 @@ def build(items, out, log=log_line):
     the materials (re)built or removed; none when the file was current (then not rewritten).
     Opens the library in this Blender session (the open file is replaced)."""
     import bpy
-    from . import node
+    from ..render import binding, node, osl_script
     _ensure_registered()
     out = Path(out).resolve()
     blend = out / BLEND_NAME
@@ -356,9 +356,9 @@ def build(items, out, log=log_line):
         mat[RECORD] = json.dumps(record, sort_keys=True)
         changed.append(name)
         tree = group.node_tree
-        ends = [e for e, on in (("OSL", tree.nodes.get(node.SCRIPT) is not None), ("SVM", node._has_svm(tree)),
+        ends = [e for e, on in (("OSL", tree.nodes.get(osl_script.SCRIPT) is not None), ("SVM", binding.has_svm(tree)),
                                 ("fit", True)) if on]
-        problems = node._info(tree).get("problems")
+        problems = binding.read(tree).get("problems")
         log(f"{name}: {'updated' if existed else 'added'} (back ends {' + '.join(ends)}; "
             f"{'preview from the bake' if has_preview else 'no preview'}; catalog {item['catalog']}"
             f"{'; problems: ' + problems if problems else ''})")
@@ -386,9 +386,9 @@ def _save(blend):
 def blender_args(folder, out, quality, python=None, blender="blender", blend_only=False):
     """The command (a list) that writes library.blend with a background Blender: the batch
     `library` command, the bake in `python` first unless blend_only (the tables baked already)."""
-    root = Path(__file__).resolve().parent.parent
-    expr = (f"import sys; sys.path.insert(0, {json.dumps(str(root))}); "
-            f"import {Path(__file__).resolve().parent.name}.batch as b; b.main()")
+    addon = Path(__file__).resolve().parents[1]          # the add-on's folder (this module is in artist/)
+    expr = (f"import sys; sys.path.insert(0, {json.dumps(str(addon.parent))}); "
+            f"import {addon.name}.batch as b; b.main()")
     return [blender, "-b", "--factory-startup", "--python-expr", expr, "--", "library",
             str(Path(folder).resolve()), "--out", str(Path(out).resolve()), "--quality", quality,
             "--python", str(python or sys.executable)] + (["--blend-only"] if blend_only else [])

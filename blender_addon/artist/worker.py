@@ -13,7 +13,7 @@ import subprocess
 import threading
 import time
 
-from . import deps
+from .. import deps
 
 PROGRESS_RE = re.compile(r"^\[progress (\d+)/(\d+)\]\s*(.*)$")
 STEP_RE = re.compile(r"^\[step ([0-9.]+)\]\s*(.*)$")

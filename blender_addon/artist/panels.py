@@ -3,21 +3,17 @@
 Laid out for Blender's default sidebar width (about 230 px at UI scale 1): one control per
 row with its label on the left (property split), buttons one to a row (the back-end
 switch four short ones), and every long text (what renders, job messages, scan results)
-wrapped to the region's width (`wrapped`, measured in the UI font), never cut.
+wrapped to the region's width (uitext.wrapped, measured in the UI font), never cut.
 """
 import os
 
 import bpy
 
 from . import worker
+from .uitext import wrapped
 
 STATE_ICONS = {"current": "CHECKMARK", "stale": "FILE_REFRESH", "missing": "ERROR", "error": "CANCEL",
                "unsupported": "INFO", "unknown": "QUESTION"}
-# Pixels (at UI scale 1) a label's text loses to the sidebar's tab strip, the panel's margins
-# and its icon, and to each box around it: measured on Blender 3.4's UI at the default sidebar
-# width (tests/test_ui_blender.py checks every text the panel draws there).
-LABEL_MARGIN, BOX_MARGIN = 80, 16
-FALLBACK_WIDTH = 230            # the default sidebar width, where there is no region (background)
 
 
 def _material(context):
@@ -25,70 +21,6 @@ def _material(context):
     if mat is None and getattr(context, "active_object", None) is not None:
         mat = context.active_object.active_material
     return mat
-
-
-def ui_scale(context):
-    system = context.preferences.system
-    return getattr(system, "ui_scale", None) or system.dpi / 72.0
-
-
-def text_width(text, context):
-    """The width in pixels of `text` in the UI's label font, or None where blf cannot tell."""
-    try:
-        import blf
-        points = context.preferences.ui_styles[0].widget.points
-        blf.size(0, points * ui_scale(context))
-        return blf.dimensions(0, text)[0]
-    except Exception:           # noqa: BLE001 - no font in this Blender (background): count characters
-        return None
-
-
-def line_width(context, boxes=0):
-    """The pixels a label's text has in the current region (the default sidebar's without one),
-    inside `boxes` boxes."""
-    region = getattr(context, "region", None)
-    scale = ui_scale(context)
-    width = region.width if region is not None and region.width > 1 else FALLBACK_WIDTH * scale
-    return max(width - (LABEL_MARGIN + boxes * BOX_MARGIN) * scale, 60 * scale)
-
-
-def wrap(text, context, boxes=0):
-    """`text` as lines that fit the region, split at spaces and newlines (a word wider than a
-    line, e.g. a file name, is cut)."""
-    avail = line_width(context, boxes)
-
-    def fits(candidate):
-        width = text_width(candidate, context)
-        if width is None:                       # ~6.5 px per character at UI scale 1
-            width = len(candidate) * 6.5 * ui_scale(context)
-        return width <= avail
-    lines = []
-    for paragraph in text.split("\n"):
-        line = ""
-        for word in paragraph.split():
-            while not fits(word):               # a word wider than a line (a file name): cut it
-                cut = max(k for k in range(1, len(word) + 1) if k == 1 or fits(word[:k]))
-                if line:
-                    lines.append(line)
-                    line = ""
-                lines.append(word[:cut])
-                word = word[cut:]
-            candidate = f"{line} {word}" if line else word
-            if line and not fits(candidate):
-                lines.append(line)
-                line = word
-            else:
-                line = candidate
-        lines.append(line)
-    return lines
-
-
-def wrapped(layout, text, icon, context, boxes=0):
-    """A long text as several labels (Blender cuts a label at the panel's edge); `boxes`: how
-    many boxes it is drawn in."""
-    col = layout.column(align=True)
-    for k, line in enumerate(wrap(text, context, boxes)):
-        col.label(text=line, icon=icon if k == 0 else "BLANK1")
 
 
 def draw_job(layout, context):
@@ -111,12 +43,12 @@ def draw_job(layout, context):
 
 
 def _learned_group(mat):
-    from . import node
+    from ..render import binding
     tree = mat.node_tree
     if tree is None:
         return None
     return next((n for n in tree.nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree is not None
-                 and node.TREE_KEY in n.node_tree.keys()), None)
+                 and binding.TREE_KEY in n.node_tree.keys()), None)
 
 
 _previews = None          # bpy.utils.previews collection of the bakes' preview images
@@ -125,11 +57,11 @@ _previews = None          # bpy.utils.previews collection of the bakes' preview 
 def preview_file(mat):
     """The bake's preview image (<name>.preview.png beside the tables the node renders), or None."""
     import os
-    from . import node
+    from ..render import binding
     group = _learned_group(mat)
     if group is None:
         return None
-    info = node._info(group.node_tree)
+    info = binding.read(group.node_tree)
     path = os.path.join(os.path.dirname(info.get("tables", "")), f"{info.get('material')}.preview.png")
     return path if os.path.isfile(path) else None
 
@@ -164,7 +96,7 @@ def draw_preview(layout, mat):
 
 def draw_renders(layout, mat, scene, context, boxes=1):
     """What the material's Learned BSDF node renders in this scene, and why (node.node_status)."""
-    from . import node
+    from ..render import node
     group = _learned_group(mat)
     if group is None:
         return
@@ -245,7 +177,7 @@ def packed_use():
     end's textures (svm._image packs them: unpacked, Cycles under Open Shading Language read a
     new texture as zeros now and then), those that something still uses (the ones saved)."""
     try:
-        from .svm import PACKED
+        from ..svm import PACKED
     except ImportError:
         return ""
     sizes = [i.packed_file.size for i in bpy.data.images if i.get(PACKED) and i.packed_file is not None and i.users]
@@ -274,8 +206,8 @@ def draw_scene(layout, context):
     col.operator("flowbsdf.scan", text="Scan Scene", icon="VIEWZOOM")
     col.operator("flowbsdf.bake", text="Bake Scene", icon="RENDER_STILL").only_active = False
     try:
-        from . import node
-        backend = node.backend_of(context.scene)
+        from ..render import backends
+        backend = backends.backend_of(context.scene)
     except (ImportError, AttributeError):
         backend = None
     if backend is not None:

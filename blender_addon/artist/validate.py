@@ -89,7 +89,7 @@ def _world(scene, folder):
             path = bpy.path.abspath(src.image.filepath, library=src.image.library)
             if os.path.isfile(path) and not src.inputs["Vector"].is_linked:
                 return {"type": "environment", "file": path, "strength": strength}, None
-    from . import world as world_map
+    from ..render import world as world_map
     path = os.path.join(folder, "world.exr")
     world_map.render_world(scene, WORLD_SIZE[0], WORLD_SIZE[1], WORLD_SPP, path=path)
     return ({"type": "environment", "file": path, "strength": 1.0},
@@ -278,12 +278,12 @@ def export_scene(scene, folder, rows, width, height, manifest_path):
 
 def _not_osl(scene, rows):
     """The learned materials whose node would not render the OSL back end now: "name: status"."""
-    from . import node
+    from ..render import binding, node
     out = []
     for row in rows:
         tree = row["material"].node_tree
         group = next((n for n in tree.nodes if n.bl_idname == "ShaderNodeGroup" and n.node_tree is not None
-                      and node.TREE_KEY in n.node_tree.keys()), None) if tree is not None else None
+                      and binding.TREE_KEY in n.node_tree.keys()), None) if tree is not None else None
         status = node.node_status(group, scene) if group is not None else "not bound (bake first)"
         if not status.startswith("OSL"):
             out.append(f"{row['material'].name}: {status}")
@@ -295,7 +295,7 @@ def render_cycles(scene, path, width, height, spp, rows=()):
     shader) into a 32-bit EXR; every setting touched is restored afterwards. ExportError when a
     learned material of `rows` would not render the OSL back end (the comparison would not be
     like with like)."""
-    from . import node
+    from ..render import node
     saved = []
 
     def setv(owner, attr, value):

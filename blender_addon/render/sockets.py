@@ -1,4 +1,6 @@
-"""Writing a node socket's default value only when it changes.
+"""Node sockets across Blender versions: a node group's own sockets (`has_socket`, `new_socket`:
+`tree.interface` in 4.0+, the legacy `tree.inputs`/`tree.outputs` in 3.x), and a socket's
+default value written only when it changes (`assign`).
 
 Any write tags the material for an update, even of the value it holds: Cycles then compiles
 its OSL shader anew (seconds per render, measured 5 s on a 16² sky scene) and the viewport
@@ -30,3 +32,19 @@ def assign(socket, value):
             return
     if _held(value, current) != current:
         socket.default_value = value
+
+
+def has_socket(tree, name, in_out):
+    """Whether a node group has an input or output socket (`in_out` "INPUT" or "OUTPUT") named `name`."""
+    if getattr(tree, "interface", None) is None:          # Blender < 4.0: the legacy API
+        return name in (tree.inputs if in_out == "INPUT" else tree.outputs)
+    return any(getattr(i, "item_type", "") == "SOCKET" and i.name == name and i.in_out == in_out
+               for i in tree.interface.items_tree)
+
+
+def new_socket(tree, name, in_out, kind):
+    """A new input or output socket of a node group (`in_out` "INPUT" or "OUTPUT", `kind` e.g.
+    "NodeSocketVector"), in Blender 4+ or the legacy API."""
+    if getattr(tree, "interface", None) is None:
+        return (tree.inputs if in_out == "INPUT" else tree.outputs).new(kind, name)
+    return tree.interface.new_socket(name, in_out=in_out, socket_type=kind)

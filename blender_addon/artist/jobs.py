@@ -5,7 +5,8 @@ from pathlib import Path
 
 import bpy
 
-from . import deps, prefs, scan, worker
+from .. import deps
+from . import prefs, scan, worker
 
 MANIFEST_NAME = "manifest.toml"
 
@@ -73,7 +74,7 @@ def start_bake(scene, context=None, only=None, train="never"):
 
 
 def start_library(folder, out, quality="final", context=None):
-    """The asset library's first step (blender_addon/library.py): DIR/manifest.toml of the folder's
+    """The asset library's first step (blender_addon/artist/library.py): DIR/manifest.toml of the folder's
     measured files, and their bake in the worker (tables, textures, fit, preview; current ones
     skipped). Returns (items, manifest path, the Job); library.LibraryError when the folder has
     no measured files."""
@@ -137,10 +138,10 @@ def ensure_derived(tables_paths, python=None, extra_paths=None):
     """Make the OSL texture and closure fit of each table file current, in the worker Python,
     when this Blender cannot (no numpy); elsewhere the node makes them itself when binding.
     Returns the paths it derived; worker.JobError when the worker fails."""
-    from . import node
-    if node._bake_mod("export.osl_export") is not None:
+    from ..render import derived
+    if deps.bake_module("export.osl_export") is not None:
         return []
-    todo = [str(p) for p in tables_paths if os.path.isfile(p) and not node.derived_current(p)]
+    todo = [str(p) for p in tables_paths if os.path.isfile(p) and not derived.is_current(p)]
     if not todo:
         return []
     p = prefs.get()
@@ -167,7 +168,7 @@ def bind(rows, statuses):
     """Bind every row with current tables to a Learned BSDF node. Returns the bound material
     names; raises BindError listing the ones that could not be bound."""
     try:
-        from . import node
+        from ..render import node
     except ImportError as e:
         raise BindError(f"the Learned BSDF node cannot be built in this Blender ({e}); the tables "
                         "are baked: bind them in another Blender (or run with --no-bind)") from None

@@ -7,7 +7,8 @@ import shutil
 
 import bpy
 
-from . import deps, jobs, prefs, props, scan, worker
+from .. import deps
+from . import jobs, prefs, props, scan, worker
 
 USER_ERRORS = (worker.JobError, scan.ScanError, jobs.BindError, OSError, ValueError)
 
@@ -373,7 +374,7 @@ class FLOWBSDF_OT_set_backend(bpy.types.Operator):
 
     def execute(self, context):
         try:
-            from . import node
+            from ..render import node
             node.set_backend(context.scene, self.backend)
         except (ImportError, ValueError, RuntimeError) as e:
             self.report({"ERROR"}, f"FlowBSDF: {e}")
@@ -417,7 +418,7 @@ class FLOWBSDF_OT_reach_lamp(bpy.types.Operator):
     lamp: bpy.props.StringProperty()
 
     def execute(self, context):
-        from . import lamps
+        from ..render import lamps
         ob = context.scene.objects.get(self.lamp)
         if ob is None or ob.type != 'LIGHT':
             self.report({"ERROR"}, f"FlowBSDF: no lamp {self.lamp!r} in the scene")
