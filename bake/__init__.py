@@ -1,14 +1,18 @@
 """FlowBSDF's torch-free runtime (numpy only; Blender loads it): materials, samplers, tables,
-yardsticks, the commands. One folder per kind:
+yardsticks, the commands. One folder per kind, in layers: a module imports its own layer and
+those below it, never one above (tests/test_layers.py), bottom first:
 
-    core/        the samplers and what they stand on: flow, tables, ideal, baselines, warps
-    export/      what Blender's Cycles back ends read: OSL and SVM textures, closure fit, world map
-    quality/     yardsticks, reports, benchmarks, the stress suite
-    plumbing/    the `flowbsdf` command, manifests, jobs, farm tasks, files
-    materials/   measured and analytic BSDFs
-    tracer/      the reference path tracer
     errors.py    FlowBSDFError, the one error type of every folder
+    io/          files: OpenEXR, atomic writes and hashes, output paths, progress, threads
+    maths/       what materials and samplers share: directions, warps, special functions, the C path
     formats.py   the version numbers of the files and graphs (numpy, the OSL shader and the add-on read them)
+    materials/   measured and analytic BSDFs
+    core/        the samplers and what they stand on: flow, tables, ideal, baselines, metrics
+    export/      what Blender's Cycles back ends read: OSL and SVM textures, closure fit, world map
+    quality/     reports, benchmarks, the stress suite
+    tracer/      the reference path tracer
+    plumbing/    the `flowbsdf` command, manifests, jobs, the bake pipeline, farm tasks
+    __init__.py  this face: the public API below
 
 The public API:
 

@@ -21,12 +21,12 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from bake.core.geometry import incident  # noqa: E402
+from bake.maths.geometry import incident  # noqa: E402
 from bake.core.ideal import IdealSampler  # noqa: E402
 from bake.core.settings import BakeSettings  # noqa: E402
 from bake.core.tabulate import build_tables, plan_tables  # noqa: E402
 from bake.materials import open_material  # noqa: E402
-from bake.quality.metrics import relative_variance_ref  # noqa: E402
+from bake.core.metrics import relative_variance_ref  # noqa: E402
 from bake.quality.stress import hard_cases  # noqa: E402
 
 EXTRA = {"ggx_1to25_seam": {"kind": "analytic", "model": "ggx", "alpha_x": 0.02, "alpha_y": 0.5}}

@@ -29,13 +29,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 from baseline import import_baseline  # noqa: E402
-from bake.core.geometry import incident  # noqa: E402
+from bake.maths.geometry import incident  # noqa: E402
 from bake.core.ideal import IdealSampler  # noqa: E402
 from bake.core.settings import BakeSettings  # noqa: E402
 from bake.core.tabulate import plan_tables  # noqa: E402
 from bake.materials import open_material  # noqa: E402
 from bake.materials.rgl import SHARED_FILES, shared_dir  # noqa: E402
-from bake.quality.metrics import relative_variance_ref  # noqa: E402
+from bake.core.metrics import relative_variance_ref  # noqa: E402
 
 THETAS = (0, 30, 60, 75, 85)
 

@@ -21,12 +21,12 @@ import argparse
 
 import numpy as np
 
-from bake.core.geometry import spherical_dir
+from bake.maths.geometry import spherical_dir
 from bake.core.halfvector import polar_from_ab, polar_to_ab
 from bake.core.ideal import IdealSampler
 from bake.materials import open_material
 from bake.materials.rgl import RGLMaterial, WarpedCoords, shared_dir
-from bake.quality.metrics import ReferencePoints
+from bake.core.metrics import ReferencePoints
 
 
 def each(wi, n):

@@ -21,8 +21,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 import cycles_scenes as cs  # noqa: E402
-from bake.export.carry_export import ensure_carry_export  # noqa: E402
-from bake.export.osl_export import ensure_osl_export  # noqa: E402
+from bake.export.derived import ensure_carry_export, ensure_osl_export  # noqa: E402
 from bake.materials import open_material  # noqa: E402
 
 SPP = (16, 48)

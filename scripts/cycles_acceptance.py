@@ -160,7 +160,7 @@ def trace(scene_path, manifest, tables, which, spp, seed=1, workers=1, mis=False
     Returns (image, per-pixel variance of the mean, per-sample variance, seconds)."""
     from bake.tracer import load_scene, render
     from bake.core.carried import as_rendered
-    scene = load_scene(scene_path, manifest=manifest)
+    scene = load_scene(scene_path, manifest=load_manifest(manifest))
     tables = as_rendered(tables, next(m.material for m in scene.materials if m.learned))     # what OSL renders
     if which == "baked":
         scene.materials = [dataclasses.replace(m, material=BakedBSDF(tables, m.material)) if m.learned else m
@@ -201,7 +201,7 @@ def run_material(name, env_kind, env_path, args, manifest_path):
         img, var, var1, secs = trace(scene_path, manifest_path, tables, which, spp, workers=args.workers)
         print(f"[{env_kind} {name}] tracer {which} {spp} spp: {secs:.0f} s", flush=True)
         np.save(folder / f"tracer_{which}.npy", np.stack([img, var, var1]))
-    from bake.export.closure_fit import ensure_fit
+    from bake.export.derived import ensure_fit
     fit = load_fit(ensure_fit(tables_path))
     for kind, spp in CASES(args.spp):
         img, secs = render_case(kind, name, tables_path, env_path, args.size, spp, fit=fit,

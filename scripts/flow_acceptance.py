@@ -16,7 +16,7 @@ both binnings) in 1/3-1/4 of their time (15-22 s vs 55-80 s), and each bin's qua
 part of its variance. --threads N trains with N torch threads (two scripts at once, one thread each,
 use the 2 cores better than one with two: a training step is too small to split well).
 
-rv is measured two ways: `bake.quality.metrics.relative_variance_ref` (wo from the ideal sampler on a
+rv is measured two ways: `bake.core.metrics.relative_variance_ref` (wo from the ideal sampler on a
 jittered 512 x 512 grid: sees the regions the sampler rarely visits; the table's numbers) and the
 direct estimate from 2^16 of the sampler's own samples (seed 7; what sessions 2-4 reported: it
 understates heavy tails), in a second table. A '!' marks a cell whose reference estimate one
@@ -32,11 +32,11 @@ import numpy as np
 
 from bake.core.baselines import fit_ggx
 from bake.core.flow import load_model
-from bake.core.geometry import incident
+from bake.maths.geometry import incident
 from bake.core.ideal import IdealSampler
 from bake.materials import open_material
 from bake.materials.rgl import SHARED_FILES, shared_dir
-from bake.quality.metrics import chi2_test, relative_variance_ref, sample_weights
+from bake.core.metrics import chi2_test, relative_variance_ref, sample_weights
 
 THETAS = (0, 30, 60, 75, 85)
 CHI2_BINNINGS = (("cosine", (16, 32)), ("halfvector", (16, 16)))

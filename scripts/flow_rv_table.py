@@ -17,7 +17,7 @@ file it was trained on (.bsdf / .binary). The teacher is flow.pt's best weights,
 reflow.pt's; the architecture comes from the model file's training settings (default: the
 *.flow.npz next to CKPT_DIR, else the weights' shapes). Each cell is the rv of the one-sample
 estimator lum(f)·cos / pdf of the flow's own N-step sampler with its exact N-step pdf
-(float64 torch, the same protocol as bake.quality.metrics.sample_weights: lost samples count as 0),
+(float64 torch, the same protocol as bake.core.metrics.sample_weights: lost samples count as 0),
 against material.eval, plus the share of samples with det(I + J/N) <= 0 at some step.
 """
 import trainer  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
@@ -34,7 +34,8 @@ import numpy as np
 import torch
 
 from bake.core import flow as F
-from bake.core import flow_maps, special
+from bake.core import flow_maps
+from bake.maths import special
 from trainer.synthetic import GGXReflection
 from trainer.train import COMMON, Trainer, make_settings
 
@@ -141,8 +142,8 @@ def load_trained(ckpt_dir, model_path=None):
 
 
 def material_weights(material, wi, y1, log_p, domain):
-    """w = lum(f)·cos / pdf as bake.quality.metrics.sample_weights (lost samples: 0)."""
-    from bake.core.geometry import luminance
+    """w = lum(f)·cos / pdf as bake.core.metrics.sample_weights (lost samples: 0)."""
+    from bake.maths.geometry import luminance
     wo = flow_maps.MAPS[domain].to_dir(y1, np.broadcast_to(wi, (len(y1), 3)))
     with np.errstate(over="ignore"):
         pdf = np.exp(log_p)
@@ -207,8 +208,8 @@ def trained_main(argv):
     lines = [head, "|---" * (len(thetas) + 4) + "|"]
     if not args.no_baseline:
         from bake.core.baselines import CosineSampler
-        from bake.core.geometry import incident
-        from bake.quality.metrics import sample_weights
+        from bake.maths.geometry import incident
+        from bake.core.metrics import sample_weights
         cells = []
         for t in thetas:
             w = sample_weights(material, CosineSampler(), incident(t), args.samples, seed=args.seed)

@@ -85,7 +85,8 @@ sys.path.insert(0, str(ROOT / "scripts"))
 import carried_cost  # noqa: E402
 import cycles_acceptance as ca  # noqa: E402
 import cycles_scenes as cs  # noqa: E402
-from bake.export.closure_fit import ensure_fit, load_fit  # noqa: E402
+from bake.export.closure_fit import load_fit  # noqa: E402
+from bake.export.derived import ensure_fit  # noqa: E402
 from bake.core.tables import open_tables  # noqa: E402
 
 NAMES = ["paper_white", "cm_military_green", "chm_mint"]

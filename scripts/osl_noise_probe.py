@@ -26,7 +26,8 @@ sys.path.insert(0, str(ROOT / "scripts"))
 import cycles_acceptance as ca  # noqa: E402
 import cycles_scenes as cs  # noqa: E402
 import lights_acceptance as la  # noqa: E402
-from bake.export.closure_fit import ensure_fit, load_fit  # noqa: E402
+from bake.export.closure_fit import load_fit  # noqa: E402
+from bake.export.derived import ensure_fit  # noqa: E402
 
 N = 32
 

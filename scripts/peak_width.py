@@ -15,7 +15,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bake.core.geometry import luminance  # noqa: E402
+from bake.maths.geometry import luminance  # noqa: E402
 from bake.materials import open_material  # noqa: E402
 
 

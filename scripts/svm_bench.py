@@ -40,8 +40,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 import cycles_scenes as cs  # noqa: E402
-from bake.export.osl_export import ensure_osl_export  # noqa: E402
-from bake.export.svm_export import ensure_svm_export  # noqa: E402
+from bake.export.derived import ensure_osl_export, ensure_svm_export  # noqa: E402
 
 
 SKY = {"strength": 0.2, "sun_elevation": 0.5, "sun_rotation": 1.0}

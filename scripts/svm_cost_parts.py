@@ -37,7 +37,8 @@ sys.path.insert(0, str(ROOT / "scripts"))
 import backend_cost  # noqa: E402
 import cycles_acceptance as ca  # noqa: E402
 import cycles_scenes as cs  # noqa: E402
-from bake.export.closure_fit import ensure_fit, load_fit  # noqa: E402
+from bake.export.closure_fit import load_fit  # noqa: E402
+from bake.export.derived import ensure_fit  # noqa: E402
 
 TABLES = Path("/work/notes/s37/out/tables/cm_military_green.exr")
 BUILT = []      # the SVM back end's output socket, as built

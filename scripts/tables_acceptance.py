@@ -31,12 +31,12 @@ from pathlib import Path
 import numpy as np
 
 from bake.core.carried import CarriedTables, choose_intervals
-from bake.core.geometry import incident
+from bake.maths.geometry import incident
 from bake.core.ideal import IdealSampler
 from bake.core.settings import BakeSettings
 from bake.materials import open_material
 from bake.materials.rgl import SHARED_FILES, shared_dir
-from bake.quality.metrics import ReferencePoints, chi2_test, sample_weights
+from bake.core.metrics import ReferencePoints, chi2_test, sample_weights
 from bake.core.tables import open_tables
 from bake.core.tabulate import plan_tables
 from bake.quality.bench import random_incident, samples_per_second

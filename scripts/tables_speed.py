@@ -30,9 +30,9 @@ sys.path.insert(0, str(ROOT / "scripts"))
 from baseline import import_baseline  # noqa: E402
 from conftest import RGL_FILES, rgl_dir  # noqa: E402
 
-from bake.core import fasttables  # noqa: E402
+from bake.maths import fasttables  # noqa: E402
 from bake.quality.bench import random_incident, single_threaded  # noqa: E402
-from bake.core.geometry import incident  # noqa: E402
+from bake.maths.geometry import incident  # noqa: E402
 from bake.core.tables import open_tables  # noqa: E402
 
 

@@ -25,6 +25,7 @@ sys.path.insert(0, str(ROOT))
 from bake.errors import FlowBSDFError  # noqa: E402
 from bake.plumbing.manifest import load_manifest  # noqa: E402
 from bake.plumbing.pipeline import open_current_tables  # noqa: E402
+from bake.plumbing.scene_samplers import scene_samplers  # noqa: E402
 from bake.tracer.compare import compare  # noqa: E402
 from bake.tracer.scene import builtin_scene  # noqa: E402
 
@@ -92,11 +93,12 @@ def main():
             if reference is None:
                 log(f"[acceptance] {e.name}: no reference in {args.reference_from}; skipped")
                 continue
+        dirs = {"flow": args.flow_dir} if args.flow_dir else {}
         rows, (ref, ref_var) = compare(scene, samplers, args.spp, args.ref_spp, img_dir / e.name,
+                                       lambda name: scene_samplers(scene, name, dirs.get(name, args.tables_dir), log=log),
                                        reference=reference,
                                        reference_sampler="ideal", mis=not args.bsdf_only, equal_time=True,
-                                       seed=args.seed, tables_dir=args.tables_dir, log=log, workers=args.workers,
-                                       dirs={"flow": args.flow_dir} if args.flow_dir else None)
+                                       seed=args.seed, log=log, workers=args.workers)
         results[e.name] = {"rows": rows, "ref_noise": float(np.mean(ref_var)), "seconds": time.time() - t0,
                            "load": os.getloadavg()[0]}
         write(results, args, out_md, time.time() - t_start)

@@ -3,7 +3,7 @@
 Trains one material of the manifest with the CPU and with each --devices entry (same preset,
 same seed, its own output folder), then measures each model's relative variance
 Var[f cos / pdf] / E[f cos / pdf]^2 against the material at a few incident elevations
-(bake.quality.metrics.relative_variance, one fixed sample set for all models) and prints them
+(bake.core.metrics.relative_variance, one fixed sample set for all models) and prints them
 side by side. A device whose rv is more than --tolerance times the CPU's (plus 0.01) at some
 elevation fails (exit 1): a GPU run is not bit-identical to the CPU's, but must be as good.
 A device torch cannot use is skipped with the reason (exit 0: nothing to compare); `--devices
@@ -47,8 +47,8 @@ def train_on(device, manifest, material, preset, out):
 
 def rv_table(model_path, material, thetas, samples):
     from bake.core.flow import load_model
-    from bake.core.geometry import incident
-    from bake.quality.metrics import relative_variance
+    from bake.maths.geometry import incident
+    from bake.core.metrics import relative_variance
     model = load_model(model_path)
     return [relative_variance(material, model, incident(t), n=samples, seed=1)[0] for t in thetas]
 

@@ -14,7 +14,7 @@ if [ ! -x .venv/bin/python ]; then
   "$py" -m venv .venv
 fi
 stamp=.venv/.flowbsdf-installed
-want=$(cat pyproject.toml setup.py bake/core/_tables_c.c | sha256sum | cut -d' ' -f1)
+want=$(cat pyproject.toml setup.py bake/maths/_tables_c.c | sha256sum | cut -d' ' -f1)
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "[setup] installing flowbsdf and its dependencies into .venv"
   .venv/bin/python -m pip install --quiet --upgrade pip

@@ -19,11 +19,11 @@ import numpy as np
 
 import bake.core.tables as tables
 import bake.core.tabulate as tabulate
-from bake.core.geometry import spherical_dir
+from bake.maths.geometry import spherical_dir
 from bake.core.ideal import IdealSampler
 from bake.materials import open_material
 from bake.materials.rgl import WarpedCoords, shared_dir
-from bake.quality.metrics import ReferencePoints
+from bake.core.metrics import ReferencePoints
 
 TWO_PI = 2.0 * np.pi
 

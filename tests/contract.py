@@ -1,7 +1,7 @@
 """The sampler contract (bake/core/sampler.py) as one assertion, for the tests of every sampler."""
 import numpy as np
 
-from bake.quality.metrics import chi2_test
+from bake.core.metrics import chi2_test
 
 
 def assert_sampler_contract(sampler, wi, u, *, pdf_rtol, max_lost=0.0, invert_atol=None, invert_rtol=1e-7,
@@ -12,7 +12,7 @@ def assert_sampler_contract(sampler, wi, u, *, pdf_rtol, max_lost=0.0, invert_at
       every kept sample lies above the horizon;
     - pdf(wi, wo) is the pdf sample() returned (rtol pdf_rtol) at every kept sample;
     - with invert_atol: invert(wi, wo) gives u back (np.testing.assert_allclose's tolerances);
-    - with chi2 (bake.quality.metrics.chi2_test's keywords: n, n_tests, seed, binning, ...): sample()
+    - with chi2 (bake.core.metrics.chi2_test's keywords: n, n_tests, seed, binning, ...): sample()
       draws from pdf(), lost samples counted against the mass pdf() leaves out.
     Returns (wo, pdf)."""
     wo, pdf = sampler.sample(wi, u)

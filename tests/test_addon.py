@@ -976,7 +976,7 @@ def _check_packed_line(ctx, tmp_path):
     end's textures, svm._image), in lines that fit the sidebar; a texture is packed once
     however its path is spelled, and one nothing uses (not saved) is not counted."""
     import numpy as np
-    from bake.plumbing.exrio import write_rgba_exr
+    from bake.io.exrio import write_rgba_exr
     from blender_addon import svm
     from blender_addon.artist import panels, uitext
     paths = []

@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 
 from bake.errors import FlowBSDFError
-from bake.core.geometry import incident, reflect, spherical_dir
+from bake.maths.geometry import incident, reflect, spherical_dir
 from bake.materials import open_material
 from bake.materials.analytic import (
     Lambert, Microfacet, Mixture, Retro, RoughPlastic, Sheen, beckmann_ndf, fresnel_conductor,
     from_spec, ggx_g1, ggx_lambda, ggx_ndf, ggx_reflection_pdf, ggx_sample_reflection,
     ggx_sample_vndf, ggx_vndf_pdf,
 )
-from bake.core.warps import rotate_z
+from bake.maths.warps import rotate_z
 
 CU_ETA, CU_K = [0.2004, 0.9240, 1.1022], [3.9129, 2.4528, 2.1421]
 

@@ -11,15 +11,15 @@ import math
 import numpy as np
 import pytest
 
-from bake.core.geometry import incident
+from bake.maths.geometry import incident
 from conftest import slow_unless
 from bake.core.ideal import IdealSampler
 from bake.core.settings import BakeSettings
-from bake.quality.metrics import chi2_test, relative_variance, relative_variance_ref
+from bake.core.metrics import chi2_test, relative_variance, relative_variance_ref
 from bake.export.osl_export import LAYOUT
 from bake.quality.stress import hard_cases, make_tables
 from bake.core.tables import open_tables
-from bake.core.warps import rotate_z
+from bake.maths.warps import rotate_z
 from contract import assert_sampler_contract
 
 NAMES = ("aniso_1to50", "aniso_1to50_rotated")
@@ -126,7 +126,8 @@ def test_bake_an_anisotropic_manifest_entry(tmp_path):
     """flowbsdf bake bakes it (no more "[skip] anisotropic"), with its OSL texture (the
     layout has phi bins) and closure fit; a second run finds it current."""
     from bake.plumbing.manifest import load_manifest
-    from bake.plumbing.pipeline import bake_manifest, table_path
+    from bake.io.paths import table_path
+    from bake.plumbing.pipeline import bake_manifest
     manifest = tmp_path / "manifest.toml"
     manifest.write_text('[[material]]\nname = "brushed"\n'
                         'source = { kind = "analytic", model = "ggx", alpha_x = 0.3, alpha_y = 0.05, angle = 20 }\n'

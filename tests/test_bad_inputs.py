@@ -23,7 +23,8 @@ from bake.core.flow import load_model
 from bake.plumbing.manifest import load_manifest
 from bake.materials import open_material
 from bake.materials.merl import DIMS, N_BINS
-from bake.plumbing.pipeline import bake_manifest, model_path, table_path
+from bake.io.paths import model_path, table_path
+from bake.plumbing.pipeline import bake_manifest
 from bake.core.tables import open_tables
 from conftest import write_npz
 from test_rgl import synthetic_fields, write_tensor_file

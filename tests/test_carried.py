@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bake.core.carried import CarriedTables
-from bake.core.geometry import spherical_dir
+from bake.maths.geometry import spherical_dir
 from bake.core.ideal import IdealSampler
 from bake.core.settings import BakeSettings
 from bake.core.tabulate import build_tables
@@ -16,7 +16,7 @@ from bake.errors import FlowBSDFError
 from bake.materials import open_material
 from bake.materials.analytic import Lambert
 from bake.materials.rgl import RGLMaterial, write_tensor_file
-from bake.quality.metrics import ReferencePoints
+from bake.core.metrics import ReferencePoints
 from contract import assert_sampler_contract
 from test_rgl import synthetic_fields
 

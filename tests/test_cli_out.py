@@ -11,7 +11,7 @@ from bake.core.flow import save_model
 from bake.core.tables import open_tables
 from bake.plumbing.cli import build_parser, main
 from bake.plumbing.job import OUT_HELP, train_models_dir
-from bake.plumbing.pipeline import model_path, table_path
+from bake.io.paths import model_path, table_path
 from conftest import TINY_TRAIN_TOML
 from test_bad_inputs import tiny_model_arrays, tiny_model_meta
 from trainer.cli import main as train_main
@@ -30,8 +30,8 @@ preset = "fast"
 @pytest.fixture(autouse=True)
 def tables_only(monkeypatch):
     """The bake without the Blender node's files beside the tables (their closure fit takes seconds)."""
-    import bake.export.osl_export
-    monkeypatch.setattr(bake.export.osl_export, "bake_derived", lambda *a, **k: None)
+    import bake.export.derived
+    monkeypatch.setattr(bake.export.derived, "bake_derived", lambda *a, **k: None)
 
 
 def write_manifest(tmp_path):

@@ -2,11 +2,13 @@
 import numpy as np
 import pytest
 
-from bake.export import closure_fit
+from bake.export import closure_fit, derived
 from bake.errors import FlowBSDFError
 from bake.core.ideal import IdealSampler
 from bake.materials import open_material
-from bake.export.osl_export import LAYOUT, _guide, bake_derived, ensure_osl_export, read_export
+from bake.export.derived import bake_derived, ensure_osl_export
+from bake.export import guides
+from bake.export.osl_export import LAYOUT, read
 from bake.core.tabulate import build_tables
 from conftest import rgl_path
 
@@ -214,7 +216,7 @@ def test_derived_files_are_cached_rebuilt_and_atomic(tmp_path, lambert, glossy):
     path = tmp_path / "m.exr"
     lambert.save(path)
     tex, fit = bake_derived(path)
-    img, meta = read_export(tex)
+    img, meta = read(tex)
     assert meta["layout"] == LAYOUT and img.dtype == np.float32 and img.shape[2] == 4
     K, R, C = len(lambert.theta_bins), lambert.rows, lambert.cols
     assert tuple(img[0, 0]) == (LAYOUT, K, R, C) and img[0, 1, 0] == 1          # (P = 1: isotropic)
@@ -232,7 +234,7 @@ def test_derived_files_are_cached_rebuilt_and_atomic(tmp_path, lambert, glossy):
     fit2.write_text("{broken")
     with pytest.raises(FlowBSDFError, match="unreadable"):
         closure_fit.load_fit(fit2)
-    assert closure_fit.load_fit(closure_fit.ensure_fit(path))["version"] == closure_fit.FIT_VERSION
+    assert closure_fit.load_fit(derived.ensure_fit(path))["version"] == closure_fit.FIT_VERSION
     with pytest.raises(FlowBSDFError, match="not found"):
         ensure_osl_export(tmp_path / "gone.exr")
 
@@ -243,7 +245,7 @@ def test_the_inverse_guides_bracket_the_edge_searches(tmp_path, glossy):
     last edge <= the value, blended over the corner's bins with any weights, lies in [lo, hi)."""
     path = tmp_path / "g.exr"
     glossy.save(path)
-    img, _ = read_export(ensure_osl_export(path))
+    img, _ = read(ensure_osl_export(path))
     K, R, C = len(glossy.theta_bins), glossy.rows, glossy.cols
     rng = np.random.default_rng(1)
     for k in range(max(K - 1, 1)):
@@ -334,7 +336,7 @@ def test_guides_bracket_the_search_for_any_blend():
             m[0] = 0
         cum = np.concatenate([np.zeros((4, 1)), np.cumsum(m, 1)], 1).astype(np.float32).astype(np.float64)
         count = int(rng.integers(1, 70))
-        guide = _guide(cum, cum[:, -1], count)
+        guide = guides.guide(cum, cum[:, -1], count)
         assert np.all((guide[:, 0] >= 0) & (guide[:, 1] <= n) & (guide[:, 1] - guide[:, 0] >= 1))
         for _ in range(100):
             w = rng.random(4) * (rng.random(4) < 0.7)
@@ -399,7 +401,7 @@ def test_match_image_holds_the_bsdf_over_the_fit(tmp_path, lambert, glossy):
     for tables, lo, hi in ((lambert, 0.8, 1.25), (glossy, 0.0, closure_fit.MATCH_MAX)):
         path = tmp_path / "m.exr"
         tables.save(path)
-        fit = closure_fit.load_fit(closure_fit.ensure_fit(path))
+        fit = closure_fit.load_fit(derived.ensure_fit(path))
         assert fit["match"] == "m.match.exr"
         img = OpenEXR.File(str(tmp_path / fit["match"])).channels()["RGBA"].pixels
         n = closure_fit.MATCH_N

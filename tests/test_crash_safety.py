@@ -25,7 +25,8 @@ import pytest
 
 from bake.core.flow import load_model
 from bake.plumbing.manifest import load_manifest
-from bake.plumbing.pipeline import bake_manifest, open_current_tables, table_path
+from bake.io.paths import table_path
+from bake.plumbing.pipeline import bake_manifest, open_current_tables
 from bake.core.tables import open_tables
 
 ROOT = Path(__file__).resolve().parents[1]

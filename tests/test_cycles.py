@@ -12,7 +12,7 @@ import pytest
 import cycles_scenes as cs
 from conftest import slow_unless
 from bake.export.closure_fit import baked_albedo, load_fit, params_at
-from bake.export.osl_export import ensure_osl_export
+from bake.export.derived import ensure_osl_export
 
 bpy = cs.bpy_or_skip()
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
@@ -70,7 +70,7 @@ def test_osl_sampler_is_tables_sample(baked, name):
     reference (the sampler's exact density: weight x pdf = baked f cos)."""
     from bake.export.osl_export import LAYOUT
     from bake.core.tables import open_tables
-    from bake.export.osl_export import export_path
+    from bake.export.osl_export import path as export_path
     assert derived.OSL_LAYOUT == LAYOUT and f"#define LAYOUT {LAYOUT}\n" in osl_script.shader_source()
     assert derived.texture_path(baked[name], "0" * 64) == export_path(baked[name], "0" * 64)
     tab = open_tables(baked[name])
@@ -124,7 +124,7 @@ def test_osl_sampler_on_mixed_resolutions(tmp_path):
     float32, on the last a edge, outside the inverse guide's bracket) the search falls back to the
     corner's own rows and finds the last row (an R of 24 there found the 12-row part's padding:
     pdf 0)."""
-    from bake.core.geometry import incident
+    from bake.maths.geometry import incident
     from bake.core.tables import MixedTables, open_tables
     path = cs.mixed_tables(SPECS["plastic"], "mixed", tmp_path)
     tab = open_tables(path)
@@ -170,7 +170,7 @@ def _hemisphere_directions(n):
 def _assert_osl_eval_is_numpy(tex, tab, angles):
     """The shader's eval_tables (next-event estimation's pdf and baked f cos) gives numpy's
     Tables.pdf and Tables.eval x cos at directions all over the hemisphere."""
-    from bake.core.geometry import incident
+    from bake.maths.geometry import incident
     n = 32
     wo = _hemisphere_directions(n)
     for theta_deg, phi_deg in angles:
@@ -282,7 +282,7 @@ def test_osl_sampler_is_tables_sample_anisotropic(aniso_tables, coords, tmp_path
     """Anisotropic tables in OSL: the four-bin blend over theta_i x phi_i gives numpy's wo,
     weight and pdf, on bins, between them and across the period's wrap, in either coordinates
     (halfvector: the default; wo: files baked before it)."""
-    from bake.core.geometry import incident
+    from bake.maths.geometry import incident
     from bake.core.tables import open_tables
     if coords != "halfvector":
         aniso_tables = cs.aniso_small_tables(tmp_path, coords=coords)
@@ -956,7 +956,7 @@ def test_osl_furnace_carried_gives_the_blended_albedo(carried_textures, tmp_path
     within 0.7 deg), and a smooth-shaded sphere loses ~0.5 % of it below its facets."""
     from bake.core.carried import CarriedTables
     from bake.core.tables import open_tables
-    from bake.export.carry_export import ensure_carry_export
+    from bake.export.derived import ensure_carry_export
     mat, tables_path, _, _ = carried_textures
     tab = open_tables(tables_path)
     tab.meta["carried"] = [True, True]

@@ -438,8 +438,8 @@ def plastic(tmp_path_factory):
     """Small baked tables of a red plastic (as tests/test_svm.py's) whose fit has a control
     variate (the SVM back end's lamps)."""
     path = cs.small_tables(PLASTIC, "plastic", tmp_path_factory.mktemp("lights_plastic"))
-    from bake.export import closure_fit
-    fit = closure_fit.load_fit(closure_fit.ensure_fit(path))
+    from bake.export import closure_fit, derived
+    fit = closure_fit.load_fit(derived.ensure_fit(path))
     assert any(b[0] > 0 or b[1] > 0 for b in fit["cv"]), fit["cv"]
     return path
 
@@ -724,8 +724,8 @@ def gold(tmp_path_factory):
     """Small baked tables of a gold GGX (as tests/test_cycles.py's), whose fit's control
     variate takes a large part of the glossy lobe (beta_s 0.3-0.8, portal share 0.3-0.8)."""
     path = cs.small_tables(GOLD, "gold", tmp_path_factory.mktemp("lights_gold"))
-    from bake.export import closure_fit
-    fit = closure_fit.load_fit(closure_fit.ensure_fit(path))
+    from bake.export import closure_fit, derived
+    fit = closure_fit.load_fit(derived.ensure_fit(path))
     assert max(b[1] for b in fit["cv"]) >= 0.5, fit["cv"]
     return path
 

@@ -3,7 +3,7 @@ import pytest
 
 from bake.core.domains import Disk, Spherical, get_domain
 from bake.errors import FlowBSDFError
-from bake.core.geometry import spherical_dir
+from bake.maths.geometry import spherical_dir
 
 
 def random_dirs(n, rng):

@@ -1,4 +1,4 @@
-"""The C fast path of Tables (bake/core/_tables_c.c via bake/core/fasttables.py) against the numpy
+"""The C fast path of Tables (bake/maths/_tables_c.c via bake/maths/fasttables.py) against the numpy
 reference: same samples, pdfs, inverses and BSDF values to 1e-10, and a silent numpy
 fallback when the library is disabled or missing."""
 import os
@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bake.core import fasttables
+from bake.maths import fasttables
 from bake.errors import FlowBSDFError
-from bake.core.geometry import incident, spherical_dir
+from bake.maths.geometry import incident, spherical_dir
 from bake.core.ideal import IdealSampler
 from bake.materials import open_material
 from bake.core.tables import Tables, from_ab, open_tables
@@ -264,7 +264,7 @@ def test_mixed_tables_in_c_give_each_sample_its_parts_values(tables):
     no numpy passes): each sample gets its part's C values bit for bit (the part picked as
     MixedTables.part_at picks it, wi near the boundary too), numpy's MixedTables' to its
     tolerance; one wi per call goes to its part; a grouped call keeps the bits of small ones."""
-    from bake.core.geometry import theta_phi
+    from bake.maths.geometry import theta_phi
     from bake.core.tables import MixedTables
     five, odd = tables["ggx-5bins"], tables["ggx-odd"]      # 16 x 16 cells, and 13 x 21
     lower = Tables(five.theta_bins[:3], five.a_edges[:3], five.b_edges[:3], five.mass[:3], five.alpha[:3],
@@ -336,7 +336,7 @@ def test_numpy_fallback_when_the_library_is_disabled(tables, monkeypatch):
 
 def test_env_var_disables_the_library():
     """FLOWBSDF_NO_C=1: bake imports, says why in one line, and the tables sample with numpy."""
-    code = ("import numpy as np; from bake.core import fasttables as f; from bake.core.tables import Tables; "
+    code = ("import numpy as np; from bake.maths import fasttables as f; from bake.core.tables import Tables; "
             "t = Tables([0.0], [[0, 0.5, 1]], [[[0, 3, 6.3], [0, 3, 6.3]]], np.ones((1, 2, 2)), "
             "np.zeros((1, 2, 2, 3)), np.zeros((1, 2, 2, 3)), np.ones((1, 2, 2, 3))); "
             "wo, p = t.sample([0, 0, 1], np.random.default_rng(0).random((10, 2))); "
@@ -475,7 +475,8 @@ def test_polar_grid_nodes_in_c_are_the_numpy_ones(monkeypatch):
     """halfvector.polar_grid_from_ab (the baker's halfpolar quadrature nodes) in C gives numpy's
     nodes and Jacobians byte for byte, at normal, oblique and grazing incidence, in the frame the
     baker turns by (pi) and another."""
-    from bake.core import fasttables, halfvector
+    from bake.core import halfvector
+    from bake.maths import fasttables
     if not fasttables.AVAILABLE:
         pytest.skip(fasttables.REASON)
     rng = np.random.default_rng(4)

@@ -60,7 +60,7 @@ import numpy as np
 import pytest
 
 import cycles_scenes as cs
-from bake.export import closure_fit
+from bake.export import closure_fit, derived
 from conftest import rgl_path
 
 bpy = cs.bpy_or_skip()
@@ -109,7 +109,7 @@ def materials(tables, folder, extra_fits=()):
     """{"smooth": the tables' own fit, "ringing": ringing_fit of it, **extra_fits}: the fit
     files and a Learned BSDF material of each, all bound to `tables` (the OSL back end renders
     the tables whatever the fit)."""
-    fit = closure_fit.load_fit(closure_fit.ensure_fit(tables))
+    fit = closure_fit.load_fit(derived.ensure_fit(tables))
     fits = {"ringing": ringing_fit(fit), **dict(extra_fits)}
     out = {}
     mat = bpy.data.materials.new("smooth")

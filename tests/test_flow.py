@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from bake.core import flow as F
-from bake.core import flow_maps, special
+from bake.core import flow_maps
+from bake.maths import special
 from bake.core.domains import Disk
 from bake.errors import FlowBSDFError
 from conftest import ROOT, TINY_TRAIN_TOML, slow_unless, write_npz
@@ -451,7 +452,7 @@ def test_defensive_mixture_keeps_sample_pdf_and_invert_consistent(domain, tmp_pa
     # The uniform share lower-bounds the density everywhere above the horizon.
     grid = Disk().to_dir(np.random.default_rng(4).uniform(-0.7, 0.7, (500, 2)))
     assert np.all(model.pdf(wi, grid) >= 0.05 / (2 * np.pi) * (1 - 1e-12))
-    from bake.quality.metrics import chi2_test
+    from bake.core.metrics import chi2_test
     assert chi2_test(model, wi, n=40_000, res=(16, 16), seed=2, n_tests=2, crowd=256).passed     # (a smooth pdf)
     v1 = {k: v for k, v in net.meta(4).items()}
     v1["version"] = 1
@@ -581,7 +582,7 @@ def test_sharp_lobe_flows_get_a_defensive_share(tmp_path):
     The trainer's defensive uniform share brings the mean over 0/40/70 deg down by far
     (measured: disk 0.1 -> 0.61 / 0.36 / 0.68; slope 0.01 -> 0.5-1.1 / 0.8-2 / 0.7-1.4 over
     seeds), and the slope model's mixture sampler passes the chi-square test."""
-    from bake.quality.metrics import chi2_test
+    from bake.core.metrics import chi2_test
     for domain in ("disk", "slope"):
         src = GGXReflection(domain, alpha=0.05, theta_max_deg=80)
         _, path = _train_tiny(tmp_path / domain, domain, src)
@@ -814,7 +815,7 @@ def test_balanced_spherical_flow_on_measured_gloss_agrees_with_its_pdf(tmp_path,
     14 % at 85 deg) although no sampled point folded, and pdf() disagreed with sample() there.
     Trained now with the fold penalty on the probes: no fold anywhere, chi-square of sample()
     against pdf() passes at 0-85 deg, 4e5 samples, (cos theta, phi) and half-vector bins."""
-    from bake.quality.metrics import chi2_test
+    from bake.core.metrics import chi2_test
     from trainer.cli import main
     path = rgl(name)
     manifest = tmp_path / "m.toml"

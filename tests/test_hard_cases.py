@@ -22,9 +22,9 @@ import math
 import numpy as np
 import pytest
 
-from bake.core.geometry import incident
+from bake.maths.geometry import incident
 from bake.core.ideal import IdealSampler
-from bake.quality.metrics import chi2_test
+from bake.core.metrics import chi2_test
 from bake.quality.stress import Tally, check_chunk, hard_cases, make_tables, run_case
 
 N = 30_000           # samples per case and sampler (flowbsdf stress: 1e8)
@@ -116,8 +116,8 @@ def test_hard_case(samplers, workdir, name):
 def test_albedo_is_unbiased(samplers, workdir, name):
     """The estimator f·cos/pdf averages to the albedo (ideal quadrature): nothing dropped or
     clamped, at 1e-6 albedo as at 5.5."""
-    from bake.core.geometry import luminance
-    from bake.quality.metrics import sample_weights
+    from bake.maths.geometry import luminance
+    from bake.core.metrics import sample_weights
     case = CASES[name]
     mat = case.open(workdir)
     ref = IdealSampler(mat, resolution=256, supersample=2)
@@ -142,8 +142,8 @@ def test_tables_on_hard_edged_materials_keep_their_albedo(samplers, workdir, nam
     """A sliver of f·cos at a hard edge inside a wide cell was missed by the cell quadrature
     (albedo 4-6 % low, weights of rare samples huge); tabulate now integrates such cells around
     their source points."""
-    from bake.core.geometry import luminance
-    from bake.quality.metrics import sample_weights
+    from bake.maths.geometry import luminance
+    from bake.core.metrics import sample_weights
     case = CASES[name]
     tab = samplers[name][tables]
     wi = case.directions()[-1]

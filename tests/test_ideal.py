@@ -1,10 +1,10 @@
 import numpy as np
 
-from bake.core.geometry import incident, luminance, spherical_dir
+from bake.maths.geometry import incident, luminance, spherical_dir
 from bake.core.ideal import IdealSampler, training_pairs
 from bake.core.domains import Disk
 from bake.materials import open_material
-from bake.quality.metrics import relative_variance
+from bake.core.metrics import relative_variance
 from contract import assert_sampler_contract
 
 
@@ -79,9 +79,9 @@ def test_table_is_reflect_and_dwo_du_averaged_over_sub_cells_bit_for_bit():
     slices, and samples with the dot products written out: the same numbers as the plain formulas
     (geometry.reflect and normalize, warps.dwo_du, mean over the sub-cell axes), byte for byte,
     at normal and grazing incidence."""
-    from bake.core.geometry import luminance, reflect
+    from bake.maths.geometry import luminance, reflect
     from bake.core.ideal import Table, _sub_cells
-    from bake.core.warps import dwo_du
+    from bake.maths.warps import dwo_du
     mat = open_material({"kind": "analytic", "model": "ggx", "alpha": 0.3})
     n1, n2, s = 16, 32, 3
     for theta in (0.0, 55.0, 88.0):
@@ -97,8 +97,8 @@ def test_table_is_reflect_and_dwo_du_averaged_over_sub_cells_bit_for_bit():
         assert tab.density.tobytes() == (mass / (mass.sum() * (1.0 / (n1 * n2)))).tobytes()
         assert tab.albedo_rgb.tobytes() == (rgb.sum(axis=(0, 1)) * (1.0 / (n1 * n2))).tobytes()
         # sampling and its pdf: reflect, normalize and dwo_du as written in geometry and warps
-        from bake.core.geometry import normalize
-        from bake.core.warps import half_vector, u_of_half_vector
+        from bake.maths.geometry import normalize
+        from bake.maths.warps import half_vector, u_of_half_vector
         w, pdf = tab.sample_dir(np.random.default_rng(1).random((5000, 2)))
         m = half_vector(tab.sample_u(np.random.default_rng(1).random((5000, 2))))
         assert w.tobytes() == reflect(wi[None, :], m).tobytes()

@@ -1,6 +1,6 @@
 """The main job (`flowbsdf run`, bake/plumbing/job.py) on tiny settings: it trains, bakes, reports and
 renders, writes one page whose every linked image is there, a rerun skips all of it, and a
-changed setting redoes only what depends on it. Also the progress estimates (bake/plumbing/progress.py)
+changed setting redoes only what depends on it. Also the progress estimates (bake/io/progress.py)
 and the demo manifest."""
 import re
 import textwrap
@@ -12,7 +12,7 @@ import pytest
 from bake.plumbing.cli import main
 from bake.plumbing.job import Job, selected
 from bake.plumbing.manifest import load_manifest
-from bake.plumbing.progress import Progress
+from bake.io.progress import Progress
 from conftest import ROOT, TINY_TRAIN_TOML
 
 TINY_TRAIN = "\n[defaults.train]\n" + TINY_TRAIN_TOML

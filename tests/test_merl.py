@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bake.errors import FlowBSDFError
-from bake.core.geometry import spherical_dir
+from bake.maths.geometry import spherical_dir
 from bake.materials import open_material
 from bake.materials.analytic import Lambert, Microfacet, RoughPlastic
 from bake.materials.base import Material

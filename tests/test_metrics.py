@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from bake.core.baselines import CosineSampler, GGXSampler, UniformSampler, fit_ggx
-from bake.core.geometry import incident
+from bake.maths.geometry import incident
 from bake.core.ideal import IdealSampler
 from bake.materials import open_material
-from bake.quality.metrics import (chi2_sf, chi2_test, integrate_bins, relative_variance, relative_variance_ref,
+from bake.core.metrics import (chi2_sf, chi2_test, integrate_bins, relative_variance, relative_variance_ref,
                                   sidak_alpha)
 
 # One Šidák family for every chi-square test in this file.

@@ -8,9 +8,10 @@ from bake.plumbing.cli import main
 from bake.errors import FlowBSDFError
 from bake.plumbing.manifest import load_manifest
 from bake.export.osl_export import LAYOUT
-from bake.plumbing.pipeline import bake_manifest, open_current_tables, table_path
+from bake.io.paths import table_path
+from bake.plumbing.pipeline import bake_manifest, open_current_tables
 from bake.core.tables import open_tables
-from bake.plumbing.files import file_hash
+from bake.io.files import file_hash
 
 FAST = "bake = { resolution = 16, tol = 0.5, grid = 96, samples = 2048, first_bins = 3, ideal_resolution = 48 }"
 
@@ -176,8 +177,8 @@ def test_a_measured_file_bakes_which_intervals_carry(tmp_path):
     then the carried blend; by default (`carry = false`) it bakes the tables alone, removes the
     texture, and the sampler is the fixed cells the SVM graph renders too."""
     from bake.core.carried import CarriedTables
-    from bake.core.sampler import open_sampler
-    from bake.export.carry_export import read_export
+    from bake.export.carry_export import read
+    from bake.plumbing.pipeline import open_baked
     from bake.materials.rgl import write_tensor_file
     from test_rgl import synthetic_fields
     write_tensor_file(tmp_path / "s.bsdf", synthetic_fields(n_theta=5))
@@ -190,19 +191,22 @@ def test_a_measured_file_bakes_which_intervals_carry(tmp_path):
     flags = tables.meta["carried"]
     assert len(flags) == len(tables.theta_bins) - 1 >= 2
     (texture,) = (out / "tables").glob("s.carry*-*.exr")
-    image, meta = read_export(texture)
+    image, meta = read(texture)
     assert meta["tables_hash"] == file_hash(path)
     np.testing.assert_array_equal(image[0, 2 + 5:2 + 5 + len(flags), 1], np.asarray(flags, np.float32))
-    sampler = open_sampler("tables", m.materials[0].open(), entry=m.materials[0], out_dir=out, manifest_path=m.path)
+    sampler = open_baked("tables", m.materials[0], m.materials[0].open(), out, m.path)
     assert isinstance(sampler, CarriedTables) and list(sampler.carry) == flags
+    from bake.plumbing.reports import learned_samplers
     from bake.quality.report import manifest_samplers      # the report compares them as they render
-    report = manifest_samplers(m.materials[0], m.materials[0].open(), out, m.path, steps=(), log=lambda line: None)
+    material = m.materials[0].open()
+    flow, tables = learned_samplers(m.materials[0], material, out, m.path, log=lambda line: None)
+    report = manifest_samplers(m.materials[0], material, flow, tables, steps=(), log=lambda line: None)
     assert isinstance(report["tables"], CarriedTables) and "plain (equal memory)" in report
 
     m = load_manifest_text(tmp_path, text)
     bake_manifest(m, out, log=lambda line: None)
     assert "carried" not in open_tables(path).meta and not list((out / "tables").glob("s.carry*"))
-    sampler = open_sampler("tables", m.materials[0].open(), entry=m.materials[0], out_dir=out, manifest_path=m.path)
+    sampler = open_baked("tables", m.materials[0], m.materials[0].open(), out, m.path)
     assert not isinstance(sampler, CarriedTables)
     assert load_manifest_text(tmp_path, text.replace("}", ", carry = false }")).materials[0].bake.get("carry") is False
     with pytest.raises(FlowBSDFError, match="carry = 'yes'"):

@@ -12,9 +12,9 @@ from bake.materials import open_material
 from bake.core.baselines import CosineSampler, fit_ggx
 from bake.quality.bench import samples_per_second, single_thread_env
 from bake.errors import FlowBSDFError
-from bake.core.geometry import incident, spherical_dir
+from bake.maths.geometry import incident, spherical_dir
 from bake.core.ideal import IdealSampler
-from bake.quality.metrics import chi2_test, relative_variance, relative_variance_ref
+from bake.core.metrics import chi2_test, relative_variance, relative_variance_ref
 from bake.quality.report import (SPEED_ERROR_FIELDS, plot_pdf_slices, plot_target, speed_error_rows,
                          summary_markdown, summary_rows, write_report)
 

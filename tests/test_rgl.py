@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bake.errors import FlowBSDFError
-from bake.core.geometry import luminance, normalize, reflect, spherical_dir
+from bake.maths.geometry import luminance, normalize, reflect, spherical_dir
 from bake.materials import open_material
 from bake.materials.rgl import RGLMaterial, read_tensor_file, write_tensor_file  # noqa: F401 (test_bad_inputs imports it from here)
 from conftest import RGL_FILES
@@ -364,7 +364,7 @@ def test_c_eval_matches_numpy(phi_i, tmp_path):
     values as the numpy transcription to ~1e-9 (libm's asin/atan2 round differently from
     numpy's), zero rows and directions below the horizon included; isotropic, two-entry and
     symmetry-reduced phi_i files."""
-    from bake.core import fasttables
+    from bake.maths import fasttables
     if fasttables.load() is None:
         pytest.skip(fasttables.REASON)
     f = synthetic_fields(phi_i=phi_i)
@@ -386,16 +386,17 @@ def test_c_eval_matches_numpy(phi_i, tmp_path):
 def test_c_eval_split_across_threads_is_one_call(tmp_path, monkeypatch):
     """The baker's C eval runs in a slice per core (fasttables._split): the same bytes as one
     call over all the directions, with uneven slices."""
-    from bake.core import fasttables
+    from bake.io import threads
+    from bake.maths import fasttables
     if fasttables.load() is None:
         pytest.skip(fasttables.REASON)
     mat = RGLMaterial(write_tensor_file(tmp_path / "m.bsdf", synthetic_fields(phi_i=(0.0, np.pi))))
     rng = np.random.default_rng(5)
     wi = spherical_dir(0.9, 0.4)
     wo = spherical_dir(np.arccos(rng.uniform(-0.2, 1.0, 5001)), rng.uniform(-np.pi, np.pi, 5001))
-    monkeypatch.setattr(fasttables, "_workers", lambda: 1)
+    monkeypatch.setattr(threads, "workers", lambda: 1)
     one = mat._eval_c(wo, mat._incident(wi))
-    monkeypatch.setattr(fasttables, "_workers", lambda: 3)
+    monkeypatch.setattr(threads, "workers", lambda: 3)
     monkeypatch.setattr(fasttables, "MIN_SHARE", 1000)
     calls = []
     lib = fasttables.load()
@@ -406,7 +407,7 @@ def test_c_eval_split_across_threads_is_one_call(tmp_path, monkeypatch):
 
 
 def test_c_eval_matches_numpy_on_a_real_file(rgl):
-    from bake.core import fasttables
+    from bake.maths import fasttables
     if fasttables.load() is None:
         pytest.skip(fasttables.REASON)
     mat = RGLMaterial(rgl("chm_mint_rgb"))

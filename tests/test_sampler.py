@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from bake import FlowBSDFError, Sampler, open_sampler
-from bake.core.geometry import incident
+from bake.maths.geometry import incident
 from bake.materials import open_material
 from bake.core.sampler import KINDS, RENDER_KINDS
 from contract import assert_sampler_contract

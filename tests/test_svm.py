@@ -14,7 +14,7 @@ import pytest
 
 import cycles_scenes as cs
 from conftest import slow_unless
-from bake.export import svm_export
+from bake.export import derived, svm_export
 from bake.errors import FlowBSDFError
 from bake.core.tables import K_MAX, NSEG, Tables, open_tables
 
@@ -85,14 +85,14 @@ def test_export_is_named_by_the_tables_hash(plastic, tmp_path):
     goes; the graph's constants come from the texture's header (no OpenEXR module needed)."""
     path = tmp_path / "plastic.exr"
     path.write_bytes(plastic.read_bytes())
-    first = svm_export.ensure_svm_export(path)
-    assert first == svm_export.ensure_svm_export(path) and first.name.startswith(f"plastic.svm{svm_export.LAYOUT}-")
+    first = derived.ensure_svm_export(path)
+    assert first == derived.ensure_svm_export(path) and first.name.startswith(f"plastic.svm{svm_export.LAYOUT}-")
     lay = svm_export.read_layout(first)
     assert (lay["K"], lay["P"], lay["R"], lay["C"], lay["NB"]) == (5, 1, 16, 16, 2)
     tab = open_tables(path)
     tab.meta["note"] = "changed"
     tab.save(path)
-    second = svm_export.ensure_svm_export(path)
+    second = derived.ensure_svm_export(path)
     assert second != first and second.is_file() and not first.exists()
     for other in (path, tmp_path / "missing.exr"):
         with pytest.raises(FlowBSDFError):
@@ -154,7 +154,7 @@ def _assert_probe_is_numpy(svm, tables_path, angles, folder, extremes=True):
     tab = open_tables(tables_path)
     tab.backend = "numpy"
     inputs, extreme = _probe_inputs(angles, extremes=extremes)
-    wo, weight, pdf = _probe(svm, svm_export.ensure_svm_export(tables_path), inputs, folder)
+    wo, weight, pdf = _probe(svm, derived.ensure_svm_export(tables_path), inputs, folder)
     ref_wo, ref_weight, ref_pdf = _numpy_sample(tab, inputs)
     err = np.abs(wo - ref_wo).max(axis=1)
     assert err[~extreme].max() < 3e-4 and np.median(err) < 2e-5, (err[~extreme].max(), np.median(err))
@@ -184,7 +184,7 @@ def test_svm_sampler_is_tables_sample_anisotropic(svm, brushed, tmp_path, monkey
         copy = tmp_path / brushed.name          # its own export, beside it
         copy.write_bytes(brushed.read_bytes())
         brushed = copy
-        assert svm_export.read_layout(svm_export.ensure_svm_export(brushed))["blocks_per_row"] == 2
+        assert svm_export.read_layout(derived.ensure_svm_export(brushed))["blocks_per_row"] == 2
     angles = [(0.0, 0.0), (45.0, 45.0), (30.0, 10.0), (70.0, 170.0), (60.0, 300.0), (20.0, -10.0),
               (89.5, 90.0), (50.0, 179.99)]
     _assert_probe_is_numpy(svm, brushed, angles, tmp_path)
@@ -285,7 +285,7 @@ def test_svm_pdf_is_tables_pdf(svm, which, request, tmp_path):
 def _assert_inverse_is_numpy(svm, path, tab, inputs, folder):
     """The graph's inverse at probe inputs (cos theta_o, phi_o, cos theta_i, phi_i): numpy's
     Tables.pdf and Tables.eval x cos theta_o at the same (float32) directions, rtol 1e-3."""
-    pdf, fcos, zero = _probe(svm, svm_export.ensure_svm_export(path), inputs, folder, inverse=True)
+    pdf, fcos, zero = _probe(svm, derived.ensure_svm_export(path), inputs, folder, inverse=True)
     x = inputs.astype(np.float64)
     sin = lambda c: np.sqrt(1.0 - c ** 2)      # noqa: E731
     wi = np.stack([sin(x[:, 2]) * np.cos(x[:, 3]), sin(x[:, 2]) * np.sin(x[:, 3]), x[:, 2]], 1)
@@ -318,7 +318,7 @@ def test_svm_pdf_graph_inverts_the_sampler(svm, which, tangent, request):
     gives the sampler's own pdf, and its f·cos is W x pdf (rtol 1e-3), wherever the sample is
     valid (above the surface). Two renders of the same samples (same seed): (pdf, pdf of the
     inverse, valid), then f·cos / (W pdf)."""
-    texture = svm_export.ensure_svm_export(request.getfixturevalue(which))
+    texture = derived.ensure_svm_export(request.getfixturevalue(which))
 
     def render(show):
         sc = cs.reset(24, 24, spp=1, osl=False, threads=1)
@@ -452,7 +452,7 @@ def test_svm_furnace_gives_the_baked_albedo(svm, plastic):
     view angle within Monte Carlo error (hashed u: the variance Var[W] / spp)."""
     tab = open_tables(plastic)
     spp = 256
-    img, normal, inner = _svm_furnace(svm, svm_export.ensure_svm_export(plastic), spp)
+    img, normal, inner = _svm_furnace(svm, derived.ensure_svm_export(plastic), spp)
     cos = normal[inner][:, 2]
     ref, var = zip(*(cs.albedo_and_variance(tab, np.array([np.sqrt(1.0 - c * c), 0.0, c])) for c in cos))
     cs.assert_furnace(img[inner], np.array(ref), np.array(var), spp)
@@ -463,7 +463,7 @@ def test_svm_furnace_on_mixed_resolutions(svm, mixed):
     the pixels' on both sides of the 50 deg boundary."""
     tab = open_tables(mixed)
     spp = 256
-    img, normal, inner = _svm_furnace(svm, svm_export.ensure_svm_export(mixed), spp)
+    img, normal, inner = _svm_furnace(svm, derived.ensure_svm_export(mixed), spp)
     cos = normal[inner][:, 2]
     assert np.sum(cos > np.cos(np.radians(50.0))) > 20 and np.sum(cos < np.cos(np.radians(50.0))) > 20
     ref, var = zip(*(cs.albedo_and_variance(tab, np.array([np.sqrt(1.0 - c * c), 0.0, c])) for c in cos))
@@ -475,7 +475,7 @@ def test_svm_furnace_anisotropic_with_a_tangent(svm, brushed):
     wi in the frame of the tangent projected onto the tangent plane."""
     tab = open_tables(brushed)
     spp, tangent = 256, np.array([0.6, 0.8, 0.0])
-    img, normal, inner = _svm_furnace(svm, svm_export.ensure_svm_export(brushed), spp, tangent=tangent)
+    img, normal, inner = _svm_furnace(svm, derived.ensure_svm_export(brushed), spp, tangent=tangent)
     stats = []
     for nrm in normal[inner]:
         tx, ty = _frame(nrm, tangent)
@@ -503,7 +503,7 @@ def test_svm_directions_are_in_world_space(svm, which, tangent, request):
     sky.links.new(light.outputs[0], next(n for n in sky.nodes if n.type == 'BACKGROUND').inputs["Color"])
 
     def nodes(tree):
-        return svm.build_svm_sampler(tree, svm_export.ensure_svm_export(path), _tangent_socket(tree, tangent))
+        return svm.build_svm_sampler(tree, derived.ensure_svm_export(path), _tangent_socket(tree, tangent))
     cs.add_plane(sc, cs.material_with(nodes), size=4.0).rotation_euler = (np.radians(60.0), 0.0, 0.0)
     pixels = cs.render(sc).reshape(-1, 3)
     got, se = pixels.mean(0), pixels.std(0, ddof=1) / np.sqrt(len(pixels))
@@ -555,7 +555,7 @@ def test_svm_film_stratified_u_is_unbiased_and_cuts_noise(svm, plastic):
     sc["flowbsdf_film_u"] = True        # the default (blender_addon/render/node.film_settings)
     cs.ortho_camera(sc, scale=0.8)
     cs.set_world(sc, (1.0, 1.0, 1.0))
-    texture = svm_export.ensure_svm_export(plastic)
+    texture = derived.ensure_svm_export(plastic)
     mat = cs.material_with(lambda tree: svm.build_svm_sampler(tree, texture))
     film = next(n for n in mat.node_tree.nodes if n.name.startswith(svm.FILM))
     assert [s.default_value for s in film.inputs] == [16.0, 16.0, 1.0 + sc.cycles.seed]
@@ -591,7 +591,7 @@ def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, plastic, capfd, 
     the three-lobe fit's 24. With one exponential per cell instead of profiles: 177, 168, 144-149.
     FIT_VERSION 7, four lobes, every closure tilted (its parameters 33 floats): 114 beside the
     matched control variate's, 99 beside the lamps' (the fit cut to version 6's shape: 120, 102).)"""
-    texture = svm_export.ensure_svm_export(plastic if cv else brushed)
+    texture = derived.ensure_svm_export(plastic if cv else brushed)
     world = fit = None
     if mixture:
         world = {"World": str(_world_map(tmp_path)[1]), "WorldShare": 0.2, "SunDirection": (0.3, 0.4, 0.8),
@@ -600,7 +600,7 @@ def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, plastic, capfd, 
         world.update(Lamps=len(LAMPS), LampShare=0.5, LightDirection=(0.0, 0.0, 0.0))
     if cv:
         from bake.export import closure_fit
-        fit = dict(closure_fit.load_fit(closure_fit.ensure_fit(plastic)))
+        fit = dict(closure_fit.load_fit(derived.ensure_fit(plastic)))
         fit["cv"] = [[0.5, 0.5, 0.3]] * len(fit["x"])
         fit["rel_error"] = [0.05] * len(fit["x"])       # matched at every view angle
     alone, _, sphere = _svm_furnace(svm, texture, 1, n=8, world=world, fit=fit)
@@ -812,7 +812,7 @@ def _assert_mixture_is_numpy(svm, tables_path, folder, world, wm, build):
     angles = [(0.0, 0.0), (30.0, 40.0), (60.0, 200.0), (85.0, -100.0)]
     inputs = np.concatenate([np.column_stack([u, np.full(len(u), np.cos(np.radians(t))),
                                               np.full(len(u), np.radians(p))]) for t, p in angles]).astype(np.float32)
-    texture = svm_export.ensure_svm_export(tables_path)
+    texture = derived.ensure_svm_export(tables_path)
     shown, weight, extra = _render_probe(svm, lambda tree, probe: build(tree, texture, probe), inputs, folder)
     x = inputs.astype(np.float64)
     ref = [_numpy_mixture(tab, wm, world, np.arccos(x[i * len(u), 2]), x[i * len(u), 3], u) for i in range(len(angles))]
@@ -910,7 +910,7 @@ def test_svm_update_world(svm, plastic, tmp_path):
         return out
     _assert_mixture_is_numpy(svm, plastic, tmp_path, after, wm2, build)
 
-    texture = svm_export.ensure_svm_export(plastic)
+    texture = derived.ensure_svm_export(plastic)
     sun_only = bpy.data.node_groups.new("sun only", "ShaderNodeTree")
     svm.build_svm_sampler(sun_only, texture, world=_sun_world(path, "sun"))
     assert not svm.update_world(sun_only, after)                    # no map branch
@@ -953,7 +953,7 @@ def _sky_sphere(svm, lambert, folder, n, sun_size=None):
     background.inputs["Strength"].default_value = 0.2
     world = bw.bake_world_map(sc, folder)
     assert world["WorldShare"] > 0 and world["SunShare"] > 0, world
-    texture = svm_export.ensure_svm_export(lambert)
+    texture = derived.ensure_svm_export(lambert)
 
     def diffuse(tree):
         node = tree.nodes.new("ShaderNodeBsdfDiffuse")
@@ -1022,7 +1022,7 @@ def _cv_material(svm, texture, fit, world, name):
 @pytest.fixture(scope="module")
 def plastic_fit(plastic):
     from bake.export import closure_fit
-    fit = closure_fit.load_fit(closure_fit.ensure_fit(plastic))
+    fit = closure_fit.load_fit(derived.ensure_fit(plastic))
     assert any(b[0] > 0 for b in fit["cv"]) and any(b[1] > 0 for b in fit["cv"]), fit["cv"]
     return fit
 
@@ -1093,7 +1093,7 @@ def test_svm_control_variate_furnace_gives_the_baked_albedo(svm, plastic, plasti
     sc.cycles.filter_width = 0.01
     cs.ortho_camera(sc, scale=2.2)
     cs.set_world(sc, (1.0, 1.0, 1.0))
-    mat = _cv_material(svm, svm_export.ensure_svm_export(plastic), plastic_fit, {"ControlVariate": 1.0}, "cv furnace")
+    mat = _cv_material(svm, derived.ensure_svm_export(plastic), plastic_fit, {"ControlVariate": 1.0}, "cv furnace")
     cs.add_sphere(sc, mat)
     imgs = _render_seeds(svm, sc, [mat], seeds)
     normal, hit = cs.sphere_view(n, n, scale=2.2)
@@ -1120,12 +1120,12 @@ def test_svm_control_variate_is_unbiased_and_cuts_the_sun_noise(svm, lambert, tm
     0.59 and 0.13)."""
     from bake.export import closure_fit
     from blender_addon.render import world as bw
-    fit = closure_fit.load_fit(closure_fit.ensure_fit(lambert))
+    fit = closure_fit.load_fit(derived.ensure_fit(lambert))
     n = 16
     sc, sphere, _ = _sky_sphere(svm, lambert, tmp_path, n)
     inputs = bw.bake_world_map(sc, tmp_path)
     assert inputs["LightDirection"] == pytest.approx(inputs["SunDirection"])
-    texture = svm_export.ensure_svm_export(lambert)
+    texture = derived.ensure_svm_export(lambert)
     renders = {}
     for name, world in (("matched", inputs), ("baked", dict(inputs, LightDirection=(0.0, 0.0, 0.0))),
                         ("alone", None)):
@@ -1155,7 +1155,7 @@ def test_svm_control_variate_switch(svm, plastic, plastic_fit, tmp_path):
     sc = cs.reset(n, n, spp=8, osl=False, threads=1)
     cs.ortho_camera(sc, scale=2.2)
     cs.set_world(sc, (0.6, 0.7, 0.8))
-    texture = svm_export.ensure_svm_export(plastic)
+    texture = derived.ensure_svm_export(plastic)
     off = {"ControlVariate": 0.0}
     switched = cs.material_with(lambda tree: lb._svm_backend(tree, texture, plastic_fit, None, off), "switched")
     alone = cs.material_with(lambda tree: svm.build_svm_sampler(tree, texture), "alone")
@@ -1184,7 +1184,7 @@ def test_svm_matched_control_variate_follows_the_world(svm, plastic, plastic_fit
     from blender_addon.render import node as lb
     _, path = _world_map(tmp_path)
     sun = dict(_sun_world(path, "map and sun"), ControlVariate=1.0, LightDirection=(0.0, 0.6, 0.8))
-    texture = svm_export.ensure_svm_export(plastic)
+    texture = derived.ensure_svm_export(plastic)
     tree = bpy.data.node_groups.new("matched", "ShaderNodeTree")
     lb._svm_backend(tree, texture, plastic_fit, None, sun)
     assert [tuple(n.inputs[i].default_value for i in range(3)) for n in tree.nodes

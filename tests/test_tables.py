@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 
 from bake.errors import FlowBSDFError
-from bake.core.geometry import incident, spherical_dir
+from bake.maths.geometry import incident, spherical_dir
 from bake.core.ideal import IdealSampler
 from bake.core.settings import BakeSettings
 from bake.materials import open_material
 from bake.materials.base import Material, as_dirs
-from bake.quality.metrics import chi2_test, relative_variance, relative_variance_ref
+from bake.core.metrics import chi2_test, relative_variance, relative_variance_ref
 from bake.core.tables import (K_MAX, NSEG, TWO_PI, Tables, exp_cdf, exp_density, exp_inverse_cdf, from_ab,
                               open_tables, profile_cdf, profile_density, profile_nodes, profile_sample, to_ab)
 from bake.core.tabulate import (CELL_BYTES, ISO_COORDS, _WoFrame, _finish_bin, _moments_around, _nodes,
@@ -273,7 +273,7 @@ def test_quality_on_a_sharp_lobe():
 
 
 def test_bins_of_one_layout_store_their_edges_once(tables, tmp_path):
-    from bake.plumbing.exrio import read_exr, write_exr
+    from bake.io.exrio import read_exr, write_exr
     mat, own = tables["sheen/halfpolar"]
     one = build_tables(mat, IdealSampler(mat, resolution=128), BINS, rows=24, cols=24, grid=256, lobe_width=0.1,
                        coords="halfpolar", window=None)
@@ -414,7 +414,7 @@ def test_planner_keeps_the_coordinates_that_plan_closer():
 def test_luminance_of_a_stack_is_the_rowwise_product():
     """geometry.luminance flattens (..., 3) arrays to one 2D product (the baker's quadrature
     calls it on (cells, nodes, 3)): bit for bit what each row's own product gives."""
-    from bake.core.geometry import LUMINANCE, luminance
+    from bake.maths.geometry import LUMINANCE, luminance
     x = np.random.default_rng(1).normal(size=(7, 300, 3))
     out = luminance(x)
     assert out.shape == (7, 300)
@@ -448,7 +448,7 @@ def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(
     target is tol / 2, or ideal_ratio times the ideal tabulation's rv (0.5 here) when that is more."""
     from types import SimpleNamespace
     from bake.core import tabulate
-    from bake.quality import metrics
+    from bake.core import metrics
     lambert = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})
     probe = [10, 45, 75, 86]
     cases = {    # rv per resolution (16, 24, 32, 48, 64) per probe angle (tol / 2 = 1); the choice
@@ -571,9 +571,10 @@ def test_halfpolar_quadrature_nodes_are_polar_from_ab_of_every_node(theta_deg):
 
 def test_builds_in_threads_are_the_builds_of_one_thread(monkeypatch):
     """The baker builds bins, neighbourhoods' edges, source points and the planner's probes in
-    threads (tabulate._parallel): the same plan and tables, bit for bit, as in one thread."""
+    threads (io.threads.parallel): the same plan and tables, bit for bit, as in one thread."""
     import threading
-    from bake.core import fasttables, tabulate
+    from bake.core import tabulate
+    from bake.io import threads as pool
     mat = open_material(HARD["mirror-ish"])
     fields = ("theta_bins", "a_edges", "b_edges", "mass", "alpha", "beta", "weights")
     threads = set()
@@ -584,10 +585,10 @@ def test_builds_in_threads_are_the_builds_of_one_thread(monkeypatch):
         return finish(*args)
 
     monkeypatch.setattr(tabulate, "_finish_bin", spy)
-    monkeypatch.setattr(tabulate, "_free_workers", lambda cores: cores)     # whatever else runs here
+    monkeypatch.setattr(pool, "free_workers", lambda cores: cores)     # whatever else runs here
     out = {}
     for workers in (1, 2):
-        monkeypatch.setattr(fasttables, "_workers", lambda w=workers: w)
+        monkeypatch.setattr(pool, "workers", lambda w=workers: w)
         settings = BakeSettings(resolution=16, grid=96, samples=1 << 12, first_bins=3, memory_budget=16 * bin_bytes(16))
         out[workers] = plan_tables(mat, IdealSampler(mat, resolution=64), settings)
     assert "flowbsdf-bake" in threads and "MainThread" in threads
@@ -655,17 +656,17 @@ def test_sum_along_the_middle_axis_is_numpys_bit_for_bit():
 
 
 def test_threads_follow_the_cores_other_processes_leave_idle(monkeypatch):
-    """tabulate._free_workers: all cores until a window of 1 to 10 s has been measured, then
+    """io.threads.free_workers: all cores until a window of 1 to 10 s has been measured, then
     the cores that other processes left idle in it (at least one)."""
-    from bake.core import tabulate
+    from bake.io import threads
     readings = iter([(0.0, 0.0, 0.0), (0.5, 0.2, 0.5),      # too soon: no decision yet
                      (3.0, 1.0, 2.0), (4.0, 2.0, 3.0),      # others: 1 core of 2, then none
                      (100.0, 2.0, 20.0)])                   # stale window: all again
-    monkeypatch.setattr(tabulate, "_cpu_seconds", lambda: next(readings))
-    monkeypatch.setattr(tabulate, "_usage", {"last": None, "workers": None})
-    assert [tabulate._free_workers(2) for _ in range(5)] == [2, 2, 1, 2, 2]
-    monkeypatch.setattr(tabulate, "_cpu_seconds", lambda: None)
-    assert tabulate._free_workers(4) == 4
+    monkeypatch.setattr(threads, "_cpu_seconds", lambda: next(readings))
+    monkeypatch.setattr(threads, "_usage", {"last": None, "workers": None})
+    assert [threads.free_workers(2) for _ in range(5)] == [2, 2, 1, 2, 2]
+    monkeypatch.setattr(threads, "_cpu_seconds", lambda: None)
+    assert threads.free_workers(4) == 4
 
 
 def test_planner_probes_with_the_ideal_and_builds_the_plan_from_the_source():
@@ -901,7 +902,7 @@ def test_layout_groups_of_their_own_resolutions(tmp_path):
     from the file, or parts that do not cover the bins, are refused with a clear error."""
     from bake.core.tables import MixedTables, open_tables
     from bake.core.tabulate import build_grouped, build_tables, join_groups
-    from bake.plumbing.exrio import read_exr, write_exr
+    from bake.io.exrio import read_exr, write_exr
     mat = open_material({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.15})
     ideal = IdealSampler(mat, resolution=48)
     lower = build_tables(mat, ideal, np.radians([0.0, 30.0, 50.0]), 12, 16, grid=96, window=None)
@@ -1125,7 +1126,7 @@ def test_a_ridge_on_the_plane_of_incidence_gets_its_mass(coords, monkeypatch):
     weight on the ridge (f·cos / pdf / albedo), measured: 29-67 with the check, 1300-19000
     without it (the ideal tabulation's own: 1300-48000). The tables stay exact (contract)."""
     from bake.core import tabulate
-    from bake.core.geometry import luminance
+    from bake.maths.geometry import luminance
     mat = RidgeOnPlane()
     ideal = IdealSampler(mat, resolution=64)
     wi = spherical_dir(np.radians(40.0), 0.3)

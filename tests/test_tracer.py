@@ -8,13 +8,14 @@ import pytest
 
 from bake import FlowBSDFError
 from bake.core.baselines import CosineSampler, GGXSampler
-from bake.core.geometry import LUMINANCE
+from bake.maths.geometry import LUMINANCE
 from bake.core.ideal import FineIdeal
 from bake.materials import open_material
+from bake.plumbing.manifest import load_manifest
+from bake.plumbing.scene_samplers import make_sampler
 from bake.tracer import accel
 from bake.tracer.integrator import PathTracer, render
 from bake.tracer.lights import Environment, read_hdr, sky_image
-from bake.tracer.samplers import make_sampler
 from bake.tracer.meshes import SHADERBALL, load_obj, load_ply, shaderball_mesh
 from bake.tracer.scene import Camera, SceneMaterial, Scene, builtin_scene, load_scene
 
@@ -315,7 +316,7 @@ angle = 15
 strength = [1, 1, 1]
 """)
     scene = load_scene(tmp_path / "s.toml")
-    from bake.tracer.samplers import scene_samplers
+    from bake.plumbing.scene_samplers import scene_samplers
     samplers = scene_samplers(scene, "cosine", log=lambda s: None)
     a = block_stats(scene, samplers, mis=True, passes=64, seed=11)
     b = block_stats(scene, samplers, mis=False, passes=64, seed=12)
@@ -583,7 +584,7 @@ def test_json_scene_and_unknown_manifest_material(tmp_path):
     data["materials"]["m"] = {"manifest": "no_such_material"}
     (tmp_path / "t.json").write_text(json.dumps(data))
     with pytest.raises(FlowBSDFError, match="no material 'no_such_material'") as e:
-        load_scene(tmp_path / "t.json", manifest=ROOT / "manifest.toml")
+        load_scene(tmp_path / "t.json", manifest=load_manifest(ROOT / "manifest.toml"))
     assert Path(e.value.path).name == "t.json"
     with pytest.raises(FlowBSDFError, match="scene files end in"):
         (tmp_path / "s.yaml").write_text("x")
@@ -616,7 +617,7 @@ def test_ambient_shaderball_is_a_furnace():
 
 
 def test_missing_tables_and_models_say_so(tmp_path):
-    scene = builtin_scene("shaderball-env", material="red_plastic", manifest=ROOT / "manifest.toml")
+    scene = builtin_scene("shaderball-env", material="red_plastic", manifest=load_manifest(ROOT / "manifest.toml"))
     with pytest.raises(FlowBSDFError, match="no baked tables"):
         make_sampler("tables", scene.materials[0], tables_dir=tmp_path)
     with pytest.raises(FlowBSDFError, match="no trained flow"):

@@ -19,7 +19,7 @@ import cycles_scenes as cs
 from conftest import slow_unless
 from bake.core.baselines import CosineSampler
 from bake.materials import open_material
-from bake.quality.metrics import chi2_test
+from bake.core.metrics import chi2_test
 from bake.tracer.integrator import render
 from bake.tracer.scene import SceneMaterial, scene_from_dict
 
@@ -318,7 +318,7 @@ def test_validate_exports_every_lamp_as_cycles_renders_it(tmp_path):
     import tomllib
     cs.bpy_or_skip()
     from blender_addon.artist import validate
-    from bake.tracer.samplers import scene_samplers
+    from bake.plumbing.scene_samplers import scene_samplers
     from bake.tracer.scene import load_scene
     lamps = [point(0.3, camera=True, z=0.8, energy=20.0)[0], spot(0.2, scale=(1.0, 0.6, 1.0), energy=40.0)[0],
              sun(10.0, energy=1.0)[0],

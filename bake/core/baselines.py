@@ -8,7 +8,7 @@ import numpy as np
 
 from ..materials.analytic import ggx_reflection_pdf, ggx_sample_reflection
 from ..materials.base import as_dirs
-from .geometry import luminance
+from ..maths.geometry import luminance
 
 
 class UniformSampler:

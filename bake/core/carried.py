@@ -36,7 +36,7 @@ import numpy as np
 
 from ..errors import FlowBSDFError
 from ..materials.rgl import RGLMaterial, WarpedCoords
-from .geometry import spherical_dir, theta_phi
+from ..maths.geometry import spherical_dir, theta_phi
 from .tables import MixedTables
 
 
@@ -172,8 +172,8 @@ def choose_intervals(material, tables, ideal, side=128, seed=0):
     """Per interval of tables.theta_bins: True where carrying reaches a lower rv than the fixed-cell
     blend at its cos-midpoint (metrics.ReferencePoints: side² of the ideal's draws there). Intervals
     of no width (a layout group's boundary, never blended) carry."""
-    from ..quality.metrics import ReferencePoints
-    from .tabulate import _parallel
+    from ..io.threads import parallel
+    from .metrics import ReferencePoints
     bins = np.asarray(tables.theta_bins)
     carried = CarriedTables(tables, material, carry=[True] * (len(bins) - 1))
 
@@ -183,4 +183,4 @@ def choose_intervals(material, tables, ideal, side=128, seed=0):
         mid = float(np.arccos(0.5 * (np.cos(bins[k]) + np.cos(bins[k + 1]))))
         draws = ReferencePoints(material, spherical_dir(mid, 0.0), ideal, side, seed)
         return draws.rv(carried)[0] <= draws.rv(tables)[0]
-    return [bool(b) for b in _parallel(better, range(len(bins) - 1))]
+    return [bool(b) for b in parallel(better, range(len(bins) - 1))]

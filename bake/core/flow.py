@@ -57,12 +57,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FlowBSDFError
+from ..maths.special import (LOG_2PI, logsumexp, log_normal_pdf, mix_radial_cdf, mix_radial_icdf, ndtr, ndtri,
+                             vm_cdf, vm_icdf, vm_log_pdf, vm_terms, wrap_angle)
+from ..maths.warps import rotate_z
 from .baselines import UniformSampler
 from .domains import get_domain
 from .flow_maps import MAPS
-from .special import (LOG_2PI, logsumexp, log_normal_pdf, mix_radial_cdf, mix_radial_icdf, ndtr, ndtri,
-                      vm_cdf, vm_icdf, vm_log_pdf, vm_terms, wrap_angle)
-from .warps import rotate_z
 
 FORMAT = "flowbsdf-flow"
 VERSION = 2                      # 2 added `defensive`; version-1 files load with defensive = 0

@@ -28,8 +28,8 @@ import math
 
 import numpy as np
 
+from ..maths.special import SQRT1_2, log_normal_pdf, ndtr, ndtri, wrap_angle
 from .domains import Disk
-from .special import SQRT1_2, log_normal_pdf, ndtr, ndtri, wrap_angle
 
 LOG2 = math.log(2.0)
 

@@ -24,7 +24,7 @@ a density over (a, b) is one over wo divided by jac = 4 (wo.h) (1 - cos theta_ma
 """
 import numpy as np
 
-from .warps import rotate_z
+from ..maths.warps import rotate_z
 
 TWO_PI = 2.0 * np.pi
 QUARTER = 0.25 * np.pi
@@ -124,7 +124,7 @@ def polar_grid_from_ab(wi, a, b, frame=0.0):
     wi = rotate_z(np.asarray(wi, np.float64), -frame)
     cos_b, sin_b = np.cos(b), np.sin(b)
     cap = _cap_along(wi[2], wi[0] * cos_b + wi[1] * sin_b)
-    from . import fasttables
+    from ..maths import fasttables
     fast = fasttables.polar_grid(a, cos_b, sin_b, cap, wi, np.cos(frame), np.sin(frame))
     if fast is not None:        # the per-node products below in C, the same bits
         return fast

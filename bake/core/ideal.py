@@ -3,7 +3,7 @@
 It is the "tabulation limit" every learned sampler is compared against, and a fast
 exact source of training samples. For each distinct wi it tabulates the target
 density max(lum f, 0)·cos(theta_o) over the half vector m, on a grid in the unit square
-u = (sqrt(2 theta_m / pi), (phi_m + pi) / 2 pi) (the RGL parameterization, bake/core/warps.py's
+u = (sqrt(2 theta_m / pi), (phi_m + pi) / 2 pi) (the RGL parameterization, bake/maths/warps.py's
 half_vector: the sqrt map puts resolution near the normal, where every microfacet lobe
 lives, at any theta_i).
 The density is piecewise constant in u, so sample() is a piecewise-linear bijection of
@@ -28,8 +28,8 @@ import time
 import numpy as np
 
 from ..materials.base import as_dirs
-from .geometry import luminance, theta_phi
-from .warps import HALF_PI, dwo_du_of, half_vector, rotate_z, u_of_half_vector
+from ..maths.geometry import luminance, theta_phi
+from ..maths.warps import HALF_PI, dwo_du_of, half_vector, rotate_z, u_of_half_vector
 
 
 @functools.lru_cache(maxsize=32)

@@ -22,14 +22,17 @@ The kinds `open_sampler` knows (`ggx-fit`, the report's old label, is an alias o
     ideal           the ideal tabulation, exact per distinct wi (bake/core/ideal.py IdealSampler)
     ideal-binned    the ideal tabulation at fixed incident bins, 1 degree apart (FineIdeal): what
                     renders use, where every pixel has its own wi
-    tables          the baked tables of a manifest entry (<out_dir>/tables/<name>.exr, current only;
-                    carried where they say so: bake/core/carried.py, as the OSL back end renders them)
-    flow            the trained flow of a manifest entry (<out_dir>/models/<name>.flow.npz)
+    tables          baked tables, the file at `path` (.exr; carried where they say so:
+                    bake/core/carried.py, as the OSL back end renders them)
+    flow            a trained flow, the file at `path` (.flow.npz)
+
+Whether a manifest entry's files are current (built from its material and settings as they are
+now) is the pipeline's business: bake/plumbing/pipeline.py's open_baked opens an entry's tables
+or flow from an output folder, current only.
 
 RENDER_KINDS are the names the reference tracer, `flowbsdf render/compare` and a manifest's
 [run.render] accept; the tracer's `ideal` is `ideal-binned`.
 """
-from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 from ..errors import FlowBSDFError
@@ -59,15 +62,11 @@ def canonical_kind(kind):
     return ALIASES.get(kind, kind)
 
 
-class StaleTables(FlowBSDFError):
-    """The baked tables are there but were built from other inputs than the current ones."""
-
-
-def open_sampler(kind, material, entry=None, out_dir="out", ideal=None, manifest_path=None, **options):
-    """The sampler `kind` (see the module's docstring) for `material`. `entry` (a manifest
-    entry) is needed by tables and flow, which are read from `out_dir`; `ideal` is the ideal
-    sampler the GGX fit samples from (a small one by default); `options` go to the ideal
-    samplers' constructors (resolution, ...). FlowBSDFError when it cannot be built."""
+def open_sampler(kind, material, path=None, ideal=None, **options):
+    """The sampler `kind` (see the module's docstring) for `material`. `path` is the file tables
+    and flow are read from; `ideal` is the ideal sampler the GGX fit samples from (a small one by
+    default); `options` go to the ideal samplers' constructors (resolution, ...). FlowBSDFError
+    when it cannot be built."""
     from .baselines import CosineSampler, UniformSampler, fit_ggx
     from .ideal import FineIdeal, IdealSampler
     kind = canonical_kind(kind)
@@ -81,31 +80,13 @@ def open_sampler(kind, material, entry=None, out_dir="out", ideal=None, manifest
         return IdealSampler(material, **options)
     if kind == "ideal-binned":
         return FineIdeal(material, **options)
+    if kind in ("tables", "flow") and path is None:
+        raise FlowBSDFError(f"the {kind} sampler reads a file: give its path")
     if kind == "tables":
-        return _current_tables(entry, out_dir, manifest_path, material)
+        from .carried import as_rendered
+        from .tables import open_tables
+        return as_rendered(open_tables(path), material)
     if kind == "flow":
-        return _flow(entry, out_dir)
+        from .flow import load_model
+        return load_model(path)
     raise FlowBSDFError(f"unknown sampler {kind!r} (one of {', '.join(KINDS)})")
-
-
-def _current_tables(entry, out_dir, manifest_path, material):
-    from ..plumbing.pipeline import open_current_tables, table_path
-    path = table_path(out_dir, entry.name)
-    if not Path(path).is_file():
-        raise FlowBSDFError(f"no baked tables for {entry.name!r} (run flowbsdf bake)", path)
-    tables = open_current_tables(entry, out_dir, manifest_path)
-    if tables is None:
-        raise StaleTables(f"the tables of {entry.name!r} are stale (the material, model or "
-                            "bake settings changed): run flowbsdf bake", path)
-    from .carried import as_rendered
-    return as_rendered(tables, material)
-
-
-def _flow(entry, out_dir):
-    from ..plumbing.pipeline import model_path
-    from .flow import load_model
-    path = model_path(out_dir, entry.name)
-    if not path.is_file():
-        raise FlowBSDFError(f"no trained flow for {entry.name!r} (run flowbsdf train); "
-                            "the flow sampler is not available for it", path)
-    return load_model(path)

@@ -72,13 +72,13 @@ import numpy as np
 
 from ..errors import FlowBSDFError
 from ..formats import FORMAT, MIXED_FORMAT
+from ..io.exrio import read_exr, write_exr
 from ..materials.base import as_dirs
-from ..plumbing.exrio import read_exr, write_exr
+from ..maths.geometry import theta_phi
 from . import halfvector
-from .geometry import theta_phi
 
 try:        # the optional C fast path (never required: Blender imports bake/ with numpy only)
-    from . import fasttables as _fasttables
+    from ..maths import fasttables as _fasttables
 except Exception:   # noqa: BLE001
     _fasttables = None
 
@@ -293,7 +293,7 @@ class Tables:
         return self.phi_bins is not None
 
     # -- C fast path ------------------------------------------------------------------
-    # sample/pdf/invert/eval hand their inputs to bake/core/fasttables.py (C, same results to a
+    # sample/pdf/invert/eval hand their inputs to bake/maths/fasttables.py (C, same results to a
     # few ulps, 3-10x faster) when it is loaded and takes them; the numpy code in each method
     # is the reference. backend="numpy" (or FLOWBSDF_NO_C=1 in the environment) keeps to
     # numpy; backend="c" raises when the C library is not available (its reason says why).
@@ -305,7 +305,7 @@ class Tables:
         if _fasttables is None or not _fasttables.AVAILABLE:
             if self.backend == "c":
                 raise FlowBSDFError("the C tables library is not available: "
-                                    + (_fasttables.REASON if _fasttables else "bake.core.fasttables did not import"))
+                                    + (_fasttables.REASON if _fasttables else "bake.maths.fasttables did not import"))
             return None
         return _fasttables
 

@@ -6,15 +6,14 @@ weights are integrated from the true f·cos per cell (refined until the cell's q
 settles and agrees with the source points that fall in it). A cell's profile along each axis
 runs through its marginal density at the profile's nodes (_profile_logs).
 """
-import os
 import threading
-import time
 
 import numpy as np
 
 from ..errors import FlowBSDFError
-from .fasttables import one_blas_thread
-from .geometry import luminance, spherical_dir
+from ..io.threads import parallel as _parallel     # (the name plan_tables' calls use)
+from ..maths.fasttables import one_blas_thread
+from ..maths.geometry import luminance, spherical_dir
 from .settings import BakeSettings
 from . import halfvector
 from .tables import HALF_MAX, K_MAX, NSEG, TWO_PI, MixedTables, Tables, _log_mean, _search, exp_density, exp_mean, to_ab
@@ -741,69 +740,6 @@ def default_phi_bins(material, count):
     return np.arange(count) * (material.phi_period / count)
 
 
-_pool = None
-_pool_lock = threading.Lock()
-_local = threading.local()
-
-
-def _cpu_seconds():
-    """(seconds of CPU all processes have used, of which this process, wall seconds), or None
-    where /proc/stat is not there (not Linux)."""
-    try:
-        with open("/proc/stat") as fh:
-            ticks = [int(x) for x in fh.readline().split()[1:9]]
-    except (OSError, ValueError):
-        return None
-    busy = (sum(ticks) - ticks[3] - ticks[4]) / os.sysconf("SC_CLK_TCK")     # all but idle, iowait
-    t = os.times()
-    return busy, t.user + t.system, time.monotonic()
-
-
-_usage = {"last": None, "workers": None}
-
-
-def _free_workers(cores):
-    """Threads worth running: the cores that other processes leave idle, as measured since
-    the last look (1 to 10 s ago; else all cores, and a new window). On a machine shared with
-    other jobs, threads that wait for a core cost CPU time (measured: chm_mint capped at 13
-    bins, 31 s of CPU in one thread, 38-39 s in two, at a load of 3.4 on 2 cores)."""
-    now = _cpu_seconds()
-    if now is None:
-        return cores
-    with _pool_lock:
-        last = _usage["last"]
-        if last is None or now[2] - last[2] > 10.0:      # no recent look: a new window
-            _usage["last"], _usage["workers"] = now, cores
-        elif now[2] - last[2] >= 1.0:
-            others = ((now[0] - last[0]) - (now[1] - last[1])) / (now[2] - last[2])
-            _usage["last"], _usage["workers"] = now, int(min(cores, max(1, round(cores - others))))
-        return _usage["workers"]
-
-
-def _parallel(fn, items):
-    """fn(x) for x in items, in order (an iterator), in threads, one per core that other
-    processes leave free (_free_workers). The work is numpy and the C evaluator, which let go
-    of the GIL, and every item's result is computed as in a loop (same bytes). A call from
-    inside one of these threads runs its items in a loop (no nested pools)."""
-    from .fasttables import _workers
-    items = list(items)
-    if len(items) < 2 or getattr(_local, "busy", False) or min(_free_workers(_workers()), len(items)) < 2:
-        return map(fn, items)
-    global _pool
-    with _pool_lock:
-        if _pool is None:
-            from concurrent.futures import ThreadPoolExecutor
-            _pool = ThreadPoolExecutor(_workers(), thread_name_prefix="flowbsdf-bake")
-
-    def run(x):
-        _local.busy = True
-        try:
-            return fn(x)
-        finally:
-            _local.busy = False
-    return _pool.map(run, items)
-
-
 class _Once:
     """fn(*args), computed by the first caller of get(); the others wait for it."""
 
@@ -1262,7 +1198,7 @@ class _Planning:
 
     def __init__(self, material, ideal, settings, memory_budget, tol, lobe_width, blend, carrier, theta_max_deg,
                  min_gap_deg, options, log):
-        from ..quality.metrics import relative_variance
+        from .metrics import relative_variance
         self.relative_variance = relative_variance
         self.material, self.ideal, self.settings = material, ideal, settings
         self.memory_budget, self.tol = memory_budget, tol
@@ -1653,7 +1589,7 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
     (MixedTables): the lower group one step coarser (of RESOLUTIONS) and the memory it frees spent
     above, on more bins where the plan's intervals lose most (`extend`, the plan's split loop) or on a step finer cells for the
     upper group's bins (as many as the budget keeps, the narrowest spans dropped)."""
-    from ..quality.metrics import ReferencePoints
+    from .metrics import ReferencePoints
     if len(bins) < 3:
         return LAYOUT_WINDOWS[0], bins, resolution, None
     side = max(int(round(np.sqrt(samples))), 1)

@@ -23,15 +23,11 @@ import numpy as np
 
 from ..errors import FlowBSDFError
 from ..formats import CARRY_LAYOUT
-from ..plumbing.exrio import read_rgba_exr, write_rgba_exr
+from ..io.exrio import read_rgba_exr, write_rgba_exr
 
 CARRY_SLICES = 16       # carried.h's CARRY_SLICES: the shader reads the slices' angles once, into an array
 META_KEY = "flowbsdf_carry"
-
-
-def export_path(tables_path, digest):
-    tables_path = Path(tables_path)
-    return tables_path.with_name(f"{tables_path.stem}.carry{CARRY_LAYOUT}-{digest[:12]}.exr")
+KIND = "carry"
 
 
 def carry_image(material, tables, carry):
@@ -73,14 +69,20 @@ def carry_image(material, tables, carry):
     return out
 
 
-def read_export(path):
+def path(tables_path, digest):
+    """<stem>.carry<CARRY_LAYOUT>-<hash12>.exr beside the tables."""
+    tables_path = Path(tables_path)
+    return tables_path.with_name(f"{tables_path.stem}.carry{CARRY_LAYOUT}-{digest[:12]}.exr")
+
+
+def read(path):
     """(image (H, W, 4) float32, metadata) of a carry texture; FlowBSDFError if it is not one."""
     return read_rgba_exr(path, META_KEY, "carry texture")
 
 
 def is_current(path, digest):
     try:
-        _, meta = read_export(path)
+        _, meta = read(path)
     except FlowBSDFError:
         return False
     return meta.get("tables_hash") == digest and meta.get("layout") == CARRY_LAYOUT
@@ -91,19 +93,7 @@ def write_carry_export(path, material, tables, carry, digest):
                    {"layout": CARRY_LAYOUT, "tables_hash": digest, "material": material.fingerprint()})
 
 
-def ensure_carry_export(tables_path, material, log=None):
-    """The carry texture of a table file whose meta says which intervals carry (made from
-    `material`, the file the tables were baked from), rebuilt when missing or stale; None (and
-    no carry texture left beside them) for tables that do not carry."""
-    from ..core.tables import open_tables
-    from .osl_export import ensure_export
-    tables_path = Path(tables_path)
-    carry = open_tables(tables_path).meta.get("carried")
-    if carry is None:
-        for old in tables_path.parent.glob(f"{tables_path.stem}.carry*-*.exr"):
-            old.unlink(missing_ok=True)
-        return None
-
-    def write(path, tables, digest):
-        write_carry_export(path, material, tables, carry, digest)
-    return ensure_export(tables_path, "carry", export_path, is_current, write, log)
+def write(path, tables_path, tables, digest, material=None):
+    """The texture of tables whose meta says which intervals carry, made from `material` (the file
+    the tables were baked from)."""
+    write_carry_export(path, material, tables, tables.meta["carried"], digest)

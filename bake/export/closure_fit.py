@@ -84,14 +84,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.fasttables import one_blas_thread
-from ..core.geometry import LUMINANCE, luminance
-from ..core.tables import MixedTables, open_tables
+from ..core.tables import MixedTables
 from ..errors import FlowBSDFError
 from ..formats import FIT_VERSION, READABLE_FIT_VERSIONS
+from ..io.exrio import write_rgba_exr
+from ..io.files import atomic_path
 from ..materials.analytic import ggx_ndf, ggx_lambda, ggx_reflection_pdf, ggx_sample_reflection
-from ..plumbing.exrio import write_rgba_exr
-from ..plumbing.files import atomic_path, file_hash
+from ..maths.fasttables import one_blas_thread
+from ..maths.geometry import LUMINANCE, luminance
 
 READABLE_VERSIONS = READABLE_FIT_VERSIONS   # load_fit / eval_fit (bake/formats.py)
 MODEL = "diffuse+view-aligned-ggx+tilt"
@@ -970,21 +970,34 @@ def load_fit(path):
     return fit
 
 
-def ensure_fit(tables_path, material=None, log=None):
-    """The fit file of a table file (<stem>.fit.json beside it), rebuilt when missing, of an
-    older version or made from other table contents; written atomically. Returns its path.
-    `material` (the measured file the tables were baked from): the fit's error is measured
-    against it (else against the tables)."""
-    tables_path = Path(tables_path)
-    digest = file_hash(tables_path)
-    path = fit_path(tables_path)
+# The exporter contract (bake/export/derived.py): the fit file of a table file.
+KIND = "fit"
+
+
+def path(tables_path, digest):
+    """<stem>.fit.json beside the tables (its name does not change with their contents)."""
+    return fit_path(tables_path)
+
+
+def read(path):
+    """The fit (load_fit)."""
+    return load_fit(path)
+
+
+def is_current(path, digest):
+    """Made from tables of this hash by this version of the fit."""
     try:
         old = load_fit(path)
-        if old.get("tables_hash") == digest and old.get("version") == FIT_VERSION:
-            return path
     except FlowBSDFError:
-        pass
-    tables = open_tables(tables_path)
+        return False
+    return old.get("tables_hash") == digest and old.get("version") == FIT_VERSION
+
+
+def write(path, tables_path, tables, digest, material=None):
+    """Fit the tables (their error measured against `material`, the measured file they were baked
+    from, else against the tables), write the match image beside the fit (isotropic tables) and
+    the fit; returns the fit's error for the log line."""
+    tables_path = Path(tables_path)
     fit = fit_closures(tables, material=material)
     fit["tables_hash"] = digest
     fit["tables"] = tables_path.name
@@ -995,7 +1008,5 @@ def ensure_fit(tables_path, material=None, log=None):
         fit["match"] = match.name
     with atomic_path(path) as tmp:
         Path(tmp).write_text(json.dumps(fit, indent=1))
-    if log:
-        log(f"[fit] wrote {path} (relative L1 of f cos against the {fit['l1_of']}: median "
+    return (f"(relative L1 of f cos against the {fit['l1_of']}: median "
             f"{fit['error']:.3f}, max {max(fit['l1']):.3f})")
-    return path

@@ -62,49 +62,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.tables import COORDS, open_tables
+from ..core.tables import COORDS
 from ..errors import FlowBSDFError
 from ..formats import OSL_LAYOUT
-from ..plumbing.exrio import read_rgba_exr, write_rgba_exr
-from ..plumbing.files import file_hash
+from ..io.exrio import read_rgba_exr, write_rgba_exr
+from .guides import guide, own_size
 
 LAYOUT = OSL_LAYOUT     # bake/formats.py
 META_KEY = "flowbsdf_osl"
-
-
-def export_path(tables_path, digest):
-    """<stem>.osl<LAYOUT>-<hash12>.exr beside the tables (blender_addon/node.py builds the same name)."""
-    tables_path = Path(tables_path)
-    return tables_path.with_name(f"{tables_path.stem}.osl{LAYOUT}-{digest[:12]}.exr")
-
-
-def _guide(cum, totals, count):
-    """(count, 2) brackets over the last axis of the cumulative sums `cum` (n_bins, n + 1)
-    whose totals are `totals` (n_bins,): for u in [g, g + 1) / count, the index searched for
-    (the last i with sum_b w_b cum_b[i] <= u sum_b w_b totals_b, any weights w >= 0) lies in
-    [lo, hi). Bins of total 0 add nothing to the blend and are left out."""
-    n = cum.shape[1] - 1
-    live = totals > 0
-    if not live.any():
-        return np.tile([0.0, n], (count, 1))
-    cum, totals = cum[live], totals[live]
-    g = np.arange(count)
-    # cum is non-decreasing: counting the entries below / above a fraction finds the last
-    # index below it and the first above it, per bin and g.
-    below = np.sum(cum[:, None, :] < (g / count)[None, :, None] * totals[:, None, None], axis=2)
-    above = np.sum(cum[:, None, :] > ((g + 1) / count)[None, :, None] * totals[:, None, None], axis=2)
-    lo = np.maximum(below - 1, 0).min(0)
-    hi = np.minimum(n + 1 - above, n).max(0)
-    # One index more on each side: the shader's target carries float32 rounding (its column
-    # target u1 (c1 - c0) comes from the row CDF, not from the row's own sums).
-    return np.stack([np.maximum(lo - 1, 0), np.minimum(hi + 1, n)], axis=1).astype(np.float64)
-
-
-def own_size(tables, bins):
-    """A corner's rows and columns: its bins' own (MixedTables pads its parts' to the largest).
-    Its bins share them, but at the boundary of two parts (two bins at one angle, never blended):
-    that corner's searches stay within the smaller's."""
-    return int(tables.bin_rows[bins].min()), int(tables.bin_cols[bins].min())
+KIND = "osl"
 
 
 def texture_image(tables):
@@ -149,66 +115,36 @@ def texture_image(tables):
                     img[sums, :C + 1, ch] = tables._b[b]
             rb, cb = own_size(tables, blend)
             row_cdf, a_edges = f32(tables._row_cdf[blend, :rb + 1]), f32(tables._a[blend, :rb + 1])
-            img[base + 2, :R, :2] = _guide(row_cdf, row_cdf[:, -1], R)
-            img[base + 2, :R, 2:] = _guide(a_edges, np.ones(4), R)
+            img[base + 2, :R, :2] = guide(row_cdf, row_cdf[:, -1], R)
+            img[base + 2, :R, 2:] = guide(a_edges, np.ones(4), R)
             img[base + 2, R, :2] = (rb, cb)
             for i in range(rb):
                 col_cum, b_edges = f32(tables._col_cum[blend, i, :cb + 1]), f32(tables._b[blend, i, :cb + 1])
-                img[base + 5 + 3 * i, :C, :2] = _guide(col_cum, col_cum[:, -1], C)
-                img[base + 5 + 3 * i, :C, 2:] = _guide(b_edges, np.full(4, 2.0 * np.pi), C)
+                img[base + 5 + 3 * i, :C, :2] = guide(col_cum, col_cum[:, -1], C)
+                img[base + 5 + 3 * i, :C, 2:] = guide(b_edges, np.full(4, 2.0 * np.pi), C)
     return img.astype(np.float32)
 
 
-def read_export(path):
+def path(tables_path, digest):
+    """<stem>.osl<LAYOUT>-<hash12>.exr beside the tables (blender_addon/node.py builds the same name)."""
+    tables_path = Path(tables_path)
+    return tables_path.with_name(f"{tables_path.stem}.osl{LAYOUT}-{digest[:12]}.exr")
+
+
+def read(path):
     """(image (H, W, 4) float32, metadata) of an export file; FlowBSDFError if it is not one."""
     return read_rgba_exr(path, META_KEY, "OSL texture")
 
 
 def is_current(path, digest):
     try:
-        _, meta = read_export(path)
+        _, meta = read(path)
     except FlowBSDFError:
         return False
     return meta.get("tables_hash") == digest and meta.get("layout") == LAYOUT
 
 
-def ensure_export(tables_path, kind, export_path, is_current, write, log=None):
-    """The `kind` ("osl" | "svm") texture of a table file, <stem>.<kind>...-<hash12>.exr: built
-    by write(path, tables, digest) when missing, stale or broken; older exports of the same
-    tables are removed. Returns its path."""
-    tables_path = Path(tables_path)
-    if not tables_path.is_file():
-        raise FlowBSDFError("table file not found", tables_path)
-    digest = file_hash(tables_path)
-    path = export_path(tables_path, digest)
-    if not is_current(path, digest):
-        write(path, open_tables(tables_path), digest)
-        if log:
-            log(f"[{kind}] wrote {path}")
-    for old in tables_path.parent.glob(f"{tables_path.stem}.{kind}*-*.exr"):
-        if old.name != path.name:
-            old.unlink(missing_ok=True)
-    return path
-
-
-def ensure_osl_export(tables_path, log=None):
-    """The OSL texture of a table file, (re)built when missing, stale or broken; returns its path."""
-    def write(path, tables, digest):
-        write_rgba_exr(path, texture_image(tables), META_KEY,
-                       {"layout": LAYOUT, "tables_hash": digest, "tables": Path(tables_path).name,
-                        "material": tables.meta.get("material"), "anisotropic": tables.anisotropic})
-    return ensure_export(tables_path, "osl", export_path, is_current, write, log)
-
-
-def bake_derived(tables_path, material=None, log=None):
-    """What the Blender node needs beside a table file: its OSL texture, its SVM texture
-    (bake/export/svm_export.py), its closure fit and, given the material it was baked from, the
-    carried blend's texture where its meta says which intervals carry (bake/export/carry_export.py;
-    each rebuilt only when missing or stale). Called by the bake pipeline; returns (OSL texture, fit)."""
-    from .closure_fit import ensure_fit
-    from .svm_export import ensure_svm_export
-    ensure_svm_export(tables_path, log=log)
-    if material is not None:
-        from .carry_export import ensure_carry_export
-        ensure_carry_export(tables_path, material, log=log)
-    return ensure_osl_export(tables_path, log=log), ensure_fit(tables_path, material=material, log=log)
+def write(path, tables_path, tables, digest, material=None):
+    write_rgba_exr(path, texture_image(tables), META_KEY,
+                   {"layout": LAYOUT, "tables_hash": digest, "tables": Path(tables_path).name,
+                    "material": tables.meta.get("material"), "anisotropic": tables.anisotropic})

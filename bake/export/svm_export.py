@@ -37,7 +37,7 @@ its searches. Layout (W x H texels):
                              phi_bin p - phi_bin 0, end_p the next start or the period);
                              isotropic tables: (cos theta_k, cos theta_k+1, R_b - 1, C_b - 1)
         row 0, x = 1 + g     row guide, g < GR: (lo, hi) brackets the row for u0 in
-                             [g, g + 1) / GR (osl_export._guide over the corner's own R_b + 1
+                             [g, g + 1) / GR (guides.guide over the corner's own R_b + 1
                              entries), lo lowered so that lo + 2^row_steps - 1 stays within
                              the records
         row 0, x = XR + SR i records [row CDF(i), a edge(i)], i = 0 .. NR - 1, NR = max(R + 1,
@@ -87,21 +87,16 @@ import numpy as np
 from ..core.tables import NSEG
 from ..errors import FlowBSDFError
 from ..formats import SVM_LAYOUT
-from ..plumbing.exrio import write_rgba_exr
-from .osl_export import _guide, ensure_export, own_size
+from ..io.exrio import read_rgba_exr, write_rgba_exr
+from .guides import guide, own_size
 
 LAYOUT = SVM_LAYOUT     # bake/formats.py
 META_KEY = "flowbsdf_svm"
+KIND = "svm"
 MAX_SIDE = 16384
 PAST_END = 8.0          # a record value above any target (CDFs and a <= 1, b <= 2 pi)
 UNUSED = 1e30           # a bin guide threshold no value reaches
 CELL_QUANTITIES = 1 + 2 * (NSEG + 1) + 3     # mass, the a and b profiles' node values, W red, W green, W blue
-
-
-def export_path(tables_path, digest):
-    """<stem>.svm<LAYOUT>-<hash12>.exr beside the tables."""
-    tables_path = Path(tables_path)
-    return tables_path.with_name(f"{tables_path.stem}.svm{LAYOUT}-{digest[:12]}.exr")
 
 
 def _f32(x):
@@ -166,10 +161,10 @@ def texture_image(tables):
     row_guides, col_guides = [], []
     for (k, p), (rb, cb) in zip(corners, sizes):
         cdf = _f32(tables._row_cdf[blend(k, p), :rb + 1])
-        row_guides.append(_guide(cdf, cdf[:, -1], R))
+        row_guides.append(guide(cdf, cdf[:, -1], R))
         for i in range(R):
             cum = _f32(tables._col_cum[blend(k, p), i, :cb + 1])
-            col_guides.append(_guide(cum, cum[:, -1], C) if i < rb else np.zeros((C, 2)))
+            col_guides.append(guide(cum, cum[:, -1], C) if i < rb else np.zeros((C, 2)))
     row_steps, col_steps = _steps(row_guides), _steps(col_guides)
     # records for the widest search: the sampler's from its guides, the pdf's over all R (C)
     n_row = max(R + 1, 2 ** max(row_steps, _full_steps(R)))
@@ -273,6 +268,17 @@ def read_layout(path):
     raise FlowBSDFError("an OpenEXR file, but not a FlowBSDF SVM texture", path)
 
 
+def path(tables_path, digest):
+    """<stem>.svm<LAYOUT>-<hash12>.exr beside the tables."""
+    tables_path = Path(tables_path)
+    return tables_path.with_name(f"{tables_path.stem}.svm{LAYOUT}-{digest[:12]}.exr")
+
+
+def read(path):
+    """(image (H, W, 4) float32, metadata) of an SVM texture; FlowBSDFError if it is not one."""
+    return read_rgba_exr(path, META_KEY, "SVM texture")
+
+
 def is_current(path, digest):
     try:
         meta = read_layout(path)
@@ -281,11 +287,8 @@ def is_current(path, digest):
     return meta.get("tables_hash") == digest
 
 
-def ensure_svm_export(tables_path, log=None):
-    """The SVM texture of a table file, (re)built when missing, stale or broken; returns its path."""
-    def write(path, tables, digest):
-        img, layout = texture_image(tables)
-        write_rgba_exr(path, img, META_KEY, {**layout, "tables_hash": digest, "tables": Path(tables_path).name,
-                                             "material": tables.meta.get("material"),
-                                             "anisotropic": tables.anisotropic})
-    return ensure_export(tables_path, "svm", export_path, is_current, write, log)
+def write(path, tables_path, tables, digest, material=None):
+    img, layout = texture_image(tables)
+    write_rgba_exr(path, img, META_KEY, {**layout, "tables_hash": digest, "tables": Path(tables_path).name,
+                                         "material": tables.meta.get("material"),
+                                         "anisotropic": tables.anisotropic})

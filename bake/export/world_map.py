@@ -40,10 +40,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.geometry import LUMINANCE
 from ..errors import FlowBSDFError
 from ..formats import WORLD_LAYOUT
-from ..plumbing.exrio import write_rgba_exr
+from ..io.exrio import write_rgba_exr
+from ..maths.geometry import LUMINANCE
 
 LAYOUT = WORLD_LAYOUT   # bake/formats.py
 TEXTURE_WIDTH = 1024

@@ -76,8 +76,8 @@ import numbers
 
 import numpy as np
 
-from ..core.warps import rotate_z
 from ..errors import FlowBSDFError
+from ..maths.warps import rotate_z
 from .base import Material, as_dirs
 
 ALPHA_MIN, ALPHA_MAX = 1e-3, 1.0

@@ -4,7 +4,7 @@ import hashlib
 
 import numpy as np
 
-from ..core.geometry import luminance
+from ..maths.geometry import luminance
 
 
 def as_dirs(wi, wo):

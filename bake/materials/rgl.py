@@ -489,9 +489,9 @@ class RGLMaterial(Material):
         return self._stored_table
 
     def _eval_c(self, wo, incident):
-        """eval for one wi in C (bake/core/_tables_c.c ft_rgl_eval: the numpy _eval_chunk
+        """eval for one wi in C (bake/maths/_tables_c.c ft_rgl_eval: the numpy _eval_chunk
         transcribed, to a few ulps), or None without the C library."""
-        from ..core import fasttables
+        from ..maths import fasttables
         signs = incident["signs"] or (1.0, 1.0)
         params = np.array([*incident["wi"], *signs, incident["theta_i"], incident["phi_i"],
                            float(self._relative_phi), float(self._jacobian), incident["sigma"]], np.float64)
@@ -688,7 +688,7 @@ class WarpedCoords:
         """(s (N, 2), d omega_o / d s: inf where the warp has no density)."""
         wo = np.atleast_2d(np.asarray(wo, np.float64))
         if self.backend == "auto":
-            from ..core import fasttables
+            from ..maths import fasttables
             fast = fasttables.warp_to_s(self, wi, wo)
             if fast is not None:
                 return fast
@@ -730,7 +730,7 @@ class WarpedCoords:
         """(wo (N, 3), d omega_o / d s); s that reach no direction: wo_z <= 0, jac 0."""
         s = np.atleast_2d(np.asarray(s, np.float64))
         if self.backend == "auto":
-            from ..core import fasttables
+            from ..maths import fasttables
             fast = fasttables.warp_from_s(self, wi, s)
             if fast is not None:
                 return fast

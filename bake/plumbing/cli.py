@@ -1,6 +1,7 @@
 """The `flowbsdf` command: one subcommand per job.
 
-    library FOLDER --out DIR               an asset library of measured files (blender_addon/library.py)
+    library FOLDER --out DIR               an asset library of measured files (blender_addon/artist/library.py,
+                                           run as a program of its own)
     check, yardsticks, bake, report, run   here: a manifest, --material, --out (but check)
                                            --out is the output folder (models/, tables/, report/
                                            inside) for train and farm task too
@@ -8,11 +9,13 @@
                                            bake/plumbing/job.py's add_train_arguments
     stress                                 bake/quality/stress.py
     farm openjd, farm task                 bake/plumbing/farm.py
-    render, compare                        bake/tracer/commands.py
+    render, compare                        bake/plumbing/tracer_commands.py (the reference tracer)
 
 A FlowBSDFError ends it with its message and exit code 2; an interrupt with 130.
 """
 import argparse
+import os
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -55,7 +58,7 @@ def cmd_bake(args):
 
 
 def cmd_report(args):
-    from ..quality.report import report_manifest
+    from .reports import report_manifest
     from .manifest import load_manifest
     steps = tuple(int(x) for x in args.steps.split(",") if x.strip())
     written = report_manifest(load_manifest(args.manifest), args.out, name=args.material, n=args.samples,
@@ -72,19 +75,45 @@ def cmd_run(args):
         render=not args.no_render, samples=args.samples).run(args.material)
 
 
+# `flowbsdf library` runs the add-on's library (blender_addon/artist/library.py) as its own program: bake/
+# never imports the add-on (it is the bottom of the repository), as the add-on runs bake/ in its
+# worker Python.
+LIBRARY_CODE = """
+import sys, bake.errors as errors, blender_addon.artist.library as library
+folder, out, quality, blend = sys.argv[1:5]
+sys.exit(errors.exit_code(lambda: library.main(folder, out, quality=quality, blend=blend == "1"), "flowbsdf"))
+"""
+
+
 def cmd_library(args):
     """An asset library of a folder of measured files (DIR/library.blend): the Blender add-on's
-    blender_addon/library.py, found beside bake/ in a checkout."""
+    blender_addon/artist/library.py, found beside bake/ in a checkout, run in a Python of its own (this
+    one, with the checkout first on its path); its exit code is the command's."""
     root = Path(__file__).resolve().parents[2]
-    if (root / "blender_addon" / "artist" / "library.py").is_file() and str(root) not in sys.path:
-        sys.path.insert(0, str(root))
-    try:
-        from blender_addon.artist import library
-    except ImportError:
+    if not (root / "blender_addon" / "artist" / "library.py").is_file():
         from ..errors import FlowBSDFError
         raise FlowBSDFError("`flowbsdf library` needs the Blender add-on's folder (blender_addon) "
-                            "beside bake/: run it from a FlowBSDF checkout") from None
-    library.main(args.folder, args.out, quality=args.quality, blend=not args.no_blend)
+                            "beside bake/: run it from a FlowBSDF checkout")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(root), os.environ.get("PYTHONPATH")) if p)}
+    code = subprocess.call([sys.executable, "-c", LIBRARY_CODE, args.folder, args.out, args.quality,
+                            "0" if args.no_blend else "1"], env=env)
+    if code:
+        raise SystemExit(code)      # the library printed why (as `flowbsdf: error: ...`)
+
+
+def _bake_quietly(manifest_path, out_dir):
+    """`flowbsdf stress`'s load run: bake a manifest (the table files written)."""
+    from .manifest import load_manifest
+    from .pipeline import bake_manifest
+    return bake_manifest(load_manifest(manifest_path), out_dir, log=lambda s: None)
+
+
+def _current_tables(manifest_path, out_dir):
+    """`flowbsdf stress`'s load run: a manifest's current tables (None where one is not)."""
+    from .manifest import load_manifest
+    from .pipeline import open_current_tables
+    m = load_manifest(manifest_path)
+    return [open_current_tables(e, out_dir, m.path) for e in m.materials]
 
 
 def build_parser():
@@ -117,7 +146,7 @@ def build_parser():
                    help="samples per rv cell of the report (default: the manifest's [run.report], else 16384)")
 
     lib = sub.add_parser("library", help="bake a folder of measured files (RGL .bsdf, MERL .binary) into a "
-                                         "Blender asset library: OUT/library.blend (blender_addon/library.py)")
+                                         "Blender asset library: OUT/library.blend (blender_addon/artist/library.py)")
     lib.add_argument("folder", help="the measured files (subfolders too)")
     lib.add_argument("--out", required=True, help="the library's folder (manifest.toml, tables/, library.blend, "
                                                   "blender_assets.cats.txt)")
@@ -128,10 +157,10 @@ def build_parser():
 
     add_train_arguments(sub.add_parser("train", help="train flow models (torch, in a subprocess: python -m trainer)"))
     from ..quality.stress import add_parser as add_stress
-    add_stress(sub)
+    add_stress(sub, bake=_bake_quietly, current_tables=_current_tables)
     from .farm import add_parser as add_farm        # farm openjd, farm task
     add_farm(sub)
-    from ..tracer.commands import add_commands as add_tracer_commands   # render, compare
+    from .tracer_commands import add_commands as add_tracer_commands   # render, compare
     add_tracer_commands(sub)
     return p
 

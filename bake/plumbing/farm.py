@@ -35,7 +35,7 @@ import sys
 from pathlib import Path
 
 from ..errors import FlowBSDFError
-from .files import atomic_path
+from ..io.files import atomic_path
 from .job import OUT_HELP
 
 SPEC_VERSION = "jobtemplate-2023-09"
@@ -256,7 +256,7 @@ def _train(entry, manifest_path, out_dir, python, report, span):
 
 
 def _task(manifest_path, name, out_dir, train, stage, report):
-    from ..export.osl_export import bake_derived
+    from ..export.derived import bake_derived
     from .manifest import load_manifest
     from .pipeline import bake_entry, bake_settings, wants_model
     report.progress(0, f"{name}: opening the material")

@@ -31,8 +31,9 @@ import traceback
 from pathlib import Path
 
 from ..errors import FlowBSDFError
-from .files import atomic_path, file_hash
-from .progress import Progress, fmt_seconds
+from ..io.files import atomic_path, file_hash, read_stamp, write_stamp
+from ..io.paths import model_path
+from ..io.progress import Progress, fmt_seconds
 
 # Bump when a change of the code should redo the reports or renders of earlier runs.
 REPORT_VERSION = 1
@@ -106,19 +107,6 @@ def _digest(obj):
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def read_stamp(folder):
-    """The job.json of a report or render folder, or None."""
-    try:
-        return json.loads((Path(folder) / "job.json").read_text())
-    except (OSError, ValueError):
-        return None
-
-
-def write_stamp(folder, inputs_hash, **data):
-    with atomic_path(Path(folder) / "job.json") as tmp:
-        Path(tmp).write_text(json.dumps({"inputs_hash": inputs_hash, **data}, indent=1, default=str))
-
-
 def run_settings(manifest, key, defaults):
     """The manifest's [run.<key>] over `defaults`: unknown keys, values of another type than the
     default's and unknown sampler or scene names are errors."""
@@ -178,7 +166,6 @@ class Job:
     def train_current(self, entry, material):
         """A model trained on this very material (any preset: a better one is kept)."""
         from ..core.flow import load_model
-        from .pipeline import model_path
         path = model_path(self.out, entry.name)
         try:
             return path.is_file() and \
@@ -208,7 +195,7 @@ class Job:
 
     def _learned_inputs(self, entry, material):
         """What the learned samplers of a material depend on: its tables' and model's hashes."""
-        from .pipeline import model_path, open_current_tables
+        from .pipeline import open_current_tables
         tables = open_current_tables(entry, self.out, self.manifest.path)
         model = model_path(self.out, entry.name)
         return {"material": material.fingerprint(), "tables": None if tables is None else tables.meta["inputs_hash"],
@@ -222,11 +209,14 @@ class Job:
 
     def report(self, entry, material):
         from ..quality.report import entry_report, write_report
+        from .reports import learned_samplers
         folder = self.out / "report" / entry.name
         digest = self.report_inputs(entry, material)
         t0 = time.perf_counter()
         r = self.report_settings
-        rows, slice_ = entry_report(entry, self.out, self.manifest.path, thetas=r["thetas"], n=r["samples"], steps=(),
+        material = entry.open()
+        flow, tables = learned_samplers(entry, material, self.out, self.manifest.path, log=self.say)
+        rows, slice_ = entry_report(entry, material, flow, tables, thetas=r["thetas"], n=r["samples"], steps=(),
                                     log=self.say, speed_n=r["speed_samples"], speed_repeat=r["speed_repeat"])
         written = write_report(rows, folder, slices=[slice_], title=f"{entry.name}: speed vs error")
         pareto = written.get(f"pareto:{entry.name}")
@@ -256,6 +246,7 @@ class Job:
         import numpy as np
         from ..tracer.compare import compare
         from ..tracer.scene import builtin_scene
+        from .scene_samplers import scene_samplers
         r = self.render_settings
         folder = self.out / "render" / entry.name
         ref_digest = self.reference_inputs(entry, material)
@@ -269,8 +260,9 @@ class Job:
                               width=r["size"], height=r["size"])
         t0 = time.perf_counter()
         rows, (ref, ref_var) = compare(scene, r["samplers"], r["spp"], r["reference_spp"], folder,
+                                       lambda name: scene_samplers(scene, name, self.out, log=self.say),
                                        reference_sampler=r["reference_sampler"], mis=r["mis"], seed=r["seed"],
-                                       tables_dir=self.out, log=self.say, reference=reference,
+                                       log=self.say, reference=reference,
                                        workers=r["workers"], progress=self._render_progress(reference is None))
         if reference is None:
             with atomic_path(ref_file) as tmp:

@@ -2,7 +2,7 @@
 
 Layout of an output folder:
     <out>/models/<name>.flow.npz     trained flows (flowbsdf train --out <out>; an older train's
-                                     <out>/<name>.flow.npz is moved here: model_path)
+                                     <out>/<name>.flow.npz is moved here: io/paths.model_path)
     <out>/tables/<name>.exr          baked tables (flowbsdf bake)
     <out>/tables/<name>.osl<layout>-<hash>.exr, <name>.svm<layout>-<hash>.exr, <name>.fit.json,
       <name>.match.exr (isotropic)   what the Blender node reads beside them (bake/export/osl_export.py,
@@ -13,43 +13,18 @@ rebuilds it, and a stale file is never used (`open_current_tables`).
 """
 import hashlib
 import json
-import os
-import sys
 import time
 from dataclasses import replace
-from pathlib import Path
 
+from ..core.sampler import open_sampler
 from ..core.settings import BakeSettings
 from ..core.tables import open_tables
 from ..errors import FlowBSDFError
 from ..formats import BUILDER, FORMAT
-from .files import file_hash, remove_stale_temps
+from ..io.files import file_hash, remove_stale_temps
+from ..io.paths import model_path, table_path
 
 BUILDER_VERSION = BUILDER     # bake/formats.py (a module global: tests bump it)
-
-
-def model_path(out_dir, name):
-    """OUT/models/<name>.flow.npz. A model that an older `flowbsdf train --out OUT` left in OUT itself
-    (its --out was the models folder then) is moved there first, with its checkpoints, saying so
-    on stderr: every reader of a model finds it, and the folder has one layout from then on."""
-    path = Path(out_dir) / "models" / f"{name}.flow.npz"
-    old = Path(out_dir) / path.name
-    if old.is_file() and not path.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            os.replace(old, path)
-        except FileNotFoundError:       # another process moved it first
-            return path
-        checkpoints = old.with_name(f"{name}.train")
-        if checkpoints.is_dir() and not (path.parent / checkpoints.name).exists():
-            os.replace(checkpoints, path.parent / checkpoints.name)
-        print(f"[models] moved {old} to {path} (and its checkpoints): an older `flowbsdf train --out "
-              f"{out_dir}` put it there; models are in {path.parent} now", file=sys.stderr, flush=True)
-    return path
-
-
-def table_path(out_dir, name):
-    return Path(out_dir) / "tables" / f"{name}.exr"
 
 
 def bake_settings(entry, manifest_path):
@@ -148,8 +123,8 @@ def carriable(material):
 
 def bake_with_derived(entry, out_dir, manifest_path, force=False, log=print):
     """bake_entry, then what the Blender node needs beside the tables (OSL and SVM textures,
-    closure fit, the carried blend's texture: osl_export.bake_derived)."""
-    from ..export.osl_export import bake_derived
+    closure fit, the carried blend's texture: derived.bake_derived)."""
+    from ..export.derived import bake_derived
     path, status = bake_entry(entry, out_dir, manifest_path, force=force, log=log)
     bake_derived(path, material=entry.open(), log=log)
     return path, status
@@ -190,3 +165,28 @@ def open_current_tables(entry, out_dir, manifest_path):
     _, digest = inputs_of(entry.open(), settings, model_file)
     tables = open_tables(path)
     return tables if tables.meta.get("inputs_hash") == digest else None
+
+
+class StaleTables(FlowBSDFError):
+    """The baked tables are there but were built from other inputs than the current ones."""
+
+
+def open_baked(kind, entry, material, out_dir, manifest_path=None):
+    """The sampler `kind` (bake/core/sampler.py) of a manifest entry, its file read from `out_dir`:
+    "tables" current only (StaleTables when the material, model or bake settings changed since),
+    "flow" the trained model; the kinds that need no file as open_sampler opens them."""
+    if kind == "tables":
+        path = table_path(out_dir, entry.name)
+        if not path.is_file():
+            raise FlowBSDFError(f"no baked tables for {entry.name!r} (run flowbsdf bake)", path)
+        if open_current_tables(entry, out_dir, manifest_path) is None:
+            raise StaleTables(f"the tables of {entry.name!r} are stale (the material, model or "
+                              "bake settings changed): run flowbsdf bake", path)
+        return open_sampler("tables", material, path)
+    if kind == "flow":
+        path = model_path(out_dir, entry.name)
+        if not path.is_file():
+            raise FlowBSDFError(f"no trained flow for {entry.name!r} (run flowbsdf train); "
+                                "the flow sampler is not available for it", path)
+        return open_sampler("flow", material, path)
+    return open_sampler(kind, material)

@@ -1,6 +1,6 @@
-"""How good and how fast the samplers are: yardsticks, reports, benchmarks, stress tests.
+"""How good and how fast the samplers are: yardsticks, reports, benchmarks, stress tests (the
+yardsticks themselves, rv and chi-square, are bake/core/metrics.py).
 
-    metrics        relative variance of the albedo estimator; chi-square of sample() vs pdf()
     report         the yardstick table and the speed-vs-error report (plots: matplotlib)
     page           the main job's page, OUT/index.html
     bench          wall-clock throughput of sample() and pdf()

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from ..core.sampler import canonical_kind
-from ..plumbing.progress import fmt_seconds
+from ..io.progress import fmt_seconds
 
 STYLE = """
 body { font: 15px/1.45 system-ui, sans-serif; margin: 2em auto; max-width: 1100px; padding: 0 1em; color: #222 }
@@ -169,8 +169,7 @@ def _times(x, ref):
 def write_page(out_dir, manifest, entries, timings, failures=None):
     """Write OUT/index.html from the report and render folders of `entries`; returns its path.
     failures: {material: (stage, message)} of this run's failed stages, shown in their sections."""
-    from ..plumbing.files import atomic_path
-    from ..plumbing.job import read_stamp
+    from ..io.files import atomic_path, read_stamp
     out = Path(out_dir)
     stamps = [(e.name, read_stamp(out / "render" / e.name), read_stamp(out / "report" / e.name)) for e in entries]
     parts = [f"<!doctype html><meta charset=utf-8><title>FlowBSDF: {_e(Path(manifest.path).name)}</title>",

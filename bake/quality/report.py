@@ -10,9 +10,9 @@ import time
 import numpy as np
 
 from ..core.baselines import CosineSampler, fit_ggx
-from ..core.geometry import incident, luminance
 from ..core.ideal import IdealSampler
-from .metrics import relative_variance, relative_variance_ref
+from ..core.metrics import relative_variance, relative_variance_ref
+from ..maths.geometry import incident, luminance
 
 THETAS_DEG = (0, 30, 60, 75, 85)
 
@@ -403,26 +403,20 @@ def plot_target(material, theta_i, path, res=256, title=None, decades=4):
                         title or f"θi = {theta_i}°", decades)
 
 
-def manifest_samplers(entry, material, out_dir, manifest_path, steps=(2, 4, 8), log=print):
-    """Every sampler the report compares for one material: baselines, the ideal tabulation,
-    the flow at several step counts (always its trained N), the baked tables (and a half-resolution rebuild on the
-    same bins), plain tabulation at the tables' memory, and Mitsuba's sampler for RGL files."""
+def manifest_samplers(entry, material, flow=None, tables=None, steps=(2, 4, 8), log=print):
+    """Every sampler the report compares for one material: baselines, the ideal tabulation, the
+    trained `flow` at several step counts (always its trained N), the baked `tables` (current ones,
+    as rendered: bake/plumbing/reports.py finds both in an output folder; and a half-resolution
+    rebuild on the same bins), plain tabulation at the tables' memory, and Mitsuba's sampler for
+    RGL files."""
     from ..core.ideal import BinnedIdeal
-    from ..core.sampler import StaleTables, open_sampler
-    from ..plumbing.pipeline import model_path, table_path
+    from ..core.sampler import open_sampler
     ideal = open_sampler("ideal", material)
     samplers = {kind: open_sampler(kind, material, ideal=ideal) for kind in ("uniform", "cosine", "ggx")}
     samplers["ideal"] = ideal
-    if model_path(out_dir, entry.name).is_file():
-        model = open_sampler("flow", material, entry, out_dir)
-        for n in sorted(set(steps) | {model.steps}):
-            samplers[f"flow N={n}"] = model.with_steps(n)
-    tables = None
-    if table_path(out_dir, entry.name).is_file():
-        try:
-            tables = open_sampler("tables", material, entry, out_dir, manifest_path=manifest_path)
-        except StaleTables:
-            log(f"[report] {entry.name}: tables are stale (material, model or settings changed): re-bake")
+    if flow is not None:
+        for n in sorted(set(steps) | {flow.steps}):
+            samplers[f"flow N={n}"] = flow.with_steps(n)
     if tables is not None:
         from ..core.tabulate import build_tables
         samplers["tables"] = tables
@@ -460,24 +454,13 @@ def manifest_samplers(entry, material, out_dir, manifest_path, steps=(2, 4, 8), 
 SLICE_THETA = 60.0
 
 
-def entry_report(entry, out_dir, manifest_path, thetas=THETAS_DEG, n=1 << 17, steps=(2, 4, 8), log=print,
-                 speed_n=1 << 15, speed_repeat=3):
+def entry_report(entry, material, flow=None, tables=None, thetas=THETAS_DEG, n=1 << 17, steps=(2, 4, 8),
+                 log=print, speed_n=1 << 15, speed_repeat=3):
     """One manifest material: its speed_error_rows and its pdf slice for write_report (the
     ideal sampler, the trained flow and the tables at SLICE_THETA)."""
-    material = entry.open()
-    samplers = manifest_samplers(entry, material, out_dir, manifest_path, steps=steps, log=log)
+    samplers = manifest_samplers(entry, material, flow, tables, steps=steps, log=log)
     rows = speed_error_rows(entry.name, material, samplers, thetas=thetas, n=n, speed_n=speed_n,
                             speed_repeat=speed_repeat, log=log)
     trained = next((f"flow N={m.meta['steps']}" for k, m in samplers.items() if k.startswith("flow N=")), None)
     shown = {k: samplers[k] for k in ("ideal", trained, "tables") if k in samplers}
     return rows, (entry.name, material, shown, SLICE_THETA)
-
-
-def report_manifest(manifest, out_dir, name=None, thetas=THETAS_DEG, n=1 << 17, steps=(2, 4, 8), log=print):
-    """The speed-vs-error report of every selected material, written to <out_dir>/report."""
-    rows, slices = [], []
-    for entry in manifest.select(name, log=log):
-        entry_rows, entry_slice = entry_report(entry, out_dir, manifest.path, thetas, n, steps, log)
-        rows += entry_rows
-        slices.append(entry_slice)
-    return write_report(rows, Path(out_dir) / "report", slices=slices)

@@ -5,7 +5,7 @@ Hard cases: every sampler of the product on materials built to break it, with
   - no NaN/inf/negative pdf, no non-finite direction or weight f·cos/pdf, in every sample;
   - samples either in the upper hemisphere with pdf > 0, or invalid (pdf 0) consistently:
     pdf() returns the same value at the sample (checked on a share of each chunk);
-  - chi-square of sample() against pdf() (bake.quality.metrics.chi2_test, Šidák-corrected over
+  - chi-square of sample() against pdf() (bake.core.metrics.chi2_test, Šidák-corrected over
     every test of the run);
   - rv (relative variance of the albedo estimator) finite.
 
@@ -19,6 +19,7 @@ Load: bake 50 varied analytic materials in one batch, then a soak run that sampl
 
 tests/test_hard_cases.py runs the same cases with modest counts.
 """
+import functools
 import json
 import math
 import subprocess
@@ -30,10 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.geometry import luminance, reflect
 from ..materials import open_material
 from ..materials.base import Material, as_dirs
 from ..materials.rgl import write_tensor_file
+from ..maths.geometry import luminance, reflect
 
 # ------------------------------------------------------------------------------ materials
 
@@ -336,7 +337,7 @@ def chi2_cases(case, sampler, workdir, n=200_000, n_tests=1, seed=1, max_wis=3, 
     """chi2_test at up to max_wis of the case's incident directions (spread over the list). The
     ideal sampler is binned on its own half-vector grid (its density is constant per cell there)."""
     binning = binning or ("halfvector" if getattr(sampler, "name", "") == "ideal" else case.chi2_binning)
-    from .metrics import chi2_test
+    from ..core.metrics import chi2_test
     wis = case.directions()
     pick = np.unique(np.linspace(0, len(wis) - 1, min(max_wis, len(wis))).round().astype(int))
     return [(tuple(case.wis[i]), chi2_test(sampler, wis[i], n=n, n_tests=n_tests, seed=seed + int(i),
@@ -461,21 +462,21 @@ def write_load_manifest(path, materials, bake):
 LOAD_BAKE = dict(resolution=16, tol=0.5, grid=96, samples=2048, first_bins=4, ideal_resolution=64)
 
 
-def run_load(workdir, n_materials=50, soak=10 ** 9, chunk=1 << 20, log=print, plot=True):
-    """Bake n materials in one batch, then sample `soak` directions through their tables."""
-    from ..plumbing.manifest import load_manifest
-    from ..plumbing.pipeline import bake_manifest, open_current_tables
+def run_load(workdir, bake, current_tables, n_materials=50, soak=10 ** 9, chunk=1 << 20, log=print, plot=True):
+    """Bake n materials in one batch, then sample `soak` directions through their tables. The
+    pipeline's part is handed in (bake/plumbing/cli.py): bake(manifest_path, out_dir) bakes a
+    manifest's materials, returning the table files written; current_tables(manifest_path,
+    out_dir) opens them, None where one is not current."""
     workdir = Path(workdir)
     manifest = write_load_manifest(workdir / "load.toml", load_materials(n_materials), LOAD_BAKE)
-    m = load_manifest(manifest)
     out = workdir / "load_out"
     t0 = time.perf_counter()
     rss0 = rss_bytes()
-    written = bake_manifest(m, out, log=lambda s: None)
+    written = bake(manifest, out)
     bake_s = time.perf_counter() - t0
     log(f"[load] baked {len(written)} materials in {bake_s:.0f} s (RSS {rss0 / 2**20:.0f} -> "
         f"{rss_bytes() / 2**20:.0f} MiB)")
-    tables = [open_current_tables(e, out, m.path) for e in m.materials]
+    tables = current_tables(manifest, out)
     assert all(t is not None for t in tables), "a baked table is not current right after the bake"
     rng = np.random.default_rng(0)
     rows, done, k = [], 0, 0
@@ -589,7 +590,8 @@ def run_hard_cases(workdir, samples=10 ** 8, ideal_samples=None, flow_samples=No
     return results
 
 
-def add_parser(sub):
+def add_parser(sub, bake, current_tables):
+    """`flowbsdf stress`; bake and current_tables: the pipeline's, for the load run (run_load)."""
     s = sub.add_parser("stress", help="the long stability suite: hard cases, load and soak (issue 8)")
     s.add_argument("--out", default="out/stress", help="work folder (materials, tables, logs, CSV/PNG)")
     s.add_argument("--samples", type=float, default=1e8, help="samples per case through the tables")
@@ -602,11 +604,11 @@ def add_parser(sub):
     s.add_argument("--load", type=int, default=50, help="materials baked in the load test (0: skip)")
     s.add_argument("--soak", type=float, default=1e9, help="directions sampled in the soak run (0: skip)")
     s.add_argument("--skip-cases", action="store_true", help="only the load test and soak")
-    s.set_defaults(func=cmd_stress)
+    s.set_defaults(func=functools.partial(cmd_stress, bake=bake, current_tables=current_tables))
     return s
 
 
-def cmd_stress(args):
+def cmd_stress(args, bake, current_tables):
     from ..errors import FlowBSDFError
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -626,7 +628,7 @@ def cmd_stress(args):
                                          models=models, only=args.case, log=log)
         (out / "stress.json").write_text(json.dumps(report, indent=1, default=str))
     if args.load and args.soak:
-        report["load"] = run_load(out, args.load, int(args.soak), log=log)
+        report["load"] = run_load(out, bake, current_tables, args.load, int(args.soak), log=log)
     (out / "stress.json").write_text(json.dumps(report, indent=1, default=str))
     problems = [f"{r['case']}/{r['sampler']}" for r in report.get("cases", []) if not r["ok"]]
     log(f"[stress] wrote {out / 'stress.json'}; problems: {problems or 'none'}")

@@ -17,12 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.geometry import LUMINANCE
 from ..core.ideal import FineIdeal
 from ..errors import FlowBSDFError
+from ..maths.geometry import LUMINANCE
 from .images import false_colour, mae, mse, ssim, tonemap, write_exr, write_png
 from .integrator import render
-from .samplers import scene_samplers
 
 
 def _prepare(samplers):
@@ -31,24 +30,15 @@ def _prepare(samplers):
             s.prepare()
 
 
-def render_with(scene, name, spp=None, seconds=None, mis=True, seed=0, tables_dir="out", log=print,
-                samplers=None, workers=1, progress=None):
-    samplers = samplers or scene_samplers(scene, name, tables_dir, log=log)
-    _prepare(samplers)
-    img, var, stats = render(scene, samplers, spp=spp, seconds=seconds, mis=mis, seed=seed, workers=workers,
-                             progress=progress)
-    return img, var, stats
-
-
 def metrics(img, ref):
     return {"mse": mse(img, ref), "mae": mae(img, ref), "ssim": ssim(img, ref)}
 
 
-def compare(scene, names, spp, reference_spp, out_dir, reference_sampler="ideal", mis=True,
-            equal_time=True, seed=1, tables_dir="out", log=print, reference=None, workers=1, dirs=None,
-            progress=None):
-    """Returns (rows, reference image). reference: a precomputed (image, variance) to reuse;
-    dirs: {sampler name: output folder} where a sampler's files are not under tables_dir;
+def compare(scene, names, spp, reference_spp, out_dir, samplers_of, reference_sampler="ideal", mis=True,
+            equal_time=True, seed=1, log=print, reference=None, workers=1, progress=None):
+    """Returns (rows, reference image). samplers_of(name): the sampler `name` for each of the scene's
+    materials (bake/plumbing/scene_samplers.py opens them from an output folder; FlowBSDFError when
+    one is not available); reference: a precomputed (image, variance) to reuse;
     progress(what, passes, fraction, seconds): after every pass of every render (once per render
     when workers > 1), `what` = "reference" or "<sampler> (equal spp|time)", `fraction` = the
     share of that render done (of its spp, or of its time budget)."""
@@ -58,17 +48,16 @@ def compare(scene, names, spp, reference_spp, out_dir, reference_sampler="ideal"
 
     def samplers_for(name):
         if name not in built:
-            built[name] = scene_samplers(scene, name, (dirs or {}).get(name, tables_dir), log=log)
+            built[name] = samplers_of(name)
             _prepare(built[name])
         return built[name]
 
     if reference is None:
         log(f"[compare] reference: {reference_sampler}, {reference_spp} spp")
         t0 = time.perf_counter()
-        ref, ref_var, st = render_with(scene, reference_sampler, spp=reference_spp, mis=True,
-                                       seed=10_000 + seed, tables_dir=tables_dir, log=log,
-                                       samplers=samplers_for(reference_sampler), workers=workers,
-                                       progress=_reporter("reference", reference_spp, None, progress))
+        ref, ref_var, st = render(scene, samplers_for(reference_sampler), spp=reference_spp, mis=True,
+                                  seed=10_000 + seed, workers=workers,
+                                  progress=_reporter("reference", reference_spp, None, progress))
         log(f"[compare] reference done in {time.perf_counter() - t0:.1f}s")
     else:
         ref, ref_var = reference

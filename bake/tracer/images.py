@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.geometry import LUMINANCE
-from ..plumbing.files import atomic_path
+from ..io.files import atomic_path
+from ..maths.geometry import LUMINANCE
 
 
 def _atomic(path, write):

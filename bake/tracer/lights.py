@@ -42,8 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.geometry import LUMINANCE
 from ..errors import FlowBSDFError
+from ..maths.geometry import LUMINANCE
 from .accel import EPS_T
 
 

@@ -322,9 +322,10 @@ def _keys(path, where, table, allowed, required=()):
 
 
 def load_scene(spec, manifest=None, material=None):
-    """A Scene from a file path or `builtin:NAME`. manifest: a bake Manifest (or its path),
-    needed when the scene names manifest materials. material: for built-ins, the manifest
-    name or Material put on the ball."""
+    """A Scene from a file path or `builtin:NAME`. manifest: a bake Manifest (bake/plumbing/manifest.py),
+    or a function that reads one (called only when the scene names a manifest material), needed
+    when the scene names manifest materials. material: for built-ins, the manifest name or
+    Material put on the ball."""
     if isinstance(spec, str) and spec.startswith("builtin:"):
         return builtin_scene(spec[len("builtin:"):], material=material, manifest=manifest)
     path = Path(spec)
@@ -346,12 +347,10 @@ def load_scene(spec, manifest=None, material=None):
 
 
 def _manifest(manifest, path):
+    """The Manifest the scene's manifest materials come from (see load_scene)."""
     if manifest is None:
-        manifest = Path("manifest.toml")
-    if isinstance(manifest, (str, Path)):
-        from ..plumbing.manifest import load_manifest
-        manifest = load_manifest(manifest)
-    return manifest
+        raise FlowBSDFError("the scene names a manifest material, but no manifest was given", path)
+    return manifest() if callable(manifest) else manifest
 
 
 def _material(path, name, spec, manifest_holder):

@@ -127,7 +127,7 @@ def _blend_path(path):
 # worker Python, for a Blender whose own Python cannot (no numpy: Debian's 3.4).
 DERIVE_CODE = """
 import sys
-from bake.export.osl_export import bake_derived
+from bake.export.derived import bake_derived
 for k, path in enumerate(sys.argv[1:], 1):
     print(f"[progress {k}/{len(sys.argv) - 1}] fit + OSL texture {path}", flush=True)
     bake_derived(path, log=lambda line: print(line, flush=True))

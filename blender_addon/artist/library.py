@@ -211,7 +211,8 @@ def bake(manifest_path, out, log=print):
     messages logged); the others are baked."""
     from bake.errors import FlowBSDFError
     from bake.plumbing.manifest import load_manifest
-    from bake.plumbing.pipeline import bake_manifest, table_path
+    from bake.io.paths import table_path
+    from bake.plumbing.pipeline import bake_manifest
     from .worker_main import write_preview
     manifest = load_manifest(manifest_path)
     failed = set()

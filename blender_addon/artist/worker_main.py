@@ -411,7 +411,8 @@ def cmd_probe(args):
 def material_status(entry, out_dir, manifest_path):
     """A material's state: can it be opened, is it isotropic, model and tables present/current."""
     from bake.errors import FlowBSDFError
-    from bake.plumbing.pipeline import model_path, open_current_tables, table_path
+    from bake.io.paths import model_path, table_path
+    from bake.plumbing.pipeline import open_current_tables
     info = {"name": entry.name, "domain": entry.domain, "isotropic": None, "error": None,
             "model": model_path(out_dir, entry.name).is_file(), "tables": "missing",
             "tables_path": str(table_path(out_dir, entry.name)), "theta_bins_deg": None}
@@ -474,7 +475,7 @@ def write_preview(entry, manifest, out_dir, tables_path, log=emit):
         return path
     from bake.tracer.images import tonemap, write_png
     from bake.tracer.integrator import render
-    from bake.tracer.samplers import scene_samplers
+    from bake.plumbing.scene_samplers import scene_samplers
     from bake.tracer.scene import builtin_scene
     log(f"[preview] {entry.name}: {PREVIEW_SIZE}x{PREVIEW_SIZE}, {PREVIEW_SPP} spp, shader ball under a soft sky")
     scene = builtin_scene("shaderball-env", material=entry.name, manifest=manifest, width=PREVIEW_SIZE,
@@ -531,7 +532,7 @@ def cmd_bake(args):
             with BakeProgress(entry.name, bake_settings(entry, manifest.path)) as progress:
                 path, status = bake_entry(entry, args.out, manifest.path, log=progress.log)
                 if path is not None:        # the node's OSL texture and closure fit, beside the tables
-                    from bake.export.osl_export import bake_derived
+                    from bake.export.derived import bake_derived
                     bake_derived(path, material=entry.open(), log=progress.log)
                     write_preview(entry, manifest, args.out, path, log=progress.log)
         except FlowBSDFError as e:
@@ -564,7 +565,7 @@ def write_compare(path, cycles, ref, result):
     """compare.png (Cycles, the reference and their luminance difference, labelled, with the
     numbers) and compare.md beside it saying the same in words."""
     import numpy as np
-    from bake.core.geometry import LUMINANCE
+    from bake.maths.geometry import LUMINANCE
     from bake.tracer.images import false_colour, tonemap, write_png
     from bake.tracer.label import labelled_panels
     err = np.abs((cycles - ref) @ LUMINANCE)
@@ -588,7 +589,7 @@ def cmd_validate(args):
     from bake.tracer.compare import metrics
     from bake.tracer.images import read_exr, write_exr
     from bake.tracer.integrator import render
-    from bake.tracer.samplers import scene_samplers
+    from bake.plumbing.scene_samplers import scene_samplers
     from bake.tracer.scene import load_scene
     scene = load_scene(args.scene, manifest=load_manifest(args.manifest))
     cycles = np.asarray(read_exr(args.cycles), np.float32)[..., :3]

@@ -66,7 +66,7 @@ def fit_file(tables_path):
             f"closure fit stale (made from other tables): {path}"
     except ValueError as e:
         why = str(e)
-    closure_fit = deps.bake_module("export.closure_fit")
+    closure_fit = deps.bake_module("export.derived")
     if closure_fit is None:
         if older:
             return path         # rendered as it is (the version it says): refitting needs numpy
@@ -77,7 +77,7 @@ def fit_file(tables_path):
 def osl_texture(tables_path):
     """The OSL texture of a table file: made or refreshed by `bake` where it imports, else the
     one the bake wrote (its name carries the tables' hash: bake/export/osl_export.export_path)."""
-    osl_export = deps.bake_module("export.osl_export")
+    osl_export = deps.bake_module("export.derived")
     error = None
     if osl_export is not None:
         try:
@@ -107,7 +107,7 @@ def carry_texture(tables_path):
 
 def svm_texture(tables_path):
     """The SVM texture of a table file, made or refreshed by `bake` (bake/export/svm_export.py)."""
-    return str(deps.bake_module("export.svm_export").ensure_svm_export(tables_path))
+    return str(deps.bake_module("export.derived").ensure_svm_export(tables_path))
 
 
 def is_current(tables_path):

@@ -31,7 +31,7 @@ def stale_fit(tree):
 
 
 def _refit_worker(tables, done, errors):
-    closure_fit = deps.bake_module("export.closure_fit")
+    closure_fit = deps.bake_module("export.derived")
     for path in tables:
         try:
             closure_fit.ensure_fit(path)

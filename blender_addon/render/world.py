@@ -308,7 +308,7 @@ def bake_sun(scene, sun, path):
     """sun_fit of the world's sun, rendered and saved at path (JSON); None without a disc."""
     import json
     fit = sun_fit(render_sun(scene, sun), sun)
-    with deps.bake_module("plumbing.files").atomic_path(path) as tmp:
+    with deps.bake_module("io.files").atomic_path(path) as tmp:
         Path(tmp).write_text(json.dumps(fit))
     return fit
 
@@ -552,7 +552,7 @@ def write_sky(path, radiance):
     """The map's radiance (rows from the zenith) as the float image the OSL shader reads."""
     import numpy as np
     rgba = np.concatenate([radiance, np.ones(radiance.shape[:2] + (1,))], -1).astype(np.float32)
-    deps.bake_module("plumbing.exrio").write_rgba_exr(path, rgba, "flowbsdf", {"sky": True})
+    deps.bake_module("io.exrio").write_rgba_exr(path, rgba, "flowbsdf", {"sky": True})
 
 
 def _environment(exact, sky_file):

@@ -14,7 +14,7 @@ Directions are in the local shading frame (z = normal, wi pointing away from the
     dwo_du_of(cos_im, sin_theta_m, u1)  the same from wi·m and sin(theta_m) (the ideal table's hot loop)
 
 The ideal sampler (bake/core/ideal.py) tabulates over half_vector's square; the chi-square test
-(bake/quality/metrics.py) bins samples on it.
+(bake/core/metrics.py) bins samples on it.
 """
 import numpy as np
 

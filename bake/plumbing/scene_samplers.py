@@ -1,10 +1,12 @@
 """A BSDF sampler per scene material, by the name a render asks for (bake/core/sampler.py's
 RENDER_KINDS: tables | flow | ideal | ggx | cosine; `ideal` is the binned ideal tabulation).
-Tables and flows come from the manifest material's files under `tables_dir`."""
+Tables and flows come from the manifest material's files under `tables_dir`, current only
+(pipeline.open_baked); the reference tracer (bake/tracer/) renders whatever it is handed."""
 import time
 
-from ..core.sampler import RENDER_KIND, RENDER_KINDS, canonical_kind, open_sampler
+from ..core.sampler import RENDER_KIND, RENDER_KINDS, canonical_kind
 from ..errors import FlowBSDFError
+from .pipeline import open_baked
 
 
 def make_sampler(name, scene_material, tables_dir="out"):
@@ -16,8 +18,7 @@ def make_sampler(name, scene_material, tables_dir="out"):
         raise FlowBSDFError(f"material {scene_material.name!r} is inline: no baked tables "
                             "(give it `manifest = NAME` or `sampler = ...`)" if name == "tables" else
                             f"material {scene_material.name!r} is inline: no flow model")
-    return open_sampler(RENDER_KIND.get(name, name), scene_material.material, entry=scene_material.entry,
-                        out_dir=tables_dir)
+    return open_baked(RENDER_KIND.get(name, name), scene_material.entry, scene_material.material, tables_dir)
 
 
 def scene_samplers(scene, name, tables_dir="out", log=print):

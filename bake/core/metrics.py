@@ -6,7 +6,7 @@
   `relative_variance_ref` estimates the same rv as an integral sampled from a reference (the
   ideal sampler), which does not understate heavy tails.
 - `chi2_test`: goodness of fit of sample() against pdf(), binned on the half vector
-  (`HalfVectorBins`, bake/core/warps.py's map: fine near the specular direction; the default) or on
+  (`HalfVectorBins`, bake/maths/warps.py's map: fine near the specular direction; the default) or on
   (cos theta, phi) (`CosineBins`), with
   expected counts integrated adaptively (a quadtree refined where the quadrature error
   estimate is large or where samples crowd, so sharp lobes are integrated, not missed),
@@ -16,8 +16,8 @@ import math
 
 import numpy as np
 
-from ..core.geometry import luminance, normalize, reflect
-from ..core.warps import dwo_du, half_vector, u_of_half_vector
+from ..maths.geometry import luminance, normalize, reflect
+from ..maths.warps import dwo_du, half_vector, u_of_half_vector
 
 
 

@@ -1,5 +1,7 @@
-"""Files: content hashes (what decides whether a cached product is current) and atomic writes."""
+"""Files: content hashes (what decides whether a cached product is current), atomic writes, and a
+folder's job.json (its stamp: what inputs made the files in it)."""
 import hashlib
+import json
 import os
 import tempfile
 import time
@@ -51,3 +53,16 @@ def remove_stale_temps(path, older_than=600.0):
                 tmp.unlink()
         except OSError:
             pass
+
+
+def read_stamp(folder):
+    """The job.json of a report or render folder, or None."""
+    try:
+        return json.loads((Path(folder) / "job.json").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def write_stamp(folder, inputs_hash, **data):
+    with atomic_path(Path(folder) / "job.json") as tmp:
+        Path(tmp).write_text(json.dumps({"inputs_hash": inputs_hash, **data}, indent=1, default=str))

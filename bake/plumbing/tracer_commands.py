@@ -1,4 +1,5 @@
-"""`flowbsdf render` and `flowbsdf compare` (registered by bake/plumbing/cli.py)."""
+"""`flowbsdf render` and `flowbsdf compare`: the reference tracer (bake/tracer/) on a scene, its
+manifest materials sampled from an output folder (registered by bake/plumbing/cli.py)."""
 from pathlib import Path
 
 from ..core.sampler import RENDER_KINDS, canonical_kind
@@ -6,14 +7,18 @@ from ..errors import FlowBSDFError
 
 
 def _scene(args):
-    from .scene import builtin_scene, load_scene
+    from ..tracer.scene import builtin_scene, load_scene
+    from .manifest import load_manifest
+
+    def manifest():         # read when the scene names a manifest material
+        return load_manifest(args.manifest)
     if args.scene.startswith("builtin:"):
-        scene = builtin_scene(args.scene[len("builtin:"):], material=args.material, manifest=args.manifest,
+        scene = builtin_scene(args.scene[len("builtin:"):], material=args.material, manifest=manifest,
                               width=args.width or 128, height=args.height or 128)
     else:
         if args.material:
             raise FlowBSDFError("--material applies to built-in scenes only (scene files name their materials)")
-        scene = load_scene(args.scene, manifest=args.manifest)
+        scene = load_scene(args.scene, manifest=manifest)
         if args.width:
             scene.camera.width = args.width
         if args.height:
@@ -23,10 +28,10 @@ def _scene(args):
 
 def cmd_render(args):
     import time
-    from .compare import _prepare
-    from .images import write_exr
-    from .integrator import render
-    from .samplers import scene_samplers
+    from ..tracer.compare import _prepare
+    from ..tracer.images import write_exr
+    from ..tracer.integrator import render
+    from .scene_samplers import scene_samplers
     scene = _scene(args)
     cam = scene.camera
     print(f"[render] {args.scene}: {cam.width}x{cam.height}, sampler {args.sampler}, "
@@ -53,14 +58,15 @@ def cmd_render(args):
 
 
 def cmd_compare(args):
-    from .compare import compare
+    from ..tracer.compare import compare
+    from .scene_samplers import scene_samplers
     scene = _scene(args)
     names = [canonical_kind(s.strip()) for s in args.samplers.split(",") if s.strip()]
     bad = [s for s in names if s not in RENDER_KINDS]
     if bad:
         raise FlowBSDFError(f"unknown sampler(s) {', '.join(bad)} (choose from {', '.join(RENDER_KINDS)})")
-    compare(scene, names, args.spp, args.reference_spp, args.out, reference_sampler=args.reference_sampler,
-            mis=args.mis, equal_time=not args.no_equal_time, seed=args.seed, tables_dir=args.tables_dir,
+    compare(scene, names, args.spp, args.reference_spp, args.out, lambda name: scene_samplers(scene, name, args.tables_dir),
+            reference_sampler=args.reference_sampler, mis=args.mis, equal_time=not args.no_equal_time, seed=args.seed,
             workers=args.workers)
     print((Path(args.out) / "metrics.md").read_text())
     print(f"[wrote] {args.out}/: reference.exr, <sampler>_spp.exr, <sampler>_time.exr, compare.png, "

@@ -1,4 +1,4 @@
-"""The C fast path of Tables (bake/core/_tables_c.c), loaded with ctypes; never required.
+"""The C fast path of Tables (bake/maths/_tables_c.c), loaded with ctypes; never required.
 
     AVAILABLE   True when the C library is loaded
     REASON      one line: where it was loaded from, or why not (then Tables uses numpy)
@@ -21,7 +21,7 @@ vector lanes (`flowbsdf report` measures the speed, with one wi per call and wit
 wi per sample, beside Mitsuba's).
 
 Where the library comes from, first that works:
-1. `bake/core/_tables_c*.so` (or .pyd/.dylib) beside this file, built by setup.py when the
+1. `bake/maths/_tables_c*.so` (or .pyd/.dylib) beside this file, built by setup.py when the
    package is installed (`pip install -e .` builds it in place). It embeds the SHA-256 of
    the C source it was built from; when that source is beside it and differs (edited after
    the install), the library is stale and skipped.
@@ -43,6 +43,8 @@ import weakref
 from pathlib import Path
 
 import numpy as np
+
+from ..io import threads
 
 ABI = 8                       # FT_ABI in _tables_c.c
 COORDS = ("wo", "halfvector", "halfpolar")     # tables.COORDS in the order of ft_tables.coords
@@ -350,13 +352,6 @@ def warp_from_s(warp, wi, s):
     return _warp_call(warp, "ft_warp_from_s", wi, s, 2)
 
 
-def _workers():
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:          # not Linux
-        return max(1, os.cpu_count() or 1)
-
-
 _pool = None
 MIN_SHARE = 1 << 16     # the fewest nodes worth a thread of their own
 
@@ -367,14 +362,14 @@ def _split(n, run):
     one core at a time before (measured, 4.2 M nodes of chm_mint, 2 cores: see the note of
     issue 24). Small calls run in this thread."""
     global _pool
-    parts = min(_workers(), n // MIN_SHARE)
+    parts = min(threads.workers(), n // MIN_SHARE)
     if parts < 2:
         run(0, n)
         return
     with _lock:
         if _pool is None:
             from concurrent.futures import ThreadPoolExecutor
-            _pool = ThreadPoolExecutor(_workers(), thread_name_prefix="flowbsdf-eval")
+            _pool = ThreadPoolExecutor(threads.workers(), thread_name_prefix="flowbsdf-eval")
     edges = [n * k // parts for k in range(parts + 1)]
     for f in [_pool.submit(run, lo, hi) for lo, hi in zip(edges[:-1], edges[1:])]:
         f.result()
