@@ -5,6 +5,7 @@ those below it, never one above (tests/test_layers.py), bottom first:
     errors.py    FlowBSDFError, the one error type of every folder
     io/          files: OpenEXR, atomic writes and hashes, output paths, progress, threads
     maths/       what materials and samplers share: directions, warps, special functions, the C path
+    formats.py   the version numbers of the files and graphs (numpy, the OSL shader and the add-on read them)
     materials/   measured and analytic BSDFs
     core/        the samplers and what they stand on: flow, tables, ideal, baselines, metrics
     export/      what Blender's Cycles back ends read: OSL and SVM textures, closure fit, world map

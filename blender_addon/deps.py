@@ -28,6 +28,23 @@ def bake_root():
     return None
 
 
+def formats():
+    """bake/formats.py (the version numbers numpy, the OSL shader and the add-on share) of the
+    add-on's `bake`, read by its path: importing the `bake` package needs numpy, which Debian's
+    Blender 3.4 lacks, and the node names its textures by these numbers there too."""
+    import importlib.util
+    name = "flowbsdf_formats"
+    if name not in sys.modules:
+        root = bake_root()
+        path = root / "bake" / "formats.py" if root is not None else \
+            Path(importlib.util.find_spec("bake").submodule_search_locations[0]) / "formats.py"
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        sys.modules[name] = module
+    return sys.modules[name]
+
+
 def _import_bake():
     if (HERE / "vendor" / "bake" / "__init__.py").is_file():
         from .vendor import bake

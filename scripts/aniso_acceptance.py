@@ -23,6 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from bake.maths.geometry import incident  # noqa: E402
 from bake.core.ideal import IdealSampler  # noqa: E402
+from bake.core.settings import BakeSettings  # noqa: E402
 from bake.core.tabulate import build_tables, plan_tables  # noqa: E402
 from bake.materials import open_material  # noqa: E402
 from bake.core.metrics import relative_variance_ref  # noqa: E402
@@ -71,7 +72,7 @@ def main():
         for coords in args.coords.split(","):
             t0 = time.time()
             count = args.phi_count if args.phi_count == "auto" else int(args.phi_count)
-            tab = plan_tables(mat, ideal, phi_count=count, resolution=args.resolution, coords=coords)
+            tab = plan_tables(mat, ideal, BakeSettings(phi_count=count, resolution=args.resolution), coords=coords)
             seconds = time.time() - t0
             plan = f"{tab.rows}x{tab.cols}, {len(tab.theta_bins)} x {len(tab.phi_bins)} bins"
             rate = speed(tab)

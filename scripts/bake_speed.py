@@ -31,6 +31,7 @@ sys.path.insert(0, str(ROOT / "scripts"))
 from baseline import import_baseline  # noqa: E402
 from bake.maths.geometry import incident  # noqa: E402
 from bake.core.ideal import IdealSampler  # noqa: E402
+from bake.core.settings import BakeSettings  # noqa: E402
 from bake.core.tabulate import plan_tables  # noqa: E402
 from bake.materials import open_material  # noqa: E402
 from bake.materials.rgl import SHARED_FILES, shared_dir  # noqa: E402
@@ -48,6 +49,12 @@ def baseline_bake(checkout):
     return mats.open_material, ideal.IdealSampler, tabulate.plan_tables
 
 
+def planned(mat, source, **settings):
+    """This checkout's plan_tables with BakeSettings given as keywords, as a baseline checkout's
+    (before BakeSettings) takes them."""
+    return plan_tables(mat, source, BakeSettings(**settings))
+
+
 def bake(kit, path, **options):
     """(wall seconds, CPU seconds of the process, tables) of one Final bake with a fresh material
     and source (nothing cached)."""
@@ -62,7 +69,7 @@ def flow_kits(models, grids):
     """A kit per point grid baking from the material's trained model (bake source "flow")."""
     from bake.core.flow import load_model
     source = lambda mat: load_model(Path(models) / f"{mat.name.removesuffix('_rgb')}.flow.npz")  # noqa: E731
-    return {f"flow{g}": (open_material, source, plan_tables, {"grid": g}) for g in grids}
+    return {f"flow{g}": (open_material, source, planned, {"grid": g}) for g in grids}
 
 
 def rvs(mat, tab, ideal):
@@ -80,7 +87,7 @@ def main():
     p.add_argument("--grids", default="512", help="with --models: the flow's point grids, e.g. 512,256")
     args = p.parse_args()
     options = {} if args.memory_budget is None else {"memory_budget": args.memory_budget}
-    kits = {"new": (open_material, IdealSampler, plan_tables)}
+    kits = {"new": (open_material, IdealSampler, planned)}
     if args.baseline:
         kits = {"old": baseline_bake(args.baseline), **kits}
     if args.models:

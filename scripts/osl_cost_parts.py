@@ -65,10 +65,10 @@ def _body(src, body):
 
 
 def _floor(src, n, spread):
-    at = ("int hk = hash(h, k); int x = abs(hk) % int(W); int y = abs(hash(hk, 7)) % int(H);" if spread
+    at = ("int hk = hash(h, k); int x = abs(hk) % int(tab.W); int y = abs(hash(hk, 7)) % int(tab.H);" if spread
           else "int x = 3; int y = 5;")
     return _body(src, f"""
-    if (!read_header(Tables, W, H, K, R, C, NP, period, half, frame)) {{
+    if (!read_header(Tables, tab)) {{
         BSDF = Fallback;
         return;
     }}
@@ -76,7 +76,7 @@ def _floor(src, n, spread):
     float acc = 0.0;
     for (int k = 0; k < {n}; k++) {{
         {at}
-        acc += fetch1(Tables, W, H, x, y);
+        acc += fetch1(Tables, tab.W, tab.H, x, y);
     }}
 """ + PORTAL.replace("ACC", "1e-30 * acc"))
 

@@ -20,7 +20,7 @@ pdf and sample+pdf per second on one thread, one wi per call and a new wi per sa
 the tables and (with --mitsuba) Mitsuba, side by side. --carried: the same tables blended along
 the file's own coordinates (bake/core/carried.py) instead of at fixed cells, in the intervals
 where that does better at their midpoint (carried.choose_intervals, as `flowbsdf bake` decides:
-plan_tables carry_flags, the fixed blend's plan within the budget less the file's warp data;
+plan_tables' settings.carry, the fixed blend's plan within the budget less the file's warp data;
 --reuse'd tables without flags are decided here); MB then counts the file's warp data beside the
 tables; --plan-carried plans the bins for that blend too. Prints Markdown tables and a summary.
 """
@@ -33,6 +33,7 @@ import numpy as np
 from bake.core.carried import CarriedTables, choose_intervals
 from bake.maths.geometry import incident
 from bake.core.ideal import IdealSampler
+from bake.core.settings import BakeSettings
 from bake.materials import open_material
 from bake.materials.rgl import SHARED_FILES, shared_dir
 from bake.core.metrics import ReferencePoints, chi2_test, sample_weights
@@ -80,9 +81,11 @@ def main():
                 source = load_model(Path(args.models) / f"{name}.flow.npz")
             else:
                 source = IdealSampler(mat)
-            tab = plan_tables(mat, source, log=(lambda s: print("  plan:", s, flush=True)) if args.verbose else None, **({"memory_budget": int(args.budget * 1e6)} if args.budget else {}),
-                              blend="carried" if args.plan_carried else "fixed",
-                              carry_flags=args.carried and not args.plan_carried)
+            settings = BakeSettings(carry=args.carried and not args.plan_carried,
+                                    **({"memory_budget": int(args.budget * 1e6)} if args.budget else {}))
+            tab = plan_tables(mat, source, settings,
+                              log=(lambda s: print("  plan:", s, flush=True)) if args.verbose else None,
+                              blend="carried" if args.plan_carried else "fixed")
             tab.meta["seconds"] = round(time.perf_counter() - t0, 1)
             tab.save(path)
             tab = open_tables(path)
@@ -92,7 +95,7 @@ def main():
             if "carried" not in tab.meta:       # planned without it: which intervals carry, as the planner decides
                 tab.meta["carried"] = choose_intervals(mat, tab, ideal)
             tab = CarriedTables(tab, mat)
-            print(f"  {name}: {int(tab.carried.sum())} of {len(tab.carried)} intervals carried", flush=True)
+            print(f"  {name}: {int(tab.carry.sum())} of {len(tab.carry)} intervals carried", flush=True)
         line = [name, f"{plain.rows}", f"{len(plain.theta_bins)}", f"{tab.nbytes / 1e6:.2f}",
                 f"{plain.meta.get('seconds', 0):.0f}"]
         ratios, plain_ratios = [], []

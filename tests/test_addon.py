@@ -280,7 +280,8 @@ def _fed_progress(monkeypatch, name, prefix=""):
     wm = _worker_main()
     lines, steps, now = [], [], [0.0]
     monkeypatch.setattr(wm, "emit", lines.append)
-    progress = wm.BakeProgress(name, {}, clock=lambda: now[0])
+    from bake.core.settings import BakeSettings
+    progress = wm.BakeProgress(name, BakeSettings(), clock=lambda: now[0])
 
     def feed(t, text):
         now[0] = t

@@ -14,6 +14,7 @@ import pytest
 from bake.maths.geometry import incident
 from conftest import slow_unless
 from bake.core.ideal import IdealSampler
+from bake.core.settings import BakeSettings
 from bake.core.metrics import chi2_test, relative_variance, relative_variance_ref
 from bake.export.osl_export import LAYOUT
 from bake.quality.stress import hard_cases, make_tables
@@ -248,8 +249,8 @@ def test_planner_adds_phi_bins_until_the_blend_holds():
     from bake.materials import open_material
     mat = open_material({"kind": "analytic", "model": "ggx", "alpha_x": 0.02, "alpha_y": 0.5})
     lines = []
-    tab = plan_tables(mat, IdealSampler(mat, resolution=64), resolution=16, grid=64, samples=1 << 12, first_bins=2,
-                      tol=0.004, memory_budget=1 << 16, log=lines.append)
+    settings = BakeSettings(resolution=16, grid=64, samples=1 << 12, first_bins=2, tol=0.004, memory_budget=1 << 16)
+    tab = plan_tables(mat, IdealSampler(mat, resolution=64), settings, log=lines.append)
     losses = [float(line.rsplit(" ", 1)[1]) for line in lines if line.startswith("phi bins")]
     assert len(losses) == 4 and min(losses[:3]) > 0.002 and losses[3] < 0.5 * min(losses[:3]), lines
     assert tab.coords == "halfvector" and len(tab.phi_bins) == 65 and tab.mass.shape[1] == 65

@@ -2,12 +2,15 @@
 coordinates. The sampler contract between bins (sample and pdf agree, chi-square, nothing lost),
 the bins' own tables at the bins, clear refusals, and on a real file what the carry is for: a
 feature that moves with theta_i faster than the bins follow."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from bake.core.carried import CarriedTables
 from bake.maths.geometry import spherical_dir
 from bake.core.ideal import IdealSampler
+from bake.core.settings import BakeSettings
 from bake.core.tabulate import build_tables
 from bake.errors import FlowBSDFError
 from bake.materials import open_material
@@ -78,8 +81,8 @@ def test_planner_plans_for_the_carried_blend(synthetic):
     from bake.core.tabulate import plan_tables
     mat, _ = synthetic
     ideal = IdealSampler(mat, resolution=64)
-    tables = plan_tables(mat, ideal, memory_budget=120_000, blend="carried", samples=1 << 12, first_bins=3,
-                         resolution=16, coords="halfpolar", window=None)
+    tables = plan_tables(mat, ideal, BakeSettings(memory_budget=120_000, samples=1 << 12, first_bins=3,
+                                                  resolution=16), blend="carried", coords="halfpolar", window=None)
     assert tables.meta["blend"] == "carried"
     assert_sampler_contract(CarriedTables(tables, mat), spherical_dir(np.radians(50.0), 0.2),
                             np.random.default_rng(3).random((5000, 2)), pdf_rtol=1e-9)
@@ -94,7 +97,7 @@ def test_intervals_that_do_not_carry_are_the_fixed_cell_blend(synthetic):
     flags are one per interval (a wrong count is refused); choose_intervals gives one per interval."""
     from bake.core.carried import choose_intervals
     mat, tables = synthetic
-    mixed = CarriedTables(tables, mat, carried=[False, True])
+    mixed = CarriedTables(tables, mat, carry=[False, True])
     u = np.random.default_rng(5).random((3000, 2))
     low, high = spherical_dir(np.radians(25.0), 0.4), spherical_dir(np.radians(70.0), 0.4)
     wo, pdf = mixed.sample(low, u)
@@ -104,7 +107,7 @@ def test_intervals_that_do_not_carry_are_the_fixed_cell_blend(synthetic):
     assert_sampler_contract(mixed, high, u, pdf_rtol=1e-9)
     assert not np.allclose(mixed.pdf(high, wo), tables.pdf(high, wo))      # 70 deg carries
     with pytest.raises(FlowBSDFError, match="one flag per interval"):
-        CarriedTables(tables, mat, carried=[True])
+        CarriedTables(tables, mat, carry=[True])
     flags = choose_intervals(mat, tables, IdealSampler(mat, resolution=64), side=32)
     assert len(flags) == 2 and all(isinstance(f, bool) for f in flags)
 
@@ -142,16 +145,17 @@ def test_carried_eval_is_the_bins_f_cos_carried(synthetic):
 
 
 def test_the_fixed_plan_carries_unless_the_warp_would_crowd_the_budget(synthetic):
-    """plan_tables(carry_flags=True): the fixed blend's plan with a flag per interval, its budget
+    """plan_tables(settings.carry): the fixed blend's plan with a flag per interval, its budget
     less the file's warp data; a budget the warp would take over half of (a preview bake) plans
     the tables alone, saying why."""
     from bake.core.tabulate import plan_tables
     mat, _ = synthetic
     ideal = IdealSampler(mat, resolution=64)
-    opts = dict(samples=1 << 12, first_bins=3, resolution=16, coords="halfpolar", window=None)
-    tables = plan_tables(mat, ideal, memory_budget=120_000, carry_flags=True, **opts)
+    settings = BakeSettings(samples=1 << 12, first_bins=3, resolution=16, carry=True)
+    opts = dict(coords="halfpolar", window=None)
+    tables = plan_tables(mat, ideal, replace(settings, memory_budget=120_000), **opts)
     assert len(tables.meta["carried"]) == len(tables.theta_bins) - 1 and "blend" not in tables.meta
     assert tables.nbytes <= 120_000 - mat.warp_nbytes
     log = []
-    tables = plan_tables(mat, ideal, memory_budget=2 * mat.warp_nbytes - 1, carry_flags=True, log=log.append, **opts)
+    tables = plan_tables(mat, ideal, replace(settings, memory_budget=2 * mat.warp_nbytes - 1), log=log.append, **opts)
     assert "carried" not in tables.meta and any("carried blend off" in line for line in log), log

@@ -919,7 +919,7 @@ def test_osl_carried_blend_is_numpy(carried_textures):
     wo_h = _hemisphere_directions(n)
     for flags, deg in [((True, True), 20.0), ((True, True), 63.0), ((True, False), 63.0), ((True, True), 40.0),
                        ((True, True), 86.0)]:
-        sampler = CarriedTables(tab, mat, carried=flags)
+        sampler = CarriedTables(tab, mat, carry=flags)
         theta = np.radians(deg)
         wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
         wo = sampler.sample(wi, u)[0]

@@ -12,6 +12,10 @@ line (`blender -b f.blend --python-expr "import flowbsdf.batch as b; b.main()" -
 farms run by that name: job bundles written by `flowbsdf farm openjd` (bake/plumbing/farm.py),
 the Flamenco job type (artist/farm/flowbsdf_bake.js) and docs/farm.md all spell it, so it stays
 where it is, on top of both sides, rather than moving into artist/.
+
+bake/formats.py (the version numbers of the files and graphs: plain Python, no imports) sits in the
+bottom layer beside errors.py: numpy, the OSL headers' test and the add-on (by its path, without
+numpy: deps.formats) all read it.
 """
 import ast
 from pathlib import Path
@@ -24,7 +28,7 @@ ROOT = Path(__file__).resolve().parent.parent
 # to the first layer, bottom up, with a prefix of its path.
 LAYERS = {
     "bake": [
-        ("errors", ["bake/errors.py"]),
+        ("errors, formats", ["bake/errors.py", "bake/formats.py"]),
         ("io", ["bake/io/"]),
         ("maths", ["bake/maths/"]),
         ("materials", ["bake/materials/"]),

@@ -195,7 +195,7 @@ def test_a_measured_file_bakes_which_intervals_carry(tmp_path):
     assert meta["tables_hash"] == file_hash(path)
     np.testing.assert_array_equal(image[0, 2 + 5:2 + 5 + len(flags), 1], np.asarray(flags, np.float32))
     sampler = open_baked("tables", m.materials[0], m.materials[0].open(), out, m.path)
-    assert isinstance(sampler, CarriedTables) and list(sampler.carried) == flags
+    assert isinstance(sampler, CarriedTables) and list(sampler.carry) == flags
     from bake.plumbing.reports import learned_samplers
     from bake.quality.report import manifest_samplers      # the report compares them as they render
     material = m.materials[0].open()
@@ -211,3 +211,21 @@ def test_a_measured_file_bakes_which_intervals_carry(tmp_path):
     assert load_manifest_text(tmp_path, text.replace("}", ", carry = false }")).materials[0].bake.get("carry") is False
     with pytest.raises(FlowBSDFError, match="carry = 'yes'"):
         bake_manifest(load_manifest_text(tmp_path, text.replace("}", ", carry = 'yes' }")), out)
+
+
+def test_tables_baked_before_bake_settings_stay_current(tmp_path):
+    """A table file records its bake settings as the manifest gave them, source and carry always
+    (pipeline.inputs_of): BakeSettings records the same table the untyped dict did before it (the
+    value as written, 1 not 1.0; the defaults not given left out), so tables baked before stay
+    current (their inputs hash is the one 2f4871e computed for these two entries: checked beside it)."""
+    import json
+    from bake.plumbing.pipeline import bake_settings, inputs_of
+    path = tmp_path / "m.toml"
+    path.write_text('[[material]]\nname = "matte"\nsource = { kind = "analytic", model = "lambert", albedo = 0.5 }\n'
+                    'bake = { resolution = 16, tol = 1, ideal_ratio = 2.0, lobe_width = "auto", carry = true }\n'
+                    '[[material]]\nname = "plain"\nsource = { kind = "analytic", model = "lambert", albedo = 0.5 }\n')
+    matte, plain = load_manifest(path).materials
+    recorded = inputs_of(matte.open(), bake_settings(matte, path), None)[0]["settings"]
+    assert json.dumps(recorded, sort_keys=True) == ('{"carry": true, "ideal_ratio": 2.0, "lobe_width": "auto", '
+                                                    '"resolution": 16, "source": "auto", "tol": 1}')
+    assert inputs_of(plain.open(), bake_settings(plain, path), None)[0]["settings"] == {"source": "auto", "carry": False}

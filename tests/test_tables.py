@@ -6,6 +6,7 @@ import pytest
 from bake.errors import FlowBSDFError
 from bake.maths.geometry import incident, spherical_dir
 from bake.core.ideal import IdealSampler
+from bake.core.settings import BakeSettings
 from bake.materials import open_material
 from bake.materials.base import Material, as_dirs
 from bake.core.metrics import chi2_test, relative_variance, relative_variance_ref
@@ -378,7 +379,7 @@ def test_cells_follow_a_sharp_lobes_tail_beside_a_diffuse_base(monkeypatch):
 
 def test_plan_picks_small_tables_for_a_diffuse_material():
     lambert = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})
-    small = plan_tables(lambert, IdealSampler(lambert, resolution=64), grid=128, samples=1 << 12)
+    small = plan_tables(lambert, IdealSampler(lambert, resolution=64), BakeSettings(grid=128, samples=1 << 12))
     assert small.rows <= 24 and len(small.theta_bins) <= 8
     assert small.nbytes < 100_000
 
@@ -387,19 +388,19 @@ def test_planner_keeps_the_coordinates_that_plan_closer():
     """Isotropic plans try both coordinates: a sharp GGX keeps the half vector, where its lobe
     stays put between bins (16² x 10 bins: rv between bins 0.04 vs 1.95 over wo, measured), a
     Lambert keeps wo, the same at every theta_i, so fewer bins (3 vs 10)."""
-    plan = dict(resolution=16, grid=96, samples=1 << 12, first_bins=3, memory_budget=10 * bin_bytes(16))
+    plan = BakeSettings(resolution=16, grid=96, samples=1 << 12, first_bins=3, memory_budget=10 * bin_bytes(16))
     for spec, want in (({"kind": "analytic", "model": "ggx", "alpha": 0.02}, "halfpolar"),
                        ({"kind": "analytic", "model": "lambert", "albedo": 0.5}, "wo")):
         mat = open_material(spec)
         ideal = IdealSampler(mat, resolution=128)
         lines = []
-        chosen = plan_tables(mat, ideal, log=lines.append, **plan)
+        chosen = plan_tables(mat, ideal, plan, log=lines.append)
         assert chosen.coords == want and any(line.startswith(f"coordinates: {want}") for line in lines), lines
         # the wo plan (planned first) reaches the Lambert's targets: the half vector's plan stops
         # where it has as many cells and still splits, as it could only end bigger
         stopped = any(line.startswith("halfpolar: bins ") and "stopped" in line for line in lines)
         assert stopped == (want == "wo"), lines
-        other = plan_tables(mat, ideal, coords="halfpolar" if want == "wo" else "wo", **plan)
+        other = plan_tables(mat, ideal, plan, coords="halfpolar" if want == "wo" else "wo")
 
         def worst_between(tab):
             mids = np.degrees(0.5 * (tab.theta_bins[1:] + tab.theta_bins[:-1]))
@@ -476,7 +477,8 @@ def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(
 
         monkeypatch.setattr(tabulate, "build_tables", fake_build)
         monkeypatch.setattr(metrics, "relative_variance", fake_rv)
-        planned = tabulate.plan_tables(lambert, ideal, first_bins=2, memory_budget=1, coords="wo", **targets)
+        planned = tabulate.plan_tables(lambert, ideal, BakeSettings(first_bins=2, memory_budget=1, **targets),
+                                       coords="wo")
         full = next((r for r, rvs in zip(tabulate.RESOLUTIONS, table) if max(rvs) <= 1.0),
                     min(zip(tabulate.RESOLUTIONS, table), key=lambda rt: (max(rt[1]), -rt[0]))[0])
         assert planned.rows == full == want, name
@@ -587,8 +589,8 @@ def test_builds_in_threads_are_the_builds_of_one_thread(monkeypatch):
     out = {}
     for workers in (1, 2):
         monkeypatch.setattr(pool, "workers", lambda w=workers: w)
-        out[workers] = plan_tables(mat, IdealSampler(mat, resolution=64), resolution=16, grid=96, samples=1 << 12,
-                                   first_bins=3, memory_budget=16 * bin_bytes(16))
+        settings = BakeSettings(resolution=16, grid=96, samples=1 << 12, first_bins=3, memory_budget=16 * bin_bytes(16))
+        out[workers] = plan_tables(mat, IdealSampler(mat, resolution=64), settings)
     assert "flowbsdf-bake" in threads and "MainThread" in threads
     assert len(out[1].theta_bins) > 3           # the planner split intervals (its probes ran in threads)
     for f in fields:
@@ -683,8 +685,8 @@ def test_planner_probes_with_the_ideal_and_builds_the_plan_from_the_source():
         def pdf(self, wi, wo):
             return ideal.pdf(wi, wo)
 
-    tab = plan_tables(mat, Source(), resolution=16, grid=96, samples=1 << 12, first_bins=3,
-                      memory_budget=8 * bin_bytes(16), ideal_resolution=64)
+    tab = plan_tables(mat, Source(), BakeSettings(resolution=16, grid=96, samples=1 << 12, first_bins=3,
+                                                  memory_budget=8 * bin_bytes(16), ideal_resolution=64))
     assert len(tab.theta_bins) > 3          # the probes split intervals, without asking the source
     assert tab.nbytes <= 8 * bin_bytes(16) < tab.nbytes + bin_bytes(16)     # the budget, in bytes held
     # (two layout groups repeat their boundary angle: built from the same points)
@@ -700,8 +702,8 @@ def test_planned_bins_include_the_measured_incident_angles(tmp_path):
     mat = RGLMaterial(write_tensor_file(tmp_path / "m.bsdf", synthetic_fields(n_theta=5)))
     measured = np.radians([22.5, 45.0, 67.5])           # (and 0, 90: the first bin, past the last)
     assert np.allclose(mat.measured_theta_i[1:4], measured)
-    tab = plan_tables(mat, IdealSampler(mat, resolution=64), resolution=16, grid=96, samples=1 << 12,
-                      first_bins=2, memory_budget=16 * bin_bytes(16), coords="wo")
+    settings = BakeSettings(resolution=16, grid=96, samples=1 << 12, first_bins=2, memory_budget=16 * bin_bytes(16))
+    tab = plan_tables(mat, IdealSampler(mat, resolution=64), settings, coords="wo")
     bins = np.asarray(tab.theta_bins, float)
     assert all(np.min(np.abs(bins - t)) < 1e-6 for t in measured), np.degrees(bins)
     lambert = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})
@@ -738,7 +740,7 @@ def test_plans_reach_the_grazing_end_of_theta_i():
     four shared files at 89.9), 3.1x with it at 89.9."""
     mat = open_material({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.05})
     ideal = IdealSampler(mat, resolution=128)
-    tab = plan_tables(mat, ideal, memory_budget=200_000, resolution=16, grid=128, samples=1 << 12,
+    tab = plan_tables(mat, ideal, BakeSettings(memory_budget=200_000, resolution=16, grid=128, samples=1 << 12),
                       coords="halfpolar")
     assert np.isclose(np.degrees(tab.theta_bins[-1]), 89.9)
     wi = spherical_dir(np.radians(89.85), 0.0)
@@ -771,11 +773,11 @@ def test_planner_splits_until_every_midpoint_is_within_half_its_target(monkeypat
     from bake.core import tabulate
     mat = open_material({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.05})
     ideal = IdealSampler(mat, resolution=32)
-    plan = dict(resolution=16, tol=0.5, grid=64, samples=1024, first_bins=3, coords="wo")
+    plan = BakeSettings(resolution=16, tol=0.5, grid=64, samples=1024, first_bins=3)
 
     def planned():
         lines = []
-        tab = plan_tables(mat, ideal, log=lines.append, **plan)
+        tab = plan_tables(mat, ideal, plan, log=lines.append, coords="wo")
         done = [line for line in lines if " done, the worst midpoint loses " in line]
         assert len(done) == 1, lines
         return tab, float(done[0].split("loses ")[1].split("x")[0])
@@ -794,8 +796,8 @@ def test_a_plan_ended_by_the_memory_budget_says_it_is_done():
     budget = 40_000         # 16² cells: 6 bins
     assert tabulate.bins_within(budget, 16) == 6
     lines = []
-    tab = plan_tables(mat, IdealSampler(mat, resolution=32), memory_budget=budget, log=lines.append,
-                      resolution=16, tol=0.01, grid=64, samples=1024, first_bins=3, coords="wo")
+    settings = BakeSettings(memory_budget=budget, resolution=16, tol=0.01, grid=64, samples=1024, first_bins=3)
+    tab = plan_tables(mat, IdealSampler(mat, resolution=32), settings, log=lines.append, coords="wo")
     ends = [line for line in lines if ": done, " in line]
     assert ends == [tabulate._budget_full(len(tab.theta_bins), budget)], lines
 
@@ -828,8 +830,9 @@ def test_planner_chooses_the_layout_that_interpolates_better(case):
         {"kind": "analytic", "model": "plastic", "albedo": 0.1, "alpha": 0.05})
     ideal = IdealSampler(mat, resolution=32)
     lines = []
-    tab = plan_tables(mat, ideal, log=lines.append, resolution=16, tol=0.1, grid=64, samples=1024, first_bins=3,
-                      coords="wo", lobe_width=None, memory_budget=4 * (bin_bytes(16) + layout_bytes(16)))
+    tab = plan_tables(mat, ideal, BakeSettings(resolution=16, tol=0.1, grid=64, samples=1024, first_bins=3,
+                                               lobe_width=None, memory_budget=4 * (bin_bytes(16) + layout_bytes(16))),
+                      log=lines.append, coords="wo")
     assert tab.meta["window"] == (None if case == "fading lobes" else 1), lines
     assert tab.meta["groups"] == 1 and len(tab.theta_bins) < 6, lines        # layout groups: tried from 6 bins on
     other = build_tables(mat, ideal, tab.theta_bins, 16, 16, grid=64, coords="wo", lobe_width=None,
@@ -975,8 +978,9 @@ def test_planner_splits_into_layout_groups_where_that_is_closer():
             return ideal.pdf(wi, wo)
 
     lines, budget = [], 127_000
-    tab = plan_tables(mat, Source(), log=lines.append, resolution=16, tol=0.01, grid=96, samples=1024, first_bins=7,
-                      coords="halfpolar", memory_budget=budget, ideal_resolution=64, placement="compare")
+    tab = plan_tables(mat, Source(), BakeSettings(resolution=16, tol=0.01, grid=96, samples=1024, first_bins=7,
+                                                  memory_budget=budget, ideal_resolution=64),
+                      log=lines.append, coords="halfpolar", placement="compare")
     bins = np.degrees(tab.theta_bins)
     assert tab.meta["groups"] == 2 and tab.meta["window"] is None, lines
     assert tab.nbytes <= budget and len(bins) == len(set(bins)) + 1, (tab.nbytes, bins)
@@ -1036,9 +1040,9 @@ def test_planner_keeps_one_layout_where_groups_are_not_closer():
     mat = MirrorTakesOver()
     ideal = IdealSampler(mat, resolution=128)
     lines = []
-    opts = dict(resolution=16, grid=64, coords="wo", lobe_width=0.15)
-    tab = plan_tables(mat, ideal, log=lines.append, tol=0.002, samples=1024, first_bins=7, theta_max_deg=85.0,
-                      memory_budget=11 * bin_bytes(16) + 2 * layout_bytes(16), placement="compare", **opts)
+    settings = BakeSettings(resolution=16, grid=64, lobe_width=0.15, tol=0.002, samples=1024, first_bins=7,
+                            memory_budget=11 * bin_bytes(16) + 2 * layout_bytes(16))
+    tab = plan_tables(mat, ideal, settings, log=lines.append, coords="wo", theta_max_deg=85.0, placement="compare")
     tried = [s for s in lines if "two groups split" in s]
     assert tried and tab.meta["groups"] == 1 and len(np.unique(tab.theta_bins)) == len(tab.theta_bins), lines
     assert lines[[s.startswith("tables: building") for s in lines].index(True) - 1] == "between bins: one placement for all bins"
@@ -1058,14 +1062,14 @@ def test_planner_gives_layout_groups_their_own_resolutions(monkeypatch):
     from bake.core.tables import MixedTables
     mat = GlossAtGrazing()
     ideal = IdealSampler(mat, resolution=64)
-    settings = dict(resolution=24, tol=0.01, grid=96, samples=1024, first_bins=7, coords="halfpolar",
-                    memory_budget=125_000, ideal_resolution=64)
-    tab = plan_tables(mat, ideal, **settings)
+    settings = BakeSettings(resolution=24, tol=0.01, grid=96, samples=1024, first_bins=7, memory_budget=125_000,
+                            ideal_resolution=64)
+    tab = plan_tables(mat, ideal, settings, coords="halfpolar")
     assert isinstance(tab, MixedTables) and [p.rows for p in tab.parts] == [16, 24], tab.meta
-    assert tab.meta["resolution"] == [16, 24] and tab.nbytes <= settings["memory_budget"]
+    assert tab.meta["resolution"] == [16, 24] and tab.nbytes <= settings.memory_budget
     monkeypatch.setattr(tabulate, "RESOLUTIONS", tuple(r for r in tabulate.RESOLUTIONS if r >= 24))
-    one = plan_tables(mat, ideal, **settings)
-    assert not isinstance(one, MixedTables) and one.nbytes <= settings["memory_budget"]
+    one = plan_tables(mat, ideal, settings, coords="halfpolar")
+    assert not isinstance(one, MixedTables) and one.nbytes <= settings.memory_budget
     angles = np.radians(np.arange(2.5, 90.0, 5.0))
     ours, theirs = (sum(relative_variance_ref(mat, s, spherical_dir(t, 0.0), ideal, k=64, seed=1)[0] for t in angles)
                     for s in (tab, one))
@@ -1082,10 +1086,11 @@ def test_placement_rule_keeps_what_the_full_comparison_keeps():
     import re
     mat = GlossAtGrazing()
     ideal = IdealSampler(mat, resolution=64)
-    settings = dict(resolution=24, tol=0.01, grid=96, samples=1024, first_bins=7, coords="halfpolar",
-                    memory_budget=125_000, ideal_resolution=64)
+    settings = BakeSettings(resolution=24, tol=0.01, grid=96, samples=1024, first_bins=7, memory_budget=125_000,
+                            ideal_resolution=64)
     lines = {"rule": [], "compare": []}
-    tabs = {how: plan_tables(mat, ideal, log=lines[how].append, placement=how, **settings) for how in lines}
+    tabs = {how: plan_tables(mat, ideal, settings, log=lines[how].append, coords="halfpolar", placement=how)
+            for how in lines}
     kept = {how: lines[how][[s.startswith("tables: building") for s in lines[how]].index(True) - 1] for how in lines}
     built = {how: sum(bool(re.match(r"between bins: placement \d+ of", s)) for s in lines[how]) for how in lines}
     assert kept["rule"] == kept["compare"], kept
@@ -1096,7 +1101,7 @@ def test_placement_rule_keeps_what_the_full_comparison_keeps():
         for name in ("theta_bins", "a_edges", "b_edges", "mass", "weights"):
             assert np.array_equal(getattr(ours, name), getattr(theirs, name)), name
     with pytest.raises(FlowBSDFError, match="placement"):
-        plan_tables(mat, ideal, placement="best", **settings)
+        plan_tables(mat, ideal, settings, coords="halfpolar", placement="best")
 
 
 class RidgeOnPlane(Material):
@@ -1165,8 +1170,9 @@ def test_planner_probes_near_normal_intervals_at_their_middle_angle(monkeypatch)
     ideal = IdealSampler(mat, resolution=64)
 
     def planned():
-        tab = plan_tables(mat, ideal, resolution=16, tol=0.01, grid=64, samples=1024, first_bins=3, coords="wo",
-                          lobe_width=None, memory_budget=6 * (bin_bytes(16) + layout_bytes(16)), window=1)
+        tab = plan_tables(mat, ideal, BakeSettings(resolution=16, tol=0.01, grid=64, samples=1024, first_bins=3,
+                                                   lobe_width=None, memory_budget=6 * (bin_bytes(16) + layout_bytes(16))),
+                          coords="wo", window=1)
         return tab, np.array([relative_variance_ref(mat, tab, spherical_dir(np.radians(d), 0.0), ideal, k=64, seed=1)[0]
                               for d in (2.0, 3.0, 4.0, 5.0)])
     tab, rv = planned()

@@ -23,11 +23,11 @@ over the ideal's, 512² draws): 85 deg 2.05x -> 0.88x, 30 deg 0.83x -> 0.37x, 60
 
 Near grazing the file's warp degenerates (its 90 deg slice holds no half vectors facing away from
 wi) and carrying can lose to the fixed-cell blend (2 MB tables: colodur_napoli_4f at 89.7 deg 2.6x
--> 21x), so each interval between bins carries or not (`carried`, one flag per interval of
+-> 21x), so each interval between bins carries or not (`carry`, one flag per interval of
 theta_bins; tables.meta["carried"]): `choose_intervals` measures both blends at each interval's
 cos-midpoint and keeps the better.
 
-`flowbsdf bake` flags the intervals of a measured file's tables (plan_tables carry_flags) and
+`flowbsdf bake` flags the intervals of a measured file's tables (plan_tables' settings.carry) and
 `as_rendered` gives the sampler OSL renders. The sampler is exact (sample and pdf agree, nothing
 lost where W_wi reaches every s), but not invertible: the mixture's choice takes part of the first
 uniform.
@@ -56,20 +56,20 @@ class CarriedTables:
     name = "tables-carried"
     normalized = True
 
-    def __init__(self, tables, material, carried=None):
-        """carried: per interval of tables.theta_bins, whether it carries (default:
-        tables.meta["carried"], else every interval)."""
+    def __init__(self, tables, material, carry=None):
+        """carry: per interval of tables.theta_bins, whether it carries (default: the table file's
+        flags, tables.meta["carried"], else every interval)."""
         check_carriable(material)
         if getattr(tables, "anisotropic", False):
             raise FlowBSDFError("carried tables blend isotropic tables")
         self.tables, self.material = tables, material
         self.warp = WarpedCoords(material, horizon=True, stored=True)
-        if carried is None:
-            carried = tables.meta.get("carried", [True] * (len(tables.theta_bins) - 1))
-        self.carried = np.asarray(carried, bool)
-        if self.carried.shape != (max(len(tables.theta_bins) - 1, 0),):
+        if carry is None:
+            carry = tables.meta.get("carried", [True] * (len(tables.theta_bins) - 1))
+        self.carry = np.asarray(carry, bool)
+        if self.carry.shape != (max(len(tables.theta_bins) - 1, 0),):
             raise FlowBSDFError(f"carried: one flag per interval of the tables' {len(tables.theta_bins)} bins, "
-                                f"not {self.carried.shape}")
+                                f"not {self.carry.shape}")
 
     @property
     def nbytes(self):
@@ -96,7 +96,7 @@ class CarriedTables:
         k = np.clip(np.searchsorted(bins, theta, side="right") - 1, 0, len(bins) - 2)
         c = np.cos(bins)
         t = np.clip((c[k] - np.cos(theta)) / (c[k] - c[k + 1]), 0.0, 1.0)
-        return np.stack([bins[k], bins[k + 1]], 1), np.stack([1.0 - t, t], 1), self.carried[start + k], phi
+        return np.stack([bins[k], bins[k + 1]], 1), np.stack([1.0 - t, t], 1), self.carry[start + k], phi
 
     def _carry_back(self, wi, wo, value, shape=()):
         """sum_j w_j value(part, wi_j, wo_j) J_j / J_wi, wo_j = W_j^-1(W_wi(wo)): a density of the
@@ -175,7 +175,7 @@ def choose_intervals(material, tables, ideal, side=128, seed=0):
     from ..io.threads import parallel
     from .metrics import ReferencePoints
     bins = np.asarray(tables.theta_bins)
-    carried = CarriedTables(tables, material, carried=[True] * (len(bins) - 1))
+    carried = CarriedTables(tables, material, carry=[True] * (len(bins) - 1))
 
     def better(k):
         if bins[k + 1] <= bins[k]:

@@ -71,6 +71,7 @@ import functools
 import numpy as np
 
 from ..errors import FlowBSDFError
+from ..formats import FORMAT, MIXED_FORMAT
 from ..io.exrio import read_exr, write_exr
 from ..materials.base import as_dirs
 from ..maths.geometry import theta_phi
@@ -81,9 +82,7 @@ try:        # the optional C fast path (never required: Blender imports bake/ wi
 except Exception:   # noqa: BLE001
     _fasttables = None
 
-# 5: the cell edges once per layout, "layouts" naming each bin's (3: once per bin; alpha and beta
-# hold profiles since 3, 2 held exponentials' leans, 1 their rates)
-FORMAT_VERSION = 5
+FORMAT_VERSION = FORMAT     # bake/formats.py
 TWO_PI = 2.0 * np.pi
 # The cells' coordinates: (a, b) of wo, or halfvector.py's of h (concentric: anisotropic
 # tables; polar: isotropic ones)
@@ -483,7 +482,7 @@ class Tables:
 # search compares with it, so a search finds the last entry at or below its target among the
 # group's own (a finite value: blending it with weight 0 must give 0, not NaN).
 PAD = 1e30
-MIXED_FORMAT_VERSION = 6    # the file of a MixedTables: its parts' arrays side by side (4: edges once per bin)
+MIXED_FORMAT_VERSION = MIXED_FORMAT     # the file of a MixedTables (bake/formats.py)
 # The formats this FlowBSDF reads: (kind, whether the edges are stored once per layout)
 READS = {3: ("plain", False), 4: ("mixed", False), FORMAT_VERSION: ("plain", True),
          MIXED_FORMAT_VERSION: ("mixed", True)}

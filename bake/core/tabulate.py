@@ -14,6 +14,7 @@ from ..errors import FlowBSDFError
 from ..io.threads import parallel as _parallel     # (the name plan_tables' calls use)
 from ..maths.fasttables import one_blas_thread
 from ..maths.geometry import luminance, spherical_dir
+from .settings import BakeSettings
 from . import halfvector
 from .tables import HALF_MAX, K_MAX, NSEG, TWO_PI, MixedTables, Tables, _log_mean, _search, exp_density, exp_mean, to_ab
 
@@ -1072,11 +1073,13 @@ def lobe_width_of(material, ideal):
 
 
 @one_blas_thread()
-def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio=1.0, resolution=None,
-                first_bins=6, theta_max_deg=89.9, min_gap_deg=0.2, samples=1 << 14, lobe_width="auto",
-                ideal_resolution=256, log=None, phi_count="auto", coords="auto", blend="fixed",
-                carry_flags=False, placement="compare", **options):
-    """Tables with only the resolution and incident bins this material needs.
+def plan_tables(material, source, settings=BakeSettings(), log=None, coords="auto", blend="fixed",
+                placement="compare", theta_max_deg=89.9, min_gap_deg=0.2, **options):
+    """Tables with only the resolution and incident bins this material needs, planned in three
+    steps: the resolution (_plan_resolution; anisotropic: and the azimuths, _plan_phi_bins), the
+    incident bins (_plan_bins) and the cells' layout between them (_plan_layout); then built.
+    `settings` (BakeSettings: a manifest's [bake] table) holds what a bake may set; the other
+    arguments are the planner's own (tests and scripts set them), `options` go to build_tables.
 
     The probes build tables from the ideal tabulation's points (`ideal`: the plan depends on
     the material, and a flow's points cost ~20x as much per incident angle: 6 s for 512²
@@ -1086,20 +1089,6 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     (what f·cos tabulated at that very angle on the ideal's grid reaches), but never below
     tol / 2 (default ISO_TOL: the rv below which an angle needs nothing more). Anisotropic
     materials, or ideal_ratio 0 or None: tol / 2 everywhere (default ANISO_TOL).
-
-    Resolution: the smallest of RESOLUTIONS whose single-bin tables reach their target at a
-    few elevations (isotropic: a resolution's probe stops at its first failing elevation; when
-    none does, the one that comes closest).
-    Bins: start from `first_bins` evenly spaced elevations from 0 to `theta_max_deg` (89.9: past
-    the last bin the tables keep its layout; with it at 89.5, four shared files lost 19-42x the
-    ideal's rv at 89.9, 4-5x with it at 89.9, measured at 2 MB) and, isotropic, the material's
-    measured incident angles (`measured_theta_i`: measured data interpolate between them, so
-    f·cos has a kink in theta_i at each, which interpolating across loses; measured at 2 MB on
-    cm_military_green: the worst of 11 angles 3.56x the ideal's rv -> 1.95x); while the memory budget allows
-    another bin, split the interval whose interpolated midpoint (its cos-midpoint, near the normal
-    also its middle angle: the one that loses more) loses most against the better
-    of its two bins (interval_loss) relative to the midpoint's target, until no interval loses
-    more than SPLIT_LOSS times its target.
 
     Coordinates (isotropic): "auto" plans the tables over each of ISO_PLANNED and keeps the plan
     whose midpoints are typically closest to their targets: the geometric mean over its intervals,
@@ -1118,243 +1107,55 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     files since its columns split at the quarter turns, wo for colodur_napoli_4f, a Lambert and a
     plastic of alpha 0.3).
 
-    Layout (isotropic, unless `window` is given): the planned bins' tables are built from the
-    ideal with each of LAYOUT_WINDOWS (a bin's layout pooled with its neighbours', or one for all
-    bins) and split into two layout groups at a few angles (each group its own cells), and the
-    one typically closest to the ideal at the bins and between them is kept (_between_bins;
-    tables.meta["window"], ["groups"]); the best split is also tried with the lower group at
-    coarser cells and the memory it frees spent above (MixedTables; meta["resolution"] then lists
-    both). The interval probes above pool the pair alone. placement: "compare" (default) every
-    candidate; "rule" from 6 bins on only the groups split nearest RULE_SPLITS_DEG (and the better
-    one's groups of their own resolutions): 2-3 placements built instead of 5-6, the same tables
-    where the full comparison keeps one of those, but on near-ties it loses rv at single angles
-    (satin_rosaline 1.24x at theta_i 0, vch_golden_yellow 2.01x at 60: RULE_SPLITS_DEG).
-
     blend: how the tables will be sampled between bins, which the probes measure: "fixed" (Tables:
     at fixed cells) or "carried" (an isotropic RGL file's tables carried along its own coordinates,
     bake/core/carried.py: the bins may lie further apart, the budget counts the file's warp data and
     the resolutions need room for MIN_BINS_CARRIED bins; numpy only; tables.meta["blend"] and
     ["carried"], absent for "fixed", whose tables stay as before, byte for byte).
-    carry_flags: with the fixed blend's plan, also say per interval whether carrying samples closer
+    settings.carry: with the fixed blend's plan, also say per interval whether carrying samples closer
     (tables.meta["carried"], carried.choose_intervals: a back end that can carry, OSL, does so
     there; the others blend at fixed cells, what the plan was made for); the budget counts the
     file's warp data as for "carried", and where that data would take over half of it (a preview
     bake), the tables do not carry. Isotropic RGL files only.
 
-    Anisotropic materials: `phi_count` azimuths evenly spaced over the material's period
-    (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend half-way between two bins
-    at each theta_i of PHI_PROBE_DEG loses at most the bin's own rv plus tol / 2 (at 4 azimuths). The
-    resolution (of ANISO_RESOLUTIONS) is probed at those 4 azimuths; the theta bins are planned
-    at the azimuth where the probe did worst and shared by all azimuths. Their tables may take
-    ANISO_BUDGET times `memory_budget`, all azimuths together (16 MB at the default).
+    Anisotropic materials: their tables may take ANISO_BUDGET times `memory_budget`, all azimuths
+    together (16 MB at the default).
     """
-    from .metrics import relative_variance
     from .ideal import IdealSampler
     log = log or (lambda *_: None)
     if blend not in ("fixed", "carried"):
         raise FlowBSDFError(f"blend {blend!r}: 'fixed' or 'carried'")
     if placement not in ("rule", "compare"):
         raise FlowBSDFError(f"placement {placement!r}: 'rule' or 'compare'")
-    carry = _carrier(material) if blend == "carried" else (lambda tables: tables)
-    if blend == "carried" or carry_flags:      # the file's warp data is read beside the tables: within the budget
+    carrier = _carrier(material) if blend == "carried" else (lambda tables: tables)
+    carry, memory_budget = settings.carry, settings.memory_budget
+    if blend == "carried" or carry:      # the file's warp data is read beside the tables: within the budget
         from .carried import check_carriable
         check_carriable(material)
         if blend == "fixed" and material.warp_nbytes > memory_budget / 2:
             log(f"carried blend off: the file's warp data ({material.warp_nbytes / 1e6:.2f} MB) would take over "
                 f"half the memory budget ({memory_budget / 1e6:.2f} MB)")
-            carry_flags = False
+            carry = False
         else:
             memory_budget -= material.warp_nbytes
-    ideal = source if isinstance(source, IdealSampler) else IdealSampler(material, resolution=ideal_resolution)
-    if lobe_width == "auto":
-        lobe_width = lobe_width_of(material, ideal)
+    ideal = source if isinstance(source, IdealSampler) else IdealSampler(material, resolution=settings.ideal_resolution)
+    lobe_width = lobe_width_of(material, ideal) if settings.lobe_width == "auto" else settings.lobe_width
     aniso = not material.isotropic
-    tol = (ANISO_TOL if aniso else ISO_TOL) if tol is None else tol
+    tol = (ANISO_TOL if aniso else ISO_TOL) if settings.tol is None else settings.tol
     candidates = ([None] if aniso else list(ISO_PLANNED)) if coords == "auto" else [coords]
-    cache = {}      # the probes' points per bin and coordinates (_Once), shared by the plans
+    plan = _Planning(material, ideal, settings, memory_budget, tol, lobe_width, blend, carrier, theta_max_deg,
+                     min_gap_deg, {"grid": settings.grid, **options}, log)
 
-    def rv_at(tab, theta, phi=0.0):
-        return relative_variance(material, tab, spherical_dir(theta, phi), n=samples)[0]
+    def plan_over(coords, say, beat):
+        """A plan over coords (None: build_tables' default): a generator of its rounds, as
+        _plan_bins, which ends it."""
+        opts = plan.opts(coords)
+        resolution, worst_phi, probe_phis = _plan_resolution(plan, opts, say)
+        phi_bins = _plan_phi_bins(plan, opts, resolution, probe_phis, say)
+        return (yield from _plan_bins(plan, opts, coords, resolution, phi_bins, worst_phi, len(candidates) > 1,
+                                      say, beat))
 
-    targets = {}
-
-    def target(theta):
-        if aniso or not ideal_ratio:
-            return 0.5 * tol
-        if theta not in targets:
-            targets[theta] = max(ideal_ratio * rv_at(ideal, theta), 0.5 * tol)
-        return targets[theta]
-
-    def plan(coords, say, beat):
-        """A generator: after each round of the split loop it yields (bins, cells, the typical
-        excess of the midpoints over their targets so far); it returns (resolution, bins,
-        phi_bins, worst_phi, (the worst midpoint's rv over its target, the typical excess),
-        extend) of the tables over coords (None: build_tables' default). beat["cells"], set by
-        the caller between rounds: the cells of a plan that reached its targets; once this one
-        has as many and still splits, it ends bigger and cannot be kept: it stops there (worst
-        midpoint inf)."""
-        opts = dict(lobe_width=lobe_width, cache=cache, coords=coords, **options)
-        resolution = plan_resolution
-
-        def build(thetas, phi=0.0, phis=None):     # a probe; phis: all azimuths, else the single azimuth phi
-            if aniso:
-                phis = [phi] if phis is None else phis
-            return carry(build_tables(material, ideal, thetas, resolution, resolution, phi_bins=phis, **opts))
-
-        probe_phis = list(np.arange(4) * (material.phi_period / 4)) if aniso else [0.0]
-        worst_phi = 0.0
-        if resolution is None:
-            probe = np.radians([86.0, 75.0, 10.0, 45.0])     # grazing first: where coarse tables fail first
-
-            def probe_rv(phi):   # the worst rv / target over the probe angles (isotropic: up to the first above 1)
-                worst = 0.0
-                for t in probe:
-                    worst = max(worst, rv_at(build([t], phi), t, phi) / target(t))
-                    if worst > 1.0 and not aniso:
-                        break
-                return worst
-
-            # Isotropic: one angle above its target decides that a resolution fails (the rest need
-            # not be built). Anisotropic: the worst azimuth is needed, so every angle is.
-            tried = {}
-            for resolution in (ANISO_RESOLUTIONS if aniso else _resolutions_within(
-                    memory_budget, MIN_BINS_CARRIED if blend == "carried" else MIN_BINS)):
-                by_phi = {phi: probe_rv(phi) for phi in probe_phis}
-                worst_phi, worst = max(by_phi.items(), key=lambda kv: kv[1])
-                tried[resolution] = worst
-                say(f"resolution {resolution}: single-bin rv {worst:.2f}x the target"
-                    + (" or more" if worst > 1 and not aniso else "")
-                    + (f" (at phi_i {np.degrees(worst_phi):.1f} deg)" if aniso else ""))
-                if worst <= 1.0:
-                    break
-            if worst > 1.0 and not aniso:
-                # None reaches its target: the closest one. More cells are not always closer (aurora
-                # at theta_i 86: 48² 3.2x, 64² 8.0x; sharp files fail every resolution at the first
-                # probe angle, so they compare there), and fewer leave room for more bins.
-                resolution = min(tried, key=lambda r: (tried[r], -r))
-                say(f"resolution {resolution}: none reaches the target; this one comes closest")
-        elif aniso:
-            worst_phi = max(probe_phis, key=lambda phi: rv_at(build([np.radians(75.0)], phi), np.radians(75.0), phi))
-        phi_bins = None
-        if aniso:
-            count = phi_count
-            if count == "auto":
-                probes = [(np.radians(t), phi) for t in PHI_PROBE_DEG for phi in probe_phis]
-                for count in PHI_COUNTS:
-                    step = material.phi_period / count
-                    pairs = list(_parallel(lambda tp: build([tp[0]], phis=[tp[1], tp[1] + step]), probes))
-                    loss = max(rv_at(tab, t, phi + 0.5 * step) - 2.0 * rv_at(tab, t, phi)
-                               for tab, (t, phi) in zip(pairs, probes))
-                    say(f"phi bins {count}: the blend half-way loses {loss:.4f}")
-                    if loss <= 0.5 * tol:
-                        break
-            phi_bins = default_phi_bins(material, count)
-        if phi_bins is None:    # at most (a bin's layout may be its own: fits)
-            max_bins = bins_within(memory_budget, resolution)
-        else:       # every theta bin once per azimuth, and the one closing the period, each its own layout
-            per_bin = (bin_bytes(resolution) + layout_bytes(resolution)) * (len(phi_bins) + 1)
-            max_bins = max(2, int(memory_budget * ANISO_BUDGET // per_bin))
-        # Without a window given, _between_bins may split the bins into two groups: room for the
-        # second group's layout is kept.
-        second = 0 if "window" in options else layout_bytes(resolution)
-
-        def fits(bins):
-            if phi_bins is not None:
-                return True
-            return groups_bytes([(bins, resolution)], coords or ISO_COORDS, lobe_width,
-                                options.get("window")) + second <= memory_budget
-
-        bins = list(np.radians(np.linspace(0.0, theta_max_deg, first_bins)))
-        gap = np.radians(min_gap_deg)
-        if material.measured_theta_i is not None and not aniso:
-            for t in material.measured_theta_i:
-                if 0.0 < t <= np.radians(theta_max_deg) and min(abs(t - b) for b in bins) > gap:
-                    bins.append(float(t))
-            bins.sort()
-
-        def midpoint(lo, hi):     # interpolation is linear in cos(theta): test where it errs most
-            return float(np.arccos(0.5 * (np.cos(lo) + np.cos(hi))))
-
-        def probes(lo, hi):
-            """Where an interval is probed: its midpoint in cos(theta), and near the normal, where
-            that sits well above the middle angle (0-12.7 deg: at 9.0), the middle angle too
-            (chm_mint at 2 MB lost 8x the ideal's rv at 3.5 deg, 3.9x at the 9.0 probe)."""
-            mid = midpoint(lo, hi)
-            half = 0.5 * (lo + hi)
-            return (mid, half) if mid - half > PROBE_APART else (mid,)
-
-        scores = {}
-        reached = {}        # per interval: the midpoint's rv over its target (the probe that lost most)
-        split_at = {}       # per interval: the probe that lost most, where a split puts its bin
-
-        def interval_loss(lo, hi):
-            """What interpolating between bins at lo and hi loses at the midpoint beyond what the
-            bins themselves reach, in units of the midpoint's target: the midpoint's rv above the
-            target or the better of the two bins' own rv (both measured on the same pair of bins: a
-            bin built at the midpoint costs as much as the pair, and would only be needed for this).
-            The midpoint: of probes(lo, hi), the one that loses most (split_at)."""
-            if hi - lo <= gap:
-                return 0.0
-            tab = build([lo, hi], worst_phi)
-            floor = min(rv_at(tab, lo, worst_phi), rv_at(tab, hi, worst_phi))
-            losses = []
-            for mid in probes(lo, hi):
-                rv_mid = rv_at(tab, mid, worst_phi)
-                losses.append((max(rv_mid - max(floor, target(mid)), 0.0) / target(mid), rv_mid / target(mid), mid))
-            loss, reached[(lo, hi)], split_at[(lo, hi)] = max(losses)
-            return loss
-
-        def extend(placed, room, above):
-            """placed plus splits of its intervals at or above `above`, the worst first, while
-            room(bins) says they fit (the upper group of a split whose lower group took smaller
-            cells: _between_bins)."""
-            placed = list(placed)
-            while True:
-                new = [iv for iv in zip(placed[:-1], placed[1:]) if iv not in scores and iv[0] >= above]
-                scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
-                upper = [(scores[iv], iv) for iv in zip(placed[:-1], placed[1:]) if iv[0] >= above]
-                worst, iv = max(upper, default=(0.0, None))
-                if worst <= SPLIT_LOSS or not room(sorted(placed + [split_at[iv]])):
-                    return placed
-                placed = sorted(placed + [split_at[iv]])
-
-        def reaches(bins):      # (the worst midpoint's rv over its target, the typical excess)
-            ratios = np.array([reached.get(iv, 0.0) for iv in zip(bins[:-1], bins[1:])])
-            excess = float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=np.diff(bins)))) \
-                if len(bins) > 1 else 1.0
-            return float(ratios.max(initial=0.0)), excess
-
-        while True:
-            if len(bins) >= max_bins:       # (a plan that ends on the budget says so: the add-on's progress)
-                say(_budget_full(len(bins), memory_budget))
-                break
-            new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
-            # The new intervals' builds are independent: all of them at once, in threads.
-            scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
-            yield len(bins), len(bins) * resolution ** 2, reaches(bins)[1]
-            (lo, hi), worst = max(scores.items(), key=lambda kv: kv[1])
-            if worst <= SPLIT_LOSS:
-                say(f"bins {len(bins)}: done, the worst midpoint loses {worst:.2f}x its target")
-                break
-            if beat["cells"] is not None and len(bins) * resolution ** 2 >= beat["cells"]:
-                say(f"bins {len(bins)}: stopped, as many cells as a plan that reaches its targets")
-                return resolution, bins, phi_bins, worst_phi, (np.inf, np.inf), extend
-            if not fits(sorted(bins + [split_at[(lo, hi)]])):
-                say(_budget_full(len(bins), memory_budget))
-                break
-            bins = sorted(bins + [split_at[(lo, hi)]])
-            del scores[(lo, hi)]
-            say(f"bins {len(bins)}: split {np.degrees(lo):.2f}-{np.degrees(hi):.2f} deg "
-                f"(midpoint loss {worst:.2f}x its target)")
-        # What the plan reaches, to compare plans: its midpoints over their targets, the worst and
-        # the typical excess (the intervals of the last split are scored too when the budget ended it).
-        if len(candidates) > 1:
-            new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
-            scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
-        return resolution, bins, phi_bins, worst_phi, reaches(bins), extend
-
-    plan_resolution = resolution
-    plans = _plan_in_turns(candidates, plan, log)
+    plans = _plan_in_turns(candidates, plan_over, log)
     # The plan closest to its targets over its midpoints' typical excess; when both reach them,
     # the smaller.
     coords = min(plans, key=lambda c: (plans[c][4][1], len(plans[c][1]) * plans[c][0] ** 2))
@@ -1362,15 +1163,7 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
     if len(candidates) > 1:
         log(f"coordinates: {coords} (midpoints over their targets, typical / worst: " + ", ".join(
             f"{c} {p[4][1]:.2f}x / {p[4][0]:.2f}x" for c, p in plans.items()) + ")")
-    opts = dict(lobe_width=lobe_width, coords=coords, **options)
-    compared = None
-    if phi_bins is None and "window" not in options:
-        opts["window"], bins, resolution, compared = _between_bins(material, ideal, bins, resolution, opts, cache, tol,
-                                                                   samples, log, memory_budget, extend, carry,
-                                                                   placement)
-    elif phi_bins is None:      # the layout given: as many bins as its layouts leave room for
-        (bins, _), = _fit([(bins, resolution)], memory_budget, window=options["window"], coords=coords or ISO_COORDS,
-                          lobe_width=lobe_width)
+    opts, bins, resolution, compared = _plan_layout(plan, coords, bins, resolution, phi_bins, extend, placement)
     log(f"tables: building {len(bins)} angles" + (f" x {len(phi_bins)} azimuths" if phi_bins is not None else ""))
     every = [0]
 
@@ -1383,18 +1176,279 @@ def plan_tables(material, source, memory_budget=4_000_000, tol=None, ideal_ratio
         built(len(bins), len(bins))
     else:   # from the source's own points: the probes' are the ideal's
         tables = build_grouped(material, source, bins, resolution, phi_bins=phi_bins, progress=built,
-                               **{**opts, "cache": cache if source is ideal else {}})
-    if blend == "carried" or carry_flags:
+                               **{**opts, "cache": plan.cache if source is ideal else {}})
+    if blend == "carried" or carry:
         from .carried import choose_intervals
         tables.meta["carried"] = choose_intervals(material, tables, ideal)
         log(f"carried: {sum(tables.meta['carried'])} of {len(tables.meta['carried'])} intervals carry")
     tables.meta.update(resolution=resolution if np.ndim(resolution) == 0 else [int(r) for r in resolution],
-                       lobe_width=lobe_width, tol=tol, ideal_ratio=ideal_ratio,
+                       lobe_width=lobe_width, tol=tol, ideal_ratio=settings.ideal_ratio,
                        window=opts.get("window", 1),
                        groups=int(np.sum(np.diff(bins) == 0)) + 1, **({"blend": blend} if blend != "fixed" else {}))
     if phi_bins is not None:
         tables.meta.update(phi_count=len(phi_bins), planned_at_phi=float(worst_phi))
     return tables
+
+
+class _Planning:
+    """What plan_tables' steps share: the material, its ideal tabulation, the settings and what the
+    planner made of them (the budget, tol, lobe width), and the probes: tables built from the
+    ideal's points (cached per bin and coordinates, for every plan) and their rv at an angle
+    against its target."""
+
+    def __init__(self, material, ideal, settings, memory_budget, tol, lobe_width, blend, carrier, theta_max_deg,
+                 min_gap_deg, options, log):
+        from .metrics import relative_variance
+        self.relative_variance = relative_variance
+        self.material, self.ideal, self.settings = material, ideal, settings
+        self.memory_budget, self.tol = memory_budget, tol
+        self.lobe_width, self.blend, self.carrier, self.options, self.log = lobe_width, blend, carrier, options, log
+        self.theta_max_deg, self.min_gap_deg = theta_max_deg, min_gap_deg
+        self.aniso = not material.isotropic
+        self.cache = {}         # the probes' points per bin and coordinates (_Once), shared by the plans
+        self.targets = {}
+
+    def opts(self, coords):
+        """build_tables' options of the probes over coords."""
+        return dict(lobe_width=self.lobe_width, cache=self.cache, coords=coords, **self.options)
+
+    def build(self, opts, resolution, thetas, phi=0.0, phis=None):
+        """A probe; phis: all azimuths, else the single azimuth phi (anisotropic)."""
+        if self.aniso:
+            phis = [phi] if phis is None else phis
+        return self.carrier(build_tables(self.material, self.ideal, thetas, resolution, resolution, phi_bins=phis,
+                                         **opts))
+
+    def rv_at(self, tab, theta, phi=0.0):
+        return self.relative_variance(self.material, tab, spherical_dir(theta, phi), n=self.settings.samples)[0]
+
+    def target(self, theta):
+        if self.aniso or not self.settings.ideal_ratio:
+            return 0.5 * self.tol
+        if theta not in self.targets:
+            self.targets[theta] = max(self.settings.ideal_ratio * self.rv_at(self.ideal, theta), 0.5 * self.tol)
+        return self.targets[theta]
+
+
+def _plan_resolution(plan, opts, say):
+    """Step 1: (resolution, the azimuth probed worst, the azimuths probed). The resolution given,
+    else the smallest of RESOLUTIONS (within the budget: _resolutions_within) whose single-bin
+    tables reach their target at a few elevations (isotropic: a resolution's probe stops at its
+    first failing elevation; when none does, the one that comes closest). Anisotropic: of
+    ANISO_RESOLUTIONS, probed at 4 azimuths; the bins are planned at the azimuth that did worst."""
+    material, aniso = plan.material, plan.aniso
+    probe_phis = list(np.arange(4) * (material.phi_period / 4)) if aniso else [0.0]
+    resolution, worst_phi = plan.settings.resolution, 0.0
+    if resolution is None:
+        probe = np.radians([86.0, 75.0, 10.0, 45.0])     # grazing first: where coarse tables fail first
+
+        def probe_rv(resolution, phi):   # the worst rv / target over the probe angles (isotropic: to the first above 1)
+            worst = 0.0
+            for t in probe:
+                worst = max(worst, plan.rv_at(plan.build(opts, resolution, [t], phi), t, phi) / plan.target(t))
+                if worst > 1.0 and not aniso:
+                    break
+            return worst
+
+        # Isotropic: one angle above its target decides that a resolution fails (the rest need
+        # not be built). Anisotropic: the worst azimuth is needed, so every angle is.
+        tried = {}
+        for resolution in (ANISO_RESOLUTIONS if aniso else _resolutions_within(
+                plan.memory_budget, MIN_BINS_CARRIED if plan.blend == "carried" else MIN_BINS)):
+            by_phi = {phi: probe_rv(resolution, phi) for phi in probe_phis}
+            worst_phi, worst = max(by_phi.items(), key=lambda kv: kv[1])
+            tried[resolution] = worst
+            say(f"resolution {resolution}: single-bin rv {worst:.2f}x the target"
+                + (" or more" if worst > 1 and not aniso else "")
+                + (f" (at phi_i {np.degrees(worst_phi):.1f} deg)" if aniso else ""))
+            if worst <= 1.0:
+                break
+        if worst > 1.0 and not aniso:
+            # None reaches its target: the closest one. More cells are not always closer (aurora
+            # at theta_i 86: 48² 3.2x, 64² 8.0x; sharp files fail every resolution at the first
+            # probe angle, so they compare there), and fewer leave room for more bins.
+            resolution = min(tried, key=lambda r: (tried[r], -r))
+            say(f"resolution {resolution}: none reaches the target; this one comes closest")
+    elif aniso:
+        t = np.radians(75.0)
+        worst_phi = max(probe_phis, key=lambda phi: plan.rv_at(plan.build(opts, resolution, [t], phi), t, phi))
+    return resolution, worst_phi, probe_phis
+
+
+def _plan_phi_bins(plan, opts, resolution, probe_phis, say):
+    """Step 1, anisotropic: the azimuths (None for isotropic tables): `phi_count` evenly spaced
+    over the material's period (default_phi_bins); "auto": the fewest of PHI_COUNTS whose blend
+    half-way between two bins at each theta_i of PHI_PROBE_DEG loses at most the bin's own rv plus
+    tol / 2 (at the probed azimuths)."""
+    if not plan.aniso:
+        return None
+    material, count = plan.material, plan.settings.phi_count
+    if count == "auto":
+        probes = [(np.radians(t), phi) for t in PHI_PROBE_DEG for phi in probe_phis]
+        for count in PHI_COUNTS:
+            step = material.phi_period / count
+            pairs = list(_parallel(lambda tp: plan.build(opts, resolution, [tp[0]], phis=[tp[1], tp[1] + step]),
+                                   probes))
+            loss = max(plan.rv_at(tab, t, phi + 0.5 * step) - 2.0 * plan.rv_at(tab, t, phi)
+                       for tab, (t, phi) in zip(pairs, probes))
+            say(f"phi bins {count}: the blend half-way loses {loss:.4f}")
+            if loss <= 0.5 * plan.tol:
+                break
+    return default_phi_bins(material, count)
+
+
+def _plan_bins(plan, opts, coords, resolution, phi_bins, worst_phi, compared, say, beat):
+    """Step 2: the incident bins. A generator: after each round of the split loop it yields (bins,
+    cells, the typical excess of the midpoints over their targets so far); it returns (resolution,
+    bins, phi_bins, worst_phi, (the worst midpoint's rv over its target, the typical excess),
+    extend) of the tables over coords. beat["cells"], set by the caller between rounds: the cells
+    of a plan that reached its targets; once this one has as many and still splits, it ends bigger
+    and cannot be kept: it stops there (worst midpoint inf). compared: other plans are compared
+    with this one (the intervals of its last split are scored too).
+
+    Start from `first_bins` evenly spaced elevations from 0 to `theta_max_deg` (89.9: past the last
+    bin the tables keep its layout; with it at 89.5, four shared files lost 19-42x the ideal's rv
+    at 89.9, 4-5x with it at 89.9, measured at 2 MB) and, isotropic, the material's measured
+    incident angles (`measured_theta_i`: measured data interpolate between them, so f·cos has a
+    kink in theta_i at each, which interpolating across loses; measured at 2 MB on
+    cm_military_green: the worst of 11 angles 3.56x the ideal's rv -> 1.95x); while the memory
+    budget allows another bin, split the interval whose interpolated midpoint (its cos-midpoint,
+    near the normal also its middle angle: the one that loses more) loses most against the better
+    of its two bins (interval_loss) relative to the midpoint's target, until no interval loses
+    more than SPLIT_LOSS times its target. Anisotropic: planned at the azimuth where the probe did
+    worst and shared by all azimuths."""
+    material, aniso, memory_budget, options = plan.material, plan.aniso, plan.memory_budget, plan.options
+    rv_at, target = plan.rv_at, plan.target
+    if phi_bins is None:    # at most (a bin's layout may be its own: fits)
+        max_bins = bins_within(memory_budget, resolution)
+    else:       # every theta bin once per azimuth, and the one closing the period, each its own layout
+        per_bin = (bin_bytes(resolution) + layout_bytes(resolution)) * (len(phi_bins) + 1)
+        max_bins = max(2, int(memory_budget * ANISO_BUDGET // per_bin))
+    # Without a window given, _between_bins may split the bins into two groups: room for the
+    # second group's layout is kept.
+    second = 0 if "window" in options else layout_bytes(resolution)
+
+    def fits(bins):
+        if phi_bins is not None:
+            return True
+        return groups_bytes([(bins, resolution)], coords or ISO_COORDS, plan.lobe_width,
+                            options.get("window")) + second <= memory_budget
+
+    bins = list(np.radians(np.linspace(0.0, plan.theta_max_deg, plan.settings.first_bins)))
+    gap = np.radians(plan.min_gap_deg)
+    if material.measured_theta_i is not None and not aniso:
+        for t in material.measured_theta_i:
+            if 0.0 < t <= np.radians(plan.theta_max_deg) and min(abs(t - b) for b in bins) > gap:
+                bins.append(float(t))
+        bins.sort()
+
+    def midpoint(lo, hi):     # interpolation is linear in cos(theta): test where it errs most
+        return float(np.arccos(0.5 * (np.cos(lo) + np.cos(hi))))
+
+    def probes(lo, hi):
+        """Where an interval is probed: its midpoint in cos(theta), and near the normal, where
+        that sits well above the middle angle (0-12.7 deg: at 9.0), the middle angle too
+        (chm_mint at 2 MB lost 8x the ideal's rv at 3.5 deg, 3.9x at the 9.0 probe)."""
+        mid = midpoint(lo, hi)
+        half = 0.5 * (lo + hi)
+        return (mid, half) if mid - half > PROBE_APART else (mid,)
+
+    scores = {}
+    reached = {}        # per interval: the midpoint's rv over its target (the probe that lost most)
+    split_at = {}       # per interval: the probe that lost most, where a split puts its bin
+
+    def interval_loss(lo, hi):
+        """What interpolating between bins at lo and hi loses at the midpoint beyond what the
+        bins themselves reach, in units of the midpoint's target: the midpoint's rv above the
+        target or the better of the two bins' own rv (both measured on the same pair of bins: a
+        bin built at the midpoint costs as much as the pair, and would only be needed for this).
+        The midpoint: of probes(lo, hi), the one that loses most (split_at)."""
+        if hi - lo <= gap:
+            return 0.0
+        tab = plan.build(opts, resolution, [lo, hi], worst_phi)
+        floor = min(rv_at(tab, lo, worst_phi), rv_at(tab, hi, worst_phi))
+        losses = []
+        for mid in probes(lo, hi):
+            rv_mid = rv_at(tab, mid, worst_phi)
+            losses.append((max(rv_mid - max(floor, target(mid)), 0.0) / target(mid), rv_mid / target(mid), mid))
+        loss, reached[(lo, hi)], split_at[(lo, hi)] = max(losses)
+        return loss
+
+    def extend(placed, room, above):
+        """placed plus splits of its intervals at or above `above`, the worst first, while
+        room(bins) says they fit (the upper group of a split whose lower group took smaller
+        cells: _between_bins)."""
+        placed = list(placed)
+        while True:
+            new = [iv for iv in zip(placed[:-1], placed[1:]) if iv not in scores and iv[0] >= above]
+            scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
+            upper = [(scores[iv], iv) for iv in zip(placed[:-1], placed[1:]) if iv[0] >= above]
+            worst, iv = max(upper, default=(0.0, None))
+            if worst <= SPLIT_LOSS or not room(sorted(placed + [split_at[iv]])):
+                return placed
+            placed = sorted(placed + [split_at[iv]])
+
+    def reaches(bins):      # (the worst midpoint's rv over its target, the typical excess)
+        ratios = np.array([reached.get(iv, 0.0) for iv in zip(bins[:-1], bins[1:])])
+        excess = float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=np.diff(bins)))) \
+            if len(bins) > 1 else 1.0
+        return float(ratios.max(initial=0.0)), excess
+
+    while True:
+        if len(bins) >= max_bins:       # (a plan that ends on the budget says so: the add-on's progress)
+            say(_budget_full(len(bins), memory_budget))
+            break
+        new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
+        # The new intervals' builds are independent: all of them at once, in threads.
+        scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
+        yield len(bins), len(bins) * resolution ** 2, reaches(bins)[1]
+        (lo, hi), worst = max(scores.items(), key=lambda kv: kv[1])
+        if worst <= SPLIT_LOSS:
+            say(f"bins {len(bins)}: done, the worst midpoint loses {worst:.2f}x its target")
+            break
+        if beat["cells"] is not None and len(bins) * resolution ** 2 >= beat["cells"]:
+            say(f"bins {len(bins)}: stopped, as many cells as a plan that reaches its targets")
+            return resolution, bins, phi_bins, worst_phi, (np.inf, np.inf), extend
+        if not fits(sorted(bins + [split_at[(lo, hi)]])):
+            say(_budget_full(len(bins), memory_budget))
+            break
+        bins = sorted(bins + [split_at[(lo, hi)]])
+        del scores[(lo, hi)]
+        say(f"bins {len(bins)}: split {np.degrees(lo):.2f}-{np.degrees(hi):.2f} deg "
+            f"(midpoint loss {worst:.2f}x its target)")
+    # What the plan reaches, to compare plans: its midpoints over their targets, the worst and
+    # the typical excess (the intervals of the last split are scored too when the budget ended it).
+    if compared:
+        new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
+        scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
+    return resolution, bins, phi_bins, worst_phi, reaches(bins), extend
+
+
+def _plan_layout(plan, coords, bins, resolution, phi_bins, extend, placement):
+    """Step 3: (build_tables' options with the layout's window, bins, resolution, their tables
+    from the ideal's points or None). Isotropic, unless `window` is given: the planned bins'
+    tables are built from the ideal with each of LAYOUT_WINDOWS (a bin's layout pooled with its
+    neighbours', or one for all bins) and split into two layout groups at a few angles (each group
+    its own cells), and the one typically closest to the ideal at the bins and between them is
+    kept (_between_bins; tables.meta["window"], ["groups"]); the best split is also tried with the
+    lower group at coarser cells and the memory it frees spent above (MixedTables;
+    meta["resolution"] then lists both). The interval probes of step 2 pool the pair alone.
+    placement: "compare" (default) every candidate; "rule" from 6 bins on only the groups split
+    nearest RULE_SPLITS_DEG (and the better one's groups of their own resolutions): 2-3 placements
+    built instead of 5-6, the same tables where the full comparison keeps one of those, but on
+    near-ties it loses rv at single angles (satin_rosaline 1.24x at theta_i 0, vch_golden_yellow
+    2.01x at 60: RULE_SPLITS_DEG). The window given: as many bins as its layouts leave room for."""
+    options = plan.options
+    opts = dict(lobe_width=plan.lobe_width, coords=coords, **options)
+    compared = None
+    if phi_bins is None and "window" not in options:
+        opts["window"], bins, resolution, compared = _between_bins(
+            plan.material, plan.ideal, bins, resolution, opts, plan.cache, plan.tol, plan.settings.samples, plan.log,
+            plan.memory_budget, extend, plan.carrier, placement)
+    elif phi_bins is None:
+        (bins, _), = _fit([(bins, resolution)], plan.memory_budget, window=options["window"],
+                          coords=coords or ISO_COORDS, lobe_width=plan.lobe_width)
+    return opts, bins, resolution, compared
 
 
 def _budget_full(bins, memory_budget):

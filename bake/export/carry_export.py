@@ -22,23 +22,23 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FlowBSDFError
+from ..formats import CARRY_LAYOUT
 from ..io.exrio import read_rgba_exr, write_rgba_exr
 
-CARRY_LAYOUT = 1
 CARRY_SLICES = 16       # carried.h's CARRY_SLICES: the shader reads the slices' angles once, into an array
 META_KEY = "flowbsdf_carry"
 KIND = "carry"
 
 
-def carry_image(material, tables, carried):
+def carry_image(material, tables, carry):
     """The texture (H, W, 4) float32 of an isotropic RGL material, its tables (joined bins, as the
     OSL texture lays them out) and one flag per interval of the tables' bins."""
     from ..core.carried import check_carriable
     check_carriable(material)
     bins = np.asarray(tables.theta_bins, np.float64)
-    carried = np.asarray(carried, bool)
-    if carried.shape != (max(len(bins) - 1, 0),):
-        raise FlowBSDFError(f"carried: one flag per interval of the tables' {len(bins)} bins, not {carried.shape}")
+    carry = np.asarray(carry, bool)
+    if carry.shape != (max(len(bins) - 1, 0),):
+        raise FlowBSDFError(f"carried: one flag per interval of the tables' {len(bins)} bins, not {carry.shape}")
     S = material._slices
     if S > CARRY_SLICES:
         raise FlowBSDFError(f"the carried blend's texture holds at most {CARRY_SLICES} theta_i slices, the file has {S}")
@@ -52,7 +52,7 @@ def carry_image(material, tables, carried):
     img[0, 1] = (W, H, len(bins), 0)
     img[0, 2:2 + S, 0] = material.theta_i
     img[0, 2 + S:2 + S + len(bins), 0] = bins
-    img[0, 2 + S:2 + S + len(carried), 1] = carried
+    img[0, 2 + S:2 + S + len(carry), 1] = carry
     rows = img[1:].reshape(S, ny - 1, W, 4)
     rows[:, :, :nx - 1, 0] = t[..., 0]          # density at (y, x)
     rows[:, :, nx - 1, 0] = t[:, :, -1, 1]      # ... the row's last vertex
@@ -88,8 +88,8 @@ def is_current(path, digest):
     return meta.get("tables_hash") == digest and meta.get("layout") == CARRY_LAYOUT
 
 
-def write_carry_export(path, material, tables, carried, digest):
-    write_rgba_exr(path, carry_image(material, tables, carried), META_KEY,
+def write_carry_export(path, material, tables, carry, digest):
+    write_rgba_exr(path, carry_image(material, tables, carry), META_KEY,
                    {"layout": CARRY_LAYOUT, "tables_hash": digest, "material": material.fingerprint()})
 
 

@@ -86,14 +86,14 @@ import numpy as np
 
 from ..core.tables import MixedTables
 from ..errors import FlowBSDFError
+from ..formats import FIT_VERSION, READABLE_FIT_VERSIONS
 from ..io.exrio import write_rgba_exr
 from ..io.files import atomic_path
 from ..materials.analytic import ggx_ndf, ggx_lambda, ggx_reflection_pdf, ggx_sample_reflection
 from ..maths.fasttables import one_blas_thread
 from ..maths.geometry import LUMINANCE, luminance
 
-FIT_VERSION = 8
-READABLE_VERSIONS = (6, 7, 8)   # load_fit / eval_fit: a version 6 fit has no tilts (all 0), 6 and 7 no "eevee"
+READABLE_VERSIONS = READABLE_FIT_VERSIONS   # load_fit / eval_fit (bake/formats.py)
 MODEL = "diffuse+view-aligned-ggx+tilt"
 MATCH_N = 16        # the match image's nodes per axis (match_ratios)
 MATCH_MAX = 2.0     # its ratios' bound (blender_addon/svm.py matches only where the fit is within 10 %)

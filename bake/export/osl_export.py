@@ -64,13 +64,11 @@ import numpy as np
 
 from ..core.tables import COORDS
 from ..errors import FlowBSDFError
+from ..formats import OSL_LAYOUT
 from ..io.exrio import read_rgba_exr, write_rgba_exr
 from .guides import guide, own_size
 
-LAYOUT = 11     # 8: tables of mixed resolutions (each corner's own rows and columns: its guides, its count
-                # texel); 9: a cell in three RGBA texels (weight with the profiles), the header in two;
-                # 10: isotropic corners' sums carry their edges (blue, alpha); 11: what a sample reads
-                # together lies together (cells' texels and bins, a table row's sums, edges, guide)
+LAYOUT = OSL_LAYOUT     # bake/formats.py
 META_KEY = "flowbsdf_osl"
 KIND = "osl"
 

@@ -86,10 +86,11 @@ import numpy as np
 
 from ..core.tables import NSEG
 from ..errors import FlowBSDFError
+from ..formats import SVM_LAYOUT
 from ..io.exrio import read_rgba_exr, write_rgba_exr
 from .guides import guide, own_size
 
-LAYOUT = 4      # 4: tables of mixed resolutions (isotropic headers hold the corner's last row and column)
+LAYOUT = SVM_LAYOUT     # bake/formats.py
 META_KEY = "flowbsdf_svm"
 KIND = "svm"
 MAX_SIDE = 16384

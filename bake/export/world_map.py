@@ -41,10 +41,11 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FlowBSDFError
+from ..formats import WORLD_LAYOUT
 from ..io.exrio import write_rgba_exr
 from ..maths.geometry import LUMINANCE
 
-LAYOUT = 3
+LAYOUT = WORLD_LAYOUT   # bake/formats.py
 TEXTURE_WIDTH = 1024
 META_KEY = "flowbsdf_world"
 

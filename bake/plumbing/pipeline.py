@@ -14,88 +14,29 @@ rebuilds it, and a stale file is never used (`open_current_tables`).
 import hashlib
 import json
 import time
+from dataclasses import replace
 
 from ..core.sampler import open_sampler
-from ..core.tables import FORMAT_VERSION, open_tables
+from ..core.settings import BakeSettings
+from ..core.tables import open_tables
 from ..errors import FlowBSDFError
+from ..formats import BUILDER, FORMAT
 from ..io.files import file_hash, remove_stale_temps
 from ..io.paths import model_path, table_path
 
-# Bumped when the construction changes in a way that should rebuild existing tables.
-BUILDER_VERSION = 13     # 2: cells that miss a hard-edged sliver of mass are integrated around their points
-                         # 3: isotropic plans aim at the ideal tabulation's rv (tabulate.plan_tables)
-                         # 4: when no resolution reaches its target, the closest one (not the largest)
-                         # 5: cells per lobe segment by weight, an even share of every segment (tabulate.SHARES)
-                         # 6: isotropic tables over the half vector where that plans closer (tabulate.ISO_PLANNED)
-                         # 7: measured files' own incident angles among the first bins (Material.measured_theta_i)
-                         # 8: split while a midpoint loses over half its target (tabulate.SPLIT_LOSS)
-                         # 9: isotropic: one cell layout for all bins where that interpolates closer (tabulate.LAYOUT_WINDOWS)
-                         # 10: isotropic: two layout groups (a repeated boundary bin) where that interpolates closer (tabulate._between_bins);
-                         #     a ridge on the plane of incidence integrated beside it (tabulate._ridge_edges)
-                         # 11: isotropic: layout groups of their own resolutions (tables.MixedTables), placements
-                         #     compared at quarter points too
-                         # 12: bins placed alike store their edges once (tables.Tables.layouts): the budget keeps more bins
-                         # 13: isotropic RGL files: which intervals carry (tables.meta["carried"], bake setting `carry`)
-BAKE_KEYS = {"source", "tol", "ideal_ratio", "memory_budget", "resolution", "grid", "lobe_width", "samples", "first_bins",
-             "ideal_resolution", "phi_count", "carry"}
-SOURCES = ("auto", "flow", "ideal")
+BUILDER_VERSION = BUILDER     # bake/formats.py (a module global: tests bump it)
 
 
 def bake_settings(entry, manifest_path):
-    settings = dict(entry.bake)
-    unknown = sorted(set(settings) - BAKE_KEYS)
-    if unknown:
-        raise FlowBSDFError(f"material {entry.name!r}: unknown bake setting(s) {', '.join(unknown)} "
-                            f"(allowed: {', '.join(sorted(BAKE_KEYS))})", manifest_path)
-    source = settings.setdefault("source", "auto")
-    if source not in SOURCES:
-        raise FlowBSDFError(f"material {entry.name!r}: bake source must be one of {SOURCES}", manifest_path)
-    # The carried blend is opt-in (`carry = true`): at equal render time it lost to the fixed cells
-    # against the measured file, 6.4-7.1x the MSE (studio lamps) and 10.0-10.5x (HDRI), OSL on
-    # cm_military_green, vch_golden_yellow, satin_rosaline at the default bake (it costs 5-6x the
-    # time per sample; scripts/lights_acceptance.py --reference file), and only OSL renders it
-    # (the SVM graph blends at fixed cells: two looks of one material). Stated in the settings,
-    # so tables baked before under the old default are out of date (and baked again) once.
-    settings.setdefault("carry", False)
-    if not isinstance(settings["carry"], bool):
-        raise FlowBSDFError(f"material {entry.name!r}: bake setting carry = {settings['carry']!r} is not true or false",
-                            manifest_path)
-    for key, value in settings.items():
-        if key == "carry":
-            continue
-        problem = _check_setting(key, value)
-        if problem:
-            raise FlowBSDFError(f"material {entry.name!r}: bake setting {key} = {value!r} {problem}",
-                                manifest_path)
-    return settings
-
-
-# Limits of the numeric bake settings: (type, low, high). A typo like resolution = 1e9 must be
-# an error, not a bake that asks for terabytes.
-SETTING_LIMITS = {"resolution": (int, 2, 1024), "grid": (int, 8, 4096), "samples": (int, 64, 1 << 24),
-                  "first_bins": (int, 2, 512), "ideal_resolution": (int, 8, 2048), "phi_count": (int, 1, 256),
-                  "memory_budget": (int, 1 << 10, 1 << 34), "tol": (float, 0.0, 10.0),
-                  "ideal_ratio": (float, 0.0, 1000.0), "lobe_width": (float, 0.0, 1.6)}
-
-
-def _check_setting(key, value):
-    """Why a bake setting's value is unusable, or None."""
-    if key not in SETTING_LIMITS or (key == "lobe_width" and value == "auto"):
-        return None
-    kind, lo, hi = SETTING_LIMITS[key]
-    ok_type = isinstance(value, int) if kind is int else isinstance(value, (int, float))
-    if isinstance(value, bool) or not ok_type:
-        return f"must be {'an integer' if kind is int else 'a number'}"
-    if not (lo < value <= hi if kind is float else lo <= value <= hi):
-        return f"is out of range ({'(' if kind is float else '['}{lo}, {hi}])"
-    return None
+    """The entry's `[bake]` table as BakeSettings (checked: bake/core/settings.py)."""
+    return BakeSettings.from_table(entry.bake, f"material {entry.name!r}", manifest_path)
 
 
 def inputs_of(material, settings, model_file):
     """What a table depends on, and its hash."""
-    inputs = {"material": material.fingerprint(), "settings": settings,
+    inputs = {"material": material.fingerprint(), "settings": settings.inputs(),
               "model": file_hash(model_file) if model_file else None,
-              "format": FORMAT_VERSION, "builder": BUILDER_VERSION}
+              "format": FORMAT, "builder": BUILDER_VERSION}
     return inputs, hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()
 
 
@@ -115,7 +56,7 @@ def tables_use_model(settings):
     the source only places the cells (their masses are integrated from the true f·cos either
     way), and the ideal placed them as well or better (cc_nothern_aurora at theta_i 60-85: rv
     1.5-4x lower) in a third to a fifth of the time (29-59 s vs 101-212 s; session 20)."""
-    return settings["source"] == "flow"
+    return settings.source == "flow"
 
 
 def _tables_model(entry, settings, out_dir):
@@ -134,7 +75,7 @@ def _choose_source(material, settings, model_file):
     if model_file is not None:
         from ..core.flow import load_model
         return load_model(model_file), "flow"
-    return IdealSampler(material, resolution=settings.get("ideal_resolution", 256)), "ideal"
+    return IdealSampler(material, resolution=settings.ideal_resolution), "ideal"
 
 
 def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
@@ -158,10 +99,8 @@ def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
             pass       # unreadable or foreign: rebuild it
     source, used = _choose_source(material, settings, model_file)
     t0 = time.perf_counter()
-    options = {k: v for k, v in settings.items() if k not in ("source", "ideal_resolution", "carry")}
-    tables = plan_tables(material, source, ideal_resolution=settings.get("ideal_resolution", 256),
-                         carry_flags=settings["carry"] and carriable(material),
-                         log=lambda s: log(f"[bake] {entry.name}: {s}"), **options)
+    tables = plan_tables(material, source, replace(settings, carry=settings.carry and carriable(material)),
+                         log=lambda s: log(f"[bake] {entry.name}: {s}"))
     # Nothing of the run (its time, the machine) goes into the file: the same inputs give the
     # same bytes, so the textures named by the file's hash and the node graphs built on them
     # stay current across re-bakes and machines.

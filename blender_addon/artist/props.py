@@ -13,7 +13,7 @@ ANALYTIC_PRESETS = {
     "ROUGH_METAL": ("Rough metal", {"model": "ggx", "alpha": 0.3, "f0": [0.56, 0.57, 0.58]}),
     "VELVET": ("Velvet", {"model": "sheen", "color": [0.5, 0.1, 0.4], "roughness": 0.4}),
 }
-# Bake settings (bake/plumbing/pipeline.py BAKE_KEYS): DRAFT for look-dev previews, FINAL = the baker's defaults.
+# Bake settings (bake/core/settings.py BakeSettings): DRAFT for look-dev previews, FINAL = the baker's defaults.
 BAKE_QUALITY = {
     "DRAFT": {"resolution": 16, "tol": 0.5, "grid": 96, "samples": 2048, "first_bins": 3,
               "ideal_resolution": 48},

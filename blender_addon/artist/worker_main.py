@@ -161,14 +161,11 @@ class BakeProgress(Step):
                    "fit": "fitting the node's closures", "preview": "rendering a preview"}
 
     def __init__(self, name, settings, clock=time.monotonic):
-        import inspect
-        from bake.core.tabulate import ISO_PLANNED, RESOLUTIONS, bins_within, plan_tables
+        from bake.core.tabulate import ISO_PLANNED, RESOLUTIONS, bins_within
         super().__init__(clock)
-        defaults = {k: v.default for k, v in inspect.signature(plan_tables).parameters.items()}
-        get = lambda key: settings.get(key, defaults[key])        # noqa: E731
         self.name, self.resolutions, self.bins_within = name, RESOLUTIONS, bins_within
-        self.planned_resolution, self.first = get("resolution"), get("first_bins")
-        self.target, self.budget = 1.0, get("memory_budget")     # the planner's scores are x its targets
+        self.planned_resolution, self.first = settings.resolution, settings.first_bins     # (BakeSettings)
+        self.target, self.budget = 1.0, settings.memory_budget     # the planner's scores are x its targets
         self.layout_names = ISO_PLANNED
         self.layout_of = re.compile("(" + "|".join(ISO_PLANNED) + "): (.*)$")
         self.layouts, self.layout = 1, 0          # plans of this material (one until a line says more), the one in words

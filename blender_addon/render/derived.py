@@ -9,12 +9,13 @@ from .. import deps
 
 # The fit file format (bake/export/closure_fit.py: load_fit, FIT_VERSION), read here without numpy.
 FIT_FORMAT = "flowbsdf-closure-fit"
-OSL_LAYOUT = 11         # the OSL texture's layout (bake/export/osl_export.LAYOUT): part of its file name
-CARRY_LAYOUT = 1        # the carried blend's texture's (bake/export/carry_export.CARRY_LAYOUT)
-FIT_VERSION = 8
-# the versions the node renders: a version 6 fit (3 lobes, no tilts) or 7 (no EEVEE fit: EEVEE
-# renders the fit's closures, anisotropy dropped) until `upgrade` refits it
-READABLE_FIT_VERSIONS = (6, 7, 8)
+# The versions of bake/formats.py (deps.formats: read without numpy). OSL_LAYOUT: the OSL texture's
+# layout, part of its file name; CARRY_LAYOUT the carried blend's texture's; READABLE_FIT_VERSIONS the
+# fits the node renders: a version 6 fit (3 lobes, no tilts) or 7 (no EEVEE fit: EEVEE renders the
+# fit's closures, anisotropy dropped) until `upgrade` refits it
+_FORMATS = deps.formats()
+OSL_LAYOUT, CARRY_LAYOUT = _FORMATS.OSL_LAYOUT, _FORMATS.CARRY_LAYOUT
+FIT_VERSION, READABLE_FIT_VERSIONS = _FORMATS.FIT_VERSION, _FORMATS.READABLE_FIT_VERSIONS
 
 
 def file_hash(path):

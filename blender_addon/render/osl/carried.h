@@ -16,6 +16,7 @@ struct Carry {
     string file;
     float W, H;
     int S, ny, nx, K;
+    int on;                         // the shader carries with it (set beside carry_header: isotropic tables)
     float theta_i[CARRY_SLICES];    // the slices' incident angles, read once with the header
 };
 
@@ -220,12 +221,12 @@ void carry_from_s(Carry c, float cos_i, float theta, float s_x, float s_y, outpu
     jac = (cos_ih > 0.0 && wo[2] > 0.0) ? carry_jac(c, wi, u_x, h, (1.0 - fx) * c0 + fx * c1) * rim : 0.0;
 }
 
-// Whether theta_i carries (with a carry texture: its interval's flag, above its first bin, past
+// Whether theta_i carries (c.on, with a carry texture: its interval's flag, above its first bin, past
 // the last bin too: its directions carried on, as CarriedTables does), and the angles of its
 // two bins (bl: the shading point's Blend, tables.h).
-int carries(int carried, Carry c, Blend bl, output float theta[2])
+int carry_interval(Carry c, Blend bl, output float theta[2])
 {
-    if (!carried)
+    if (!c.on)
         return 0;
     theta[0] = fetch1(c.file, c.W, c.H, 2 + c.S + bl.bins[0], 0);
     theta[1] = fetch1(c.file, c.W, c.H, 2 + c.S + bl.bins[1], 0);
@@ -235,8 +236,7 @@ int carries(int carried, Carry c, Blend bl, output float theta[2])
 
 // Adds bin q's term of the carried sum at s: w_q {pdf, f cos}_q(W_q^-1(s)) J_q / J (J: d omega / d s
 // at theta_i).
-void carry_term(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
-                float frame, Carry c, int bin, float theta_q, float w_q, float s_x, float s_y, float jac,
+void carry_term(TablesTexture tab, Carry c, int bin, float theta_q, float w_q, float s_x, float s_y, float jac,
                 output color fcos, output float pdf)
 {
     vector wo_q;
@@ -244,20 +244,19 @@ void carry_term(string file, float W, float H, int K, int R, int C, int NP, floa
     color fcos_q;
     carry_from_s(c, cos(theta_q), theta_q, s_x, s_y, wo_q, jac_q);
     if (jac_q > 0.0) {
-        eval_tables(file, W, H, K, R, C, NP, period, half, frame, fetch1(file, W, H, bin, 1), 0.0, wo_q, fcos_q, pdf_q);
+        eval_tables(tab, fetch1(tab.file, tab.W, tab.H, bin, 1), 0.0, wo_q, fcos_q, pdf_q);
         pdf += w_q * pdf_q * (jac_q / jac);
         fcos += w_q * fcos_q * (jac_q / jac);
     }
 }
 
 // eval_tables, carried where the interval carries: pdf per steradian and baked f cos at wo.
-void eval_bsdf(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
-               float frame, int carried, Carry c, Blend bl, float cos_i, float phi_i, vector wo, output color fcos,
+void eval_bsdf(TablesTexture tab, Carry c, Blend bl, float cos_i, float phi_i, vector wo, output color fcos,
                output float pdf)
 {
     float theta_j[2];
-    if (!carries(carried, c, bl, theta_j)) {
-        eval_blend(file, W, H, K, R, C, NP, period, half, frame, bl, cos_i, phi_i, wo, fcos, pdf);
+    if (!carry_interval(c, bl, theta_j)) {
+        eval_blend(tab, bl, cos_i, phi_i, wo, fcos, pdf);
         return;
     }
     fcos = 0;
@@ -270,18 +269,16 @@ void eval_bsdf(string file, float W, float H, int K, int R, int C, int NP, float
         return;
     for (int q = 0; q < 2; q++)
         if (bl.w[q] > 0.0)
-            carry_term(file, W, H, K, R, C, NP, period, half, frame, c, bl.bins[q], theta_j[q], bl.w[q], s_x, s_y, jac,
-                       fcos, pdf);
+            carry_term(tab, c, bl.bins[q], theta_j[q], bl.w[q], s_x, s_y, jac, fcos, pdf);
 }
 
 // sample_tables, carried where the interval carries: wo, its weight (baked f cos / pdf) and pdf.
-void sample_bsdf(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
-                 float frame, int carried, Carry c, Blend bl, float cos_i, float phi_i, float u0, float u1,
+void sample_bsdf(TablesTexture tab, Carry c, Blend bl, float cos_i, float phi_i, float u0, float u1,
                  output vector wo, output color weight, output float pdf)
 {
     float theta_j[2];
-    if (!carries(carried, c, bl, theta_j)) {
-        sample_blend(file, W, H, K, R, C, NP, period, half, frame, bl, cos_i, phi_i, u0, u1, wo, weight, pdf);
+    if (!carry_interval(c, bl, theta_j)) {
+        sample_blend(tab, bl, cos_i, phi_i, u0, u1, wo, weight, pdf);
         return;
     }
     int j = (u0 < bl.w[0]) ? 0 : 1, o = 1 - j;
@@ -289,13 +286,13 @@ void sample_bsdf(string file, float W, float H, int K, int R, int C, int NP, flo
     vector wo_j;
     color weight_j;
     float pdf_j, s_x, s_y, jac_j, jac;
-    sample_tables(file, W, H, K, R, C, NP, period, half, frame, fetch1(file, W, H, bl.bins[j], 1), 0.0,
-                  clamp(u, 0.0, 0.99999994), u1, wo_j, weight_j, pdf_j);
+    sample_tables(tab, fetch1(tab.file, tab.W, tab.H, bl.bins[j], 1), 0.0, clamp(u, 0.0, 0.99999994), u1,
+                  wo_j, weight_j, pdf_j);
     carry_to_s(c, cos(theta_j[j]), theta_j[j], wo_j, s_x, s_y, jac_j);
     carry_from_s(c, cos_i, acos(cos_i), s_x, s_y, wo, jac);
     if (jac_j <= 0.0) {     // no warp density at wo_j (rare): the pdf as eval_bsdf reads it at wo
         color fcos;
-        eval_bsdf(file, W, H, K, R, C, NP, period, half, frame, carried, c, bl, cos_i, phi_i, wo, fcos, pdf);
+        eval_bsdf(tab, c, bl, cos_i, phi_i, wo, fcos, pdf);
         weight = (pdf > 0.0) ? fcos / pdf : color(0);
         return;
     }
@@ -308,7 +305,6 @@ void sample_bsdf(string file, float W, float H, int K, int R, int C, int NP, flo
     color fcos = bl.w[j] * weight_j * pdf_j * (jac_j / jac);
     pdf = bl.w[j] * pdf_j * (jac_j / jac);
     if (bl.w[o] > 0.0)
-        carry_term(file, W, H, K, R, C, NP, period, half, frame, c, bl.bins[o], theta_j[o], bl.w[o], s_x, s_y, jac,
-                   fcos, pdf);
+        carry_term(tab, c, bl.bins[o], theta_j[o], bl.w[o], s_x, s_y, jac, fcos, pdf);
     weight = (pdf > 0.0) ? fcos / pdf : color(0);
 }

@@ -123,90 +123,100 @@ float profile_density(float x, float V[4])
     return V[k] * exp(t * log(V[k + 1] / V[k])) / total;
 }
 
-// The texture's header: 1 and (W, H, K, R, C, P, phi period, the coordinates (0 "wo",
-// 1 "halfvector", 2 "halfpolar"), their frame's angle) when it is a current export (of the
-// size the export makes of them: bake/export/osl_export.texture_image).
-int read_header(string file, output float W, output float H, output int K, output int R,
-                output int C, output int NP, output float period, output int half, output float frame)
+// The tables' texture as the shader reads it, its header read once (read_header): the file and
+// its size (W, H texels), K incident bins of NP azimuths over the period, R x C cells, the
+// coordinates (half: 0 "wo", 1 "halfvector", 2 "halfpolar") and their frame's angle.
+struct TablesTexture {
+    string file;
+    float W, H;
+    int K, R, C, NP;
+    float period;
+    int half;
+    float frame;
+};
+
+// 1 and the header when `file` is a current export (of the size the export makes of it:
+// bake/export/osl_export.texture_image).
+int read_header(string file, output TablesTexture tab)
 {
     int res[2];
+    tab.file = file;
     if (!gettextureinfo(file, "resolution", res) || res[0] < 3 || res[1] < 3)
         return 0;
-    W = res[0];
-    H = res[1];
+    tab.W = res[0];
+    tab.H = res[1];
     float h0a = 0, h1a = 0;
-    color h0 = fetch4(file, W, H, 0, 0, h0a);      // (LAYOUT, K, R, C)
-    color h1 = fetch4(file, W, H, 1, 0, h1a);      // (P, phi period, coordinates, frame angle)
-    K = int(h0[1]);
-    R = int(h0[2]);
-    C = int(h0a);
-    NP = int(h1[0]);
-    period = h1[1];
-    half = int(h1[2]);
-    frame = h1a;
-    int B = K * NP;
-    return int(h0[0]) == LAYOUT && K >= 1 && R >= 1 && C >= 1 && NP >= 1 && period > 0.0
-        && res[0] == max(max(C + 1, R + 1), max(max(K, NP), 3))
-        && res[1] == 3 + 3 * B * R + max(K - 1, 1) * NP * (3 + 3 * R);
+    color h0 = fetch4(tab.file, tab.W, tab.H, 0, 0, h0a);      // (LAYOUT, K, R, C)
+    color h1 = fetch4(tab.file, tab.W, tab.H, 1, 0, h1a);      // (P, phi period, coordinates, frame angle)
+    tab.K = int(h0[1]);
+    tab.R = int(h0[2]);
+    tab.C = int(h0a);
+    tab.NP = int(h1[0]);
+    tab.period = h1[1];
+    tab.half = int(h1[2]);
+    tab.frame = h1a;
+    int B = tab.K * tab.NP;
+    return int(h0[0]) == LAYOUT && tab.K >= 1 && tab.R >= 1 && tab.C >= 1 && tab.NP >= 1 && tab.period > 0.0
+        && res[0] == max(max(tab.C + 1, tab.R + 1), max(max(tab.K, tab.NP), 3))
+        && res[1] == 3 + 3 * B * tab.R + max(tab.K - 1, 1) * tab.NP * (3 + 3 * tab.R);
 }
 
 // The bins a direction blends at (cos theta_i, phi_i) (phi_i in the tangent frame; 0 when
 // NP = 1): their indices, weights and the first row of their corner block; and for halfvector
 // tables the whole periods phi_i was turned back by (turn).
-void blend_bins(string file, float W, float H, int K, int R, int NP, float period, int half,
-                float cos_i, float phi_i, output int bins[4], output float w[4], output int base,
+void blend_bins(TablesTexture tab, float cos_i, float phi_i, output int bins[4], output float w[4], output int base,
                 output float turn)
 {
     turn = 0.0;
     // theta_i: the last k with theta_bin k <= theta_i (cos_k >= cos_i), weight t toward k + 1.
     int k = 0;
     float t = 0.0;
-    if (K > 1) {
+    if (tab.K > 1) {
         float c1 = 0;
-        color guide = fetch4(file, W, H, min(int(cos_i * W), int(W) - 1), 2, c1);
+        color guide = fetch4(tab.file, tab.W, tab.H, min(int(cos_i * tab.W), int(tab.W) - 1), 2, c1);
         int lo = int(guide[0]), hi = int(guide[1]);
         float c0 = guide[2];        // cos of bins min(lo, K - 2) and the next (c1)
         if (hi - lo > 1) {
             while (hi - lo > 1) {
                 int mid = (lo + hi) / 2;
-                if (fetch1(file, W, H, mid, 1) >= cos_i) lo = mid; else hi = mid;
+                if (fetch1(tab.file, tab.W, tab.H, mid, 1) >= cos_i) lo = mid; else hi = mid;
             }
-            c0 = fetch1(file, W, H, min(lo, K - 2), 1);
-            c1 = fetch1(file, W, H, min(lo, K - 2) + 1, 1);
+            c0 = fetch1(tab.file, tab.W, tab.H, min(lo, tab.K - 2), 1);
+            c1 = fetch1(tab.file, tab.W, tab.H, min(lo, tab.K - 2) + 1, 1);
         }
-        k = min(lo, K - 2);
+        k = min(lo, tab.K - 2);
         t = clamp((c0 - cos_i) / (c0 - c1), 0.0, 1.0);
     }
     // phi_i: within the period from the first bin; the last bin's gap wraps to the first
     // (halfvector: the bins close the period, the last one at the first + period).
     int p = 0;
     float sp = 0.0;
-    if (NP > 1) {
-        float phi0 = fetch_phi(file, W, H, 0);
-        float x = mod(phi_i - phi0, period);
-        if (half)
+    if (tab.NP > 1) {
+        float phi0 = fetch_phi(tab.file, tab.W, tab.H, 0);
+        float x = mod(phi_i - phi0, tab.period);
+        if (tab.half)
             turn = phi_i - phi0 - x;
-        int lo = 0, hi = half ? NP - 1 : NP;
+        int lo = 0, hi = tab.half ? tab.NP - 1 : tab.NP;
         while (hi - lo > 1) {
             int mid = (lo + hi) / 2;
-            if (fetch_phi(file, W, H, mid) - phi0 <= x) lo = mid; else hi = mid;
+            if (fetch_phi(tab.file, tab.W, tab.H, mid) - phi0 <= x) lo = mid; else hi = mid;
         }
         p = lo;
-        float start = fetch_phi(file, W, H, p) - phi0;
-        float end = (p + 1 < NP) ? fetch_phi(file, W, H, p + 1) - phi0 : period;
+        float start = fetch_phi(tab.file, tab.W, tab.H, p) - phi0;
+        float end = (p + 1 < tab.NP) ? fetch_phi(tab.file, tab.W, tab.H, p + 1) - phi0 : tab.period;
         sp = clamp((x - start) / (end - start), 0.0, 1.0);
     }
-    int k1 = min(k + 1, K - 1);
-    int p1 = (p + 1) % NP;
+    int k1 = min(k + 1, tab.K - 1);
+    int p1 = (p + 1) % tab.NP;
     w[0] = (1.0 - t) * (1.0 - sp);
     w[1] = t * (1.0 - sp);
     w[2] = (1.0 - t) * sp;
     w[3] = t * sp;
-    bins[0] = k * NP + p;
-    bins[1] = k1 * NP + p;
-    bins[2] = k * NP + p1;
-    bins[3] = k1 * NP + p1;
-    base = 3 + 3 * K * NP * R + (k * NP + p) * (3 + 3 * R);
+    bins[0] = k * tab.NP + p;
+    bins[1] = k1 * tab.NP + p;
+    bins[2] = k * tab.NP + p1;
+    bins[3] = k1 * tab.NP + p1;
+    base = 3 + 3 * tab.K * tab.NP * tab.R + (k * tab.NP + p) * (3 + 3 * tab.R);
 }
 
 // The bins a shading point blends: blend_bins at its (cos theta_i, phi_i), the same for each of
@@ -218,27 +228,27 @@ struct Blend {
     float turn;
 };
 
-void blend_at(string file, float W, float H, int K, int R, int NP, float period, int half, float cos_i,
-              float phi_i, output Blend b)
+void blend_at(TablesTexture tab, float cos_i, float phi_i, output Blend b)
 {
-    blend_bins(file, W, H, K, R, NP, period, half, cos_i, phi_i, b.bins, b.w, b.base, b.turn);
+    blend_bins(tab, cos_i, phi_i, b.bins, b.w, b.base, b.turn);
 }
 
 // Cell (i, j) of the blended table: its weight W (baked f cos / pdf), mass and profiles along a
 // and b (node values): three RGBA texels a cell, (mass, a0, a1, a2), (a3, b0, b1, b2), (b3, W), one
 // above the other, the bins of a table row in consecutive rows (the blend's reads share a tile).
-void blend_cell(string file, float W, float H, int B, int R, int bins[4], float w[4], int i, int j,
-                output color weight, output float mass, output float pa[4], output float pb[4])
+void blend_cell(TablesTexture tab, int bins[4], float w[4], int i, int j, output color weight, output float mass,
+                output float pa[4], output float pb[4])
 {
+    int B = tab.K * tab.NP;
     color q0 = 0, q1 = 0, q2 = 0;
     float s0 = 0, s1 = 0, s2 = 0;
     for (int c = 0; c < 4; c++) {
         if (w[c] > 0.0) {
             int y = 3 + 3 * (i * B + bins[c]);
             float a0 = 0, a1 = 0, a2 = 0;
-            q0 += w[c] * fetch4(file, W, H, j, y, a0);
-            q1 += w[c] * fetch4(file, W, H, j, y + 1, a1);
-            q2 += w[c] * fetch4(file, W, H, j, y + 2, a2);
+            q0 += w[c] * fetch4(tab.file, tab.W, tab.H, j, y, a0);
+            q1 += w[c] * fetch4(tab.file, tab.W, tab.H, j, y + 1, a1);
+            q2 += w[c] * fetch4(tab.file, tab.W, tab.H, j, y + 2, a2);
             s0 += w[c] * a0;
             s1 += w[c] * a1;
             s2 += w[c] * a2;
@@ -323,68 +333,73 @@ vector turn_z(vector w, float angle)
 // Samples the tables at (cos theta_i, phi_i): wo in the local frame (x toward phi = 0), its
 // weight (baked f cos / pdf) and pdf per steradian.
 // (sample_blend: with the shading point's Blend read.)
-void sample_blend(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
-                  float frame, Blend bl, float cos_i, float phi_i, float u0, float u1,
-                  output vector wo, output color weight, output float pdf)
+void sample_blend(TablesTexture tab, Blend bl, float cos_i, float phi_i, float u0, float u1, output vector wo,
+                  output color weight, output float pdf)
 {
     int base = bl.base;
 
     // Isotropic corners: every texel the searches read brings its a (b) edge along (fetch_pair).
-    int iso = NP == 1;
+    int iso = tab.NP == 1;
     float e = 0.0;
     // Row: the last i with CDF_i <= u0 (the guide brackets it).
-    color guide = fetch(file, W, H, min(int(u0 * R), R - 1), base + 2);
+    color guide = fetch(tab.file, tab.W, tab.H, min(int(u0 * tab.R), tab.R - 1), base + 2);
     int lo = int(guide[0]), hi = int(guide[1]);
     float c0 = -1.0, c1 = -1.0;         // the CDF at lo and hi, once the search has read them
     float a0 = 0.0, a1 = 0.0;           // (isotropic: the a edges there)
     while (hi - lo > 1) {
         int mid = (lo + hi) / 2;
-        float c = iso ? fetch_pair(file, W, H, mid, base, bl.w, e) : fetch_blend(file, W, H, mid, base, bl.w);
+        float c = iso ? fetch_pair(tab.file, tab.W, tab.H, mid, base, bl.w, e)
+                      : fetch_blend(tab.file, tab.W, tab.H, mid, base, bl.w);
         if (c <= u0) { lo = mid; c0 = c; a0 = e; } else { hi = mid; c1 = c; a1 = e; }
     }
     int i = lo;
     if (c0 < 0.0)
-        c0 = iso ? fetch_pair(file, W, H, i, base, bl.w, a0) : fetch_blend(file, W, H, i, base, bl.w);
+        c0 = iso ? fetch_pair(tab.file, tab.W, tab.H, i, base, bl.w, a0)
+                 : fetch_blend(tab.file, tab.W, tab.H, i, base, bl.w);
     if (c1 < 0.0 || hi != i + 1)
-        c1 = iso ? fetch_pair(file, W, H, i + 1, base, bl.w, a1) : fetch_blend(file, W, H, i + 1, base, bl.w);
+        c1 = iso ? fetch_pair(tab.file, tab.W, tab.H, i + 1, base, bl.w, a1)
+                 : fetch_blend(tab.file, tab.W, tab.H, i + 1, base, bl.w);
     if (!iso) {
-        a0 = fetch_blend(file, W, H, i, base + 1, bl.w);
-        a1 = fetch_blend(file, W, H, i + 1, base + 1, bl.w);
+        a0 = fetch_blend(tab.file, tab.W, tab.H, i, base + 1, bl.w);
+        a1 = fetch_blend(tab.file, tab.W, tab.H, i + 1, base + 1, bl.w);
     }
     float v = u1 * (c1 - c0);
     // Column: the last j with cumsum_ij <= v.
     int yrow = base + 3 + 3 * i;
-    guide = fetch(file, W, H, min(int(u1 * C), C - 1), yrow + 2);
+    guide = fetch(tab.file, tab.W, tab.H, min(int(u1 * tab.C), tab.C - 1), yrow + 2);
     lo = int(guide[0]);
     hi = int(guide[1]);
     float d0 = -1.0;
     float b0 = 0.0, b1 = -1.0;          // (isotropic: the b edges at lo and hi, once read)
     while (hi - lo > 1) {
         int mid = (lo + hi) / 2;
-        float d = iso ? fetch_pair(file, W, H, mid, yrow, bl.w, e) : fetch_blend(file, W, H, mid, yrow, bl.w);
+        float d = iso ? fetch_pair(tab.file, tab.W, tab.H, mid, yrow, bl.w, e)
+                      : fetch_blend(tab.file, tab.W, tab.H, mid, yrow, bl.w);
         if (d <= v) { lo = mid; d0 = d; b0 = e; } else { hi = mid; b1 = e; }
     }
     int j = lo;
     if (d0 < 0.0)
-        d0 = iso ? fetch_pair(file, W, H, j, yrow, bl.w, b0) : fetch_blend(file, W, H, j, yrow, bl.w);
+        d0 = iso ? fetch_pair(tab.file, tab.W, tab.H, j, yrow, bl.w, b0)
+                 : fetch_blend(tab.file, tab.W, tab.H, j, yrow, bl.w);
     if (!iso) {
-        b0 = fetch_blend(file, W, H, j, yrow + 1, bl.w);
-        b1 = fetch_blend(file, W, H, j + 1, yrow + 1, bl.w);
+        b0 = fetch_blend(tab.file, tab.W, tab.H, j, yrow + 1, bl.w);
+        b1 = fetch_blend(tab.file, tab.W, tab.H, j + 1, yrow + 1, bl.w);
     } else if (b1 < 0.0 || hi != j + 1) {
-        fetch_pair(file, W, H, j + 1, yrow, bl.w, b1);
+        fetch_pair(tab.file, tab.W, tab.H, j + 1, yrow, bl.w, b1);
     }
     float mass, pa[4], pb[4];
-    blend_cell(file, W, H, K * NP, R, bl.bins, bl.w, i, j, weight, mass, pa, pb);
+    blend_cell(tab, bl.bins, bl.w, i, j, weight, mass, pa, pb);
     float dx, dy;
     float x = profile_sample(clamp((u0 - c0) / (c1 - c0), 0.0, 1.0), pa, dx);
     float y = profile_sample(clamp((v - d0) / mass, 0.0, 1.0), pb, dy);
     float a = a0 + x * (a1 - a0);
     float b = b0 + y * (b1 - b0);
     pdf = mass * dx * dy / ((a1 - a0) * (b1 - b0));
-    if (half) {     // h in the frame turned by whole periods and the lobe's axes (halfpolar: wi's + pi)
-        float ref = (half == 2) ? phi_i + M_PI : bl.turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0)), jac;
+    if (tab.half) {     // h in the frame turned by whole periods and the lobe's axes (halfpolar: wi's + pi)
+        float ref = (tab.half == 2) ? phi_i + M_PI : bl.turn + tab.frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0));
+        float jac;
         vector wi = vector(sin_i * cos(phi_i - ref), sin_i * sin(phi_i - ref), cos_i);
-        wo = turn_z((half == 2) ? polar_from_ab(wi, a, b, jac) : half_from_ab(wi, a, b, jac), ref);
+        wo = turn_z((tab.half == 2) ? polar_from_ab(wi, a, b, jac) : half_from_ab(wi, a, b, jac), ref);
         pdf /= jac;
         return;
     }
@@ -393,13 +408,12 @@ void sample_blend(string file, float W, float H, int K, int R, int C, int NP, fl
     wo = vector(s * cos(b + phi_i), s * sin(b + phi_i), 1.0 - a);
 }
 
-void sample_tables(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
-                   float frame, float cos_i, float phi_i, float u0, float u1,
-                   output vector wo, output color weight, output float pdf)
+void sample_tables(TablesTexture tab, float cos_i, float phi_i, float u0, float u1, output vector wo,
+                   output color weight, output float pdf)
 {
     Blend bl;
-    blend_at(file, W, H, K, R, NP, period, half, cos_i, phi_i, bl);
-    sample_blend(file, W, H, K, R, C, NP, period, half, frame, bl, cos_i, phi_i, u0, u1, wo, weight, pdf);
+    blend_at(tab, cos_i, phi_i, bl);
+    sample_blend(tab, bl, cos_i, phi_i, u0, u1, wo, weight, pdf);
 }
 
 // The last k in [lo, hi) with blended edge_k <= x among the edges of texture row y (binary
@@ -437,21 +451,21 @@ int edge_search(string file, float W, float H, int y, int n, int lo_guide, int h
 // edge_search among a corner's own edges (x = 0 .. n, n its rows (axis 0) or columns (axis 1)
 // from its count texel, x = R of the row guide's row): the count is read only when the guide's
 // bracket is not enough (x outside it, or x on the last edge).
-int own_edge_search(string file, float W, float H, int y, int R, int base, int axis, int lo_guide, int hi_guide,
-                    float w[4], float x, output float e0, output float e1)
+int own_edge_search(TablesTexture tab, int y, int base, int axis, int lo_guide, int hi_guide, float w[4], float x,
+                    output float e0, output float e1)
 {
-    int k = bracket_search(file, W, H, y, lo_guide, hi_guide, w, x, e0, e1);
+    int k = bracket_search(tab.file, tab.W, tab.H, y, lo_guide, hi_guide, w, x, e0, e1);
     if ((e0 <= x || k == 0) && x < e1)
         return k;
-    color count = fetch(file, W, H, R, base + 2);
-    return edge_search(file, W, H, y, int(count[axis]), k, k + 1, w, x, e0, e1);
+    color count = fetch(tab.file, tab.W, tab.H, tab.R, base + 2);
+    return edge_search(tab.file, tab.W, tab.H, y, int(count[axis]), k, k + 1, w, x, e0, e1);
 }
 
 // The tables' pdf (per steradian) and baked f cos (= the cell's weight x pdf) at a direction
 // wo of the local frame (Tables.pdf and Tables.eval x cos): 0 below the horizon.
 // (eval_blend: with the shading point's Blend read.)
-void eval_blend(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
-                float frame, Blend bl, float cos_i, float phi_i, vector wo, output color fcos, output float pdf)
+void eval_blend(TablesTexture tab, Blend bl, float cos_i, float phi_i, vector wo, output color fcos,
+                output float pdf)
 {
     fcos = 0;
     pdf = 0;
@@ -461,10 +475,10 @@ void eval_blend(string file, float W, float H, int K, int R, int C, int NP, floa
     float a = min((wo[0] * wo[0] + wo[1] * wo[1]) / (1.0 + wo[2]), 1.0);
     float b = mod(atan2(wo[1], wo[0]) - phi_i, 2.0 * M_PI);     // as in sample_tables: phi_o = b + phi_i
     float jac = 1.0;
-    if (half) {
-        float ref = (half == 2) ? phi_i + M_PI : bl.turn + frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0));
+    if (tab.half) {
+        float ref = (tab.half == 2) ? phi_i + M_PI : bl.turn + tab.frame, sin_i = sqrt(max(1.0 - cos_i * cos_i, 0.0));
         vector wi = vector(sin_i * cos(phi_i - ref), sin_i * sin(phi_i - ref), cos_i);
-        if (half == 2)
+        if (tab.half == 2)
             polar_to_ab(wi, turn_z(wo, -ref), a, b, jac);
         else
             half_to_ab(wi, turn_z(wo, -ref), a, b, jac);
@@ -473,28 +487,27 @@ void eval_blend(string file, float W, float H, int K, int R, int C, int NP, floa
     // its guide's bracket (blue, alpha of the row / column guide texels).
     float a0, a1, b0, b1;
     float alpha = 0;
-    color guide = fetch4(file, W, H, clamp(int(a * R), 0, R - 1), base + 2, alpha);
-    int i = own_edge_search(file, W, H, base + 1, R, base, 0, int(guide[2]), int(alpha), bl.w, a, a0, a1);
+    color guide = fetch4(tab.file, tab.W, tab.H, clamp(int(a * tab.R), 0, tab.R - 1), base + 2, alpha);
+    int i = own_edge_search(tab, base + 1, base, 0, int(guide[2]), int(alpha), bl.w, a, a0, a1);
     int brow = base + 4 + 3 * i;
-    guide = fetch4(file, W, H, clamp(int(b * (C / (2.0 * M_PI))), 0, C - 1), brow + 1, alpha);
-    int j = own_edge_search(file, W, H, brow, R, base, 1, int(guide[2]), int(alpha), bl.w, b, b0, b1);
+    guide = fetch4(tab.file, tab.W, tab.H, clamp(int(b * (tab.C / (2.0 * M_PI))), 0, tab.C - 1), brow + 1, alpha);
+    int j = own_edge_search(tab, brow, base, 1, int(guide[2]), int(alpha), bl.w, b, b0, b1);
     color weight;
     float mass, pa[4], pb[4];
-    blend_cell(file, W, H, K * NP, R, bl.bins, bl.w, i, j, weight, mass, pa, pb);
+    blend_cell(tab, bl.bins, bl.w, i, j, weight, mass, pa, pb);
     float x = clamp((a - a0) / (a1 - a0), 0.0, 1.0);
     float y = clamp((b - b0) / (b1 - b0), 0.0, 1.0);
     pdf = mass * profile_density(x, pa) * profile_density(y, pb) / ((a1 - a0) * (b1 - b0)) / jac;
     fcos = weight * pdf;
 }
 
-void eval_tables(string file, float W, float H, int K, int R, int C, int NP, float period, int half,
-                 float frame, float cos_i, float phi_i, vector wo, output color fcos, output float pdf)
+void eval_tables(TablesTexture tab, float cos_i, float phi_i, vector wo, output color fcos, output float pdf)
 {
     fcos = 0;
     pdf = 0;
     if (wo[2] <= 0.0)
         return;
     Blend bl;
-    blend_at(file, W, H, K, R, NP, period, half, cos_i, phi_i, bl);
-    eval_blend(file, W, H, K, R, C, NP, period, half, frame, bl, cos_i, phi_i, wo, fcos, pdf);
+    blend_at(tab, cos_i, phi_i, bl);
+    eval_blend(tab, bl, cos_i, phi_i, wo, fcos, pdf);
 }

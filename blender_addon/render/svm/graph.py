@@ -8,9 +8,10 @@ import os
 
 import bpy
 
+from ... import deps
 from .. import sockets
 
-GRAPH_VERSION = 3       # in the node groups' names: a graph built by other code gets new groups
+GRAPH_VERSION = deps.formats().GRAPH_VERSION      # in the node groups' names (bake/formats.py)
 GROUP_PREFIX = f"FlowBSDF SVM{GRAPH_VERSION} "
 X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
 
