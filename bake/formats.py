@@ -37,14 +37,15 @@ BUILDER = 13             # 2: cells that miss a hard-edged sliver of mass are in
 # reads together lies together (cells' texels and bins, a table row's sums, edges, guide)
 OSL_LAYOUT = 11
 # The SVM texture (bake/export/svm_export.py). 4: tables of mixed resolutions (isotropic headers
-# hold the corner's last row and column)
-SVM_LAYOUT = 4
+# hold the corner's last row and column); 5: the theta guide over sqrt(1 - cos theta_i) (bins a
+# fraction of a degree apart near the normal: ilm_solo_m_68's default bake)
+SVM_LAYOUT = 5
 WORLD_LAYOUT = 3        # the world map's texture (bake/export/world_map.py; osl/world.h)
 CARRY_LAYOUT = 1        # the carried blend's texture (bake/export/carry_export.py; osl/carried.h)
 
 # The SVM graph (blender_addon/render/svm/graph.py): in the node groups' names, so a graph built by other code
 # gets new groups
-GRAPH_VERSION = 3
+GRAPH_VERSION = 4       # 4: the theta guide's entry from sqrt(1 - cos theta_i)
 
 # The closure fit file (bake/export/closure_fit.py, read without numpy by blender_addon/node.py)
 FIT_VERSION = 8

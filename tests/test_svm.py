@@ -23,15 +23,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon
 PLASTIC = {"kind": "analytic", "model": "plastic", "albedo": [0.7, 0.1, 0.08], "alpha": 0.12}
 
 
-def _synthetic(K, P, R=64, C=64, seed=0):
-    """Valid tables of the given size with random content (K theta bins, P phi bins or None)."""
+def _synthetic(K, P, R=64, C=64, seed=0, thetas=None):
+    """Valid tables of the given size with random content (K theta bins, at `thetas` (radians)
+    or evenly over 0-89.5 deg; P phi bins or None)."""
     rng = np.random.default_rng(seed)
     lead = (K,) if P is None else (K, P)
     a = np.sort(rng.random(lead + (R + 1,)), -1)
     b = np.sort(rng.random(lead + (R, C + 1)), -1) * 2 * np.pi
     mass = rng.random(lead + (R, C)) ** 4 + 1e-3
     slopes = [np.cumsum(rng.uniform(-K_MAX / NSEG, K_MAX / NSEG, lead + (R, C, NSEG)), -1) for _ in range(2)]
-    return Tables(np.radians(np.linspace(0.0, 89.5, K)), a, b, mass, *slopes, rng.random(lead + (R, C, 3)),
+    thetas = np.radians(np.linspace(0.0, 89.5, K)) if thetas is None else np.asarray(thetas, np.float64)
+    return Tables(thetas, a, b, mass, *slopes, rng.random(lead + (R, C, 3)),
                   phi_bins=None if P is None else np.arange(P) * np.pi / P, phi_period=np.pi if P else 2 * np.pi)
 
 
@@ -43,6 +45,33 @@ def test_texture_fits_gpu_limits_for_the_largest_tables(K, P):
     assert max(img.shape[:2]) <= svm_export.MAX_SIDE, img.shape
     assert lay["corners"] == (K - 1) * (P or 1)
     assert np.all(np.isfinite(img))
+
+
+# ilm_solo_m_68's default bake: 12 bins within 2 deg of the normal (its mirror peak is ~1.7 deg wide
+# and moves 2 deg per degree of theta_i); 1 - cos crowds them within 6e-4
+DENSE_NEAR_NORMAL = [0.0, 0.199, 0.281, 0.397, 0.562, 0.794, 0.973, 1.123, 1.256, 1.376, 1.486, 1.589,
+                     1.776, 1.946, 30.0, 89.5]
+
+
+def test_theta_guide_counts_bins_a_fraction_of_a_degree_apart():
+    """The graph's theta bin (entry floor(sqrt(1 - cos) G) of the guide, then three compares, all
+    in float32) is the count of bin starts <= -cos theta_i, for every float32 cos theta_i the
+    graph can see: on a fine sweep and at each bin's own cos and its neighbouring floats. Over
+    1 - cos the guide could not be built for these bins (the default bake of ilm_solo_m_68
+    failed there: 'incident bins too close together for the SVM bin guide')."""
+    cos_bins = np.cos(np.radians(DENSE_NEAR_NORMAL)).astype(np.float32)
+    starts = -cos_bins[1:-1]
+    guide = svm_export._bin_guide(starts.astype(np.float64), svm_export._theta_bounds).astype(np.float32)
+    count = len(guide) - 1
+    sweep = np.cos(np.radians(np.linspace(0.0, 90.0, 400001))).astype(np.float32)
+    near = np.concatenate([np.nextafter(cos_bins, np.float32(d)) for d in (0.0, 2.0)] + [cos_bins])
+    for _ in range(3):
+        near = np.concatenate([near, np.nextafter(near, np.float32(0.0)), np.nextafter(near, np.float32(2.0))])
+    cos_i = np.clip(np.concatenate([sweep, near]), np.float32(0.0), np.float32(1.0))
+    entry = np.floor(np.sqrt(np.float32(1.0) - cos_i) * np.float32(count)).astype(int)
+    v = -cos_i
+    found = guide[entry, 3] - np.sum(v[:, None] < guide[entry, :3], axis=1)
+    np.testing.assert_array_equal(found, np.searchsorted(starts, v, side="right"))
 
 
 def test_texture_too_large_for_gpus_is_an_error():
@@ -170,6 +199,22 @@ def _assert_probe_is_numpy(svm, tables_path, angles, folder, extremes=True):
     np.testing.assert_allclose(pdf[~extreme], ref_pdf[~extreme], rtol=1e-3)
     if extremes:
         np.testing.assert_allclose(pdf[extreme], ref_pdf[extreme], rtol=1e-2 if tab.coords == "wo" else 0.2)
+
+
+def test_svm_sampler_on_bins_a_fraction_of_a_degree_apart(svm, tmp_path):
+    """Bins crowded near the normal (ilm_solo_m_68's, DENSE_NEAR_NORMAL; random tables per bin, so
+    a wrong bin is a wrong direction): at each bin's own cos theta_i (exact in float32, so the
+    blend is that bin alone in numpy and in the graph: between such bins float32's cos moves the
+    blend weight by ~0.5 %, which the random tables' steep cells turn into wo errors of 1e-2)
+    the graph samples what numpy samples; test_theta_guide_counts_bins_a_fraction_of_a_degree_apart
+    checks the bin the graph finds between them."""
+    thetas = np.arccos(np.cos(np.radians(DENSE_NEAR_NORMAL)).astype(np.float32).astype(np.float64))
+    path = tmp_path / "dense.exr"
+    # (seed 3 puts one of the 1612 samples in a cell whose point is float32-limited: the EXTREMES'
+    # case of _assert_probe_is_numpy's docstring, wo 1.1e-3 off; seeds 0-2 are within 4e-5)
+    _synthetic(len(thetas), None, R=8, C=12, seed=0, thetas=thetas).save(path)
+    angles = [(t, 0.0) for t in np.degrees(thetas[1:14])]
+    _assert_probe_is_numpy(svm, path, angles, tmp_path, extremes=False)
 
 
 @pytest.mark.parametrize("which", ["plastic_wo", "plastic_halfpolar"])

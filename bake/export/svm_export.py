@@ -25,7 +25,7 @@ its searches. Layout (W x H texels):
     row 0, global bin guides (a guide over a value v: entry g holds (t1, t2, t3, n), and the
     number of bin starts <= v is n - sum_j [v < t_j] for every v the graph puts in entry g
     (unused t_j = 1e30); entry G holds the upper end itself, so the graph needs no clamp):
-        x = 0 .. GT          theta guide, v = -cos(theta_i), g = floor((1 - cos theta_i) GT):
+        x = 0 .. GT          theta guide, v = -cos(theta_i), g = floor(sqrt(1 - cos theta_i) GT):
                              the count is k, the last bin with cos(theta_k) >= cos theta_i,
                              within [0, K - 2] (absent when K = 1)
         x = GT + 1 ..        phi guide, v = (phi_i - phi_bin 0) mod period in [0, period],
@@ -103,17 +103,14 @@ def _f32(x):
     return np.asarray(x, np.float32).astype(np.float64)
 
 
-def _bin_guide(starts, lo, hi):
-    """Guide entries (G + 1, 4) over v in [lo, hi] for the count of `starts` (increasing) <= v:
-    entry g, for v within [g, g + 1] (hi - lo) / G (widened by a margin for the graph's float32
-    index arithmetic; the first and last entries open-ended), holds up to three starts to
-    compare, padded with UNUSED, and n = (starts below all of them) + 3."""
+def _bin_guide(starts, bounds):
+    """Guide entries (G + 1, 4) for the count of `starts` (increasing) <= v: entry g, for the
+    values v in (a[g], b[g]] of `bounds(G) -> (a, b)` (the values the graph may put in entry g,
+    widened for its float32 index arithmetic; the first and last entries open-ended), holds up
+    to three starts to compare, padded with UNUSED, and n = (starts below all of them) + 3."""
     starts = np.asarray(starts, np.float64)
-    margin = 1e-5 * (hi - lo)
     for count in 2 ** np.arange(4, 14):
-        edges = lo + (hi - lo) * np.arange(count + 1) / count
-        a = np.concatenate([[-np.inf], edges[1:-1] - margin, [edges[-1] - margin]])
-        b = np.concatenate([edges[1:-1] + margin, [np.inf], [np.inf]])
+        a, b = bounds(count)
         inside = (starts[None, :] > a[:, None]) & (starts[None, :] <= b[:, None])
         if inside.sum(1).max() <= 3:
             out = np.full((count + 1, 4), UNUSED)
@@ -123,6 +120,34 @@ def _bin_guide(starts, lo, hi):
                 out[g, :len(t)] = t
             return out
     raise FlowBSDFError("incident bins too close together for the SVM bin guide")
+
+
+def _linear_bounds(lo, hi):
+    """Entry g = floor((v - lo) G / (hi - lo)) (the phi guide)."""
+    margin = 1e-5 * (hi - lo)
+
+    def bounds(count):
+        edges = lo + (hi - lo) * np.arange(count + 1) / count
+        return (np.concatenate([[-np.inf], edges[1:-1] - margin, [edges[-1] - margin]]),
+                np.concatenate([edges[1:-1] + margin, [np.inf], [np.inf]]))
+    return bounds
+
+
+COS_ERROR = 1e-6    # what the graph's float32 cos theta_i may be off by (~16 ulps below 1)
+
+
+def _theta_bounds(count):
+    """Entry g = floor(sqrt(1 - cos theta_i) G) over v = -cos theta_i: sqrt(1 - cos) grows like
+    theta / sqrt(2), so bins a fraction of a degree apart near the normal (the planner puts
+    them there for files with a sharp peak: ilm_solo_m_68) fall in different entries, where
+    1 - cos (~theta^2 / 2) crowded them into one. Each edge is widened by what a float32 cos
+    can move sqrt(1 - cos) there: COS_ERROR / (2 w), at most sqrt(COS_ERROR) near w = 0."""
+    w = np.arange(count + 1) / count
+    slack = 1e-5 + np.minimum(np.sqrt(COS_ERROR), COS_ERROR / (2.0 * np.maximum(w, 1e-300)))
+    lower = np.square(np.maximum(w - slack, 0.0)) - 1.0
+    upper = np.square(w + slack) - 1.0
+    return (np.concatenate([[-np.inf], lower[1:-1], [lower[-1]]]),
+            np.concatenate([upper[1:-1], [np.inf], [np.inf]]))
 
 
 def _steps(guides):
@@ -186,9 +211,9 @@ def texture_image(tables):
     ny = -(-len(corners) // nx)
 
     cos_bins = _f32(np.cos(tables.theta_bins))
-    theta_guide = _bin_guide(-cos_bins[1:K - 1], -1.0, 0.0) if K > 1 else np.zeros((0, 4))
+    theta_guide = _bin_guide(-cos_bins[1:K - 1], _theta_bounds) if K > 1 else np.zeros((0, 4))
     starts = _f32(np.zeros(1) if tables.phi_bins is None else tables.phi_bins - tables.phi_bins[0])
-    phi_guide = _bin_guide(starts[1:], 0.0, period) if P > 1 else np.zeros((0, 4))
+    phi_guide = _bin_guide(starts[1:], _linear_bounds(0.0, period)) if P > 1 else np.zeros((0, 4))
     gt, gp = len(theta_guide), len(phi_guide)
     width = max(nx * bw, gt + gp)
     height = 1 + ny * bh

@@ -191,12 +191,12 @@ class FLOWBSDF_OT_bake(_BakeOperator, bpy.types.Operator):
     TRAIN = "never"
     TOOLTIPS = {
         True: "Bake this material's tables and bind its node. Never trains: the tables come from the material "
-              "itself, or from its trained model when From (under Tables) says so. Draft: seconds; Final: about "
-              "1-2 min on 2 idle cores (measured on four shared measured files), longer for the sharpest files, on "
-              "a busy machine or from a trained model",
+              "itself, or from its trained model when From (under Tables) says so. Draft: seconds; Final: 1-4 min "
+              "on 2 idle cores (measured on the ten shared measured files: about 2 min typical, 4 for the "
+              "sharpest), longer on a busy machine or from a trained model",
         False: "Bake the tables of every learned material the scene renders and bind their nodes. Never "
-               "trains. Draft: seconds; Final: about 1-2 min per material on 2 idle cores (measured), longer for the "
-               "sharpest files and on a busy machine"}
+               "trains. Draft: seconds; Final: 1-4 min per material on 2 idle cores (measured: about 2 min "
+               "typical), longer on a busy machine"}
 
 
 class FLOWBSDF_OT_train_bake(_BakeOperator, bpy.types.Operator):

@@ -156,7 +156,7 @@ class _Sampler:
         g, lay = self.g, self.lay
         K, P, nx = lay["K"], lay["P"], lay["blocks_per_row"]
         bw, bh = lay["block"]
-        k = self.bin_count(lay["theta_guide"], -cos_i, 1.0 - cos_i) if K > 1 else g.const(0.0)
+        k = self.bin_count(lay["theta_guide"], -cos_i, sqrt(1.0 - cos_i)) if K > 1 else g.const(0.0)
         if P > 1:
             x = (phi_i - lay["phi0"]) % lay["period"]
             # halfvector tables: the whole periods phi_i was turned back by, plus the lobe's axes
