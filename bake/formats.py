@@ -1,6 +1,6 @@
 """The version numbers of FlowBSDF's files and graphs, in one place: numpy (bake/), the Blender
 add-on (blender_addon/: it reads this file by its path, without numpy: deps.formats) and the OSL
-shader (blender_addon/osl/*.h: its #defines, held equal to these by tests/test_formats.py).
+shader (blender_addon/render/osl/*.h: its #defines, held equal to these by tests/test_formats.py).
 
 Plain Python, no imports: the bottom of bake/. A table format change bumps FORMAT (or
 MIXED_FORMAT) and the layouts of the textures made from the tables (OSL_LAYOUT, SVM_LAYOUT), and
@@ -47,6 +47,6 @@ CARRY_LAYOUT = 1        # the carried blend's texture (bake/export/carry_export.
 # gets new groups
 GRAPH_VERSION = 4       # 4: the theta guide's entry from sqrt(1 - cos theta_i)
 
-# The closure fit file (bake/export/closure_fit.py, read without numpy by blender_addon/node.py)
+# The closure fit file (bake/export/closure_fit.py, read without numpy by blender_addon/render/derived.py)
 FIT_VERSION = 8
 READABLE_FIT_VERSIONS = (6, 7, 8)   # a version 6 fit has no tilts (all 0), 6 and 7 no "eevee"

@@ -1,6 +1,6 @@
 """Tables of a measured RGL file blended along the file's own coordinates: each of the two
 incident bins' tables carried to wi at fixed s, then mixed (issue 22, item 4). The numpy
-reference (the warp in C: rgl.WarpedCoords); Cycles' OSL back end: blender_addon/osl/carried.h.
+reference (the warp in C: rgl.WarpedCoords); Cycles' OSL back end: blender_addon/render/osl/carried.h.
 
 Tables (tables.py) blend their two nearest bins at fixed cell coordinates. Where f·cos has a
 feature that moves with theta_i faster than the bins follow, the blend half-way holds two

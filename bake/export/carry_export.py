@@ -1,5 +1,5 @@
 """The carried blend's data (bake/core/carried.py) in the texture layout the Cycles OSL shader reads
-(blender_addon/osl/carried.h): an isotropic RGL file's warp as a carrying sampler stores it
+(blender_addon/render/osl/carried.h): an isotropic RGL file's warp as a carrying sampler stores it
 (RGLMaterial.stored_warp: float16 over each slice's maximum) with the derived sums its warp reads
 (rgl._continuous_warp_table: conditional and marginal CDFs, float32 as numpy has them), the
 tables' bin angles and which of their intervals carry (tables.meta["carried"]).

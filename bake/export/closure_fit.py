@@ -96,7 +96,7 @@ from ..maths.geometry import LUMINANCE, luminance
 READABLE_VERSIONS = READABLE_FIT_VERSIONS   # load_fit / eval_fit (bake/formats.py)
 MODEL = "diffuse+view-aligned-ggx+tilt"
 MATCH_N = 16        # the match image's nodes per axis (match_ratios)
-MATCH_MAX = 2.0     # its ratios' bound (blender_addon/svm.py matches only where the fit is within 10 %)
+MATCH_MAX = 2.0     # its ratios' bound (blender_addon/render/svm/ matches only where the fit is within 10 %)
 MATCH_KEY = "flowbsdf_match"
 CV_BETAS = np.linspace(0.0, 1.0, 11)
 CV_LIGHT_SHARE = 0.5    # the portal mixture's probability of drawing a bright light (cv_scales)
@@ -919,7 +919,7 @@ def match_ratios(tables, fit, n=MATCH_N):
     cos theta_v = i / (n - 1), light cos theta_l = j / (n - 1) and |phi_l| = pi k / (n - 1)
     about the view's azimuth (cosines evaluated at >= 0.02: a row on the horizon holds its
     neighbourhood's ratios). What the SVM back end scales the fit's closures by so that
-    f_cv = f toward a small light (blender_addon/svm.py: any scale is unbiased; this one is
+    f_cv = f toward a small light (blender_addon/render/svm/: any scale is unbiased; this one is
     the light's part of the rest ~0), read back by trilinear interpolation."""
     c = np.maximum(np.linspace(0.0, 1.0, n), 0.02)
     cl, phi = np.meshgrid(c, np.linspace(0.0, np.pi, n), indexing="ij")

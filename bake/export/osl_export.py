@@ -1,4 +1,4 @@
-"""The baked tables in the texture layout the Cycles OSL shader reads (blender_addon/osl/).
+"""The baked tables in the texture layout the Cycles OSL shader reads (blender_addon/render/osl/).
 
 OSL reads data only through `texture()`. The export is one RGBA float32 OpenEXR (ZIP,
 lossless) whose texels the shader fetches one at a time with `"interp", "closest"` and
@@ -126,7 +126,7 @@ def texture_image(tables):
 
 
 def path(tables_path, digest):
-    """<stem>.osl<LAYOUT>-<hash12>.exr beside the tables (blender_addon/node.py builds the same name)."""
+    """<stem>.osl<LAYOUT>-<hash12>.exr beside the tables (blender_addon/render/derived.py builds the same name)."""
     tables_path = Path(tables_path)
     return tables_path.with_name(f"{tables_path.stem}.osl{LAYOUT}-{digest[:12]}.exr")
 

@@ -1,4 +1,4 @@
-"""The baked tables in the texture layout the Cycles SVM node graph reads (blender_addon/svm.py).
+"""The baked tables in the texture layout the Cycles SVM node graph reads (blender_addon/render/svm/).
 
 The SVM back end samples the tables with plain shader nodes (every Cycles device runs
 them), reading data through Image Texture nodes: Closest interpolation, Extend, Non-Color,

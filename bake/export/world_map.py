@@ -1,7 +1,7 @@
 """The world's importance map: where the Cycles back ends sample the world (numpy only).
 
 The add-on renders the scene's world, whatever its nodes, into an equirectangular radiance
-image (blender_addon/world.py) and hands it here. A pixel is chosen with probability
+image (blender_addon/render/world.py) and hands it here. A pixel is chosen with probability
 proportional to its luminance times its solid angle, the direction uniformly within the
 pixel's solid angle: the pdf per steradian is then constant over a pixel, and `pdf(d)` reads
 it back, so sampling and density are exactly consistent. Only the density matters for
@@ -23,7 +23,7 @@ recomputed from the rounded CDFs, so a pixel whose probability rounds to nothing
 is never drawn (no mismatch between the two).
 
 Texture layout (float32 RGBA OpenEXR, ZIP; texel (x, y) read at ((x + 0.5) / Wt, (y + 0.5) / Ht),
-"closest"; Wt > W, H), read by blender_addon/osl/world.h and blender_addon/svm.py:
+"closest"; Wt > W, H), read by blender_addon/render/osl/world.h and blender_addon/render/svm/world.py:
     row 0                       (LAYOUT, W, H)
     row 1                       the rows' marginal CDF: entry r = 0 .. H at x = r (red); guide x
                                 = 0 .. Wt - 1 (green, blue): lo <= r < hi for the r with

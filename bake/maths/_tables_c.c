@@ -5,7 +5,7 @@
  * in the same order of operations, the same branches, clipping and small-rate series, so
  * results agree with numpy to a few ulps (only libm's transcendental functions may round
  * differently from numpy's). One thread, no Python API: loaded with ctypes by
- * bake/core/fasttables.py, which passes the Tables' float64 working arrays and preallocated
+ * bake/maths/fasttables.py, which passes the Tables' float64 working arrays and preallocated
  * outputs.
  *
  * Four things make it fast without changing a single rounding:
@@ -70,7 +70,7 @@ double sin(double) FT_VEC;
 #define FT_SOURCE_SHA "unknown"
 #endif
 
-/* Bumped whenever ft_tables or a signature changes (bake/core/fasttables.py checks it). */
+/* Bumped whenever ft_tables or a signature changes (bake/maths/fasttables.py checks it). */
 #define FT_ABI 8
 
 static const double PI = 3.141592653589793;       /* np.pi */
@@ -84,7 +84,7 @@ static const double TINY = 1e-300;                /* halfvector._TINY */
 #define NN 4        /* and its node values */
 static const double LOG_MEAN_SERIES = 1e-3;       /* tables.LOG_MEAN_SERIES */
 
-/* The Tables, as bake/core/fasttables.py passes them (C-contiguous arrays). Anisotropic
+/* The Tables, as bake/maths/fasttables.py passes them (C-contiguous arrays). Anisotropic
  * tables (P > 1, halfvector coordinates only): bins k P + p, the phi axis closed (the last
  * bin one period after the first), starts = phi_bins - phi_bins[0]. */
 typedef struct {

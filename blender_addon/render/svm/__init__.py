@@ -5,7 +5,7 @@
 that continues the path in the sampled direction with weight W = baked f·cos / pdf; with the
 world's inputs the direction comes from a mixture of the tables, the world's map, the sky's sun
 and the lamps, and with the fit a control variate renders part of it as Cycles closures. No OSL:
-the graph runs wherever Cycles runs. The package mirrors blender_addon/osl/:
+the graph runs wherever Cycles runs. The package mirrors blender_addon/render/osl/:
 
     graph.py            the builder (nodes in evaluation order, node groups, packed textures)
     tables.py           the tables' sampler and its inverse (osl/tables.h)

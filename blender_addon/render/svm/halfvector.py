@@ -1,5 +1,5 @@
 """The tables' cell coordinates over the half vector as SVM nodes: bake/core/halfvector.py's maps
-(from_ab, to_ab, polar_from_ab, polar_to_ab; in OSL blender_addon/osl/tables.h) and the frames
+(from_ab, to_ab, polar_from_ab, polar_to_ab; in OSL blender_addon/render/osl/tables.h) and the frames
 they are taken in."""
 import math
 

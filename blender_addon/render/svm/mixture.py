@@ -1,5 +1,5 @@
 """The portal direction's mixture (`_Mixture`): the tables, the world's map, the sky's sun and the
-lamps the portal reaches (blender_addon/osl/learned_bsdf.osl, lamps.h), a branch per technique;
+lamps the portal reaches (blender_addon/render/osl/learned_bsdf.osl, lamps.h), a branch per technique;
 `update_world` hands a built graph new world inputs. What it does and measured: docs/svm.md."""
 import math
 

@@ -1,5 +1,5 @@
 """The tables' sampler as SVM nodes: Tables.sample and its inverse Tables._locate (bake/core/tables.py,
-the numpy reference; blender_addon/osl/tables.h, the OSL twin) on the texture of
+the numpy reference; blender_addon/render/osl/tables.h, the OSL twin) on the texture of
 bake/export/svm_export.py. Per-texture node groups "tables sample" and "tables pdf" hold them."""
 import math
 

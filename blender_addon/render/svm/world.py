@@ -1,5 +1,5 @@
 """The world's importance map as SVM nodes: its layout (`world_layout`), its sampling and its pdf
-(node groups "world sample", "world pdf": blender_addon/osl/world.h, bake/export/world_map.py's
+(node groups "world sample", "world pdf": blender_addon/render/osl/world.h, bake/export/world_map.py's
 WorldMap the numpy reference), the map's numbers constants of groups named after its image."""
 import math
 import os
