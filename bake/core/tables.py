@@ -65,6 +65,10 @@ below 6 deg: 20-860x the ideal's rv half-way between bins 6 deg apart, 0.4-3.2x 
 Per cell the table also keeps the RGB estimator weight W = integral of f·cos over the
 cell / its share of the target; `eval` returns W·pdf/cos, the baked BSDF the Cycles back
 ends render (their weight f·cos / pdf is W exactly).
+
+One file of ~760 lines on purpose: the reference every back end transcribes (the C path, OSL's
+tables.h, the SVM graph's tables.py) reads sample, pdf, invert and eval with the coordinate maps
+and profiles they share in one place, as tables.h does.
 """
 import functools
 

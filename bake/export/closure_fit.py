@@ -77,6 +77,10 @@ of the fit's time; a free isotropic fit (view_aligned 0) 0.212 at a whole fit's 
 
 `principled_params(fit)` maps a fit to one view-independent Principled BSDF (the
 baseline the acceptance script compares against).
+
+One file of ~1000 lines: one algorithm (per-knot lobes, their path across knots, the albedo
+kept, the EEVEE variant, the error against the file) whose steps share the GGX albedo table,
+the knots and the lobe grid; its file side (path, read, write) is the exporter contract's.
 """
 import json
 import itertools

@@ -10,6 +10,10 @@ complete RGB RGL material. The layout (Mitsuba's tensor_file, little-endian):
 
 `RGLMaterial(path).eval(wi, wo)` reproduces Mitsuba 3's `measured` plugin (RGB variant)
 divided by cos(theta_o); see the class docstring for the algorithm.
+
+One file of ~760 lines on purpose: the format reader, the evaluator that must match Mitsuba's
+`measured` line for line, and the warp the carried blend samples along share their index
+arithmetic; split, a reader would have to hold three files side by side to check one formula.
 """
 import hashlib
 import os

@@ -8,6 +8,9 @@
  * bake/maths/fasttables.py, which passes the Tables' float64 working arrays and preallocated
  * outputs.
  *
+ * One translation unit (~1300 lines) on purpose: ctypes loads one library, and the sampler,
+ * pdf, inverse and eval share their static helpers (the compiler inlines them across calls).
+ *
  * Four things make it fast without changing a single rounding:
  * - Blocks: samples go through in blocks of BLK, phase by phase (bins, row search, column
  *   search, the rest). The searches of a block run in lockstep, so the CPU overlaps the
