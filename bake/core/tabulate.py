@@ -5,6 +5,11 @@ specular direction and pooled over neighbouring incident bins; masses, profiles 
 weights are integrated from the true f·cos per cell (refined until the cell's quadrature
 settles and agrees with the source points that fall in it). A cell's profile along each axis
 runs through its marginal density at the profile's nodes (_profile_logs).
+
+Two halves (~1700 lines): the builder (build_tables, build_grouped: edges, masses, profiles) and,
+from RESOLUTIONS on, the planner (plan_tables in its steps: resolution, azimuths, bins, layout)
+that runs the builder for every trial. The planner belongs in a module of its own; ~40 places in
+tests and scripts still name its constants through this one (not moved yet: issue 53's note).
 """
 import threading
 
