@@ -19,7 +19,7 @@ FIT_VERSION, READABLE_FIT_VERSIONS = _FORMATS.FIT_VERSION, _FORMATS.READABLE_FIT
 
 
 def file_hash(path):
-    """sha256 of the file's bytes (as bake.plumbing.files.file_hash)."""
+    """sha256 of the file's bytes (as bake.io.files.file_hash, which needs the bake package and so numpy)."""
     import hashlib
     h = hashlib.sha256()
     with open(path, "rb") as f:
