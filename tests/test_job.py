@@ -104,6 +104,15 @@ def test_main_job_writes_the_page_and_a_rerun_skips_the_work(tmp_path, capsys):
     after = snapshot(out)
     assert {k for k, v in after.items() if v != before.get(k)} == {Path("index.html")}
 
+    # A bake whose Blender files are missing (an export that failed, or an older layout's) is not
+    # current: the stage runs again, the tables are kept and the files come back.
+    svm_file, = (out / "tables").glob("rough.svm*-*.exr")
+    svm_file.unlink()
+    again = run(manifest, out, capsys)
+    assert "[run] 1 stage(s) ran, 3 current" in again and svm_file.is_file()
+    assert snapshot(out)[Path("tables/rough.exr")] == after[Path("tables/rough.exr")]
+    after = snapshot(out)
+
     # Another spp: only the renders are redone, with the reference reused; nothing else changes.
     manifest.write_text(manifest.read_text().replace("spp = 2,", "spp = 3,"))
     third = run(manifest, out, capsys)

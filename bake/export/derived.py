@@ -77,6 +77,18 @@ def ensure_carry_export(tables_path, material, log=None):
     return ensure(carry_export, tables_path, material=material, log=log)
 
 
+def derived_current(tables_path):
+    """Whether every file bake_derived makes beside a table file is there and current (the main
+    job's bake stage is current only then: a bake whose exports failed, or were made by an older
+    layout, is redone)."""
+    tables_path = Path(tables_path)
+    digest = file_hash(tables_path)
+    exporters = [svm_export, osl_export, closure_fit]
+    if open_tables(tables_path).meta.get("carried") is not None:
+        exporters.append(carry_export)
+    return all(e.is_current(e.path(tables_path, digest), digest) for e in exporters)
+
+
 def bake_derived(tables_path, material=None, log=None):
     """What the Blender node needs beside a table file: its SVM texture, the carried blend's texture
     (given the material it was baked from, where the tables' meta says which intervals carry),
