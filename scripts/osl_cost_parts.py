@@ -14,7 +14,7 @@ they measure cost, not a look):
   floorR       the same with the N texels spread at random over the texture (cache misses)
   nonee        the full shader without lamp and image-world next-event estimation (the mixture stays)
   osl          the full shader as it is
-  before       the full shader of another checkout (--before, default /work/main): a cut's saving
+  before       the full shader of another checkout (--before): a cut's saving
                (with --before-texture its OSL texture, when the layouts differ); --at LABEL=CHECKOUT[=TEXTURE]
                (repeatable) adds such a variant named LABEL
 One or two Cycles threads (--threads). Per scene (constant world, the acceptance's HDRI, studio
@@ -46,7 +46,6 @@ import cycles_scenes as cs  # noqa: E402
 from bake.export.closure_fit import load_fit  # noqa: E402
 from bake.export.derived import ensure_fit  # noqa: E402
 
-TABLES = Path("/work/notes/s37/out/tables/cm_military_green.exr")     # (with its carry texture: pass a copy without it for the fixed cells)
 VARIANTS = ("principled", "pr_osl", "const", "floor1", "floorR", "nonee", "osl")
 BODY = "#else\n    if (!read_header(Tables"        # the shader body (not the probe's)
 PORTAL = """
@@ -208,7 +207,9 @@ def count_child(tables, scene, size):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--tables", type=Path, default=TABLES)
+    ap.add_argument("--tables", type=Path, required=True,
+                    help="a default bake's table file (its carry texture beside it renders the carried blend: "
+                         "pass a copy without it for the fixed cells)")
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--scenes", default="constant,hdri,studio")
     ap.add_argument("--threads", default="1", help="comma-separated Cycles thread counts")
@@ -217,12 +218,14 @@ def main(argv=None):
     ap.add_argument("--inner", type=int, default=1, help="renders per round (the fastest counts)")
     ap.add_argument("--spp", type=int, default=256)
     ap.add_argument("--fetches", type=int, default=0, help="floor variants' texture() calls (0: counted)")
-    ap.add_argument("--before", default="/work/main")
+    ap.add_argument("--before", help="another checkout, for the variant `before`")
     ap.add_argument("--before-texture", help="the OSL texture the before variant binds (when its layout differs)")
     ap.add_argument("--at", action="append", default=[], help="LABEL=CHECKOUT[=TEXTURE]: a variant of that checkout")
     ap.add_argument("--count", action="store_true", help="count the calls only")
     ap.add_argument("--count-child", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if "before" in args.variants.split(",") and not args.before:
+        ap.error("the variant `before` needs --before CHECKOUT")
     if args.count_child:
         return count_child(args.tables, args.count_child, args.size)
     scenes = {k: v for k, v in backend_cost.setups().items() if k in args.scenes.split(",")}

@@ -10,8 +10,8 @@ they measure cost, not a look):
   -cv        no control variate (the portal mixture alone)
   -mix       no mixture (world None: the tables' sample; the control variate then off)
   sampler    the tables' sampler and a portal alone (world None, no control variate)
-  before     the graph as /work/main's blender_addon/render/svm/ (or --before's package, or an svm.py of
-             before issue 53) builds it (a cut's saving, side by side; its node groups named apart)
+  before     the graph as --before's package (another checkout's blender_addon/render/svm/, or an svm.py
+             of before issue 53) builds it (a cut's saving, side by side; its node groups named apart)
   portal     a Ray Portal of constant colour toward the mirror direction: a portal bounce's rays
              and a trivial graph (the floor of any portal back end)
 One Cycles thread (with two, a worker waiting for the other counted as CPU time). Per scene (constant
@@ -40,7 +40,6 @@ import cycles_scenes as cs  # noqa: E402
 from bake.export.closure_fit import load_fit  # noqa: E402
 from bake.export.derived import ensure_fit  # noqa: E402
 
-TABLES = Path("/work/notes/s37/out/tables/cm_military_green.exr")
 BUILT = []      # the SVM back end's output socket, as built
 VARIANTS = ("principled", "fit", "svm", "-match", "fcv0", "untilted", "-cv", "-mix", "sampler", "portal")
 
@@ -98,17 +97,16 @@ def patched(variant):
                 setattr(module, key, value)
 
 
-BEFORE = Path("/work/main/blender_addon/render/svm")
-
-
 def _before(path=None):
-    """The SVM graph builder of another checkout (default: BEFORE; a package folder, or before issue
+    """The SVM graph builder of another checkout (--before: a package folder, or before issue
     53 the module blender_addon/svm.py), as blender_addon.render.svm_before; its node groups get
     names of their own (a graph of the same GRAPH_VERSION would reuse this checkout's)."""
     import importlib.util
     name = "blender_addon.render.svm_before"
     if name not in sys.modules:
-        path = Path(path or BEFORE)
+        if path is None:
+            raise SystemExit("the variant `before` needs --before (another checkout's blender_addon/render/svm)")
+        path = Path(path)
         if path.is_dir():
             spec = importlib.util.spec_from_file_location(name, path / "__init__.py",
                                                           submodule_search_locations=[str(path)])
@@ -173,9 +171,10 @@ def per_spp(kind, variant, tables, fit, setup, size, lo, hi, inner):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--tables", type=Path, default=TABLES)
+    ap.add_argument("--tables", type=Path, required=True,
+                    help="a default bake's table file (e.g. cm_military_green's: `flowbsdf bake`)")
     ap.add_argument("--variants", default=",".join(VARIANTS))
-    ap.add_argument("--before", type=Path, default=BEFORE,
+    ap.add_argument("--before", type=Path, default=None,
                     help="the svm package (or svm.py) the variant `before` builds with")
     ap.add_argument("--scenes", default="constant,hdri,studio")
     ap.add_argument("--repeat", type=int, default=3)

@@ -3,7 +3,7 @@
 the same order with the same settings, inputs and links. Run it with one checkout's code and
 then another's on the same prepared tables and `diff` the two dumps.
 
-    .venv/bin/python scripts/svm_graph_dump.py --prepare DIR [--baked /tmp/s43bake]   (tables, once)
+    .venv/bin/python scripts/svm_graph_dump.py --prepare DIR [--baked DIR_OF_DEFAULT_BAKES]   (tables, once)
     .venv/bin/python scripts/svm_graph_dump.py --dump DIR --out dump.txt [--checkout PATH]
 
 --prepare writes the test fixtures' tables (tests/cycles_scenes.py: plastic over its default
