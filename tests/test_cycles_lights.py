@@ -931,7 +931,7 @@ def test_svm_past_a_diffuse_bounce_ignores_filter_glossy_and_caustics(gold):
     Filter Glossy 1.0 -7.2 %, Caustics off -50 %). A shared file under the studio lamps and the
     wall (satin_rosaline, 8 x 512 spp against OSL's 8 x 128): Filter Glossy 0 and Caustics off
     changed the wall's mean by +0.04 % and +0.01 % (SE 0.8 %), SVM - OSL stayed -0.8..-1.1 %
-    (SE 0.8 %) (/work/notes/s41/svmdef.md). Clamping does reach it: the status says so."""
+    (SE 0.8 %) (issue 51's note of session 41). Clamping does reach it: the status says so."""
     sc, node, around = _wall_scene(gold, 16, 32)
     base = _svm_renders(sc, node, 32, 2)
     assert base[:, around].mean() > 0.05                # (the wall is lit, by the sphere)
