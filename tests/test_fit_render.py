@@ -17,7 +17,8 @@ fit_path) bound to small baked tables of a Lambertian, which the fit back end do
 (bound to missing tables it renders the fit too: test_missing_tables_render_the_fit). They are: isotropic lobes only (view_aligned 0);
 view-aligned anisotropic lobes (a > 0 and a < 0, 0 at normal view); one whose anisotropy is not
 0 at normal view (as fits of measured files have it), seen exactly head-on (where the view
-tangent vanishes: no NaN); and a rough lobe stretched beyond alpha 1, which Cycles clamps to 1 and eval_fit too
+tangent vanishes: no NaN); lobes along the material's tangent (anisotropic tables' fit, FIT_VERSION
+9: the node's Tangent input); and a rough lobe stretched beyond alpha 1, which Cycles clamps to 1 and eval_fit too
 (test_alphas_beyond_1_render_as_eval_fit_states: found by this probe). Each is rendered with
 Cycles' SVM and with OSL (its nodes as OSL shaders).
 
@@ -139,8 +140,24 @@ TILTED = dict(_fit(
 # made before the add-on refits it), which renders at normal view exactly what TILTED does
 UNTILTED = {k: (6 if k == "version" else v) for k, v in TILTED.items() if k not in ("tilt", "diffuse_tilt")}
 
+# FIT_VERSION 9, anisotropic tables: three lobes along the MATERIAL's tangent (the node's Tangent
+# input, unlinked here: world x, which Cycles projects onto each quad as the exact back ends do),
+# stretched either way and at normal view too, the 4th isotropic; no tilts.
+MATERIAL = dict(_fit(
+    diffuse=[[0.04, 0.05, 0.06], [0.05, 0.04, 0.03], [0.03, 0.06, 0.04], [0.04, 0.04, 0.07], [0.06, 0.03, 0.05]],
+    specular=_lobes(
+        [[0.40, 0.30, 0.20], [0.30, 0.40, 0.20], [0.50, 0.20, 0.30], [0.20, 0.30, 0.50], [0.30, 0.30, 0.30]],
+        [[0.20, 0.30, 0.40], [0.40, 0.20, 0.30], [0.10, 0.20, 0.20], [0.30, 0.50, 0.20], [0.20, 0.40, 0.40]],
+        [[0.05, 0.04, 0.03], [0.04, 0.05, 0.02], [0.06, 0.05, 0.04], [0.03, 0.06, 0.05], [0.08, 0.04, 0.06]],
+        [[0.03, 0.02, 0.05], [0.05, 0.03, 0.02], [0.04, 0.06, 0.03], [0.02, 0.05, 0.06], [0.06, 0.04, 0.05]]),
+    roughness=_lobes([0.25, 0.30, 0.35, 0.30, 0.30], [0.45, 0.50, 0.55, 0.50, 0.45], [0.30, 0.30, 0.35, 0.30, 0.25],
+                     [0.60, 0.65, 0.70, 0.60, 0.50]),
+    anisotropy=_lobes([0.75, 0.70, 0.60, 0.65, 0.70], [-0.50, -0.60, -0.40, -0.45, -0.50], [0.30, 0.20, 0.10, 0.20, 0.30],
+                      [0.0] * 5),
+    view_aligned=0), material_aligned=3, anisotropic=True)
+
 FITS = {"isotropic": ISOTROPIC, "anisotropic": ANISOTROPIC, "head-on": HEAD_ON, "clamped": CLAMPED,
-        "tilted": TILTED, "untilted": UNTILTED}
+        "tilted": TILTED, "untilted": UNTILTED, "material": MATERIAL}
 MATTE = {"kind": "analytic", "model": "lambert", "albedo": [0.8, 0.7, 0.6]}
 
 
@@ -221,10 +238,12 @@ def _cells(img, side):
     return inner.mean(1), np.ptp(inner, axis=1).max(-1)
 
 
-def _local(n, v, l):
+def _local(n, v, l, tangent=None):
     """wi, wo in a frame of normal n, its x along v's projection (head-on: along the node's
-    fallback tangent n x VIEW_TANGENT_NUDGE)."""
-    t = v - (v @ n) * n
+    fallback tangent n x VIEW_TANGENT_NUDGE), or along `tangent`'s where given (the tables'
+    frame of a material-aligned fit)."""
+    t = (v if tangent is None else tangent)
+    t = t - (t @ n) * n
     if np.linalg.norm(t) < 1e-12:
         t = np.cross(n, VIEW_TANGENT_NUDGE)
     t /= np.linalg.norm(t)
@@ -251,7 +270,8 @@ def probe(folder, tables, fits=FITS, osl=False, zeniths=SUN_ZENITH_DEG):
         cells, spread = _cells(cs.render(sc), side)
         out["got"].append(cells[:len(quads)])
         out["spread"].append(spread[:len(quads)])
-        wi, wo = zip(*(_local(n, view, toward_sun) for *_, n in quads))
+        wi, wo = zip(*(_local(n, view, toward_sun, np.array(lb.TANGENT) if fits[name].get("material_aligned") else None)
+                       for name, *_, n in quads))
         out["ref"].append([E * max(o[2], 0.0) * eval_fit(fits[name], i, o[None])[0]
                            for (name, *_), i, o in zip(quads, wi, wo)])
         out["wi"].append(wi)
@@ -287,7 +307,7 @@ def _relative(got, ref):
     return np.abs(got - ref)[lit] / ref[lit]
 
 
-@pytest.mark.parametrize("name", ["isotropic", "anisotropic", "tilted"])
+@pytest.mark.parametrize("name", ["isotropic", "anisotropic", "tilted", "material"])
 def test_fit_renders_what_eval_fit_states(rendered, name):
     """Within 1e-3 relative at >= 99 % of the directions, on the knots and between them
     (measured: all within 4.4e-4, median 2e-7 (isotropic) / 7e-7 (anisotropic); the largest
@@ -308,13 +328,18 @@ def test_fit_renders_what_eval_fit_states(rendered, name):
         assert within >= SHARE, f"{name} {where}: {within:.4f} within {TOLERANCE} (max {rel.max():.3g})"
         assert np.median(rel) < 1e-5, f"{name} {where}: median relative error {np.median(rel):.3g}"
     # The directions span the hemisphere: the (tilted) quads meet the sun in every cell of
-    # cos theta_o in fifths x azimuth about wi's in sixths (measured: 8 or more each).
+    # cos theta_o in fifths x azimuth about wi's in sixths (measured: 8 or more each); the
+    # material-aligned fit's views, every sixth of azimuth about its tangent.
     lit = ref[..., 0] > 0
     tilted = np.hypot(wi[..., 0], wi[..., 1]) > 0
     cos_o = wo[..., 2][lit & tilted]
-    phi_o = np.abs(np.arctan2(wo[..., 1], wo[..., 0]))[lit & tilted]
+    phi_i = np.arctan2(wi[..., 1], wi[..., 0])
+    phi_o = np.abs(np.angle(np.exp(1j * (np.arctan2(wo[..., 1], wo[..., 0]) - phi_i))))[lit & tilted]
     counts = np.histogram2d(cos_o, phi_o, bins=(5, 6), range=((0, 1), (0, np.pi)))[0]
     assert counts.min() >= 5, counts
+    if name == "material":
+        views = np.histogram(np.abs(phi_i[lit & tilted]), bins=6, range=(0, np.pi))[0]
+        assert views.min() >= 5, views
 
 
 def test_head_on_view_renders_a_finite_lobe(rendered):

@@ -16,6 +16,7 @@ FIT_FORMAT = "flowbsdf-closure-fit"
 _FORMATS = deps.formats()
 OSL_LAYOUT, CARRY_LAYOUT = _FORMATS.OSL_LAYOUT, _FORMATS.CARRY_LAYOUT
 FIT_VERSION, READABLE_FIT_VERSIONS = _FORMATS.FIT_VERSION, _FORMATS.READABLE_FIT_VERSIONS
+fit_current = _FORMATS.fit_current
 
 
 def file_hash(path):
@@ -59,7 +60,7 @@ def fit_file(tables_path):
     older = False
     try:
         fit = load_fit(path)
-        if fit.get("tables_hash") == digest and fit.get("version") == FIT_VERSION:
+        if fit.get("tables_hash") == digest and fit_current(fit.get("version"), fit.get("anisotropic", False)):
             return path
         older = fit.get("tables_hash") == digest
         why = f"closure fit of version {fit.get('version')}" if older else \

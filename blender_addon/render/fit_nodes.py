@@ -101,7 +101,7 @@ def fit_params(tree, fit, loc, cv=False):
     "ks": [colour per lobe], "roughness": (r_1, r_2, r_3), "anisotropy": (a_1, a_2, a_3),
     "tilt": (t_1, t_2, t_3) or None, "lobe4": (r_4, t_4, t_d) or None, "tilted": per closure
     (Diffuse first) whether its tilt is anywhere not 0, "view_aligned": how many lobes take the
-    view's tangent}; `cv`: and "cv" (beta_d, beta_s, s), "matched" (s_m, s_m, s_m), the control
+    view's tangent, "material_aligned": how many the material's (anisotropic tables)}; `cv`: and "cv" (beta_d, beta_s, s), "matched" (s_m, s_m, s_m), the control
     variate's (svm.py)."""
     node = tree.nodes.new("ShaderNodeGroup")
     node.node_tree = fit_group(fit)
@@ -113,7 +113,8 @@ def fit_params(tree, fit, loc, cv=False):
               "roughness": out["Roughness"], "anisotropy": out["Anisotropy"],
               "tilt": out.get("Tilt"), "lobe4": out.get("Lobe 4"),
               "tilted": [any(dtilt)] + [any(knot[j] for knot in tilt) for j in range(lobes)],
-              "view_aligned": min(int(fit.get("view_aligned", 0)), 3)}
+              "view_aligned": min(int(fit.get("view_aligned", 0)), 3),
+              "material_aligned": min(int(fit.get("material_aligned", 0)), 3)}
     if cv:
         params.update(cv=out["Control variate"], matched=out["Matched share"])
     return params
@@ -163,16 +164,20 @@ def matched_share(rel_error):
 MATCHED_ERROR_MAX = 0.1
 
 
-def closures(tree, params, loc, scale_d=None, scale_s=None, tilts=True):
+def closures(tree, params, loc, scale_d=None, scale_s=None, tilts=True, material_tangent=None):
     """The fit's closures: a Diffuse BSDF (colour kd) plus a GGX Glossy BSDF per lobe (colour
     ks_j, roughness r_j, anisotropy a_j; the first params["view_aligned"] with the view's
-    tangent: view_tangent), each tilted closure with its own Normal N + t normalize(T) (t its
+    tangent: view_tangent; the first params["material_aligned"] with `material_tangent`, the
+    socket of the tables' frame, which Cycles projects onto the surface as the exact back ends
+    do), each tilted closure with its own Normal N + t normalize(T) (t its
     tilt, T the view tangent, N Geometry's Normal; a MULTIPLY_ADD: a zero tilt gives N exactly,
     Cycles normalises it; closures whose tilt is 0 at every knot take the shading normal
     unlinked, as before). `scale_d`, `scale_s`: colours multiplying kd and every ks_j (the SVM
     back end's control variate); `tilts` False: every closure untilted."""
     nodes, links = tree.nodes, tree.links
     x, y = loc[0] + 3000, loc[1]
+    if params["material_aligned"] and material_tangent is None:
+        raise ValueError("a closure fit along the material's tangent needs that tangent")
 
     def scaled(colour, scale, at):
         if scale is None:
@@ -229,9 +234,11 @@ def closures(tree, params, loc, scale_d=None, scale_s=None, tilts=True):
         links.new(scaled(ks, scale_s, (x + 200, y - 300 * (j + 1))), glossy.inputs["Color"])
         links.new(component("roughness", j, (x, y - 300)) if j < 3 else component("lobe4", 0, (x, y - 1100)),
                   glossy.inputs["Roughness"])
-        if j < params["view_aligned"] and "Anisotropy" in glossy.inputs:
+        aligned_to = (tangent if j < params["view_aligned"] else
+                      material_tangent if j < params["material_aligned"] else None)
+        if aligned_to is not None and "Anisotropy" in glossy.inputs:
             links.new(component("anisotropy", j, (x, y - 500)), glossy.inputs["Anisotropy"])
-            links.new(tangent, glossy.inputs["Tangent"])
+            links.new(aligned_to, glossy.inputs["Tangent"])
         elif "Anisotropy" in glossy.inputs:
             glossy.inputs["Anisotropy"].default_value = 0.0
         normal_of(j + 1, glossy)
@@ -272,12 +279,13 @@ def view_tangent(tree, loc, with_normal=False):
     return (tangent, normal) if with_normal else tangent
 
 
-def build_fit(tree, fit, loc=(-1400, -400)):
+def build_fit(tree, fit, loc=(-1400, -400), material_tangent=None):
     """The fit back end's closures (a neutral grey diffuse without a fit); returns their
-    shader output socket."""
+    shader output socket. `material_tangent`: the tables' frame (the group's Tangent input),
+    which a material-aligned fit's lobes take."""
     if fit is None:
         diffuse = tree.nodes.new("ShaderNodeBsdfDiffuse")
         diffuse.location = (loc[0] + 3400, loc[1])
         diffuse.inputs["Color"].default_value = (*NEUTRAL, 1.0)
         return diffuse.outputs[0]
-    return closures(tree, fit_params(tree, fit, loc), loc)
+    return closures(tree, fit_params(tree, fit, loc), loc, material_tangent=material_tangent)

@@ -151,7 +151,7 @@ def _build_tree(tree, name, tables_path, fit_path):
     out.location = (2600, 0)
     group_in = nodes.new("NodeGroupInput")
     group_in.location = (1900, 600)
-    fit_out = fit_nodes.build_fit(tree, fit)
+    fit_out = fit_nodes.build_fit(tree, fit, material_tangent=group_in.outputs["Tangent"])
     # EEVEE's closures: the fit's own EEVEE fit (isotropic lobes: EEVEE renders no anisotropy),
     # else (a fit before FIT_VERSION 8, or none) the fit's closures
     eevee = fit.get("eevee") if fit else None

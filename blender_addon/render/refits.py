@@ -26,7 +26,8 @@ def stale_fit(tree):
     """Whether the group's fit is of an older version (made by an older add-on) and can be
     refit here: its tables are at hand and the bake module imports."""
     info = binding.read(tree)
-    return bool(info.get("has_fit") and info.get("fit_version", 0) != derived.FIT_VERSION and info.get("tables")
+    return bool(info.get("has_fit") and not derived.fit_current(info.get("fit_version", 0), info.get("anisotropic", False))
+                and info.get("tables")
                 and Path(info["tables"]).is_file() and deps.bake_module("export.closure_fit") is not None)
 
 
