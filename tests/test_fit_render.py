@@ -142,7 +142,8 @@ UNTILTED = {k: (6 if k == "version" else v) for k, v in TILTED.items() if k not 
 
 # FIT_VERSION 9, anisotropic tables: three lobes along the MATERIAL's tangent (the node's Tangent
 # input, unlinked here: world x, which Cycles projects onto each quad as the exact back ends do),
-# stretched either way and at normal view too, the 4th isotropic; no tilts.
+# turned about the normal by tangent_turn, stretched either way and at normal view too, the 4th
+# isotropic; no tilts.
 MATERIAL = dict(_fit(
     diffuse=[[0.04, 0.05, 0.06], [0.05, 0.04, 0.03], [0.03, 0.06, 0.04], [0.04, 0.04, 0.07], [0.06, 0.03, 0.05]],
     specular=_lobes(
@@ -154,7 +155,7 @@ MATERIAL = dict(_fit(
                      [0.60, 0.65, 0.70, 0.60, 0.50]),
     anisotropy=_lobes([0.75, 0.70, 0.60, 0.65, 0.70], [-0.50, -0.60, -0.40, -0.45, -0.50], [0.30, 0.20, 0.10, 0.20, 0.30],
                       [0.0] * 5),
-    view_aligned=0), material_aligned=3, anisotropic=True)
+    view_aligned=0), material_aligned=3, tangent_turn=0.6, anisotropic=True)
 
 FITS = {"isotropic": ISOTROPIC, "anisotropic": ANISOTROPIC, "head-on": HEAD_ON, "clamped": CLAMPED,
         "tilted": TILTED, "untilted": UNTILTED, "material": MATERIAL}
@@ -242,7 +243,7 @@ def _local(n, v, l, tangent=None):
     """wi, wo in a frame of normal n, its x along v's projection (head-on: along the node's
     fallback tangent n x VIEW_TANGENT_NUDGE), or along `tangent`'s where given (the tables'
     frame of a material-aligned fit)."""
-    t = (v if tangent is None else tangent)
+    t = v if tangent is None else tangent
     t = t - (t @ n) * n
     if np.linalg.norm(t) < 1e-12:
         t = np.cross(n, VIEW_TANGENT_NUDGE)

@@ -53,8 +53,9 @@ has it, else the tables (`l1`, `l1_of`), and its median (`error`: the node's sta
 
 Anisotropic tables (FIT_VERSION 9): the first VIEW_ALIGNED lobes lie along the MATERIAL's
 tangent (the tables' x: the node's Tangent input, which Cycles projects onto the surface as the
-exact back ends do), their anisotropy either way on ANISOTROPY_MATERIAL (up to 40:1), the last
-isotropic; no tilts, no control variate. Each knot's quadrature, albedo and error run over
+exact back ends do, turned about the normal by the fit's tangent_turn, found at normal view:
+a material turned 37 deg gets 37.03), their anisotropy either way on ANISOTROPY_MATERIAL (up to
+45:1), the last isotropic; no tilts, no control variate. Each knot's quadrature, albedo and error run over
 PHI_VIEWS view azimuths over the tables' phi_i period (view_azimuths), and so does `l1`.
 brushed_steel's default bake (GGX 0.3 x 0.02): median L1 against the material 1.360 -> 0.034
 (the former fit: isotropic lobes at phi_i = 0, worse than black), fit 9 s CPU. Its EEVEE fit
@@ -276,6 +277,12 @@ def _view(theta, phi=0.0):
     return np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
 
 
+def _spin(angle):
+    """The rotation by `angle` about z."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 def view_azimuths(tables):
     """The view azimuths an anisotropic fit is made and measured at (PHI_VIEWS over the tables'
     phi_i period, from 0: the material's tangent); None for isotropic tables."""
@@ -402,8 +409,10 @@ class _Knot:
     tables, the cosine and a mixture of GGX lobes over ALPHAS (so that a lobe of any width has
     samples), their weights 1 / (n q) for the mixture's density q, and the baked f cos there."""
 
-    def __init__(self, tables, theta, n=1024, seed=0, phis=None):
+    def __init__(self, tables, theta, n=1024, seed=0, phis=None, turn=0.0):
         rng = np.random.default_rng(seed)
+        if phis is not None and theta == 0.0:
+            phis = phis[:1]             # (every azimuth is the same view)
         self.theta, self.phis = float(theta), phis
         # the views: one (azimuth 0), or for anisotropic tables one per azimuth in `phis`, each
         # with n / len(phis) samples of each kind; the knot's sums run over all of them
@@ -434,8 +443,13 @@ class _Knot:
         # the albedo the closures keep: the views' mean
         self.albedo = np.mean([baked_albedo(tables, np.cos(theta), 0.0 if phis is None else float(p))
                                for p in ([0.0] if phis is None else phis)], axis=0)
-        # the lobes' anisotropy grid: the view's tangent's, or the material's (anisotropic tables)
+        # the lobes' anisotropy grid: the view's tangent's, or the material's (anisotropic tables),
+        # the lobes' tangent then at azimuth `turn` in the tables' frame (tangent_turn)
         self.anisos = ANISOTROPY if phis is None else ANISOTROPY_MATERIAL
+        self.turn = float(turn)
+        if phis is not None:
+            spin = _spin(-self.turn)
+            self._wi_lobe, self._wo_lobe = self.wi_s @ spin.T, self.wo @ spin.T
         self.iso = int(np.argmin(np.abs(self.anisos)))
         # grid point -> row of _vals: GGX lobes (ia, ja, it) (ALPHAS[ia], ANISOTROPY[ja], tilt
         # TILT_GGX_DEG[it]), the Diffuse (-1, 0, it) (tilt TILT_DIFFUSE_DEG[it])
@@ -469,8 +483,9 @@ class _Knot:
                         new.append(ggx_tilt_fcos(self.wi, self.wo, ALPHAS[ia][:, None], ANISOTROPY[ja][:, None], t))
                         albs.append(_ggx_tilt_albedos(self.theta, ALPHAS[ia], ANISOTROPY[ja], t))
                     else:                   # (no tilts: the lobes along the material's tangent x)
-                        new.append(ggx_fcos(self.wi_s, self.wo, ALPHAS[ia][:, None], self.anisos[ja][:, None]))
-                        albs.append(np.mean([_ggx_albedos(self.theta, ALPHAS[ia], self.anisos[ja], phi=float(p)) for p in self.phis], axis=0))
+                        new.append(ggx_fcos(self._wi_lobe, self._wo_lobe, ALPHAS[ia][:, None], self.anisos[ja][:, None]))
+                        albs.append(np.mean([_ggx_albedos(self.theta, ALPHAS[ia], self.anisos[ja], phi=float(p) - self.turn)
+                                             for p in self.phis], axis=0))
                 order += ks
             new = np.concatenate(new)
             base, m = len(self._row), len(new)
@@ -668,6 +683,36 @@ def _descend(knot, lobes, aniso, prev=None, sweeps=2, step_cost=STEP_COST, shape
     return lobes
 
 
+TURN_STEP = np.radians(7.5)     # tangent_turn's first grid over [0, 90 deg), then halved 4 times
+
+
+def tangent_turn(tables, n=1024, seed=0):
+    """The azimuth (rad, in the tables' frame) of anisotropic tables' lobes' tangent: the lobe
+    stretched along x at psi is the one stretched along y at psi + 90 deg (the anisotropy's sign),
+    so psi in [0, 90 deg); brushed metals have theirs along the tables' x or y (psi 0), a material
+    turned 37 deg its own. Chosen at normal view, where the lobes' orientation is all there is to
+    see: by the error of the best Diffuse + one aligned lobe (every third alpha, every other
+    anisotropy) on a grid of TURN_STEP, then refined around the best by halving steps."""
+    phis = view_azimuths(tables)[:1]
+    errors = {}
+
+    def error(psi):
+        psi = float(np.mod(psi, np.pi / 2))
+        if psi not in errors:
+            knot = _Knot(tables, 0.0, n=n, seed=seed, phis=phis, turn=psi)
+            flat = _tilt_zero(False)
+            sets = [[(-1, 0, _tilt_zero(True)), (i, ja, flat)]
+                    for i in range(0, len(ALPHAS), 3) for ja in range(0, len(knot.anisos), 2)]
+            errors[psi] = float(np.min(knot.solve(sets)[1]))
+        return errors[psi]
+    best = min(np.arange(0.0, np.pi / 2 - 1e-9, TURN_STEP), key=error)
+    step = TURN_STEP
+    for _ in range(4):
+        step /= 2
+        best = min((best - step, best, best + step), key=error)
+    return float(np.mod(best, np.pi / 2))
+
+
 def _first_knot(knot, aligned):
     """Normal view: isotropic lobes chosen greedily over the whole alpha grid, then refined by
     coordinate descent over it, the aligned ones' anisotropy too (no tilts here). Anisotropic
@@ -724,13 +769,13 @@ def _next_knot(tables, knot, fit, lobes, prev, aligned, n, seed):
     toward the previous knot's of their new labels: near-twin lobes then split their weight
     otherwise) and measured again before they compete."""
     mid = _Knot(tables, 0.5 * (knot.theta + np.radians(fit["theta_deg"][-1])), n=n // 2, seed=seed + 7,
-                phis=knot.phis)
+                phis=knot.phis, turn=knot.turn)
     norm = max(float(mid.w @ luminance(mid.g)), 1e-300)
 
     def between(option, k):         # the relative L1 half-way, the parameters lerped
         this = _knot_params(knot, option, k)
         pair = {key: fit[key][-1:] + [this[key]] for key in PARAM_KEYS}
-        pair["material_aligned"] = fit.get("material_aligned", 0)
+        pair.update(material_aligned=fit.get("material_aligned", 0), tangent_turn=fit.get("tangent_turn", 0.0))
         return float(mid.w @ np.abs(luminance(mid.fcos_of(pair) - mid.g)) / norm)
     options = [_descend(knot, lobes, aligned, prev),
                _descend(knot, lobes, aligned, prev, step_cost=STIFF * STEP_COST),
@@ -788,9 +833,11 @@ def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None, vie
     material_aligned = VIEW_ALIGNED if tables.anisotropic else 0
     aligned = view_aligned or material_aligned
     phis = view_azimuths(tables)
+    turn = tangent_turn(tables, n, seed) if tables.anisotropic else 0.0
     out = {"format": "flowbsdf-closure-fit", "version": FIT_VERSION,
            "model": MODEL_MATERIAL if tables.anisotropic else MODEL,
-           "view_aligned": view_aligned, "material_aligned": material_aligned, "anisotropic": bool(tables.anisotropic),
+           "view_aligned": view_aligned, "material_aligned": material_aligned, "tangent_turn": turn,
+           "anisotropic": bool(tables.anisotropic),
            "x": [], "theta_deg": [], "diffuse": [], "specular": [], "roughness": [], "anisotropy": [],
            "tilt": [], "diffuse_tilt": [], "rel_error": [], "albedo": [], "fit_albedo": [], "cv": []}
     eevee = {key: [] for key in PARAM_KEYS}
@@ -798,7 +845,7 @@ def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None, vie
     # Knots ascending in x = 1 - cos theta (Facing), i.e. ascending theta.
     knots = sorted(knots_deg)
     for i, deg in enumerate(knots):
-        knot = _Knot(tables, np.radians(deg), n=n, seed=seed, phis=phis)
+        knot = _Knot(tables, np.radians(deg), n=n, seed=seed, phis=phis, turn=turn)
         # (anisotropic tables: no tilts)
         knot.tilt_min = 0.0 if tables.anisotropic else tilt_limit(np.radians(knots[i + 1] if i + 1 < len(knots) else 90.0))
         if lobes is None:
@@ -968,8 +1015,10 @@ def eval_fit(fit, wi, wo):
     wi = np.asarray(wi, float)
     kd, ks, alpha, aniso = params_at(fit, wi[2])
     tilt, dtilt = tilts_at(fit, wi[2])
-    aligned_to_view = not fit.get("material_aligned", 0)
-    phi = np.arctan2(wi[1], wi[0]) if aligned_to_view and np.hypot(wi[0], wi[1]) > 0 else 0.0
+    if fit.get("material_aligned", 0):      # the lobes' tangent at tangent_turn in the tables' frame
+        phi = float(fit.get("tangent_turn", 0.0))
+    else:
+        phi = np.arctan2(wi[1], wi[0]) if np.hypot(wi[0], wi[1]) > 0 else 0.0
     c, s = np.cos(phi), np.sin(phi)
     turn = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])     # wi's azimuth to 0
     wi_v, wo_v = turn @ wi, wo @ turn.T

@@ -101,7 +101,8 @@ def fit_params(tree, fit, loc, cv=False):
     "ks": [colour per lobe], "roughness": (r_1, r_2, r_3), "anisotropy": (a_1, a_2, a_3),
     "tilt": (t_1, t_2, t_3) or None, "lobe4": (r_4, t_4, t_d) or None, "tilted": per closure
     (Diffuse first) whether its tilt is anywhere not 0, "view_aligned": how many lobes take the
-    view's tangent, "material_aligned": how many the material's (anisotropic tables)}; `cv`: and "cv" (beta_d, beta_s, s), "matched" (s_m, s_m, s_m), the control
+    view's tangent, "material_aligned": how many the material's (anisotropic tables), turned by
+    "tangent_turn" (rad) about the normal}; `cv`: and "cv" (beta_d, beta_s, s), "matched" (s_m, s_m, s_m), the control
     variate's (svm.py)."""
     node = tree.nodes.new("ShaderNodeGroup")
     node.node_tree = fit_group(fit)
@@ -114,7 +115,8 @@ def fit_params(tree, fit, loc, cv=False):
               "tilt": out.get("Tilt"), "lobe4": out.get("Lobe 4"),
               "tilted": [any(dtilt)] + [any(knot[j] for knot in tilt) for j in range(lobes)],
               "view_aligned": min(int(fit.get("view_aligned", 0)), 3),
-              "material_aligned": min(int(fit.get("material_aligned", 0)), 3)}
+              "material_aligned": min(int(fit.get("material_aligned", 0)), 3),
+              "tangent_turn": float(fit.get("tangent_turn", 0.0))}
     if cv:
         params.update(cv=out["Control variate"], matched=out["Matched share"])
     return params
@@ -178,6 +180,18 @@ def closures(tree, params, loc, scale_d=None, scale_s=None, tilts=True, material
     x, y = loc[0] + 3000, loc[1]
     if params["material_aligned"] and material_tangent is None:
         raise ValueError("a closure fit along the material's tangent needs that tangent")
+    if params["material_aligned"] and params["tangent_turn"]:
+        # the lobes' tangent turned about the normal (right-handed: x toward y = N x x, as
+        # closure_fit.eval_fit turns it); Cycles projects it onto the surface after
+        geometry = nodes.new("ShaderNodeNewGeometry")
+        geometry.location = (x - 600, y - 1300)
+        turned = nodes.new("ShaderNodeVectorRotate")
+        turned.rotation_type = 'AXIS_ANGLE'
+        turned.location = (x - 400, y - 1300)
+        links.new(material_tangent, turned.inputs["Vector"])
+        links.new(geometry.outputs["Normal"], turned.inputs["Axis"])
+        turned.inputs["Angle"].default_value = params["tangent_turn"]
+        material_tangent = turned.outputs["Vector"]
 
     def scaled(colour, scale, at):
         if scale is None:
