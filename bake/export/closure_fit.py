@@ -55,12 +55,12 @@ Anisotropic tables (FIT_VERSION 9): the first VIEW_ALIGNED lobes lie along the M
 tangent (the tables' x: the node's Tangent input, which Cycles projects onto the surface as the
 exact back ends do, turned about the normal by the fit's tangent_turn, found at normal view:
 a material turned 37 deg gets 37.03), their anisotropy either way on ANISOTROPY_MATERIAL (up to
-45:1), the last isotropic; no tilts, no control variate. Each knot's quadrature, albedo and error run over
-PHI_VIEWS view azimuths over the tables' phi_i period (view_azimuths), and so does `l1`.
-brushed_steel's default bake (GGX 0.3 x 0.02): median L1 against the material 1.360 -> 0.034
-(the former fit: isotropic lobes at phi_i = 0, worse than black), fit 9 s CPU. Its EEVEE fit
-(isotropic lobes anywhere on the alpha grid) stays at 1.37: no isotropic lobe follows a 15:1
-streak, and EEVEE renders no anisotropy (the status says how far EEVEE is).
+45:1), the last isotropic; no tilts, no control variate. Each knot's quadrature, albedo and error
+run over PHI_VIEWS view azimuths over the tables' phi_i period (view_azimuths), and so does
+`l1`. brushed_steel's default bake (GGX 0.3 x 0.02): median L1 against the material 1.360 ->
+0.034 (the former fit: isotropic lobes at phi_i = 0, worse than black), fit 10 s CPU at load
+12. Its EEVEE fit (isotropic lobes anywhere on the alpha grid) stays at 1.37: no isotropic
+lobe follows a 15:1 streak, and EEVEE renders no anisotropy (the status says how far EEVEE is).
 
 Per knot also the control variate (`cv`: beta_d, beta_s in [0, 1] and a portal share s,
 `cv_scales`): the SVM back end renders f_cv = beta_d kd / pi + beta_s sum_j ks_j f_ggx_j as
@@ -121,7 +121,7 @@ ANISOTROPY = np.round(np.linspace(-0.4, 0.8, 13), 6)  # Cycles' Anisotropy input
 ISO = int(np.argmin(np.abs(ANISOTROPY)))              # that index: an isotropic lobe
 # Anisotropic tables' lobes lie along the material's tangent (module docstring): their anisotropy
 # either way, its steps equal in log(alpha_y / alpha_x) (ratio 1.41 a step, as ALPHAS' 1.19 per
-# axis), up to a ratio of 40.
+# axis), up to a ratio of 45.
 ANISOTROPY_MATERIAL = np.round(np.concatenate([-(1 - 1.189 ** -np.arange(11, 0, -1.0)), [0.0],
                                                1 - 1.189 ** -np.arange(1, 12.0)]), 6)
 PHI_VIEWS = 8       # anisotropic tables: the view azimuths per knot (over the tables' phi period)
