@@ -1223,3 +1223,30 @@ def test_bake_search_helpers_give_the_reference_answers():
         np.maximum.at(want[2 * k + 1], cell[has], v[has])
     for got, w in zip(_point_boxes(cell, a, b, has, 60), want):
         assert got.tobytes() == w.tobytes()
+
+
+def test_by_segment_from_the_coordinates_order_is_the_sort_by_position():
+    """_by_segment with `by` (the stable order of b, kept per bin across builds) orders the points
+    exactly as sorting their positions r did: by segment, then r, ties in index order, where r
+    is b normalized within its row's segment (_normalize_rows), ties made on purpose (b on a
+    coarse grid, and close b that round to one r). Without the ties' fix the orders differ."""
+    from bake.core.tabulate import _by_segment, _normalize_rows, _stable_argsort
+    rng = np.random.default_rng(11)
+    rows, n = 6, 5000
+    knots = np.stack([np.sort(np.concatenate([[0.0, 1.1, 2 * np.pi], rng.uniform(1.2, 6.1, 2)])) for _ in range(rows)])
+    # b on a coarse grid (equal b), and consecutive floats near 0.9, which r = b / 1.1 (the first
+    # segment's) maps two to one now and then (distinct b, equal r)
+    b = np.concatenate([rng.integers(0, 40, n // 2) * (2 * np.pi / 40),
+                        0.9 + rng.integers(0, 64, n - n // 2) * (0.5 * np.finfo(float).eps)])
+    rng.shuffle(b)
+    row = rng.integers(0, rows, n)
+    w = rng.random(n)
+    seg, r = _normalize_rows(b, knots, row)
+    group, groups = row * (knots.shape[1] - 1) + seg, rows * (knots.shape[1] - 1)
+    want = _by_segment(group, r, w, groups)
+    got = _by_segment(group, r, w, groups, by=_stable_argsort(b).astype(np.int32))
+    for x, y in zip(got, want):
+        np.testing.assert_array_equal(x, y)
+    by = _stable_argsort(b)
+    plain = by[np.argsort(group[by], kind="stable")]           # b's order within the groups, ties not fixed
+    assert not np.array_equal(w[plain], want[1])               # the case has r ties of distinct b

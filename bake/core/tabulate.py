@@ -128,7 +128,12 @@ def _stable_argsort(x):
     times faster on floats), then each run of equal values put back in index order."""
     order = np.argsort(x)
     xs = x[order]
-    tie = xs[1:] == xs[:-1]
+    return _ties_in_index_order(order, xs[1:] == xs[:-1])
+
+
+def _ties_in_index_order(order, tie):
+    """order with each run of entries tied to the next (tie[i]: order[i] ties order[i + 1]) put
+    in index order, in place."""
     if tie.any():
         at = np.flatnonzero(np.concatenate([tie, [False]]) | np.concatenate([[False], tie]))
         run = np.cumsum(np.concatenate([[True], ~tie]))[at]      # the run of equal values of each
@@ -136,12 +141,21 @@ def _stable_argsort(x):
     return order
 
 
-def _by_segment(seg, r, w, segments):
+def _by_segment(seg, r, w, segments, by=None):
     """Points ordered by segment (in [0, segments)), then by r, ties in their given order:
     (r, w) in that order and each segment's bounds. Sorted once per bin, for every
-    neighbourhood that pools the bin (see _pooled_edges)."""
-    order = _stable_argsort(r) if not np.isnan(r).any() else np.argsort(r, kind="stable")
-    order = order[np.argsort(seg[order].astype(np.int16 if segments < 1 << 15 else np.int64), kind="stable")]
+    neighbourhood that pools the bin (see _pooled_edges). by: optionally _stable_argsort of a
+    quantity x that r follows within each segment (r a non-decreasing function of x there, as
+    the normalized position in a segment is of the coordinate): the same order, from x's order
+    (kept across builds: _b_order) by a sort over the segments alone."""
+    key = lambda s: s.astype(np.int16 if segments < 1 << 15 else np.int64)     # noqa: E731 (radix sort)
+    if by is not None and not np.isnan(r).any():
+        order = by[np.argsort(key(seg[by]), kind="stable")]
+        rs, ss = r[order], seg[order]
+        order = _ties_in_index_order(order, (rs[1:] == rs[:-1]) & (ss[1:] == ss[:-1]))
+    else:
+        order = _stable_argsort(r) if not np.isnan(r).any() else np.argsort(r, kind="stable")
+        order = order[np.argsort(key(seg[order]), kind="stable")]
     return r[order], w[order], np.searchsorted(seg[order], np.arange(segments + 1))
 
 
@@ -913,6 +927,8 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
         ordered = [cache.setdefault((float(t), phi, grid, gamma, coords, knots.tobytes()),
                                     _Once(_row_order, entry, knots, n_seg))
                    for t, entry, knots in zip(theta_bins, entries, row_knots)]
+        b_orders = [cache.setdefault((float(t), phi, grid, gamma, coords, "b"), _Once(_b_order, entry))
+                    for t, entry in zip(theta_bins, entries)]
     points = list(_parallel(_Once.get, entries))
     by_seg = list(_parallel(_Once.get, ordered))
     window = K if window is None else window
@@ -941,8 +957,9 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
         knots = (np.stack([lobe_col_knots(m, lobe_width) for m in a_mid]) if coords == "wo"
                  else np.tile(COL_KNOTS[coords], (rows, 1)))
         seg, r = _normalize_rows(b, knots, row)
-        # segment s of row i: group i * n + s
-        return knots, _by_segment(row * (knots.shape[1] - 1) + seg, r, w, rows * (knots.shape[1] - 1))
+        # segment s of row i: group i * n + s (r follows b within each: sorted from b's order)
+        return knots, _by_segment(row * (knots.shape[1] - 1) + seg, r, w, rows * (knots.shape[1] - 1),
+                                  by=b_orders[k].get())
     by_row = list(_parallel(bin_by_row, range(K)))
     n = by_row[0][0].shape[1] - 1
     shares = _segment_shares([p for _, p in by_row], rows * n).reshape(rows, n)
@@ -968,6 +985,13 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
         step()
     mass, alpha, beta, weights = (np.stack(x) for x in zip(*parts))
     return np.stack(a_edges), b_edges, mass, alpha, beta, weights
+
+
+def _b_order(points):
+    """_stable_argsort of a bin's points' b (_Once of _points; None where b has NaN): their order
+    within every row's column segments, whatever the rows (_by_segment's `by`)."""
+    b = points.get()[1]
+    return None if np.isnan(b).any() else _stable_argsort(b).astype(np.int32 if len(b) < 1 << 31 else np.int64)
 
 
 def _row_order(points, knots, n_seg):
