@@ -1223,3 +1223,103 @@ def test_bake_search_helpers_give_the_reference_answers():
         np.maximum.at(want[2 * k + 1], cell[has], v[has])
     for got, w in zip(_point_boxes(cell, a, b, has, 60), want):
         assert got.tobytes() == w.tobytes()
+
+
+def test_by_segment_from_the_coordinates_order_is_the_sort_by_position():
+    """_by_segment with `by` (the stable order of b, kept per bin across builds) orders the points
+    exactly as sorting their positions r did: by segment, then r, ties in index order, where r
+    is b normalized within its row's segment (_normalize_rows), ties made on purpose (b on a
+    coarse grid, and close b that round to one r). Without the ties' fix the orders differ."""
+    from bake.core.tabulate import _by_segment, _normalize_rows, _stable_argsort
+    rng = np.random.default_rng(11)
+    rows, n = 6, 5000
+    knots = np.stack([np.sort(np.concatenate([[0.0, 1.1, 2 * np.pi], rng.uniform(1.2, 6.1, 2)])) for _ in range(rows)])
+    # b on a coarse grid (equal b), and consecutive floats near 0.9, which r = b / 1.1 (the first
+    # segment's) maps two to one now and then (distinct b, equal r)
+    b = np.concatenate([rng.integers(0, 40, n // 2) * (2 * np.pi / 40),
+                        0.9 + rng.integers(0, 64, n - n // 2) * (0.5 * np.finfo(float).eps)])
+    rng.shuffle(b)
+    row = rng.integers(0, rows, n)
+    w = rng.random(n)
+    seg, r = _normalize_rows(b, knots, row)
+    group, groups = row * (knots.shape[1] - 1) + seg, rows * (knots.shape[1] - 1)
+    want = _by_segment(group, r, w, groups)
+    got = _by_segment(group, r, w, groups, by=_stable_argsort(b).astype(np.int32))
+    for x, y in zip(got, want):
+        np.testing.assert_array_equal(x, y)
+    by = _stable_argsort(b)
+    plain = by[np.argsort(group[by], kind="stable")]           # b's order within the groups, ties not fixed
+    assert not np.array_equal(w[plain], want[1])               # the case has r ties of distinct b
+
+
+class SharpThenBroad(MirrorTakesOver):
+    """A narrow mirror lobe below theta_i START deg, fading into a broad lobe fixed in wo by START + 10
+    (MirrorTakesOver the other way round): coarse cells lose below START, not above."""
+    START, C, BROAD, NARROW = 60.0, spherical_dir(np.radians(30.0), 0.5 * np.pi), 0.3, 0.003
+
+    def eval(self, wi, wo):
+        wi, wo = as_dirs(wi, wo)
+        s = np.clip((np.degrees(np.arccos(np.clip(wi[:, 2], -1.0, 1.0))) - self.START) / 10.0, 0.0, 1.0)
+
+        def lobe(c, width):
+            return np.exp(-np.sum((wo - c) ** 2, axis=1) / width)
+        g = 1e-3 + s * lobe(self.C, self.BROAD) + (1.0 - s) * 20.0 * lobe(wi * np.array([-1.0, -1.0, 1.0]), self.NARROW)
+        return np.repeat((g / np.maximum(wo[:, 2], 1e-12))[:, None], 3, axis=1) * (wo[:, 2:3] > 0)
+
+
+@pytest.mark.parametrize("start, group", [(40.0, "lower"), (60.0, "upper")])
+def test_placement_comparison_skips_what_cannot_win_and_keeps_the_same_tables(monkeypatch, start, group):
+    """_between_bins builds a two-group candidate's cheaper group first; where the angles it alone
+    samples already put the candidate's typical excess above the best so far (and, for a split
+    before the mixed resolutions are tried, the best split's), the other group is not built: the
+    terms left out are >= 0, so the candidate could not have been kept (nor chosen the split that
+    mixed resolutions are tried at). On SharpThenBroad a placement is skipped so (START 40: a mixed
+    candidate by its coarse lower group; 60: a split by its upper group), and the kept placement and
+    its tables are those of the comparison that builds every candidate (tabulate._bar never met:
+    nothing skipped), byte for byte."""
+    import re
+    from bake.core import tabulate
+    mat = SharpThenBroad()
+    mat.START = start
+    ideal = IdealSampler(mat, resolution=64)
+    settings = BakeSettings(resolution=24, tol=0.01, grid=96, samples=1024, first_bins=7, memory_budget=125_000,
+                            ideal_resolution=64)
+    lines = {"pruned": [], "every": []}
+    tabs = {"pruned": plan_tables(mat, ideal, settings, log=lines["pruned"].append, coords="halfpolar")}
+    monkeypatch.setattr(tabulate, "_bar", lambda *_: np.inf)
+    tabs["every"] = plan_tables(mat, ideal, settings, log=lines["every"].append, coords="halfpolar")
+    kept = {how: lines[how][[s.startswith("tables: building") for s in lines[how]].index(True) - 1] for how in lines}
+    skipped = {how: [s for s in lines[how] if "not built" in s] for how in lines}
+    assert kept["pruned"] == kept["every"], kept
+    assert len(skipped["pruned"]) >= 1 and not skipped["every"], lines
+    assert all(f"its {group} group's angles alone" in s for s in skipped["pruned"]), skipped
+    built = {how: sum(bool(re.match(r"between bins: placement \d+ of", s)) for s in lines[how]) for how in lines}
+    assert built["pruned"] == built["every"] > 2, built        # (every placement still has its line)
+    parts = {how: getattr(tab, "parts", [tab]) for how, tab in tabs.items()}
+    assert len(parts["pruned"]) == len(parts["every"])
+    for ours, theirs in zip(parts["pruned"], parts["every"]):
+        for name in ("theta_bins", "a_edges", "b_edges", "mass", "alpha", "beta", "weights"):
+            assert np.array_equal(getattr(ours, name), getattr(theirs, name)), name
+
+
+@pytest.mark.parametrize("sizes", [(16, 16), (16, 24), (24, 16)])
+def test_each_layout_group_alone_has_the_joined_tables_pdf_past_the_boundary(sizes):
+    """What lets _between_bins score a candidate's one group before the other is built: past the
+    boundary (by tabulate.ABOVE: below it for the lower group, above it for the upper one) the
+    joined tables (one Tables, or MixedTables of two resolutions) sample from that group alone,
+    with the same pdf, bit for bit."""
+    from bake.core.tabulate import ABOVE, build_tables, join_groups
+    mat = GlossAtGrazing()
+    ideal = IdealSampler(mat, resolution=64)
+    bins = np.radians([0.0, 30.0, 55.0, 70.0, 80.0, 89.9])
+    lower, upper = (build_tables(mat, ideal, part, r, r, grid=64, coords="halfpolar", lobe_width=0.1, window=None)
+                    for part, r in ((bins[:3], sizes[0]), (bins[2:], sizes[1])))
+    joined = join_groups([lower, upper])
+    wo = ideal.sample(spherical_dir(0.3, 0.0), np.random.default_rng(3).random((2000, 2)))[0]
+    for group, thetas in ((upper, (bins[2] + 2 * ABOVE, 0.5 * (bins[2] + bins[3]), bins[3], 1.45, bins[-1], 1.57)),
+                          (lower, (0.0, 0.2, bins[1], 0.7, bins[2] - 2 * ABOVE))):
+        for t in thetas:
+            wi = spherical_dir(t, 0.2)
+            np.testing.assert_array_equal(joined.pdf(wi, wo), group.pdf(wi, wo))
+        other = lower if group is upper else upper
+        assert not np.array_equal(joined.pdf(spherical_dir(thetas[1], 0.2), wo), other.pdf(spherical_dir(thetas[1], 0.2), wo))

@@ -128,7 +128,12 @@ def _stable_argsort(x):
     times faster on floats), then each run of equal values put back in index order."""
     order = np.argsort(x)
     xs = x[order]
-    tie = xs[1:] == xs[:-1]
+    return _ties_in_index_order(order, xs[1:] == xs[:-1])
+
+
+def _ties_in_index_order(order, tie):
+    """order with each run of entries tied to the next (tie[i]: order[i] ties order[i + 1]) put
+    in index order, in place."""
     if tie.any():
         at = np.flatnonzero(np.concatenate([tie, [False]]) | np.concatenate([[False], tie]))
         run = np.cumsum(np.concatenate([[True], ~tie]))[at]      # the run of equal values of each
@@ -136,12 +141,21 @@ def _stable_argsort(x):
     return order
 
 
-def _by_segment(seg, r, w, segments):
+def _by_segment(seg, r, w, segments, by=None):
     """Points ordered by segment (in [0, segments)), then by r, ties in their given order:
     (r, w) in that order and each segment's bounds. Sorted once per bin, for every
-    neighbourhood that pools the bin (see _pooled_edges)."""
+    neighbourhood that pools the bin (see _pooled_edges). by: optionally _stable_argsort of a
+    quantity x that r follows within each segment (r a non-decreasing function of x there, as
+    the normalized position in a segment is of the coordinate): the same order, from x's order
+    (kept across builds: _b_order) by a sort over the segments alone."""
+    key = lambda s: s.astype(np.int16 if segments < 1 << 15 else np.int64)     # noqa: E731 (radix sort)
+    if by is not None and not np.isnan(r).any():
+        order = by[np.argsort(key(seg[by]), kind="stable")]
+        rs, ss = r[order], seg[order]           # (the same after the ties' fix: it permutes equal pairs)
+        order = _ties_in_index_order(order, (rs[1:] == rs[:-1]) & (ss[1:] == ss[:-1]))
+        return rs, w[order], np.searchsorted(ss, np.arange(segments + 1))
     order = _stable_argsort(r) if not np.isnan(r).any() else np.argsort(r, kind="stable")
-    order = order[np.argsort(seg[order].astype(np.int16 if segments < 1 << 15 else np.int64), kind="stable")]
+    order = order[np.argsort(key(seg[order]), kind="stable")]
     return r[order], w[order], np.searchsorted(seg[order], np.arange(segments + 1))
 
 
@@ -913,6 +927,8 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
         ordered = [cache.setdefault((float(t), phi, grid, gamma, coords, knots.tobytes()),
                                     _Once(_row_order, entry, knots, n_seg))
                    for t, entry, knots in zip(theta_bins, entries, row_knots)]
+        b_orders = [cache.setdefault((float(t), phi, grid, gamma, coords, "b"), _Once(_b_order, entry))
+                    for t, entry in zip(theta_bins, entries)]
     points = list(_parallel(_Once.get, entries))
     by_seg = list(_parallel(_Once.get, ordered))
     window = K if window is None else window
@@ -941,17 +957,18 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
         knots = (np.stack([lobe_col_knots(m, lobe_width) for m in a_mid]) if coords == "wo"
                  else np.tile(COL_KNOTS[coords], (rows, 1)))
         seg, r = _normalize_rows(b, knots, row)
-        # segment s of row i: group i * n + s
-        return knots, _by_segment(row * (knots.shape[1] - 1) + seg, r, w, rows * (knots.shape[1] - 1))
+        # segment s of row i: group i * n + s (r follows b within each: sorted from b's order)
+        return knots, _by_segment(row * (knots.shape[1] - 1) + seg, r, w, rows * (knots.shape[1] - 1),
+                                  by=b_orders[k].get())
     by_row = list(_parallel(bin_by_row, range(K)))
     n = by_row[0][0].shape[1] - 1
     shares = _segment_shares([p for _, p in by_row], rows * n).reshape(rows, n)
     col_counts = [counts(cols, row_shares) for row_shares in shares]
 
-    def col_edges(nbrs):       # per row
+    def col_edges(nbrs):       # per row (in threads where one neighbourhood pools all bins: one layout)
         parts = [by_row[j][1] for j in nbrs]
-        return [[_pooled_edges(parts, i * n + s_, count, col_share) for s_, count in enumerate(col_counts[i])]
-                for i in range(rows)]
+        return list(_parallel(lambda i: [_pooled_edges(parts, i * n + s_, count, col_share)
+                                         for s_, count in enumerate(col_counts[i])], range(rows)))
 
     b_edges = np.empty((K, rows, cols + 1), np.float32)
     for k, shared in enumerate(_once_per_neighbourhood(near, col_edges)):
@@ -968,6 +985,13 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
         step()
     mass, alpha, beta, weights = (np.stack(x) for x in zip(*parts))
     return np.stack(a_edges), b_edges, mass, alpha, beta, weights
+
+
+def _b_order(points):
+    """_stable_argsort of a bin's points' b (_Once of _points; None where b has NaN): their order
+    within every row's column segments, whatever the rows (_by_segment's `by`)."""
+    b = points.get()[1]
+    return None if np.isnan(b).any() else _stable_argsort(b).astype(np.int32 if len(b) < 1 << 31 else np.int64)
 
 
 def _row_order(points, knots, n_seg):
@@ -1449,7 +1473,7 @@ def _plan_layout(plan, coords, bins, resolution, phi_bins, extend, placement):
     if phi_bins is None and "window" not in options:
         opts["window"], bins, resolution, compared = _between_bins(
             plan.material, plan.ideal, bins, resolution, opts, plan.cache, plan.tol, plan.settings.samples, plan.log,
-            plan.memory_budget, extend, plan.carrier, placement)
+            plan.memory_budget, extend, plan.carrier, placement, prune=plan.blend == "fixed")
     elif phi_bins is None:
         (bins, _), = _fit([(bins, resolution)], plan.memory_budget, window=options["window"],
                           coords=coords or ISO_COORDS, lobe_width=plan.lobe_width)
@@ -1575,8 +1599,18 @@ def _carrier(material):
     return carry
 
 
+ABOVE = 1e-9       # angles this far past a layout group's boundary bin are sampled from it alone (radians)
+
+
+def _bar(best, best_split, j):
+    """The typical excess a candidate must get below to change _between_bins' outcome: the best so
+    far, or for a split (j given) the best split so far where that is higher (inf before any)."""
+    bar = best[0] if best is not None else np.inf
+    return bar if j is None else max(bar, best_split[0] if best_split is not None else np.inf)
+
+
 def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, log, memory_budget, extend,
-                  carry=lambda tables: tables, placement="compare"):
+                  carry=lambda tables: tables, placement="compare", prune=True):
     """(window, bins, resolution (one, or one per group), their tables from the ideal's points;
     None when not compared): of the ways to place cells between the planned bins, the one whose
     tables are typically closest to the ideal over the bins and their intervals' midpoints: the
@@ -1593,7 +1627,12 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
     The split whose groups came closest is tried also with groups of their own resolutions
     (MixedTables): the lower group one step coarser (of RESOLUTIONS) and the memory it frees spent
     above, on more bins where the plan's intervals lose most (`extend`, the plan's split loop) or on a step finer cells for the
-    upper group's bins (as many as the budget keeps, the narrowest spans dropped)."""
+    upper group's bins (as many as the budget keeps, the narrowest spans dropped).
+    prune (the fixed blend): a candidate of two groups has its cheaper group (bins x cells; none
+    when another candidate built it) built first; where the angles that group alone samples (below the lower group's last bin, above the
+    upper group's first) already put the typical excess over _bar, the candidate cannot be kept nor
+    decide the split tried with mixed resolutions (the other angles' terms are >= 0): its other
+    group is not built. The outcome is that of building every candidate."""
     from .metrics import ReferencePoints
     if len(bins) < 3:
         return LAYOUT_WINDOWS[0], bins, resolution, None
@@ -1659,11 +1698,34 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
     draws = list(_parallel(lambda t: ReferencePoints(material, spherical_dir(t, 0.0), ideal, side, 0), angles))
     floors = np.array([max(d.rv(ideal)[0], 0.5 * tol) for d in draws])
     best, best_split, n = None, None, 0
+    groups = {}         # a layout group's tables by its bins and resolution
 
     def compare(label, window, placed, res, j):
         nonlocal best, best_split, n
         n += 1
-        tables = build_grouped(material, ideal, placed, res, **{**opts, "window": window, "cache": cache})
+        parts, sizes = group_sizes(placed, res)
+        if len(parts) == 1:
+            tables = build_grouped(material, ideal, placed, res, **{**opts, "window": window, "cache": cache})
+        else:   # build_grouped's groups, the cheaper end one first: its angles alone may show that this one loses
+            def group(k):       # (the mixed candidates at a split share their lower group: built once)
+                key = (parts[k].tobytes(), int(sizes[k]))
+                if key not in groups:
+                    groups[key] = build_tables(material, ideal, parts[k], sizes[k], sizes[k],
+                                               **{**opts, "window": None, "cache": cache})
+                return groups[key]
+            cost = [0 if (part.tobytes(), int(r)) in groups else len(part) * r * r for part, r in zip(parts, sizes)]
+            first = 0 if cost[0] <= cost[-1] else len(parts) - 1
+            built = {first: group(first)}
+            alone = angles < parts[0][-1] - ABOVE if first == 0 else angles > parts[-1][0] + ABOVE
+            if prune and alone.any():
+                ratios = np.array([draws[i].rv(built[first])[0] for i in np.flatnonzero(alone)]) / floors[alone]
+                at_least = float(np.exp(np.sum(np.log(np.maximum(ratios, 1.0)) * widths[alone]) / np.sum(widths)))
+                if at_least > _bar(best, best_split, j) * (1.0 + 1e-9):
+                    log(f"between bins: placement {n} of {total}, {label}: at least {at_least:.2f}x the ideal's rv "
+                        f"(typical excess; its {'lower' if first == 0 else 'upper'} group's angles alone: no better, "
+                        "the rest not built)")
+                    return
+            tables = join_groups([built[k] if k in built else group(k) for k in range(len(parts))])
         ratios = np.array([d.rv(carry(tables))[0] for d in draws]) / floors
         excess = float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=widths)))
         log(f"between bins: placement {n} of {total}, {label}: {excess:.2f}x the ideal's rv (typical excess)")
@@ -1679,7 +1741,7 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
             compare(*candidate)
     more = mixed(best_split[1]) if best_split and best[0] > 1.0 else []
     total = len(candidates) + len(more)     # announced as at most this many: now known
-    for candidate in more:
-        compare(*candidate)
+    for label, window, placed, res, _ in more:      # (where to try mixed resolutions is decided: no split to track)
+        compare(label, window, placed, res, None)
     log(f"between bins: {best[1]}")
     return best[2:]
