@@ -18,14 +18,8 @@ OSL_LAYOUT, CARRY_LAYOUT = _FORMATS.OSL_LAYOUT, _FORMATS.CARRY_LAYOUT
 FIT_VERSION, READABLE_FIT_VERSIONS = _FORMATS.FIT_VERSION, _FORMATS.READABLE_FIT_VERSIONS
 
 
-def file_hash(path):
-    """sha256 of the file's bytes (as bake.io.files.file_hash, which needs the bake package and so numpy)."""
-    import hashlib
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+# sha256 of a file's bytes: bake/io/files.py's, read by its path (deps.files: without numpy)
+file_hash = deps.files().file_hash
 
 
 def load_fit(path):
