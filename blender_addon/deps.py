@@ -28,21 +28,32 @@ def bake_root():
     return None
 
 
-def formats():
-    """bake/formats.py (the version numbers numpy, the OSL shader and the add-on share) of the
-    add-on's `bake`, read by its path: importing the `bake` package needs numpy, which Debian's
-    Blender 3.4 lacks, and the node names its textures by these numbers there too."""
+def _stdlib_module(rel):
+    """A module of the add-on's `bake` that imports only the standard library, read by its path
+    (`rel` below the package, as "io/files.py"): importing the `bake` package needs numpy, which
+    Debian's Blender 3.4 lacks. Loaded once (sys.modules, as flowbsdf_<its name>)."""
     import importlib.util
-    name = "flowbsdf_formats"
+    name = "flowbsdf_" + Path(rel).stem
     if name not in sys.modules:
         root = bake_root()
-        path = root / "bake" / "formats.py" if root is not None else \
-            Path(importlib.util.find_spec("bake").submodule_search_locations[0]) / "formats.py"
-        spec = importlib.util.spec_from_file_location(name, path)
+        package = root / "bake" if root is not None else \
+            Path(importlib.util.find_spec("bake").submodule_search_locations[0])
+        spec = importlib.util.spec_from_file_location(name, package / rel)
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
         sys.modules[name] = module
     return sys.modules[name]
+
+
+def formats():
+    """bake/formats.py: the version numbers numpy, the OSL shader and the add-on share (the node
+    names its textures by these numbers without numpy too)."""
+    return _stdlib_module("formats.py")
+
+
+def files():
+    """bake/io/files.py: file hashes (a texture's name carries its tables' hash) and atomic writes."""
+    return _stdlib_module("io/files.py")
 
 
 def _import_bake():

@@ -20,6 +20,10 @@ node.sync bakes the world's map, CPU); then writes every material tree and node 
 in creation order its name, type, settings (every RNA property but the editor's), inputs
 (linked: the source node and socket; else the value), custom properties; the links in order;
 the images' names and settings; graph_counts.
+
+The OSL script node's compiled bytecode names its temporary files (and so its bytecode_hash
+differs from run to run): normalise both dumps before the diff, e.g.
+    sed -E "s#/tmp/flowbsdf_osl_[A-Za-z0-9_]+/tmp[A-Za-z0-9_]+[.]#TMP.#g; s/bytecode_hash='[0-9a-f]+'/bytecode_hash=H/"
 """
 import argparse
 import shutil
@@ -46,7 +50,7 @@ def prepare(folder, baked):
     import numpy as np
     import cycles_scenes as cs
     from bake.core.tables import K_MAX, NSEG, Tables
-    from bake.export import closure_fit, svm_export
+    from bake.export.derived import ensure_fit, ensure_svm_export
     from bake.export.world_map import WorldMap, write_world_texture
     from bake.io.exrio import write_rgba_exr
     folder.mkdir(parents=True, exist_ok=True)
@@ -77,9 +81,9 @@ def prepare(folder, baked):
         tab.save(sub / "synthetic.exr")
         made[sub.name] = sub / "synthetic.exr"
     for path in made.values():
-        svm_export.ensure_svm_export(path)
+        ensure_svm_export(path)
     for name in ("plastic", "lambert", "mixed"):
-        closure_fit.ensure_fit(made[name])
+        ensure_fit(made[name])
     for src in sorted(Path(baked).glob("*/tables/*.exr")) if baked else ():
         name = src.parent.parent.name
         if src.name == f"{name}.exr" and (src.parent.parent / "done").exists():
@@ -178,13 +182,14 @@ def dump(folder, out, checkout, quick=False):
     import bpy
     svm, probes, lb = _api(checkout)
     import cycles_scenes as cs
-    from bake.export import closure_fit, svm_export
+    from bake.export import closure_fit
+    from bake.export.derived import ensure_fit, ensure_svm_export
     lines, built, done, images = [], [], set(), {}
-    textures = {p.parent.name: svm_export.ensure_svm_export(p)
+    textures = {p.parent.name: ensure_svm_export(p)
                 for p in sorted(folder.glob("*/*.exr")) if "." not in p.stem and not p.stem.startswith("world")}
     baked = {p.parent.name: p for p in sorted((folder / "baked").glob("*/*.exr")) if p.stem == p.parent.name}
     for name, path in baked.items():
-        textures[f"baked/{name}"] = svm_export.ensure_svm_export(path)
+        textures[f"baked/{name}"] = ensure_svm_export(path)
     world_map = str(folder / "world.exr")
     worlds = {
         "none": None,
@@ -239,10 +244,10 @@ def dump(folder, out, checkout, quick=False):
         if not quick or name != "synthetic1x1":
             record(f"{name}: sample_graph + tables_pdf_graph",
                    lambda t, tex=tex: _inverse_pair(svm, t, tex, tangent(t)))
-    fits = {name: closure_fit.load_fit(closure_fit.ensure_fit(folder / name / f"{stem}.exr"))
+    fits = {name: closure_fit.load_fit(ensure_fit(folder / name / f"{stem}.exr"))
             for name, stem in (("plastic", "plastic"), ("mixed", "mixed"))}
     for name, path in list(baked.items())[:1]:
-        fits[f"baked/{name}"] = closure_fit.load_fit(closure_fit.ensure_fit(path))
+        fits[f"baked/{name}"] = closure_fit.load_fit(ensure_fit(path))
     for name, fit in few(fits.items(), 1):
         tex = textures[name]
         variants = {"baked": fit}

@@ -50,7 +50,11 @@ def load_tables(path, name):
 def baseline_package(checkout):
     """The tables and fasttables modules of another checkout's `bake` (scripts/baseline.py)."""
     import_baseline(checkout)
-    return importlib.import_module("bake_baseline.core.tables"), importlib.import_module("bake_baseline.core.fasttables")
+    try:
+        fast = importlib.import_module("bake_baseline.maths.fasttables")
+    except ModuleNotFoundError:         # a checkout from before bake/maths/
+        fast = importlib.import_module("bake_baseline.core.fasttables")
+    return importlib.import_module("bake_baseline.core.tables"), fast
 
 
 CLOCKS = {"wall": time.perf_counter, "cpu": time.process_time}

@@ -154,3 +154,30 @@ def test_the_reader_sees_deferred_imports(tmp_path):
     src = tmp_path / "m.py"
     src.write_text("def f():\n    from .other import thing\n")
     assert imports_of("pkg.m", src, {"pkg.m", "pkg.other"}) == {"pkg.other"}
+
+
+@pytest.mark.parametrize("rel", ["formats.py", "io/files.py"])
+def test_what_the_addon_reads_by_path_needs_only_the_standard_library(rel):
+    """The add-on loads these modules of bake/ by their paths (blender_addon/deps.py `_stdlib_module`),
+    where numpy may be missing: they import nothing but the standard library, and nothing relative."""
+    import sys
+    tree = ast.parse((ROOT / "bake" / rel).read_text())
+    names = [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+    names += [n.module if not n.level else "." * n.level + (n.module or "")
+              for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+    outside = [m for m in names if m.split(".")[0] not in sys.stdlib_module_names]
+    assert not outside, f"bake/{rel} imports beyond the standard library: {outside}"
+
+
+def test_the_addon_hashes_with_bake_io_files(tmp_path):
+    """One file_hash: the add-on's render side (blender_addon/render/derived.py) uses bake/io/files.py's,
+    loaded by its path, and it hashes as the bake's does."""
+    import importlib.util
+    from bake.io import files
+    spec = importlib.util.spec_from_file_location("deps_under_test", ROOT / "blender_addon" / "deps.py")
+    deps = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(deps)
+    assert deps.files().__file__ == files.__file__
+    path = tmp_path / "f.bin"
+    path.write_bytes(bytes(range(256)) * 5000)
+    assert deps.files().file_hash(path) == files.file_hash(path)

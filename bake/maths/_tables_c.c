@@ -869,8 +869,10 @@ FT_INLINE void group_keys(const double *w, int64_t stride, int64_t nparts, const
 }
 
 /* Tables (nparts 1) or MixedTables (nparts parts, bounds[nparts - 1] the parts' first angles
- * after the first part's): the samples, as run_part describes them, grouped (see above). */
-static void run_grouped(int kind, const ft_tables *parts, int64_t nparts, const double *bounds, int64_t n,
+ * after the first part's): the samples, as run_part describes them, grouped (see above).
+ * Cloned per instruction set as run_part is: mixed tables' keys need theta_i (hypot, atan2),
+ * which ran in 2-lane SSE2 calls before (paper_white, a new wi per sample: 6 % of the time). */
+FT_CLONES static void run_grouped(int kind, const ft_tables *parts, int64_t nparts, const double *bounds, int64_t n,
                 const double *wi, int64_t wi_stride, const double *in, double *out, double *out2) {
     const int in_w = kind == SAMPLE ? 2 : 3, out_w = kind == SAMPLE ? 3 : (kind == PDF ? 1 : (kind == INVERT ? 2 : 3));
     const int64_t keys = nparts * GROUP_KEYS;

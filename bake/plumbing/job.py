@@ -181,12 +181,12 @@ class Job:
     # ---------------------------------------------------------------- bake
 
     def bake_current(self, entry, material):
-        from ..export.derived import derived_current
+        from ..export.derived import TableFile, derived_current
         from ..io.paths import table_path
         from .pipeline import open_current_tables
         try:
-            return (open_current_tables(entry, self.out, self.manifest.path) is not None
-                    and derived_current(table_path(self.out, entry.name)))
+            tables = open_current_tables(entry, self.out, self.manifest.path)
+            return tables is not None and derived_current(TableFile(table_path(self.out, entry.name), tables))
         except FlowBSDFError:
             return False
 

@@ -19,14 +19,8 @@ FIT_VERSION, READABLE_FIT_VERSIONS = _FORMATS.FIT_VERSION, _FORMATS.READABLE_FIT
 fit_current = _FORMATS.fit_current
 
 
-def file_hash(path):
-    """sha256 of the file's bytes (as bake.io.files.file_hash, which needs the bake package and so numpy)."""
-    import hashlib
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+# sha256 of a file's bytes: bake/io/files.py's, read by its path (deps.files: without numpy)
+file_hash = deps.files().file_hash
 
 
 def load_fit(path):

@@ -3,29 +3,31 @@ rays the sample's place in its pixel (the film: Cycles' box filter); docs/svm.md
 import bpy
 
 from .. import sockets
-from .graph import X, Y, Z
+from .graph import X, Y, Z, fma, where
 
 FILM = "FlowBSDF SVM film"      # a Combine XYZ node per sampler: film_settings
 
 
-def portal_depth(light_path):
+def portal_depth(g, light_path):
     """How many Ray Portals the path has gone through: Light Path's Portal Depth (Blender 5.0+);
     before 5.0 its Transparent Depth, which a portal also counts (Cycles' path_state_next: a
     portal is a transparent bounce, 4.5 as 5.0), and so does a transparent surface: there camera
     rays take hashed u instead of their pixel's stratified ones and the hash mixes in that count,
     unbiased either way."""
-    return light_path.outputs.get("Portal Depth") or light_path.outputs["Transparent Depth"]
+    name = "Portal Depth" if light_path.outputs.get("Portal Depth") is not None else "Transparent Depth"
+    return g.outputs(light_path)[name]
 
 
 def _random(g, geometry, light_path):
     """u0, u1, u2 hashed from the shading point and the incoming ray (docs/svm.md)."""
+    path = g.outputs(light_path)
     noise = g.node("ShaderNodeTexWhiteNoise", noise_dimensions='4D')
     g.set(noise.inputs["Vector"], geometry.outputs["Position"])
-    g.set(noise.inputs["W"], light_path.outputs["Ray Length"])
-    depth = g.math('MULTIPLY_ADD', light_path.outputs["Ray Depth"], 64.0, portal_depth(light_path))
+    g.set(noise.inputs["W"], path["Ray Length"])
+    depth = fma(path["Ray Depth"], 64.0, portal_depth(g, light_path))
     noise2 = g.node("ShaderNodeTexWhiteNoise", noise_dimensions='4D')
     g.set(noise2.inputs["Vector"], geometry.outputs["Incoming"])
-    g.set(noise2.inputs["W"], g.math('ADD', noise.outputs["Value"], depth))
+    g.set(noise2.inputs["W"], g.outputs(noise)["Value"] + depth)
     return tuple(g.dot(noise2.outputs["Color"], axis) for axis in (X, Y, Z))
 
 
@@ -67,7 +69,6 @@ def _film_u(g, light_path, hashed):
     g.set(rotation.inputs["Vector"], g.vmath('FLOOR', raster))
     g.set(rotation.inputs["W"], g.dot(film.outputs[0], Z))
     u = g.vmath('FRACTION', g.vmath('ADD', g.vmath('FRACTION', raster), rotation.outputs["Color"]))
-    first = g.math('MULTIPLY', light_path.outputs["Is Camera Ray"],
-                   g.math('LESS_THAN', portal_depth(light_path), 0.5))
-    use = g.math('MULTIPLY', first, g.math('GREATER_THAN', g.dot(film.outputs[0], Z), 0.5))
-    return tuple(g.select(use, g.dot(u, axis), h) for axis, h in zip((X, Y), hashed))
+    first = g.outputs(light_path)["Is Camera Ray"] * (portal_depth(g, light_path) < 0.5)
+    use = first * (g.dot(film.outputs[0], Z) > 0.5)
+    return tuple(where(use, g.dot(u, axis), h) for axis, h in zip((X, Y), hashed))
