@@ -45,22 +45,47 @@ def registered():
     lb.unregister()
 
 
+PROBE_MATERIAL = "flowbsdf probe"
+
+
 def _probe(tex, n, theta, mode, phi=0.0, world="", **inputs):
     """The probe shader's outputs on an n x n grid (rows top first, flattened); `inputs` sets
-    further script inputs by name."""
-    sc = cs.reset(n, n, spp=1)
-    sc.cycles.filter_width = 0.01             # every pixel's one sample at its centre
-    cs.ortho_camera(sc)
-
-    def nodes(tree):
-        s = osl_script.make_script_node(tree, probe=True)
-        values = {"Tables": str(tex), "World": str(world), "ProbeN": n, "ProbeTheta": theta, "ProbePhi": phi,
-                  "ProbeMode": mode, **inputs}
-        for name, value in values.items():
-            s.inputs[name].default_value = value
-        return s.outputs["BSDF"]
-    cs.add_plane(sc, cs.material_with(nodes))
+    further script inputs by name, the others keep the shader's defaults. The probe scene (a
+    plane under an orthographic camera, the probe's Script node) is made once and kept until
+    another test's scene replaces it: a probe sets its inputs and renders (the script's
+    compilation and a factory reset were half of a probe's ~0.5 s)."""
+    script = _probe_script()
+    values = {**script["defaults"], "Tables": str(tex), "World": str(world), "ProbeN": n, "ProbeTheta": theta,
+              "ProbePhi": phi, "ProbeMode": mode, **inputs}
+    for name, value in values.items():
+        script["node"].inputs[name].default_value = value
+    sc = bpy.context.scene
+    sc.render.resolution_x = sc.render.resolution_y = n
     return cs.render(sc).reshape(-1, 3)
+
+
+def _probe_script():
+    """The probe scene's Script node and its inputs' defaults (made when the current scene is
+    not the probe scene)."""
+    mat = bpy.data.materials.get(PROBE_MATERIAL)
+    if mat is None or not bpy.context.scene.get("flowbsdf_probe"):
+        sc = cs.reset(8, 8, spp=1)
+        sc.cycles.filter_width = 0.01             # every pixel's one sample at its centre
+        cs.ortho_camera(sc)
+        cs.add_plane(sc, cs.material_with(lambda tree: osl_script.make_script_node(tree, probe=True).outputs["BSDF"],
+                                          PROBE_MATERIAL))
+        mat = bpy.data.materials[PROBE_MATERIAL]
+        node = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeScript")
+        _PROBE_DEFAULTS.clear()
+        _PROBE_DEFAULTS.update({s.name: (s.default_value if isinstance(s.default_value, (int, float, str))
+                                         else tuple(s.default_value))
+                                for s in node.inputs if hasattr(s, "default_value")})
+        sc["flowbsdf_probe"] = True
+    node = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeScript")
+    return {"node": node, "defaults": dict(_PROBE_DEFAULTS)}
+
+
+_PROBE_DEFAULTS = {}
 
 
 @pytest.mark.parametrize("name", slow_unless(sorted(SPECS) + ["gold-wo", "gold-halfpolar"],
@@ -403,8 +428,10 @@ def baked_albedo_fit(fit, cos_i):
 
 
 def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):
+    from bake.export.derived import ensure_fit
     path = tmp_path / "gold.exr"
-    path.write_bytes(baked["gold"].read_bytes())
+    for src in (baked["gold"], ensure_fit(baked["gold"])):     # (the module's fit: current for the copy too)
+        (tmp_path / src.name).write_bytes(src.read_bytes())
     sc = cs.reset(16, 16, spp=4)
     cs.ortho_camera(sc, scale=2.2)
     cs.set_world(sc, (1.0, 1.0, 1.0))
@@ -657,6 +684,33 @@ def test_film_settings_follow_the_scene(baked):
     assert got()["Seed"] == 13
 
 
+def test_render_seeds_is_the_handlers_render_per_seed(baked):
+    """cs.render_seeds (the statistical renders' helper) renders a film-stratified OSL scene's
+    seeds with one shader compilation (Seed from an object attribute, the handlers aside): the
+    same image bit for bit as the node's handlers render at that seed (Seed a constant), and it
+    leaves the scene as it was (the handlers back, no attribute node)."""
+    sc = cs.reset(12, 12, spp=4)
+    sc.cycles.pixel_filter_type, sc.cycles.filter_width = 'BOX', 1.0
+    cs.ortho_camera(sc, scale=2.2)
+    cs.set_world(sc, (1.0, 1.0, 1.0))
+    mat = bpy.data.materials.new("seeds")
+    node = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
+    lb.set_backend(sc, "osl")
+    cs.add_sphere(sc, mat, segments=32, rings=16)
+    setattr(sc, lb.FILM_PROP, True)
+    fast = cs.render_seeds(sc, 2)
+    script = node.node_tree.nodes[osl_script.SCRIPT]
+    assert not script.inputs["Seed"].is_linked and len(node.node_tree.nodes) == len(
+        [n for n in node.node_tree.nodes if n.bl_idname != "ShaderNodeAttribute"])
+    assert all(fn in h for h, fn in lb._handlers())
+    sc.cycles.seed = 1
+    sc.render.use_persistent_data = True
+    by_handlers = cs.render(sc)
+    assert script.inputs["Seed"].default_value == 1 and script.inputs["FilmFilter"].default_value == 1
+    assert not np.array_equal(fast[0], fast[1])        # (the seed moves the film-stratified u)
+    assert np.array_equal(fast[1], by_handlers)
+
+
 def _soft_env(path, w=64, h=32):
     """A soft sky (gradient, ground, broad warm glow): no small bright features."""
     import OpenEXR
@@ -760,12 +814,17 @@ RGL_THREE = ("paper_white_rgb", "cm_military_green_rgb", "chm_mint_rgb")    # di
 
 @pytest.fixture(scope="module")
 def rgl_baked(tmp_path_factory):
-    """Draft tables (16 x 16 cells, 5 bins, from the ideal tabulation) of three shared RGL
-    materials of different shininess; a test skips when the data is absent."""
-    from conftest import rgl_dir
-    root = tmp_path_factory.mktemp("rgl_tables")
-    return {name: _small_tables(rgl_dir() / f"{name}.bsdf", name, root)
-            for name in RGL_THREE if (rgl_dir() / f"{name}.bsdf").is_file()}
+    """rgl_baked(name): draft tables (16 x 16 cells, 5 bins, from the ideal tabulation) of one of
+    three shared RGL materials of different shininess, made at a test's first call (the default
+    run renders one of them); the test skips when the data is absent."""
+    from conftest import rgl_path
+    root, made = tmp_path_factory.mktemp("rgl_tables"), {}
+
+    def tables(name):
+        if name not in made:
+            made[name] = _small_tables(rgl_path(name), name, root)
+        return made[name]
+    return tables
 
 
 @pytest.mark.parametrize("name", slow_unless(RGL_THREE, default=["chm_mint_rgb"]))
@@ -774,9 +833,7 @@ def test_rgl_sphere_under_an_environment_both_back_ends(rgl_baked, name, tmp_pat
     environment: the OSL back end matches the reference tracer within MC error; the fit back
     end renders the same scene near it (its bias is its fit error: within 20 % on the sphere's
     mean; measured with these draft tables: chm_mint -11 / -2 / -5 % in R / G / B)."""
-    from conftest import rgl_path
-    rgl_path(name)                  # skips with the reason when the shared data is absent
-    sc, ref, inner = _check_osl_matches_tracer(rgl_baked[name], name, tmp_path)
+    sc, ref, inner = _check_osl_matches_tracer(rgl_baked(name), name, tmp_path)
     lb.set_backend(sc, "fit")
     fit_img = cs.render(sc)
     group = next(n for n in bpy.data.materials[name].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
