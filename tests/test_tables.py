@@ -1014,10 +1014,13 @@ class MirrorTakesOver(Material):
     """f·cos: a broad lobe fixed in wo below theta_i START deg, fading into a narrow mirror lobe
     by START + 10 (a floor of 1e-3)."""
     START, C, BROAD, NARROW = 20.0, spherical_dir(np.radians(50.0), 0.5 * np.pi), 0.05, 0.002
+    MIRROR_FIRST = False        # True: the mirror lobe below START, the broad one above
 
     def eval(self, wi, wo):
         wi, wo = as_dirs(wi, wo)
         s = np.clip((np.degrees(np.arccos(np.clip(wi[:, 2], -1.0, 1.0))) - self.START) / 10.0, 0.0, 1.0)
+        if self.MIRROR_FIRST:
+            s = 1.0 - s
 
         def lobe(c, width):
             return np.exp(-np.sum((wo - c) ** 2, axis=1) / width)
@@ -1256,15 +1259,7 @@ class SharpThenBroad(MirrorTakesOver):
     """A narrow mirror lobe below theta_i START deg, fading into a broad lobe fixed in wo by START + 10
     (MirrorTakesOver the other way round): coarse cells lose below START, not above."""
     START, C, BROAD, NARROW = 60.0, spherical_dir(np.radians(30.0), 0.5 * np.pi), 0.3, 0.003
-
-    def eval(self, wi, wo):
-        wi, wo = as_dirs(wi, wo)
-        s = np.clip((np.degrees(np.arccos(np.clip(wi[:, 2], -1.0, 1.0))) - self.START) / 10.0, 0.0, 1.0)
-
-        def lobe(c, width):
-            return np.exp(-np.sum((wo - c) ** 2, axis=1) / width)
-        g = 1e-3 + s * lobe(self.C, self.BROAD) + (1.0 - s) * 20.0 * lobe(wi * np.array([-1.0, -1.0, 1.0]), self.NARROW)
-        return np.repeat((g / np.maximum(wo[:, 2], 1e-12))[:, None], 3, axis=1) * (wo[:, 2:3] > 0)
+    MIRROR_FIRST = True
 
 
 @pytest.mark.parametrize("start, group", [(40.0, "lower"), (60.0, "upper")])
