@@ -21,9 +21,12 @@ def spherical_dir(theta, phi):
 
 
 def theta_phi(w):
-    """Elevation in [0, pi] and azimuth in (-pi, pi]; atan2 keeps precision near the pole."""
-    w = np.asarray(w, float)
-    return np.arctan2(np.hypot(w[..., 0], w[..., 1]), w[..., 2]), np.arctan2(w[..., 1], w[..., 0])
+    """Elevation in [0, pi] and azimuth in (-pi, pi]; atan2 keeps precision near the pole.
+    On contiguous copies of the components: numpy's arctan2 of a strided view (w[..., 2]) gave
+    other bits (1 ulp, near the pole) in some of the baker's threads than in the main thread, so
+    a bake's tables depended on which thread built them (measured: 2 bakes in 30 differed)."""
+    x, y, z = (np.ascontiguousarray(w[..., k], float) for k in range(3))
+    return np.arctan2(np.hypot(x, y), z), np.arctan2(y, x)
 
 
 def reflect(wi, m):
