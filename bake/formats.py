@@ -48,11 +48,11 @@ CARRY_LAYOUT = 1        # the carried blend's texture (bake/export/carry_export.
 GRAPH_VERSION = 4       # 4: the theta guide's entry from sqrt(1 - cos theta_i)
 
 # The closure fit file (bake/export/closure_fit.py, read without numpy by blender_addon/render/derived.py)
-FIT_VERSION = 9         # 9: anisotropic tables' lobes along the material's tangent
-READABLE_FIT_VERSIONS = (6, 7, 8, 9)    # a version 6 fit has no tilts (all 0), 6 and 7 no "eevee"
+FIT_VERSION = 10        # 9: anisotropic tables' lobes along the material's tangent; 10: and their control variate
+READABLE_FIT_VERSIONS = (6, 7, 8, 9, 10)    # a version 6 fit has no tilts (all 0), 6 and 7 no "eevee"
 
 
 def fit_current(version, anisotropic):
     """Whether a fit of `version` is the one FIT_VERSION makes: isotropic tables' fits have not
-    changed since 8 (so they are not made again), anisotropic ones since 9."""
-    return version == FIT_VERSION or (version == 8 and not anisotropic)
+    changed since 8 (so they are not made again), anisotropic ones since 10."""
+    return version == FIT_VERSION or (version in (8, 9) and not anisotropic)

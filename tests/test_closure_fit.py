@@ -717,14 +717,15 @@ def test_eval_fit_of_material_aligned_lobes_is_the_tables_frames_ggx():
 
 
 def test_fits_made_again_only_where_the_version_changed_them(tmp_path):
-    """FIT_VERSION 9 changed anisotropic tables' fits only: a version 8 fit of isotropic tables
-    stays current (no material refitted on open for nothing), one of anisotropic tables does not."""
+    """FIT_VERSION 9 and 10 changed anisotropic tables' fits only (their lobes along the material,
+    then their control variate): a version 8 or 9 fit of isotropic tables stays current (no
+    material refitted on open for nothing), one of anisotropic tables does not."""
     from bake.formats import FIT_VERSION, fit_current
-    assert FIT_VERSION == 9
-    assert fit_current(9, False) and fit_current(9, True) and fit_current(8, False)
-    assert not fit_current(8, True) and not fit_current(7, False)
+    assert FIT_VERSION == 10
+    assert fit_current(10, False) and fit_current(10, True) and fit_current(9, False) and fit_current(8, False)
+    assert not fit_current(9, True) and not fit_current(8, True) and not fit_current(7, False)
     path = tmp_path / "t.fit.json"
-    for anisotropic, current in ((False, True), (True, False)):
-        path.write_text(json.dumps({"format": "flowbsdf-closure-fit", "version": 8, "tables_hash": "abc",
+    for version, anisotropic, current in ((8, False, True), (9, False, True), (9, True, False), (10, True, True)):
+        path.write_text(json.dumps({"format": "flowbsdf-closure-fit", "version": version, "tables_hash": "abc",
                                     "anisotropic": anisotropic}))
         assert closure_fit.is_current(path, "abc") is current

@@ -55,7 +55,7 @@ Anisotropic tables (FIT_VERSION 9): the first VIEW_ALIGNED lobes lie along the M
 tangent (the tables' x: the node's Tangent input, which Cycles projects onto the surface as the
 exact back ends do, turned about the normal by the fit's tangent_turn, found at normal view:
 a material turned 37 deg gets 37.03), their anisotropy either way on ANISOTROPY_MATERIAL (up to
-45:1), the last isotropic; no tilts, no control variate. Each knot's quadrature, albedo and error
+45:1), the last isotropic; no tilts; the control variate (FIT_VERSION 10) over the view azimuths. Each knot's quadrature, albedo and error
 run over PHI_VIEWS view azimuths over the tables' phi_i period (view_azimuths), and so does
 `l1`. brushed_steel's default bake (GGX 0.3 x 0.02): median L1 against the material 1.360 ->
 0.034 (the former fit: isotropic lobes at phi_i = 0, worse than black), fit 10 s CPU at load
@@ -870,8 +870,8 @@ def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None, vie
         out["rel_error"].append(float(rel))
         out["albedo"].append([float(v) for v in knot.albedo])
         out["fit_albedo"].append([float(v) for v in fit_albedo])
-        out["cv"].append([0.0, 0.0, 1.0] if tables.anisotropic else
-                         list(cv_scales(tables, knot.theta, kd, ks, alpha, aniso, seed=seed, tilt=tilt, diffuse_tilt=dtilt)))
+        out["cv"].append(list(cv_scales(tables, knot.theta, kd, ks, alpha, aniso, seed=seed, tilt=tilt, diffuse_tilt=dtilt,
+                                        phis=phis, turn=turn)))
     # The node clamps Facing to the knots' range: extend to x = 1 (grazing) with the last knot.
     if out["x"][-1] < 1.0:
         for key in PARAM_KEYS[1:] + ("rel_error", "albedo", "fit_albedo", "cv"):
@@ -935,7 +935,8 @@ def _hemisphere_grid(n_theta=96, n_phi=192):
 _HEMISPHERE = _hemisphere_grid()
 
 
-def cv_scales(tables, theta, kd, ks, alpha, aniso, n=1 << 15, seed=0, betas=CV_BETAS, tilt=None, diffuse_tilt=0.0):
+def cv_scales(tables, theta, kd, ks, alpha, aniso, n=1 << 15, seed=0, betas=CV_BETAS, tilt=None, diffuse_tilt=0.0,
+              phis=None, turn=0.0):
     """(beta_d, beta_s, portal share s) at this view angle (module docstring), chosen for a
     small bright light (a sun, a lamp) from a direction l uniform over the hemisphere, whose
     light the portal draws with probability CV_LIGHT_SHARE (its mixture's sun or map share):
@@ -950,17 +951,29 @@ def cv_scales(tables, theta, kd, ks, alpha, aniso, n=1 << 15, seed=0, betas=CV_B
     a bound of 8 albedos on the negative weight: 24 pixels below 0 at 64 spp, 9 at 1024).
     (Cycles' own pick between closures goes by their weights, which for the portal depend on
     its direction: a sun found by the portal's mixture, where its weight is small, would be
-    taken rarely and then with a huge weight: hence the graph's own pick with a fixed s.)"""
-    wi = np.array([np.sin(theta), 0.0, np.cos(theta)])
+    taken rarely and then with a huge weight: hence the graph's own pick with a fixed s.)
+    Anisotropic tables (a material-aligned fit: no tilts): over the view azimuths `phis`
+    together (view_azimuths; each n / their count of the tables' samples and a share of the
+    grid, every count-th of its points), the lobes' tangent at `turn`
+    in the tables' frame (tangent_turn): one (beta_d, beta_s, s) for every azimuth of the view."""
     rng = np.random.default_rng(seed)
-    wo, p = tables.sample(wi, _stratified(n, rng))
-    wo = np.concatenate([wo[(wo[:, 2] > 0) & (p > 0)], _HEMISPHERE])
-    c = wo[:, 2:3]
-    fcos = tables.eval(wi, wo) * c
+    views = [_view(theta)] if phis is None else [_view(theta, float(p)) for p in (phis[:1] if theta == 0.0 else phis)]
+    spin = _spin(-float(turn))
     kd = np.asarray(kd, float)
-    dcos = kd[None, :] * diffuse_tilt_fcos(wo, float(diffuse_tilt))[:, None]
-    gcos = _fit_fcos_at(wi, wo, np.zeros(3), ks, alpha, aniso, tilt)     # the lobes together
-    grid = slice(len(wo) - len(_HEMISPHERE), None)      # the hemisphere grid: l uniform
+    fcos, dcos, gcos, grid = [], [], [], []
+    for k, wi in enumerate(views):
+        # (each view a share of the samples and of the grid's columns: together the cost of one view)
+        wo, p = tables.sample(wi, _stratified(n // len(views), rng))
+        hemisphere = _HEMISPHERE[k::len(views)]
+        wo = np.concatenate([wo[(wo[:, 2] > 0) & (p > 0)], hemisphere])
+        fcos.append(tables.eval(wi, wo) * wo[:, 2:3])
+        dcos.append(kd[None, :] * diffuse_tilt_fcos(wo, float(diffuse_tilt))[:, None])
+        if phis is None:
+            gcos.append(_fit_fcos_at(wi, wo, np.zeros(3), ks, alpha, aniso, tilt))    # the lobes together
+        else:
+            gcos.append(_fit_fcos_at(spin @ wi, wo @ spin.T, np.zeros(3), ks, alpha, aniso))
+        grid.append(np.arange(len(wo)) >= len(wo) - len(hemisphere))       # the hemisphere grid: l uniform
+    fcos, dcos, gcos, grid = (np.concatenate(x) for x in (fcos, dcos, gcos, grid))
     alone = float(np.mean(fcos[grid] ** 2)) / CV_LIGHT_SHARE
     # a and b of every (beta_d, beta_s) from the grid's moments (both quadratic in the betas)
     fg, dg, gg = fcos[grid], dcos[grid], gcos[grid]

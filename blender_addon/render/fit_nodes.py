@@ -178,20 +178,8 @@ def closures(tree, params, loc, scale_d=None, scale_s=None, tilts=True, material
     back end's control variate); `tilts` False: every closure untilted."""
     nodes, links = tree.nodes, tree.links
     x, y = loc[0] + 3000, loc[1]
-    if params["material_aligned"] and material_tangent is None:
-        raise ValueError("a closure fit along the material's tangent needs that tangent")
-    if params["material_aligned"] and params["tangent_turn"]:
-        # the lobes' tangent turned about the normal (right-handed: x toward y = N x x, as
-        # closure_fit.eval_fit turns it); Cycles projects it onto the surface after
-        geometry = nodes.new("ShaderNodeNewGeometry")
-        geometry.location = (x - 600, y - 1300)
-        turned = nodes.new("ShaderNodeVectorRotate")
-        turned.rotation_type = 'AXIS_ANGLE'
-        turned.location = (x - 400, y - 1300)
-        links.new(material_tangent, turned.inputs["Vector"])
-        links.new(geometry.outputs["Normal"], turned.inputs["Axis"])
-        turned.inputs["Angle"].default_value = params["tangent_turn"]
-        material_tangent = turned.outputs["Vector"]
+    if params["material_aligned"]:
+        material_tangent = lobe_tangent(tree, params, material_tangent, (x - 600, y - 1300))
 
     def scaled(colour, scale, at):
         if scale is None:
@@ -262,6 +250,26 @@ def closures(tree, params, loc, scale_d=None, scale_s=None, tilts=True, material
         links.new(glossy.outputs[0], add.inputs[1])
         out = add.outputs[0]
     return out
+
+
+def lobe_tangent(tree, params, material_tangent, loc):
+    """The tangent a material-aligned fit's lobes take: `material_tangent` (the tables' frame,
+    the group's Tangent input) turned about the normal by params["tangent_turn"] (right-handed:
+    x toward y = N x x, as closure_fit.eval_fit turns it); Cycles projects it onto the surface
+    after, as the exact back ends do."""
+    if material_tangent is None:
+        raise ValueError("a closure fit along the material's tangent needs that tangent")
+    if not params["tangent_turn"]:
+        return material_tangent
+    geometry = tree.nodes.new("ShaderNodeNewGeometry")
+    geometry.location = loc
+    turned = tree.nodes.new("ShaderNodeVectorRotate")
+    turned.rotation_type = 'AXIS_ANGLE'
+    turned.location = (loc[0] + 200, loc[1])
+    tree.links.new(material_tangent, turned.inputs["Vector"])
+    tree.links.new(geometry.outputs["Normal"], turned.inputs["Axis"])
+    turned.inputs["Angle"].default_value = params["tangent_turn"]
+    return turned.outputs["Vector"]
 
 
 def view_tangent(tree, loc, with_normal=False):

@@ -108,7 +108,10 @@ def _svm_backend(tree, svm_texture, fit, tangent, world_inputs, loc=(-1400, -300
     params = fit_nodes.fit_params(tree, fit, (loc[0], loc[1] + 1600), cv=True)
     cv = {"fit": params, "betas": params["cv"], "matched_share": params["matched"],
           "has_betas": has_betas, "match_image": match,
-          "closures": lambda sd, ss: fit_nodes.closures(tree, params, (loc[0], loc[1] + 1600), sd, ss, tilts=svm.CV_TILTS)}
+          "closures": lambda sd, ss: fit_nodes.closures(tree, params, (loc[0], loc[1] + 1600), sd, ss, tilts=svm.CV_TILTS,
+                                                        material_tangent=tangent)}
+    if params["material_aligned"]:
+        cv["tangent"] = fit_nodes.lobe_tangent(tree, params, tangent, (loc[0] + 2400, loc[1] + 300))
     return svm.build_svm_sampler(tree, svm_texture, tangent, location=loc, world=world_inputs, cv=cv)
 
 

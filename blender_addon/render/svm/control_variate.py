@@ -26,9 +26,11 @@ def _matching(mix, matchable):
 
 
 def control_variate_wanted(texture_path, fit):
-    """Whether the node's SVM back end hands build_svm_sampler a control variate: isotropic
-    tables with a fit (for anisotropic tables the fit is made at phi_i 0 only)."""
-    return bool(fit and fit.get("cv")) and _svm_export().read_layout(texture_path)["P"] == 1
+    """Whether the node's SVM back end hands build_svm_sampler a control variate: tables with a
+    fit that has one, anisotropic tables only with a fit along their own tangent (FIT_VERSION
+    10; an older one was made at phi_i 0 only)."""
+    return (bool(fit and fit.get("cv"))
+            and (_svm_export().read_layout(texture_path)["P"] == 1 or bool(fit.get("material_aligned", 0))))
 
 
 def _cv_switched(g, cv, world, matched, match_lamp=False):
@@ -90,7 +92,10 @@ def _cv_fcos(g, cv, wi, n, d):
         inputs["Tilt"] = fit["tilt"]
     if lobes > 3 or tilted[0]:
         inputs["Lobe 4"] = fit["lobe4"]
-    return g.group(_cv_fcos_group(lobes, tilted), Wi=wi, N=n, D=d, Diffuse=fit["kd"], Roughness=fit["roughness"],
+    along = bool(fit.get("material_aligned"))
+    if along:
+        inputs["T"] = cv["tangent"]
+    return g.group(_cv_fcos_group(lobes, tilted, along), Wi=wi, N=n, D=d, Diffuse=fit["kd"], Roughness=fit["roughness"],
                    Anisotropy=fit["anisotropy"], DiffuseScale=cv["diffuse"], SpecularScale=cv["specular"],
                    **inputs)[0]
 
@@ -100,17 +105,23 @@ def _cv_fcos(g, cv, wi, n, d):
 CV_TILTS = True
 
 
-def _cv_fcos_group(lobes, tilted=None):
+def _cv_fcos_group(lobes, tilted=None, along_t=False):
     """_cv_fcos's group: `lobes` GGX lobes (the first three view-aligned where their Anisotropy
     is not 0, the 4th isotropic: its roughness, tilt and the Diffuse's tilt from "Lobe 4" =
     (r_4, t_4, t_d)), tilted[k] whether closure k (the Diffuse first) has its own normal
-    normalize(N + t T / |T|) (T the view tangent; else N)."""
+    normalize(N + t T / |T|) (T the view tangent; else N). `along_t`: the three along the
+    input "T" instead (a material-aligned fit: the tables' tangent turned by the fit's
+    tangent_turn, fit_nodes.lobe_tangent, as the fit's closures take it; no tilts)."""
     tilted = tuple(tilted or (False,) * (lobes + 1))
+    if along_t and any(tilted):
+        raise ValueError("a fit along the material's tangent has no tilts")
     names = (["Wi", "N", "D", "Diffuse"] + [f"Specular {j + 1}" for j in range(lobes)]
              + ["Roughness", "Anisotropy"] + (["Tilt"] if any(tilted[1:4]) else [])
-             + (["Lobe 4"] if lobes > 3 or tilted[0] else []) + ["DiffuseScale", "SpecularScale"])
+             + (["Lobe 4"] if lobes > 3 or tilted[0] else []) + ["DiffuseScale", "SpecularScale"]
+             + (["T"] if along_t else []))
     mark = "" if not any(tilted) else ", tilted " + "".join("d" if k == 0 else str(k) for k, t in enumerate(tilted) if t)
-    done, tree = _group(f"{GROUP_PREFIX}control variate f cos, {lobes} view-aligned lobes{mark}, scaled",
+    kind = "lobes along T" if along_t else "view-aligned lobes"
+    done, tree = _group(f"{GROUP_PREFIX}control variate f cos, {lobes} {kind}{mark}, scaled",
                         [(name, "Vector") for name in names], [("F cos", "Vector")])
     if done:
         return done
@@ -122,8 +133,8 @@ def _cv_fcos_group(lobes, tilted=None):
     above = g.math('MULTIPLY', g.math('GREATER_THAN', cos_i, 0.0), g.math('GREATER_THAN', cos_o, 0.0))
     # Cycles' frame of an anisotropic closure (make_orthonormals_tangent): y = normalize(N x T),
     # x = y x N, T the view's tangent (node.view_tangent: wi less its normal part, nudged)
-    tangent = g.vmath('MULTIPLY_ADD', g.vmath('CROSS_PRODUCT', n, VIEW_TANGENT_NUDGE), (VIEW_TANGENT_EPS,) * 3,
-                      g.vmath('SUBTRACT', wi, g.scale(n, cos_i)))
+    tangent = inp["T"] if along_t else g.vmath('MULTIPLY_ADD', g.vmath('CROSS_PRODUCT', n, VIEW_TANGENT_NUDGE),
+                                                 (VIEW_TANGENT_EPS,) * 3, g.vmath('SUBTRACT', wi, g.scale(n, cos_i)))
     h = g.vmath('NORMALIZE', g.vmath('ADD', wi, d))
     separated = {}
 
