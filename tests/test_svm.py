@@ -1404,7 +1404,7 @@ def test_svm_anisotropic_control_variate_furnace_gives_the_baked_albedo(svm, bru
 def test_svm_anisotropic_control_variate_cuts_the_sun_noise(svm, brushed, brushed_fit, tmp_path):
     """Under a sky with its sun, a brushed sphere (tangent world x) with the anisotropic control
     variate (its baked betas: no match image for anisotropic tables) renders with less noise per
-    pixel than the world mixture alone (measured ratio 0.54, 16 px, 64 spp, 6 seeds), the same
+    pixel than the world mixture alone (measured ratio 0.54 over 6 seeds, 0.43 over these 4; 16 px, 64 spp), the same
     image (sphere mean within 4 SE: the sun makes that SE ~12 %; the furnace test above holds
     the bias to 0.15 %)."""
     from blender_addon.render import node as lb
@@ -1415,7 +1415,8 @@ def test_svm_anisotropic_control_variate_cuts_the_sun_noise(svm, brushed, brushe
     inputs = dict(bw.bake_world_map(sc, tmp_path), LightDirection=(0.0, 0.0, 0.0))
     cv = cs.material_with(lambda tree: lb._svm_backend(tree, texture, brushed_fit, _tangent_socket(tree, (1.0, 0.0, 0.0)),
                                                        inputs), "anisotropic cv")
-    renders = {"cv": _sky_renders(svm, sc, sphere, cv), "alone": _sky_renders(svm, sc, sphere, materials["mixture"])}
+    renders = {"cv": _sky_renders(svm, sc, sphere, cv, seeds=4),
+               "alone": _sky_renders(svm, sc, sphere, materials["mixture"], seeds=4)}
     _, hit = cs.sphere_view(n, n, scale=2.2)
     a, b = renders["cv"], renders["alone"]
     seeds = len(a)
