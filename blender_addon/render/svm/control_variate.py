@@ -3,7 +3,8 @@ probability 1 - s, the portal carrying the rest; f_cv cos as Cycles renders thos
 (`_cv_fcos`), the match image's lookup. What it does and measured: docs/svm.md."""
 import math
 
-from .graph import GROUP_PREFIX, X, Y, Z, _Graph, _group, _image
+from .graph import (GROUP_PREFIX, X, Y, Z, _Graph, _group, _image, atan2, clamp, floor, fma, inversesqrt, maximum,
+                    minimum, sqrt, where)
 from .tables import _svm_export
 
 CV = "FlowBSDF SVM cv"          # a Value node per control variate: 1 on, 0 off (ControlVariate)
@@ -54,11 +55,11 @@ def _cv_switched(g, cv, world, matched, match_lamp=False):
     node["flowbsdf_match_lamp"] = int(matched and match_lamp)
     if not matched and not cv["has_betas"]:
         return None
-    on = g.math('MULTIPLY', node.outputs[0], g.node("ShaderNodeLightPath").outputs["Is Camera Ray"])
+    on = g.outputs(node)[0] * g.outputs(g.node("ShaderNodeLightPath"))["Is Camera Ray"]
     beta_d, beta_s = g.dot(cv["betas"], X), g.dot(cv["betas"], Y)
     return dict(cv, on=on, matching=matched, diffuse=g.combine(beta_d, beta_d, beta_d),
                 specular=g.combine(beta_s, beta_s, beta_s),
-                s=g.math('SUBTRACT', 1.0, g.math('MULTIPLY', on, g.math('SUBTRACT', 1.0, g.dot(cv["betas"], Z)))))
+                s=1.0 - on * (1.0 - g.dot(cv["betas"], Z)))
 
 
 def _cv_value(world):
@@ -70,10 +71,9 @@ def _cv_pick(g, cv, u0):
     share), else 0; u0 rescaled within the part taken: uniform again for the portal's sampling).
     By u0, so that on camera rays the pick is as stratified over a pixel's samples as u0 is."""
     s = cv["s"]
-    take = g.math('LESS_THAN', u0, s)
-    inside = g.select(take, g.math('DIVIDE', u0, s),
-                      g.math('DIVIDE', g.math('SUBTRACT', u0, s), g.math('SUBTRACT', 1.0, s)))
-    return take, g.math('MINIMUM', inside, 1.0 - 2.0 ** -24)
+    take = u0 < s
+    inside = where(take, u0 / s, (u0 - s) / (1.0 - s))
+    return take, minimum(inside, 1.0 - 2.0 ** -24)
 
 
 def _cv_fcos(g, cv, wi, n, d):
@@ -130,7 +130,7 @@ def _cv_fcos_group(lobes, tilted=None, along_t=False):
     wi, n, d = inp["Wi"], inp["N"], inp["D"]
     cos_i = g.dot(wi, n)
     cos_o = g.dot(d, n)
-    above = g.math('MULTIPLY', g.math('GREATER_THAN', cos_i, 0.0), g.math('GREATER_THAN', cos_o, 0.0))
+    above = (cos_i > 0.0) * (cos_o > 0.0)
     # Cycles' frame of an anisotropic closure (make_orthonormals_tangent): y = normalize(N x T),
     # x = y x N, T the view's tangent (node.view_tangent: wi less its normal part, nudged)
     tangent = inp["T"] if along_t else g.vmath('MULTIPLY_ADD', g.vmath('CROSS_PRODUCT', n, VIEW_TANGENT_NUDGE),
@@ -142,7 +142,7 @@ def _cv_fcos_group(lobes, tilted=None, along_t=False):
         if name not in separated:
             separated[name] = g.node("ShaderNodeSeparateXYZ")
             g.set(separated[name].inputs[0], inp[name])
-        return separated[name].outputs[c]
+        return g.outputs(separated[name])[c]
 
     untilted = {}
     if any(tilted):
@@ -153,7 +153,7 @@ def _cv_fcos_group(lobes, tilted=None, along_t=False):
         # of these dots alone, of its own branch: every value here depends on d, through a no-op
         # for the tilts (min with a 1e30 of d), else Cycles would merge the branches' equal nodes,
         # compute them before the branches and hold them all on its stack through all.
-        big = g.math('MAXIMUM', cos_o, 1e30)
+        big = maximum(cos_o, 1e30)
         # (U and y through the no-op too: each branch's own, not held through all; y = N x U exactly)
         unit = g.vmath('MINIMUM', g.vmath('NORMALIZE', tangent), big)
         fy = g.vmath('CROSS_PRODUCT', n, unit)
@@ -163,14 +163,14 @@ def _cv_fcos_group(lobes, tilted=None, along_t=False):
 
     def tilt_of(closure):       # 0: the Diffuse, j + 1: lobe j (this branch's own)
         t = component("Lobe 4", 2 if closure == 0 else 1) if closure in (0, 4) else component("Tilt", closure - 1)
-        return g.math('MINIMUM', t, big)
+        return minimum(t, big)
 
     def turned(t, c, v, aniso):
         a, y, b = v
-        z = g.math('MULTIPLY', g.math('MULTIPLY_ADD', a, t, b), c)
+        z = fma(a, t, b) * c
         if not aniso:
             return None, None, z
-        return g.math('MULTIPLY', g.math('MULTIPLY_ADD', b, g.math('MULTIPLY', t, -1.0), a), c), y, z
+        return fma(b, -t, a) * c, y, z
 
     def local_of(closure, aniso):
         """(mask, local h, wi, d: each (x, y, z); x, y None for an isotropic lobe) about the
@@ -180,70 +180,62 @@ def _cv_fcos_group(lobes, tilted=None, along_t=False):
                 untilted[aniso] = (above, *_cv_local(g, n, tangent, h, wi, d, cos_i, cos_o, aniso))
             return untilted[aniso]
         t = tilt_of(closure)
-        c = g.math('INVERSE_SQRT', g.math('MULTIPLY_ADD', t, t, 1.0))
+        c = inversesqrt(fma(t, t, 1.0))
         lh, li, lo = (turned(t, c, dots[k], aniso) for k in ("h", "i", "o"))
         # (Cycles: wi and d above the closure's normal, d above the surface's)
-        mask = g.math('MULTIPLY', g.math('MULTIPLY', g.math('GREATER_THAN', li[2], 0.0), g.math('GREATER_THAN', lo[2], 0.0)),
-                      g.math('GREATER_THAN', cos_o, 0.0))
+        mask = (li[2] > 0.0) * (lo[2] > 0.0) * (cos_o > 0.0)
         return mask, lh, li, lo
     def square(x):      # x x, not a Power node: pow costs ~4x a multiply in Cycles' SVM (and a constant 2)
-        return g.math('MULTIPLY', x, x)
+        return x * x
     lobe = []
     for j in range(lobes):
         aniso = j < 3
-        r = g.math('MINIMUM', g.math('MAXIMUM', component("Roughness", j) if j < 3 else component("Lobe 4", 0), 0.0), 1.0)
-        alpha = g.math('MULTIPLY', r, r)
+        r = clamp(component("Roughness", j) if j < 3 else component("Lobe 4", 0), 0.0, 1.0)
+        alpha = r * r
         mask, lh, li, lo = local_of(j + 1, aniso)
         if aniso:
-            a = g.math('MINIMUM', g.math('MAXIMUM', component("Anisotropy", j), -0.99), 0.99)
-            neg = g.math('LESS_THAN', a, 0.0)
+            a = clamp(component("Anisotropy", j), -0.99, 0.99)
+            neg = a < 0.0
             # svm closure.h: a < 0: (alpha / (1 + a), alpha (1 + a)), else (alpha (1 - a), alpha / (1 - a))
             # (each at most 1: bsdf_microfacet_ggx_setup saturates them)
-            ax = g.math('MINIMUM', g.select(neg, g.math('DIVIDE', alpha, g.math('ADD', 1.0, a)),
-                                            g.math('MULTIPLY', alpha, g.math('SUBTRACT', 1.0, a))), 1.0)
-            ay = g.math('MINIMUM', g.select(neg, g.math('MULTIPLY', alpha, g.math('ADD', 1.0, a)),
-                                            g.math('DIVIDE', alpha, g.math('SUBTRACT', 1.0, a))), 1.0)
+            ax = minimum(where(neg, alpha / (1.0 + a), alpha * (1.0 - a)), 1.0)
+            ay = minimum(where(neg, alpha * (1.0 + a), alpha / (1.0 - a)), 1.0)
             hx, hy, hz = lh
-            q = g.math('ADD', g.math('ADD', square(g.math('DIVIDE', hx, ax)), square(g.math('DIVIDE', hy, ay))),
-                       g.math('MULTIPLY', hz, hz))
-            ndf = g.math('DIVIDE', 1.0 / math.pi,
-                         g.math('MULTIPLY', g.math('MULTIPLY', ax, ay), g.math('MULTIPLY', q, q)))
+            q = square(hx / ax) + square(hy / ay) + hz * hz
+            ndf = (1.0 / math.pi) / (ax * ay * (q * q))
 
             def lam(v, ax=ax, ay=ay):    # bsdf_lambda<GGX>: 0.5 (sqrt(1 + (ax^2 vx^2 + ay^2 vy^2) / vz^2) - 1)
-                t2 = g.math('DIVIDE', g.math('ADD', square(g.math('MULTIPLY', ax, v[0])),
-                                              square(g.math('MULTIPLY', ay, v[1]))),
-                            g.math('MULTIPLY', v[2], v[2]))
-                return g.math('MULTIPLY', g.math('SUBTRACT', g.math('SQRT', g.math('ADD', t2, 1.0)), 1.0), 0.5)
+                t2 = (square(ax * v[0]) + square(ay * v[1])) / (v[2] * v[2])
+                return (sqrt(t2 + 1.0) - 1.0) * 0.5
         else:
             # isotropic (alpha at most 1): D = 1 / (pi alpha^2 q^2), q = (1 - hz^2) / alpha^2 + hz^2;
             # lambda = 0.5 (sqrt(1 + alpha^2 (1 - vz^2) / vz^2) - 1)
             hz = lh[2]
-            hz2 = g.math('MULTIPLY', hz, hz)
-            alpha2 = g.math('MULTIPLY', alpha, alpha)
-            q = g.math('ADD', g.math('DIVIDE', g.math('SUBTRACT', 1.0, hz2), alpha2), hz2)
-            ndf = g.math('DIVIDE', 1.0 / math.pi, g.math('MULTIPLY', alpha2, g.math('MULTIPLY', q, q)))
+            hz2 = hz * hz
+            alpha2 = alpha * alpha
+            q = (1.0 - hz2) / alpha2 + hz2
+            ndf = (1.0 / math.pi) / (alpha2 * (q * q))
 
             def lam(v, alpha2=alpha2):
-                vz2 = g.math('MULTIPLY', v[2], v[2])
-                t2 = g.math('DIVIDE', g.math('MULTIPLY', alpha2, g.math('SUBTRACT', 1.0, vz2)), vz2)
-                return g.math('MULTIPLY', g.math('SUBTRACT', g.math('SQRT', g.math('ADD', t2, 1.0)), 1.0), 0.5)
-        g2 = g.math('ADD', g.math('ADD', lam(li), lam(lo)), 1.0)
-        lobe.append(g.math('DIVIDE', g.math('MULTIPLY', ndf, mask), g.math('MULTIPLY', g.math('MULTIPLY', li[2], 4.0), g2)))
+                vz2 = v[2] * v[2]
+                t2 = alpha2 * (1.0 - vz2) / vz2
+                return (sqrt(t2 + 1.0) - 1.0) * 0.5
+        g2 = lam(li) + lam(lo) + 1.0
+        lobe.append(ndf * mask / (li[2] * 4.0 * g2))
     # the Diffuse: max(d.N', 0) / pi, tilted times Cycles' bump shadowing G1 (bsdf.h
     # bump_shadowing_term: alpha^2 = min(tan^2 / 8, 1) of the tilt, tan^2 = t_d^2 as T is
     # orthogonal to N; 0 where d.N < 1e-6)
     if tilted[0]:
         td = tilt_of(0)
-        td2 = g.math('MULTIPLY', td, td)
-        cos_od = turned(td, g.math('INVERSE_SQRT', g.math('ADD', td2, 1.0)), dots["o"], False)[2]    # d.N'
-        a2 = g.math('MINIMUM', g.math('MULTIPLY', td2, 0.125), 1.0)
-        c = g.math('MAXIMUM', cos_o, 1e-6)
-        tan2 = g.math('SUBTRACT', g.math('DIVIDE', 1.0, g.math('MULTIPLY', c, c)), 1.0)
-        g1 = g.math('DIVIDE', 2.0, g.math('ADD', 1.0, g.math('SQRT', g.math('MULTIPLY_ADD', a2, tan2, 1.0))))
-        shade = g.math('MULTIPLY', g.math('MULTIPLY', g.math('MAXIMUM', cos_od, 0.0), 1.0 / math.pi),
-                       g.math('MULTIPLY', g1, g.math('GREATER_THAN', cos_o, 1e-6)))
+        td2 = td * td
+        cos_od = turned(td, inversesqrt(td2 + 1.0), dots["o"], False)[2]    # d.N'
+        a2 = minimum(td2 * 0.125, 1.0)
+        c = maximum(cos_o, 1e-6)
+        tan2 = 1.0 / (c * c) - 1.0
+        g1 = 2.0 / (1.0 + sqrt(fma(a2, tan2, 1.0)))
+        shade = maximum(cos_od, 0.0) * (1.0 / math.pi) * (g1 * (cos_o > 1e-6))
     else:
-        shade = g.math('MULTIPLY', g.math('MAXIMUM', cos_o, 0.0), 1.0 / math.pi)
+        shade = maximum(cos_o, 0.0) * (1.0 / math.pi)
     # the colours last (made last, Cycles runs them last: fewer values alive on its stack meanwhile)
     out = g.scale(g.vmath('MULTIPLY', inp["Diffuse"], inp["DiffuseScale"]), shade)
     for j, value in enumerate(lobe):
@@ -267,14 +259,13 @@ def _cv_local(g, nj, tangent, h, wi, d, cos_i, cos_o, aniso):
 def _cv_rest(g, cv, wi, n, d, weight, ok, q):
     """The portal's weight for the BSDF less the control variate (when on), when taken with
     probability s: (weight - on f_cv cos ok / q) / s."""
-    rest = g.vmath('SUBTRACT', weight, g.scale(_cv_fcos(g, cv, wi, n, d),
-                                              g.math('DIVIDE', g.math('MULTIPLY', ok, cv["on"]), q)))
-    return g.scale(rest, g.math('DIVIDE', 1.0, cv["s"]))
+    rest = g.vmath('SUBTRACT', weight, g.scale(_cv_fcos(g, cv, wi, n, d), ok * cv["on"] / q))
+    return g.scale(rest, 1.0 / cv["s"])
 
 
 def _cv_closures(g, cv):
     """The control variate's closures, colours / (1 - s) (their weight when taken)."""
-    keep = g.math('SUBTRACT', 1.0, cv["s"])
+    keep = 1.0 - cv["s"]
     return cv["closures"](g.vmath('DIVIDE', cv["diffuse"], g.combine(keep, keep, keep)),
                           g.vmath('DIVIDE', cv["specular"], g.combine(keep, keep, keep)))
 
@@ -290,13 +281,12 @@ def _cv_matched(g, cv, at, axis, unmatched=None):
     beta = _match_lookup(g, cv["match_image"], at["cos_i"], wo)
     share = g.dot(cv["matched_share"], X)
     # (between a knot matched and one not, the share falls to 0: off below the least share)
-    on = g.math('MULTIPLY', g.math('GREATER_THAN', wo[2], 0.05),
-                g.math('MULTIPLY', g.math('GREATER_THAN', share, 0.99 * MATCHED_SHARE_MIN), cv["on"]))
-    off = g.math('SUBTRACT', 1.0, on)
+    on = (wo[2] > 0.05) * ((share > 0.99 * MATCHED_SHARE_MIN) * cv["on"])
+    off = 1.0 - on
     if unmatched is not None:
         # the other lamps' part of the rest is not ~0: toward the baked share as their weight grows
-        share = g.math('MULTIPLY_ADD', g.math('MAXIMUM', g.math('SUBTRACT', cv["s"], share), 0.0), unmatched, share)
-    return dict(cv, matched=on, s=g.math('MULTIPLY_ADD', on, share, g.math('MULTIPLY', cv["s"], off)),
+        share = fma(maximum(cv["s"] - share, 0.0), unmatched, share)
+    return dict(cv, matched=on, s=fma(on, share, cv["s"] * off),
                 diffuse=g.vmath('MULTIPLY_ADD', g.combine(on, on, on), beta, g.scale(cv["diffuse"], off)),
                 specular=g.vmath('MULTIPLY_ADD', g.combine(on, on, on), beta, g.scale(cv["specular"], off)))
 
@@ -309,17 +299,17 @@ def _match_lookup(g, path, cos_v, wo):
     image = _image(path)
     n = image.size[1]
     width, height = n * n, n
-    fv = g.math('MULTIPLY', g.math('MINIMUM', g.math('MAXIMUM', cos_v, 0.0), 1.0), n - 1.0)
-    i0 = g.math('MINIMUM', g.math('FLOOR', fv), n - 2.0)
-    t = g.math('SUBTRACT', fv, i0)
-    fphi = g.math('MULTIPLY', g.math('ABSOLUTE', g.math('ARCTAN2', wo[1], wo[0])), (n - 1.0) / math.pi)
-    fl = g.math('MULTIPLY', g.math('MINIMUM', g.math('MAXIMUM', wo[2], 0.0), 1.0), n - 1.0)
-    v = g.math('SUBTRACT', 1.0, g.math('DIVIDE', g.math('ADD', fl, 0.5), height))
+    fv = clamp(cos_v, 0.0, 1.0) * (n - 1.0)
+    i0 = minimum(floor(fv), n - 2.0)
+    t = fv - i0
+    fphi = abs(atan2(wo[1], wo[0])) * ((n - 1.0) / math.pi)
+    fl = clamp(wo[2], 0.0, 1.0) * (n - 1.0)
+    v = 1.0 - (fl + 0.5) / height
 
     def tile(i):
-        x = g.math('DIVIDE', g.math('ADD', g.math('MULTIPLY_ADD', i, float(n), fphi), 0.5), width)
+        x = (fma(i, float(n), fphi) + 0.5) / width
         tex = g.node("ShaderNodeTexImage", image=image, interpolation='Linear', extension='EXTEND')
         g.set(tex.inputs["Vector"], g.combine(x, v))
         return tex.outputs["Color"]
-    lo, hi = tile(i0), tile(g.math('ADD', i0, 1.0))
+    lo, hi = tile(i0), tile(i0 + 1.0)
     return g.vmath('MULTIPLY_ADD', g.vmath('SUBTRACT', hi, lo), g.combine(t, t, t), lo)

@@ -4,7 +4,7 @@ with the control variate) ending in Ray Portal BSDFs (`build_svm_sampler`), the 
 from .control_variate import (MATCHED_LIGHT_SCALE, _cv_closures, _cv_matched, _cv_pick, _cv_rest, _cv_switched,
                               _matching)
 from .film import _film_u, _random
-from .graph import X, _Graph, _mix_shader, raw
+from .graph import X, _Graph, _mix_shader, atan2, maximum, raw, saturate
 from .mixture import _Mixture
 from .tables import _inverse, _Sampler, _tables_sample
 
@@ -16,12 +16,11 @@ def _frame(g, n, reference):
     """Unit x and y of the local frame: `reference` projected onto the plane of n, or any
     perpendicular where that vanishes (as learned_bsdf.osl)."""
     along = g.vmath('SUBTRACT', reference, g.scale(n, g.dot(reference, n)))
-    usable = g.math('GREATER_THAN', g.vmath('LENGTH', along), 1e-7)
+    usable = g.vmath('LENGTH', along) > 1e-7
     # cross(n, x) unless n is near x, then cross(n, (1, 1, 0))
-    near_x = g.math('GREATER_THAN', g.math('ABSOLUTE', g.dot(n, X)), 0.9)
+    near_x = abs(g.dot(n, X)) > 0.9
     other = g.vmath('CROSS_PRODUCT', n, g.combine(1.0, near_x))
-    tx = g.vmath('NORMALIZE', g.vmath('ADD', g.scale(along, usable),
-                                      g.scale(other, g.math('SUBTRACT', 1.0, usable))))
+    tx = g.vmath('NORMALIZE', g.vmath('ADD', g.scale(along, usable), g.scale(other, 1.0 - usable)))
     return tx, g.vmath('CROSS_PRODUCT', n, tx)
 
 
@@ -35,8 +34,8 @@ def _shading(g, sampler, tangent):
     frame = (None, None, None)
     if sampler.lay["P"] > 1:
         tx, ty = _frame(g, n, TANGENT if tangent is None else tangent)
-        frame = (tx, ty, g.math('ARCTAN2', g.dot(wi, ty), g.dot(wi, tx)))
-    return geometry, n, wi, cos_raw, g.math('MAXIMUM', cos_raw, 0.0), frame
+        frame = (tx, ty, atan2(g.dot(wi, ty), g.dot(wi, tx)))
+    return geometry, n, wi, cos_raw, maximum(cos_raw, 0.0), frame
 
 
 def sample_graph(tree, texture_path, group_input_tangent_socket=None, location=(0.0, 0.0)):
@@ -65,8 +64,7 @@ def _sample(g, texture_path, group_input_tangent_socket, cv=None):
     if phi_i is None:
         tx, ty = _frame(g, n, wi)
     direction = g.vmath('ADD', g.vmath('ADD', g.scale(tx, wo[0]), g.scale(ty, wo[1])), g.scale(n, wo[2]))
-    valid = g.math('MULTIPLY', g.math('GREATER_THAN', cos_raw, 0.0),
-                   g.math('GREATER_THAN', g.dot(direction, geometry.outputs["True Normal"]), 0.0))
+    valid = (cos_raw > 0.0) * (g.dot(direction, geometry.outputs["True Normal"]) > 0.0)
     return {"direction": direction, "weight": weight, "pdf": pdf, "valid": valid,
             "position": geometry.outputs["Position"], "u2": u2, "wi": wi, "n": n, "take": take}
 
@@ -124,10 +122,9 @@ def _portal(g, weight, position, direction, u2):
     """A Ray Portal BSDF continuing the path along `direction` with colour `weight`. Cycles
     drops a closure of mean weight (magnitude) < CUTOFF: those below 2 CUTOFF are rouletted up
     to it."""
-    keep = g.math('MULTIPLY', g.math('ABSOLUTE', g.dot(weight, (1.0 / 3, 1.0 / 3, 1.0 / 3))), 0.5 / CUTOFF,
-                  clamp=True)
-    survive = g.math('LESS_THAN', g.math('MULTIPLY', u2, 1.0 - 2.0 ** -24), keep)
-    weight = g.scale(weight, g.math('DIVIDE', survive, keep))
+    keep = saturate(abs(g.dot(weight, (1.0 / 3, 1.0 / 3, 1.0 / 3))) * (0.5 / CUTOFF))
+    survive = u2 * (1.0 - 2.0 ** -24) < keep
+    weight = g.scale(weight, survive / keep)
     portal = g.node("ShaderNodeBsdfRayPortal")
     g.set(portal.inputs["Color"], weight)
     g.set(portal.inputs["Position"], position)
@@ -157,9 +154,9 @@ def _mixture(g, texture_path, group_input_tangent_socket, mix, cv=None):
         if mix.match_lamp:      # (the brightest lamp's share of the lamps' weight: equal time, 4096
             # Principled spp, studio: MSE x0.83 / 0.75 / 1.10 on satin / military / vch, 6 seeds)
             data = mix.lamp_data(g, at)
-            unmatched = g.math('SUBTRACT', 1.0, g.math('DIVIDE', data["best"], data["total"]))
+            unmatched = 1.0 - data["best"] / data["total"]
         cv = _cv_matched(g, cv, at, mix.light_axis(g, at), unmatched)
-        scale = g.math('SUBTRACT', 1.0, g.math('MULTIPLY', cv["matched"], 1.0 - MATCHED_LIGHT_SCALE))
+        scale = 1.0 - cv["matched"] * (1.0 - MATCHED_LIGHT_SCALE)
     take, at["u0"] = _cv_pick(g, cv, u0)
 
     def closure(out):
@@ -180,5 +177,5 @@ def tables_pdf_graph(tree, texture_path, wo_socket, group_input_tangent_socket=N
         tx, ty = _frame(g, n, wi)
     local = tuple(g.dot(wo_socket, axis) for axis in (tx, ty, n))
     pdf, fcos = _inverse(g, sampler, cos_i, phi_i, local)
-    fcos = g.scale(fcos, g.math('GREATER_THAN', cos_raw, 0.0))
+    fcos = g.scale(fcos, cos_raw > 0.0)
     return raw(pdf), fcos
