@@ -161,7 +161,7 @@ class BakeProgress(Step):
                    "fit": "fitting the node's closures", "preview": "rendering a preview"}
 
     def __init__(self, name, settings, clock=time.monotonic):
-        from bake.core.tabulate import ISO_PLANNED, RESOLUTIONS, bins_within
+        from bake.core.planner import ISO_PLANNED, RESOLUTIONS, bins_within
         super().__init__(clock)
         self.name, self.resolutions, self.bins_within = name, RESOLUTIONS, bins_within
         self.planned_resolution, self.first = settings.resolution, settings.first_bins     # (BakeSettings)
