@@ -6,17 +6,15 @@ weights are integrated from the true f·cos per cell (refined until the cell's q
 settles and agrees with the source points that fall in it). A cell's profile along each axis
 runs through its marginal density at the profile's nodes (_profile_logs).
 
-Two halves (~1700 lines): the builder (build_tables, build_grouped: edges, masses, profiles) and,
-from RESOLUTIONS on, the planner (plan_tables in its steps: resolution, azimuths, bins, layout)
-that runs the builder for every trial. The planner belongs in a module of its own; ~40 places in
-tests and scripts still name its constants through this one (not moved yet: issue 53's note).
+What to build (the resolution, the incident bins, the layout between them) is planner.py's
+choice: it runs this builder for every trial, and this module imports nothing of it.
 """
 import threading
 
 import numpy as np
 
 from ..errors import FlowBSDFError
-from ..io.threads import parallel as _parallel     # (the name plan_tables' calls use)
+from ..io.threads import parallel as _parallel
 from ..maths.fasttables import one_blas_thread
 from ..maths.geometry import luminance, spherical_dir
 from . import halfvector
@@ -887,7 +885,7 @@ def _row_knots(wi, theta, coords, lobe_width):
     """The row knots of a bin's layout at wi (elevation theta): its edges are placed relative to
     them. Rounded to float32, as the edges are stored: bins whose knots differ by less (the half
     vector's rings move by ~1e-17 with theta_i) get the same edges from the same placement, one
-    layout (groups_bytes counts them so)."""
+    layout (planner.groups_bytes counts them so)."""
     knots = (CENTRE_ROW_KNOTS if coords == "halfvector" else polar_lobe_knots(wi, lobe_width)
              if coords == "halfpolar" else lobe_knots(theta, lobe_width))
     return np.asarray(knots, np.float32).astype(np.float64)
@@ -905,7 +903,7 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
     normalized to each bin's knots: neighbouring bins then place a cell on the same part of the
     lobe, so interpolating them moves the lobe instead of smearing it. With all bins pooled,
     every bin has the same layout between its knots: interpolation then mixes the bins cell by
-    cell, which holds features that appear and fade between bins (plan_tables chooses). In the half vector's
+    cell, which holds features that appear and fade between bins (planner.plan_tables chooses). In the half vector's
     coordinates the specular peak of every wi is the domain's centre: the knots are there
     (concentric: its row and column; polar: a = 0, with rings at the lobe's width,
     polar_lobe_knots, and the column at wi's side, b = pi).

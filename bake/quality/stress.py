@@ -218,7 +218,7 @@ def make_samplers(case, workdir, ideal_resolution=128, table_size=32, grid=192, 
     mat = case.open(workdir)
     ideal = open_sampler("ideal", mat, resolution=ideal_resolution)
     out = {"ideal": ideal, "tables": make_tables(mat, ideal, table_size, grid)}
-    if mat.isotropic:       # the planner may bake either coordinates (tabulate.ISO_PLANNED)
+    if mat.isotropic:       # the planner may bake either coordinates (planner.ISO_PLANNED)
         out["tables_halfpolar"] = make_tables(mat, ideal, table_size, grid, coords="halfpolar")
     model = (models or {}).get(case.name)
     if model is not None:
