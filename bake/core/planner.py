@@ -1,7 +1,16 @@
 """Planning baked tables (plan_tables): the resolution, the azimuths (anisotropic), the incident bins
 and the cells' layout between them that a material needs within the memory budget, each chosen by
-probes (tables built from the ideal tabulation's points, tabulate.py's builder) measured against
+probes (tables built from the ideal tabulation's points by tabulate.py's builder) measured against
 their targets; then the planned tables are built.
+
+    plan_tables         the steps in order; their results in tables.meta
+    _plan_resolution    step 1: RESOLUTIONS probed at a few angles (anisotropic: _plan_phi_bins too)
+    _plan_bins          step 2: the incident bins, split where a midpoint loses most (SPLIT_LOSS)
+    _plan_layout        step 3: the cells' placement between bins (_between_bins, LAYOUT_WINDOWS, groups)
+    _plan_in_turns      plans over several coordinates (ISO_PLANNED), a round each
+    bin_bytes, ...      what tables cost (the memory budget's arithmetic)
+
+How a single table is built (edges, masses, profiles; ISO_COORDS, SHARES) is tabulate.py's.
 """
 import numpy as np
 
