@@ -16,14 +16,14 @@ MIXED_FORMAT = 6        # the file of a MixedTables: its parts' arrays side by s
 # Bumped when the construction changes in a way that should rebuild existing tables (a table file
 # records it among its inputs: bake/plumbing/pipeline.inputs_of).
 BUILDER = 13             # 2: cells that miss a hard-edged sliver of mass are integrated around their points
-                         # 3: isotropic plans aim at the ideal tabulation's rv (tabulate.plan_tables)
+                         # 3: isotropic plans aim at the ideal tabulation's rv (planner.plan_tables)
                          # 4: when no resolution reaches its target, the closest one (not the largest)
                          # 5: cells per lobe segment by weight, an even share of every segment (tabulate.SHARES)
-                         # 6: isotropic tables over the half vector where that plans closer (tabulate.ISO_PLANNED)
+                         # 6: isotropic tables over the half vector where that plans closer (planner.ISO_PLANNED)
                          # 7: measured files' own incident angles among the first bins (Material.measured_theta_i)
-                         # 8: split while a midpoint loses over half its target (tabulate.SPLIT_LOSS)
-                         # 9: isotropic: one cell layout for all bins where that interpolates closer (tabulate.LAYOUT_WINDOWS)
-                         # 10: isotropic: two layout groups (a repeated boundary bin) where that interpolates closer (tabulate._between_bins);
+                         # 8: split while a midpoint loses over half its target (planner.SPLIT_LOSS)
+                         # 9: isotropic: one cell layout for all bins where that interpolates closer (planner.LAYOUT_WINDOWS)
+                         # 10: isotropic: two layout groups (a repeated boundary bin) where that interpolates closer (planner._between_bins);
                          #     a ridge on the plane of incidence integrated beside it (tabulate._ridge_edges)
                          # 11: isotropic: layout groups of their own resolutions (tables.MixedTables), placements
                          #     compared at quarter points too

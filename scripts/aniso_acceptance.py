@@ -24,7 +24,8 @@ sys.path.insert(0, str(ROOT))
 from bake.maths.geometry import incident  # noqa: E402
 from bake.core.ideal import IdealSampler  # noqa: E402
 from bake.core.settings import BakeSettings  # noqa: E402
-from bake.core.tabulate import build_tables, plan_tables  # noqa: E402
+from bake.core.planner import plan_tables  # noqa: E402
+from bake.core.tabulate import build_tables  # noqa: E402
 from bake.materials import open_material  # noqa: E402
 from bake.core.metrics import relative_variance_ref  # noqa: E402
 from bake.quality.stress import hard_cases  # noqa: E402

@@ -32,7 +32,7 @@ from baseline import import_baseline  # noqa: E402
 from bake.maths.geometry import incident  # noqa: E402
 from bake.core.ideal import IdealSampler  # noqa: E402
 from bake.core.settings import BakeSettings  # noqa: E402
-from bake.core.tabulate import plan_tables  # noqa: E402
+from bake.core.planner import plan_tables  # noqa: E402
 from bake.materials import open_material  # noqa: E402
 from bake.materials.rgl import SHARED_FILES, shared_dir  # noqa: E402
 from bake.core.metrics import relative_variance_ref  # noqa: E402
@@ -45,8 +45,11 @@ def baseline_bake(checkout):
     import_baseline(checkout)
     mats = importlib.import_module("bake_baseline.materials")
     ideal = importlib.import_module("bake_baseline.core.ideal")
-    tabulate = importlib.import_module("bake_baseline.core.tabulate")
-    return mats.open_material, ideal.IdealSampler, tabulate.plan_tables
+    try:
+        planner = importlib.import_module("bake_baseline.core.planner")
+    except ModuleNotFoundError:         # a checkout from before bake/core/planner.py
+        planner = importlib.import_module("bake_baseline.core.tabulate")
+    return mats.open_material, ideal.IdealSampler, planner.plan_tables
 
 
 def planned(mat, source, **settings):

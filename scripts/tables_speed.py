@@ -40,7 +40,7 @@ def load_tables(path, name):
     if not path.is_file():
         from bake.core.ideal import IdealSampler
         from bake.materials import open_material
-        from bake.core.tabulate import plan_tables
+        from bake.core.planner import plan_tables
         print(f"[bake] {name}: no {path}, baking from the ideal tabulation", flush=True)
         mat = open_material(rgl_dir() / f"{name}.bsdf")
         plan_tables(mat, IdealSampler(mat)).save(path)

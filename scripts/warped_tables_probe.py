@@ -19,6 +19,7 @@ import numpy as np
 
 import bake.core.tables as tables
 import bake.core.tabulate as tabulate
+from bake.core.planner import lobe_width_of
 from bake.maths.geometry import spherical_dir
 from bake.core.ideal import IdealSampler
 from bake.materials import open_material
@@ -87,7 +88,7 @@ def main():
     angles = [lo] + [float(np.arccos((1 - f) * np.cos(lo) + f * np.cos(hi))) for f in (0.25, 0.5, 0.75)] + [hi]
     draws = [ReferencePoints(mat, spherical_dir(t, 0.0), ideal, 512, 7) for t in angles]
     floors = [d.rv(ideal)[0] for d in draws]
-    width = tabulate.lobe_width_of(mat, ideal)
+    width = lobe_width_of(mat, ideal)
     for coords in ("halfpolar", "s"):
         coords_used[0] = coords
         tab = tabulate.build_tables(mat, ideal, [lo, hi], args.cells, args.cells, coords="halfpolar", window=None,

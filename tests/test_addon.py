@@ -298,7 +298,7 @@ def test_bake_progress_in_words_from_the_planner_log(monkeypatch):
     assert steps[-1][1] == "[step 0.050] Baking MilitaryGreen: choosing the table resolution (1 of 5)"
     for t, r in ((9, 24), (10, 32), (13, 48), (18, 64)):
         feed(float(t), f"[bake] MilitaryGreen: resolution {r}: single-bin rv 4.05x the target or more")
-    from bake.core.tabulate import bin_bytes, layout_bytes
+    from bake.core.planner import bin_bytes, layout_bytes
     assert progress.resolution == 64 and progress.max_bins() == 44      # 64² cells in 4 MB, beside two layouts' edges
     assert 44 * bin_bytes(64) + 2 * layout_bytes(64) <= 4_000_000 < 45 * bin_bytes(64) + 2 * layout_bytes(64)
     scores = [228.5, 141, 104, 73, 55, 54, 42.25, 21.85, 15.5, 9.9, 9.1]      # x the target
@@ -339,12 +339,12 @@ def test_bake_progress_in_words_from_the_planner_log(monkeypatch):
 
 
 def test_bake_progress_through_the_placements(monkeypatch):
-    """The comparison of cell placements between bins (tabulate._between_bins: a minute and a half
+    """The comparison of cell placements between bins (planner._between_bins: a minute and a half
     of a Final bake, measured) has its share of the bar: counted before it begins (ISO_PLACEMENTS
     placements of PLACEMENT_COST split turns per angle), then each at its measured pace, so the bar
     moves while it runs and the time left falls. A plan that ends on its memory budget says it is
-    done (tabulate.plan_tables), and its angles left count no more."""
-    from bake.core import tabulate
+    done (planner.plan_tables), and its angles left count no more."""
+    from bake.core import planner
     wm, progress, lines, steps, feed, now = _fed_progress(monkeypatch, "Silk", prefix="[bake] Silk: ")
     feed(2.0, "wo: resolution 48: single-bin rv 0.80x the target")
     feed(4.0, "halfpolar: resolution 48: single-bin rv 0.90x the target")
@@ -358,7 +358,7 @@ def test_bake_progress_through_the_placements(monkeypatch):
     t += 2.0
     now[0] = t
     before = progress.estimate(t)[0]        # elapsed / (elapsed + time left)
-    budget = tabulate._budget_full(11, 4_000_000)      # what the planner says
+    budget = planner._budget_full(11, 4_000_000)      # what the planner says
     assert progress.ENDED.match(budget), budget
     feed(t, "wo: " + budget)
     after = progress.estimate(t)[0]
@@ -427,7 +427,7 @@ def _seconds_left(words):
 
 
 def test_bake_progress_follows_plans_in_turns(monkeypatch):
-    """An isotropic material's plans over each cell layout run in turns (tabulate._plan_in_turns):
+    """An isotropic material's plans over each cell layout run in turns (planner._plan_in_turns):
     each plan is followed on its own, its pace is its own turns (from its line to the next plan's),
     and the time left is every running plan's angles left at its own pace, measured."""
     wm, progress, lines, steps, feed, now = _fed_progress(monkeypatch, "Satin", prefix="[bake] Satin: ")
@@ -482,7 +482,7 @@ def test_progress_moves_within_one_material(tmp_path):
     import re
     inside = [(f, m) for f, m in seen if 0.0 < f < 1.0]
     assert inside and len({f for f, _ in inside}) >= 3, seen[-10:]
-    # an isotropic material is planned over each cell layout in turn (tabulate.ISO_PLANNED)
+    # an isotropic material is planned over each cell layout in turn (planner.ISO_PLANNED)
     for layout in (1, 2):
         assert any(re.match(rf"Baking plastic: layout {layout} of 2, \d+ of about \d+ angles, "
                             r"(about \d+ s|a few seconds) left$", m) for _, m in inside), sorted({m for _, m in seen})

@@ -245,7 +245,7 @@ def test_planner_adds_phi_bins_until_the_blend_holds():
     takes: 64 + the closing bin, every theta bin at all of them. (Measured 0.27, 0.10, 0.061,
     0.0084; with one exponential per cell 0.25, 0.084, 0.038, <= 0.002: profiles lowered the rv
     on the bins more than half-way, 2-3x below the exponentials' there, at 80 and 86 deg.)"""
-    from bake.core.tabulate import plan_tables
+    from bake.core.planner import plan_tables
     from bake.materials import open_material
     mat = open_material({"kind": "analytic", "model": "ggx", "alpha_x": 0.02, "alpha_y": 0.5})
     lines = []

@@ -78,7 +78,7 @@ def test_carrying_follows_a_feature_the_bins_blend_away(rgl):
 def test_planner_plans_for_the_carried_blend(synthetic):
     """plan_tables(blend="carried") measures its probes on carried tables and says so in the
     tables' meta; a material it cannot carry, or an unknown blend, is refused before any build."""
-    from bake.core.tabulate import plan_tables
+    from bake.core.planner import plan_tables
     mat, _ = synthetic
     ideal = IdealSampler(mat, resolution=64)
     tables = plan_tables(mat, ideal, BakeSettings(memory_budget=120_000, samples=1 << 12, first_bins=3,
@@ -148,7 +148,7 @@ def test_the_fixed_plan_carries_unless_the_warp_would_crowd_the_budget(synthetic
     """plan_tables(settings.carry): the fixed blend's plan with a flag per interval, its budget
     less the file's warp data; a budget the warp would take over half of (a preview bake) plans
     the tables alone, saying why."""
-    from bake.core.tabulate import plan_tables
+    from bake.core.planner import plan_tables
     mat, _ = synthetic
     ideal = IdealSampler(mat, resolution=64)
     settings = BakeSettings(samples=1 << 12, first_bins=3, resolution=16, carry=True)

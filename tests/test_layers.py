@@ -149,6 +149,22 @@ def test_no_import_circles(root):
     assert not circles, "import circles:\n" + "\n".join(" -> ".join(c) for c in circles)
 
 
+def test_the_builder_does_not_import_the_planner():
+    """bake/core/tabulate.py builds tables; bake/core/planner.py plans them and runs the builder for
+    every trial. The planner imports the builder, and nothing the builder imports, however
+    indirectly, imports the planner: the builder is whole without it (its users, the stress
+    tests and the report, load no planner)."""
+    known, edges = graph("bake")
+    assert "bake.core.tabulate" in edges["bake.core.planner"]
+    reached, todo = set(), ["bake.core.tabulate"]
+    while todo:
+        for nxt in edges[todo.pop()] & known.keys():
+            if nxt not in reached:
+                reached.add(nxt)
+                todo.append(nxt)
+    assert "bake.core.planner" not in reached, sorted(reached)
+
+
 def test_the_reader_sees_deferred_imports(tmp_path):
     """A negative control: an import inside a function is read."""
     src = tmp_path / "m.py"

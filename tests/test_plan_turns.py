@@ -1,10 +1,10 @@
-"""plan_tables' plans over several coordinates run in turns (tabulate._plan_in_turns): a plan is
+"""plan_tables' plans over several coordinates run in turns (planner._plan_in_turns): a plan is
 dropped only when it is far behind another, a plan that reached its targets stops the others
 where they have as many cells, and the result keeps the candidates' order. Fake plans (the
 generator protocol of plan_tables' `plan`): no material, no tables."""
 import numpy as np
 
-from bake.core import tabulate
+from bake.core import planner
 
 
 def fake_plan(trajectories, finals, seen):
@@ -30,7 +30,7 @@ def test_a_plan_far_behind_is_dropped_after_three_rounds():
     traj = {"wo": [35.0, 25.0, 18.9, 13.5, 9.4, 6.9, 4.9, 3.5, 2.7, 2.5],    # satin_rosaline-like
             "halfpolar": [7.0, 5.0, 3.96, 2.2, 1.9, 1.6, 1.4, 1.2, 1.1, 1.09]}
     finals = {"wo": (3.3, 1.45), "halfpolar": (1.8, 1.09)}
-    plans = tabulate._plan_in_turns(["wo", "halfpolar"], fake_plan(traj, finals, seen), lines.append)
+    plans = planner._plan_in_turns(["wo", "halfpolar"], fake_plan(traj, finals, seen), lines.append)
     assert list(plans) == ["halfpolar"] and seen == {"wo": 3, "halfpolar": len(traj["halfpolar"])}, (plans, seen)
     assert any(line.startswith("wo: bins 14: dropped") for line in lines), lines
 
@@ -42,7 +42,7 @@ def test_a_plan_that_catches_up_is_kept():
     traj = {"wo": [38.2, 18.3, 12.7, 10.2, 9.1, 8.2, 7.7, 4.3, 3.5, 2.3, 1.9, 1.5, 1.2, 1.05, 1.02],
             "halfpolar": [6.3, 5.6, 5.0, 4.6, 4.3, 3.6, 3.5, 1.44, 1.40, 1.09, 1.07]}
     finals = {"wo": (1.55, 1.02), "halfpolar": (1.47, 1.07)}
-    plans = tabulate._plan_in_turns(["wo", "halfpolar"], fake_plan(traj, finals, seen), lines.append)
+    plans = planner._plan_in_turns(["wo", "halfpolar"], fake_plan(traj, finals, seen), lines.append)
     assert list(plans) == ["wo", "halfpolar"] and seen == {c: len(t) for c, t in traj.items()}, (seen, lines)
     assert not any("dropped" in line for line in lines)
 
@@ -52,7 +52,7 @@ def test_a_plan_within_its_targets_stops_the_others_at_its_cells():
     other where it has as many cells and still splits; the result keeps the candidates' order."""
     seen, lines = {}, []
     traj = {"wo": [3.0, 2.5, 2.2, 2.0, 1.9, 1.8, 1.7, 1.6], "halfpolar": [2.0, 1.5, 1.0]}
-    plans = tabulate._plan_in_turns(["wo", "halfpolar"],
+    plans = planner._plan_in_turns(["wo", "halfpolar"],
                                     fake_plan(traj, {"wo": (2.0, 1.2), "halfpolar": (0.9, 1.0)}, seen), lines.append)
     assert list(plans) == ["wo", "halfpolar"], plans
     # halfpolar ends (14 bins) as wo yields its 15-bin round: wo stops there, the next one it looks
@@ -63,5 +63,5 @@ def test_a_plan_within_its_targets_stops_the_others_at_its_cells():
 def test_one_candidate_runs_alone_and_logs_plainly():
     seen, lines = {}, []
     plan = fake_plan({None: [5.0, 50.0, 500.0]}, {None: (3.0, 2.0)}, seen)
-    plans = tabulate._plan_in_turns([None], plan, lines.append)
+    plans = planner._plan_in_turns([None], plan, lines.append)
     assert list(plans) == [None] and seen[None] == 3 and plans[None][4] == (3.0, 2.0) and not lines

@@ -12,8 +12,8 @@ from bake.materials.base import Material, as_dirs
 from bake.core.metrics import chi2_test, relative_variance, relative_variance_ref
 from bake.core.tables import (K_MAX, NSEG, TWO_PI, Tables, exp_cdf, exp_density, exp_inverse_cdf, from_ab,
                               open_tables, profile_cdf, profile_density, profile_nodes, profile_sample, to_ab)
-from bake.core.tabulate import (CELL_BYTES, ISO_COORDS, _WoFrame, _finish_bin, _moments_around, _nodes,
-                                bin_bytes, build_tables, groups_bytes, layout_bytes, exp_rate_for_mean, lobe_width_of, plan_tables)
+from bake.core.planner import CELL_BYTES, bin_bytes, groups_bytes, layout_bytes, lobe_width_of, plan_tables
+from bake.core.tabulate import ISO_COORDS, _WoFrame, _finish_bin, _moments_around, _nodes, build_tables, exp_rate_for_mean
 from contract import assert_sampler_contract
 
 HARD = {
@@ -447,8 +447,7 @@ def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(
     does, the one that comes closest, the larger on a tie), whatever angle fails. Each resolution's single-bin rv per probe angle comes from a table here; the
     target is tol / 2, or ideal_ratio times the ideal tabulation's rv (0.5 here) when that is more."""
     from types import SimpleNamespace
-    from bake.core import tabulate
-    from bake.core import metrics
+    from bake.core import metrics, planner, tabulate
     lambert = open_material({"kind": "analytic", "model": "lambert", "albedo": 0.5})
     probe = [10, 45, 75, 86]
     cases = {    # rv per resolution (16, 24, 32, 48, 64) per probe angle (tol / 2 = 1); the choice
@@ -459,7 +458,7 @@ def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(
         "nothing passes, 48 comes closest": ([[9] * 4] * 3 + [[3] * 4, [8] * 4], 48),
         "first passes": ([[1, 1, 1, 1]] * 5, 16),
     }
-    monkeypatch.setattr(tabulate, "lobe_width_of", lambda *a: None)
+    monkeypatch.setattr(planner, "lobe_width_of", lambda *a: None)
     ideal = IdealSampler(lambert, resolution=8)
     for (name, (table, want)), targets in itertools.product(cases.items(), ({"tol": 2.0, "ideal_ratio": None},
                                                                             {"tol": 1e-9, "ideal_ratio": 2.0})):
@@ -473,17 +472,18 @@ def test_resolution_probe_stops_at_the_first_failing_angle_with_the_same_choice(
             if tab is ideal:
                 return 0.5, 1.0
             t = round(float(np.degrees(np.arccos(wi[2]))))
-            return float(table[tabulate.RESOLUTIONS.index(tab.rows)][probe.index(t)]), 1.0
+            return float(table[planner.RESOLUTIONS.index(tab.rows)][probe.index(t)]), 1.0
 
-        monkeypatch.setattr(tabulate, "build_tables", fake_build)
+        monkeypatch.setattr(planner, "build_tables", fake_build)       # the probes
+        monkeypatch.setattr(tabulate, "build_tables", fake_build)      # the final tables (build_grouped)
         monkeypatch.setattr(metrics, "relative_variance", fake_rv)
-        planned = tabulate.plan_tables(lambert, ideal, BakeSettings(first_bins=2, memory_budget=1, **targets),
+        planned = planner.plan_tables(lambert, ideal, BakeSettings(first_bins=2, memory_budget=1, **targets),
                                        coords="wo")
-        full = next((r for r, rvs in zip(tabulate.RESOLUTIONS, table) if max(rvs) <= 1.0),
-                    min(zip(tabulate.RESOLUTIONS, table), key=lambda rt: (max(rt[1]), -rt[0]))[0])
+        full = next((r for r, rvs in zip(planner.RESOLUTIONS, table) if max(rvs) <= 1.0),
+                    min(zip(planner.RESOLUTIONS, table), key=lambda rt: (max(rt[1]), -rt[0]))[0])
         assert planned.rows == full == want, name
         probed = [(r, t) for r, t in built[:-1]]         # the last build: the final tables
-        for r, rvs in zip(tabulate.RESOLUTIONS, table):
+        for r, rvs in zip(planner.RESOLUTIONS, table):
             at_r = [t for q, t in probed if q == r]
             if r < want:       # a failing resolution: built up to its first failing angle only
                 assert len(at_r) < 4 and max(rvs[probe.index(t)] for t in at_r) > 1.0, name
@@ -497,7 +497,7 @@ def test_resolutions_leave_the_budget_room_for_enough_angles():
     """The resolution probe tries only resolutions whose tables fit MIN_BINS incident angles in
     the memory budget (a sharp file's 64² at 2 MB left 17 angles and lost up to 53x the ideal's rv
     between them); a budget too small for any of them leaves the choice to the probe."""
-    from bake.core.tabulate import MIN_BINS, RESOLUTIONS, _resolutions_within
+    from bake.core.planner import MIN_BINS, RESOLUTIONS, _resolutions_within
 
     def need(r):     # MIN_BINS of r² cells, beside two layout groups' edges
         return MIN_BINS * bin_bytes(r) + 2 * layout_bytes(r)
@@ -770,7 +770,7 @@ def test_planner_splits_until_every_midpoint_is_within_half_its_target(monkeypat
     """The planner stops splitting where no interval's midpoint loses more than SPLIT_LOSS (0.5)
     times its target beyond its bins (a midpoint within 1.5x): here one interval lost 0.9x,
     which the earlier rule (1.0) kept, and it is split."""
-    from bake.core import tabulate
+    from bake.core import planner
     mat = open_material({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.05})
     ideal = IdealSampler(mat, resolution=32)
     plan = BakeSettings(resolution=16, tol=0.5, grid=64, samples=1024, first_bins=3)
@@ -782,8 +782,8 @@ def test_planner_splits_until_every_midpoint_is_within_half_its_target(monkeypat
         assert len(done) == 1, lines
         return tab, float(done[0].split("loses ")[1].split("x")[0])
     tab, loss = planned()
-    assert loss <= tabulate.SPLIT_LOSS == 0.5
-    monkeypatch.setattr(tabulate, "SPLIT_LOSS", 1.0)
+    assert loss <= planner.SPLIT_LOSS == 0.5
+    monkeypatch.setattr(planner, "SPLIT_LOSS", 1.0)
     looser, looser_loss = planned()
     assert 0.5 < looser_loss <= 1.0 and len(looser.theta_bins) < len(tab.theta_bins)
 
@@ -791,15 +791,15 @@ def test_planner_splits_until_every_midpoint_is_within_half_its_target(monkeypat
 def test_a_plan_ended_by_the_memory_budget_says_it_is_done():
     """A plan that the memory budget ends says so in the line the add-on's progress counts as a
     plan's end (worker_main.BakeProgress.ENDED), as a plan within its targets does."""
-    from bake.core import tabulate
+    from bake.core import planner
     mat = open_material({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.05})
     budget = 40_000         # 16² cells: 6 bins
-    assert tabulate.bins_within(budget, 16) == 6
+    assert planner.bins_within(budget, 16) == 6
     lines = []
     settings = BakeSettings(memory_budget=budget, resolution=16, tol=0.01, grid=64, samples=1024, first_bins=3)
     tab = plan_tables(mat, IdealSampler(mat, resolution=32), settings, log=lines.append, coords="wo")
     ends = [line for line in lines if ": done, " in line]
-    assert ends == [tabulate._budget_full(len(tab.theta_bins), budget)], lines
+    assert ends == [planner._budget_full(len(tab.theta_bins), budget)], lines
 
 
 class FadingLobes(Material):
@@ -1061,7 +1061,7 @@ def test_planner_gives_layout_groups_their_own_resolutions(monkeypatch):
     from that estimate against the same planner without the coarser cells (9 bins of 24²): rv
     summed over theta_i 2.5..87.5 by 5 (k=64 of the ideal's draws) 0.42 against 5.97 (5.6 of it
     at 87.5 deg, half-way between two bins 7 deg apart, where the mixed plan has one at 86.2)."""
-    import bake.core.tabulate as tabulate
+    from bake.core import planner
     from bake.core.tables import MixedTables
     mat = GlossAtGrazing()
     ideal = IdealSampler(mat, resolution=64)
@@ -1070,7 +1070,7 @@ def test_planner_gives_layout_groups_their_own_resolutions(monkeypatch):
     tab = plan_tables(mat, ideal, settings, coords="halfpolar")
     assert isinstance(tab, MixedTables) and [p.rows for p in tab.parts] == [16, 24], tab.meta
     assert tab.meta["resolution"] == [16, 24] and tab.nbytes <= settings.memory_budget
-    monkeypatch.setattr(tabulate, "RESOLUTIONS", tuple(r for r in tabulate.RESOLUTIONS if r >= 24))
+    monkeypatch.setattr(planner, "RESOLUTIONS", tuple(r for r in planner.RESOLUTIONS if r >= 24))
     one = plan_tables(mat, ideal, settings, coords="halfpolar")
     assert not isinstance(one, MixedTables) and one.nbytes <= settings.memory_budget
     angles = np.radians(np.arange(2.5, 90.0, 5.0))
@@ -1082,7 +1082,7 @@ def test_planner_gives_layout_groups_their_own_resolutions(monkeypatch):
 
 def test_placement_rule_keeps_what_the_full_comparison_keeps():
     """plan_tables' placement="rule" compares only the layout groups split nearest
-    tabulate.RULE_SPLITS_DEG (55 and 75 deg) and the better one's groups of their own resolutions
+    planner.RULE_SPLITS_DEG (55 and 75 deg) and the better one's groups of their own resolutions
     (on the ten shared files the full comparison kept one of those or a near-tie:
     docs/placements.md). On GlossAtGrazing (the handover at 55-65 deg) the full comparison keeps
     one of those: the rule keeps the same tables, byte for byte, from fewer placements built."""
@@ -1168,7 +1168,7 @@ def test_planner_probes_near_normal_intervals_at_their_middle_angle(monkeypatch)
     loss was larger: a feature fading out over theta_i 0-6 deg gets bins at 5.6 and 11.2 deg and
     rv <= 0.006 at 1-5 deg (measured); probed at cos-midpoints only, the bins stay at 0 and 15.5,
     rv 0.013-0.089 at 2-5 deg."""
-    from bake.core import tabulate
+    from bake.core import planner
     mat = NormalFade()
     ideal = IdealSampler(mat, resolution=64)
 
@@ -1180,7 +1180,7 @@ def test_planner_probes_near_normal_intervals_at_their_middle_angle(monkeypatch)
                               for d in (2.0, 3.0, 4.0, 5.0)])
     tab, rv = planned()
     assert 0.0 < tab.theta_bins[1] < np.radians(8.0) and rv.max() < 0.01, (np.degrees(tab.theta_bins), rv)
-    monkeypatch.setattr(tabulate, "PROBE_APART", np.inf)
+    monkeypatch.setattr(planner, "PROBE_APART", np.inf)
     cos_only, rv_cos_only = planned()
     assert cos_only.theta_bins[1] > np.radians(12.0) and rv_cos_only.max() > 3.0 * rv.max(), rv_cos_only
 
@@ -1270,10 +1270,10 @@ def test_placement_comparison_skips_what_cannot_win_and_keeps_the_same_tables(mo
     terms left out are >= 0, so the candidate could not have been kept (nor chosen the split that
     mixed resolutions are tried at). On SharpThenBroad a placement is skipped so (START 40: a mixed
     candidate by its coarse lower group; 60: a split by its upper group), and the kept placement and
-    its tables are those of the comparison that builds every candidate (tabulate._bar never met:
+    its tables are those of the comparison that builds every candidate (planner._bar never met:
     nothing skipped), byte for byte."""
     import re
-    from bake.core import tabulate
+    from bake.core import planner
     mat = SharpThenBroad()
     mat.START = start
     ideal = IdealSampler(mat, resolution=64)
@@ -1281,7 +1281,7 @@ def test_placement_comparison_skips_what_cannot_win_and_keeps_the_same_tables(mo
                             ideal_resolution=64)
     lines = {"pruned": [], "every": []}
     tabs = {"pruned": plan_tables(mat, ideal, settings, log=lines["pruned"].append, coords="halfpolar")}
-    monkeypatch.setattr(tabulate, "_bar", lambda *_: np.inf)
+    monkeypatch.setattr(planner, "_bar", lambda *_: np.inf)
     tabs["every"] = plan_tables(mat, ideal, settings, log=lines["every"].append, coords="halfpolar")
     kept = {how: lines[how][[s.startswith("tables: building") for s in lines[how]].index(True) - 1] for how in lines}
     skipped = {how: [s for s in lines[how] if "not built" in s] for how in lines}
@@ -1300,10 +1300,11 @@ def test_placement_comparison_skips_what_cannot_win_and_keeps_the_same_tables(mo
 @pytest.mark.parametrize("sizes", [(16, 16), (16, 24), (24, 16)])
 def test_each_layout_group_alone_has_the_joined_tables_pdf_past_the_boundary(sizes):
     """What lets _between_bins score a candidate's one group before the other is built: past the
-    boundary (by tabulate.ABOVE: below it for the lower group, above it for the upper one) the
+    boundary (by planner.ABOVE: below it for the lower group, above it for the upper one) the
     joined tables (one Tables, or MixedTables of two resolutions) sample from that group alone,
     with the same pdf, bit for bit."""
-    from bake.core.tabulate import ABOVE, build_tables, join_groups
+    from bake.core.planner import ABOVE
+    from bake.core.tabulate import build_tables, join_groups
     mat = GlossAtGrazing()
     ideal = IdealSampler(mat, resolution=64)
     bins = np.radians([0.0, 30.0, 55.0, 70.0, 80.0, 89.9])

@@ -8,6 +8,7 @@
     halfvector     the anisotropic tables' coordinates: the half vector on a disk
     carried        an RGL file's tables blended along the file's own coordinates (numpy only)
     tabulate       building tables from a material and a source sampler
+    planner        plan_tables: the resolution, bins and layout a material's tables need, then built
     settings       BakeSettings: a manifest's [bake] table, checked once, as the planner takes it
     ideal          the ideal sampler: f·cos tabulated finely per incident direction
     baselines      uniform, cosine and a fitted GGX lobe: what every learned sampler must beat

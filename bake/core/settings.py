@@ -1,5 +1,5 @@
 """BakeSettings: a manifest's `[bake]` table (bake/plumbing/manifest.py), checked once, as the
-planner takes it (tabulate.plan_tables).
+planner takes it (planner.plan_tables).
 
 Each setting is declared once below: its default (the planner's) and, for the numeric ones, its
 limits: (type, low, high), a typo like resolution = 1e9 must be an error, not a bake that asks for
@@ -33,16 +33,16 @@ class BakeSettings:
     # (the SVM graph blends at fixed cells: two looks of one material). Stated in the settings,
     # so tables baked before under the old default are out of date (and baked again) once.
     carry: bool = False
-    tol: float = _limits(float, 0.0, 10.0, None)        # None: tabulate.ISO_TOL / ANISO_TOL
+    tol: float = _limits(float, 0.0, 10.0, None)        # None: planner.ISO_TOL / ANISO_TOL
     ideal_ratio: float = _limits(float, 0.0, 1000.0, 1.0)
     memory_budget: int = _limits(int, 1 << 10, 1 << 34, 4_000_000)
-    resolution: int = _limits(int, 2, 1024, None)       # None: planned (tabulate.RESOLUTIONS)
+    resolution: int = _limits(int, 2, 1024, None)       # None: planned (planner.RESOLUTIONS)
     grid: int = _limits(int, 8, 4096, 512)
     lobe_width: float = _limits(float, 0.0, 1.6, "auto", word="auto")
     samples: int = _limits(int, 64, 1 << 24, 1 << 14)
     first_bins: int = _limits(int, 2, 512, 6)
     ideal_resolution: int = _limits(int, 8, 2048, 256)
-    phi_count: int = _limits(int, 1, 256, "auto")       # "auto": planned (tabulate.PHI_COUNTS)
+    phi_count: int = _limits(int, 1, 256, "auto")       # "auto": planned (planner.PHI_COUNTS)
     given: tuple = field(default=(), compare=False)
 
     @classmethod

@@ -80,7 +80,7 @@ def _choose_source(material, settings, model_file):
 
 def bake_entry(entry, out_dir, manifest_path, force=False, log=print):
     """Bake one manifest entry; returns (path, 'baked' | 'current')."""
-    from ..core.tabulate import plan_tables
+    from ..core.planner import plan_tables
     settings = bake_settings(entry, manifest_path)
     material = entry.open()
     model_file = _tables_model(entry, settings, out_dir)

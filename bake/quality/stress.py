@@ -201,7 +201,8 @@ TABLE_BINS = np.radians([0.0, 15.0, 30.0, 45.0, 60.0, 70.0, 78.0, 84.0, 87.0, 89
 def make_tables(material, ideal, size=32, grid=192, bins=TABLE_BINS, phi_count=8, coords=None):
     """Small baked tables of a material (anisotropic: phi_count azimuths over its period, in
     `coords`)."""
-    from ..core.tabulate import build_tables, default_phi_bins, lobe_width_of
+    from ..core.planner import lobe_width_of
+    from ..core.tabulate import build_tables, default_phi_bins
     try:
         width = lobe_width_of(material, ideal)
     except Exception:   # noqa: BLE001 (a fit that fails on an odd material: no lobe zones)
@@ -217,7 +218,7 @@ def make_samplers(case, workdir, ideal_resolution=128, table_size=32, grid=192, 
     mat = case.open(workdir)
     ideal = open_sampler("ideal", mat, resolution=ideal_resolution)
     out = {"ideal": ideal, "tables": make_tables(mat, ideal, table_size, grid)}
-    if mat.isotropic:       # the planner may bake either coordinates (tabulate.ISO_PLANNED)
+    if mat.isotropic:       # the planner may bake either coordinates (planner.ISO_PLANNED)
         out["tables_halfpolar"] = make_tables(mat, ideal, table_size, grid, coords="halfpolar")
     model = (models or {}).get(case.name)
     if model is not None:

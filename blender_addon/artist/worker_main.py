@@ -107,13 +107,13 @@ class _Plan:
 
 
 class BakeProgress(Step):
-    """A material's bake, estimated from the baker's log (bake/core/tabulate.plan_tables): the
+    """A material's bake, estimated from the baker's log (bake/core/planner.plan_tables): the
     resolution probe ("resolution R: single-bin rv Xx the target"), then one line per incident
     angle the planner adds ("bins N: split ... (midpoint loss Sx its target)") until the worst
     midpoint reaches its target (S <= 1) or the memory budget caps the angles, then the tables'
     build ("tables: building N angles", "tables: built K of N", about ten of them), after a
     comparison of cell placements between bins where the planner makes one ("between bins:
-    comparing N", "placement K of N"; tabulate._between_bins: by default only plans of fewer than
+    comparing N", "placement K of N"; planner._between_bins: by default only plans of fewer than
     6 angles over wo, a few cheap builds), then the node's textures and fit, and the preview
     ("tables in", "[svm]/[osl]/[fit] wrote", "[preview]": AFTER_TABLES, each at its measured
     cost, counted in the bar from the start). The comparison's time: its placements at their
@@ -121,8 +121,8 @@ class BakeProgress(Step):
     done PLACEMENT_COST split turns per angle each. The build: BUILD_COST split turns per angle
     until its first "built" line, then its own pace. Angles left: from how far the worst midpoint went down on a log scale, and how far
     the angle count went towards its cap; the time a split takes, measured. An isotropic material is planned over each cell
-    layout (tabulate.ISO_PLANNED; its lines start "<coords>: ") in turns, a round of splits each
-    (tabulate._plan_in_turns): each plan is followed on its own (its angles left from its own
+    layout (planner.ISO_PLANNED; its lines start "<coords>: ") in turns, a round of splits each
+    (planner._plan_in_turns): each plan is followed on its own (its angles left from its own
     midpoints), and the time a split takes is each plan's own turn (from its split line to the
     next plan's line), measured; the time left is every running plan's angles left at its own
     pace, the words say the plan that spoke last ("layout 2 of 2, 7 of about 12 angles, ...").
@@ -142,7 +142,7 @@ class BakeProgress(Step):
     # compared), in the kept plan's split turns per angle, each the ratio within one Final bake (a
     # busy 2-core machine, load 7-24): placements 0.12-0.15 (cm_military_green, 45 angles, three
     # bakes) and ~0.19 (paper_white, 21), the reference draws before them 0.15-0.3; the build
-    # 0.06-0.12. The placements an isotropic material compares by default (tabulate._between_bins,
+    # 0.06-0.12. The placements an isotropic material compares by default (planner._between_bins,
     # placement "compare", the full comparison): 5-6 on the shared files (2-3 with placement "rule");
     # counted as 3 until the stage's first line says how many (then its own count: an estimate
     # that is low by 2-3 placements before that line; the rule's count, which the tests' numbers use).
@@ -161,7 +161,7 @@ class BakeProgress(Step):
                    "fit": "fitting the node's closures", "preview": "rendering a preview"}
 
     def __init__(self, name, settings, clock=time.monotonic):
-        from bake.core.tabulate import ISO_PLANNED, RESOLUTIONS, bins_within
+        from bake.core.planner import ISO_PLANNED, RESOLUTIONS, bins_within
         super().__init__(clock)
         self.name, self.resolutions, self.bins_within = name, RESOLUTIONS, bins_within
         self.planned_resolution, self.first = settings.resolution, settings.first_bins     # (BakeSettings)
