@@ -24,6 +24,7 @@ a density over (a, b) is one over wo divided by jac = 4 (wo.h) (1 - cos theta_ma
 """
 import numpy as np
 
+from ..maths.geometry import atan2
 from ..maths.warps import rotate_z
 
 TWO_PI = 2.0 * np.pi
@@ -38,7 +39,7 @@ def _cap(wi, phi_h):
 
 def _cap_along(wi_z, along):
     """_cap from wi's height and its component along phi_h."""
-    return np.maximum(2.0 * np.sin(0.25 * np.arctan2(wi_z, -along)) ** 2, _TINY)   # no cancellation
+    return np.maximum(2.0 * np.sin(0.25 * atan2(wi_z, -along)) ** 2, _TINY)   # no cancellation
 
 
 def _per_point(wi, n):
@@ -57,7 +58,7 @@ def from_ab(wi, a, b, frame=0.0):
     safe = np.where(r == 0.0, 1.0, r)
     angle = np.where(wide, QUARTER * (y / safe), 2.0 * QUARTER - QUARTER * (x / safe))
     u, v = r * np.cos(angle), r * np.sin(angle)          # the disk point
-    phi_h = np.arctan2(v, u)
+    phi_h = atan2(v, u)
     cap = _cap(wi, phi_h)
     return _mirror(wi, (u * u + v * v) * cap, phi_h, cap, frame)
 
@@ -88,7 +89,7 @@ def _half_of(wi, wo, frame):
 def to_ab(wi, wo, frame=0.0):
     """(a, b, jac) of directions wo at wi (both upper hemisphere), as from_ab's inverse."""
     wi, h = _half_of(wi, wo, frame)
-    phi_h = np.arctan2(h[:, 1], h[:, 0])
+    phi_h = atan2(h[:, 1], h[:, 0])
     cap = _cap(wi, phi_h)
     radius = np.sqrt(np.clip((h[:, 0] ** 2 + h[:, 1] ** 2) / (1.0 + h[:, 2]) / cap, 0.0, 1.0))
     u, v = radius * np.cos(phi_h), radius * np.sin(phi_h)
@@ -155,7 +156,7 @@ def _polar_ab(wi, wo, frame=0.0):
     """polar_to_ab's a and b, and what its jac takes (wi and h in the frame, the cap): the
     baker's points need a and b alone."""
     wi, h = _half_of(wi, wo, frame)
-    b = np.mod(np.arctan2(h[:, 1], h[:, 0]), TWO_PI)
+    b = np.mod(atan2(h[:, 1], h[:, 0]), TWO_PI)
     cap = _cap(wi, b)
     a = np.nan_to_num(np.clip((h[:, 0] ** 2 + h[:, 1] ** 2) / (1.0 + h[:, 2]) / cap, 0.0, 1.0))
     return a, np.nan_to_num(b), wi, h, cap

@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from ..maths.geometry import luminance, normalize, reflect
+from ..maths.geometry import atan2, luminance, normalize, reflect
 from ..maths.warps import dwo_du, half_vector, u_of_half_vector
 
 
@@ -212,7 +212,7 @@ class CosineBins:
         return np.stack([s * np.cos(phi), s * np.sin(phi), a], axis=-1), np.full(a.shape, 2 * np.pi)
 
     def from_dir(self, wo):
-        b = (np.arctan2(wo[:, 1], wo[:, 0]) + np.pi) / (2 * np.pi)
+        b = (atan2(wo[:, 1], wo[:, 0]) + np.pi) / (2 * np.pi)
         return np.stack([wo[:, 2], b - np.floor(b)], axis=-1)
 
 

@@ -78,7 +78,7 @@ from ..errors import FlowBSDFError
 from ..formats import FORMAT, MIXED_FORMAT
 from ..io.exrio import read_exr, write_exr
 from ..materials.base import as_dirs
-from ..maths.geometry import theta_phi
+from ..maths.geometry import atan2, theta_phi
 from . import halfvector
 
 try:        # the optional C fast path (never required: Blender imports bake/ with numpy only)
@@ -100,7 +100,7 @@ def to_ab(wo, phi_ref):
     z = wo[:, 2]
     a = (wo[:, 0] ** 2 + wo[:, 1] ** 2) / (1.0 + np.maximum(z, 0.0))
     a = np.where(z > 0, np.minimum(a, 1.0), 1.0)
-    b = np.mod(np.arctan2(wo[:, 1], wo[:, 0]) - phi_ref + np.pi, TWO_PI)
+    b = np.mod(atan2(wo[:, 1], wo[:, 0]) - phi_ref + np.pi, TWO_PI)
     return a, b
 
 

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FlowBSDFError
+from ..maths.geometry import atan2
 from .base import Material, as_dirs
 
 RES_THETA_H, RES_THETA_D, RES_PHI_D = 90, 90, 180
@@ -55,7 +56,7 @@ def half_diff(wi, wo):
     h = wi + wo
     h = h / np.linalg.norm(h, axis=-1, keepdims=True)
     r = np.hypot(h[:, 0], h[:, 1])
-    theta_h = np.arctan2(r, h[:, 2])
+    theta_h = atan2(r, h[:, 2])
     # cos/sin of phi_h, and of theta_h, without trigonometry.
     has_r = r > 0
     safe_r = np.where(has_r, r, 1.0)
@@ -67,8 +68,8 @@ def half_diff(wi, wo):
     ct, st = h[:, 2], r
     x2 = x1 * ct - z1 * st
     z2 = x1 * st + z1 * ct
-    theta_d = np.arctan2(np.hypot(x2, y1), z2)
-    phi_d = np.arctan2(y1, x2)
+    theta_d = atan2(np.hypot(x2, y1), z2)
+    phi_d = atan2(y1, x2)
     return theta_h, theta_d, phi_d
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FlowBSDFError
+from ..maths.geometry import atan2
 from .base import Material, as_dirs
 
 MAGIC = b"tensor_file\0"
@@ -564,11 +565,11 @@ class RGLMaterial(Material):
         mx, my, mz = mx * inv, my * inv, mz * inv
         if incident is None:
             theta_i = _elevation(wix, wiy, wiz)
-            phi_i = np.arctan2(wiy, wix)
+            phi_i = atan2(wiy, wix)
         else:
             theta_i, phi_i = incident["theta_i"], incident["phi_i"]
         um_x = _theta2u(_elevation(mx, my, mz))
-        phi_m = np.arctan2(my, mx)
+        phi_m = atan2(my, mx)
         um_y = _phi2u(phi_m - phi_i if self._relative_phi else phi_m)
         um_y -= np.floor(um_y)
 
@@ -666,7 +667,7 @@ class WarpedCoords:
 
         def patch(py, px):
             return self.tables[s0, py, px] * w0 + self.tables[s1, py, px] * w1
-        return wi, np.arctan2(wi[:, 1], wi[:, 0]), patch
+        return wi, atan2(wi[:, 1], wi[:, 0]), patch
 
     def _jac(self, wi, u_x, h, density):
         """d omega_o / d s at half vectors h (u_m x = u_x), the warp's density (index units) there."""
@@ -683,7 +684,7 @@ class WarpedCoords:
         cos_i = wi[:, 2]
         sin_i = np.sqrt(np.maximum(1.0 - cos_i * cos_i, 0.0))
         delta = ((py + fy) / (self.ny - 1)) * (2.0 * np.pi) - np.pi
-        theta_h = 0.5 * np.arctan2(cos_i, -sin_i * np.cos(delta))
+        theta_h = 0.5 * atan2(cos_i, -sin_i * np.cos(delta))
         px, fx = _patch(_theta2u(theta_h), self.nx)
         rim = _warp_to_s(patch(py, px), fx, fy)[0]
         return np.clip(rim, 1e-300, 1.0)
@@ -700,7 +701,7 @@ class WarpedCoords:
         h = wi + wo
         h /= np.linalg.norm(h, axis=1, keepdims=True)
         u_x = _theta2u(_elevation(h[:, 0], h[:, 1], h[:, 2]))
-        u_y = _phi2u(np.arctan2(h[:, 1], h[:, 0]) - phi_i)
+        u_y = _phi2u(atan2(h[:, 1], h[:, 0]) - phi_i)
         u_y -= np.floor(u_y)
         px, fx = _patch(u_x, self.nx)
         py, fy = _patch(u_y, self.ny)
