@@ -15,6 +15,7 @@ from bake.export.closure_fit import baked_albedo, load_fit, params_at
 from bake.export.derived import ensure_osl_export
 
 bpy = cs.bpy_or_skip()
+pytestmark = pytest.mark.usefixtures("shared_fits")     # (conftest: one fit per tables in the run)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
 from blender_addon.render import backends, binding, derived, node as lb, osl_script, refits  # noqa: E402
 from cycles_scenes import (albedo_and_variance as _albedo_and_variance, assert_furnace as _assert_furnace,  # noqa: E402
