@@ -1054,28 +1054,7 @@ def test_planner_keeps_one_layout_where_groups_are_not_closer():
         assert np.array_equal(getattr(same, name), getattr(tab, name)), name
 
 
-@pytest.fixture(scope="module")
-def gloss_at_grazing():
-    """plan(placement) -> (tables, log lines) of GlossAtGrazing planned at 24² cells, a budget of
-    ~9 bins, over the half vector; each placement planned once (the next two tests both read
-    the full comparison's plan: ~8 s CPU)."""
-    mat = GlossAtGrazing()
-    ideal = IdealSampler(mat, resolution=64)
-    settings = BakeSettings(resolution=24, tol=0.01, grid=96, samples=1024, first_bins=7, memory_budget=125_000,
-                            ideal_resolution=64)
-    made = {}
-
-    def plan(placement):
-        if placement not in made:
-            lines = []
-            made[placement] = (plan_tables(mat, ideal, settings, log=lines.append, coords="halfpolar",
-                                           placement=placement), lines)
-        return made[placement]
-    plan.material, plan.ideal, plan.settings = mat, ideal, settings
-    return plan
-
-
-def test_planner_gives_layout_groups_their_own_resolutions(gloss_at_grazing, monkeypatch):
+def test_planner_gives_layout_groups_their_own_resolutions(monkeypatch):
     """GlossAtGrazing at 24² cells and a budget of ~9 bins: the lower group at 16² cells frees
     memory for more bins where the mirror lobe needs them (the planner's estimate, measured: 1.89x
     against 2.48x for one layout), so the plan is MixedTables within the budget; measured apart
@@ -1084,8 +1063,11 @@ def test_planner_gives_layout_groups_their_own_resolutions(gloss_at_grazing, mon
     at 87.5 deg, half-way between two bins 7 deg apart, where the mixed plan has one at 86.2)."""
     import bake.core.tabulate as tabulate
     from bake.core.tables import MixedTables
-    mat, ideal, settings = gloss_at_grazing.material, gloss_at_grazing.ideal, gloss_at_grazing.settings
-    tab = gloss_at_grazing("compare")[0]          # (plan_tables' default placement)
+    mat = GlossAtGrazing()
+    ideal = IdealSampler(mat, resolution=64)
+    settings = BakeSettings(resolution=24, tol=0.01, grid=96, samples=1024, first_bins=7, memory_budget=125_000,
+                            ideal_resolution=64)
+    tab = plan_tables(mat, ideal, settings, coords="halfpolar")
     assert isinstance(tab, MixedTables) and [p.rows for p in tab.parts] == [16, 24], tab.meta
     assert tab.meta["resolution"] == [16, 24] and tab.nbytes <= settings.memory_budget
     monkeypatch.setattr(tabulate, "RESOLUTIONS", tuple(r for r in tabulate.RESOLUTIONS if r >= 24))
@@ -1098,15 +1080,20 @@ def test_planner_gives_layout_groups_their_own_resolutions(gloss_at_grazing, mon
 
 
 
-def test_placement_rule_keeps_what_the_full_comparison_keeps(gloss_at_grazing):
+def test_placement_rule_keeps_what_the_full_comparison_keeps():
     """plan_tables' placement="rule" compares only the layout groups split nearest
     tabulate.RULE_SPLITS_DEG (55 and 75 deg) and the better one's groups of their own resolutions
     (on the ten shared files the full comparison kept one of those or a near-tie:
     docs/placements.md). On GlossAtGrazing (the handover at 55-65 deg) the full comparison keeps
     one of those: the rule keeps the same tables, byte for byte, from fewer placements built."""
     import re
-    mat, ideal, settings = gloss_at_grazing.material, gloss_at_grazing.ideal, gloss_at_grazing.settings
-    tabs, lines = ({how: gloss_at_grazing(how)[i] for how in ("rule", "compare")} for i in (0, 1))
+    mat = GlossAtGrazing()
+    ideal = IdealSampler(mat, resolution=64)
+    settings = BakeSettings(resolution=24, tol=0.01, grid=96, samples=1024, first_bins=7, memory_budget=125_000,
+                            ideal_resolution=64)
+    lines = {"rule": [], "compare": []}
+    tabs = {how: plan_tables(mat, ideal, settings, log=lines[how].append, coords="halfpolar", placement=how)
+            for how in lines}
     kept = {how: lines[how][[s.startswith("tables: building") for s in lines[how]].index(True) - 1] for how in lines}
     built = {how: sum(bool(re.match(r"between bins: placement \d+ of", s)) for s in lines[how]) for how in lines}
     assert kept["rule"] == kept["compare"], kept
