@@ -1,4 +1,7 @@
+import fcntl
 import json
+import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +39,56 @@ def rgl_path(name):
 def rgl():
     """rgl(name) -> path of a shared RGL file, or skip the test with the reason."""
     return rgl_path
+
+
+@pytest.fixture(scope="module")
+def shared_fits(tmp_path_factory):
+    """Closure fits shared between the test modules that use this fixture (pytestmark): the fit
+    of a table file (its content hash and name, the fit's version) is made once per test run,
+    by the first module to need it, with this run's closure_fit (a fit that breaks still fails
+    there, and in every module after it: nothing is stored, they fit again), then written beside
+    every other module's copy of those tables. The fit is a function of the tables alone (fixed
+    seed); the small test tables are the same bytes in every module (test_cycles, _lights and
+    test_svm each fitted plastic, ~10 s CPU a fit). Shared by both xdist workers (the run's
+    base temp folder, a lock per fit: one waits while the other fits). Only fits measured
+    against the tables (material=None, what the node makes); the modules that test the fit and
+    its files themselves (test_closure_fit, the pipeline's) make their own."""
+    from bake.export import closure_fit
+    base = tmp_path_factory.getbasetemp()
+    store = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "shared_fits"
+    store.mkdir(exist_ok=True)
+    real = closure_fit.write
+
+    def write(path, tables_path, tables, digest, material=None):
+        if material is not None:
+            return real(path, tables_path, tables, digest, material=material)
+        path, tables_path = Path(path), Path(tables_path)
+        entry = store / f"{digest}-{closure_fit.FIT_VERSION}-{tables_path.name}"
+        with open(f"{entry}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not entry.is_dir():
+                note = real(path, tables_path, tables, digest)
+                made = Path(f"{entry}.tmp")
+                shutil.rmtree(made, ignore_errors=True)
+                made.mkdir()
+                match = json.loads(path.read_text()).get("match")
+                for f in [path] + ([tables_path.with_name(match)] if match else []):
+                    shutil.copyfile(f, made / f.name)
+                (made / "note").write_text(note or "")
+                made.rename(entry)
+                return note
+        fit = entry / path.name
+        for f in entry.iterdir():               # the match image first, the fit file last (what is_current reads)
+            if f not in (fit, entry / "note"):
+                shutil.copyfile(f, tables_path.with_name(f.name))
+        shutil.copyfile(fit, path.with_name(f".{path.name}.tmp"))
+        os.replace(path.with_name(f".{path.name}.tmp"), path)
+        return (entry / "note").read_text() + " (this run's fit of the same tables)"
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(closure_fit, "write", write)
+    yield
+    mp.undo()
 
 
 def write_npz(path, meta, arrays):

@@ -235,7 +235,7 @@ def render_seeds(scene, seeds):
     CPU a render of a 16² sphere, against 0.02 s of sampling at 16 spp): seed 0 renders so, then
     the handlers stand aside and Seed reads the seed from an object attribute (Attribute node
     -> Seed; each mesh object's custom property), one compilation in all: the same images bit
-    for bit (test_cycles.py: test_render_seeds_is_the_handlers_render_per_seed)."""
+    for bit (test_cycles.py: _assert_render_seeds_is_the_handlers_render)."""
     imgs = []
     keep = scene.render.use_persistent_data
     scene.render.use_persistent_data = True

@@ -15,6 +15,7 @@ from bake.export.closure_fit import baked_albedo, load_fit, params_at
 from bake.export.derived import ensure_osl_export
 
 bpy = cs.bpy_or_skip()
+pytestmark = pytest.mark.usefixtures("shared_fits")     # (conftest: one fit per tables in the run)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
 from blender_addon.render import backends, binding, derived, node as lb, osl_script, refits  # noqa: E402
 from cycles_scenes import (albedo_and_variance as _albedo_and_variance, assert_furnace as _assert_furnace,  # noqa: E402
@@ -684,33 +685,6 @@ def test_film_settings_follow_the_scene(baked):
     assert got()["Seed"] == 13
 
 
-def test_render_seeds_is_the_handlers_render_per_seed(baked):
-    """cs.render_seeds (the statistical renders' helper) renders a film-stratified OSL scene's
-    seeds with one shader compilation (Seed from an object attribute, the handlers aside): the
-    same image bit for bit as the node's handlers render at that seed (Seed a constant), and it
-    leaves the scene as it was (the handlers back, no attribute node)."""
-    sc = cs.reset(12, 12, spp=4)
-    sc.cycles.pixel_filter_type, sc.cycles.filter_width = 'BOX', 1.0
-    cs.ortho_camera(sc, scale=2.2)
-    cs.set_world(sc, (1.0, 1.0, 1.0))
-    mat = bpy.data.materials.new("seeds")
-    node = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
-    lb.set_backend(sc, "osl")
-    cs.add_sphere(sc, mat, segments=32, rings=16)
-    setattr(sc, lb.FILM_PROP, True)
-    fast = cs.render_seeds(sc, 2)
-    script = node.node_tree.nodes[osl_script.SCRIPT]
-    assert not script.inputs["Seed"].is_linked and len(node.node_tree.nodes) == len(
-        [n for n in node.node_tree.nodes if n.bl_idname != "ShaderNodeAttribute"])
-    assert all(fn in h for h, fn in lb._handlers())
-    sc.cycles.seed = 1
-    sc.render.use_persistent_data = True
-    by_handlers = cs.render(sc)
-    assert script.inputs["Seed"].default_value == 1 and script.inputs["FilmFilter"].default_value == 1
-    assert not np.array_equal(fast[0], fast[1])        # (the seed moves the film-stratified u)
-    assert np.array_equal(fast[1], by_handlers)
-
-
 def _soft_env(path, w=64, h=32):
     """A soft sky (gradient, ground, broad warm glow): no small bright features."""
     import OpenEXR
@@ -747,17 +721,45 @@ def _osl_vs_tracer_scene(baked, name, n, spp, tmp_path, seed=0):
     return sc, node, path
 
 
-def _seeded_renders(sc, seeds):
-    """Renders of a scene with Cycles seeds 0..seeds-1: (mean, variance of the mean) per pixel."""
-    imgs = cs.render_seeds(sc, seeds)
-    return imgs.mean(0), imgs.var(0, ddof=1) / seeds
+def _seeded_renders(sc, seeds, imgs=None):
+    """Renders of a scene with Cycles seeds 0..seeds-1: (mean, variance of the mean) per pixel
+    (`imgs`: a list, the renders are added to it)."""
+    got = cs.render_seeds(sc, seeds)
+    if imgs is not None:
+        imgs.extend(got)
+    return got.mean(0), got.var(0, ddof=1) / seeds
 
 
-def _check_osl_matches_tracer(tables_path, name, tmp_path, hashed=False, n=24, spp=32, seeds=8, ref_spp=256):
+def _assert_render_seeds_is_the_handlers_render(sc, node, imgs):
+    """cs.render_seeds (the statistical renders' helper) renders a film-stratified OSL scene's
+    seeds with one shader compilation (Seed from an object attribute, the handlers aside): its
+    seed 1 (`imgs[1]`) is the image the node's handlers render at that seed (Seed a constant)
+    bit for bit, and it left the scene as it was (the handlers back, no attribute node). (Its
+    own test before: a scene of its own, 3 compilations; here 1 more render of this one.)"""
+    script = node.node_tree.nodes[osl_script.SCRIPT]
+    assert not script.inputs["Seed"].is_linked
+    assert not any(n.bl_idname == "ShaderNodeAttribute" for n in node.node_tree.nodes)
+    assert all(fn in h for h, fn in lb._handlers())
+    keep = sc.render.use_persistent_data
+    sc.cycles.seed = 1
+    sc.render.use_persistent_data = True
+    try:
+        by_handlers = cs.render(sc)
+    finally:
+        sc.render.use_persistent_data = keep
+    assert script.inputs["Seed"].default_value == 1 and script.inputs["FilmFilter"].default_value == 1
+    assert not np.array_equal(imgs[0], imgs[1])        # (the seed moves the film-stratified u)
+    assert np.array_equal(imgs[1], by_handlers)
+
+
+def _check_osl_matches_tracer(tables_path, name, tmp_path, hashed=False, n=24, spp=32, seeds=8, ref_spp=256,
+                              guard_seeds=False):
     """Cycles (OSL back end; film-stratified u on camera rays, or with `hashed` hashed u) against bake/tracer on the
     same exported scene, the tracer evaluating the baked BSDF (Tables.eval) with the same tables
     as sampler, BSDF-only: per-pixel z and the sphere's mean within MC error, the OSL noise
-    measured over Cycles seeds. Returns (Cycles scene, reference image, sphere mask)."""
+    measured over Cycles seeds (`guard_seeds`, film-stratified: cs.render_seeds checked against
+    the handlers' render, _assert_render_seeds_is_the_handlers_render). Returns (Cycles scene,
+    reference image, sphere mask)."""
     import dataclasses
     import tomllib
     from bake.core.tables import open_tables
@@ -768,7 +770,10 @@ def _check_osl_matches_tracer(tables_path, name, tmp_path, hashed=False, n=24, s
         cs.hashed_u(node)
     else:
         setattr(sc, lb.FILM_PROP, True)
-    osl, var_osl = _seeded_renders(sc, seeds)
+    imgs = []
+    osl, var_osl = _seeded_renders(sc, seeds, imgs)
+    if guard_seeds and not hashed:
+        _assert_render_seeds_is_the_handlers_render(sc, node, imgs)
 
     data = tomllib.loads(Path(path).read_text())
     assert data["materials"] == {f"learned_{name}": {"manifest": name}}
@@ -805,8 +810,10 @@ def _check_osl_matches_tracer(tables_path, name, tmp_path, hashed=False, n=24, s
 def test_osl_matches_reference_tracer(baked, tmp_path, u):
     """The OSL back end against bake/tracer on the same scene (a sphere under a soft
     environment, box pixel filter): with camera rays' u from their position in the pixel (the
-    default), and with u hashed everywhere (the scene's opt-out)."""
-    _check_osl_matches_tracer(baked["plastic"], "plastic", tmp_path, hashed=u == "hashed")
+    default), and with u hashed everywhere (the scene's opt-out). Film-stratified, it checks
+    cs.render_seeds too (its seed 1 is the handlers' render: the helper of every statistical
+    test with film-stratified u)."""
+    _check_osl_matches_tracer(baked["plastic"], "plastic", tmp_path, hashed=u == "hashed", guard_seeds=True)
 
 
 RGL_THREE = ("paper_white_rgb", "cm_military_green_rgb", "chm_mint_rgb")    # diffuse, glossy, sharp

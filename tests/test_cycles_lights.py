@@ -12,6 +12,7 @@ import cycles_scenes as cs
 from conftest import slow_unless
 
 bpy = cs.bpy_or_skip()
+pytestmark = pytest.mark.usefixtures("shared_fits")     # (conftest: one fit per tables in the run)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
 from blender_addon.render import binding, node as lb, osl_script  # noqa: E402
 

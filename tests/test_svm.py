@@ -19,6 +19,7 @@ from bake.errors import FlowBSDFError
 from bake.core.tables import K_MAX, NSEG, Tables, open_tables
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
+pytestmark = pytest.mark.usefixtures("shared_fits")     # (conftest: one fit per tables in the run)
 
 PLASTIC = {"kind": "analytic", "model": "plastic", "albedo": [0.7, 0.1, 0.08], "alpha": 0.12}
 
