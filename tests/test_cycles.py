@@ -728,7 +728,7 @@ def test_osl_status_says_each_render_compiles_unless_persistent_data(baked):
     assert not sc.render.use_persistent_data        # (Blender's default)
     state = lb.node_state(node, sc)
     assert state.text == "OSL, exact" and state.action == ""
-    assert state.detail == (f"every render first compiles the shader, ~{backends.COMPILE_SECONDS} s per material before "
+    assert state.detail == (f"every render first compiles the shader, ~{backends.COMPILE_SECONDS[False]} s per material before "
                             "the first pixel; Render Properties > Performance > Persistent Data compiles it once")
     assert lb.node_status(node, sc) == f"OSL, exact ({state.detail})"
     sc.render.use_persistent_data = True

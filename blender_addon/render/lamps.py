@@ -176,8 +176,8 @@ def signature(scene):
 
 def bind(script, scene):
     """Fill the shader's lamp slots with `scene`'s lamps (drivers for what animates), the first
-    `LampSlots` of them: Cycles compiles the shader's lamp code once per slot in use, none where no
-    lamp renders (a constant input: scripts/osl_first_pixel.py measures the compile).
+    `LampSlots` of them (a constant to Cycles' compile: where no lamp renders, it leaves the
+    shader's lamp code out; scripts/osl_first_pixel.py measures the compile).
     Does nothing when the group is already bound to the same lamp set."""
     tree = script.id_data
     sig = signature(scene)
