@@ -9,7 +9,7 @@ the render's process CPU is the compile plus Cycles' scene sync), a sphere per m
   learned2     two Learned BSDFs (two materials bound to one table file: two shader groups)
   carried1     one Learned BSDF with the carried blend (the tables' intervals marked as carrying
                and their carry texture made from --rgl, once, in --work)
-each with 0 and 1 point lamps (--lamps: the shader's lamp code compiles once per lamp slot in use).
+each with 0 and 1 point lamps (--lamps; the shader compiles its lamp code only where a lamp renders).
 --shader LABEL=CHECKOUT (repeatable) runs the Learned BSDF cases with another checkout's shader
 (its blender_addon/render/osl/) beside this one's ("this"): before/after of a cut.
 
