@@ -43,7 +43,7 @@ def render_seconds(tables, carried, lamp, spp):
         ob = bpy.data.objects.new("lamp", light)
         ob.location = (2.0, -1.0, 3.0)
         sc.collection.objects.link(ob)
-    assert lb.node_status(node, sc) == "OSL" + (", carried blend" if carried else "") + ", exact", lb.node_status(node, sc)
+    assert lb.node_state(node, sc).text == "OSL" + (", carried blend" if carried else "") + ", exact", lb.node_status(node, sc)
     t0 = time.process_time()
     cs.render(sc)
     return time.process_time() - t0

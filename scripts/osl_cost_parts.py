@@ -81,10 +81,10 @@ def _floor(src, n, spread):
 
 
 def _nonee(src):
-    lamps = "    LAMP_AT(4); LAMP_AT(5); LAMP_AT(6); LAMP_AT(7);\n"
+    lamps = "        LAMP_AT(4); LAMP_AT(5); LAMP_AT(6); LAMP_AT(7);\n"
     env = 'int env_nee = EnvImage != "" && has_bright;'
     assert src.count(lamps) == 1 and src.count(env) == 1
-    src = src.replace(lamps, lamps + "    for (int k = 0; k < LAMP_SLOTS; k++) lamps[k].kind = 0;\n")
+    src = src.replace(lamps, lamps + "        for (int k = 0; k < LAMP_SLOTS; k++) lamps[k].kind = 0;\n")
     return src.replace(env, "int env_nee = 0;")
 
 

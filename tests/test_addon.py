@@ -539,7 +539,7 @@ def test_three_materials_scanned_baked_rendered(baked_scene):
     from blender_addon.render import node
     for name, _ in THREE:
         group = next(n for n in bpy.data.materials[name].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
-        status = node.node_status(group, scene)
+        status = node.node_state(group, scene).text
         assert status == EXACT() if EXACT().endswith("exact") else status.startswith(EXACT() + ", ~"), status
     mtime = (out / "tables" / "gold.exr").stat().st_mtime_ns
     assert bpy.ops.flowbsdf.bake() == {"FINISHED"}       # current tables are kept
@@ -570,7 +570,7 @@ def test_the_svm_back_end_renders_what_osl_does(baked_scene):
             scene.cycles.shading_system = shading_osl
             for name, _ in THREE:
                 group = next(n for n in bpy.data.materials[name].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
-                assert node.node_status(group, scene) == f"{backend.upper()}, exact", node.node_status(group, scene)
+                assert node.node_state(group, scene).text == f"{backend.upper()}, exact", node.node_status(group, scene)
             img = cs.render(scene)
             means[backend, shading_osl] = [img[5:11, c - 3:c + 3].reshape(-1, 3).mean(0) for c in (8, 24, 40)]
     finally:

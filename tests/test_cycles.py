@@ -345,7 +345,7 @@ def test_osl_furnace_anisotropic(aniso_tables, tangent):
     tab = open_tables(aniso_tables)
     spp = 256
     img, normal, inner, node, sc = _furnace(aniso_tables, spp, "osl", tangent=tangent)
-    assert lb.node_status(node, sc) == "OSL, exact"
+    assert lb.node_state(node, sc).text == "OSL, exact"
     tangent = np.array(tangent or lb.TANGENT)
     stats = []
     for nrm in normal[inner]:
@@ -382,7 +382,7 @@ def test_osl_furnace_gives_the_baked_albedo(baked, name):
     tab = open_tables(baked[name])
     spp = 256
     img, normal, inner, node, sc = _furnace(baked[name], spp, "osl")
-    assert lb.node_status(node, sc) == "OSL, exact"
+    assert lb.node_state(node, sc).text == "OSL, exact"
     cos = normal[inner][:, 2]
     ref, var = zip(*(_albedo_and_variance(tab, np.array([np.sqrt(1.0 - c * c), 0.0, c])) for c in cos))
     np.testing.assert_allclose(ref, [baked_albedo(tab, c) for c in cos], rtol=1e-9)
@@ -399,7 +399,7 @@ def test_osl_furnace_on_mixed_resolutions(tmp_path):
     tab = open_tables(path)
     spp = 256
     img, normal, inner, node, sc = _furnace(path, spp, "osl")
-    assert lb.node_status(node, sc) == "OSL, exact"
+    assert lb.node_state(node, sc).text == "OSL, exact"
     cos = normal[inner][:, 2]
     assert np.sum(cos > np.cos(np.radians(50.0))) > 20 and np.sum(cos < np.cos(np.radians(50.0))) > 20
     ref, var = zip(*(_albedo_and_variance(tab, np.array([np.sqrt(1.0 - c * c), 0.0, c])) for c in cos))
@@ -439,7 +439,7 @@ def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):
     mat = bpy.data.materials.new("gold")
     node = lb.assign_learned_bsdf(mat, "gold", path)
     cs.add_sphere(sc, mat, segments=32, rings=16)
-    assert backends.backend_of(sc) == "auto" and lb.node_status(node, sc) == "OSL, exact"
+    assert backends.backend_of(sc) == "auto" and lb.node_state(node, sc).text == "OSL, exact"
     sc.cycles.shading_system = False
     bpy.context.view_layer.update()     # the scene-change handler follows
     assert lb.node_status(node, sc) == "SVM, exact" and switch_of(node) == 0.0 and switch_of(node, lb.SWITCH_SVM) == 1.0
@@ -464,7 +464,7 @@ def test_backend_switch_save_reload_and_missing_tables(baked, tmp_path):
     mat = bpy.data.materials["gold"]
     node = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
     assert node.label == "Learned BSDF" and backends.backend_of(sc) == "osl"
-    assert lb.node_status(node, sc) == "OSL, exact"
+    assert lb.node_state(node, sc).text == "OSL, exact"
     np.testing.assert_allclose(cs.render(sc), osl_img, rtol=1e-6)   # same seed, same image
 
     # Saved as it renders without the add-on (no lamps: the SVM graph), opened without it and
@@ -644,7 +644,9 @@ def test_auto_picks_osl_under_light_objects_and_says_what_it_does_not_light(bake
     mat = bpy.data.materials.new("m")
     node = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
     lb.set_backend(sc, "auto")
-    assert lb.node_status(node, sc) == "OSL, exact"
+    assert lb.node_state(node, sc).text == "OSL, exact"
+    script = node.node_tree.nodes[osl_script.SCRIPT]
+    assert script.inputs["LampSlots"].default_value == 0
     made = []
     for k in range(lamps.SLOTS + 2):
         lamp = bpy.data.objects.new(f"Lamp{k:02d}", bpy.data.lights.new(f"Lamp{k:02d}", 'POINT'))
@@ -652,15 +654,89 @@ def test_auto_picks_osl_under_light_objects_and_says_what_it_does_not_light(bake
         made.append(lamp)
         bpy.context.view_layer.update()
         if k < lamps.SLOTS:
-            assert lb.node_status(node, sc) == "OSL, exact" and switch_of(node) == 1.0
+            assert lb.node_state(node, sc).text == "OSL, exact" and switch_of(node) == 1.0
+        assert script.inputs["LampSlots"].default_value == min(k + 1, lamps.SLOTS)     # the slots in use
     status = lb.node_status(node, sc)
     assert status.startswith("OSL, exact, but 2 lamps past the first 8 are not lit (Lamp08, Lamp09). Use at most 8 lamps"), status
-    script = node.node_tree.nodes[osl_script.SCRIPT]
     assert [script.inputs[f"L{k}Kind"].default_value for k in range(lamps.SLOTS)] == [1] * lamps.SLOTS
     for lamp in made[lamps.SLOTS:]:
         lamp.hide_render = True
     bpy.context.view_layer.update()
+    assert lb.node_state(node, sc).text == "OSL, exact"
+
+
+def test_osl_compiles_the_lamp_code_only_where_a_lamp_renders(baked):
+    """The shader's lamp code runs over the slots in use (LampSlots, a constant to Cycles' compile:
+    none where no lamp renders, ~half the compile before the first pixel, scripts/osl_first_pixel.py):
+    the same image as with all slots compiled, and a lamp added after a render is lit at the next
+    render (render_pre binds it; a delta lamp only the shader's next-event estimation reaches)."""
+    sc = cs.reset(12, 12, spp=4)
+    cs.ortho_camera(sc, scale=2.2)
+    world = cs.set_world(sc, (1.0, 1.0, 1.0))
+    mat = bpy.data.materials.new("m")
+    node = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
+    cs.add_sphere(sc, mat, segments=32, rings=16)
+    lb.set_backend(sc, "osl")
+    slots = node.node_tree.nodes[osl_script.SCRIPT].inputs["LampSlots"]
+    assert slots.default_value == 0
+    bare = cs.render(sc)
+    slots.default_value = 8                 # every slot's code, the slots empty (bind keeps it: same lamps)
+    full = cs.render(sc)
+    assert slots.default_value == 8 and bare.mean() > 0.1
+    np.testing.assert_allclose(bare, full, rtol=1e-6, atol=1e-7)
+    slots.default_value = 0
+    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
+    assert cs.render(sc).max() == 0.0
+    cs.add_lamp(sc, 'POINT', (2.0, -2.0, 3.0), energy=300.0, shadow_soft_size=0.0)
+    lit = cs.render(sc)
+    assert slots.default_value == 1 and (lit.sum(-1) > 0.0).mean() > 0.15, lit.mean()    # the sphere's lit side
+
+
+def test_osl_two_learned_bsdfs_in_one_material_trace_their_own_rays(baked, capfd):
+    """Two Learned BSDFs mixed in one material are two layers of one OSL group; each passes its
+    rays to trace() through messages of its own (trace_ray: a message set twice, or read from
+    another layer, is an OSL error, and the ray would be the other layer's)."""
+    sc = cs.reset(8, 8, spp=2)
+    cs.ortho_camera(sc, scale=2.2)
+    cs.set_world(sc, (0.3, 0.3, 0.3))
+    mat = bpy.data.materials.new("m")
+    first = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
+    second = mat.node_tree.nodes.new("ShaderNodeGroup")
+    second.node_tree = lb.assign_learned_bsdf(bpy.data.materials.new("g"), "gold", baked["gold"]).node_tree
+    mix = mat.node_tree.nodes.new("ShaderNodeMixShader")
+    out = first.outputs["BSDF"].links[0].to_node
+    mat.node_tree.links.new(first.outputs["BSDF"], mix.inputs[1])
+    mat.node_tree.links.new(second.outputs["BSDF"], mix.inputs[2])
+    mat.node_tree.links.new(mix.outputs[0], out.inputs["Surface"])
+    cs.add_sphere(sc, mat, segments=32, rings=16)
+    cs.add_lamp(sc, 'AREA', (-2.0, -1.0, 2.5), energy=300.0, size=1.0)
+    lb.set_backend(sc, "osl")
+    capfd.readouterr()
+    img = cs.render(sc)
+    log = "".join(capfd.readouterr())
+    assert "message" not in log and "ERROR" not in log, log[-2000:]
+    assert np.all(np.isfinite(img)) and img.max() > 0.0
+
+
+def test_osl_status_says_each_render_compiles_unless_persistent_data(baked):
+    """Where OSL renders and Cycles keeps nothing between renders, the status's detail (tooltip,
+    logs) says that every render first compiles the shader, how long, and the setting that
+    compiles it once; with Persistent Data on it says nothing of it. Its text stays."""
+    sc = cs.reset(8, 8, spp=1)
+    mat = bpy.data.materials.new("m")
+    node = lb.assign_learned_bsdf(mat, "plastic", baked["plastic"])
+    lb.set_backend(sc, "auto")
+    assert not sc.render.use_persistent_data        # (Blender's default)
+    state = lb.node_state(node, sc)
+    assert state.text == "OSL, exact" and state.action == ""
+    assert state.detail == (f"every render first compiles the shader, ~{backends.COMPILE_SECONDS[False]} s per material before "
+                            "the first pixel; Render Properties > Performance > Persistent Data compiles it once")
+    assert lb.node_status(node, sc) == f"OSL, exact ({state.detail})"
+    sc.render.use_persistent_data = True
     assert lb.node_status(node, sc) == "OSL, exact"
+    sc.render.use_persistent_data = False
+    sc.cycles.shading_system = False                # (the SVM graph renders: no compile to speak of)
+    assert "compiles" not in lb.node_status(node, sc)
 
 
 def test_film_settings_follow_the_scene(baked):
@@ -1040,7 +1116,7 @@ def test_osl_furnace_carried_gives_the_blended_albedo(carried_textures, tmp_path
         lb.set_backend(sc, "osl")
         cs.add_plane(sc, material, size=40.0).rotation_euler = (0.0, np.radians(deg), 0.0)
         img = cs.render(sc).reshape(-1, 3)
-        assert lb.node_status(node, sc) == "OSL, carried blend, exact"
+        assert lb.node_state(node, sc).text == "OSL, carried blend, exact"
         assert node.node_tree.nodes[osl_script.SCRIPT].inputs["Carried"].default_value == str(texture)
         theta = np.radians(deg)
         wi = np.array([np.sin(theta), 0.0, np.cos(theta)])

@@ -591,7 +591,7 @@ def test_without_osl_under_lamps_auto_renders_the_fit_and_says_the_step_to_exact
     # with OSL on (the CPU step's button: device CPU, OSL on), OSL whatever the lamps
     sc.cycles.device, sc.cycles.shading_system = 'CPU', True
     lb.set_backend(sc, "auto")              # (syncs the switches: a Python property of Cycles' set from a script tags nothing)
-    assert lb.node_status(node, sc) == "OSL, exact" and _switches(node)[0] == 1.0
+    assert lb.node_state(node, sc).text == "OSL, exact" and _switches(node)[0] == 1.0
 
 
 def _statuses(plastic):
@@ -798,7 +798,7 @@ def _osl_renders(sc, node, spp, seeds):
     sc.cycles.shading_system = True
     sc.cycles.samples = spp
     lb.set_backend(sc, "auto")
-    assert lb.node_status(node, sc) == "OSL, exact"
+    assert lb.node_state(node, sc).text == "OSL, exact"
     cs.hashed_u(node)
     return cs.render_seeds(sc, seeds)
 

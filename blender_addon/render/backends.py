@@ -122,6 +122,23 @@ def caustics_off(scene):
     return cy is not None and not (cy.caustics_reflective and cy.caustics_refractive)
 
 
+# What the OSL back end costs before the first pixel where Cycles keeps nothing between renders:
+# it compiles each material's shader at every render. Measured (scripts/osl_first_pixel.py, bpy
+# 5.0.1, 2 cores, process CPU per Learned BSDF material, draft tables of cm_military_green, best of
+# 2 at load 7-14): 1.9-2.1 s without lamps, 2.6-2.9 s with 1 or 8 lamps; with the carried blend
+# 4.0-5.2 s (a Principled BSDF 0.05 s). Seconds by (carried blend):
+COMPILE_SECONDS = {False: "2-3", True: "4-5"}
+
+
+def compile_note(scene, carried=False):
+    """The OSL back end's wait before the first pixel, in the artist's words ("" where Persistent
+    Data keeps the compiled shader between renders)."""
+    if getattr(scene.render, "use_persistent_data", False):
+        return ""
+    return (f"every render first compiles the shader, ~{COMPILE_SECONDS[carried]} s per material before the first "
+            "pixel; Render Properties > Performance > Persistent Data compiles it once")
+
+
 def resolve(scene, tree, limits=None):
     """The Status of one group in one scene (`limits`: lamps.limits(scene), computed here when
     not given). The exact back ends by preference: OSL (CPU; lamps by next-event estimation in
@@ -154,10 +171,13 @@ def resolve(scene, tree, limits=None):
     svm_ok = binding.has_svm(tree) and os.path.isfile(info.get("svm_texture", ""))
     notes = lamps.limits(scene) if limits is None else limits
     if osl_ok and backend in ("osl", "auto"):
-        exact = "OSL, carried blend, exact" if os.path.isfile(info.get("carry_texture", "")) else "OSL, exact"
+        carried = os.path.isfile(info.get("carry_texture", ""))
+        exact = "OSL, carried blend, exact" if carried else "OSL, exact"
+        wait = compile_note(scene, carried)
         if notes:
-            return Status("osl", f"{exact}, but {notes[0][0]}", notes[0][1], (), "; ".join(n for n, _ in notes))
-        return Status("osl", exact)
+            return Status("osl", f"{exact}, but {notes[0][0]}", notes[0][1], (),
+                          "; ".join([n for n, _ in notes] + ([wait] if wait else [])))
+        return Status("osl", exact, detail=wait)
     lit = lamps.scene_lamps(scene)
     # The SVM graph lights its fit's closures by Cycles' lamp sampling and the rest through its
     # portal, which draws toward the lamps visible to the camera that have a size: exact there.

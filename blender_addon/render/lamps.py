@@ -175,13 +175,18 @@ def signature(scene):
 
 
 def bind(script, scene):
-    """Fill the shader's lamp slots with `scene`'s lamps (drivers for what animates). Does
-    nothing when the group is already bound to the same lamp set."""
+    """Fill the shader's lamp slots with `scene`'s lamps (drivers for what animates), the first
+    `LampSlots` of them (a constant to Cycles' compile: where no lamp renders, it leaves the
+    shader's lamp code out; scripts/osl_first_pixel.py measures the compile).
+    Does nothing when the group is already bound to the same lamp set."""
     tree = script.id_data
     sig = signature(scene)
     if tree.get(KEY) == sig:
         return
     lamps = scene_lamps(scene)[:SLOTS]
+    used = script.inputs.get("LampSlots")     # (a script of an older shader: none)
+    if used is not None:
+        used.default_value = len(lamps)
     for k in range(SLOTS):
         prefix = f"L{k}"
         for name in ("P", "X", "Y", "Z", "Color", "Strength", "Size"):
