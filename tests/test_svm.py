@@ -1383,6 +1383,7 @@ def test_svm_anisotropic_control_variate_furnace_gives_the_baked_albedo(svm, bru
              if node.bl_idname == "ShaderNodeBsdfAnisotropic" and node.inputs["Tangent"].is_linked]
     takes += [source(node.inputs["T"]) for node in tree.nodes if node.bl_idname == "ShaderNodeGroup" and "T" in node.inputs]
     assert len(takes) == 4 and all(t == ("ShaderNodeVectorRotate", pytest.approx(brushed_fit["tangent_turn"])) for t in takes), takes
+    assert sum(node.bl_idname == "ShaderNodeVectorRotate" for node in tree.nodes) == 1      # (made once)
     cs.add_sphere(sc, mat)
     imgs = _render_seeds(svm, sc, [mat], seeds)
     normal, hit = cs.sphere_view(n, n, scale=2.2)

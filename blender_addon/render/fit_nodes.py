@@ -166,7 +166,7 @@ def matched_share(rel_error):
 MATCHED_ERROR_MAX = 0.1
 
 
-def closures(tree, params, loc, scale_d=None, scale_s=None, tilts=True, material_tangent=None):
+def closures(tree, params, loc, scale_d=None, scale_s=None, tilts=True, material_tangent=None, turned_tangent=None):
     """The fit's closures: a Diffuse BSDF (colour kd) plus a GGX Glossy BSDF per lobe (colour
     ks_j, roughness r_j, anisotropy a_j; the first params["view_aligned"] with the view's
     tangent: view_tangent; the first params["material_aligned"] with `material_tangent`, the
@@ -175,11 +175,12 @@ def closures(tree, params, loc, scale_d=None, scale_s=None, tilts=True, material
     tilt, T the view tangent, N Geometry's Normal; a MULTIPLY_ADD: a zero tilt gives N exactly,
     Cycles normalises it; closures whose tilt is 0 at every knot take the shading normal
     unlinked, as before). `scale_d`, `scale_s`: colours multiplying kd and every ks_j (the SVM
-    back end's control variate); `tilts` False: every closure untilted."""
+    back end's control variate); `tilts` False: every closure untilted. `turned_tangent`: the
+    material-aligned lobes' tangent already made (lobe_tangent), instead of turning `material_tangent`."""
     nodes, links = tree.nodes, tree.links
     x, y = loc[0] + 3000, loc[1]
     if params["material_aligned"]:
-        material_tangent = lobe_tangent(tree, params, material_tangent, (x - 600, y - 1300))
+        material_tangent = turned_tangent or lobe_tangent(tree, params, material_tangent, (x - 600, y - 1300))
 
     def scaled(colour, scale, at):
         if scale is None:

@@ -106,12 +106,12 @@ def _svm_backend(tree, svm_texture, fit, tangent, world_inputs, loc=(-1400, -300
     if not (has_betas or match) or not svm.control_variate_wanted(svm_texture, fit):
         return svm.build_svm_sampler(tree, svm_texture, tangent, location=loc, world=world_inputs)
     params = fit_nodes.fit_params(tree, fit, (loc[0], loc[1] + 1600), cv=True)
+    # (a material-aligned fit's turned tangent made once: the closures and the graph's f_cv take it)
+    turned = fit_nodes.lobe_tangent(tree, params, tangent, (loc[0] + 2400, loc[1] + 300)) if params["material_aligned"] else None
     cv = {"fit": params, "betas": params["cv"], "matched_share": params["matched"],
-          "has_betas": has_betas, "match_image": match,
+          "has_betas": has_betas, "match_image": match, "tangent": turned,
           "closures": lambda sd, ss: fit_nodes.closures(tree, params, (loc[0], loc[1] + 1600), sd, ss, tilts=svm.CV_TILTS,
-                                                        material_tangent=tangent)}
-    if params["material_aligned"]:
-        cv["tangent"] = fit_nodes.lobe_tangent(tree, params, tangent, (loc[0] + 2400, loc[1] + 300))
+                                                        turned_tangent=turned)}
     return svm.build_svm_sampler(tree, svm_texture, tangent, location=loc, world=world_inputs, cv=cv)
 
 
