@@ -541,6 +541,7 @@ def test_three_materials_scanned_baked_rendered(baked_scene):
         group = next(n for n in bpy.data.materials[name].node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
         status = node.node_state(group, scene).text
         assert status == EXACT() if EXACT().endswith("exact") else status.startswith(EXACT() + ", ~"), status
+    _check_status_lines(scene, bpy.data.materials["gold"])
     mtime = (out / "tables" / "gold.exr").stat().st_mtime_ns
     assert bpy.ops.flowbsdf.bake() == {"FINISHED"}       # current tables are kept
     assert (out / "tables" / "gold.exr").stat().st_mtime_ns == mtime
@@ -552,6 +553,35 @@ def test_three_materials_scanned_baked_rendered(baked_scene):
     assert abs(matte.mean() - 0.8) < 0.08 and np.ptp(matte) < 0.05, matte
     assert red[0] > 2 * red[1] and red[0] > 2 * red[2], red
     assert gold[0] > 1.5 * gold[2] and gold.mean() > 0.3, gold
+
+
+def _check_status_lines(scene, mat):
+    """The material panel shows the node's status: its text, its step and its detail, each in
+    whole lines that fit the sidebar; with OSL, the detail says that every render first compiles
+    the shader and what keeps it (Persistent Data), and goes when Persistent Data is on."""
+    from types import SimpleNamespace
+    from blender_addon.artist import panels, uitext
+    from blender_addon.render import node
+    group = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
+    ctx = SimpleNamespace(material=mat, scene=scene, active_object=None, region=None,
+                          window_manager=bpy.context.window_manager, preferences=bpy.context.preferences)
+    try:
+        for persistent in (False, True):
+            scene.render.use_persistent_data = persistent
+            status = node.node_state(group, scene)
+            drawn = []
+            panels.draw_renders(_Recorder(drawn), mat, scene, ctx)
+            labels = [t for k, t in drawn if k == "label"]
+            want = uitext.wrap(status.text, ctx, 1)
+            if status.action and not status.operator:         # (with an operator: a button)
+                want += uitext.wrap(status.action, ctx, 1)
+            if status.detail:
+                want += uitext.wrap(status.detail[:1].upper() + status.detail[1:], ctx, 1)
+            assert labels == want, (labels, want)
+            if status.backend == "osl":
+                assert ("Persistent Data" in " ".join(labels)) is not persistent, labels
+    finally:
+        scene.render.use_persistent_data = False
 
 
 def test_the_svm_back_end_renders_what_osl_does(baked_scene):

@@ -95,7 +95,8 @@ def draw_preview(layout, mat):
 
 
 def draw_renders(layout, mat, scene, context, boxes=1):
-    """What the material's Learned BSDF node renders in this scene, and why (node.node_status)."""
+    """What the material's Learned BSDF node renders in this scene, why, the step to the exact
+    result and the status's detail (node.node_state)."""
     from ..render import node
     group = _learned_group(mat)
     if group is None:
@@ -111,6 +112,8 @@ def draw_renders(layout, mat, scene, context, boxes=1):
             setattr(op, key, value)
     elif status.action:
         wrapped(layout, status.action, "FORWARD", context, boxes)
+    if status.detail:           # what else the artist should know (a compile wait, a clamp, a hidden lamp)
+        wrapped(layout, status.detail[:1].upper() + status.detail[1:], "INFO", context, boxes)
 
 
 def _split(layout):

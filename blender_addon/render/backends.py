@@ -49,7 +49,7 @@ class Status(NamedTuple):
     renders and how far it is from the measured material, `action` the one step that gets the
     exact material in this scene ("" where it renders exactly), `operator` the button that takes
     the step, (bl_idname, {property: value}), or () where the artist takes it, and `detail` what
-    the short words leave out (a path): the panel's tooltip and the logs."""
+    the short words leave out (a path, a wait, a clamp): the panel's last lines and the logs."""
     backend: str            # what renders: "osl", "svm" or "fit"
     text: str
     action: str = ""
