@@ -6,7 +6,7 @@ node and texture lookup counts. Not shipped: tests and scripts import it (tests/
 a probe image (per pixel u0, u1, cos theta_i, phi_i) and returns an Emission that encodes wo
 (0.5 + 0.5 wo), the weight and the pdf side by side; `build_world_probe` the map's sampling and
 pdf; `_probe_input` and `_probe_output` the probe's two ends for other graphs."""
-from blender_addon.render.svm.graph import X, Y, Z, _Graph, _image
+from blender_addon.render.svm.graph import X, Y, Z, _Graph, _image, atan2, cos, floor, fract, sin, sqrt
 from blender_addon.render.svm.mixture import _Mixture
 from blender_addon.render.svm.shader import TANGENT, _frame
 from blender_addon.render.svm.tables import _inverse, _Sampler, _tables_sample
@@ -31,21 +31,19 @@ def build_svm_probe(tree, texture_path, probe_path, inverse=False, location=(0.0
     first, second, cos_i = (g.dot(values, axis) for axis in (X, Y, Z))
     phi_i = alpha if sampler.lay["P"] > 1 else None
     if world is not None:
-        sin_i = g.math('SQRT', g.math('SUBTRACT', 1.0, g.math('MULTIPLY', cos_i, cos_i)))
-        wi = g.combine(g.math('MULTIPLY', sin_i, g.math('COSINE', alpha)),
-                       g.math('MULTIPLY', sin_i, g.math('SINE', alpha)), cos_i)
+        sin_i = sqrt(1.0 - cos_i * cos_i)
+        wi = g.combine(sin_i * cos(alpha), sin_i * sin(alpha), cos_i)
         tx, ty = _frame(g, Z, wi if phi_i is None else TANGENT)
         if phi_i is not None:
-            phi_i = g.math('ARCTAN2', g.dot(wi, ty), g.dot(wi, tx))
+            phi_i = atan2(g.dot(wi, ty), g.dot(wi, tx))
         at = {"n": Z, "ng": Z, "cos_raw": cos_i, "cos_i": cos_i, "tx": tx, "ty": ty, "phi_i": phi_i,
               "u0": first, "u1": second, "p": (0.0, 0.0, 0.0)}
         return _Mixture(world).graph(g, sampler, at, lambda out: _probe_output(
             g, thirds, (g.vmath('MULTIPLY_ADD', out["direction"], (0.5, 0.5, 0.5), (0.5, 0.5, 0.5)), out["weight"],
                         g.combine(out["q"], out["technique"], out["ok"]))))
     if inverse:
-        sin_o = g.math('SQRT', g.math('SUBTRACT', 1.0, g.math('MULTIPLY', first, first)))
-        wo = (g.math('MULTIPLY', sin_o, g.math('COSINE', second)), g.math('MULTIPLY', sin_o, g.math('SINE', second)),
-              first)
+        sin_o = sqrt(1.0 - first * first)
+        wo = (sin_o * cos(second), sin_o * sin(second), first)
         pdf, fcos = _inverse(g, sampler, cos_i, phi_i, wo)
         shown = (pdf, fcos, (0.0, 0.0, 0.0))
     else:
@@ -70,13 +68,13 @@ def build_world_probe(tree, world_path, probe_path, location=(0.0, 0.0)):
 def _probe_input(g, probe_path):
     """(the thirds' flags: left, middle, right; the probe texel's colour, its alpha) of this pixel."""
     window = g.node("ShaderNodeTexCoord").outputs["Window"]
-    wx = g.math('MULTIPLY', g.dot(window, X), 3.0)
-    third = g.math('FLOOR', wx)
+    wx = g.dot(window, X) * 3.0
+    third = floor(wx)
     # one of the three by its third of the image: x 1 and x 0 (exact)
-    left, right = g.math('LESS_THAN', third, 0.5), g.math('GREATER_THAN', third, 1.5)
-    middle = g.math('SUBTRACT', g.math('SUBTRACT', 1.0, left), right)
+    left, right = third < 0.5, third > 1.5
+    middle = 1.0 - left - right
     probe = g.node("ShaderNodeTexImage", image=_image(probe_path), interpolation='Closest', extension='EXTEND')
-    g.set(probe.inputs["Vector"], g.combine(g.math('FRACT', wx), g.dot(window, Y)))
+    g.set(probe.inputs["Vector"], g.combine(fract(wx), g.dot(window, Y)))
     return (left, middle, right), probe.outputs["Color"], g.outputs(probe)["Alpha"]
 
 
