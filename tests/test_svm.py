@@ -688,7 +688,8 @@ def test_cycles_merges_the_lookups_of_one_texel(svm, plastic, capfd):
     from blender_addon.render.svm.graph import X, _Graph, _image, fma
     texture = derived.ensure_svm_export(plastic)
 
-    def lookups(same):
+    def overflows(same):
+        """Whether Cycles reports the stack's overflow on the 90 nodes at one place (`same`) or 90."""
         def build(tree):
             g, image = _Graph(tree), _image(texture)
             # a place known at run time only (as the sampler's), within texel k (0 when `same`)
@@ -713,8 +714,8 @@ def test_cycles_merges_the_lookups_of_one_texel(svm, plastic, capfd):
         out, err = capfd.readouterr()
         return "out of SVM stack space" in out + err
 
-    assert not lookups(same=True)
-    assert lookups(same=False)          # (the check can fail)
+    assert not overflows(same=True)
+    assert overflows(same=False)        # (the check can fail)
 
 
 # ------------------------------------------------------------------------------ the world
