@@ -17,9 +17,9 @@ they measure cost, not a look):
 One Cycles thread (with two, a worker waiting for the other counted as CPU time). Per scene (constant
 world, the acceptance's HDRI, studio lamps) and variant: CPU time of this process per spp from the
 fastest of --inner renders at --lo and at --hi spp (each render's fixed cost cancels), the best of
---repeat interleaved rounds (the machine is shared); and the graph's node count (groups expanded,
-every branch: the SVM interpreter runs only the branch taken). A graph without the node named
-svm.FILM is not taken for the SVM back end (binding.has_svm: the node renders the fit instead).
+--repeat interleaved rounds (the machine is shared); and the graph's node and texture lookup counts
+(groups expanded, every branch: the SVM interpreter runs only the branch taken). A graph without the
+node named svm.FILM is not taken for the SVM back end (binding.has_svm: the node renders the fit instead).
 
     .venv/bin/python scripts/svm_cost_parts.py [--tables T.exr] [--variants svm,before] [--repeat 3]
 """
@@ -121,9 +121,21 @@ def _before(path=None):
 
 
 def graph_nodes(socket):
-    """Nodes (groups expanded) upstream of the SVM back end's output socket, itself included."""
+    """(nodes, texture lookups) upstream of the SVM back end's output socket, itself included:
+    groups expanded, image nodes of one image at one place counted as one lookup (Cycles merges
+    them: tests/test_svm.py test_cycles_merges_the_lookups_of_one_texel)."""
 
-    def upstream(socket, seen, path=()):
+    def source(socket, path, outer):
+        # what feeds a node input: a constant, or a node's output (a group input's: the group node's)
+        if not socket.is_linked:
+            value = socket.default_value
+            return ("constant", tuple(value) if hasattr(value, "__len__") else value)
+        link = socket.links[0]
+        if link.from_node.bl_idname == "NodeGroupInput":
+            return outer.get(link.from_socket.identifier)
+        return (path, link.from_node.name, link.from_socket.identifier)
+
+    def upstream(socket, seen, path=(), outer=None):
         # nodes feeding `socket` (a node input), group internals expanded
         for link in socket.links:
             node = link.from_node
@@ -133,24 +145,29 @@ def graph_nodes(socket):
             seen.add(key)
             if node.bl_idname == "ShaderNodeGroup" and node.node_tree is not None:
                 groups.add(key)
+                inner_outer = {s.identifier: source(s, path, outer or {}) for s in node.inputs}
                 out = next(n for n in node.node_tree.nodes if n.bl_idname == "NodeGroupOutput")
                 inner = set()
                 for s in out.inputs:
-                    upstream(s, inner, path + (node.name,))
+                    upstream(s, inner, path + (node.name,), inner_outer)
                 seen |= inner
                 for s in node.inputs:
-                    upstream(s, seen, path)
+                    upstream(s, seen, path, outer)
             elif node.bl_idname == "NodeGroupInput":
                 pass
             else:
+                if node.bl_idname == "ShaderNodeTexImage":
+                    place = source(node.inputs["Vector"], path, outer or {})
+                    lookups.add((node.image.name if node.image else "", place))
                 for s in node.inputs:
-                    upstream(s, seen, path)
+                    upstream(s, seen, path, outer)
         return seen
 
-    seen, groups = {((), socket.node.name)}, set()
+    seen, groups, lookups = {((), socket.node.name)}, set(), set()
     for s in socket.node.inputs:
         upstream(s, seen)
-    return len({k for k in seen - groups if not k[1].startswith(("Group Input", "Group Output", "Reroute"))})
+    nodes = len({k for k in seen - groups if not k[1].startswith(("Group Input", "Group Output", "Reroute"))})
+    return nodes, len(lookups)
 
 
 def per_spp(kind, variant, tables, fit, setup, size, lo, hi, inner):
@@ -158,7 +175,7 @@ def per_spp(kind, variant, tables, fit, setup, size, lo, hi, inner):
         sc, mat = ca.cycles_scene(kind, tables.stem, tables, None, size, lo, fit=fit, setup=setup, native=True)
         sc.render.threads = 1           # one Cycles thread: no worker waiting for another counted as CPU
         cs.render(sc)                           # warm: compilation, world map, textures
-        nodes = graph_nodes(BUILT[-1]) if kind == "svm" and BUILT else 0
+        nodes = graph_nodes(BUILT[-1]) if kind == "svm" and BUILT else (0, 0)
         secs = {lo: [], hi: []}
         for _ in range(inner):
             for spp in (lo, hi):
@@ -196,17 +213,18 @@ def main(argv=None):
                 t, n = per_spp(kind, v, args.tables, fit, setup, args.size, args.lo, args.hi, args.inner)
                 best[scene, v] = min(best.get((scene, v), float("inf")), t)
                 nodes[scene, v] = n
-                print(f"round {r} {scene} {v}: {1e3 * t:.2f} ms/spp ({n} nodes)", flush=True)
+                print(f"round {r} {scene} {v}: {1e3 * t:.2f} ms/spp ({n[0]} nodes, {n[1]} lookups)", flush=True)
     print(f"{args.tables.stem}, {args.size} px sphere, CPU ms per spp (this process, all threads) from "
           f"{args.lo} and {args.hi} spp, best of {args.repeat} interleaved rounds; ratio to Principled; "
-          f"graph nodes upstream of the output (groups expanded)")
+          f"graph nodes (n) and texture lookups (lk) upstream of the output (groups expanded, every branch)")
     print("| variant | " + " | ".join(scenes) + " |")
     print("|---" * (len(scenes) + 1) + "|")
     for v in variants:
         cells = []
         for scene in scenes:
             t, p = best[scene, v], best[scene, "principled"] if (scene, "principled") in best else float("nan")
-            cells.append(f"{1e3 * t:.2f} ({t / p:.2f}x{', %d n' % nodes[scene, v] if nodes[scene, v] else ''})")
+            n, lk = nodes[scene, v]
+            cells.append(f"{1e3 * t:.2f} ({t / p:.2f}x{f', {n} n, {lk} lk' if n else ''})")
         print(f"| {v} | " + " | ".join(cells) + " |")
 
 

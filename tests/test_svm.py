@@ -677,6 +677,47 @@ def test_svm_graph_leaves_the_stack_a_wide_margin(svm, brushed, plastic, capfd, 
     assert "out of SVM stack space" in out + err and np.all(overflow[sphere] == 0)
 
 
+def test_cycles_merges_the_lookups_of_one_texel(svm, plastic, capfd):
+    """The sampler reads every quantity through an Image Texture node of its own, two of them
+    on one texel where a texel packs two records (isotropic tables), at one place made once
+    (_Sampler.uv): Cycles merges image nodes of one image at one place (its graph's
+    deduplication), so a texel costs one lookup however many quantities come from it (graph_counts
+    counts so: the default cm_military_green's sample group has 32 image nodes, 23 lookups).
+    Shown by the SVM stack: 90 image nodes whose colours are all alive at once need 270 floats,
+    more than its 255, unless merged."""
+    from blender_addon.render.svm.graph import X, _Graph, _image, fma
+    texture = derived.ensure_svm_export(plastic)
+
+    def overflows(same):
+        """Whether Cycles reports the stack's overflow on the 90 nodes at one place (`same`) or 90."""
+        def build(tree):
+            g, image = _Graph(tree), _image(texture)
+            # a place known at run time only (as the sampler's), within texel k (0 when `same`)
+            x = g.dot(g.node("ShaderNodeTexCoord").outputs["Window"], X)
+            places = [g.combine(fma(x, 1e-3, 0.5 + k) * (1.0 / image.size[0]), 0.5) for k in range(1 if same else 90)]
+            colours = []
+            for k in range(90):
+                tex = g.node("ShaderNodeTexImage", image=image, interpolation='Closest', extension='EXTEND')
+                g.set(tex.inputs["Vector"], places[k % len(places)])
+                colours.append(tex.outputs["Color"])
+            total = colours[0]
+            for colour in colours[1:]:
+                total = g.vmath('ADD', total, colour)
+            emission = g.node("ShaderNodeEmission")
+            g.set(emission.inputs["Color"], total)
+            return emission.outputs["Emission"]
+        sc = cs.reset(4, 4, spp=1, osl=False, threads=1)
+        cs.ortho_camera(sc)
+        cs.add_plane(sc, cs.material_with(build), size=20.0)
+        capfd.readouterr()
+        cs.render(sc)
+        out, err = capfd.readouterr()
+        return "out of SVM stack space" in out + err
+
+    assert not overflows(same=True)
+    assert overflows(same=False)        # (the check can fail)
+
+
 # ------------------------------------------------------------------------------ the world
 
 def _world_map(folder, name="world.exr"):

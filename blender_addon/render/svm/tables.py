@@ -66,7 +66,9 @@ class _Sampler:
     sampler and its inverse (the pdf at a direction).
     A texel's place is a pair (x, y) of texture coordinates (sockets or numbers), each moved by
     scalar Math and combined into a vector once per texel looked up: a Vector Math node costs
-    Cycles' SVM ~5 scalar ones."""
+    Cycles' SVM ~5 scalar ones. The quantities of one texel (two records to a texel, isotropic
+    tables) are read by image nodes of their own at that one place: Cycles merges them into one
+    lookup (tests/test_svm.py test_cycles_merges_the_lookups_of_one_texel)."""
 
     def __init__(self, g, texture_path, lay=None):
         self.g, self.path = g, texture_path
