@@ -34,8 +34,9 @@ BUILDER = 13             # 2: cells that miss a hard-edged sliver of mass are in
 # the node builds without numpy). 8: tables of mixed resolutions (each corner's own rows and
 # columns: its guides, its count texel); 9: a cell in three RGBA texels (weight with the profiles),
 # the header in two; 10: isotropic corners' sums carry their edges (blue, alpha); 11: what a sample
-# reads together lies together (cells' texels and bins, a table row's sums, edges, guide)
-OSL_LAYOUT = 11
+# reads together lies together (cells' texels and bins, a table row's sums, edges, guide); 12: the
+# header also as the file's attributes (the shader reads it by gettextureinfo: folded when compiled)
+OSL_LAYOUT = 12
 # The SVM texture (bake/export/svm_export.py). 4: tables of mixed resolutions (isotropic headers
 # hold the corner's last row and column); 5: the theta guide over sqrt(1 - cos theta_i) (bins a
 # fraction of a degree apart near the normal: ilm_solo_m_68's default bake)

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from bake.export import closure_fit, derived
+from bake.export import closure_fit, derived, osl_export
 from bake.errors import FlowBSDFError
 from bake.core.ideal import IdealSampler
 from bake.materials import open_material
@@ -239,6 +239,21 @@ def test_derived_files_are_cached_rebuilt_and_atomic(tmp_path, lambert, glossy):
     assert closure_fit.load_fit(derived.ensure_fit(path))["version"] == closure_fit.FIT_VERSION
     with pytest.raises(FlowBSDFError, match="not found"):
         ensure_osl_export(tmp_path / "gone.exr")
+
+
+def test_the_osl_texture_header_is_also_its_file_attributes(tmp_path, glossy):
+    """The shader reads the header from the file's attributes (gettextureinfo): the header texels'
+    eight numbers, ints where they count and float32 where they measure (the period, the frame)."""
+    import OpenEXR
+    path = tmp_path / "g.exr"
+    glossy.save(path)
+    tex = ensure_osl_export(path)
+    img, _ = read(tex)
+    header = OpenEXR.File(str(tex)).header()
+    values = [header[name] for name in osl_export.HEADER]
+    assert values == [float(x) for x in img[0, :2].reshape(-1)]
+    assert [type(v) for v in values] == [int] * 5 + [float, int, float]
+    assert values[:5] == [LAYOUT, len(glossy.theta_bins), glossy.rows, glossy.cols, 1]
 
 
 def test_the_inverse_guides_bracket_the_edge_searches(tmp_path, glossy):

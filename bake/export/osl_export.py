@@ -16,7 +16,11 @@ below bound its searches). Layout (W = texture width, rows from the top of the i
 
     row 0                   header: (LAYOUT, K, R, C), (P, phi period, the coordinates (their
                             index in tables.COORDS: 0 wo, 1 halfvector, 2 halfpolar), their
-                            frame's angle); the shader checks the texture's size against them
+                            frame's angle); the shader checks the texture's size against them.
+                            The same eight numbers are the file's header attributes HEADER (ints,
+                            and float32 period and angle): the shader reads those, by
+                            gettextureinfo(), which OSL answers once when it compiles the shader
+                            (a texture() call costs at every shading point)
     row 1                   cos(theta_bin k) at x = k (red); phi_bin p at x = p (green)
     row 2                   theta guide: at x = g < W, (lo, hi) brackets k for cos theta_i in
                             [g / W, (g + 1) / W), then cos(theta_bin k), cos(theta_bin k + 1) for
@@ -125,6 +129,17 @@ def texture_image(tables):
     return img.astype(np.float32)
 
 
+HEADER = ("flowbsdf_layout", "flowbsdf_K", "flowbsdf_R", "flowbsdf_C", "flowbsdf_P", "flowbsdf_period",
+          "flowbsdf_coords", "flowbsdf_frame")
+
+
+def header_attributes(image):
+    """The header texels of texture_image's `image` as the file's attributes HEADER (period and frame
+    angle as the float32 the texels hold, the others ints)."""
+    values = [float(x) for x in image[0, :2].reshape(-1)]
+    return {name: (v if name in ("flowbsdf_period", "flowbsdf_frame") else int(v)) for name, v in zip(HEADER, values)}
+
+
 def path(tables_path, digest):
     """<stem>.osl<LAYOUT>-<hash12>.exr beside the tables (blender_addon/render/derived.py builds the same name)."""
     tables_path = Path(tables_path)
@@ -145,6 +160,8 @@ def is_current(path, digest):
 
 
 def write(path, tables_path, tables, digest, material=None):
-    write_rgba_exr(path, texture_image(tables), META_KEY,
+    image = texture_image(tables)
+    write_rgba_exr(path, image, META_KEY,
                    {"layout": LAYOUT, "tables_hash": digest, "tables": Path(tables_path).name,
-                    "material": tables.meta.get("material"), "anisotropic": tables.anisotropic})
+                    "material": tables.meta.get("material"), "anisotropic": tables.anisotropic},
+                   header_attributes(image))

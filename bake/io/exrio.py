@@ -36,11 +36,12 @@ def write_exr(path, arrays, meta):
         raise FlowBSDFError(f"cannot write the table file: {e.strerror or e}{where}", path) from None
 
 
-def write_rgba_exr(path, image, meta_key, meta):
-    """One RGBA float32 image (ZIP: lossless) with `meta` as JSON in the header attribute `meta_key`."""
+def write_rgba_exr(path, image, meta_key, meta, attributes=None):
+    """One RGBA float32 image (ZIP: lossless) with `meta` as JSON in the header attribute `meta_key`
+    (and `attributes`, {name: int or float (float32)}, as header attributes of their own)."""
     import OpenEXR
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
-              meta_key: json.dumps(meta, sort_keys=True)}
+              meta_key: json.dumps(meta, sort_keys=True), **(attributes or {})}
     with atomic_path(path) as tmp:
         OpenEXR.File(header, {"RGBA": np.ascontiguousarray(image)}).write(tmp)
 

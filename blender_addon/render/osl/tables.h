@@ -2,7 +2,7 @@
 // evaluation. A port of bake/core/tables.py's Tables.sample and Tables._locate (the numpy reference).
 // Every texel is fetched with "interp", "closest" and zero derivatives, so values come back exact.
 
-#define LAYOUT 11
+#define LAYOUT 12
 #define NSEG 3
 #define LOG_MEAN_SERIES 1e-3
 #define K_SMALL 1e-4
@@ -136,29 +136,34 @@ struct TablesTexture {
 };
 
 // 1 and the header when `file` is a current export (of the size the export makes of it:
-// bake/export/osl_export.texture_image).
+// bake/export/osl_export.texture_image). The header is read from the file's attributes (osl_export.HEADER):
+// gettextureinfo() of a constant file name is answered once, when OSL compiles the shader, where the
+// header's texels cost two texture() calls at every shading point.
 int read_header(string file, output TablesTexture tab)
 {
     int res[2];
+    int layout = 0, K = 0, R = 0, C = 0, NP = 0, half = 0;
+    float period = 0, frame = 0;
+    int found = gettextureinfo(file, "resolution", res) && res[0] >= 3 && res[1] >= 3
+        && gettextureinfo(file, "flowbsdf_layout", layout) && layout == LAYOUT
+        && gettextureinfo(file, "flowbsdf_K", K) && gettextureinfo(file, "flowbsdf_R", R)
+        && gettextureinfo(file, "flowbsdf_C", C) && gettextureinfo(file, "flowbsdf_P", NP)
+        && gettextureinfo(file, "flowbsdf_period", period) && gettextureinfo(file, "flowbsdf_coords", half)
+        && gettextureinfo(file, "flowbsdf_frame", frame);
     tab.file = file;
-    if (!gettextureinfo(file, "resolution", res) || res[0] < 3 || res[1] < 3)
-        return 0;
     tab.W = res[0];
     tab.H = res[1];
-    float h0a = 0, h1a = 0;
-    color h0 = fetch4(tab.file, tab.W, tab.H, 0, 0, h0a);      // (LAYOUT, K, R, C)
-    color h1 = fetch4(tab.file, tab.W, tab.H, 1, 0, h1a);      // (P, phi period, coordinates, frame angle)
-    tab.K = int(h0[1]);
-    tab.R = int(h0[2]);
-    tab.C = int(h0a);
-    tab.NP = int(h1[0]);
-    tab.period = h1[1];
-    tab.half = int(h1[2]);
-    tab.frame = h1a;
-    int B = tab.K * tab.NP;
-    return int(h0[0]) == LAYOUT && tab.K >= 1 && tab.R >= 1 && tab.C >= 1 && tab.NP >= 1 && tab.period > 0.0
-        && res[0] == max(max(tab.C + 1, tab.R + 1), max(max(tab.K, tab.NP), 3))
-        && res[1] == 3 + 3 * B * tab.R + max(tab.K - 1, 1) * tab.NP * (3 + 3 * tab.R);
+    tab.K = K;
+    tab.R = R;
+    tab.C = C;
+    tab.NP = NP;
+    tab.period = period;
+    tab.half = half;
+    tab.frame = frame;
+    int B = K * NP;
+    return found && K >= 1 && R >= 1 && C >= 1 && NP >= 1 && period > 0.0
+        && res[0] == max(max(C + 1, R + 1), max(max(K, NP), 3))
+        && res[1] == 3 + 3 * B * R + max(K - 1, 1) * NP * (3 + 3 * R);
 }
 
 // The bins a direction blends at (cos theta_i, phi_i) (phi_i in the tangent frame; 0 when
@@ -177,12 +182,22 @@ void blend_bins(TablesTexture tab, float cos_i, float phi_i, output int bins[4],
         int lo = int(guide[0]), hi = int(guide[1]);
         float c0 = guide[2];        // cos of bins min(lo, K - 2) and the next (c1)
         if (hi - lo > 1) {
+            // (lo <= K - 2 here.) The search keeps what it reads: where lo stays, the guide's
+            // c0 and c1 are the bins' own; else cos at lo, and at hi once it moved.
+            int lo0 = lo;
+            float clo = 0.0, chi = -2.0;
             while (hi - lo > 1) {
                 int mid = (lo + hi) / 2;
-                if (fetch1(tab.file, tab.W, tab.H, mid, 1) >= cos_i) lo = mid; else hi = mid;
+                float c = fetch1(tab.file, tab.W, tab.H, mid, 1);
+                if (c >= cos_i) { lo = mid; clo = c; } else { hi = mid; chi = c; }
             }
-            c0 = fetch1(tab.file, tab.W, tab.H, min(lo, tab.K - 2), 1);
-            c1 = fetch1(tab.file, tab.W, tab.H, min(lo, tab.K - 2) + 1, 1);
+            if (lo == tab.K - 1) {
+                c0 = fetch1(tab.file, tab.W, tab.H, lo - 1, 1);
+                c1 = clo;
+            } else if (lo != lo0) {
+                c0 = clo;
+                c1 = (chi > -2.0) ? chi : fetch1(tab.file, tab.W, tab.H, lo + 1, 1);
+            }
         }
         k = min(lo, tab.K - 2);
         t = clamp((c0 - cos_i) / (c0 - c1), 0.0, 1.0);
