@@ -573,26 +573,32 @@ def test_builds_in_threads_are_the_builds_of_one_thread(monkeypatch):
     """The baker builds bins, neighbourhoods' edges, source points and the planner's probes in
     threads (io.threads.parallel): the same plan and tables, bit for bit, as in one thread."""
     import threading
-    from bake.core import tabulate
+    from bake.core import metrics, tabulate
     from bake.io import threads as pool
     mat = open_material(HARD["mirror-ish"])
     fields = ("theta_bins", "a_edges", "b_edges", "mass", "alpha", "beta", "weights")
-    threads = set()
-    finish = tabulate._finish_bin
+    threads = {"_finish_bin": set(), "_pooled_edges": set(), "rv": set()}
 
-    def spy(*args):
-        threads.add(threading.current_thread().name.split("_")[0])
-        return finish(*args)
+    def spy(owner, name):
+        real = getattr(owner, name)
 
-    monkeypatch.setattr(tabulate, "_finish_bin", spy)
+        def spied(*args):
+            threads[name].add(threading.current_thread().name.split("_")[0])
+            return real(*args)
+        monkeypatch.setattr(owner, name, spied)
+    spy(tabulate, "_finish_bin")
+    spy(tabulate, "_pooled_edges")          # (a layout for all bins: its rows' segments in threads)
+    spy(metrics.ReferencePoints, "rv")      # (the placements' rv at the bins and between them)
     monkeypatch.setattr(pool, "free_workers", lambda cores: cores)     # whatever else runs here
     out = {}
     for workers in (1, 2):
         monkeypatch.setattr(pool, "workers", lambda w=workers: w)
         settings = BakeSettings(resolution=16, grid=96, samples=1 << 12, first_bins=3, memory_budget=16 * bin_bytes(16))
         out[workers] = plan_tables(mat, IdealSampler(mat, resolution=64), settings)
-    assert "flowbsdf-bake" in threads and "MainThread" in threads
+    for name, seen in threads.items():
+        assert seen == {"flowbsdf-bake", "MainThread"}, (name, seen)
     assert len(out[1].theta_bins) > 3           # the planner split intervals (its probes ran in threads)
+    assert out[1].meta == out[2].meta
     for f in fields:
         np.testing.assert_array_equal(getattr(out[1], f), getattr(out[2], f))
 

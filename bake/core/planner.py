@@ -695,7 +695,7 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
     total = len(candidates) + (len(coarser) * (1 + len(finer)) if splits else 0)     # at most
     log(f"between bins: comparing {total} cell placements on {len(bins)} angles")
     draws = list(_parallel(lambda t: ReferencePoints(material, spherical_dir(t, 0.0), ideal, side, 0), angles))
-    floors = np.array([max(d.rv(ideal)[0], 0.5 * tol) for d in draws])
+    floors = np.maximum(np.array(list(_parallel(lambda d: d.rv(ideal)[0], draws))), 0.5 * tol)
     best, best_split, n = None, None, 0
     groups = {}         # a layout group's tables by its bins and resolution
 
@@ -717,7 +717,8 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
             built = {first: group(first)}
             alone = angles < parts[0][-1] - ABOVE if first == 0 else angles > parts[-1][0] + ABOVE
             if prune and alone.any():
-                ratios = np.array([draws[i].rv(built[first])[0] for i in np.flatnonzero(alone)]) / floors[alone]
+                ratios = np.array(list(_parallel(lambda i: draws[i].rv(built[first])[0], np.flatnonzero(alone)))
+                                  ) / floors[alone]
                 at_least = float(np.exp(np.sum(np.log(np.maximum(ratios, 1.0)) * widths[alone]) / np.sum(widths)))
                 if at_least > _bar(best, best_split, j) * (1.0 + 1e-9):
                     log(f"between bins: placement {n} of {total}, {label}: at least {at_least:.2f}x the ideal's rv "
@@ -725,7 +726,8 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
                         "the rest not built)")
                     return
             tables = join_groups([built[k] if k in built else group(k) for k in range(len(parts))])
-        ratios = np.array([d.rv(carry(tables))[0] for d in draws]) / floors
+        measured = carry(tables)
+        ratios = np.array(list(_parallel(lambda d: d.rv(measured)[0], draws))) / floors
         excess = float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=widths)))
         log(f"between bins: placement {n} of {total}, {label}: {excess:.2f}x the ideal's rv (typical excess)")
         if best is None or excess < best[0]:

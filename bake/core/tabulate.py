@@ -938,9 +938,9 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
 
     row_counts = counts(rows, _segment_shares(by_seg, n_seg))
 
-    def row_edges(nbrs):
+    def row_edges(nbrs):       # (per segment in threads where one neighbourhood pools all bins: one layout)
         parts = [by_seg[j] for j in nbrs]
-        return [_pooled_edges(parts, s_, count, row_share) for s_, count in enumerate(row_counts)]
+        return list(_parallel(lambda sc: _pooled_edges(parts, *sc, row_share), enumerate(row_counts)))
 
     a_edges = [_strictly_increasing(_denormalize(shared, knots), 0.0, 1.0)
                for shared, knots in zip(_once_per_neighbourhood(near, row_edges), row_knots)]
