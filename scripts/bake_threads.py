@@ -10,8 +10,11 @@ machine it would fall back to one thread), and samples every thread's state (Lin
 task state, R: running or waiting only for a core) and Python stack every `every` seconds; numpy
 and the C evaluator run under the Python frame that called them. The count of working threads
 is the bake's own concurrency, whatever other processes take of the cores. Per stage (the log line that last began one): wall seconds, process CPU seconds, CPU/wall,
-the mean working threads and the seconds with exactly one working; then the innermost bake
-functions seen while only one thread worked (where a core idles). Prints Markdown; asserts nothing.
+the mean working threads, the share of the time exactly one worked, and the wall the stage
+would take on 2 idle cores: its CPU seconds over the cores its working threads kept busy
+(CPU x mean(n / min(n, 2)) / mean(n) over the samples where n >= 1 threads worked: a loaded
+machine gives each working thread a like share of a core); then the innermost bake functions seen
+while only one thread worked (where a core idles). Prints Markdown; asserts nothing.
 """
 import argparse
 import collections
@@ -102,17 +105,24 @@ def main():
     th.join()
     marks.append((time.monotonic(), time.process_time(), "end"))
     print(f"\n{entry.name}: {time.monotonic() - t0:.1f} s wall, load {os.getloadavg()[0]:.1f}\n")
-    print("| stage | wall s | CPU s | CPU/wall | mean working threads | s with one working |")
-    print("|---|---|---|---|---|---|")
+    print("| stage | wall s | CPU s | CPU/wall | mean working threads | share with one working | "
+          "on 2 idle cores: est. wall s |")
+    print("|---|---|---|---|---|---|---|")
     per = collections.defaultdict(lambda: [0.0, 0.0])
     for (w0, c0, s), (w1, c1, _) in zip(marks[:-1], marks[1:]):
         per[s][0] += w1 - w0
         per[s][1] += c1 - c0
+    totals = [0.0, 0.0, 0.0]
     for s, (w, c) in per.items():
         n = samples.get(s, [])
         mean = sum(n) / len(n) if n else 0.0
-        one = w * (sum(1 for k in n if k == 1) / len(n)) if n else 0.0
-        print(f"| {s} | {w:.1f} | {c:.1f} | {c / max(w, 1e-9):.2f} | {mean:.2f} | {one:.1f} |")
+        one = sum(1 for k in n if k == 1) / len(n) if n else 0.0
+        busy = [k for k in n if k >= 1]
+        idle_wall = c * (sum(k / min(k, 2) for k in busy) / sum(busy)) if busy else c
+        totals = [totals[0] + w, totals[1] + c, totals[2] + idle_wall]
+        print(f"| {s} | {w:.1f} | {c:.1f} | {c / max(w, 1e-9):.2f} | {mean:.2f} | {one:.2f} | {idle_wall:.1f} |")
+    print(f"| all | {totals[0]:.1f} | {totals[1]:.1f} | {totals[1] / totals[0]:.2f} | | | {totals[2]:.1f} "
+          f"(CPU / {totals[1] / totals[2]:.2f} cores) |")
     print("\nOne thread working, by stage and innermost bake/ function (seconds):\n")
     for s, counter in serial.items():
         for fn, k in counter.most_common(args.top):

@@ -603,6 +603,41 @@ def test_builds_in_threads_are_the_builds_of_one_thread(monkeypatch):
         np.testing.assert_array_equal(getattr(out[1], f), getattr(out[2], f))
 
 
+def test_resolution_probes_in_threads_are_those_of_one_thread(monkeypatch):
+    """The planner probes a resolution at its grazing angle alone and, where that holds, at the
+    other angles in threads: the same resolution, plan and tables, bit for bit, as probing them
+    in turn in one thread (a Lambert holds at every angle at 16²; a GGX of alpha 0.01 fails 16² and
+    24² at its grazing angle, then 32² holds at every angle)."""
+    import threading
+    from bake.core import planner
+    from bake.io import threads as pool
+    probes = set()
+    build = planner.build_tables
+
+    def spy(material, source, thetas, *args, **kwargs):
+        if len(thetas) == 1:
+            probes.add(threading.current_thread().name.split("_")[0])
+        return build(material, source, thetas, *args, **kwargs)
+    monkeypatch.setattr(planner, "build_tables", spy)
+    monkeypatch.setattr(pool, "free_workers", lambda cores: cores)     # whatever else runs here
+    fields = ("theta_bins", "a_edges", "b_edges", "mass", "alpha", "beta", "weights")
+    resolutions = []
+    for spec in ({"kind": "analytic", "model": "lambert", "albedo": [0.8, 0.5, 0.2]},
+                 {"kind": "analytic", "model": "ggx", "alpha": 0.01}):
+        mat = open_material(spec)
+        out = {}
+        for workers in (1, 2):
+            monkeypatch.setattr(pool, "workers", lambda w=workers: w)
+            settings = BakeSettings(grid=64, samples=1 << 10, first_bins=2, memory_budget=4 * bin_bytes(32),
+                                    tol=2e-3, ideal_ratio=0.0)
+            out[workers] = plan_tables(mat, IdealSampler(mat, resolution=64), settings, coords="halfpolar")
+        assert out[1].meta == out[2].meta, spec
+        resolutions.append(out[1].meta["resolution"])
+        for f in fields:
+            np.testing.assert_array_equal(getattr(out[1], f), getattr(out[2], f))
+    assert resolutions == [16, 32] and probes == {"flowbsdf-bake", "MainThread"}
+
+
 def test_points_of_a_bin_are_computed_once_when_threads_ask_together():
     """The cache of the source's points holds a _Once per bin: threads that need the same bin's
     points (the planner's concurrent probes) compute them once."""

@@ -271,9 +271,16 @@ def _plan_resolution(plan, opts, say):
         probe = np.radians([86.0, 75.0, 10.0, 45.0])     # grazing first: where coarse tables fail first
 
         def probe_rv(resolution, phi):   # the worst rv / target over the probe angles (isotropic: to the first above 1)
+            def ratio(t):
+                return plan.rv_at(plan.build(opts, resolution, [t], phi), t, phi) / plan.target(t)
+            # Isotropic: the first (grazing) angle alone, where most resolutions fail; when it
+            # holds, the others in threads (read in turn as before: a failure among them ends it).
+            ratios = list(_parallel(ratio, probe)) if aniso else [ratio(probe[0])]
+            if not aniso and ratios[0] <= 1.0:
+                ratios += list(_parallel(ratio, probe[1:]))
             worst = 0.0
-            for t in probe:
-                worst = max(worst, plan.rv_at(plan.build(opts, resolution, [t], phi), t, phi) / plan.target(t))
+            for r in ratios:
+                worst = max(worst, r)
                 if worst > 1.0 and not aniso:
                     break
             return worst
