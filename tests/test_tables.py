@@ -638,6 +638,50 @@ def test_resolution_probes_in_threads_are_those_of_one_thread(monkeypatch):
     assert resolutions == [16, 32] and probes == {"flowbsdf-bake", "MainThread"}
 
 
+def test_points_of_a_new_angle_drawn_in_halves_are_those_of_one_draw(monkeypatch):
+    """The planner's round of interval probes draws a new angle's points first
+    (tabulate.prefetch_points), the ideal's grid in halves in threads: the same points, bit for
+    bit, as one draw of the whole grid, and the same cache entries the builds then read."""
+    import threading
+    from bake.core import tabulate
+    from bake.io import threads as pool
+    monkeypatch.setattr(pool, "free_workers", lambda cores: cores)     # whatever else runs here
+    monkeypatch.setattr(pool, "workers", lambda: 2)
+    mat = open_material(HARD["anisotropic-looking plastic"])
+    ideal = IdealSampler(mat, resolution=64)
+    seen = set()
+
+    class Whole:        # the ideal without its per-u tables: one draw
+        def sample(self, wi, u):
+            seen.add((threading.current_thread().name.split("_")[0], len(u)))
+            return ideal.sample(wi, u)
+    halves = set()
+    sample = ideal.sample
+
+    def spy(wi, u):
+        halves.add((threading.current_thread().name.split("_")[0], len(u)))
+        return sample(wi, u)
+    monkeypatch.setattr(ideal, "sample", spy)
+    for coords in ("wo", "halfpolar"):
+        cache = {}
+        tabulate.prefetch_points(mat, ideal, np.radians([0.0, 37.0, 84.0]), cache, coords=coords, grid=64, lobe_width=0.1)
+        tabulate.prefetch_points(mat, ideal, np.radians([52.0]), cache, coords=coords, grid=64, lobe_width=0.1)
+        assert all(entry.done for entry in cache.values()) and len(cache) == 4 * 3
+        for t in np.radians([0.0, 37.0, 52.0, 84.0]):
+            wi = spherical_dir(t, 0.0)
+            frame = tabulate._WoFrame(0.0) if coords == "wo" else tabulate._PolarFrame(wi, 0.0)
+            whole = tabulate._points(mat, Whole(), wi, 64, frame, 0.5)
+            got = cache[(float(t), 0.0, 64, 0.5, coords)].get()
+            assert all(a.tobytes() == b.tobytes() for a, b in zip(got, whole)), (coords, t)
+        built = build_tables(mat, ideal, np.radians([37.0, 52.0]), 16, 16, grid=64, lobe_width=0.1, coords=coords,
+                             cache=cache)
+        fresh = build_tables(mat, Whole(), np.radians([37.0, 52.0]), 16, 16, grid=64, lobe_width=0.1, coords=coords)
+        for f in ("a_edges", "b_edges", "mass", "alpha", "beta", "weights"):
+            np.testing.assert_array_equal(getattr(built, f), getattr(fresh, f))
+    assert ("flowbsdf-bake", 64 * 64 // 2) in halves and ("MainThread", 64 * 64 // 2) not in halves
+    assert {n for _, n in seen} == {64 * 64}
+
+
 def test_points_of_a_bin_are_computed_once_when_threads_ask_together():
     """The cache of the source's points holds a _Once per bin: threads that need the same bin's
     points (the planner's concurrent probes) compute them once."""

@@ -19,7 +19,8 @@ from ..io.threads import parallel as _parallel
 from ..maths.fasttables import one_blas_thread
 from ..maths.geometry import spherical_dir
 from .settings import BakeSettings
-from .tabulate import ISO_COORDS, _row_knots, build_grouped, build_tables, default_phi_bins, group_sizes, join_groups
+from .tabulate import (ISO_COORDS, _row_knots, build_grouped, build_tables, default_phi_bins, group_sizes, join_groups,
+                       prefetch_points)
 
 ISO_PLANNED = ("wo", "halfpolar")     # the coordinates plan_tables tries for isotropic tables, in turn
 RESOLUTIONS = (16, 24, 32, 48, 64)
@@ -434,6 +435,8 @@ def _plan_bins(plan, opts, coords, resolution, phi_bins, worst_phi, compared, sa
             say(_budget_full(len(bins), memory_budget))
             break
         new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
+        if not aniso:       # (the new angle's points first: both of its intervals' builds need them)
+            prefetch_points(material, plan.ideal, sorted({t for iv in new for t in iv}), **opts)
         # The new intervals' builds are independent: all of them at once, in threads.
         scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
         yield len(bins), len(bins) * resolution ** 2, reaches(bins)[1]
