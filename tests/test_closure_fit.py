@@ -256,6 +256,47 @@ def test_the_osl_texture_header_is_also_its_file_attributes(tmp_path, glossy):
     assert values[:5] == [LAYOUT, len(glossy.theta_bins), glossy.rows, glossy.cols, 1]
 
 
+def test_derived_files_made_in_threads_are_those_of_one_thread(tmp_path, monkeypatch, glossy):
+    """bake_derived fits in a thread beside the textures, and the fit draws its knots'
+    quadratures, control variates, errors and match image in the pool's threads
+    (io.threads.parallel): every file the same bytes as the exporters' one after another in one
+    thread, and the log lines in that order."""
+    import threading
+    from bake.io import threads as pool
+    mat = open_material({"kind": "analytic", "model": "ggx", "alpha": 0.15, "f0": [0.9, 0.6, 0.3]})
+    seen = {"init": set(), "cv_scales": set(), "write": set()}
+
+    def spy(owner, name, key):
+        real = getattr(owner, name)
+
+        def spied(*args, **kwargs):
+            seen[key].add(threading.current_thread().name.split("_")[0])
+            return real(*args, **kwargs)
+        monkeypatch.setattr(owner, name, spied)
+    spy(closure_fit._Knot, "__init__", "init")
+    spy(closure_fit, "cv_scales", "cv_scales")
+    spy(closure_fit, "write", "write")
+    monkeypatch.setattr(pool, "free_workers", lambda cores: cores)     # whatever else runs here
+    files, lines = {}, {}
+    for workers in (1, 2):
+        monkeypatch.setattr(pool, "workers", lambda w=workers: w)
+        folder = tmp_path / str(workers)
+        folder.mkdir()
+        glossy.save(folder / "m.exr")
+        lines[workers] = []
+        if workers == 1:        # the exporters in turn, in this thread
+            for ensure in (derived.ensure_svm_export, derived.ensure_osl_export):
+                ensure(folder / "m.exr", log=lines[1].append)
+            derived.ensure_fit(folder / "m.exr", material=mat, log=lines[1].append)
+        else:
+            bake_derived(folder / "m.exr", material=mat, log=lines[2].append)
+        files[workers] = {p.name: p.read_bytes() for p in folder.iterdir()}
+    assert seen["write"] == {"MainThread", "flowbsdf-fit"}
+    assert "flowbsdf-bake" in seen["init"] and "flowbsdf-bake" in seen["cv_scales"]
+    assert len(files[1]) == 5 and files[1] == files[2]        # tables, svm, osl, fit, match
+    assert [line.replace("/1/", "/2/") for line in lines[1]] == lines[2]
+
+
 def test_the_inverse_guides_bracket_the_edge_searches(tmp_path, glossy):
     """The OSL texture's guides of the a edges (row guide, blue / alpha) and of each row's b
     edges (column guides, blue / alpha): for a in [g, g + 1) / R (b in [g, g + 1) 2 pi / C) the

@@ -573,28 +573,113 @@ def test_builds_in_threads_are_the_builds_of_one_thread(monkeypatch):
     """The baker builds bins, neighbourhoods' edges, source points and the planner's probes in
     threads (io.threads.parallel): the same plan and tables, bit for bit, as in one thread."""
     import threading
-    from bake.core import tabulate
+    from bake.core import metrics, tabulate
     from bake.io import threads as pool
     mat = open_material(HARD["mirror-ish"])
     fields = ("theta_bins", "a_edges", "b_edges", "mass", "alpha", "beta", "weights")
-    threads = set()
-    finish = tabulate._finish_bin
+    threads = {"_finish_bin": set(), "_pooled_edges": set(), "rv": set()}
 
-    def spy(*args):
-        threads.add(threading.current_thread().name.split("_")[0])
-        return finish(*args)
+    def spy(owner, name):
+        real = getattr(owner, name)
 
-    monkeypatch.setattr(tabulate, "_finish_bin", spy)
+        def spied(*args):
+            threads[name].add(threading.current_thread().name.split("_")[0])
+            return real(*args)
+        monkeypatch.setattr(owner, name, spied)
+    spy(tabulate, "_finish_bin")
+    spy(tabulate, "_pooled_edges")          # (a layout for all bins: its rows' segments in threads)
+    spy(metrics.ReferencePoints, "rv")      # (the placements' rv at the bins and between them)
     monkeypatch.setattr(pool, "free_workers", lambda cores: cores)     # whatever else runs here
     out = {}
     for workers in (1, 2):
         monkeypatch.setattr(pool, "workers", lambda w=workers: w)
         settings = BakeSettings(resolution=16, grid=96, samples=1 << 12, first_bins=3, memory_budget=16 * bin_bytes(16))
         out[workers] = plan_tables(mat, IdealSampler(mat, resolution=64), settings)
-    assert "flowbsdf-bake" in threads and "MainThread" in threads
+    for name, seen in threads.items():
+        assert seen == {"flowbsdf-bake", "MainThread"}, (name, seen)
     assert len(out[1].theta_bins) > 3           # the planner split intervals (its probes ran in threads)
+    assert out[1].meta == out[2].meta
     for f in fields:
         np.testing.assert_array_equal(getattr(out[1], f), getattr(out[2], f))
+
+
+def test_resolution_probes_in_threads_are_those_of_one_thread(monkeypatch):
+    """The planner probes a resolution at its grazing angle alone and, where that holds, at the
+    other angles in threads: the same resolution, plan and tables, bit for bit, as probing them
+    in turn in one thread (a Lambert holds at every angle at 16²; a GGX of alpha 0.01 fails 16² and
+    24² at its grazing angle, then 32² holds at every angle)."""
+    import threading
+    from bake.core import planner
+    from bake.io import threads as pool
+    probes = set()
+    build = planner.build_tables
+
+    def spy(material, source, thetas, *args, **kwargs):
+        if len(thetas) == 1:
+            probes.add(threading.current_thread().name.split("_")[0])
+        return build(material, source, thetas, *args, **kwargs)
+    monkeypatch.setattr(planner, "build_tables", spy)
+    monkeypatch.setattr(pool, "free_workers", lambda cores: cores)     # whatever else runs here
+    fields = ("theta_bins", "a_edges", "b_edges", "mass", "alpha", "beta", "weights")
+    resolutions = []
+    for spec in ({"kind": "analytic", "model": "lambert", "albedo": [0.8, 0.5, 0.2]},
+                 {"kind": "analytic", "model": "ggx", "alpha": 0.01}):
+        mat = open_material(spec)
+        out = {}
+        for workers in (1, 2):
+            monkeypatch.setattr(pool, "workers", lambda w=workers: w)
+            settings = BakeSettings(grid=64, samples=1 << 10, first_bins=2, memory_budget=4 * bin_bytes(32),
+                                    tol=2e-3, ideal_ratio=0.0)
+            out[workers] = plan_tables(mat, IdealSampler(mat, resolution=64), settings, coords="halfpolar")
+        assert out[1].meta == out[2].meta, spec
+        resolutions.append(out[1].meta["resolution"])
+        for f in fields:
+            np.testing.assert_array_equal(getattr(out[1], f), getattr(out[2], f))
+    assert resolutions == [16, 32] and probes == {"flowbsdf-bake", "MainThread"}
+
+
+def test_points_of_a_new_angle_drawn_in_halves_are_those_of_one_draw(monkeypatch):
+    """The planner's round of interval probes draws a new angle's points first
+    (tabulate.prefetch_points), the ideal's grid in halves in threads: the same points, bit for
+    bit, as one draw of the whole grid, and the same cache entries the builds then read."""
+    import threading
+    from bake.core import tabulate
+    from bake.io import threads as pool
+    monkeypatch.setattr(pool, "free_workers", lambda cores: cores)     # whatever else runs here
+    monkeypatch.setattr(pool, "workers", lambda: 2)
+    mat = open_material(HARD["anisotropic-looking plastic"])
+    ideal = IdealSampler(mat, resolution=64)
+    seen = set()
+
+    class Whole:        # the ideal without its per-u tables: one draw
+        def sample(self, wi, u):
+            seen.add((threading.current_thread().name.split("_")[0], len(u)))
+            return ideal.sample(wi, u)
+    halves = set()
+    sample = ideal.sample
+
+    def spy(wi, u):
+        halves.add((threading.current_thread().name.split("_")[0], len(u)))
+        return sample(wi, u)
+    monkeypatch.setattr(ideal, "sample", spy)
+    for coords in ("wo", "halfpolar"):
+        cache = {}
+        tabulate.prefetch_points(mat, ideal, np.radians([0.0, 37.0, 84.0]), cache, coords=coords, grid=64, lobe_width=0.1)
+        tabulate.prefetch_points(mat, ideal, np.radians([52.0]), cache, coords=coords, grid=64, lobe_width=0.1)
+        assert all(entry.done for entry in cache.values()) and len(cache) == 4 * 3
+        for t in np.radians([0.0, 37.0, 52.0, 84.0]):
+            wi = spherical_dir(t, 0.0)
+            frame = tabulate._WoFrame(0.0) if coords == "wo" else tabulate._PolarFrame(wi, 0.0)
+            whole = tabulate._points(mat, Whole(), wi, 64, frame, 0.5)
+            got = cache[(float(t), 0.0, 64, 0.5, coords)].get()
+            assert all(a.tobytes() == b.tobytes() for a, b in zip(got, whole)), (coords, t)
+        built = build_tables(mat, ideal, np.radians([37.0, 52.0]), 16, 16, grid=64, lobe_width=0.1, coords=coords,
+                             cache=cache)
+        fresh = build_tables(mat, Whole(), np.radians([37.0, 52.0]), 16, 16, grid=64, lobe_width=0.1, coords=coords)
+        for f in ("a_edges", "b_edges", "mass", "alpha", "beta", "weights"):
+            np.testing.assert_array_equal(getattr(built, f), getattr(fresh, f))
+    assert ("flowbsdf-bake", 64 * 64 // 2) in halves and ("MainThread", 64 * 64 // 2) not in halves
+    assert {n for _, n in seen} == {64 * 64}
 
 
 def test_points_of_a_bin_are_computed_once_when_threads_ask_together():

@@ -19,7 +19,8 @@ from ..io.threads import parallel as _parallel
 from ..maths.fasttables import one_blas_thread
 from ..maths.geometry import spherical_dir
 from .settings import BakeSettings
-from .tabulate import ISO_COORDS, _row_knots, build_grouped, build_tables, default_phi_bins, group_sizes, join_groups
+from .tabulate import (ISO_COORDS, _row_knots, build_grouped, build_tables, default_phi_bins, group_sizes, join_groups,
+                       prefetch_points)
 
 ISO_PLANNED = ("wo", "halfpolar")     # the coordinates plan_tables tries for isotropic tables, in turn
 RESOLUTIONS = (16, 24, 32, 48, 64)
@@ -271,9 +272,16 @@ def _plan_resolution(plan, opts, say):
         probe = np.radians([86.0, 75.0, 10.0, 45.0])     # grazing first: where coarse tables fail first
 
         def probe_rv(resolution, phi):   # the worst rv / target over the probe angles (isotropic: to the first above 1)
+            def ratio(t):
+                return plan.rv_at(plan.build(opts, resolution, [t], phi), t, phi) / plan.target(t)
+            # Isotropic: the first (grazing) angle alone, where most resolutions fail; when it
+            # holds, the others in threads (read in turn as before: a failure among them ends it).
+            ratios = list(_parallel(ratio, probe)) if aniso else [ratio(probe[0])]
+            if not aniso and ratios[0] <= 1.0:
+                ratios += list(_parallel(ratio, probe[1:]))
             worst = 0.0
-            for t in probe:
-                worst = max(worst, plan.rv_at(plan.build(opts, resolution, [t], phi), t, phi) / plan.target(t))
+            for r in ratios:
+                worst = max(worst, r)
                 if worst > 1.0 and not aniso:
                     break
             return worst
@@ -427,6 +435,8 @@ def _plan_bins(plan, opts, coords, resolution, phi_bins, worst_phi, compared, sa
             say(_budget_full(len(bins), memory_budget))
             break
         new = [(lo, hi) for lo, hi in zip(bins[:-1], bins[1:]) if (lo, hi) not in scores]
+        if not aniso:       # (the new angle's points first: both of its intervals' builds need them)
+            prefetch_points(material, plan.ideal, sorted({t for iv in new for t in iv}), **opts)
         # The new intervals' builds are independent: all of them at once, in threads.
         scores.update(zip(new, _parallel(lambda iv: interval_loss(*iv), new)))
         yield len(bins), len(bins) * resolution ** 2, reaches(bins)[1]
@@ -695,7 +705,7 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
     total = len(candidates) + (len(coarser) * (1 + len(finer)) if splits else 0)     # at most
     log(f"between bins: comparing {total} cell placements on {len(bins)} angles")
     draws = list(_parallel(lambda t: ReferencePoints(material, spherical_dir(t, 0.0), ideal, side, 0), angles))
-    floors = np.array([max(d.rv(ideal)[0], 0.5 * tol) for d in draws])
+    floors = np.maximum(np.array(list(_parallel(lambda d: d.rv(ideal)[0], draws))), 0.5 * tol)
     best, best_split, n = None, None, 0
     groups = {}         # a layout group's tables by its bins and resolution
 
@@ -717,7 +727,8 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
             built = {first: group(first)}
             alone = angles < parts[0][-1] - ABOVE if first == 0 else angles > parts[-1][0] + ABOVE
             if prune and alone.any():
-                ratios = np.array([draws[i].rv(built[first])[0] for i in np.flatnonzero(alone)]) / floors[alone]
+                ratios = np.array(list(_parallel(lambda i: draws[i].rv(built[first])[0], np.flatnonzero(alone)))
+                                  ) / floors[alone]
                 at_least = float(np.exp(np.sum(np.log(np.maximum(ratios, 1.0)) * widths[alone]) / np.sum(widths)))
                 if at_least > _bar(best, best_split, j) * (1.0 + 1e-9):
                     log(f"between bins: placement {n} of {total}, {label}: at least {at_least:.2f}x the ideal's rv "
@@ -725,7 +736,8 @@ def _between_bins(material, ideal, bins, resolution, opts, cache, tol, samples, 
                         "the rest not built)")
                     return
             tables = join_groups([built[k] if k in built else group(k) for k in range(len(parts))])
-        ratios = np.array([d.rv(carry(tables))[0] for d in draws]) / floors
+        measured = carry(tables)
+        ratios = np.array(list(_parallel(lambda d: d.rv(measured)[0], draws))) / floors
         excess = float(np.exp(np.average(np.log(np.maximum(ratios, 1.0)), weights=widths)))
         log(f"between bins: placement {n} of {total}, {label}: {excess:.2f}x the ideal's rv (typical excess)")
         if best is None or excess < best[0]:

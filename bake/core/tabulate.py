@@ -583,10 +583,17 @@ def _points(material, source, wi, grid, frame, gamma):
     mass (target / source pdf / grid²)."""
     g = (np.arange(grid) + 0.5) / grid
     u = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
-    wo, pdf = source.sample(wi, u)
-    ok = (pdf > 0) & (wo[:, 2] > 0) & np.isfinite(pdf)
-    wo, pdf = wo[ok], pdf[ok]
-    target = np.maximum(luminance(material.eval(wi, wo)), 0.0) * wo[:, 2]
+
+    def draw(u):
+        wo, pdf = source.sample(wi, u)
+        ok = (pdf > 0) & (wo[:, 2] > 0) & np.isfinite(pdf)
+        wo, pdf = wo[ok], pdf[ok]
+        return wo, pdf, material.eval(wi, wo)
+    # A source that samples from a table per wi (the ideal) draws each u on its own: the grid's
+    # halves in threads give the same points (where the caller is not one of them: prefetch_points).
+    halves = np.array_split(u, 2) if getattr(source, "tabulates_per_wi", False) else [u]
+    wo, pdf, f = (np.concatenate(x) for x in zip(*_parallel(draw, halves)))
+    target = np.maximum(luminance(f), 0.0) * wo[:, 2]
     # Edges follow half the target itself (cells where the mass is) and half target^gamma
     # (cells on flanks and tails, where a cellwise model errs most).
     weight = 0.5 * _normalized(target / pdf) + 0.5 * _normalized(target ** gamma / pdf)
@@ -761,6 +768,10 @@ class _Once:
     def __init__(self, fn, *args):
         self._call, self._lock = (fn, args), threading.Lock()
 
+    @property
+    def done(self):
+        return self._call is None
+
     def get(self):
         with self._lock:
             if self._call is not None:
@@ -909,22 +920,9 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
     polar_lobe_knots, and the column at wi's side, b = pi).
     """
     K = len(theta_bins)
-    wis = [spherical_dir(t, phi) for t in theta_bins]
-    frames = [_WoFrame(phi) if coords == "wo" else _PolarFrame(wi, phi) if coords == "halfpolar"
-              else _HalfFrame(wi, frame_angle) for wi in wis]
-    row_knots = [_row_knots(wi, t, coords, lobe_width) for t, wi in zip(theta_bins, wis)]
+    wis, frames, row_knots, entries, ordered, b_orders = _bin_entries(material, source, theta_bins, phi, coords,
+                                                                      frame_angle, grid, lobe_width, gamma, cache)
     n_seg = len(row_knots[0]) - 1
-    # A bin's points, and their order by row segment (its knots decide it: the same in every build
-    # of the bin, a probe's pair or a placement's group), each computed once per cache.
-    with _cache_lock:
-        entries = [cache.setdefault((float(t), phi, grid, gamma, coords),
-                                    _Once(_points, material, source, wi, grid, frame, gamma))
-                   for t, wi, frame in zip(theta_bins, wis, frames)]
-        ordered = [cache.setdefault((float(t), phi, grid, gamma, coords, knots.tobytes()),
-                                    _Once(_row_order, entry, knots, n_seg))
-                   for t, entry, knots in zip(theta_bins, entries, row_knots)]
-        b_orders = [cache.setdefault((float(t), phi, grid, gamma, coords, "b"), _Once(_b_order, entry))
-                    for t, entry in zip(theta_bins, entries)]
     points = list(_parallel(_Once.get, entries))
     by_seg = list(_parallel(_Once.get, ordered))
     window = K if window is None else window
@@ -938,9 +936,9 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
 
     row_counts = counts(rows, _segment_shares(by_seg, n_seg))
 
-    def row_edges(nbrs):
+    def row_edges(nbrs):       # (per segment in threads where one neighbourhood pools all bins: one layout)
         parts = [by_seg[j] for j in nbrs]
-        return [_pooled_edges(parts, s_, count, row_share) for s_, count in enumerate(row_counts)]
+        return list(_parallel(lambda sc: _pooled_edges(parts, *sc, row_share), enumerate(row_counts)))
 
     a_edges = [_strictly_increasing(_denormalize(shared, knots), 0.0, 1.0)
                for shared, knots in zip(_once_per_neighbourhood(near, row_edges), row_knots)]
@@ -981,6 +979,43 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
         step()
     mass, alpha, beta, weights = (np.stack(x) for x in zip(*parts))
     return np.stack(a_edges), b_edges, mass, alpha, beta, weights
+
+
+def _bin_entries(material, source, theta_bins, phi, coords, frame_angle, grid, lobe_width, gamma, cache):
+    """(wis, frames, row knots, and the _Once of each bin's points, their order by row segment and
+    by b) of _build_column's bins. A bin's points, and their order by row segment (its knots
+    decide it: the same in every build of the bin, a probe's pair or a placement's group), are
+    each computed once per cache."""
+    wis = [spherical_dir(t, phi) for t in theta_bins]
+    frames = [_WoFrame(phi) if coords == "wo" else _PolarFrame(wi, phi) if coords == "halfpolar"
+              else _HalfFrame(wi, frame_angle) for wi in wis]
+    row_knots = [_row_knots(wi, t, coords, lobe_width) for t, wi in zip(theta_bins, wis)]
+    n_seg = len(row_knots[0]) - 1
+    with _cache_lock:
+        entries = [cache.setdefault((float(t), phi, grid, gamma, coords),
+                                    _Once(_points, material, source, wi, grid, frame, gamma))
+                   for t, wi, frame in zip(theta_bins, wis, frames)]
+        ordered = [cache.setdefault((float(t), phi, grid, gamma, coords, knots.tobytes()),
+                                    _Once(_row_order, entry, knots, n_seg))
+                   for t, entry, knots in zip(theta_bins, entries, row_knots)]
+        b_orders = [cache.setdefault((float(t), phi, grid, gamma, coords, "b"), _Once(_b_order, entry))
+                    for t, entry in zip(theta_bins, entries)]
+    return wis, frames, row_knots, entries, ordered, b_orders
+
+
+def prefetch_points(material, source, theta_bins, cache, coords=None, grid=512, lobe_width=None, gamma=0.5, **_):
+    """The points (and their orders) of isotropic bins at theta_bins into `cache`, as build_tables
+    (the same options) computes them, using the threads that its builds in threads would leave
+    idle: the planner's round of interval probes needs a new angle's points in both of its builds
+    (one computes them, the other waits), so they come first here, a lone bin's grid in halves."""
+    _, _, _, entries, ordered, b_orders = _bin_entries(material, source, theta_bins, 0.0, coords or ISO_COORDS,
+                                                       0.0, grid, lobe_width, gamma, cache)
+    for todo in (entries, ordered + b_orders):
+        todo = [e for e in todo if not e.done]
+        if len(todo) == 1:
+            todo[0].get()
+        else:
+            list(_parallel(_Once.get, todo))
 
 
 def _b_order(points):

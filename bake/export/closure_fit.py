@@ -101,6 +101,7 @@ from ..errors import FlowBSDFError
 from ..formats import FIT_VERSION, READABLE_FIT_VERSIONS, fit_current
 from ..io.exrio import write_rgba_exr
 from ..io.files import atomic_path
+from ..io.threads import parallel
 from ..materials.analytic import ggx_ndf, ggx_lambda, ggx_reflection_pdf, ggx_sample_reflection
 from ..maths.fasttables import one_blas_thread
 from ..maths.geometry import LUMINANCE, luminance
@@ -757,7 +758,7 @@ def _relabellings(view_aligned, n):
     return out
 
 
-def _next_knot(tables, knot, fit, lobes, prev, aligned, n, seed):
+def _next_knot(knot, mid, fit, lobes, prev, aligned):
     """(lobes, weights) at the next knot: of the descent from the previous knot's lobes, the
     same made stiffer (STIFF times the cost of moving), the previous lobes kept (weights
     alone refitted) and kept but for their tilts (NEXT_TILT_ONLY), each also relabelled
@@ -767,9 +768,8 @@ def _next_knot(tables, knot, fit, lobes, prev, aligned, n, seed):
     there) is least. Relabelled options are ranked with their weights permuted (the same
     error at the knot); the RELABEL_SOLVED best of them are solved again (weights pulled
     toward the previous knot's of their new labels: near-twin lobes then split their weight
-    otherwise) and measured again before they compete."""
-    mid = _Knot(tables, 0.5 * (knot.theta + np.radians(fit["theta_deg"][-1])), n=n // 2, seed=seed + 7,
-                phis=knot.phis, turn=knot.turn)
+    otherwise) and measured again before they compete. `mid`: the _Knot half-way from the
+    previous knot (fit_closures' quadratures)."""
     norm = max(float(mid.w @ luminance(mid.g)), 1e-300)
 
     def between(option, k):         # the relative L1 half-way, the parameters lerped
@@ -844,15 +844,24 @@ def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None, vie
     lobes = prev = prev_iso = None
     # Knots ascending in x = 1 - cos theta (Facing), i.e. ascending theta.
     knots = sorted(knots_deg)
+    # Each knot's quadrature and the one half-way from the previous knot (_next_knot's) depend on
+    # the tables alone: drawn in threads ahead of the fit, which goes knot by knot from the
+    # previous knot's lobes (each quadrature from its own seed: the same as drawn in turn).
+    quadratures = parallel(lambda q: _Knot(tables, q[0], n=q[1], seed=q[2], phis=phis, turn=turn), [
+        q for i, deg in enumerate(knots)
+        for q in ([] if i == 0 else [(0.5 * (float(np.radians(deg)) + np.radians(float(knots[i - 1]))), n // 2, seed + 7)])
+        + [(np.radians(deg), n, seed)]])
+    cv_args = []            # each knot's control variate: from its fit alone, in threads after the fit
     for i, deg in enumerate(knots):
-        knot = _Knot(tables, np.radians(deg), n=n, seed=seed, phis=phis, turn=turn)
+        mid = None if i == 0 else next(quadratures)
+        knot = next(quadratures)
         # (anisotropic tables: no tilts)
         knot.tilt_min = 0.0 if tables.anisotropic else tilt_limit(np.radians(knots[i + 1] if i + 1 < len(knots) else 90.0))
         if lobes is None:
             lobes = _first_knot(knot, aligned)
             k = knot.solve([lobes], None, irls=4)[0][0]
         else:
-            lobes, k = _next_knot(tables, knot, out, lobes, prev, aligned, n, seed)
+            lobes, k = _next_knot(knot, mid, out, lobes, prev, aligned)
         prev = k
         iso, prev_iso = _isotropic(knot, lobes, prev_iso)
         for key, v in _knot_params(knot, iso, prev_iso).items():
@@ -870,8 +879,9 @@ def fit_closures(tables, knots_deg=KNOTS_DEG, n=1024, seed=0, material=None, vie
         out["rel_error"].append(float(rel))
         out["albedo"].append([float(v) for v in knot.albedo])
         out["fit_albedo"].append([float(v) for v in fit_albedo])
-        out["cv"].append(list(cv_scales(tables, knot.theta, kd, ks, alpha, aniso, seed=seed, tilt=tilt, diffuse_tilt=dtilt,
-                                        phis=phis, turn=turn)))
+        cv_args.append((knot.theta, kd, ks, alpha, aniso, tilt, dtilt))
+    out["cv"] = [list(cv) for cv in parallel(lambda a: cv_scales(tables, *a[:5], seed=seed, tilt=a[5], diffuse_tilt=a[6],
+                                                                 phis=phis, turn=turn), cv_args)]
     # The node clamps Facing to the knots' range: extend to x = 1 (grazing) with the last knot.
     if out["x"][-1] < 1.0:
         for key in PARAM_KEYS[1:] + ("rel_error", "albedo", "fit_albedo", "cv"):
@@ -904,14 +914,13 @@ def fit_error(fit, tables, degs, target=None, n=1024, seed=1, phis=None):
 
 def fit_errors(fits, tables, degs, target=None, n=1024, seed=1, phis=None):
     """fit_error of each of `fits`, on the same samples (each view angle's drawn once)."""
-    out = [[] for _ in fits]
-    for deg in degs:
+    def errors(deg):        # (each view angle's samples drawn from its own seed: in threads)
         knot = _Knot(tables, np.radians(deg), n=n, seed=seed, phis=phis)
         f = knot.g if target is None else knot.target_fcos(target)
         norm = max(float(knot.w @ luminance(f)), 1e-300)
-        for errors, fit in zip(out, fits):
-            errors.append(float(knot.w @ np.abs(luminance(knot.fcos_of(fit) - f)) / norm))
-    return out
+        return [float(knot.w @ np.abs(luminance(knot.fcos_of(fit) - f)) / norm) for fit in fits]
+    by_deg = list(parallel(errors, degs))
+    return [[e[j] for e in by_deg] for j in range(len(fits))]
 
 
 def _fit_fcos_at(wi, wo, kd, ks, alpha, aniso, tilt=None, diffuse_tilt=0.0):
@@ -1069,13 +1078,13 @@ def match_ratios(tables, fit, n=MATCH_N):
     cl, phi = np.meshgrid(c, np.linspace(0.0, np.pi, n), indexing="ij")
     sl = np.sqrt(1.0 - cl * cl)
     wo = np.stack([sl * np.cos(phi), sl * np.sin(phi), cl], -1).reshape(-1, 3)
-    out = np.zeros((n, n, n, 3))
-    for i, cv in enumerate(c):
+
+    def view(cv):           # (each view alone: in threads)
         wi = np.array([np.sqrt(1.0 - cv * cv), 0.0, cv])
         f, ff = tables.eval(wi, wo), eval_fit(fit, wi, wo)
         with np.errstate(divide="ignore", invalid="ignore"):
-            out[i] = np.clip(np.where(ff > 0, f / ff, 0.0), 0.0, MATCH_MAX).reshape(n, n, 3)
-    return out
+            return np.clip(np.where(ff > 0, f / ff, 0.0), 0.0, MATCH_MAX).reshape(n, n, 3)
+    return np.stack(list(parallel(view, c)))
 
 
 def match_image(ratios):

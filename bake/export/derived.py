@@ -120,8 +120,18 @@ def bake_derived(tables_path, material=None, log=None):
     (given the material it was baked from, where the tables' meta says which intervals carry),
     its OSL texture and its closure fit, each rebuilt only when missing or stale. Called by the
     bake pipeline; returns (OSL texture, fit)."""
+    from concurrent.futures import ThreadPoolExecutor
     source = TableFile(tables_path)
-    ensure_svm_export(source, log=log)
-    if material is not None:
-        ensure_carry_export(source, material, log=log)
-    return ensure_osl_export(source, log=log), ensure_fit(source, material=material, log=log)
+    source.tables       # (opened once, before the threads share it)
+    # The fit, most of the time, in a thread beside the textures; its line after theirs.
+    lines = []
+    with ThreadPoolExecutor(1, thread_name_prefix="flowbsdf-fit") as fitting:
+        fit = fitting.submit(ensure_fit, source, material=material, log=lines.append if log else None)
+        ensure_svm_export(source, log=log)
+        if material is not None:
+            ensure_carry_export(source, material, log=log)
+        osl = ensure_osl_export(source, log=log)
+        fit = fit.result()
+    for line in lines:
+        log(line)
+    return osl, fit
