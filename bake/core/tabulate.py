@@ -584,21 +584,21 @@ def _points(material, source, wi, grid, frame, gamma):
     g = (np.arange(grid) + 0.5) / grid
     u = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
 
-    def draw(u):
+    def draw(u):        # (each point's numbers its own: the same in halves as in one piece)
         wo, pdf = source.sample(wi, u)
         ok = (pdf > 0) & (wo[:, 2] > 0) & np.isfinite(pdf)
         wo, pdf = wo[ok], pdf[ok]
-        return wo, pdf, material.eval(wi, wo)
+        target = np.maximum(luminance(material.eval(wi, wo)), 0.0) * wo[:, 2]
+        return (*frame.ab(wo), target / pdf, target ** gamma / pdf)
     # A source that samples from a table per wi (the ideal) draws each u on its own: the grid's
-    # halves in threads give the same points (where the caller is not one of them: prefetch_points).
+    # halves in threads give the same points (where the caller is not one of them: prefetch_points),
+    # and their table coordinates (a lone new angle's were a serial stretch after its draws).
     halves = np.array_split(u, 2) if getattr(source, "tabulates_per_wi", False) else [u]
-    wo, pdf, f = (np.concatenate(x) for x in zip(*_parallel(draw, halves)))
-    target = np.maximum(luminance(f), 0.0) * wo[:, 2]
+    a, b, mass, tail = (np.concatenate(x) for x in zip(*_parallel(draw, halves)))
     # Edges follow half the target itself (cells where the mass is) and half target^gamma
     # (cells on flanks and tails, where a cellwise model errs most).
-    weight = 0.5 * _normalized(target / pdf) + 0.5 * _normalized(target ** gamma / pdf)
-    a, b = frame.ab(wo)
-    return a, b, weight, target / pdf / (grid * grid)
+    weight = 0.5 * _normalized(mass) + 0.5 * _normalized(tail)
+    return a, b, weight, mass / (grid * grid)
 
 
 def _point_boxes(cell, a, b, has, n):
