@@ -642,8 +642,9 @@ def test_resolution_probes_in_threads_are_those_of_one_thread(monkeypatch):
 
 def test_points_of_a_new_angle_drawn_in_halves_are_those_of_one_draw(monkeypatch):
     """The planner's round of interval probes draws a new angle's points first
-    (tabulate.prefetch_points), the ideal's grid in halves in threads: the same points, bit for
-    bit, as one draw of the whole grid, and the same cache entries the builds then read."""
+    (tabulate.prefetch_points), the ideal's grid in halves in threads, each half's table
+    coordinates and weights' terms with it: the same points, bit for bit, as one draw of the
+    whole grid, and the same cache entries the builds then read."""
     import threading
     from bake.core import tabulate
     from bake.io import threads as pool
