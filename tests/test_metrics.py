@@ -195,6 +195,32 @@ def test_relative_variance_ref_exposes_an_infinite_rv():
     assert relative_variance_ref(mat, UniformSampler(), wi, UniformSampler(), 256)[0] == pytest.approx(0, abs=1e-12)
 
 
+def test_ggx_fit_in_threads_is_the_fit_of_one_thread(monkeypatch):
+    """fit_ggx (the planner's lobe width, at the start of every bake) evaluates its angles and
+    scores its alphas in threads, the angles' samples drawn in turn from the one generator: the
+    same fit as in one thread, on a material whose best lobe is neither end of the grids."""
+    import threading
+    from bake.core import baselines
+    from bake.io import threads as pool
+    monkeypatch.setattr(pool, "workers", lambda: 2)
+    mat = open_material({"kind": "analytic", "model": "plastic", "albedo": 0.5, "alpha": 0.12})
+    seen, pdf = set(), baselines.ggx_reflection_pdf
+
+    def spy(*args):
+        seen.add(threading.current_thread().name.split("_")[0])
+        return pdf(*args)
+    monkeypatch.setattr(baselines, "ggx_reflection_pdf", spy)
+    fits = {}
+    for cores in (1, 2):
+        monkeypatch.setattr(pool, "free_workers", lambda c, cores=cores: cores)
+        fit = fit_ggx(mat, IdealSampler(mat, resolution=32), n=1 << 11)
+        fits[cores] = (fit.alpha_x, fit.diffuse)
+    assert fits[1] == fits[2]
+    assert baselines.FIT_ALPHAS[0] < fits[1][0] < baselines.FIT_ALPHAS[-1]
+    assert baselines.FIT_DIFFUSE[0] < fits[1][1] < baselines.FIT_DIFFUSE[-1]
+    assert seen == {"MainThread", "flowbsdf-bake"}
+
+
 def test_ggx_fit_recovers_a_ggx_material():
     mat = open_material({"kind": "analytic", "model": "ggx", "alpha": 0.08})
     fit = fit_ggx(mat, IdealSampler(mat, resolution=128))

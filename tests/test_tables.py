@@ -605,6 +605,54 @@ def test_builds_in_threads_are_the_builds_of_one_thread(monkeypatch):
         np.testing.assert_array_equal(getattr(out[1], f), getattr(out[2], f))
 
 
+def test_pooled_segment_sorted_in_pieces_is_the_pooled_sort(monkeypatch):
+    """A big pooled row segment (a layout for all of a group's bins) is sorted in two pieces,
+    below and above a pivot, in threads (tabulate._pooled_pieces): the points joined, and so the
+    edges, are the whole segment's stable sort bit for bit, ties (in pooled order), NaN (last)
+    and a part with no point in a segment included; and a group's tables built so are those of
+    one thread."""
+    import threading
+    from bake.core import tabulate
+    from bake.io import threads as pool
+    monkeypatch.setattr(pool, "free_workers", lambda cores: cores)     # whatever else runs here
+    monkeypatch.setattr(pool, "workers", lambda: 2)
+    monkeypatch.setattr(tabulate, "POOL_SPLIT", 500)
+    rng = np.random.default_rng(3)
+    pieces, real = [], tabulate._pooled
+
+    def spy(parts, s_, piece=(None, None)):
+        pieces.append((threading.current_thread().name.split("_")[0], piece != (None, None)))
+        return real(parts, s_, piece)
+    monkeypatch.setattr(tabulate, "_pooled", spy)
+    parts = []
+    for k in range(6):
+        n = 700
+        seg = rng.integers(0, 3 if k != 2 else 2, n)          # part 2: nothing in segment 2
+        r = np.round(rng.random(n) * 40) / 40                  # ties within and across parts
+        if k == 4:
+            r[:9] = np.nan
+        parts.append(tabulate._by_segment(seg, r, rng.random(n), 3))
+    got = tabulate._pooled_pieces(parts, range(3))
+    for s_ in range(3):
+        r = np.concatenate([p[0][p[2][s_]:p[2][s_ + 1]] for p in parts])
+        w = np.concatenate([p[1][p[2][s_]:p[2][s_ + 1]] for p in parts])
+        order = np.argsort(r, kind="stable")
+        assert got[s_][0].tobytes() == r[order].tobytes() and got[s_][1].tobytes() == w[order].tobytes()
+        assert tabulate._pooled_edges(parts, s_, 9, 0.3).tobytes() == \
+            tabulate._pooled_edges(parts, s_, 9, 0.3, got[s_]).tobytes()
+    assert ("flowbsdf-bake", True) in pieces
+    mat = open_material(HARD["mirror-ish"])
+    ideal = IdealSampler(mat, resolution=64)
+    out = {}
+    for workers in (1, 2):
+        monkeypatch.setattr(pool, "workers", lambda w=workers: w)
+        pieces.clear()
+        out[workers] = build_tables(mat, ideal, BINS, 16, 16, grid=64, lobe_width=0.1, coords="halfpolar", window=None)
+        assert any(split for _, split in pieces)
+    for f in ("a_edges", "b_edges", "mass", "alpha", "beta", "weights"):
+        np.testing.assert_array_equal(getattr(out[1], f), getattr(out[2], f))
+
+
 def test_resolution_probes_in_threads_are_those_of_one_thread(monkeypatch):
     """The planner probes a resolution at its grazing angle alone and, where that holds, at the
     other angles in threads: the same resolution, plan and tables, bit for bit, as probing them
@@ -642,8 +690,9 @@ def test_resolution_probes_in_threads_are_those_of_one_thread(monkeypatch):
 
 def test_points_of_a_new_angle_drawn_in_halves_are_those_of_one_draw(monkeypatch):
     """The planner's round of interval probes draws a new angle's points first
-    (tabulate.prefetch_points), the ideal's grid in halves in threads: the same points, bit for
-    bit, as one draw of the whole grid, and the same cache entries the builds then read."""
+    (tabulate.prefetch_points), the ideal's grid in halves in threads, each half's table
+    coordinates and weights' terms with it: the same points, bit for bit, as one draw of the
+    whole grid, and the same cache entries the builds then read."""
     import threading
     from bake.core import tabulate
     from bake.io import threads as pool

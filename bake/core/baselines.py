@@ -6,6 +6,7 @@ They keep the sampler contract (bake/core/sampler.py): `sample(wi, u) -> (wo, pd
 """
 import numpy as np
 
+from ..io.threads import parallel
 from ..materials.analytic import ggx_reflection_pdf, ggx_sample_reflection
 from ..materials.base import as_dirs
 from ..maths.geometry import luminance
@@ -90,21 +91,27 @@ def fit_ggx(material, ideal, n=1 << 14, seed=0):
     FIT_THETAS_DEG. rv of every candidate is estimated from one set of samples of the
     ideal sampler q: rv(p) = E_q[g² / (p q)] / (E_q[g / q])² - 1, g = lum(f)·cos."""
     rng = np.random.default_rng(seed)
-    cases = []
-    for t in np.radians(FIT_THETAS_DEG):
+    # Each angle's samples from its own draws of the one generator, drawn in turn; the angles'
+    # evaluations and then the alphas' scores in threads (the planner waits for this fit: a
+    # serial stretch at the start of every bake), the best picked in the loop's order.
+    draws = [(t, rng.random((n, 2))) for t in np.radians(FIT_THETAS_DEG)]
+
+    def case(draw):
+        t, u = draw
         wi = np.array([np.sin(t), 0.0, np.cos(t)])
-        wo, q = ideal.sample(wi, rng.random((n, 2)))
+        wo, q = ideal.sample(wi, u)
         ok = q > 0
         wo, q = wo[ok], q[ok]
         g = luminance(material.eval(wi, wo)) * wo[:, 2]
         mean = np.mean(g / q) * ok.mean()
-        if mean > 0:
-            cases.append((wi, wo, q, g, mean, ok.mean()))
+        return (wi, wo, q, g, mean, ok.mean()) if mean > 0 else None
+    cases = [c for c in parallel(case, draws) if c is not None]
     if not cases:
         return GGXSampler(0.5, diffuse=1.0)
-    best, best_score = None, np.inf
-    for alpha in FIT_ALPHAS:
+
+    def scores(alpha):
         spec = [ggx_reflection_pdf(wi, wo, alpha, alpha) for wi, wo, *_ in cases]
+        out = []
         for d in FIT_DIFFUSE:
             score = 0.0
             for (wi, wo, q, g, mean, frac), ps in zip(cases, spec):
@@ -112,6 +119,11 @@ def fit_ggx(material, ideal, n=1 << 14, seed=0):
                 with np.errstate(divide="ignore"):
                     second = np.mean(np.where(g != 0, g * g / (p * q), 0.0)) * frac
                 score += np.log1p(max(second / mean ** 2 - 1.0, 0.0))
+            out.append(score)
+        return out
+    best, best_score = None, np.inf
+    for alpha, by_d in zip(FIT_ALPHAS, parallel(scores, FIT_ALPHAS)):
+        for d, score in zip(FIT_DIFFUSE, by_d):
             if score < best_score:
                 best, best_score = (alpha, d), score
     return GGXSampler(best[0], diffuse=best[1])

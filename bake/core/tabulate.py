@@ -155,18 +155,63 @@ def _by_segment(seg, r, w, segments, by=None):
     return r[order], w[order], np.searchsorted(seg[order], np.arange(segments + 1))
 
 
-def _pooled_edges(parts, s_, count, share):
+def _pooled_edges(parts, s_, count, share, pooled=None):
     """Normalized edges of segment s_: quantiles of the points of the parts (_by_segment of
     each bin of a neighbourhood) that fall in it, mixed with uniform density. The points are
-    pooled in the parts' order and sorted by r, ties in pooled order (a stable merge)."""
-    r, w = [[p[k][p[2][s_]:p[2][s_ + 1]] for p in parts] for k in (0, 1)]
-    if len(parts) == 1:
-        r, w = r[0], w[0]
-    else:
-        r, w = np.concatenate(r), np.concatenate(w)
-        order = np.argsort(r, kind="stable")
-        r, w = r[order], w[order]
+    pooled in the parts' order and sorted by r, ties in pooled order (a stable merge);
+    pooled: those (r, w) given (_pooled_pieces)."""
+    r, w = _pooled(parts, s_) if pooled is None else pooled
     return _mixture_edges(r, w, count, 0.0, 1.0, share)
+
+
+def _pooled(parts, s_, piece=(None, None)):
+    """(r, w) of segment s_'s points of the parts, pooled in the parts' order and sorted by r,
+    ties in pooled order; piece (lo, hi): only those with lo <= r < hi (None: no bound; NaN,
+    sorted last, counts as above every bound)."""
+    lo, hi = piece
+    r, w = [], []
+    for p in parts:
+        a, b = p[2][s_], p[2][s_ + 1]       # (a part's r is sorted within its segment)
+        if lo is not None:
+            a += int(np.searchsorted(p[0][a:b], lo, side="left"))
+        if hi is not None:
+            b = a + int(np.searchsorted(p[0][a:b], hi, side="left"))
+        r.append(p[0][a:b])
+        w.append(p[1][a:b])
+    if len(parts) == 1:
+        return r[0], w[0]
+    r, w = np.concatenate(r), np.concatenate(w)
+    order = np.argsort(r, kind="stable")
+    return r[order], w[order]
+
+
+# A segment pooled over this many points (a layout for all of a group's bins) is sorted in two
+# pieces, below and above a pivot, in threads: one segment's sort was the longest stretch of
+# one working thread in a Final bake (the placements' groups, ~1 s each on 45 bins).
+POOL_SPLIT = 1 << 21
+
+
+def _pooled_pieces(parts, segments):
+    """[_pooled(parts, s_) for s_ in segments], with the segments of POOL_SPLIT points or more
+    pooled in two pieces (below the median of a sample of their points, and from it), all of
+    them in threads: the pieces joined are the segment's sorted points, bit for bit (a stable
+    sort puts every point below the pivot first, each piece in pooled order)."""
+    tasks = []
+    for s_ in segments:
+        sizes = [p[2][s_ + 1] - p[2][s_] for p in parts]
+        if len(parts) > 1 and sum(sizes) >= POOL_SPLIT:
+            sample = np.concatenate([p[0][p[2][s_]:p[2][s_ + 1]:64] for p in parts])
+            pivot = float(np.median(sample)) if np.isfinite(sample).all() else None
+            if pivot is not None:
+                tasks += [(s_, (None, pivot)), (s_, (pivot, None))]
+                continue
+        tasks.append((s_, (None, None)))
+    pieces = list(_parallel(lambda t: _pooled(parts, *t), tasks))
+    out = {}
+    for (s_, _), (r, w) in zip(tasks, pieces):
+        out.setdefault(s_, []).append((r, w))
+    return [got[0] if len(got) == 1 else tuple(np.concatenate(x) for x in zip(*got))
+            for got in (out[s_] for s_ in segments)]
 
 
 def _denormalize(shared, knots):
@@ -584,21 +629,21 @@ def _points(material, source, wi, grid, frame, gamma):
     g = (np.arange(grid) + 0.5) / grid
     u = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
 
-    def draw(u):
+    def draw(u):        # (each point's numbers its own: the same in halves as in one piece)
         wo, pdf = source.sample(wi, u)
         ok = (pdf > 0) & (wo[:, 2] > 0) & np.isfinite(pdf)
         wo, pdf = wo[ok], pdf[ok]
-        return wo, pdf, material.eval(wi, wo)
+        target = np.maximum(luminance(material.eval(wi, wo)), 0.0) * wo[:, 2]
+        return (*frame.ab(wo), target / pdf, target ** gamma / pdf)
     # A source that samples from a table per wi (the ideal) draws each u on its own: the grid's
-    # halves in threads give the same points (where the caller is not one of them: prefetch_points).
+    # halves in threads give the same points (where the caller is not one of them: prefetch_points),
+    # and their table coordinates (a lone new angle's were a serial stretch after its draws).
     halves = np.array_split(u, 2) if getattr(source, "tabulates_per_wi", False) else [u]
-    wo, pdf, f = (np.concatenate(x) for x in zip(*_parallel(draw, halves)))
-    target = np.maximum(luminance(f), 0.0) * wo[:, 2]
+    a, b, mass, tail = (np.concatenate(x) for x in zip(*_parallel(draw, halves)))
     # Edges follow half the target itself (cells where the mass is) and half target^gamma
     # (cells on flanks and tails, where a cellwise model errs most).
-    weight = 0.5 * _normalized(target / pdf) + 0.5 * _normalized(target ** gamma / pdf)
-    a, b = frame.ab(wo)
-    return a, b, weight, target / pdf / (grid * grid)
+    weight = 0.5 * _normalized(mass) + 0.5 * _normalized(tail)
+    return a, b, weight, mass / (grid * grid)
 
 
 def _point_boxes(cell, a, b, has, n):
@@ -938,7 +983,8 @@ def _build_column(material, source, theta_bins, phi, coords, frame_angle, rows, 
 
     def row_edges(nbrs):       # (per segment in threads where one neighbourhood pools all bins: one layout)
         parts = [by_seg[j] for j in nbrs]
-        return list(_parallel(lambda sc: _pooled_edges(parts, *sc, row_share), enumerate(row_counts)))
+        pooled = _pooled_pieces(parts, range(len(row_counts)))
+        return list(_parallel(lambda sc: _pooled_edges(parts, *sc, row_share, pooled[sc[0]]), enumerate(row_counts)))
 
     a_edges = [_strictly_increasing(_denormalize(shared, knots), 0.0, 1.0)
                for shared, knots in zip(_once_per_neighbourhood(near, row_edges), row_knots)]
