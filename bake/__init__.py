@@ -18,12 +18,12 @@ The public API:
 
     open_material(spec)     a material (bake/materials/)
     open_sampler(kind, ..)  a sampler by name; the contract every sampler keeps (bake/core/sampler.py)
-    open_tables(path)       baked tables (.exr) as a sampler (bake/core/tables.py)
+    open_tables(path)       baked tables (.exr) as a sampler (bake/core/table_files.py)
     load_model(path)        a trained flow (.flow.npz) as a sampler (bake/core/flow.py)
 """
 from .core.flow import load_model
 from .core.sampler import Sampler, open_sampler
-from .core.tables import open_tables
+from .core.table_files import open_tables
 from .errors import FlowBSDFError
 from .materials import Material, open_material
 

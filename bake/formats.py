@@ -7,7 +7,7 @@ MIXED_FORMAT) and the layouts of the textures made from the tables (OSL_LAYOUT, 
 the shader's or graph's reader of those layouts with them.
 """
 
-# The table file (bake/core/tables.py). 5: the cell edges once per layout, "layouts" naming each
+# The table file (bake/core/tables.py; opened by table_files.py). 5: the cell edges once per layout, "layouts" naming each
 # bin's (3: once per bin; alpha and beta hold profiles since 3, 2 held exponentials' leans, 1 their
 # rates)
 FORMAT = 5
@@ -25,7 +25,7 @@ BUILDER = 13             # 2: cells that miss a hard-edged sliver of mass are in
                          # 9: isotropic: one cell layout for all bins where that interpolates closer (planner.LAYOUT_WINDOWS)
                          # 10: isotropic: two layout groups (a repeated boundary bin) where that interpolates closer (planner._between_bins);
                          #     a ridge on the plane of incidence integrated beside it (tabulate._ridge_edges)
-                         # 11: isotropic: layout groups of their own resolutions (tables.MixedTables), placements
+                         # 11: isotropic: layout groups of their own resolutions (mixed_tables.MixedTables), placements
                          #     compared at quarter points too
                          # 12: bins placed alike store their edges once (tables.Tables.layouts): the budget keeps more bins
                          # 13: isotropic RGL files: which intervals carry (tables.meta["carried"], bake setting `carry`)

@@ -44,7 +44,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 import cycles_scenes as cs  # noqa: E402
 from bake.export.closure_fit import load_fit, principled_params  # noqa: E402
 from bake.plumbing.manifest import load_manifest  # noqa: E402
-from bake.core.tables import open_tables  # noqa: E402
+from bake.core.table_files import open_tables  # noqa: E402
 
 DEFAULT = ["paper_white", "cm_military_green", "chm_mint"]
 OSL_SEEDS = 8

@@ -19,7 +19,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bake.core.tables import open_tables  # noqa: E402
+from bake.core.table_files import open_tables  # noqa: E402
 from bake.export import closure_fit as cf  # noqa: E402
 from bake.materials import open_material  # noqa: E402
 

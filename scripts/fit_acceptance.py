@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bake.maths.geometry import luminance  # noqa: E402
-from bake.core.tables import open_tables  # noqa: E402
+from bake.core.table_files import open_tables  # noqa: E402
 from bake.export import closure_fit as cf  # noqa: E402
 from bake.materials import open_material  # noqa: E402
 

@@ -87,7 +87,7 @@ import cycles_acceptance as ca  # noqa: E402
 import cycles_scenes as cs  # noqa: E402
 from bake.export.closure_fit import load_fit  # noqa: E402
 from bake.export.derived import ensure_fit  # noqa: E402
-from bake.core.tables import open_tables  # noqa: E402
+from bake.core.table_files import open_tables  # noqa: E402
 
 NAMES = ["paper_white", "cm_military_green", "chm_mint"]
 SCENES = ("hdri", "sky", "studio", "truesky")

@@ -19,7 +19,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bake.maths.geometry import LUMINANCE  # noqa: E402
-from bake.core.tables import open_tables  # noqa: E402
+from bake.core.table_files import open_tables  # noqa: E402
 from bake.export.world_map import WorldMap  # noqa: E402
 
 

@@ -38,7 +38,7 @@ RGL = ROOT.parent / "shared" / "data" / "rgl" / "cm_military_green_rgb.bsdf"
 
 def carried_tables(tables, rgl, work):
     """A copy of `tables` whose intervals all carry, with its carry texture (made once)."""
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     from bake.export.derived import ensure_carry_export
     from bake.materials import open_material
     out = Path(work) / f"{tables.stem}_carried.exr"

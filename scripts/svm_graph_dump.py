@@ -49,7 +49,8 @@ def prepare(folder, baked):
     sys.path.insert(0, str(ROOT / "tests"))
     import numpy as np
     import cycles_scenes as cs
-    from bake.core.tables import K_MAX, NSEG, Tables
+    from bake.core.profiles import K_MAX, NSEG
+    from bake.core.tables import Tables
     from bake.export.derived import ensure_fit, ensure_svm_export
     from bake.export.world_map import WorldMap, write_world_texture
     from bake.io.exrio import write_rgba_exr

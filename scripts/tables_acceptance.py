@@ -37,7 +37,7 @@ from bake.core.settings import BakeSettings
 from bake.materials import open_material
 from bake.materials.rgl import SHARED_FILES, shared_dir
 from bake.core.metrics import ReferencePoints, chi2_test, sample_weights
-from bake.core.tables import open_tables
+from bake.core.table_files import open_tables
 from bake.core.planner import plan_tables
 from bake.quality.bench import random_incident, samples_per_second
 

@@ -33,7 +33,7 @@ from conftest import RGL_FILES, rgl_dir  # noqa: E402
 from bake.maths import fasttables  # noqa: E402
 from bake.quality.bench import random_incident, single_threaded  # noqa: E402
 from bake.maths.geometry import incident  # noqa: E402
-from bake.core.tables import open_tables  # noqa: E402
+from bake.core.table_files import open_tables  # noqa: E402
 
 
 def load_tables(path, name):
@@ -48,13 +48,17 @@ def load_tables(path, name):
 
 
 def baseline_package(checkout):
-    """The tables and fasttables modules of another checkout's `bake` (scripts/baseline.py)."""
+    """The module of open_tables and the fasttables module of another checkout's `bake`
+    (scripts/baseline.py)."""
     import_baseline(checkout)
     try:
         fast = importlib.import_module("bake_baseline.maths.fasttables")
     except ModuleNotFoundError:         # a checkout from before bake/maths/
         fast = importlib.import_module("bake_baseline.core.fasttables")
-    return importlib.import_module("bake_baseline.core.tables"), fast
+    try:
+        return importlib.import_module("bake_baseline.core.table_files"), fast
+    except ModuleNotFoundError:         # a checkout from before bake/core/table_files.py
+        return importlib.import_module("bake_baseline.core.tables"), fast
 
 
 CLOCKS = {"wall": time.perf_counter, "cpu": time.process_time}

@@ -418,7 +418,7 @@ def albedo_and_variance(tab, wi):
     """E[W] and Var[W] of the baked tables at one wi (local frame): what a furnace pixel
     converges to, and the per-sample variance of a table sampler's weight there (MixedTables:
     of the part that samples wi)."""
-    from bake.core.tables import MixedTables
+    from bake.core.mixed_tables import MixedTables
     if isinstance(tab, MixedTables):
         tab = tab.parts[tab.part_at(np.arccos(np.clip(wi[2], -1.0, 1.0)))]
     bins, _ = tab._bins(wi[None])

@@ -18,7 +18,7 @@ from bake.core.settings import BakeSettings
 from bake.core.metrics import chi2_test, relative_variance, relative_variance_ref
 from bake.export.osl_export import LAYOUT
 from bake.quality.stress import hard_cases, make_tables
-from bake.core.tables import open_tables
+from bake.core.table_files import open_tables
 from bake.maths.warps import rotate_z
 from contract import assert_sampler_contract
 

@@ -25,7 +25,7 @@ from bake.materials import open_material
 from bake.materials.merl import DIMS, N_BINS
 from bake.io.paths import model_path, table_path
 from bake.plumbing.pipeline import bake_manifest
-from bake.core.tables import open_tables
+from bake.core.table_files import open_tables
 from conftest import write_npz
 from test_rgl import synthetic_fields, write_tensor_file
 

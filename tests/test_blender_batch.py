@@ -114,7 +114,7 @@ def test_batch_bakes_in_blender_background(batch_scene, batch_bake):
 
     code, out = _blender([str(blend), "--python-expr", BATCH, "--", "scan", "--python", sys.executable], user, tmp)
     assert code == 0, out[-3000:]
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     bins = len(open_tables(tmp / "flowbsdf" / "tables" / "plastic.exr").theta_bins)
     assert f"[flowbsdf] plastic -> plastic: current; needs theta_i only: {bins} bins" in out, out[-3000:]
     assert (tmp / "flowbsdf" / "manifest.toml").is_file()

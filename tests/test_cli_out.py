@@ -8,7 +8,7 @@ import textwrap
 import pytest
 
 from bake.core.flow import save_model
-from bake.core.tables import open_tables
+from bake.core.table_files import open_tables
 from bake.plumbing.cli import build_parser, main
 from bake.plumbing.job import OUT_HELP, train_models_dir
 from bake.io.paths import model_path, table_path

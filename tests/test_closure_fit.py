@@ -330,7 +330,7 @@ def test_osl_texture_of_mixed_resolutions_reads_each_bins_own_table(tmp_path):
     them (hi <= R_b, C_b: no search reads padding). Corner 2 (50 | 50 deg, never used) joins the
     two sizes: it is read within the smaller's."""
     import cycles_scenes as cs
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     from bake.export.osl_export import texture_image
     tab = open_tables(cs.mixed_tables({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.15},
                                       "mixed", tmp_path))
@@ -371,7 +371,7 @@ def test_mixed_tables_get_their_derived_files(tmp_path):
     """MixedTables: bake_derived writes both textures and the fit, whose baked albedo at theta_i
     is that of the part theta_i falls in (at and above the 50 deg boundary the upper one)."""
     import cycles_scenes as cs
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     path = cs.mixed_tables({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.15}, "mixed", tmp_path)
     tab = open_tables(path)
     for deg, part in ((30.0, 0), (49.9, 0), (50.0, 1), (70.0, 1)):

@@ -30,7 +30,7 @@ from bake.core.flow import load_model
 from bake.plumbing.manifest import load_manifest
 from bake.io.paths import table_path
 from bake.plumbing.pipeline import bake_manifest, open_current_tables
-from bake.core.tables import open_tables
+from bake.core.table_files import open_tables
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON = str(ROOT / ".venv" / "bin" / "python") if (ROOT / ".venv" / "bin" / "python").exists() else sys.executable

@@ -95,7 +95,7 @@ def test_osl_sampler_is_tables_sample(baked, name):
     """Same u -> same wo, the same weight (= baked f cos / pdf) and the same pdf as the numpy
     reference (the sampler's exact density: weight x pdf = baked f cos)."""
     from bake.export.osl_export import LAYOUT
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     from bake.export.osl_export import path as export_path
     assert derived.OSL_LAYOUT == LAYOUT and f"#define LAYOUT {LAYOUT}\n" in osl_script.shader_source()
     assert derived.texture_path(baked[name], "0" * 64) == export_path(baked[name], "0" * 64)
@@ -126,7 +126,7 @@ def test_osl_sampler_on_layout_groups(tmp_path):
     """Tables of two layout groups joined at 50 deg (the angle twice in theta_bins): OSL samples
     as numpy just below and just above the boundary (same u -> same wo and pdf; at the boundary
     itself float32 and float64 may fall on either side)."""
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     path = cs.grouped_tables({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.15}, "grouped", tmp_path)
     tab = open_tables(path)
     tab.backend = "numpy"
@@ -151,7 +151,8 @@ def test_osl_sampler_on_mixed_resolutions(tmp_path):
     corner's own rows and finds the last row (an R of 24 there found the 12-row part's padding:
     pdf 0)."""
     from bake.maths.geometry import incident
-    from bake.core.tables import MixedTables, open_tables
+    from bake.core.mixed_tables import MixedTables
+    from bake.core.table_files import open_tables
     path = cs.mixed_tables(SPECS["plastic"], "mixed", tmp_path)
     tab = open_tables(path)
     tab.backend = "numpy"
@@ -210,7 +211,7 @@ def _assert_osl_eval_is_numpy(tex, tab, angles):
 
 @pytest.mark.parametrize("name", ["plastic-wo", "gold-wo", "plastic-halfpolar", "gold-halfpolar"])
 def test_osl_eval_is_tables_pdf_and_eval(baked, name):
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     tab = open_tables(baked[name])
     tab.backend = "numpy"
     _assert_osl_eval_is_numpy(ensure_osl_export(baked[name]), tab, [(0.0, 0.0), (33.0, 0.0), (71.3, 0.0), (88.0, 0.0)])
@@ -309,7 +310,7 @@ def test_osl_sampler_is_tables_sample_anisotropic(aniso_tables, coords, tmp_path
     weight and pdf, on bins, between them and across the period's wrap, in either coordinates
     (halfvector: the default; wo: files baked before it)."""
     from bake.maths.geometry import incident
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     if coords != "halfvector":
         aniso_tables = cs.aniso_small_tables(tmp_path, coords=coords)
     tab = open_tables(aniso_tables)
@@ -341,7 +342,7 @@ def test_osl_furnace_anisotropic(aniso_tables, tangent):
     tangent frame (x = the node's Tangent input, world x when unset, projected onto the
     tangent plane), within Monte Carlo error: the frame, phi_i and the four-bin blend are the
     numpy reference's."""
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     tab = open_tables(aniso_tables)
     spp = 256
     img, normal, inner, node, sc = _furnace(aniso_tables, spp, "osl", tangent=tangent)
@@ -378,7 +379,7 @@ def test_osl_furnace_gives_the_baked_albedo(baked, name):
     """Sphere under a constant white sky: each pixel is the baked albedo E[W] at its view angle,
     within Monte Carlo error (per-pixel variance Var[W] / spp from the tables: an upper bound,
     the film-stratified u of camera rays does better)."""
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     tab = open_tables(baked[name])
     spp = 256
     img, normal, inner, node, sc = _furnace(baked[name], spp, "osl")
@@ -394,7 +395,7 @@ def test_osl_furnace_on_mixed_resolutions(tmp_path):
     """MixedTables (12 x 16 cells below 50 deg, 24 x 20 above) through the add-on's node: a
     sphere under a white sky, each pixel the baked albedo at its view angle, the pixels' on
     both sides of the boundary."""
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     path = cs.mixed_tables({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.15}, "mixed", tmp_path)
     tab = open_tables(path)
     spp = 256
@@ -838,7 +839,7 @@ def _check_osl_matches_tracer(tables_path, name, tmp_path, hashed=False, n=24, s
     reference image, sphere mask)."""
     import dataclasses
     import tomllib
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     from bake.tracer import render
     from bake.tracer.scene import scene_from_dict
     sc, node, path = _osl_vs_tracer_scene({name: tables_path}, name, n, spp, tmp_path)
@@ -935,7 +936,7 @@ def test_osl_and_svm_render_the_same_bsdf_of_default_structure_tables(tmp_path):
     within MC error of the OSL back end (z over both renders' seeds), and so is the sphere's mean."""
     from conftest import rgl_path
     from bake.core.ideal import IdealSampler
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     from bake.core.tabulate import build_tables, join_groups
     from bake.materials import open_material
     if not lb.svm_available():
@@ -1004,7 +1005,7 @@ def test_film_stratified_u_is_unbiased_and_cuts_noise(baked, pixel_filter, width
     seeds' spread, which holds the per-render rotation's share), and the noise drops far
     below the hashed u's (per-pixel variance over seeds; measured on this plastic at 64 spp:
     0.10 box, 0.20 Blackman-Harris, 0.18 Gaussian)."""
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     path, n, spp, seeds = baked["plastic"], 16, 64, 8
     ref = baked_albedo(open_tables(path), 0.5)
     imgs = _tilted_plane_furnace(path, n, spp, seeds, pixel_filter, width)
@@ -1046,7 +1047,7 @@ def test_osl_carried_blend_is_numpy(carried_textures):
     bin, the tables' own blend."""
     import re
     from bake.core.carried import CarriedTables
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     from bake.export.carry_export import CARRY_LAYOUT, CARRY_SLICES
     src = osl_script.shader_source()
     assert derived.CARRY_LAYOUT == CARRY_LAYOUT and re.search(rf"^#define CARRY_LAYOUT {CARRY_LAYOUT}\b", src, re.M)
@@ -1096,7 +1097,7 @@ def test_osl_furnace_carried_gives_the_blended_albedo(carried_textures, tmp_path
     A plane, not a sphere: this synthetic file's f cos does not fade at the horizon (1.5 % of it
     within 0.7 deg), and a smooth-shaded sphere loses ~0.5 % of it below its facets."""
     from bake.core.carried import CarriedTables
-    from bake.core.tables import open_tables
+    from bake.core.table_files import open_tables
     from bake.export.derived import ensure_carry_export
     mat, tables_path, _, _ = carried_textures
     tab = open_tables(tables_path)

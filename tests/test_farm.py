@@ -169,7 +169,7 @@ def test_openjd_runs_each_bake_task_for_real_with_path_mapping(tmp_path):
     if farm.can_train(sys.executable):
         assert "openjd_status: rough: training stage reflow done" in runs["rough"][1]
         assert (mnt / "shot" / "out" / "models" / "rough.flow.npz").is_file()
-        from bake.core.tables import open_tables
+        from bake.core.table_files import open_tables
         assert open_tables(tables / "rough.exr").meta["source"] == "flow"        # baked from the trained model
     assert not (mnt / "shot" / "out" / "models" / "matte.flow.npz").exists()      # source auto: no training
     code, out = runs["broken"]

@@ -14,7 +14,8 @@ from bake.errors import FlowBSDFError
 from bake.maths.geometry import incident, spherical_dir
 from bake.core.ideal import IdealSampler
 from bake.materials import open_material
-from bake.core.tables import Tables, from_ab, open_tables
+from bake.core.table_files import open_tables
+from bake.core.tables import Tables, from_ab
 from bake.core.tabulate import build_tables
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -265,7 +266,7 @@ def test_mixed_tables_in_c_give_each_sample_its_parts_values(tables):
     MixedTables.part_at picks it, wi near the boundary too), numpy's MixedTables' to its
     tolerance; one wi per call goes to its part; a grouped call keeps the bits of small ones."""
     from bake.maths.geometry import theta_phi
-    from bake.core.tables import MixedTables
+    from bake.core.mixed_tables import MixedTables
     five, odd = tables["ggx-5bins"], tables["ggx-odd"]      # 16 x 16 cells, and 13 x 21
     lower = Tables(five.theta_bins[:3], five.a_edges[:3], five.b_edges[:3], five.mass[:3], five.alpha[:3],
                    five.beta[:3], five.weights[:3])        # bins 0, 30, 60

@@ -27,10 +27,10 @@ def test_the_shader_headers_say_the_layouts_of_formats_py():
 
 
 def test_the_numpy_side_reads_formats_py():
-    from bake.core import tables
+    from bake.core import mixed_tables, tables
     from bake.export import carry_export, closure_fit, osl_export, svm_export, world_map
     from bake.plumbing import pipeline
-    assert (tables.FORMAT_VERSION, tables.MIXED_FORMAT_VERSION) == (formats.FORMAT, formats.MIXED_FORMAT)
+    assert (tables.FORMAT_VERSION, mixed_tables.MIXED_FORMAT_VERSION) == (formats.FORMAT, formats.MIXED_FORMAT)
     assert pipeline.BUILDER_VERSION == formats.BUILDER
     assert (osl_export.LAYOUT, svm_export.LAYOUT, world_map.LAYOUT, carry_export.CARRY_LAYOUT) == (
         formats.OSL_LAYOUT, formats.SVM_LAYOUT, formats.WORLD_LAYOUT, formats.CARRY_LAYOUT)

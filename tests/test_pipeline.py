@@ -10,7 +10,7 @@ from bake.plumbing.manifest import load_manifest
 from bake.export.osl_export import LAYOUT
 from bake.io.paths import table_path
 from bake.plumbing.pipeline import bake_manifest, open_current_tables
-from bake.core.tables import open_tables
+from bake.core.table_files import open_tables
 from bake.io.files import file_hash
 
 FAST = "bake = { resolution = 16, tol = 0.5, grid = 96, samples = 2048, first_bins = 3, ideal_resolution = 48 }"

@@ -16,7 +16,9 @@ import cycles_scenes as cs
 from conftest import slow_unless
 from bake.export import derived, svm_export
 from bake.errors import FlowBSDFError
-from bake.core.tables import K_MAX, NSEG, Tables, open_tables
+from bake.core.profiles import K_MAX, NSEG
+from bake.core.table_files import open_tables
+from bake.core.tables import Tables
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # blender_addon (not installed)
 pytestmark = pytest.mark.usefixtures("shared_fits")     # (conftest: one fit per tables in the run)

@@ -10,8 +10,10 @@ from bake.core.settings import BakeSettings
 from bake.materials import open_material
 from bake.materials.base import Material, as_dirs
 from bake.core.metrics import chi2_test, relative_variance, relative_variance_ref
-from bake.core.tables import (K_MAX, NSEG, TWO_PI, Tables, exp_cdf, exp_density, exp_inverse_cdf, from_ab,
-                              open_tables, profile_cdf, profile_density, profile_nodes, profile_sample, to_ab)
+from bake.core.profiles import (K_MAX, NSEG, exp_cdf, exp_density, exp_inverse_cdf, profile_cdf, profile_density,
+                                profile_nodes, profile_sample)
+from bake.core.table_files import open_tables
+from bake.core.tables import TWO_PI, Tables, from_ab, to_ab
 from bake.core.planner import CELL_BYTES, bin_bytes, groups_bytes, layout_bytes, lobe_width_of, plan_tables
 from bake.core.tabulate import ISO_COORDS, _WoFrame, _finish_bin, _moments_around, _nodes, build_tables, exp_rate_for_mean
 from contract import assert_sampler_contract
@@ -1008,7 +1010,8 @@ def test_layout_groups_joined_at_a_repeated_angle(tmp_path):
     sample and pdf stay one density just below, at and above it, in numpy and C (contract and
     chi-square), theta_i below it uses the lower group, above it the upper; the file keeps the
     repeat, and the loader refuses an angle three times or a repeat at either end."""
-    from bake.core.tables import groups_ok, open_tables
+    from bake.core.table_files import open_tables
+    from bake.core.tables import groups_ok
     from bake.core.tabulate import build_tables, join_groups
     mat = open_material({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.15})
     ideal = IdealSampler(mat, resolution=48)
@@ -1036,7 +1039,8 @@ def test_layout_groups_of_their_own_resolutions(tmp_path):
     chi-square), each side its own group's (pdf equal to that group's alone); the file keeps
     both resolutions (and costs their cells, not the largest's for every bin); a part missing
     from the file, or parts that do not cover the bins, are refused with a clear error."""
-    from bake.core.tables import MixedTables, open_tables
+    from bake.core.mixed_tables import MixedTables
+    from bake.core.table_files import open_tables
     from bake.core.tabulate import build_grouped, build_tables, join_groups
     from bake.io.exrio import read_exr, write_exr
     mat = open_material({"kind": "analytic", "model": "plastic", "albedo": 0.3, "alpha": 0.15})
@@ -1198,7 +1202,7 @@ def test_planner_gives_layout_groups_their_own_resolutions(monkeypatch):
     summed over theta_i 2.5..87.5 by 5 (k=64 of the ideal's draws) 0.42 against 5.97 (5.6 of it
     at 87.5 deg, half-way between two bins 7 deg apart, where the mixed plan has one at 86.2)."""
     from bake.core import planner
-    from bake.core.tables import MixedTables
+    from bake.core.mixed_tables import MixedTables
     mat = GlossAtGrazing()
     ideal = IdealSampler(mat, resolution=64)
     settings = BakeSettings(resolution=24, tol=0.01, grid=96, samples=1024, first_bins=7, memory_budget=125_000,

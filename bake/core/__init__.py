@@ -5,6 +5,9 @@
     flow_maps      the flow's coordinate maps: flow coordinates <-> outgoing directions
     domains        2D sampling domains of outgoing directions (disk, spherical)
     tables         baked tables (.exr): an exact, table-speed sampler per material
+    profiles       the tables' cells' 1-D profiles: CDF, inverse CDF, density
+    mixed_tables   MixedTables: layout groups of their own resolutions, one sampler
+    table_files    open_tables: a table file as Tables or MixedTables, its checks
     halfvector     the anisotropic tables' coordinates: the half vector on a disk
     carried        an RGL file's tables blended along the file's own coordinates (numpy only)
     tabulate       building tables from a material and a source sampler

@@ -37,7 +37,7 @@ import numpy as np
 from ..errors import FlowBSDFError
 from ..materials.rgl import RGLMaterial, WarpedCoords
 from ..maths.geometry import spherical_dir, theta_phi
-from .tables import MixedTables
+from .mixed_tables import MixedTables
 
 
 def check_carriable(material):

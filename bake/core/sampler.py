@@ -84,7 +84,7 @@ def open_sampler(kind, material, path=None, ideal=None, **options):
         raise FlowBSDFError(f"the {kind} sampler reads a file: give its path")
     if kind == "tables":
         from .carried import as_rendered
-        from .tables import open_tables
+        from .table_files import open_tables
         return as_rendered(open_tables(path), material)
     if kind == "flow":
         from .flow import load_model

@@ -4,11 +4,9 @@ Per incident bin, the table is an adaptive piecewise density on the hemisphere: 
 a = 1 - cos(theta_o) and, in each row, C columns in b = phi_o - phi_i (the azimuth relative
 to wi's plane; the mirror direction sits at b = pi, so the specular lobe never straddles
 the seam); da db = d omega. Cell (i, j) holds mass m_ij, spread over it with a separable
-density: in local coordinates x, y in [0, 1], q(x, y) = p_a(x) p_b(y), each a *profile*:
-NSEG pieces, log-linear between NSEG + 1 node values (each piece an exponential e_k(t) =
-k e^(k t) / (e^k - 1), no steeper than K_MAX across a whole cell). An exponential follows a
-lobe's flank where a linear slope cannot, and the pieces meet continuously, so a profile
-also holds a knee inside a cell (a flank running into a flat tail) that one exponential
+density: in local coordinates x, y in [0, 1], q(x, y) = p_a(x) p_b(y), each a *profile*
+(profiles.py): NSEG pieces, log-linear between NSEG + 1 node values, each an exponential.
+A profile holds a knee inside a cell (a flank running into a flat tail) that one exponential
 cannot (a cell's rv excess over the ideal tabulation sat in such rows: on the bin, 48²,
 the cells 2 MB plans missed went from 1.96-3.70x the ideal's rv to 1.06-1.32x, each piece
 keeping the marginal's mass, tabulate._piece_masses_kept):
@@ -31,13 +29,8 @@ material whatever the source's quality.
 Between incident bins edges and masses are interpolated linearly. Interpolated edges
 stay increasing (a convex combination of increasing lists), interpolated masses stay a
 distribution, so every wi gets an exact table, and a lobe moves with theta_i instead of
-fading between two positions (a displacement interpolation).
-
-A profile is stored as the logs of its nodes 1..NSEG over node 0; each bin's is normalized
-to integrate to 1 (profile_nodes) and the bins blend node values: at the nodes the blended
-density is the mixture of the bins' (the blend follows the mixture, never a steep piece
-displaced off the flank it was fitted to: blending exponentials' rates did that, e^-17 below
-f·cos, rv 8.5e4 x the ideal's on a measured file; leans, then node values, followed the mixture).
+fading between two positions (a displacement interpolation). The profiles blend as their
+node values (profiles.py says why).
 
 Storage: edges and masses float32; the profiles' logs and the RGB weights float16 as the
 builder makes them (weights beyond float16's range stay float32): 22 bytes a cell in each bin,
@@ -66,20 +59,20 @@ Per cell the table also keeps the RGB estimator weight W = integral of f·cos ov
 cell / its share of the target; `eval` returns W·pdf/cos, the baked BSDF the Cycles back
 ends render (their weight f·cos / pdf is W exactly).
 
-One file of ~760 lines on purpose: the reference every back end transcribes (the C path, OSL's
-tables.h, the SVM graph's tables.py) reads sample, pdf, invert and eval with the coordinate maps
-and profiles they share in one place, as tables.h does.
+This is the reference every back end transcribes (the C path, OSL's tables.h, the SVM graph's
+tables.py): sample, pdf, invert and eval with the coordinate maps; the cells' profiles are
+profiles.py's. Tables in layout groups of their own resolutions are mixed_tables.py's
+MixedTables; table files are opened by table_files.open_tables.
 """
-import functools
-
 import numpy as np
 
 from ..errors import FlowBSDFError
-from ..formats import FORMAT, MIXED_FORMAT
-from ..io.exrio import read_exr, write_exr
+from ..formats import FORMAT
+from ..io.exrio import write_exr
 from ..materials.base import as_dirs
 from ..maths.geometry import atan2, theta_phi
 from . import halfvector
+from .profiles import K_MAX, NSEG, _valid_profiles, profile_cdf, profile_density, profile_nodes, profile_sample
 
 try:        # the optional C fast path (never required: Blender imports bake/ with numpy only)
     from ..maths import fasttables as _fasttables
@@ -110,96 +103,7 @@ def from_ab(a, b, phi_ref):
     return np.stack([s * np.cos(phi), s * np.sin(phi), 1.0 - a], axis=-1)
 
 
-# Within a cell, each axis has the exponential density k e^(k x) / (e^k - 1) on [0, 1]
-# (uniform at k = 0): its CDF, inverse and density. An exponential follows the steep
-# flank of a lobe across a cell where a linear slope cannot.
-K_MAX = 30.0     # the largest exponential rate across a cell (e^30: steeper than any data)
-_SMALL = 1e-4
-
-
-def exp_cdf(x, k):
-    ks = np.where(np.abs(k) < _SMALL, 1.0, k)
-    return np.where(np.abs(k) < _SMALL, x + 0.5 * k * (x * x - x), np.expm1(ks * x) / np.expm1(ks))
-
-
-def exp_inverse_cdf(u, k):
-    ks = np.where(np.abs(k) < _SMALL, 1.0, k)
-    exact = np.log1p(u * np.expm1(ks)) / ks
-    return np.clip(np.where(np.abs(k) < _SMALL, u - 0.5 * k * (u * u - u), exact), 0.0, 1.0)
-
-
-def exp_density(x, k):
-    ks = np.where(np.abs(k) < _SMALL, 1.0, k)
-    return np.where(np.abs(k) < _SMALL, 1.0 + k * (x - 0.5), ks * np.exp(ks * x) / np.expm1(ks))
-
-
 HALF_MAX = 65504.0      # the largest float16
-
-# A cell's profile along each axis: NSEG log-linear pieces through NSEG + 1 node values, stored
-# as the logs of nodes 1..NSEG over node 0 (alpha along a, beta along b: (..., NSEG) float16).
-NSEG = 3
-
-
-def profile_nodes(logs):
-    """Node values (..., NSEG + 1) of stored logs (..., NSEG), normalized to integrate to 1."""
-    L = np.concatenate([np.zeros(logs.shape[:-1] + (1,)), np.asarray(logs, np.float64)], axis=-1)
-    V = np.exp(L - L.max(axis=-1, keepdims=True))
-    flat = V.reshape(-1, NSEG + 1)
-    return (flat / profile_parts(flat)[1][:, None]).reshape(V.shape)
-
-
-LOG_MEAN_SERIES = 1e-3      # |log(v1 / v0)| below which the log mean takes its series (float32 back ends)
-
-
-def _log_mean(v0, v1):
-    """(v1 - v0) / log(v1 / v0); where the log is small, v0 (1 + l / 2 + l^2 / 6) (error l^3 / 24):
-    (r - 1) / log r there lost 0.4 % in OSL's float32 (measured)."""
-    r = v1 / v0
-    lr = np.log(r)
-    small = np.abs(lr) < LOG_MEAN_SERIES
-    return v0 * np.where(small, 1.0 + lr * (0.5 + lr / 6.0), (r - 1.0) / np.where(small, 1.0, lr))
-
-
-def profile_parts(V):
-    """Per cell (rows of V, node values > 0): the pieces' masses (N, NSEG) and total."""
-    M = _log_mean(V[:, :-1], V[:, 1:]) / NSEG
-    return M, M.sum(axis=1)
-
-
-def profile_sample(u, V):
-    """(the place x of u under the profiles V, and their density there, from the piece found)."""
-    M, tot = profile_parts(V)
-    C = np.cumsum(M, axis=1)
-    target = np.clip(u, 0.0, 1.0) * tot
-    k = np.minimum(np.sum(C[:, :-1] <= target[:, None], axis=1), NSEG - 1)
-    prev = np.where(k > 0, np.take_along_axis(C, np.maximum(k - 1, 0)[:, None], 1)[:, 0], 0.0)
-    Mk = np.take_along_axis(M, k[:, None], 1)[:, 0]
-    v0 = np.take_along_axis(V, k[:, None], 1)[:, 0]
-    v1 = np.take_along_axis(V, (k + 1)[:, None], 1)[:, 0]
-    rate = np.log(v1 / v0)
-    t = exp_inverse_cdf(np.clip((target - prev) / Mk, 0.0, 1.0), rate)
-    return (k + t) / NSEG, v0 * np.exp(t * rate) / tot
-
-
-def _piece(x, V):
-    k = np.clip(np.floor(x * NSEG).astype(np.int64), 0, NSEG - 1)
-    t = np.clip(x * NSEG - k, 0.0, 1.0)
-    v0 = np.take_along_axis(V, k[:, None], 1)[:, 0]
-    v1 = np.take_along_axis(V, (k + 1)[:, None], 1)[:, 0]
-    return k, t, v0, v1
-
-
-def profile_density(x, V):
-    k, t, v0, v1 = _piece(x, V)
-    return v0 * np.exp(t * np.log(v1 / v0)) / profile_parts(V)[1]
-
-
-def profile_cdf(x, V):
-    M, tot = profile_parts(V)
-    k, t, v0, v1 = _piece(x, V)
-    C = np.concatenate([np.zeros((len(V), 1)), np.cumsum(M, axis=1)], axis=1)
-    return (np.take_along_axis(C, k[:, None], 1)[:, 0]
-            + np.take_along_axis(M, k[:, None], 1)[:, 0] * exp_cdf(t, np.log(v1 / v0))) / tot
 
 
 def _stored(x):
@@ -207,19 +111,6 @@ def _stored(x):
     tabulate._finish_bin), else float32."""
     x = np.asarray(x)
     return x if x.dtype == np.float16 else x.astype(np.float32)
-
-
-def exp_mean(k):
-    """The mean of x under the exponential density of rate k on [0, 1]."""
-    ks = np.where(np.abs(k) < _SMALL, 1.0, k)
-    return np.where(np.abs(k) < _SMALL, 0.5 + k / 12.0, 1.0 / (-np.expm1(-ks)) - 1.0 / ks)
-
-
-def _valid_profiles(alpha, beta, mass_shape):
-    """Profiles' logs (alpha, beta) with one axis of NSEG more than mass, finite, within +-K_MAX
-    (a piece's bound times NSEG)."""
-    return all(np.shape(x) == (*mass_shape, NSEG) and np.all(np.isfinite(x)) and np.all(np.abs(x) <= K_MAX * 1.01)
-               for x in (alpha, beta))
 
 
 def _search(value, n, edge_at):
@@ -233,6 +124,16 @@ def _search(value, n, edge_at):
         hi = np.where(right, hi, mid)
     return lo
 
+
+def groups_ok(theta_bins):
+    """theta_bins increasing, where an inner angle may appear twice: the last bin of one layout
+    group and the first of the next (tabulate.join_groups). theta_i below it blends the lower
+    group's bins, at or above it the upper group's: bins are found by the count of those <= theta_i,
+    so the empty interval between the two is never used (not at the ends: past the last bin the
+    last interval is used, and it must not be empty)."""
+    d = np.diff(np.asarray(theta_bins, np.float64))
+    return bool(np.all(d >= 0) and (len(d) == 0 or (d[0] > 0 and d[-1] > 0))
+                and not np.any((d[:-1] == 0) & (d[1:] == 0)))
 
 
 # ------------------------------------------------------------------------------ sampling
@@ -482,161 +383,6 @@ class Tables:
         return np.full(len(self._a), self.cols, np.int64)
 
 
-# A padded working entry (MixedTables) past a group's own rows or columns: above every value a
-# search compares with it, so a search finds the last entry at or below its target among the
-# group's own (a finite value: blending it with weight 0 must give 0, not NaN).
-PAD = 1e30
-MIXED_FORMAT_VERSION = MIXED_FORMAT     # the file of a MixedTables (bake/formats.py)
-# The formats this FlowBSDF reads: (kind, whether the edges are stored once per layout)
-READS = {3: ("plain", False), 4: ("mixed", False), FORMAT_VERSION: ("plain", True),
-         MIXED_FORMAT_VERSION: ("mixed", True)}
-
-
-class MixedTables:
-    """Isotropic tables in layout groups of their own resolutions (cells per bin): consecutive
-    `parts`, each a Tables over its own bins, each part's first bin at the previous part's last
-    angle. theta_i below a boundary is sampled from the lower part, at or above it from the
-    upper one (the rule of groups within one Tables, groups_ok): the parts never blend, so each
-    is exact on its own and together they are one exact sampler. An easy range of theta_i then
-    spends less memory on cells and the hard one more (plan_tables).
-
-    The back ends that read whole arrays (the OSL and SVM textures) see the parts joined, padded
-    to the largest part's rows and columns: the working copies below, with `bin_rows` and
-    `bin_cols` each bin's own, and PAD past them."""
-
-    name = "tables"
-    normalized = True
-    anisotropic = False
-    phi_bins = None
-    phi_period = TWO_PI
-    frame_angle = 0.0
-
-    def __init__(self, parts, meta=None, backend="auto"):
-        parts = list(parts)
-        if len(parts) < 2 or any(not isinstance(p, Tables) or p.anisotropic for p in parts):
-            raise FlowBSDFError("mixed tables join two or more isotropic Tables")
-        if len({p.coords for p in parts}) != 1:
-            raise FlowBSDFError("the parts of mixed tables share their coordinates")
-        for lower, upper in zip(parts[:-1], parts[1:]):
-            if len(lower.theta_bins) < 2 or len(upper.theta_bins) < 2 or upper.theta_bins[0] != lower.theta_bins[-1]:
-                raise FlowBSDFError("each part of mixed tables starts at the previous one's last angle, "
-                                    "two bins or more each")
-        self.parts = parts
-        self.coords = parts[0].coords
-        self.theta_bins = np.concatenate([p.theta_bins for p in parts])
-        self.bounds = np.array([p.theta_bins[0] for p in parts[1:]])
-        self.rows = max(p.rows for p in parts)
-        self.cols = max(p.cols for p in parts)
-        self.meta = dict(meta or {})
-        self.backend = backend
-
-    @property
-    def backend(self):
-        return self.parts[0].backend
-
-    @backend.setter
-    def backend(self, value):
-        for p in self.parts:
-            p.backend = value
-
-    @property
-    def nbytes(self):
-        return sum(p.nbytes for p in self.parts)
-
-    def part_at(self, theta_i):
-        """The index of the part that samples theta_i (array or scalar)."""
-        return np.searchsorted(self.bounds, theta_i, side="right")
-
-    @property
-    def _fast(self):
-        return self.parts[0]._fast
-
-    def _each(self, method, wi, x):
-        """method of the part each wi falls in, per sample (x: the other argument, (N, ...)).
-        The C fast path picks the parts itself (fasttables: in C, without the passes below)."""
-        if (fast := self._fast) is not None and (out := getattr(fast, method)(self, wi, x)) is not None:
-            return out
-        x = np.atleast_2d(np.asarray(x, np.float64))
-        if np.shape(wi) in ((3,), (1, 3)):     # one direction: one part, wi passed on as it is
-            return getattr(self.parts[int(self.part_at(theta_phi(np.reshape(wi, (1, 3)))[0][0]))], method)(wi, x)
-        wi, _ = as_dirs(wi, np.empty((len(x), 3)))
-        part = self.part_at(theta_phi(wi)[0])
-        outs = None
-        for p in np.unique(part):
-            sel = part == p
-            got = getattr(self.parts[p], method)(wi[sel], x[sel])
-            got = got if isinstance(got, tuple) else (got,)
-            if outs is None:
-                outs = [np.empty((len(x),) + g.shape[1:], g.dtype) for g in got]
-            for o, g in zip(outs, got):
-                o[sel] = g
-        return tuple(outs) if len(outs) > 1 else outs[0]
-
-    def sample(self, wi, u):
-        return self._each("sample", wi, u)
-
-    def pdf(self, wi, wo):
-        return self._each("pdf", wi, wo)
-
-    def invert(self, wi, wo):
-        return self._each("invert", wi, wo)
-
-    def eval(self, wi, wo):
-        return self._each("eval", wi, wo)
-
-    # -- the parts joined, padded to the largest (the textures' exporters) ------------------
-
-    def _joined(self, name, pad):
-        """The parts' working copy `name` side by side, each padded with `pad` to the largest."""
-        out = []
-        for p in self.parts:
-            x = getattr(p, name)
-            shape = list(x.shape)
-            shape[1] = self.rows + (name in ("_a", "_row_cdf"))
-            if x.ndim > 2:
-                shape[2] = self.cols + (name in ("_b", "_col_cum"))
-            y = np.full(shape, pad, x.dtype)
-            y[tuple(slice(0, n) for n in x.shape)] = x
-            out.append(y)
-        return np.concatenate(out)
-
-    _a = functools.cached_property(lambda self: self._joined("_a", PAD))
-    _row_cdf = functools.cached_property(lambda self: self._joined("_row_cdf", PAD))
-    _b = functools.cached_property(lambda self: self._joined("_b", PAD))
-    _col_cum = functools.cached_property(lambda self: self._joined("_col_cum", PAD))
-    _m = functools.cached_property(lambda self: self._joined("_m", 0.0))
-    _alpha = functools.cached_property(lambda self: self._joined("_alpha", 1.0))
-    _beta = functools.cached_property(lambda self: self._joined("_beta", 1.0))
-    _w = functools.cached_property(lambda self: self._joined("_w", 0.0))
-
-    @property
-    def bin_rows(self):
-        return np.concatenate([p.bin_rows for p in self.parts])
-
-    @property
-    def bin_cols(self):
-        return np.concatenate([p.bin_cols for p in self.parts])
-
-    # -- files -----------------------------------------------------------------------
-
-    def save(self, path):
-        meta = {**self.meta, "format": "flowbsdf-tables", "format_version": MIXED_FORMAT_VERSION,
-                "theta_bins": [float(x) for x in self.theta_bins], "rows": self.rows, "cols": self.cols,
-                "parts": [{"bins": len(p.theta_bins), "rows": p.rows, "cols": p.cols} for p in self.parts]}
-        if self.coords != "wo":
-            meta["coords"] = self.coords
-        arrays = {}
-        for n, (p, about) in enumerate(zip(self.parts, meta["parts"])):
-            own, about["layouts"] = _file_arrays(p)
-            arrays.update({f"{name}{_suffix(n)}": x for name, x in own.items()})
-        write_exr(path, arrays, meta)
-
-
-def _suffix(part):
-    """The file's array names of part n of mixed tables: a_edges, ..., a_edges.1, ..."""
-    return f".{part}" if part else ""
-
-
 def _file_arrays(tab):
     """The 2D arrays a table file holds for tab (one part of mixed tables, or the whole), the
     edges once per layout, and each bin's layout (a list)."""
@@ -647,118 +393,3 @@ def _file_arrays(tab):
             "b_edges": tab.b_edges.reshape(B, R, C + 1)[first].reshape(len(first) * R, C + 1),
             **{n: getattr(tab, n).reshape(B * R, C * per[n]) for n in tab.ARRAYS},
             "weights": tab.weights.reshape(B * R, C * 3)}, [int(i) for i in index]
-
-
-def _bins_of(meta, key, path, hi, lo=0.0, closed=True, groups=False):
-    """The increasing list meta[key] within [lo, hi] (hi excluded unless closed), or FlowBSDFError.
-    groups: an inner angle may appear twice, the boundary of two layout groups (groups_ok)."""
-    try:
-        bins = np.asarray(meta[key], np.float64)
-    except (TypeError, ValueError):
-        bins = np.array([np.nan])
-    if (bins.ndim != 1 or len(bins) < 1 or not np.all(np.isfinite(bins))
-            or not (groups_ok(bins) if groups else np.all(np.diff(bins) > 0))
-            or bins[0] < lo or (bins[-1] > hi if closed else bins[-1] >= hi)):
-        raise FlowBSDFError(f"{key} {meta[key]!r} must be increasing angles in [{lo:g}, {hi:g}"
-                            f"{']' if closed else ')'}{' (an inner one at most twice)' if groups else ''}: "
-                            "corrupt file", path)
-    return bins
-
-
-def groups_ok(theta_bins):
-    """theta_bins increasing, where an inner angle may appear twice: the last bin of one layout
-    group and the first of the next (tabulate.join_groups). theta_i below it blends the lower
-    group's bins, at or above it the upper group's: bins are found by the count of those <= theta_i,
-    so the empty interval between the two is never used (not at the ends: past the last bin the
-    last interval is used, and it must not be empty)."""
-    d = np.diff(np.asarray(theta_bins, np.float64))
-    return bool(np.all(d >= 0) and (len(d) == 0 or (d[0] > 0 and d[-1] > 0))
-                and not np.any((d[:-1] == 0) & (d[1:] == 0)))
-
-
-def _phi_period(meta, path):
-    """The period of phi_bins: 2 pi / n for a whole n (2 pi when absent)."""
-    period = meta.get("phi_period", TWO_PI)
-    n = TWO_PI / period if isinstance(period, (int, float)) and not isinstance(period, bool) and period > 0 else 0.0
-    if not (np.isfinite(n) and n >= 1 - 1e-9 and abs(n - round(n)) < 1e-9):
-        raise FlowBSDFError(f"phi_period {period!r} must be 2 pi / n for a whole n: corrupt file", path)
-    return float(period)
-
-
-def open_tables(path):
-    """The Tables (or MixedTables) of a table file; FlowBSDFError saying what is wrong with it."""
-    arrays, meta = read_exr(path)
-    if meta.get("format") != "flowbsdf-tables":
-        raise FlowBSDFError("not a FlowBSDF table file", path)
-    version = meta.get("format_version")
-    if isinstance(version, bool) or version not in READS:
-        raise FlowBSDFError(f"table format version {version} (this FlowBSDF reads versions "
-                            f"{', '.join(map(str, sorted(READS)))}); re-bake it", path)
-    try:
-        theta_bins = _bins_of(meta, "theta_bins", path, 0.5 * np.pi, groups=meta.get("phi_bins") is None)
-        kind, shared = READS[version]
-        if kind == "plain":
-            return _open_part(arrays, meta, path, "", theta_bins, int(meta["rows"]), int(meta["cols"]), meta,
-                              meta["layouts"] if shared else None)
-        parts = meta["parts"]
-        counts = [int(p["bins"]) for p in parts]
-        if (meta.get("phi_bins") is not None or len(parts) < 2 or sum(counts) != len(theta_bins)
-                or any(c < 2 for c in counts)):
-            raise FlowBSDFError(f"mixed tables' parts {parts!r} do not cover their {len(theta_bins)} isotropic "
-                                "bins: corrupt file", path)
-        starts = np.cumsum([0] + counts)
-        return MixedTables([_open_part(arrays, meta, path, _suffix(n), theta_bins[s:s + c], int(p["rows"]),
-                                       int(p["cols"]), {}, p["layouts"] if shared else None)
-                            for n, (p, s, c) in enumerate(zip(parts, starts, counts))], meta)
-    except KeyError as e:
-        raise FlowBSDFError(f"table file is incomplete (truncated or damaged?): {e} is missing", path) from None
-    except (TypeError, ValueError) as e:
-        raise FlowBSDFError(f"table metadata is malformed: {e}", path) from None
-
-
-def _open_part(arrays, meta, path, suffix, theta_bins, R, C, own_meta, layouts=None):
-    """The Tables of the arrays named <name><suffix> (a whole file: suffix ""); layouts: each
-    bin's row of the edges (None: one per bin)."""
-    a, b, w = arrays["a_edges" + suffix], arrays["b_edges" + suffix], arrays["weights" + suffix]
-    cells = [arrays[n + suffix] for n in Tables.ARRAYS]
-    phi_bins, period = None, TWO_PI
-    if meta.get("phi_bins") is not None:       # anisotropic: bins over phi_i within one period
-        period = _phi_period(meta, path)
-        closed = meta.get("coords") == "halfvector"     # the last bin at the first + period
-        phi_bins = _bins_of(meta, "phi_bins", path, 2 * period if closed else period, closed=closed)
-        if closed and (len(phi_bins) < 2 or not np.isclose(phi_bins[-1] - phi_bins[0], period)):
-            raise FlowBSDFError(f"phi_bins {meta['phi_bins']!r} of halfvector tables must close the period "
-                                f"{period:g}: corrupt file", path)
-    coords = meta.get("coords", "wo")
-    if coords not in COORDS:
-        raise FlowBSDFError(f"table coordinates {coords!r} are unknown (this FlowBSDF reads {list(COORDS)}); "
-                            "re-bake it", path)
-    K, P = len(theta_bins), 1 if phi_bins is None else len(phi_bins)
-    B = K * P
-    per = [1, NSEG, NSEG]
-    shapes = [w.shape] + [c.shape for c in cells]
-    if shapes != [(B * R, C * 3)] + [(B * R, C * n) for n in per]:
-        raise FlowBSDFError(f"table shapes {shapes} do not match {K} x {P} bins of {R}x{C}", path)
-    layouts = np.arange(B) if layouts is None else np.asarray(layouts)
-    L = len(a)
-    if (layouts.shape != (B,) or layouts.dtype.kind not in "iu" or np.any(layouts < 0)
-            or not np.array_equal(np.unique(layouts), np.arange(L))):
-        raise FlowBSDFError(f"layouts {layouts.tolist()!r} must name one of the {L} stored cell layouts for each "
-                            f"of the {B} bins, each layout used: corrupt file", path)
-    if [a.shape, b.shape] != [(L, R + 1), (L * R, C + 1)]:
-        raise FlowBSDFError(f"table edge shapes {[a.shape, b.shape]} do not match {L} layouts of {R}x{C}", path)
-    if any(x.dtype != np.float32 for x in (a, b, cells[0])):
-        raise FlowBSDFError("table edges and masses must be float32: corrupt file", path)
-    if not all(np.all(np.isfinite(x)) for x in (a, b, w, *cells)):
-        raise FlowBSDFError("table holds NaN or inf", path)
-    mass, alpha, beta = cells
-    if (np.any(np.diff(a, axis=1) <= 0) or np.any(np.diff(b, axis=1) <= 0) or np.any(mass <= 0)
-            or not _valid_profiles(alpha.reshape(*mass.shape, NSEG), beta.reshape(*mass.shape, NSEG), mass.shape)):
-        raise FlowBSDFError("table edges not increasing, masses not positive or profiles out of "
-                            "range: corrupt file", path)
-    lead = (K,) if phi_bins is None else (K, P)
-    a, b = a[layouts], b.reshape(L, R, C + 1)[layouts]
-    return Tables(theta_bins, a.reshape(*lead, R + 1), b.reshape(*lead, R, C + 1),
-                  mass.reshape(*lead, R, C), *(c.reshape(*lead, R, C, NSEG) for c in (alpha, beta)),
-                  w.reshape(*lead, R, C, 3), own_meta,
-                  phi_bins=phi_bins, phi_period=period, coords=coords, frame_angle=float(meta.get("frame_angle", 0.0)))

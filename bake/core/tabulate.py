@@ -18,7 +18,9 @@ from ..io.threads import parallel as _parallel
 from ..maths.fasttables import one_blas_thread
 from ..maths.geometry import luminance, spherical_dir
 from . import halfvector
-from .tables import HALF_MAX, K_MAX, NSEG, TWO_PI, MixedTables, Tables, _log_mean, _search, exp_density, exp_mean, to_ab
+from .mixed_tables import MixedTables
+from .profiles import K_MAX, NSEG, _log_mean, exp_density, exp_mean
+from .tables import HALF_MAX, TWO_PI, Tables, _search, to_ab
 
 A_MIN = 1e-4     # the least gap between row knots (keeps every segment of rows non-empty)
 B_MIN = 1e-4     # the same for column knots

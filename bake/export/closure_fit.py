@@ -96,7 +96,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.tables import MixedTables
+from ..core.mixed_tables import MixedTables
 from ..errors import FlowBSDFError
 from ..formats import FIT_VERSION, READABLE_FIT_VERSIONS, fit_current
 from ..io.exrio import write_rgba_exr

@@ -25,7 +25,7 @@ file, and it offers write_world_texture and read_world_meta.
 from functools import cached_property
 from pathlib import Path
 
-from ..core.tables import open_tables
+from ..core.table_files import open_tables
 from ..errors import FlowBSDFError
 from ..io.files import file_hash
 from . import carry_export, closure_fit, osl_export, svm_export

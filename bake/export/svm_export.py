@@ -84,7 +84,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.tables import NSEG
+from ..core.profiles import NSEG
 from ..errors import FlowBSDFError
 from ..formats import SVM_LAYOUT
 from ..io.exrio import read_rgba_exr, write_rgba_exr

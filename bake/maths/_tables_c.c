@@ -78,14 +78,14 @@ double sin(double) FT_VEC;
 
 static const double PI = 3.141592653589793;       /* np.pi */
 static const double TWO_PI = 6.283185307179586;   /* 2.0 * np.pi */
-static const double SMALL = 1e-4;                 /* tables._SMALL */
+static const double SMALL = 1e-4;                 /* profiles._SMALL */
 static const double QUARTER = 0.7853981633974483; /* halfvector.QUARTER, 0.25 * np.pi */
 static const double TINY = 1e-300;                /* halfvector._TINY */
 
 #define BLK 16      /* samples per block (see the header) */
-#define NSEG 3      /* tables.NSEG: a profile's pieces */
+#define NSEG 3      /* profiles.NSEG: a profile's pieces */
 #define NN 4        /* and its node values */
-static const double LOG_MEAN_SERIES = 1e-3;       /* tables.LOG_MEAN_SERIES */
+static const double LOG_MEAN_SERIES = 1e-3;       /* profiles.LOG_MEAN_SERIES */
 
 /* The Tables, as bake/maths/fasttables.py passes them (C-contiguous arrays). Anisotropic
  * tables (P > 1, halfvector coordinates only): bins k P + p, the phi axis closed (the last
@@ -129,7 +129,7 @@ FT_INLINE double mod_two_pi(double x) {
 }
 
 /* The exponential of a profile's piece, for a block: rate_e (expm1(k), the one every exact
- * branch needs; 0 when unused, |k| < SMALL) and exp_cdf, exp_inverse_cdf of tables.py
+ * branch needs; 0 when unused, |k| < SMALL) and exp_cdf, exp_inverse_cdf of profiles.py
  * (e = rate_e(k)). Each computes its libm function for every lane in a loop of
  * its own (vector lanes; a call under a branch would not vectorize), then selects. */
 FT_INLINE void rate_e(const double *k, double *e) {
@@ -152,7 +152,7 @@ FT_INLINE void exp_inverse_cdf(const double *u, const double *k, const double *e
         out[q] = clip01(fabs(k[q]) < SMALL ? u[q] - 0.5 * k[q] * (u[q] * u[q] - u[q]) : t[q] / k[q]);
 }
 
-/* The profiles of a block's cells (tables.profile_parts, profile_sample, profile_density,
+/* The profiles of a block's cells (profiles.profile_parts, profile_sample, profile_density,
  * profile_cdf): node values V[n][lane]. Each libm call in a loop of its own, as above. */
 FT_INLINE void profile_parts(const double V[NN][BLK], double M[NSEG][BLK], double *tot, double LR[NSEG][BLK]) {
     for (int n = 0; n < NSEG; n++) {
@@ -177,7 +177,7 @@ FT_INLINE void piece_rate(const double V[NN][BLK], const double LR[NSEG][BLK], c
     }
 }
 
-/* tables.profile_sample: the place x and the density there (from the piece found) */
+/* profiles.profile_sample: the place x and the density there (from the piece found) */
 FT_INLINE void profile_sample(const double *u, const double V[NN][BLK], double *out, double *dens) {
     double M[NSEG][BLK], LR[NSEG][BLK], tot[BLK], target[BLK], prev[BLK], rem[BLK], v0[BLK], rate[BLK], e[BLK],
         t[BLK], g[BLK];
@@ -200,7 +200,7 @@ FT_INLINE void profile_sample(const double *u, const double V[NN][BLK], double *
     }
 }
 
-/* tables._piece: piece k and place t of x */
+/* profiles._piece: piece k and place t of x */
 FT_INLINE void piece_of(const double *x, int64_t *k, double *t) {
     for (int q = 0; q < BLK; q++) {
         const double f = floor(x[q] * NSEG);
@@ -844,7 +844,7 @@ FT_CLONES static void run_part(int kind, const ft_tables *T, int64_t n, const do
 #define GROUP_MAX ((int64_t)1 << 18)    /* samples grouped at a time (their copies: 23 MB at most) */
 
 /* Per sample of a block of directions w (row stride `stride`): the part of mixed tables
- * (tables.MixedTables.part_at: the count of bounds <= theta_i, theta_i as bins() computes it)
+ * (mixed_tables.MixedTables.part_at: the count of bounds <= theta_i, theta_i as bins() computes it)
  * and the sort key: the part, then z's step. NaN goes to part 0, step 0. */
 FT_INLINE void group_keys(const double *w, int64_t stride, int64_t nparts, const double *bounds, int64_t *part,
                           int64_t *key) {

@@ -13,9 +13,9 @@
     warp_to_s(warp, wi, wo), warp_from_s(warp, wi, s)
                 rgl.WarpedCoords' to_s and from_s (the carried tables' hot loop)
 
-The C code is a transcription of the numpy reference in tables.py (same formulas, same
-order of operations, same branches): results agree to a few ulps (libm's or libmvec's
-atan2, exp, ... and numpy's own SIMD versions differ in the last bits). With glibc's
+The C code is a transcription of the numpy reference in bake/core/tables.py and profiles.py
+(same formulas, same order of operations, same branches): results agree to a few ulps (libm's
+or libmvec's atan2, exp, ... and numpy's own SIMD versions differ in the last bits). With glibc's
 vector math (libmvec, x86-64 Linux) the transcendental functions of 16 samples run in
 vector lanes (`flowbsdf report` measures the speed, with one wi per call and with a new
 wi per sample, beside Mitsuba's).

@@ -18,7 +18,7 @@ from dataclasses import replace
 
 from ..core.sampler import open_sampler
 from ..core.settings import BakeSettings
-from ..core.tables import open_tables
+from ..core.table_files import open_tables
 from ..errors import FlowBSDFError
 from ..formats import BUILDER, FORMAT
 from ..io.files import file_hash, remove_stale_temps

@@ -64,7 +64,7 @@ float expm1_(float x)
     return (abs(x) < 1e-5) ? x + 0.5 * x * x : exp(x) - 1.0;
 }
 
-// Inverse CDF of the in-cell density k e^(k x) / (e^k - 1) on [0, 1] (bake/core/tables.py).
+// Inverse CDF of the in-cell density k e^(k x) / (e^k - 1) on [0, 1] (bake/core/profiles.py).
 float exp_inverse_cdf(float u, float k)
 {
     float x;
@@ -75,7 +75,7 @@ float exp_inverse_cdf(float u, float k)
     return clamp(x, 0.0, 1.0);
 }
 
-// bake/core/tables.py _log_mean: (v1 - v0) / log(v1 / v0), its series where they are close.
+// bake/core/profiles.py _log_mean: (v1 - v0) / log(v1 / v0), its series where they are close.
 float log_mean(float v0, float v1)
 {
     float r = v1 / v0;
@@ -83,7 +83,7 @@ float log_mean(float v0, float v1)
     return (abs(lr) < LOG_MEAN_SERIES) ? v0 * (1.0 + lr * (0.5 + lr / 6.0)) : v0 * ((r - 1.0) / lr);
 }
 
-// bake/core/tables.py profile_parts: the pieces' masses of a profile's node values, and their total.
+// bake/core/profiles.py profile_parts: the pieces' masses of a profile's node values, and their total.
 float profile_parts(float V[4], output float M[3])
 {
     for (int k = 0; k < NSEG; k++)
@@ -91,7 +91,7 @@ float profile_parts(float V[4], output float M[3])
     return M[0] + M[1] + M[2];
 }
 
-// bake/core/tables.py profile_sample: the piece whose CDF brackets u, then its exponential; and
+// bake/core/profiles.py profile_sample: the piece whose CDF brackets u, then its exponential; and
 // the profile's density there, from that piece.
 float profile_sample(float u, float V[4], output float density)
 {
@@ -113,7 +113,7 @@ float profile_sample(float u, float V[4], output float density)
     return (k + t) / NSEG;
 }
 
-// bake/core/tables.py profile_density.
+// bake/core/profiles.py profile_density.
 float profile_density(float x, float V[4])
 {
     float M[3];

@@ -7,8 +7,8 @@ from .graph import (GROUP_PREFIX, X, Y, Z, _Graph, _group, _image, _key, atan2, 
                     minimum, saturate, sin, sinh, sqrt, where)
 from .halfvector import _half_from_ab, _half_to_ab, _half_wi, _polar_from_ab, _polar_ref, _polar_to_ab, _polar_wi
 
-K_SMALL = 1e-4          # bake/core/tables.py _SMALL: the in-cell density's small-rate branch
-LOG_MEAN_SERIES = 1e-3  # bake/core/tables.py LOG_MEAN_SERIES: the log mean's series below it
+K_SMALL = 1e-4          # bake/core/profiles.py _SMALL: the in-cell density's small-rate branch
+LOG_MEAN_SERIES = 1e-3  # bake/core/profiles.py LOG_MEAN_SERIES: the log mean's series below it
 
 
 def _svm_export():
@@ -306,7 +306,7 @@ def _turn(g, w, angle):
 
 
 def _log_mean(g, v0, v1):
-    """bake/core/tables.py _log_mean: (v1 - v0) / log(v1 / v0), its series where they are close;
+    """bake/core/profiles.py _log_mean: (v1 - v0) / log(v1 / v0), its series where they are close;
     and log(v1 / v0) (the piece's rate)."""
     r = v1 / v0
     lr = log(r)
@@ -318,7 +318,7 @@ def _log_mean(g, v0, v1):
 
 def _profile(g, nodes):
     """A cell's blended profile along one axis: its node values, the pieces' masses and their
-    total (bake/core/tables.py profile_parts), and the pieces' log rates."""
+    total (bake/core/profiles.py profile_parts), and the pieces' log rates."""
     n = len(nodes) - 1
     means, rates = zip(*(_log_mean(g, nodes[k], nodes[k + 1]) for k in range(n)))
     masses = [mean * (1.0 / n) for mean in means]
@@ -343,7 +343,7 @@ def _profile_piece(g, steps, nodes, rates):
 
 
 def _profile_sample(g, u, profile):
-    """bake/core/tables.py profile_sample: the place of u and the profile's density there (from
+    """bake/core/profiles.py profile_sample: the place of u and the profile's density there (from
     the piece found: its start value, rate and place t)."""
     nodes, masses, total, rates = profile
     n = len(masses)
@@ -366,7 +366,7 @@ def _profile_sample(g, u, profile):
 
 
 def _profile_density(g, x, profile):
-    """bake/core/tables.py profile_density."""
+    """bake/core/profiles.py profile_density."""
     nodes, masses, total, rates = profile
     n = len(masses)
     s = x * float(n)
@@ -399,7 +399,7 @@ def _small(g, k):
 
 
 def _exp_inverse_cdf(g, u, k):
-    """bake/core/tables.py exp_inverse_cdf, both branches, one selected; also e^k - 1 (reused)."""
+    """bake/core/profiles.py exp_inverse_cdf, both branches, one selected; also e^k - 1 (reused)."""
     series = fma(k * (u * (1.0 - u)), 0.5, u)
     ex = _expm1(g, k)
     exact = _log1p(g, u * ex) / k
