@@ -590,10 +590,11 @@ def test_next_knot_keeps_each_lobes_identity(monkeypatch):
     crossed = [diffuse, (wide, iso, flat), (sharp, iso, flat)]
     monkeypatch.setattr(closure_fit, "_descend", lambda *args, **kwargs: list(crossed))
     knot = closure_fit._Knot(tables, np.radians(50.0))
+    mid = closure_fit._Knot(tables, np.radians(45.0), n=512, seed=7)     # (fit_closures' half-way quadrature)
     half_way = {}
     for relabel in (False, True):
         monkeypatch.setattr(closure_fit, "RELABEL", relabel)
-        got, weights = closure_fit._next_knot(tables, knot, fit, lobes, k, 2, 1024, 0)
+        got, weights = closure_fit._next_knot(knot, mid, fit, lobes, k, 2)
         this = closure_fit._knot_params(knot, got, weights)
         pair = {key: fit[key] + [this[key]] for key in closure_fit.PARAM_KEYS}
         half_way[relabel] = closure_fit.fit_error(pair, tables, [45.0])[0]
