@@ -1194,7 +1194,21 @@ def test_planner_keeps_one_layout_where_groups_are_not_closer():
         assert np.array_equal(getattr(same, name), getattr(tab, name)), name
 
 
-def test_planner_gives_layout_groups_their_own_resolutions(monkeypatch):
+@pytest.fixture(scope="module")
+def gloss_plan():
+    """GlossAtGrazing planned at 24² cells within ~9 bins' budget over the half vector, with the
+    full placement comparison (plan_tables' default): (material, its ideal, settings, tables, the
+    plan's log lines), planned once for the two tests that read this plan (the planner is
+    deterministic: the same tables with or without a log, on a fresh ideal or a used one)."""
+    mat = GlossAtGrazing()
+    ideal = IdealSampler(mat, resolution=64)
+    settings = BakeSettings(resolution=24, tol=0.01, grid=96, samples=1024, first_bins=7, memory_budget=125_000,
+                            ideal_resolution=64)
+    lines = []
+    return mat, ideal, settings, plan_tables(mat, ideal, settings, log=lines.append, coords="halfpolar"), lines
+
+
+def test_planner_gives_layout_groups_their_own_resolutions(gloss_plan, monkeypatch):
     """GlossAtGrazing at 24² cells and a budget of ~9 bins: the lower group at 16² cells frees
     memory for more bins where the mirror lobe needs them (the planner's estimate, measured: 1.89x
     against 2.48x for one layout), so the plan is MixedTables within the budget; measured apart
@@ -1203,11 +1217,7 @@ def test_planner_gives_layout_groups_their_own_resolutions(monkeypatch):
     at 87.5 deg, half-way between two bins 7 deg apart, where the mixed plan has one at 86.2)."""
     from bake.core import planner
     from bake.core.mixed_tables import MixedTables
-    mat = GlossAtGrazing()
-    ideal = IdealSampler(mat, resolution=64)
-    settings = BakeSettings(resolution=24, tol=0.01, grid=96, samples=1024, first_bins=7, memory_budget=125_000,
-                            ideal_resolution=64)
-    tab = plan_tables(mat, ideal, settings, coords="halfpolar")
+    mat, ideal, settings, tab, _ = gloss_plan
     assert isinstance(tab, MixedTables) and [p.rows for p in tab.parts] == [16, 24], tab.meta
     assert tab.meta["resolution"] == [16, 24] and tab.nbytes <= settings.memory_budget
     monkeypatch.setattr(planner, "RESOLUTIONS", tuple(r for r in planner.RESOLUTIONS if r >= 24))
@@ -1220,20 +1230,17 @@ def test_planner_gives_layout_groups_their_own_resolutions(monkeypatch):
 
 
 
-def test_placement_rule_keeps_what_the_full_comparison_keeps():
+def test_placement_rule_keeps_what_the_full_comparison_keeps(gloss_plan):
     """plan_tables' placement="rule" compares only the layout groups split nearest
     planner.RULE_SPLITS_DEG (55 and 75 deg) and the better one's groups of their own resolutions
     (on the ten shared files the full comparison kept one of those or a near-tie:
     docs/placements.md). On GlossAtGrazing (the handover at 55-65 deg) the full comparison keeps
     one of those: the rule keeps the same tables, byte for byte, from fewer placements built."""
     import re
-    mat = GlossAtGrazing()
-    ideal = IdealSampler(mat, resolution=64)
-    settings = BakeSettings(resolution=24, tol=0.01, grid=96, samples=1024, first_bins=7, memory_budget=125_000,
-                            ideal_resolution=64)
-    lines = {"rule": [], "compare": []}
-    tabs = {how: plan_tables(mat, ideal, settings, log=lines[how].append, coords="halfpolar", placement=how)
-            for how in lines}
+    mat, ideal, settings, compared, compare_lines = gloss_plan      # (placement "compare": the default)
+    lines = {"rule": [], "compare": compare_lines}
+    tabs = {"rule": plan_tables(mat, ideal, settings, log=lines["rule"].append, coords="halfpolar", placement="rule"),
+            "compare": compared}
     kept = {how: lines[how][[s.startswith("tables: building") for s in lines[how]].index(True) - 1] for how in lines}
     built = {how: sum(bool(re.match(r"between bins: placement \d+ of", s)) for s in lines[how]) for how in lines}
     assert kept["rule"] == kept["compare"], kept
