@@ -110,16 +110,19 @@ def slow_unless(values, default, unpack=False):
             for v in values]
 
 
-# The files whose tests take longest, longest first (summed seconds of the default run, fresh
-# clone, this machine, session 26's end: cycles 175, cycles_lights 162, addon 114, flow 104, svm
-# 96, tracer_lamps 88, tables 86, crash_safety 73, aniso_tables 69, farm 67). Two workers take
-# whole files (test.sh: --dist loadfile) in the order collected (with --no-loadscope-reorder;
-# xdist's default order, most tests first, left test_cycles_lights.py near the end), so the run
-# waited for one worker. Longest first, the short files fill the gaps.
-LONGEST_FIRST = ("test_cycles.py", "test_cycles_lights.py", "test_addon.py", "test_library.py", "test_flow.py",
-                 "test_svm.py", "test_tracer_lamps.py", "test_tables.py", "test_crash_safety.py",
-                 "test_aniso_tables.py", "test_farm.py", "test_hard_cases.py", "test_pipeline.py",
-                 "test_blender_batch.py")
+# The files whose tests take longest, longest first (summed CPU seconds of each file's tests in
+# the default run, session 47, main 412a969, under load; scripts/pytest_cpu.py: cycles_lights 247,
+# cycles 211, tables 210, svm 146, addon 104, pipeline 87, farm 83, closure_fit 70, crash_safety 62,
+# library 56, aniso_tables 50, tracer_lamps 49, flow 49, blender_batch 45, fit_rings 38, hard_cases
+# 36, fit_render 30, carried 24; the rest under 20 each). Two workers take whole files (test.sh:
+# --dist loadfile) in the order collected (with --no-loadscope-reorder; xdist's default order,
+# most tests first, left test_cycles_lights.py near the end), so the run waited for one worker.
+# Longest first, the short files fill the gaps.
+LONGEST_FIRST = ("test_cycles_lights.py", "test_cycles.py", "test_tables.py", "test_svm.py", "test_addon.py",
+                 "test_pipeline.py", "test_farm.py", "test_closure_fit.py", "test_crash_safety.py",
+                 "test_library.py", "test_aniso_tables.py", "test_tracer_lamps.py", "test_flow.py",
+                 "test_blender_batch.py", "test_fit_rings.py", "test_hard_cases.py", "test_fit_render.py",
+                 "test_carried.py")
 
 
 def pytest_collection_modifyitems(config, items):
