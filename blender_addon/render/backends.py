@@ -96,10 +96,11 @@ def svm_pays(scene):
     (cm_military_green) and 0.21 (vch_golden_yellow) at 3.5x and 6.8x the fit's CPU time: at
     equal time the fit wins (~4x and ~1.9x) (the note of s41, svmdef). With denoising on too
     (Blender's default; scripts/denoise_pays.py, 96 px, 3 seeds, session 47) the fit still wins at
-    equal time: SVM at 64-4096 samples cost 1.4-19x the fit's CPU at 4096, and the denoiser biases
-    the SVM graph's image (vch_golden_yellow: bias^2 1.7e-3 at 4096 samples denoised, none within noise undenoised at 1024;
-    the fit's whole MSE 7.6e-4); cm_military_green's SVM at 64 samples 1.6x the fit's MSE at 1.4x its
-    CPU."""
+    equal time: SVM at 64-4096 samples cost 1.4-19x the fit's CPU at 4096, and the denoiser makes
+    the SVM graph's image worse, not better (vch_golden_yellow, 1024 samples: MSE 4.8e-4 undenoised,
+    3.1-3.2e-3 denoised, 4.9e-3 with the denoiser's albedo/normal guides off; the fit's whole MSE
+    7.5e-4, its bias); cm_military_green's SVM at 64 samples, denoised, 1.6x the fit's MSE at 1.4x
+    its CPU."""
     return (bpy.app.version >= (5, 0, 0) and int(scene.cycles.samples) >= SVM_LAMP_SAMPLES
             and not scene.cycles.use_adaptive_sampling)
 
